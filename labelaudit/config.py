@@ -1,0 +1,227 @@
+"""Typed run configuration: model, prior, spatial grid, crop and class selection, loaded from TOML.
+
+Every tunable has a default in :mod:`labelaudit.constants`; a TOML file overrides them per dataset
+(``configs/kitti.toml``, ``configs/waymo.toml``). Unknown keys are an error, so a typo never
+silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+from labelaudit import constants as C
+
+ModelKind = Literal["bev", "3d"]
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+"""Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the message names the file, key and expectation."""
+
+
+@dataclass(frozen=True)
+class ClassPrior:
+    """Prior std of one class's box parameters (metres, radians), before the weight w."""
+
+    center: float  # std of cx, cy and cz
+    length: float
+    width: float
+    height: float
+    yaw: float
+
+
+def default_priors() -> dict[str, ClassPrior]:
+    """The built-in per-class priors of :data:`labelaudit.constants.DEFAULT_PRIORS`."""
+    return {name: ClassPrior(**values) for name, values in C.DEFAULT_PRIORS.items()}
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """Parameters of the generative label model (DESIGN.md §4)."""
+
+    model: ModelKind = C.DEFAULT_MODEL
+    sigma: float = C.DEFAULT_SIGMA
+    estimate_sigma: bool = False
+    num_nearest: int = C.DEFAULT_NUM_NEAREST
+    outlier_prob: float = 0.0
+    prior_weight: float = C.DEFAULT_PRIOR_WEIGHT
+    priors: Mapping[str, ClassPrior] = field(default_factory=lambda: default_priors())
+    min_points: int = C.DEFAULT_MIN_POINTS
+
+    def prior_for(self, class_name: str) -> ClassPrior:
+        """Prior of a class; unknown classes fall back to the ``default`` entry."""
+        if class_name in self.priors:
+            return self.priors[class_name]
+        return self.priors["default"]
+
+
+@dataclass(frozen=True)
+class SpatialParams:
+    """Grid and sampling of the spatial distribution p_G (DESIGN.md §5)."""
+
+    cells_per_side: int = C.DEFAULT_CELLS_PER_SIDE
+    num_samples: int = C.DEFAULT_NUM_SAMPLES
+    support_std: float = C.DEFAULT_SUPPORT_STD
+    seed: int = C.DEFAULT_QMC_SEED
+
+
+@dataclass(frozen=True)
+class CropParams:
+    """Point selection per box (DESIGN.md §2)."""
+
+    margin: float = C.DEFAULT_CROP_MARGIN
+    ground_cut: float = C.DEFAULT_GROUND_CUT
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything that determines the rows of a run; its hash guards ``--resume``."""
+
+    dataset_format: str = "kitti"
+    classes: tuple[str, ...] = C.DEFAULT_CLASSES
+    min_length: float = 0.0  # Waymo: the paper audits small vehicles only (3–6.5 m)
+    max_length: float = float("inf")
+    model: ModelParams = field(default_factory=ModelParams)
+    spatial: SpatialParams = field(default_factory=SpatialParams)
+    crop: CropParams = field(default_factory=CropParams)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dictionary of every parameter."""
+        d = asdict(self)
+        d["classes"] = list(self.classes)
+        d["max_length"] = None if self.max_length == float("inf") else self.max_length
+        return d
+
+    def param_hash(self) -> str:
+        """Stable hash of all parameters (sha256 of canonical JSON, first 16 hex digits)."""
+        blob = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def with_overrides(self, **kw: Any) -> "RunConfig":
+        """Copy with top-level fields replaced (``model=``, ``classes=`` …)."""
+        return replace(self, **kw)
+
+
+def _check_keys(section: Mapping[str, Any], allowed: set[str], where: str, source: str) -> None:
+    unknown = sorted(set(section) - allowed)
+    if unknown:
+        raise ConfigError(
+            f"{source}: unknown key(s) {', '.join(unknown)} in [{where}]; expected one of {', '.join(sorted(allowed))}"
+        )
+
+
+def _typed(value: Any, kind: type, key: str, source: str) -> Any:
+    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if kind is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if kind is bool and isinstance(value, bool):
+        return value
+    if kind is str and isinstance(value, str):
+        return value
+    raise ConfigError(f"{source}: {key} must be {kind.__name__}, got {value!r}")
+
+
+def _build(cls: type, section: Mapping[str, Any], where: str, source: str, skip: set[str] = set()) -> Any:
+    names = {f.name: f for f in fields(cls) if f.name not in skip}
+    _check_keys(section, set(names), where, source)
+    kw = {}
+    for key, value in section.items():
+        f = names[key]
+        kind = {"float": float, "int": int, "bool": bool, "str": str}.get(str(f.type), None)
+        if kind is None:  # Literal / complex types are handled by the caller
+            kw[key] = value
+        else:
+            kw[key] = _typed(value, kind, f"[{where}] {key}", source)
+    return kw
+
+
+def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -> RunConfig:
+    """Load a run configuration.
+
+    Parameters
+    ----------
+    path : TOML file, or None for the built-in config of ``dataset_format``.
+    dataset_format : "kitti", "waymo-v2" or "waymo-v1"; chooses the built-in config.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, TOML syntax error (with line), unknown key or wrong type.
+    """
+    if path is None:
+        name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
+        path = CONFIG_DIR / name
+    path = Path(path)
+    source = str(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{source}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML ({exc})") from None
+    return config_from_dict(data, source=source, dataset_format=dataset_format)
+
+
+def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", dataset_format: str = "kitti") -> RunConfig:
+    """Build a :class:`RunConfig` from a parsed TOML mapping (see :func:`load_config`)."""
+    _check_keys(data, {"dataset", "model", "prior", "spatial", "crop"}, "top level", source)
+    ds = dict(data.get("dataset", {}))
+    _check_keys(ds, {"classes", "min_length", "max_length"}, "dataset", source)
+    classes = ds.get("classes", list(C.DEFAULT_CLASSES))
+    if not (isinstance(classes, list) and all(isinstance(c, str) for c in classes) and classes):
+        raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {classes!r}")
+
+    model_kw = _build(ModelParams, data.get("model", {}), "model", source, skip={"priors"})
+    if "model" in model_kw and model_kw["model"] not in ("bev", "3d"):
+        raise ConfigError(f"{source}: [model] model must be 'bev' or '3d', got {model_kw['model']!r}")
+    priors = default_priors()
+    for cls_name, section in data.get("prior", {}).items():
+        kw = _build(ClassPrior, section, f"prior.{cls_name}", source)
+        missing = {f.name for f in fields(ClassPrior)} - set(kw)
+        if missing:
+            raise ConfigError(f"{source}: [prior.{cls_name}] is missing {', '.join(sorted(missing))}")
+        priors[cls_name] = ClassPrior(**kw)
+    model = ModelParams(priors=priors, **model_kw)
+    spatial = SpatialParams(**_build(SpatialParams, data.get("spatial", {}), "spatial", source))
+    crop = CropParams(**_build(CropParams, data.get("crop", {}), "crop", source))
+    validate_params(model, spatial, crop, source)
+    return RunConfig(
+        dataset_format=dataset_format,
+        classes=tuple(classes),
+        min_length=float(ds.get("min_length", 0.0)),
+        max_length=float(ds.get("max_length", float("inf"))),
+        model=model,
+        spatial=spatial,
+        crop=crop,
+    )
+
+
+def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams, source: str = "<config>") -> None:
+    """Check ranges in one place; the message shows the bad value and the accepted range."""
+    checks = [
+        (model.sigma > 0, f"[model] sigma must be > 0, got {model.sigma}"),
+        (model.num_nearest >= 1, f"[model] num_nearest must be ≥ 1, got {model.num_nearest}"),
+        (0 <= model.outlier_prob < 1, f"[model] outlier_prob must be in [0, 1), got {model.outlier_prob}"),
+        (model.prior_weight > 0, f"[model] prior_weight must be > 0, got {model.prior_weight}"),
+        (model.min_points >= 0, f"[model] min_points must be ≥ 0, got {model.min_points}"),
+        (spatial.cells_per_side >= 8, f"[spatial] cells_per_side must be ≥ 8, got {spatial.cells_per_side}"),
+        (spatial.num_samples >= 16, f"[spatial] num_samples must be ≥ 16, got {spatial.num_samples}"),
+        (spatial.support_std > 0, f"[spatial] support_std must be > 0, got {spatial.support_std}"),
+        (crop.margin >= 0, f"[crop] margin must be ≥ 0, got {crop.margin}"),
+        (crop.ground_cut >= 0, f"[crop] ground_cut must be ≥ 0, got {crop.ground_cut}"),
+    ]
+    for name, prior in model.priors.items():
+        for f in fields(ClassPrior):
+            value = getattr(prior, f.name)
+            checks.append((value > 0, f"[prior.{name}] {f.name} must be > 0, got {value}"))
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(f"{source}: {message}")

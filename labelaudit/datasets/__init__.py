@@ -1,0 +1,66 @@
+"""Dataset readers (KITTI, Waymo v2 Parquet, Waymo v1 TFRecord) behind one entry point."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from labelaudit.datasets.base import DatasetError, DatasetReader, Frame, FrameRef
+
+FORMATS = ("kitti", "waymo-v2", "waymo-v1")
+
+__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameRef", "detect_format", "open_dataset"]
+
+
+def detect_format(root: str | Path) -> str:
+    """Guess the format of a dataset folder (or a single .tfrecord file).
+
+    Raises
+    ------
+    DatasetError
+        When nothing in the folder looks like a supported dataset.
+    """
+    root = Path(root)
+    if not root.exists():
+        raise DatasetError(root, "dataset path does not exist")
+    if root.is_file():
+        if root.suffix == ".tfrecord" or ".tfrecord" in root.name:
+            return "waymo-v1"
+        raise DatasetError(root, "expected a dataset folder or a .tfrecord file")
+    for base in (root, root / "training"):
+        if (base / "velodyne").is_dir() or (base / "velodyne_reduced").is_dir():
+            return "kitti"
+    if (root / "lidar_box").is_dir() or any(root.glob("*/lidar_box")):
+        return "waymo-v2"
+    if next(root.rglob("*.tfrecord*"), None) is not None:
+        return "waymo-v1"
+    raise DatasetError(
+        root,
+        "cannot tell the format: expected KITTI (velodyne/ or training/velodyne/), "
+        "Waymo v2 (lidar_box/ …) or Waymo v1 (*.tfrecord); pass --format",
+    )
+
+
+def open_dataset(root: str | Path, fmt: str = "auto", **options: object) -> DatasetReader:
+    """Open a dataset folder with the reader of its format.
+
+    Parameters
+    ----------
+    root : dataset folder (or a .tfrecord file for Waymo v1)
+    fmt : "auto", "kitti", "waymo-v2" or "waymo-v1"
+    options : reader options (KITTI: ``split``, ``classes``)
+    """
+    if fmt == "auto":
+        fmt = detect_format(root)
+    if fmt == "kitti":
+        from labelaudit.datasets.kitti import KittiReader
+
+        return KittiReader(root, **options)  # type: ignore[arg-type]
+    if fmt == "waymo-v2":
+        from labelaudit.datasets.waymo_v2 import WaymoV2Reader
+
+        return WaymoV2Reader(root, **options)  # type: ignore[arg-type]
+    if fmt == "waymo-v1":
+        from labelaudit.datasets.waymo_v1 import WaymoV1Reader
+
+        return WaymoV1Reader(root, **options)  # type: ignore[arg-type]
+    raise ValueError(f"unknown format {fmt!r}; expected auto or one of {', '.join(FORMATS)}")

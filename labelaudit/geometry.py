@@ -1,0 +1,370 @@
+"""Box parametrisations, rotations, the feature map φ(y) and its Jacobians, frame transforms.
+
+Conventions (DESIGN.md §3): everything is computed in the LiDAR/vehicle frame, x forward, y left,
+z up, yaw about +z, box centre at the geometric centre.
+
+A box is ``y = (cx, cy, cz, l, w, h, yaw)``. A point of the box with unit coordinates
+``v* ∈ [-½, ½]^d`` is ``v = R(yaw) · diag(l, w, h) · v* + c``, which is linear in the feature vector
+
+- BEV (``model="bev"``, d = 2, p = 6): ``φ = (c1, c2, l·cos, l·sin, w·cos, w·sin)``
+- 3D  (``model="3d"``,  d = 3, p = 8): ``φ = (c1, c2, c3, l·cos, l·sin, w·cos, w·sin, h)``
+
+so that ``v = J(v*) · φ`` with ``J`` depending on ``v*`` only.
+
+φ has one degree of freedom more than the box: the length and width axes may turn independently
+(a parallelogram). To make the prior on φ full rank we use the *extended* parameters
+
+- BEV: ``ỹ = (cx, cy, l, w, a, b)``, 3D: ``ỹ = (cx, cy, cz, l, w, h, a, b)``
+
+where ``a`` is the direction of the length axis and ``b`` that of the width axis turned back by
+90°; at a rectangular box ``a = b = yaw``. The reported yaw of a parallelogram is ``(a + b) / 2``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+ModelKind = Literal["bev", "3d"]
+FloatArray = NDArray[np.float64]
+
+BOX_FIELDS: tuple[str, ...] = ("cx", "cy", "cz", "length", "width", "height", "yaw")
+"""Names of the 7 box parameters, in the order of ``y``."""
+
+
+def point_dim(model: ModelKind) -> int:
+    """Dimension d of a point: 2 for BEV, 3 for 3D."""
+    return _check_model(model)[0]
+
+
+def phi_dim(model: ModelKind) -> int:
+    """Dimension p of the feature vector φ: 6 for BEV, 8 for 3D."""
+    return _check_model(model)[1]
+
+
+def _check_model(model: str) -> tuple[int, int]:
+    if model == "bev":
+        return 2, 6
+    if model == "3d":
+        return 3, 8
+    raise ValueError(f"model must be 'bev' or '3d', got {model!r}")
+
+
+def normalize_angle(angle: ArrayLike) -> FloatArray | float:
+    """Wrap angles to [-π, π)."""
+    wrapped = (np.asarray(angle, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+    return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
+
+
+def rotation_z(yaw: ArrayLike) -> FloatArray:
+    """Rotation matrix about +z.
+
+    Parameters
+    ----------
+    yaw : float or array of shape (...,)
+
+    Returns
+    -------
+    R : array of shape (..., 3, 3)
+    """
+    yaw = np.asarray(yaw, dtype=float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    zeros, ones = np.zeros_like(yaw), np.ones_like(yaw)
+    rows = [np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)]
+    return np.stack(rows, -2)
+
+
+def rotation_2d(yaw: ArrayLike) -> FloatArray:
+    """2×2 rotation matrix (or a stack of them, shape (..., 2, 2))."""
+    return rotation_z(yaw)[..., :2, :2]
+
+
+def validate_box(box: ArrayLike) -> FloatArray:
+    """Return ``box`` as a float array of shape (7,), or raise ``ValueError`` naming the bad values.
+
+    A valid box has 7 finite numbers and strictly positive length, width and height.
+    """
+    y = np.asarray(box, dtype=float)
+    if y.shape != (7,):
+        raise ValueError(f"a box is 7 numbers (cx, cy, cz, l, w, h, yaw); got shape {y.shape}")
+    if not np.all(np.isfinite(y)):
+        bad = [f"{n}={v}" for n, v in zip(BOX_FIELDS, y) if not np.isfinite(v)]
+        raise ValueError(f"box has non-finite values: {', '.join(bad)}")
+    if np.any(y[3:6] <= 0):
+        bad = [f"{n}={v:g}" for n, v in zip(BOX_FIELDS[3:6], y[3:6]) if v <= 0]
+        raise ValueError(f"box sizes must be > 0: {', '.join(bad)}")
+    return y
+
+
+def box_to_phi(box: ArrayLike, model: ModelKind) -> FloatArray:
+    """Feature vector φ(y) of a box.
+
+    Parameters
+    ----------
+    box : array of shape (7,)
+        (cx, cy, cz, l, w, h, yaw).
+    model : "bev" or "3d"
+
+    Returns
+    -------
+    phi : array of shape (6,) for BEV or (8,) for 3D
+    """
+    cx, cy, cz, length, width, height, yaw = validate_box(box)
+    c, s = np.cos(yaw), np.sin(yaw)
+    if _check_model(model)[0] == 2:
+        return np.array([cx, cy, length * c, length * s, width * c, width * s])
+    return np.array([cx, cy, cz, length * c, length * s, width * c, width * s, height])
+
+
+def phi_axes(phi: ArrayLike, model: ModelKind) -> tuple[FloatArray, FloatArray]:
+    """Centre and edge matrix of the (parallelogram) box described by φ.
+
+    Parameters
+    ----------
+    phi : array of shape (..., p)
+
+    Returns
+    -------
+    centre : array of shape (..., d)
+    axes : array of shape (..., d, d)
+        Columns are the length-edge, width-edge (and height-edge) vectors, so that a point of the
+        box is ``centre + axes @ v*``.
+    """
+    phi = np.asarray(phi, dtype=float)
+    d, p = _check_model(model)
+    if phi.shape[-1] != p:
+        raise ValueError(f"φ for model {model!r} has {p} entries, got shape {phi.shape}")
+    # length edge = (l cos, l sin); width edge = (-w sin, w cos) — see J(v*).
+    if d == 2:
+        centre = phi[..., 0:2]
+        axes = np.stack(
+            [np.stack([phi[..., 2], -phi[..., 5]], -1), np.stack([phi[..., 3], phi[..., 4]], -1)], -2
+        )
+        return centre, axes
+    zeros = np.zeros_like(phi[..., 0])
+    centre = phi[..., 0:3]
+    axes = np.stack(
+        [
+            np.stack([phi[..., 3], -phi[..., 6], zeros], -1),
+            np.stack([phi[..., 4], phi[..., 5], zeros], -1),
+            np.stack([zeros, zeros, phi[..., 7]], -1),
+        ],
+        -2,
+    )
+    return centre, axes
+
+
+def phi_to_box(phi: ArrayLike, model: ModelKind, *, cz: float = 0.0, height: float = 1.0) -> FloatArray:
+    """Box (7,) of a feature vector; a parallelogram gets yaw = mean direction of its two axes.
+
+    For BEV, ``cz`` and ``height`` are not part of φ and are taken from the arguments.
+    """
+    ext = phi_to_extended(phi, model)
+    if model == "bev":
+        cx, cy, length, width, a, b = ext
+        return np.array([cx, cy, cz, length, width, height, _mean_angle(a, b)])
+    cx, cy, cz3, length, width, h, a, b = ext
+    return np.array([cx, cy, cz3, length, width, h, _mean_angle(a, b)])
+
+
+def _mean_angle(a: float, b: float) -> float:
+    return float(normalize_angle(a + 0.5 * normalize_angle(b - a)))
+
+
+def box_to_extended(box: ArrayLike, model: ModelKind) -> FloatArray:
+    """Extended parameters ỹ of a rectangular box: BEV (cx, cy, l, w, a, b), 3D (cx, cy, cz, l, w, h, a, b)."""
+    cx, cy, cz, length, width, height, yaw = validate_box(box)
+    if _check_model(model)[0] == 2:
+        return np.array([cx, cy, length, width, yaw, yaw])
+    return np.array([cx, cy, cz, length, width, height, yaw, yaw])
+
+
+def extended_to_phi(ext: ArrayLike, model: ModelKind) -> FloatArray:
+    """φ of extended parameters ỹ (inverse of :func:`phi_to_extended`)."""
+    e = np.asarray(ext, dtype=float)
+    if _check_model(model)[0] == 2:
+        cx, cy, length, width, a, b = e
+        return np.array([cx, cy, length * np.cos(a), length * np.sin(a), width * np.cos(b), width * np.sin(b)])
+    cx, cy, cz, length, width, height, a, b = e
+    return np.array(
+        [cx, cy, cz, length * np.cos(a), length * np.sin(a), width * np.cos(b), width * np.sin(b), height]
+    )
+
+
+def phi_to_extended(phi: ArrayLike, model: ModelKind) -> FloatArray:
+    """Extended parameters ỹ of a feature vector φ."""
+    f = np.asarray(phi, dtype=float)
+    d, p = _check_model(model)
+    if f.shape != (p,):
+        raise ValueError(f"φ for model {model!r} has {p} entries, got shape {f.shape}")
+    o = d - 2  # offset of the in-plane terms: 0 for BEV, 1 for 3D
+    lc, ls, wc, ws = f[2 + o : 6 + o]
+    length, width = np.hypot(lc, ls), np.hypot(wc, ws)
+    a, b = np.arctan2(ls, lc), np.arctan2(ws, wc)
+    if d == 2:
+        return np.array([f[0], f[1], length, width, a, b])
+    return np.array([f[0], f[1], f[2], length, width, f[7], a, b])
+
+
+def dphi_dext(box: ArrayLike, model: ModelKind) -> FloatArray:
+    """Jacobian ∂φ/∂ỹ at a rectangular box (p×p, invertible for l, w > 0).
+
+    Used to carry a covariance on the box parameters to φ: ``Σ_φ = G Σ_ỹ Gᵀ``.
+    """
+    cx, cy, cz, length, width, height, yaw = validate_box(box)
+    c, s = np.cos(yaw), np.sin(yaw)
+    d, p = _check_model(model)
+    o = d - 2
+    G = np.zeros((p, p))
+    for i in range(d):
+        G[i, i] = 1.0
+    # columns: l, w (then h for 3D), a, b
+    il, iw = d, d + 1
+    ia, ib = p - 2, p - 1
+    G[2 + o, il], G[3 + o, il] = c, s
+    G[4 + o, iw], G[5 + o, iw] = c, s
+    G[2 + o, ia], G[3 + o, ia] = -length * s, length * c
+    G[4 + o, ib], G[5 + o, ib] = -width * s, width * c
+    if d == 3:
+        G[7, 5] = 1.0
+    return G
+
+
+def dext_dphi(box: ArrayLike, model: ModelKind) -> FloatArray:
+    """Jacobian ∂ỹ/∂φ at a rectangular box: the inverse of :func:`dphi_dext`."""
+    return np.linalg.inv(dphi_dext(box, model))
+
+
+def box_param_jacobian(box: ArrayLike, model: ModelKind) -> tuple[FloatArray, tuple[str, ...]]:
+    """Jacobian of the reported box parameters with respect to φ, at a rectangular box.
+
+    The reported parameters are BEV (cx, cy, l, w, yaw) or 3D (cx, cy, cz, l, w, h, yaw), with
+    yaw = (a + b) / 2. Propagate a φ covariance with ``K Σ Kᵀ`` to get per-parameter variances.
+
+    Returns
+    -------
+    K : array of shape (5, 6) or (7, 8)
+    names : names of the rows (subset of :data:`BOX_FIELDS`)
+    """
+    d, p = _check_model(model)
+    E = dext_dphi(box, model)
+    K = np.vstack([E[: p - 2], 0.5 * (E[p - 2] + E[p - 1])])
+    names = ("cx", "cy", "length", "width", "yaw") if d == 2 else BOX_FIELDS
+    return K, names
+
+
+def design_matrix(vstar: ArrayLike, model: ModelKind) -> FloatArray:
+    """J(v*) for unit-box coordinates: ``v = J(v*) @ φ``.
+
+    Parameters
+    ----------
+    vstar : array of shape (..., d)
+        Unit-box coordinates in [-½, ½]^d (values outside are allowed: the map is linear).
+
+    Returns
+    -------
+    J : array of shape (..., d, p)
+    """
+    v = np.asarray(vstar, dtype=float)
+    d, p = _check_model(model)
+    if v.shape[-1] != d:
+        raise ValueError(f"v* for model {model!r} has {d} coordinates, got shape {v.shape}")
+    J = np.zeros(v.shape[:-1] + (d, p))
+    o = d - 2
+    J[..., 0, 0] = 1.0
+    J[..., 1, 1] = 1.0
+    J[..., 0, 2 + o] = v[..., 0]
+    J[..., 0, 5 + o] = -v[..., 1]
+    J[..., 1, 3 + o] = v[..., 0]
+    J[..., 1, 4 + o] = v[..., 1]
+    if d == 3:
+        J[..., 2, 2] = 1.0
+        J[..., 2, 7] = v[..., 2]
+    return J
+
+
+def unit_to_world(vstar: ArrayLike, box: ArrayLike, model: ModelKind) -> FloatArray:
+    """Map unit-box coordinates (..., d) to points (..., d) of a box."""
+    return design_matrix(vstar, model) @ box_to_phi(box, model)
+
+
+def world_to_unit(points: ArrayLike, box: ArrayLike, model: ModelKind) -> FloatArray:
+    """Map points (N, ≥d) to unit-box coordinates (N, d) of a box (inverse of :func:`unit_to_world`)."""
+    y = validate_box(box)
+    d = point_dim(model)
+    pts = np.asarray(points, dtype=float)[..., :d]
+    local = (pts - y[:d]) @ rotation_z(y[6])[:d, :d]  # R^T (x - c), written row-wise
+    return local / y[3 : 3 + d]
+
+
+def box_corners(box: ArrayLike, model: ModelKind = "3d") -> FloatArray:
+    """Corners of a box.
+
+    Returns
+    -------
+    corners : array of shape (4, 2) for BEV (counter-clockwise, starting at front-left
+        (+l/2, +w/2)) or (8, 3) for 3D (the BEV order at the bottom, then at the top).
+    """
+    bev = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])
+    if _check_model(model)[0] == 2:
+        return unit_to_world(bev, box, "bev")
+    v = np.vstack([np.c_[bev, -0.5 * np.ones(4)], np.c_[bev, 0.5 * np.ones(4)]])
+    return unit_to_world(v, box, "3d")
+
+
+BEV_CORNERS_UNIT: FloatArray = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])
+"""Unit coordinates of the 4 BEV corners, in the order of :func:`box_corners`."""
+
+
+def transform_points(T_dst_src: ArrayLike, points_src: ArrayLike) -> FloatArray:
+    """Apply a 4×4 homogeneous transform to points (N, 3); extra columns are kept unchanged."""
+    T = np.asarray(T_dst_src, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"a transform is 4×4, got shape {T.shape}")
+    pts = np.asarray(points_src, dtype=float)
+    out = pts.copy()
+    out[..., :3] = pts[..., :3] @ T[:3, :3].T + T[:3, 3]
+    return out
+
+
+def invert_transform(T_dst_src: ArrayLike) -> FloatArray:
+    """Inverse of a rigid 4×4 transform: returns ``T_src_dst``."""
+    T = np.asarray(T_dst_src, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def make_transform(R: ArrayLike, t: ArrayLike) -> FloatArray:
+    """4×4 homogeneous transform from a 3×3 rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=float)
+    T[:3, 3] = np.asarray(t, dtype=float)
+    return T
+
+
+def bev_iou_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
+    """Exact BEV IoU of two rotated boxes (shapely polygon intersection)."""
+    from shapely.geometry import Polygon
+
+    pa, pb = Polygon(box_corners(box_a, "bev")), Polygon(box_corners(box_b, "bev"))
+    inter = pa.intersection(pb).area
+    union = pa.area + pb.area - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def iou_3d_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
+    """Exact 3D IoU of two yaw-only boxes (BEV intersection × z overlap)."""
+    from shapely.geometry import Polygon
+
+    a, b = validate_box(box_a), validate_box(box_b)
+    pa, pb = Polygon(box_corners(a, "bev")), Polygon(box_corners(b, "bev"))
+    z_lo = max(a[2] - a[5] / 2, b[2] - b[5] / 2)
+    z_hi = min(a[2] + a[5] / 2, b[2] + b[5] / 2)
+    inter = pa.intersection(pb).area * max(0.0, z_hi - z_lo)
+    union = a[3] * a[4] * a[5] + b[3] * b[4] * b[5] - inter
+    return float(inter / union) if union > 0 else 0.0

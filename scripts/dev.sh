@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# One entry point for a fresh Debian machine with Python 3.11 (run as root or with sudo):
+#   bash scripts/dev.sh demo   -> set up, then run the demo audit on simulated data
+#   bash scripts/dev.sh test   -> set up, then run the test suite
+#   bash scripts/dev.sh setup  -> set up only
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV="${LABELAUDIT_VENV:-.venv}"
+
+ensure_system_libs() {
+    # Open3D's wheel links against libusb-1.0 and will not import without it.
+    if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+        echo "installing libusb-1.0-0 (needed by Open3D)" >&2
+        local SUDO=""
+        [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        $SUDO apt-get update -qq >&2
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >&2
+    fi
+}
+
+ensure_venv() {
+    if [ ! -x "$VENV/bin/python" ]; then
+        python3 -m venv "$VENV" >&2
+    fi
+    local stamp="$VENV/.labelaudit-installed"
+    if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+        "$VENV/bin/python" -m pip install -q --upgrade pip >&2
+        "$VENV/bin/python" -m pip install -q -e ".[test]" >&2
+        touch "$stamp"
+    fi
+}
+
+cmd="${1:-setup}"
+shift || true
+ensure_system_libs
+ensure_venv
+case "$cmd" in
+    setup) echo "ready: $VENV/bin/labelaudit --help" >&2 ;;
+    demo) exec "$VENV/bin/labelaudit" demo "$@" ;;
+    test) exec "$VENV/bin/python" -m pytest -q "$@" ;;
+    *) echo "usage: bash scripts/dev.sh [setup|demo|test] [args...]" >&2; exit 2 ;;
+esac
