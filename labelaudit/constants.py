@@ -7,7 +7,7 @@ DEFAULT_MODEL = "bev"  # BEV is what the paper evaluates and what most label too
 DEFAULT_SIGMA = 0.2  # LiDAR noise std in metres; the paper uses 0.2 for KITTI, 0.3 for Waymo
 DEFAULT_NUM_NEAREST = 3  # M: surface points each LiDAR point may be registered to (paper: 3)
 DEFAULT_PRIOR_WEIGHT = 1.0  # w: the prior covariance is divided by w (larger = trust annotators more)
-DEFAULT_MIN_POINTS = 1  # boxes with fewer points are status "few_points" (prior-only if 0)
+DEFAULT_MIN_POINTS = 3  # boxes with fewer points get status "few_points" (still inferred; prior dominates)
 
 # --- spatial distribution p_G and JIoU (DESIGN.md §5) ---
 DEFAULT_CELLS_PER_SIDE = 64  # grid cells across the longer box side; JIoU stable ±0.01 when doubled
