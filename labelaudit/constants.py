@@ -19,6 +19,11 @@ DEFAULT_QMC_SEED = 0  # fixed so results are reproducible run to run
 DEFAULT_CROP_MARGIN = 0.1  # BEV margin in metres added around each box when selecting points
 DEFAULT_GROUND_CUT = 0.1  # points within this height above the box bottom are ground, dropped
 
+# --- KITTI (official object devkit, evaluate_object.cpp) ---
+KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)
+KITTI_MAX_OCCLUSION = (0, 1, 2)  # Easy/Moderate/Hard: largest allowed occlusion level (3 = unknown)
+KITTI_MAX_TRUNCATION = (0.15, 0.30, 0.50)  # Easy/Moderate/Hard: largest allowed truncation fraction
+
 # --- classes ---
 DEFAULT_CLASSES = ("Car", "Van", "Truck")  # vehicles: the paper's evaluation classes
 
@@ -32,3 +37,24 @@ DEFAULT_PRIORS: dict[str, dict[str, float]] = {
     "Pedestrian": {"center": 0.10, "length": 0.10, "width": 0.10, "height": 0.10, "yaw": 0.50},
     "Cyclist": {"center": 0.15, "length": 0.20, "width": 0.10, "height": 0.10, "yaw": 0.25},
 }
+
+# --- simulator (labelaudit/sim, docs/simulator.md) ---
+SIM_SENSOR_HEIGHT = 1.73  # KITTI Velodyne height above the ground (m); ground is z = -1.73 in the LiDAR frame
+SIM_BEAMS = 64  # HDL-64E-like: number of laser rows in the range image
+SIM_INCLINATION_DEG = (2.0, -24.8)  # top and bottom beam elevation (deg), KITTI's HDL-64E field of view
+SIM_COLUMNS = 2118  # azimuth columns per sweep: 360°/2118 ≈ 0.17° step, ~120k returns per frame
+SIM_RANGE_LIMITS = (1.0, 120.0)  # returns closer/farther than this (m) are dropped, like the real sensor
+SIM_RANGE_NOISE = 0.02  # std of the Gaussian range noise (m), the HDL-64E datasheet accuracy
+SIM_DROPOUT = (0.02, 0.10)  # missing-return probability: base, plus this much more at max range (∝ r²)
+SIM_NUM_VEHICLES = (5, 25)  # vehicles per frame, drawn uniformly (inclusive)
+SIM_NUM_VRU = (0, 4)  # pedestrians + cyclists per frame, drawn uniformly (inclusive)
+SIM_DISTANCE = (5.0, 70.0)  # object centre distance from the sensor (m), drawn uniformly
+SIM_FRONT_FRACTION = 0.7  # share of objects placed inside the camera's field of view (KITTI labels only there)
+SIM_ROAD_ALIGNED_FRACTION = 0.6  # share of objects heading along the road axis (yaw ≈ 0 or π); the rest uniform
+SIM_OCCLUSION_LEVELS = (0.1, 0.5)  # occluded-ray fraction limits for KITTI occlusion levels 0 / 1 (else 2)
+SIM_IMAGE_SIZE = (1242, 375)  # KITTI image width, height (px) for 2D boxes, truncation and the FOV test
+SIM_VAL_FRACTION = 0.5  # share of simulated frames listed in ImageSets/val.txt (KITTI: 3769 of 7481)
+SIM_MIN_NOISY_SIZE = 0.2  # perturbed box sizes are clipped to at least this (m), so labels stay valid
+SIM_BENCH_NOISE = (0.3, 0.2, 0.1)  # issue-6 benchmark jitter: centre std (m), size std (m), yaw std (rad)
+SIM_BENCH_FRACTIONS = (0.2, 0.02)  # issue-6 benchmark: jittered share, gross-error share of vehicle labels
+SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a random BEV direction
