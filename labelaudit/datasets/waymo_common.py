@@ -1,0 +1,234 @@
+"""What the Waymo v1 (TFRecord) and v2 (Parquet) readers share: classes, calibration, range image → points.
+
+Both forms store the same data: per lidar a range image (H × W × 4: range, intensity, elongation,
+no-label-zone flag) per return, a calibration (extrinsic, beam inclinations), and for the TOP
+lidar a per-pixel vehicle pose (H × W × 6: roll, pitch, yaw, x, y, z) for rolling-shutter
+correction. :func:`range_image_to_points` is the one conversion both readers call.
+
+Conventions (see ``docs/datasets.md`` § Waymo):
+
+* Row 0 of a range image is the *highest* beam; calibrations list inclinations ascending.
+* Column j looks along the vehicle-frame azimuth ``π − (j + ½)·2π/W`` (from +π at the left edge
+  down to −π at the right edge); in the sensor frame that is minus the lidar's mounting yaw.
+* Pixel poses are vehicle→world at the pixel's capture time, R = Rz(yaw)·Ry(pitch)·Rx(roll).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labelaudit.datasets.base import Frame
+
+# Waymo label.proto Label.Type; names as the Waymo tools print them without the TYPE_ prefix.
+CLASS_NAMES: dict[int, str] = {0: "Unknown", 1: "Vehicle", 2: "Pedestrian", 3: "Sign", 4: "Cyclist"}
+# dataset.proto LaserName.Name
+LASER_NAMES: dict[int, str] = {1: "TOP", 2: "FRONT", 3: "SIDE_LEFT", 4: "SIDE_RIGHT", 5: "REAR"}
+TOP = 1
+
+
+def class_name(label_type: int) -> str:
+    """Class name of a Waymo label type (unknown numbers become ``"Type<n>"``)."""
+    return CLASS_NAMES.get(int(label_type), f"Type{int(label_type)}")
+
+
+@dataclass
+class LidarCalibration:
+    """Calibration of one lidar.
+
+    Attributes
+    ----------
+    name : laser name number (1 TOP, 2 FRONT, 3 SIDE_LEFT, 4 SIDE_RIGHT, 5 REAR)
+    extrinsic : (4, 4) lidar → vehicle transform
+    inclination_min, inclination_max : radians, used when ``inclinations`` is empty
+    inclinations : (H,) explicit beam inclinations in ascending order, or an empty array
+    """
+
+    name: int
+    extrinsic: NDArray[np.float64]
+    inclination_min: float = 0.0
+    inclination_max: float = 0.0
+    inclinations: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+
+    def row_inclinations(self, height: int) -> NDArray[np.float64]:
+        """(H,) elevation of each range-image row, row 0 the highest beam.
+
+        Explicit inclinations when the calibration lists them (TOP), else ``height`` values evenly
+        spaced at row centres between min and max.
+        """
+        if self.inclinations.size:
+            if self.inclinations.size != height:
+                raise ValueError(
+                    f"lidar {LASER_NAMES.get(self.name, self.name)}: calibration has "
+                    f"{self.inclinations.size} beam inclinations but the range image has {height} rows"
+                )
+            return self.inclinations[::-1].astype(np.float64)
+        i = np.arange(height, dtype=np.float64)
+        ascending = self.inclination_min + (i + 0.5) / height * (self.inclination_max - self.inclination_min)
+        return ascending[::-1]
+
+
+def column_azimuths(width: int, extrinsic: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(W,) sensor-frame azimuth of each range-image column (vehicle azimuth minus mounting yaw)."""
+    j = np.arange(width, dtype=np.float64)
+    yaw_mount = np.arctan2(extrinsic[1, 0], extrinsic[0, 0])
+    return ((width - j - 0.5) / width * 2.0 - 1.0) * np.pi - yaw_mount
+
+
+def euler_to_matrix(roll: NDArray, pitch: NDArray, yaw: NDArray) -> NDArray[np.float64]:
+    """(..., 3, 3) rotation R = Rz(yaw)·Ry(pitch)·Rx(roll) for arrays of angles."""
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    r = np.empty(np.shape(roll) + (3, 3))
+    r[..., 0, 0] = cy * cp
+    r[..., 0, 1] = cy * sp * sr - sy * cr
+    r[..., 0, 2] = cy * sp * cr + sy * sr
+    r[..., 1, 0] = sy * cp
+    r[..., 1, 1] = sy * sp * sr + cy * cr
+    r[..., 1, 2] = sy * sp * cr - cy * sr
+    r[..., 2, 0] = -sp
+    r[..., 2, 1] = cp * sr
+    r[..., 2, 2] = cp * cr
+    return r
+
+
+def range_image_to_points(
+    range_image: NDArray[np.floating],
+    calibration: LidarCalibration,
+    pixel_pose: NDArray[np.floating] | None = None,
+    frame_pose: NDArray[np.floating] | None = None,
+) -> NDArray[np.float32]:
+    """Points of one range image (one lidar, one return) in the frame's vehicle frame.
+
+    Parameters
+    ----------
+    range_image : (H, W, C≥2) — channel 0 range in metres (≤ 0 = no return), channel 1 intensity
+    calibration : the lidar's calibration
+    pixel_pose : optional (H, W, 6) roll, pitch, yaw, x, y, z — vehicle→world at each pixel's
+        capture time (TOP lidar only). Needs ``frame_pose``.
+    frame_pose : (4, 4) vehicle→world at the frame timestamp
+
+    Returns
+    -------
+    (M, 4) float32 x, y, z, intensity of the pixels with range > 0, in row-major pixel order.
+    """
+    ri = np.asarray(range_image)
+    if ri.ndim != 3 or ri.shape[2] < 2:
+        raise ValueError(f"range image must be (H, W, C>=2), got shape {ri.shape}")
+    h, w = ri.shape[:2]
+    rng = ri[..., 0]
+    rows, cols = np.nonzero(rng > 0)  # NaN compares False: dropped too
+    r = rng[rows, cols].astype(np.float64)
+    extrinsic = np.asarray(calibration.extrinsic, dtype=np.float64)
+    el = calibration.row_inclinations(h)[rows]
+    az = column_azimuths(w, extrinsic)[cols]
+    cos_el = np.cos(el)
+    p = np.stack([r * cos_el * np.cos(az), r * cos_el * np.sin(az), r * np.sin(el)], axis=1)
+    p = p @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+    if pixel_pose is not None:
+        if frame_pose is None:
+            raise ValueError("a per-pixel pose needs the frame pose (vehicle → world)")
+        pp = np.asarray(pixel_pose, dtype=np.float64)
+        if pp.shape[:2] != (h, w) or pp.shape[2] < 6:
+            raise ValueError(f"pixel pose shape {pp.shape} does not match range image {(h, w)} x 6")
+        pp = pp[rows, cols]
+        rot = euler_to_matrix(pp[:, 0], pp[:, 1], pp[:, 2])
+        world = np.einsum("nij,nj->ni", rot, p) + pp[:, 3:6]
+        fp = np.asarray(frame_pose, dtype=np.float64)
+        # inverse of a rigid transform: Rᵀ (x − t); subtract first to keep precision at large t
+        p = (world - fp[:3, 3]) @ fp[:3, :3]
+    out = np.empty((len(r), 4), dtype=np.float32)
+    out[:, :3] = p
+    out[:, 3] = ri[rows, cols, 1]
+    return out
+
+
+@dataclass
+class LidarData:
+    """Range images of one lidar in one frame (either return may be missing)."""
+
+    name: int
+    returns: list[NDArray[np.float32]]
+    pixel_pose: NDArray[np.float32] | None = None
+
+
+def frame_points(
+    lidars: list[LidarData],
+    calibrations: dict[int, LidarCalibration],
+    frame_pose: NDArray[np.floating] | None,
+    source: str | Path,
+    warnings: list[str],
+) -> NDArray[np.float32]:
+    """Concatenate the points of all lidars and returns of a frame, (N, 4) float32.
+
+    Problems that lose part of the cloud (no calibration for a lidar, TOP pose without frame
+    pose) are appended to ``warnings`` and the affected lidar is skipped or left uncorrected.
+    """
+    parts: list[NDArray[np.float32]] = []
+    for lidar in sorted(lidars, key=lambda d: d.name):
+        calib = calibrations.get(lidar.name)
+        label = LASER_NAMES.get(lidar.name, str(lidar.name))
+        if calib is None:
+            warnings.append(f"{source}: no calibration for lidar {label}; its points are skipped")
+            continue
+        pose = lidar.pixel_pose
+        if pose is not None and frame_pose is None:
+            warnings.append(f"{source}: lidar {label} has per-pixel poses but the frame has no pose; not motion-corrected")
+            pose = None
+        for image in lidar.returns:
+            if image is None or image.size == 0:
+                continue
+            try:
+                parts.append(range_image_to_points(image, calib, pose, frame_pose))
+            except ValueError as exc:
+                warnings.append(f"{source}: lidar {label}: {exc}; its points are skipped")
+    if not parts:
+        return np.zeros((0, 4), dtype=np.float32)
+    return np.concatenate(parts, axis=0)
+
+
+def sensor_origin(calibrations: dict[int, LidarCalibration]) -> NDArray[np.float64]:
+    """(3,) position of the TOP lidar in the vehicle frame (zeros when unknown)."""
+    top = calibrations.get(TOP)
+    if top is None:
+        return np.zeros(3)
+    return np.asarray(top.extrinsic, dtype=np.float64)[:3, 3].copy()
+
+
+def make_frame(
+    frame_id: str,
+    points: NDArray[np.float32],
+    boxes: NDArray[np.float64],
+    types: NDArray[np.integer],
+    object_ids: list[str],
+    extras: dict[str, np.ndarray],
+    origin: NDArray[np.float64],
+    warnings: list[str],
+    classes: tuple[str, ...] | None,
+) -> Frame:
+    """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None)."""
+    names = [class_name(t) for t in types]
+    keep = np.ones(len(names), dtype=bool) if classes is None else np.array([n in classes for n in names], dtype=bool)
+    idx = np.nonzero(keep)[0]
+    return Frame(
+        frame_id=frame_id,
+        points=points,
+        boxes=np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[idx],
+        class_names=[names[i] for i in idx],
+        object_ids=[object_ids[i] for i in idx],
+        sensor_origin=origin,
+        extras={k: np.asarray(v)[idx] for k, v in extras.items()},
+        warnings=warnings,
+    )
+
+
+def no_lidar_warning(source: str | Path, frame_id: str, num_boxes: int) -> str:
+    """The message for a frame that has labels but no range images (e.g. a stripped sample)."""
+    return (
+        f"{source}: frame {frame_id} has {num_boxes} laser labels but no lidar range images; "
+        "it is read with 0 points (every box gets status no_points)"
+    )
