@@ -1,0 +1,124 @@
+"""Per-box point selection: Open3D against the NumPy reference, margin and ground cut, real crops."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labelaudit.config import CropParams
+from labelaudit.crop import crop_frame, points_in_boxes_numpy, selection_boxes
+from labelaudit.datasets.kitti import KittiReader, read_velodyne
+
+
+def _face_distance(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(K, N) distance of each point to the nearest face plane of each selection box (box frame)."""
+    out = []
+    for cx, cy, cz, l, w, h, yaw in boxes:
+        d = points[:, :3].astype(float) - [cx, cy, cz]
+        c, s = np.cos(yaw), np.sin(yaw)
+        local = np.abs(np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+        out.append(np.min(np.abs(local - [l / 2, w / 2, h / 2]), axis=1))
+    return np.array(out)
+
+
+@pytest.mark.parametrize(("margin", "ground_cut"), [(0.0, 0.0), (0.1, 0.1), (0.3, 0.5)])
+def test_open3d_matches_reference_on_random_rotated_boxes(margin: float, ground_cut: float) -> None:
+    rng = np.random.default_rng(int(margin * 10 + ground_cut * 100))
+    points = np.c_[rng.uniform(-12, 12, (60_000, 3)), rng.uniform(0, 1, 60_000)].astype(np.float32)
+    boxes = np.c_[rng.uniform(-8, 8, (25, 3)), rng.uniform(0.4, 6.0, (25, 3)), rng.uniform(-np.pi, np.pi, 25)]
+    got = crop_frame(points, boxes, CropParams(margin=margin, ground_cut=ground_cut))
+    ref = points_in_boxes_numpy(points, boxes, margin, ground_cut)
+    near = _face_distance(points, selection_boxes(boxes, margin, ground_cut)) < 1e-9
+    assert len(got) == len(boxes)
+    total = 0
+    for k, (a, b) in enumerate(zip(got, ref)):
+        assert a.dtype == np.int64 and np.all(np.diff(a) > 0)  # sorted, unique
+        diff = np.setxor1d(a, b)
+        assert np.all(near[k, diff]), f"box {k}: {len(diff)} points differ away from the faces"
+        total += len(a)
+    assert total > 1000  # the boxes really hold points
+
+
+def test_margin_widens_only_bev_and_ground_cut_raises_bottom() -> None:
+    box = np.array([[10.0, 5.0, 1.0, 4.0, 2.0, 2.0, 0.0]])  # x 8..12, y 4..6, z 0..2
+    pts = np.array(
+        [
+            [10.0, 5.0, 1.0],  # 0 centre
+            [12.05, 5.0, 1.0],  # 1 5 cm beyond the front
+            [10.0, 3.95, 1.0],  # 2 5 cm beyond the right side
+            [10.0, 5.0, 2.05],  # 3 5 cm above the top
+            [10.0, 5.0, 0.05],  # 4 5 cm above the bottom
+            [10.0, 5.0, 0.15],  # 5 15 cm above the bottom
+            [12.15, 5.0, 1.0],  # 6 15 cm beyond the front
+        ]
+    )
+    for fn in (lambda m, g: crop_frame(pts, box, CropParams(m, g))[0], lambda m, g: points_in_boxes_numpy(pts, box, m, g)[0]):
+        assert fn(0.0, 0.0).tolist() == [0, 4, 5]
+        assert fn(0.1, 0.0).tolist() == [0, 1, 2, 4, 5]  # top gets no margin
+        assert fn(0.1, 0.1).tolist() == [0, 1, 2, 5]
+        assert fn(0.2, 0.1).tolist() == [0, 1, 2, 5, 6]
+        assert fn(0.0, 2.5).tolist() == []  # cut above the top
+
+
+def test_rotated_box_and_inclusive_faces() -> None:
+    # A box turned by 90°: its length runs along y.
+    box = np.array([[0.0, 0.0, 0.0, 4.0, 2.0, 2.0, np.pi / 2]])
+    pts = np.array([[0.0, 1.9, 0.0], [1.9, 0.0, 0.0], [0.0, 2.1, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    assert crop_frame(pts, box, CropParams(0.0, 0.0))[0].tolist() == [0, 3, 4]
+    # Faces of an axis-aligned box are exact in floating point: both selections include them.
+    axis = np.array([[0.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0]])
+    faces = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0], [1.001, 0, 0]])
+    assert crop_frame(faces, axis, CropParams(0.0, 0.0))[0].tolist() == [0, 1, 2, 3, 4]
+    assert points_in_boxes_numpy(faces, axis)[0].tolist() == [0, 1, 2, 3, 4]
+
+
+def test_empty_inputs_and_shapes() -> None:
+    pts = np.zeros((0, 4), np.float32)
+    box = np.array([[0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0]])
+    assert [len(i) for i in crop_frame(pts, box, CropParams())] == [0]
+    assert crop_frame(np.ones((5, 3)), np.zeros((0, 7)), CropParams()) == []
+    with pytest.raises(ValueError, match=r"\(K, 7\)"):
+        crop_frame(np.ones((5, 3)), np.ones((2, 6)), CropParams())
+    with pytest.raises(ValueError, match=r"\(N, ≥3\)"):
+        crop_frame(np.ones((5, 2)), box, CropParams())
+
+
+def _gt_database_rows(realdata: Path):
+    root = realdata / "openpcdet-pr653-kitti"
+    reader = KittiReader(root)
+    for ref in reader.list_units():
+        frame = reader.load_frame(ref.key)
+        for k, (oid, name) in enumerate(zip(frame.object_ids, frame.class_names)):
+            # OpenPCDet names crops <frame>_<class>_<i>, i = row of the label file; KITTI writes
+            # DontCare rows last, so i is also our index among the non-DontCare rows.
+            index = oid.split(":")[1]
+            yield frame, k, read_velodyne(root / "gt_database" / f"{frame.frame_id}_{name}_{index}.bin")
+
+
+def test_real_crops_match_openpcdet_gt_database(realdata: Path) -> None:
+    """OpenPCDet's CPU points-in-box test adds 1 cm in BEV; with that margin the point sets are equal."""
+    n = 0
+    for frame, k, gt in _gt_database_rows(realdata):
+        idx = crop_frame(frame.points, frame.boxes[k : k + 1], CropParams(margin=0.01, ground_cut=0.0))[0]
+        ours = frame.points[idx].copy()
+        ours[:, :3] -= frame.boxes[k, :3].astype(np.float32)  # gt_database stores points relative to the centre
+        assert len(ours) == len(gt), (frame.frame_id, k)
+        a, b = ours[np.lexsort(ours.T)], gt[np.lexsort(gt.T)]
+        np.testing.assert_allclose(a, b, atol=1e-5)
+        n += 1
+    assert n == 10
+
+
+def test_real_exact_box_counts_against_gt_database(realdata: Path) -> None:
+    """With margin 0 the exact boxes hold a subset of the gt_database crop; the rest lies within 1 cm outside."""
+    counts = []
+    for frame, k, gt in _gt_database_rows(realdata):
+        idx = crop_frame(frame.points, frame.boxes[k : k + 1], CropParams(margin=0.0, ground_cut=0.0))[0]
+        wide = crop_frame(frame.points, frame.boxes[k : k + 1], CropParams(margin=0.01, ground_cut=0.0))[0]
+        assert np.all(np.isin(idx, wide))
+        counts.append((len(idx), len(gt)))
+    ours, theirs = np.array(counts).T
+    assert np.all(ours <= theirs) and np.all(theirs - ours <= 6)
+    assert np.sum(np.abs(ours - theirs) <= 2) >= 8  # 8 of the 10 boxes agree within ±2 points
