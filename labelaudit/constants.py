@@ -65,3 +65,4 @@ SIM_MIN_NOISY_SIZE = 0.2  # perturbed box sizes are clipped to at least this (m)
 SIM_BENCH_NOISE = (0.3, 0.2, 0.1)  # issue-6 benchmark jitter: centre std (m), size std (m), yaw std (rad)
 SIM_BENCH_FRACTIONS = (0.2, 0.02)  # issue-6 benchmark: jittered share, gross-error share of vehicle labels
 SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a random BEV direction
+SIM_MAX_TRUNCATION = 0.9  # objects whose 2D box is truncated more than this are outside the camera FOV (not labelled)
