@@ -1,0 +1,195 @@
+"""Ranking queries for ``labelaudit rank``: the worst labels first, filtered, as rows or text.
+
+Reads only the columns a query needs through :mod:`pyarrow.dataset`, sorts, keeps the top N and
+only then fetches their full rows, so it stays fast on millions of objects.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.dataset as pads
+
+from labelaudit import results as R
+from labelaudit.results import Results, ResultsError
+
+ASCENDING_BY_DEFAULT = frozenset({"jiou_gt", "num_points", "hull_iou"})
+"""Columns where *low* is bad (sorted ascending by default); every other column sorts descending
+(higher = worse: label_error, sigma_hat, fit_offset_m, std_*, distance …)."""
+
+
+def default_descending(by: str) -> bool:
+    """Whether ``--by`` sorts descending when neither ``--desc`` nor ``--asc`` is given."""
+    return by not in ASCENDING_BY_DEFAULT
+
+
+@dataclass(frozen=True)
+class RankQuery:
+    """Which rows to rank and how."""
+
+    by: str = "jiou_gt"
+    top: int = 20
+    descending: bool | None = None  # None: default_descending(by)
+    classes: tuple[str, ...] = ()
+    statuses: tuple[str, ...] = ()
+    min_points: int | None = None
+    max_distance: float | None = None
+
+    @property
+    def is_descending(self) -> bool:
+        return default_descending(self.by) if self.descending is None else self.descending
+
+
+@dataclass
+class RankResult:
+    """The top rows (every column, worst first) and how many rows matched the filters."""
+
+    table: pa.Table
+    matched: int
+    query: RankQuery
+
+
+def _numeric_columns(schema: pa.Schema) -> list[str]:
+    return [f.name for f in schema if pa.types.is_integer(f.type) or pa.types.is_floating(f.type)]
+
+
+def rank_results(results: Results, query: RankQuery) -> RankResult:
+    """Rank objects by a numeric column, worst first.
+
+    Rows whose ``by`` value is null or NaN (e.g. skipped objects) are left out.
+
+    Raises
+    ------
+    ResultsError
+        ``by`` is not a numeric column of the results, or ``top`` < 1.
+    """
+    schema = results.dataset.schema
+    numeric = _numeric_columns(schema)
+    if query.by not in numeric:
+        raise ResultsError(f"--by {query.by!r}: not a numeric column of {results.root}; choose one of {', '.join(numeric)}")
+    if query.top < 1:
+        raise ResultsError(f"--top must be ≥ 1, got {query.top}")
+
+    needed = ["frame_id", "object_index", query.by]
+    needed += [c for c, used in (("class_name", query.classes), ("status", query.statuses), ("num_points", query.min_points is not None), ("distance", query.max_distance is not None)) if used and c not in needed]
+    table = results.read(needed)
+    by = table.column(query.by)
+    mask = pc.is_valid(by)
+    if pa.types.is_floating(by.type):
+        mask = pc.and_(mask, pc.invert(pc.is_nan(by)))
+    if query.classes:
+        mask = pc.and_(mask, pc.is_in(table.column("class_name"), value_set=pa.array(list(query.classes))))
+    if query.statuses:
+        mask = pc.and_(mask, pc.is_in(table.column("status"), value_set=pa.array(list(query.statuses))))
+    if query.min_points is not None:
+        mask = pc.and_(mask, pc.greater_equal(table.column("num_points"), query.min_points))
+    if query.max_distance is not None:
+        mask = pc.and_(mask, pc.less_equal(table.column("distance"), query.max_distance))
+    mask = pc.fill_null(mask, False)
+    kept = table.filter(mask)
+    order = "descending" if query.is_descending else "ascending"
+    idx = pc.sort_indices(kept, sort_keys=[(query.by, order), ("frame_id", "ascending"), ("object_index", "ascending")])
+    top = kept.take(idx[: query.top])
+    keys = list(zip(top.column("frame_id").to_pylist(), top.column("object_index").to_pylist()))
+
+    # Fetch full rows of the winners only: frames are few, rows are matched on (frame_id, object_index).
+    if keys:
+        frames = pa.array(sorted({f for f, _ in keys}))
+        full = results.dataset.to_table(filter=pads.field("frame_id").isin(frames))
+        pos = {k: i for i, k in enumerate(zip(full.column("frame_id").to_pylist(), full.column("object_index").to_pylist()))}
+        full = full.take(pa.array([pos[k] for k in keys], type=pa.int64()))
+    else:
+        full = schema.empty_table()
+    return RankResult(full, kept.num_rows, query)
+
+
+# --------------------------------------------------------------------------- output
+
+
+def ordered_columns(table: pa.Table) -> list[str]:
+    """Schema columns first (in schema order), then any extra columns of the file."""
+    names = table.schema.names
+    return [c for c in R.COLUMN_NAMES if c in names] + [c for c in names if c not in R.COLUMN_NAMES]
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+def to_records(table: pa.Table) -> list[dict[str, Any]]:
+    """Rows as dicts keyed by column name (NaN → None), schema columns first."""
+    cols = ordered_columns(table)
+    return [{c: _plain(row[c]) for c in cols} for row in table.select(cols).to_pylist()]
+
+
+def to_json(table: pa.Table) -> str:
+    """A JSON array, one object per row, every column by its name."""
+    return json.dumps(to_records(table), indent=1)
+
+
+def to_csv(table: pa.Table) -> str:
+    """CSV with a header; list columns (corner_tv, cov) as JSON arrays, nulls as empty fields."""
+    cols = ordered_columns(table)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(cols)
+    for rec in to_records(table):
+        writer.writerow(["" if rec[c] is None else json.dumps(rec[c]) if isinstance(rec[c], list) else rec[c] for c in cols])
+    return buf.getvalue()
+
+
+def summarize(results: Results) -> dict[str, Any]:
+    """Counts by status, median JIoU-GT per class and failed frames (for the end-of-run summary)."""
+    t = results.read(["class_name", "status", "jiou_gt"])
+    status = np.asarray(t.column("status").to_pylist(), dtype=object)
+    classes = np.asarray(t.column("class_name").to_pylist(), dtype=object)
+    jiou = t.column("jiou_gt").to_numpy(zero_copy_only=False).astype(float)
+    by_status = {s: int(np.sum(status == s)) for s in R.STATUSES if np.any(status == s)}
+    per_class = {}
+    for name in sorted(set(classes.tolist())):
+        v = jiou[(classes == name) & np.isfinite(jiou)]
+        per_class[name] = {"objects": int(np.sum(classes == name)), "median_jiou_gt": float(np.median(v)) if len(v) else None}
+    return {"objects": t.num_rows, "by_status": by_status, "classes": per_class, "failed_frames": results.failed_frames()}
+
+
+def display_columns(table: pa.Table, by: str) -> list[str]:
+    """Columns shown in the Rich table of ``rank`` (``by`` always included; empty optional ones dropped)."""
+    base = ["frame_id", "object_index", "class_name", "status", "num_points", "distance", "jiou_gt", "label_error", "sigma_hat", "fit_offset_m"]
+    cols = [c for c in base if c in table.schema.names]
+    cols = [c for c in cols if c in ("frame_id", "object_index", "class_name", "status") or c == by or table.column(c).null_count < table.num_rows]
+    if by not in cols:
+        cols.append(by)
+    return cols
+
+
+def format_cell(value: Any) -> str:
+    """Short text for a table cell."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.3f}"
+    return str(value)
+
+
+__all__: Sequence[str] = [
+    "RankQuery",
+    "RankResult",
+    "rank_results",
+    "to_json",
+    "to_csv",
+    "to_records",
+    "summarize",
+    "default_descending",
+]

@@ -1,0 +1,353 @@
+"""The results contract (DESIGN.md §7): Arrow schema, atomic Parquet shards, manifest and reader.
+
+A results folder looks like this::
+
+    labelaudit-results/
+      manifest.json            run parameters, their hash, tool/schema version, input, completeness
+      objects/part-<h>.parquet one shard per chunk of units (h = hash of the chunk's unit keys)
+      errors/part-<h>.parquet  frame-level errors of that chunk (only when there were any)
+      errors.parquet           all frame-level errors of the run, gathered at the end (may be empty)
+
+Every shard carries the same metadata as the manifest (key ``labelaudit`` in the Parquet schema
+metadata). Files are written under a temporary dot-name and renamed, so readers (which ignore
+dot-files) only ever see whole files. Readers select columns by name, never by position.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.dataset as pads
+import pyarrow.parquet as pq
+
+from labelaudit import SCHEMA_VERSION, __version__
+
+MANIFEST_NAME = "manifest.json"
+OBJECTS_DIR = "objects"
+ERRORS_DIR = "errors"
+ERRORS_FILE = "errors.parquet"
+METADATA_KEY = b"labelaudit"
+TMP_MARKER = ".tmp-"
+
+STATUSES = ("ok", "few_points", "no_points", "skipped", "error")
+"""Per-object status values: inferred with ≥ min_points / with fewer / with none; not audited
+because the box is outside the configured length range; inference raised (see ``message``)."""
+
+BOX_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw")
+STD_COLUMNS = tuple(f"std_{c}" for c in BOX_COLUMNS)
+
+# (name, type, nullable, unit, description) — the single definition of the results table.
+# docs/results-schema.md documents the same list; tests/test_results.py checks they agree.
+COLUMNS: tuple[tuple[str, pa.DataType, bool, str, str], ...] = (
+    ("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2 or waymo-v1"),
+    ("frame_id", pa.string(), False, "", "frame id (KITTI '000123', Waymo '<segment>:<timestamp>')"),
+    ("object_index", pa.int32(), False, "", "position of the box among the frame's labels (0-based, DontCare excluded)"),
+    ("object_id", pa.string(), False, "", "Waymo laser_object_id, else '<frame_id>:<object_index>'"),
+    ("class_name", pa.string(), False, "", "class as written by the dataset"),
+    ("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre)"),
+    ("cy", pa.float64(), False, "m", "box centre y"),
+    ("cz", pa.float64(), False, "m", "box centre z"),
+    ("length", pa.float64(), False, "m", "box length (along the heading)"),
+    ("width", pa.float64(), False, "m", "box width"),
+    ("height", pa.float64(), False, "m", "box height"),
+    ("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)"),
+    ("distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre"),
+    ("num_points", pa.int32(), True, "", "LiDAR points cropped for the box (after margin and ground cut); null when skipped"),
+    ("status", pa.string(), False, "", "ok | few_points | no_points | skipped | error"),
+    ("message", pa.string(), True, "", "why the status is skipped or error; null otherwise"),
+    ("sigma", pa.float64(), True, "m", "LiDAR noise std σ used by the model"),
+    ("jiou_gt", pa.float64(), True, "", "JIoU between the labeled box and its spatial distribution; 1 = no uncertainty"),
+    ("label_error", pa.float64(), True, "", "how likely the label is wrong (higher = worse); null until computed"),
+    ("sigma_hat", pa.float64(), True, "m", "per-object RMS fit residual of the points to the box (EM σ̂); null with < 2 points"),
+    ("fit_offset_m", pa.float64(), True, "m", "distance between the labeled box and the model's fitted box; null until computed"),
+    ("corner_tv", pa.list_(pa.float64()), True, "m²", "total variance of the 4 BEV corners, nearest to the sensor first (C1..C4)"),
+    ("std_cx", pa.float64(), True, "m", "posterior std of cx"),
+    ("std_cy", pa.float64(), True, "m", "posterior std of cy"),
+    ("std_cz", pa.float64(), True, "m", "posterior std of cz (null for the BEV model)"),
+    ("std_length", pa.float64(), True, "m", "posterior std of the length"),
+    ("std_width", pa.float64(), True, "m", "posterior std of the width"),
+    ("std_height", pa.float64(), True, "m", "posterior std of the height (null for the BEV model)"),
+    ("std_yaw", pa.float64(), True, "rad", "posterior std of the yaw"),
+    ("cov", pa.list_(pa.float64()), True, "SI", "posterior covariance of φ, row-major cov_dim × cov_dim"),
+    ("cov_dim", pa.int32(), True, "", "dimension of φ: 6 (BEV) or 8 (3D)"),
+    ("model", pa.string(), False, "", "bev or 3d"),
+    # Diagnostics of the core beyond the paper (DESIGN.md §6); null when the core does not report them.
+    ("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline)"),
+    ("fit_offset_mahal", pa.float64(), True, "", "offset between fitted and labeled box in Mahalanobis units"),
+    # KITTI extras (null for other formats)
+    ("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]"),
+    ("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)"),
+    ("difficulty", pa.string(), True, "", "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown"),
+    ("label_line", pa.int32(), True, "", "1-based line of the box in its KITTI label file"),
+)
+
+SCHEMA = pa.schema([pa.field(n, t, nullable=nullable) for n, t, nullable, _, _ in COLUMNS])
+"""Arrow schema of the objects table (one row per labeled box)."""
+
+COLUMN_NAMES: tuple[str, ...] = tuple(SCHEMA.names)
+FLOAT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_floating(t))
+INT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_integer(t))
+LIST_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_list(t))
+NUMERIC_COLUMNS = FLOAT_COLUMNS | INT_COLUMNS
+KITTI_EXTRA_COLUMNS = ("truncated", "occluded", "difficulty", "label_line")
+
+ERRORS_SCHEMA = pa.schema(
+    [
+        pa.field("unit", pa.string(), nullable=False),  # unit key (KITTI frame id, Waymo segment file)
+        pa.field("frame_id", pa.string()),  # null when the unit failed before a frame was read
+        pa.field("file", pa.string()),  # offending file, when known
+        pa.field("line", pa.int64()),  # 1-based line in a text file, when known
+        pa.field("level", pa.string(), nullable=False),  # "error" (frame failed) or "warning" (frame kept)
+        pa.field("message", pa.string(), nullable=False),
+    ]
+)
+"""Arrow schema of ``errors.parquet``: one row per failed frame (or per warning about a frame)."""
+
+
+class ResultsError(ValueError):
+    """A results folder is missing, unreadable or incompatible; the message names the path and the fix."""
+
+
+# --------------------------------------------------------------------------- rows → Arrow
+
+
+def _clean_float(value: Any) -> float | None:
+    if value is None:
+        return None
+    v = float(value)
+    return None if math.isnan(v) else v
+
+
+def _clean_list(value: Any) -> list[float | None] | None:
+    if value is None:
+        return None
+    return [_clean_float(v) for v in np.asarray(value, dtype=float).ravel()]
+
+
+def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
+    """Coerce one result row to plain Python values of the schema's types.
+
+    NaN floats become null (NaN means "not applicable" in the core, e.g. std_cz of a BEV model;
+    null is what Parquet consumers expect). Keys outside the schema are dropped; missing keys are null.
+    """
+    out: dict[str, Any] = {}
+    for name in COLUMN_NAMES:
+        value = row.get(name)
+        if value is None:
+            out[name] = None
+        elif name in FLOAT_COLUMNS:
+            out[name] = _clean_float(value)
+        elif name in INT_COLUMNS:
+            out[name] = int(value)
+        elif name in LIST_COLUMNS:
+            out[name] = _clean_list(value)
+        else:
+            out[name] = str(value)
+    return out
+
+
+def rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None) -> pa.Table:
+    """Build the objects table from row dicts, sorted by (frame_id, object_index) for reproducibility."""
+    clean = sorted((normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"]))
+    table = pa.Table.from_pylist(clean, schema=SCHEMA)
+    return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
+
+
+def errors_to_table(errors: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None) -> pa.Table:
+    """Build the errors table (schema :data:`ERRORS_SCHEMA`) from dicts."""
+    names = ERRORS_SCHEMA.names
+    clean = [{n: e.get(n) for n in names} for e in errors]
+    for e in clean:
+        e["level"] = e["level"] or "error"
+        e["message"] = str(e["message"])
+        if e["line"] is not None:
+            e["line"] = int(e["line"])
+    clean.sort(key=lambda e: (e["unit"], e["frame_id"] or "", e["message"]))
+    table = pa.Table.from_pylist(clean, schema=ERRORS_SCHEMA)
+    return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
+
+
+# --------------------------------------------------------------------------- metadata & atomic writes
+
+
+def run_metadata(params: Mapping[str, Any], param_hash: str, input_path: str, dataset_format: str, **extra: Any) -> dict[str, Any]:
+    """The metadata stored in the manifest and in every shard."""
+    return {
+        "tool": "labelaudit",
+        "tool_version": __version__,
+        "schema_version": SCHEMA_VERSION,
+        "param_hash": param_hash,
+        "params": dict(params),
+        "input": input_path,
+        "format": dataset_format,
+        **extra,
+    }
+
+
+def _encode_metadata(metadata: Mapping[str, Any]) -> dict[bytes, bytes]:
+    return {METADATA_KEY: json.dumps(metadata, sort_keys=True).encode()}
+
+
+def with_metadata(table: pa.Table, metadata: Mapping[str, Any]) -> pa.Table:
+    """``table`` with the labelaudit run metadata attached (stored in the Parquet footer)."""
+    return table.replace_schema_metadata(_encode_metadata(metadata))
+
+
+def shard_metadata(path: str | Path) -> dict[str, Any]:
+    """The labelaudit metadata of one Parquet file (empty dict when absent)."""
+    meta = pq.read_schema(path).metadata or {}
+    raw = meta.get(METADATA_KEY)
+    return json.loads(raw) if raw else {}
+
+
+def _tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}{TMP_MARKER}{os.getpid()}")
+
+
+def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
+    """Write ``table`` to ``path`` through a temporary dot-file and :func:`os.replace`.
+
+    A killed writer leaves at most a dot-file that readers ignore and the next run removes.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_name(path)
+    try:
+        pq.write_table(table, tmp, compression="zstd")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def write_json_atomic(data: Mapping[str, Any], path: str | Path) -> Path:
+    """Write JSON through a temporary file and rename (same guarantee as Parquet shards)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_name(path)
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def remove_temp_files(root: str | Path) -> list[Path]:
+    """Delete temporary files a killed run may have left in a results folder; returns what was removed."""
+    root = Path(root)
+    removed = []
+    for sub in (root, root / OBJECTS_DIR, root / ERRORS_DIR):
+        if sub.is_dir():
+            for p in sub.glob(f".*{TMP_MARKER}*"):
+                p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed
+
+
+def read_manifest(root: str | Path) -> dict[str, Any] | None:
+    """The manifest of a results folder, or None when there is none.
+
+    Raises
+    ------
+    ResultsError
+        The manifest exists but is not valid JSON.
+    """
+    path = Path(root) / MANIFEST_NAME
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ResultsError(f"{path}: unreadable manifest ({exc}); rerun `labelaudit infer --overwrite`") from None
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass
+class Results:
+    """An opened results folder (or a single Parquet file of objects).
+
+    Attributes
+    ----------
+    root : the folder (or file) that was opened
+    dataset : pyarrow dataset over the object shards
+    manifest : the run manifest (empty dict for a bare Parquet file)
+    """
+
+    root: Path
+    dataset: pads.Dataset
+    manifest: dict[str, Any]
+
+    @property
+    def columns(self) -> list[str]:
+        return list(self.dataset.schema.names)
+
+    @property
+    def complete(self) -> bool:
+        """False when the manifest says the run stopped before all shards were written."""
+        return bool(self.manifest.get("complete", True))
+
+    def read(self, columns: Sequence[str] | None = None) -> pa.Table:
+        """Read the given columns (all when None); missing optional columns come back as nulls."""
+        if columns is None:
+            return self.dataset.to_table()
+        present = [c for c in columns if c in self.dataset.schema.names]
+        table = self.dataset.to_table(columns=present)
+        for c in columns:
+            if c not in present:
+                typ = SCHEMA.field(c).type if c in COLUMN_NAMES else pa.null()
+                table = table.append_column(c, pa.nulls(table.num_rows, typ))
+        return table.select(list(columns))
+
+    def errors(self) -> pa.Table:
+        """Frame-level errors and warnings (empty table when there were none)."""
+        if self.root.is_file():
+            return ERRORS_SCHEMA.empty_table()
+        path = self.root / ERRORS_FILE
+        if path.is_file():
+            return pq.read_table(path)
+        parts = sorted((self.root / ERRORS_DIR).glob("*.parquet")) if (self.root / ERRORS_DIR).is_dir() else []
+        if parts:
+            return pa.concat_tables([pq.read_table(p) for p in parts]).cast(ERRORS_SCHEMA)
+        return ERRORS_SCHEMA.empty_table()
+
+    def failed_frames(self) -> int:
+        """Number of frames (or units) that failed as a whole."""
+        errs = self.errors()
+        return int(pc.sum(pc.equal(errs["level"], "error")).as_py() or 0) if errs.num_rows else 0
+
+
+def open_results(path: str | Path) -> Results:
+    """Open a results folder written by ``labelaudit infer`` (or one Parquet file of objects).
+
+    Raises
+    ------
+    ResultsError
+        Path missing, no shards, or files that are not Parquet.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise ResultsError(f"{root}: no such results folder; run `labelaudit infer DATASET -o {root}` first")
+    try:
+        if root.is_file():
+            return Results(root, pads.dataset(root, format="parquet", schema=None), {})
+        manifest = read_manifest(root) or {}
+        shard_dir = root / OBJECTS_DIR
+        files = sorted(p for p in shard_dir.glob("*.parquet") if not p.name.startswith((".", "_"))) if shard_dir.is_dir() else []
+        if not files:
+            raise ResultsError(
+                f"{root}: no result shards in {shard_dir}; is this a labelaudit results folder? "
+                "Run `labelaudit infer DATASET -o FOLDER` first"
+            )
+        dataset = pads.dataset([str(f) for f in files], format="parquet")
+        return Results(root, dataset, manifest)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise ResultsError(f"{root}: unreadable results ({exc}); rerun `labelaudit infer --overwrite`") from None
