@@ -66,3 +66,11 @@ SIM_BENCH_NOISE = (0.3, 0.2, 0.1)  # issue-6 benchmark jitter: centre std (m), s
 SIM_BENCH_FRACTIONS = (0.2, 0.02)  # issue-6 benchmark: jittered share, gross-error share of vehicle labels
 SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a random BEV direction
 SIM_MAX_TRUNCATION = 0.9  # objects whose 2D box is truncated more than this are outside the camera FOV (not labelled)
+
+# --- product loop: infer / results (labelaudit.pipeline) ---
+DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`
+CHUNK_UNITS = {"kitti": 8, "waymo-v2": 1, "waymo-v1": 1}  # units per shard: 8 KITTI frames, 1 Waymo segment (~200 frames)
+POOL_START_METHOD = "spawn"  # fresh worker processes: forking after Open3D/BLAS threads started can deadlock
+DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)
+DEFAULT_RANK_TOP = 20  # rows shown by `labelaudit rank`
+DEMO_FRAMES = 12  # simulated frames of `labelaudit demo`: a few hundred objects, seconds on 2 cores
