@@ -144,5 +144,6 @@ def perturb_boxes(boxes: FloatArray, class_names: list[str], spec: NoiseSpec,
             b[3:6] = np.maximum(b[3:6], spec.min_size)
             b[6] += spec.yaw_std * dyaw[i]
             kinds[i] = "jitter"
-        b[6] = normalize_angle(b[6])
+        if kinds[i] in ("jitter", "yaw90"):  # only where yaw changed, so other boxes keep their exact yaw
+            b[6] = normalize_angle(b[6])
     return written, kinds
