@@ -223,9 +223,15 @@ def _encode_varint(value: int) -> bytes:
 
 
 def _decode_slow(buf: bytes) -> NDArray[np.float32]:
-    msg = MatrixFloat.FromString(buf)
+    try:
+        msg = MatrixFloat.FromString(buf)
+    except Exception as exc:  # protobuf's DecodeError: report it like the fast path does
+        raise ValueError(f"not a MatrixFloat message: {exc}") from exc
     data = np.asarray(msg.data, dtype=np.float32)
-    return data.reshape(tuple(msg.shape.dims)) if len(msg.shape.dims) else data
+    dims = tuple(msg.shape.dims)
+    if dims and int(np.prod(dims)) != data.size:
+        raise ValueError(f"MatrixFloat has {data.size} values but shape {list(dims)}")
+    return data.reshape(dims) if dims else data
 
 
 def decode_matrix_float(buf: bytes) -> NDArray[np.float32]:
