@@ -1,0 +1,268 @@
+"""The infer engine: per-frame rows, chunking, shards, resume/overwrite, errors, determinism.
+
+Most tests replace the core's ``audit_object`` by a small stand-in (serial executor, so the
+stand-in is seen), which isolates this module's own logic; the end-to-end tests at the bottom use
+the real core, simulator and KITTI reader.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import types
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from labelaudit import results as R
+from labelaudit.config import RunConfig
+from labelaudit.datasets import Frame, FrameRef
+from labelaudit.pipeline import (
+    ALL_CLASSES,
+    InferError,
+    InferRequest,
+    SerialExecutor,
+    StrictError,
+    chunk_name,
+    plan_chunks,
+    process_frame,
+    resolve_config,
+    run_infer,
+)
+
+HAVE_CORE = importlib.util.find_spec("labelaudit.audit") is not None
+needs_core = pytest.mark.skipif(not HAVE_CORE, reason="labelaudit.audit (core model, issue 2) not available yet")
+
+
+def _fake_audit(box, points, class_name, cfg, sensor_origin):
+    """Stand-in for the core: more points → higher JIoU-GT; raises for a marker class."""
+    if class_name == "Boom":
+        raise RuntimeError("synthetic failure")
+    n = len(points)
+    status = "no_points" if n == 0 else ("few_points" if n < cfg.model.min_points else "ok")
+    return {
+        "status": status,
+        "num_points": n,
+        "sigma": cfg.model.sigma,
+        "jiou_gt": 1.0 - 1.0 / (n + 2.0),
+        "label_error": None,
+        "sigma_hat": float("nan") if n < 2 else 0.05,
+        "fit_offset_m": None,
+        "corner_tv": [0.1, 0.2, 0.3, 0.4],
+        **{f"std_{c}": 0.1 for c in R.BOX_COLUMNS},
+        "std_cz": float("nan"),
+        "std_height": float("nan"),
+        "cov": list(np.eye(6).ravel()),
+        "cov_dim": 6,
+        "model": cfg.model.model,
+    }
+
+
+@pytest.fixture()
+def fake_core(monkeypatch):
+    module = types.ModuleType("labelaudit.audit")
+    module.audit_object = _fake_audit  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "labelaudit.audit", module)
+    import labelaudit
+
+    monkeypatch.setattr(labelaudit, "audit", module, raising=False)
+    return module
+
+
+def _frame() -> Frame:
+    rng = np.random.default_rng(0)
+    # 200 points inside box 0, 1 inside box 1, none in the others
+    pts0 = np.c_[rng.uniform(8.2, 11.8, 200), rng.uniform(-0.7, 0.7, 200), rng.uniform(-0.5, 0.6, 200), np.zeros(200)]
+    pts1 = np.array([[20.0, 5.0, 0.0, 0.0]])
+    boxes = np.array(
+        [
+            [10.0, 0.0, 0.0, 4.0, 1.8, 1.6, 0.0],  # Car with points
+            [20.0, 5.0, 0.0, 4.0, 1.8, 1.6, 0.3],  # Car with one point
+            [30.0, -5.0, 0.0, 0.8, 0.6, 1.7, 0.0],  # Pedestrian (not selected by default)
+            [40.0, 0.0, 0.0, 12.0, 2.5, 3.0, 0.0],  # Truck, too long for max_length
+            [50.0, 0.0, 0.0, 4.0, 1.8, 1.6, 0.0],  # Boom: the stand-in raises
+        ]
+    )
+    return Frame(
+        frame_id="000007",
+        points=np.vstack([pts0, pts1]).astype(np.float32),
+        boxes=boxes,
+        class_names=["Car", "Car", "Pedestrian", "Truck", "Boom"],
+        object_ids=[f"000007:{i}" for i in range(5)],
+        extras={"difficulty": np.array([0, 1, 2, -1, 0], dtype=np.int8), "truncated": np.zeros(5), "label_line": np.arange(1, 6)},
+        warnings=["dropped 2 points with NaN coordinates"],
+    )
+
+
+def test_process_frame_selects_classes_marks_skipped_and_errors(fake_core):
+    cfg = RunConfig(classes=("Car", "Truck", "Boom"), max_length=7.0)
+    rows, notes = process_frame(_frame(), cfg)
+    by_index = {r["object_index"]: r for r in rows}
+    assert sorted(by_index) == [0, 1, 3, 4]  # the pedestrian is not audited at all
+    assert by_index[0]["status"] == "ok" and by_index[0]["num_points"] == 200
+    assert by_index[1]["status"] == "few_points" and by_index[1]["num_points"] == 1
+    assert by_index[0]["jiou_gt"] > by_index[1]["jiou_gt"]
+    assert by_index[3]["status"] == "skipped" and "length 12.00 m" in by_index[3]["message"]
+    assert by_index[4]["status"] == "error" and "synthetic failure" in by_index[4]["message"]
+    assert by_index[0]["difficulty"] == "Easy" and by_index[3]["difficulty"] == "unknown"
+    assert by_index[0]["distance"] == pytest.approx(10.0) and by_index[0]["object_id"] == "000007:0"
+    assert by_index[0]["label_line"] == 1
+    assert notes[0]["level"] == "warning" and "NaN" in notes[0]["message"]
+    table = R.rows_to_table(rows)  # every row fits the schema
+    assert table.num_rows == 4
+
+
+def test_process_frame_all_classes_and_invalid_box(fake_core):
+    frame = _frame()
+    frame.boxes[0, 3] = -1.0  # invalid length
+    rows, _ = process_frame(frame, RunConfig(classes=(ALL_CLASSES,)))
+    assert len(rows) == 5
+    assert rows[0]["status"] == "error" and "invalid box" in rows[0]["message"]
+
+
+def test_resolve_config_overrides():
+    cfg = resolve_config(None, "kitti", ["Car", " Van"], "3d")
+    assert cfg.classes == ("Car", "Van") and cfg.model.model == "3d" and cfg.dataset_format == "kitti"
+    assert resolve_config(None, "kitti", ["all"]).classes == (ALL_CLASSES,)
+    assert resolve_config(None, "kitti", ["Car"]).param_hash() != resolve_config(None, "kitti", ["Van"]).param_hash()
+
+
+def test_chunks_do_not_depend_on_anything_but_the_unit_list():
+    refs = [FrameRef("kitti", "/d", f"{i:06d}") for i in range(20)]
+    plan = plan_chunks(refs, 8)
+    assert [len(c) for _, c in plan] == [8, 8, 4]
+    assert plan[0][0] == chunk_name(refs[:8]) != chunk_name(refs[1:9])
+    assert plan == plan_chunks(list(refs), 8)
+
+
+# --------------------------------------------------------------------------- runs on simulated KITTI
+
+
+@pytest.fixture(scope="module")
+def sim_kitti(tmp_path_factory) -> Path:
+    from labelaudit.sim.noise import NoiseSpec
+    from labelaudit.simulate import simulate_dataset
+
+    root = tmp_path_factory.mktemp("sim") / "kitti"
+    simulate_dataset(root, frames=5, seed=3, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False)
+    return root
+
+
+def _run(dataset: Path, out: Path, cfg: RunConfig | None = None, **kw) -> object:
+    request = InferRequest(dataset, out, "auto", **{"chunk_units": 2, **kw})
+    return run_infer(request, cfg or RunConfig(), executor=kw.pop("executor", None) or SerialExecutor())
+
+
+def _rows(out: Path) -> list[dict]:
+    t = R.open_results(out).read()
+    return sorted(t.to_pylist(), key=lambda r: (r["frame_id"], r["object_index"]))
+
+
+def test_run_writes_shards_manifest_and_errors(fake_core, sim_kitti, tmp_path):
+    out = tmp_path / "res"
+    summary = _run(sim_kitti, out)
+    assert summary.units == 5 and summary.chunks == 3 and summary.chunks_skipped == 0 and summary.frames == 5
+    manifest = R.read_manifest(out)
+    cfg = RunConfig()
+    assert manifest["complete"] and manifest["param_hash"] == cfg.param_hash() and manifest["params"] == cfg.to_dict()
+    assert manifest["format"] == "kitti" and manifest["input"] == str(sim_kitti.resolve())
+    shards = sorted((out / R.OBJECTS_DIR).glob("*.parquet"))
+    assert len(shards) == 3
+    assert R.shard_metadata(shards[0])["param_hash"] == cfg.param_hash()
+    assert pq.read_table(out / R.ERRORS_FILE).num_rows == 0
+    rows = _rows(out)
+    assert rows and {r["class_name"] for r in rows} <= set(cfg.classes)
+    assert all(r["dataset"] == "kitti" and r["difficulty"] in ("Easy", "Moderate", "Hard", "unknown") for r in rows)
+    for shard in shards:  # sorted inside every shard
+        t = pq.read_table(shard, columns=["frame_id", "object_index"]).to_pylist()
+        assert t == sorted(t, key=lambda r: (r["frame_id"], r["object_index"]))
+
+
+def test_resume_skips_done_shards_and_cleans_temp_files(fake_core, sim_kitti, tmp_path):
+    out = tmp_path / "res"
+    _run(sim_kitti, out)
+    before = _rows(out)
+    victim = sorted((out / R.OBJECTS_DIR).glob("*.parquet"))[1]
+    victim.unlink()  # as if the run had been killed before this shard
+    leftover = out / R.OBJECTS_DIR / f".{victim.name}{R.TMP_MARKER}4242"
+    leftover.write_bytes(b"partial")
+    summary = _run(sim_kitti, out)
+    assert summary.chunks_skipped == 2 and summary.frames in (1, 2)  # the redone chunk only
+    assert not leftover.exists() and victim.exists()
+    assert _rows(out) == before
+
+
+def test_resume_refuses_other_parameters_unless_overwrite(fake_core, sim_kitti, tmp_path):
+    out = tmp_path / "res"
+    _run(sim_kitti, out)
+    other = replace(RunConfig(), classes=("Car",))
+    with pytest.raises(InferError, match="another parameters.*--overwrite"):
+        _run(sim_kitti, out, other)
+    summary = _run(sim_kitti, out, other, overwrite=True)
+    assert summary.chunks_skipped == 0
+    assert {r["class_name"] for r in _rows(out)} == {"Car"}
+    assert R.read_manifest(out)["param_hash"] == other.param_hash()
+
+
+def test_output_folder_that_is_not_results_is_refused(fake_core, sim_kitti, tmp_path):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("keep me")
+    with pytest.raises(InferError, match="not a labelaudit results folder"):
+        _run(sim_kitti, tmp_path / "mine", overwrite=True)
+    assert (tmp_path / "mine" / "thesis.tex").exists()
+
+
+def test_limit_then_full_run_leaves_no_stale_shards(fake_core, sim_kitti, tmp_path):
+    out = tmp_path / "res"
+    _run(sim_kitti, out, limit=3)
+    assert {r["frame_id"] for r in _rows(out)} <= {"000000", "000001", "000002"}
+    _run(sim_kitti, out)  # same parameters: resumes, re-plans chunks, drops the old partial shard
+    full = _rows(out)
+    fresh = tmp_path / "fresh"
+    _run(sim_kitti, fresh)
+    assert full == _rows(fresh)
+
+
+def test_bad_frame_is_recorded_and_strict_makes_it_fatal(fake_core, sim_kitti, tmp_path):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(sim_kitti, data)
+    (data / "training" / "velodyne" / "000002.bin").write_bytes(b"\0" * 10)  # not a multiple of 16 bytes
+    summary = _run(data, tmp_path / "res")
+    assert summary.failed_frames == 1
+    errors = pq.read_table(tmp_path / "res" / R.ERRORS_FILE).to_pylist()
+    assert errors[0]["unit"] == "000002" and errors[0]["file"].endswith("000002.bin") and errors[0]["level"] == "error"
+    assert "000002" not in {r["frame_id"] for r in _rows(tmp_path / "res")}
+    with pytest.raises(StrictError, match="000002"):
+        _run(data, tmp_path / "strict", strict=True)
+
+
+def test_input_errors(fake_core, tmp_path):
+    with pytest.raises(InferError, match="does not exist"):
+        _run(tmp_path / "nope", tmp_path / "res")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InferError, match="cannot tell the format"):
+        _run(tmp_path / "empty", tmp_path / "res")
+
+
+# --------------------------------------------------------------------------- end to end with the real core
+
+
+@needs_core
+@pytest.mark.slow
+def test_same_rows_for_one_and_two_workers(sim_kitti, tmp_path):
+    from labelaudit.pipeline import PoolExecutor
+
+    cfg = resolve_config(None, "kitti")
+    run_infer(InferRequest(sim_kitti, tmp_path / "w1", chunk_units=2), cfg, executor=SerialExecutor())
+    run_infer(InferRequest(sim_kitti, tmp_path / "w2", chunk_units=2), cfg, executor=PoolExecutor(2))
+    rows1, rows2 = _rows(tmp_path / "w1"), _rows(tmp_path / "w2")
+    assert rows1 == rows2
+    statuses = {r["status"] for r in rows1}
+    assert statuses <= {"ok", "few_points", "no_points"} and "ok" in statuses
+    ok = [r for r in rows1 if r["status"] == "ok"]
+    assert all(0.0 < r["jiou_gt"] <= 1.0 and r["cov_dim"] == 6 and len(r["cov"]) == 36 for r in ok)
