@@ -1,0 +1,206 @@
+"""The CLI through Typer's test runner: help texts, exit codes 0/1/2, stdout vs stderr, end to end."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import io
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from labelaudit import __version__
+from labelaudit import results as R
+from labelaudit.cli import app
+from results_factory import make_results, make_row
+
+runner = CliRunner()
+HAVE_CORE = importlib.util.find_spec("labelaudit.audit") is not None
+needs_core = pytest.mark.skipif(not HAVE_CORE, reason="labelaudit.audit (core model, issue 2) not available yet")
+COMMANDS = ["infer", "rank", "check", "simulate", "demo"]
+
+
+def invoke(*args: str):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_has_help_with_an_example(command):
+    result = invoke(command, "--help")
+    assert result.exit_code == 0
+    assert "Examples" in result.stdout
+    assert f"labelaudit {command}" in result.stdout
+
+
+def test_top_level_help_and_version():
+    result = invoke("--help")
+    assert result.exit_code == 0 and all(c in result.stdout for c in COMMANDS)
+    result = invoke("--version")
+    assert result.exit_code == 0 and result.stdout.strip() == f"labelaudit {__version__}"
+
+
+# --------------------------------------------------------------------------- check
+
+
+@pytest.fixture()
+def good(tmp_path) -> Path:
+    return make_results(tmp_path / "good", [[make_row("000001", i, jiou_gt=0.85) for i in range(20)]])
+
+
+@pytest.fixture()
+def bad(tmp_path) -> Path:
+    return make_results(tmp_path / "bad", [[make_row("000001", i, jiou_gt=0.2) for i in range(20)]])
+
+
+def test_check_pass_exit_0_table_on_stdout(good):
+    result = invoke("check", good)
+    assert result.exit_code == 0, result.output
+    assert "min_median_jiou_gt" in result.stdout and "PASS" in result.stdout
+
+
+def test_check_fail_exit_1_with_json_and_junit(bad, tmp_path):
+    junit = tmp_path / "reports" / "gate.xml"
+    result = invoke("check", bad, "--json", "--junit", junit)
+    assert result.exit_code == 1
+    data = json.loads(result.stdout)  # stdout is pure JSON
+    assert data["verdict"] == "FAIL"
+    failed = {r["rule"] for r in data["rules"] if r["status"] == "fail"}
+    assert {"min_median_jiou_gt", "max_fraction_jiou_gt_below"} <= failed
+    suite = ET.parse(junit).getroot().find("testsuite")
+    assert int(suite.get("failures")) == len([r for r in data["rules"] if r["status"] == "fail"])
+
+
+def test_check_exit_2_cases(tmp_path, good):
+    empty = make_results(tmp_path / "empty", [[]])
+    r = invoke("check", empty)
+    assert r.exit_code == 2 and "no objects" in r.stderr
+    r = invoke("check", tmp_path / "does-not-exist")
+    assert r.exit_code == 2 and "does-not-exist" in r.stderr and "labelaudit infer" in r.stderr
+    gate = tmp_path / "gate.toml"
+    gate.write_text("[default]\nmin_median_jiou = 0.5\n")
+    r = invoke("check", good, "--config", gate)
+    assert r.exit_code == 2 and "gate.toml" in r.stderr and "min_median_jiou" in r.stderr
+    assert "Traceback" not in r.output
+    skipped = make_results(tmp_path / "skipped", [[make_row("000001", 0, status="skipped", message="too long")]])
+    r = invoke("check", skipped)
+    assert r.exit_code == 2  # nothing evaluable: never 0
+    incomplete = make_results(tmp_path / "incomplete", [[make_row("000001", 0)]], complete=False)
+    r = invoke("check", incomplete)
+    assert r.exit_code == 2 and "did not finish" in r.stderr
+
+
+def test_check_uses_a_custom_gate(bad, tmp_path):
+    lenient = tmp_path / "lenient.toml"
+    lenient.write_text("[default]\nmin_median_jiou_gt = 0.1\n")
+    assert invoke("check", bad, "--config", lenient).exit_code == 0
+
+
+# --------------------------------------------------------------------------- rank
+
+
+@pytest.fixture()
+def mixed(tmp_path) -> Path:
+    rows = [make_row("000001", i, jiou_gt=j, label_error=e) for i, (j, e) in enumerate([(0.9, 0.1), (0.3, 0.8), (0.6, 0.4)])]
+    rows.append(make_row("000002", 0, "Pedestrian", jiou_gt=0.1, label_error=0.2))
+    return make_results(tmp_path / "mixed", [rows])
+
+
+def test_rank_json_default_is_lowest_jiou_first(mixed):
+    r = invoke("rank", mixed, "--format", "json", "--top", "3")
+    assert r.exit_code == 0, r.output
+    records = json.loads(r.stdout)
+    assert [x["jiou_gt"] for x in records] == [0.1, 0.3, 0.6]
+    assert set(R.COLUMN_NAMES) <= set(records[0])
+
+
+def test_rank_label_error_descending_and_asc_override(mixed):
+    r = invoke("rank", mixed, "--by", "label_error", "--format", "json")
+    assert [x["label_error"] for x in json.loads(r.stdout)] == [0.8, 0.4, 0.2, 0.1]
+    r = invoke("rank", mixed, "--by", "label_error", "--asc", "--format", "json", "--top", "1")
+    assert [x["label_error"] for x in json.loads(r.stdout)] == [0.1]
+
+
+def test_rank_csv_and_class_filter(mixed):
+    r = invoke("rank", mixed, "--format", "csv", "--class", "Car")
+    rows = list(csv.DictReader(io.StringIO(r.stdout)))
+    assert [row["class_name"] for row in rows] == ["Car"] * 3
+    assert [float(row["jiou_gt"]) for row in rows] == [0.3, 0.6, 0.9]
+
+
+def test_rank_table_and_usage_errors(mixed, tmp_path):
+    r = invoke("rank", mixed, "--top", "2")
+    assert r.exit_code == 0 and "000002" in r.stdout and "jiou_gt" in r.stdout
+    r = invoke("rank", mixed, "--by", "class_name")
+    assert r.exit_code == 2 and "not a numeric column" in r.stderr
+    r = invoke("rank", mixed, "--status", "fine")
+    assert r.exit_code == 2
+    r = invoke("rank", tmp_path / "nothing-here")
+    assert r.exit_code == 2 and "nothing-here" in r.stderr
+
+
+# --------------------------------------------------------------------------- infer / simulate / demo
+
+
+def test_infer_bad_inputs_exit_2_with_one_line(tmp_path):
+    r = invoke("infer", tmp_path / "no-such-dataset", "-o", tmp_path / "out")
+    assert r.exit_code == 2
+    assert r.stderr.strip().count("\n") == 0 and "no-such-dataset" in r.stderr and "Traceback" not in r.output
+    r = invoke("infer", tmp_path, "--workers", "0")
+    assert r.exit_code == 2
+
+
+def test_infer_unknown_config_key_exit_2(tmp_path):
+    from labelaudit.simulate import simulate_dataset
+
+    data = tmp_path / "data"
+    simulate_dataset(data, frames=1, seed=0, progress=False)
+    cfg = tmp_path / "model.toml"
+    cfg.write_text("[model]\nsigmaa = 0.2\n")
+    r = invoke("infer", data, "-o", tmp_path / "out", "--config", cfg)
+    assert r.exit_code == 2 and "model.toml" in r.stderr and "sigmaa" in r.stderr
+
+
+def test_simulate_writes_a_kitti_dataset(tmp_path):
+    out = tmp_path / "sim"
+    r = invoke("simulate", out, "--frames", "2", "--seed", "4", "--noise-fraction", "0.5", "-q")
+    assert r.exit_code == 0, r.output
+    assert len(list((out / "training" / "velodyne").glob("*.bin"))) == 2 and (out / "manifest.parquet").is_file()
+    assert invoke("simulate", out, "--frames", "2", "-q").exit_code == 2  # exists, no --overwrite
+    assert invoke("simulate", out, "--frames", "0").exit_code == 2
+
+
+@needs_core
+@pytest.mark.slow
+def test_infer_rank_check_end_to_end_and_resume(tmp_path):
+    r = invoke("simulate", tmp_path / "data", "--frames", "4", "--seed", "2", "--gross-fraction", "0.2", "-q")
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "res"
+    r = invoke("infer", tmp_path / "data", "-o", out, "--workers", "1")
+    assert r.exit_code == 0, r.output
+    assert r.stdout == ""  # progress and summary go to stderr
+    assert "median JIoU-GT" in r.stderr
+    manifest = R.read_manifest(out)
+    assert manifest["complete"] and manifest["format"] == "kitti"
+    r = invoke("rank", out, "--format", "json", "--top", "5")
+    values = [x["jiou_gt"] for x in json.loads(r.stdout)]
+    assert values == sorted(values) and len(values) == 5
+    assert invoke("check", out, "--json").exit_code in (0, 1)
+    # same options: resumes (nothing to do); other parameters: refused unless --overwrite
+    r = invoke("infer", tmp_path / "data", "-o", out, "--workers", "1", "-q")
+    assert r.exit_code == 0
+    r = invoke("infer", tmp_path / "data", "-o", out, "--classes", "all", "-q")
+    assert r.exit_code == 2 and "--overwrite" in r.stderr
+    r = invoke("infer", tmp_path / "data", "-o", out, "--classes", "all", "--overwrite", "-q", "--workers", "1")
+    assert r.exit_code == 0, r.output
+
+
+@needs_core
+@pytest.mark.slow
+def test_demo_runs_the_whole_loop(tmp_path):
+    r = invoke("demo", tmp_path / "demo", "--frames", "4", "--workers", "1")
+    assert r.exit_code == 0, r.output
+    assert "worst" in r.stdout and "labelaudit check" in r.stdout
+    assert (tmp_path / "demo" / "results" / "manifest.json").is_file()
