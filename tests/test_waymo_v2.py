@@ -97,6 +97,29 @@ def test_pixel_pose_moves_points_into_the_frame_pose() -> None:
         range_image_to_points(img, calib, pose, None)
 
 
+@pytest.mark.parametrize("per_column", [True, False])
+def test_pixel_pose_matches_reference(per_column: bool) -> None:
+    """Per-pixel poses (and the per-column fast path) against a transform built with scipy."""
+    rng = np.random.default_rng(2)
+    h, w = 3, 8
+    calib = LidarCalibration(1, np.eye(4), inclinations=np.linspace(-0.2, 0.05, h))
+    img = _image(rng.uniform(2, 50, size=(h, w)))
+    pose = np.empty((h, w, 6), dtype=np.float32)
+    pose[..., :3] = rng.normal(0, 0.05, size=(h, w, 3)) + [0, 0, 1.0]
+    pose[..., 3:] = rng.normal(0, 1.0, size=(h, w, 3)) + [500.0, -300.0, 10.0]
+    if per_column:
+        pose[:] = pose[0]
+    frame = np.eye(4)
+    frame[:3, :3] = Rotation.from_euler("ZYX", [1.02, 0.01, -0.02]).as_matrix()
+    frame[:3, 3] = (500.5, -299.0, 10.2)
+    got = range_image_to_points(img, calib, pose, frame)
+    p_v = range_image_to_points(img, calib)[:, :3].astype(np.float64)
+    px = pose.reshape(-1, 6).astype(np.float64)
+    world = Rotation.from_euler("ZYX", px[:, 2::-1]).apply(p_v) + px[:, 3:]
+    want = (world - frame[:3, 3]) @ frame[:3, :3]
+    np.testing.assert_allclose(got[:, :3], want, atol=1e-4)
+
+
 # --- MatrixFloat codec --------------------------------------------------------------------------
 
 

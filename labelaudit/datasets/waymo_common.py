@@ -96,6 +96,41 @@ def euler_to_matrix(roll: NDArray, pitch: NDArray, yaw: NDArray) -> NDArray[np.f
     return r
 
 
+_DIRECTION_CACHE: dict[tuple, NDArray[np.float64]] = {}
+_DIRECTION_CACHE_SIZE = 16  # (lidar, image size) direction grids kept; a dataset has 5 lidars
+
+
+def ray_directions(calibration: LidarCalibration, height: int, width: int) -> NDArray[np.float64]:
+    """(H, W, 3) unit ray direction of every pixel in the vehicle frame (extrinsic rotation applied).
+
+    Depends only on the calibration and the image size, so it is cached: per frame only the
+    ranges change.
+    """
+    e = np.asarray(calibration.extrinsic, dtype=np.float64)
+    key = (
+        calibration.name, height, width, e.tobytes(), calibration.inclination_min,
+        calibration.inclination_max, np.asarray(calibration.inclinations, dtype=np.float64).tobytes(),
+    )
+    dirs = _DIRECTION_CACHE.get(key)
+    if dirs is None:
+        el = calibration.row_inclinations(height)
+        az = column_azimuths(width, e)
+        ce, se = np.cos(el)[:, None], np.sin(el)[:, None]
+        sensor = np.stack(np.broadcast_arrays(ce * np.cos(az)[None, :], ce * np.sin(az)[None, :], se), axis=-1)
+        dirs = np.ascontiguousarray(sensor @ e[:3, :3].T)
+        if len(_DIRECTION_CACHE) >= _DIRECTION_CACHE_SIZE:
+            _DIRECTION_CACHE.pop(next(iter(_DIRECTION_CACHE)))
+        _DIRECTION_CACHE[key] = dirs
+    return dirs
+
+
+def _apply(rot: NDArray[np.float64], trans: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per-point rigid transform: rot (N, 3, 3), trans (N, 3), p (N, 3)."""
+    return (
+        rot[:, :, 0] * p[:, 0:1] + rot[:, :, 1] * p[:, 1:2] + rot[:, :, 2] * p[:, 2:3] + trans
+    )
+
+
 def range_image_to_points(
     range_image: NDArray[np.floating],
     calibration: LidarCalibration,
@@ -120,30 +155,33 @@ def range_image_to_points(
     if ri.ndim != 3 or ri.shape[2] < 2:
         raise ValueError(f"range image must be (H, W, C>=2), got shape {ri.shape}")
     h, w = ri.shape[:2]
-    rng = ri[..., 0]
-    rows, cols = np.nonzero(rng > 0)  # NaN compares False: dropped too
-    r = rng[rows, cols].astype(np.float64)
+    valid = ri[..., 0] > 0  # NaN compares False: dropped too
+    r = ri[..., 0][valid].astype(np.float64)
     extrinsic = np.asarray(calibration.extrinsic, dtype=np.float64)
-    el = calibration.row_inclinations(h)[rows]
-    az = column_azimuths(w, extrinsic)[cols]
-    cos_el = np.cos(el)
-    p = np.stack([r * cos_el * np.cos(az), r * cos_el * np.sin(az), r * np.sin(el)], axis=1)
-    p = p @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+    p = ray_directions(calibration, h, w)[valid] * r[:, None] + extrinsic[:3, 3]
     if pixel_pose is not None:
         if frame_pose is None:
             raise ValueError("a per-pixel pose needs the frame pose (vehicle → world)")
-        pp = np.asarray(pixel_pose, dtype=np.float64)
+        pp = np.asarray(pixel_pose)
         if pp.shape[:2] != (h, w) or pp.shape[2] < 6:
             raise ValueError(f"pixel pose shape {pp.shape} does not match range image {(h, w)} x 6")
-        pp = pp[rows, cols]
-        rot = euler_to_matrix(pp[:, 0], pp[:, 1], pp[:, 2])
-        world = np.einsum("nij,nj->ni", rot, p) + pp[:, 3:6]
         fp = np.asarray(frame_pose, dtype=np.float64)
-        # inverse of a rigid transform: Rᵀ (x − t); subtract first to keep precision at large t
-        p = (world - fp[:3, 3]) @ fp[:3, :3]
+        f_rot_t = fp[:3, :3].T
+        if (pp == pp[:1]).all():
+            # Poses vary by column only (one capture time per azimuth): compose per column, then
+            # gather — W rotations instead of one per point.
+            col = pp[0].astype(np.float64)
+            rot = f_rot_t @ euler_to_matrix(col[:, 0], col[:, 1], col[:, 2])
+            trans = (col[:, 3:6] - fp[:3, 3]) @ f_rot_t.T  # subtract first: keeps precision at large t
+            cols = np.nonzero(valid)[1]
+            p = _apply(rot[cols], trans[cols], p)
+        else:
+            px = pp[valid].astype(np.float64)
+            rot = f_rot_t @ euler_to_matrix(px[:, 0], px[:, 1], px[:, 2])
+            p = _apply(rot, (px[:, 3:6] - fp[:3, 3]) @ f_rot_t.T, p)
     out = np.empty((len(r), 4), dtype=np.float32)
     out[:, :3] = p
-    out[:, 3] = ri[rows, cols, 1]
+    out[:, 3] = ri[..., 1][valid]
     return out
 
 
