@@ -136,21 +136,21 @@ class _RowGroupCache:
     def timestamps(self) -> set[int]:
         return set(self.groups_of)
 
-    def take(self, ts: int) -> pa.Table | None:
-        """Rows of frame ``ts`` (None when the file has none); releases finished row groups."""
-        groups = self.groups_of.get(ts)
-        if not groups:
-            return None
+    def take(self, ts: int) -> list[tuple[pa.Table, NDArray[np.int64]]]:
+        """Rows of frame ``ts`` as (row-group table, row indices) pairs — no copy of the images.
+
+        Empty when the file has no row for ``ts``. Releases row groups whose frames are all taken.
+        """
         parts = []
-        for g in groups:
+        for g in self.groups_of.get(ts, []):
             if g not in self.loaded:
                 self.loaded[g] = self.file.read_row_group(g, columns=[K_TS, *self.columns])
             t = self.loaded[g]
-            parts.append(t.filter(pc.equal(t.column(K_TS), pa.scalar(ts, t.schema.field(K_TS).type))))
+            parts.append((t, np.flatnonzero(t.column(K_TS).to_numpy() == ts)))
             self.pending[g].discard(ts)
             if not self.pending[g]:
                 del self.loaded[g]
-        return pa.concat_tables(parts) if len(parts) > 1 else parts[0]
+        return parts
 
 
 def _image(table: pa.Table, row: int, values: str, shape: str, path: Path) -> NDArray[np.float32] | None:
@@ -279,21 +279,29 @@ class WaymoV2Reader:
         return {int(ts): mats[i] for i, ts in enumerate(t.column(K_TS).to_numpy())}
 
     @staticmethod
-    def _lidars(rows: pa.Table | None, pose_rows: pa.Table | None, paths: dict[str, Path]) -> list[LidarData]:
-        if rows is None:
-            return []
+    def _lidars(
+        rows: list[tuple[pa.Table, NDArray[np.int64]]],
+        pose_rows: list[tuple[pa.Table, NDArray[np.int64]]],
+        paths: dict[str, Path],
+    ) -> list[LidarData]:
         pixel_pose: dict[int, NDArray[np.float32]] = {}
-        if pose_rows is not None:
-            for i, name in enumerate(pose_rows.column(K_LASER).to_pylist()):
-                img = _image(pose_rows, i, *POSE_COLUMNS, paths["lidar_pose"])
+        for table, idx in pose_rows:
+            names = table.column(K_LASER)
+            for i in idx:
+                img = _image(table, int(i), *POSE_COLUMNS, paths["lidar_pose"])
                 if img is not None:
-                    pixel_pose[int(name)] = img
+                    pixel_pose[int(names[int(i)].as_py())] = img
         out = []
-        for i, name in enumerate(rows.column(K_LASER).to_pylist()):
-            returns = [img for vals, shape in LIDAR_RETURNS if (img := _image(rows, i, vals, shape, paths["lidar"])) is not None]
-            if returns:
-                # only TOP has per-pixel poses in Waymo; use whatever the file provides
-                out.append(LidarData(name=int(name), returns=returns, pixel_pose=pixel_pose.get(int(name))))
+        for table, idx in rows:
+            names = table.column(K_LASER)
+            for i in idx:
+                name = int(names[int(i)].as_py())
+                returns = [
+                    img for vals, shape in LIDAR_RETURNS if (img := _image(table, int(i), vals, shape, paths["lidar"])) is not None
+                ]
+                if returns:
+                    # only TOP has per-pixel poses in Waymo; use whatever the file provides
+                    out.append(LidarData(name=name, returns=returns, pixel_pose=pixel_pose.get(name)))
         return out
 
 
