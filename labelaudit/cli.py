@@ -71,7 +71,8 @@ class OutputFormat(str, Enum):
 
 def _out() -> Console:
     # Built per call: Typer's test runner swaps sys.stdout between invocations.
-    return Console(file=sys.stdout, highlight=False, soft_wrap=False, width=max(100, Console().width))
+    # Not a terminal (pipe, CI log): wide enough that tables do not wrap.
+    return Console(file=sys.stdout, highlight=False, width=None if sys.stdout.isatty() else 120)
 
 
 def _err() -> Console:
@@ -319,10 +320,12 @@ def print_gate_table(console: Console, report) -> None:  # type: ignore[no-untyp
     colour = {"pass": "green", "fail": "red", "skip": "yellow", "error": "magenta"}
     t = Table(title=f"labelaudit check — gate {report.source}", title_justify="left")
     for c in ("scope", "rule", "value", "threshold", "objects", "result", "note"):
-        t.add_column(c, justify="right" if c in ("value", "threshold", "objects") else "left")
+        t.add_column(c, justify="right" if c in ("value", "threshold", "objects") else "left", no_wrap=c != "note")
     for r in report.results:
         t.add_row(r.scope, r.rule, _fmt(r.value), f"{r.comparison} {_fmt(r.threshold)}", str(r.objects), f"[{colour[r.status]}]{r.status}[/]", r.note)
     console.print(t)
+    if report.absent_classes:
+        console.print(f"not in the results, not evaluated: {escape(', '.join(report.absent_classes))}")
     v = report.verdict
     console.print(f"[bold {'green' if v == 'PASS' else 'red'}]{v}[/] ({report.total_objects} objects; exit {report.exit_code})")
 

@@ -11,8 +11,9 @@ A gate file is TOML with a ``[default]`` table (rules for every class) and optio
     min_median_jiou_gt = 0.4
 
 Every rule is evaluated per class present in the results, except ``max_failed_frames``, which is
-dataset-wide. Outcome per rule: ``pass``, ``fail``, ``skip`` (inactive: e.g. no ``label_error``
-values yet, or an override for a class with no objects) or ``error`` (could not be evaluated).
+dataset-wide; ``[class.X]`` tables of classes without objects are listed as absent. Outcome per
+rule: ``pass``, ``fail``, ``skip`` (inactive: no ``label_error`` values yet) or ``error`` (could
+not be evaluated).
 Exit code: 2 when any rule errs or nothing was evaluated, else 1 when any rule fails, else 0.
 """
 
@@ -160,6 +161,7 @@ class GateReport:
     results: list[RuleResult]
     source: str
     total_objects: int
+    absent_classes: list[str] = field(default_factory=list)  # [class.X] tables with no objects: not evaluated
 
     @property
     def exit_code(self) -> int:
@@ -178,6 +180,7 @@ class GateReport:
             "exit_code": self.exit_code,
             "gate": self.source,
             "objects": self.total_objects,
+            "absent_classes": self.absent_classes,
             "rules": [{**asdict(r), "comparison": r.comparison} for r in self.results],
         }
 
@@ -238,9 +241,6 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
         note = ""
         value: float | None = None
         count = n
-        if len(status) == 0:
-            out.append(RuleResult(name, rule, None, thr, "skip", 0, "no objects of this class in the results"))
-            continue
         if rule == "min_objects":
             value = float(n)
         elif rule == "max_failed_objects":
@@ -266,7 +266,7 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
             values = _finite(lerr[evaluated])
             count = len(values)
             if count == 0:
-                out.append(RuleResult(name, rule, None, thr, "skip", 0, "label_error not computed in these results (rule inactive)"))
+                out.append(RuleResult(name, rule, None, thr, "skip", 0, "label_error not computed (inactive)"))
                 continue
             value = float(np.mean(values > rules["label_error_threshold"]))
             note = f"above {_fmt(rules['label_error_threshold'])}"
@@ -300,11 +300,11 @@ def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
 
     out: list[RuleResult] = []
     names = sorted(set(classes.tolist()))
-    for name in names + sorted(set(gate.classes) - set(names)):
+    for name in names:
         m = classes == name
         out.extend(_evaluate_class(name, gate.rules_for(name), status[m], jiou[m], lerr[m]))
     if "max_failed_frames" in gate.default:
         failed = results.failed_frames()
         thr = gate.default["max_failed_frames"]
         out.append(RuleResult("dataset", "max_failed_frames", float(failed), thr, _compare("max_failed_frames", failed, thr), table.num_rows))
-    return GateReport(out, gate.source, table.num_rows)
+    return GateReport(out, gate.source, table.num_rows, sorted(set(gate.classes) - set(names)))

@@ -146,9 +146,10 @@ def test_empty_or_incomplete_results_are_refused(tmp_path):
         evaluate_gate(open_results(make_results(tmp_path / "b", [_cars(3, 0.9)], complete=False)), load_gate(None))
 
 
-def test_class_override_without_objects_is_skipped(tmp_path):
+def test_class_override_without_objects_is_listed_as_absent(tmp_path):
     report = evaluate_gate(open_results(make_results(tmp_path, [_cars(5, 0.9)])), gate_from_dict(ISSUE_EXAMPLE))
-    assert _outcome(report, "Pedestrian", "min_median_jiou_gt").status == "skip"
+    assert report.absent_classes == ["Pedestrian"]
+    assert {r.scope for r in report.results} == {"Car", "dataset"}
     assert report.exit_code == 0
 
 
