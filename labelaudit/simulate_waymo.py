@@ -34,7 +34,7 @@ from labelaudit.datasets import waymo_proto as wp
 from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
-from labelaudit.sim.raycast import HIT_GROUND, LidarSpec, render_range_image
+from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, SimObject, sample_scene
 
 FloatArray = NDArray[np.float64]
@@ -114,6 +114,7 @@ class SimWaymoFrame:
     object_ids: list[str]
     num_points: NDArray[np.int64]
     points: NDArray[np.float32]  # (N, 4) expected x, y, z, intensity, vehicle frame
+    sim_classes: list[str] = field(default_factory=list)  # the simulator's KITTI class names
 
 
 @dataclass
@@ -264,7 +265,8 @@ def simulate_waymo_segment(
         pts = np.concatenate(expected) if expected else np.zeros((0, 4), np.float32)
         counts = _points_in_boxes(pts[:, :3].astype(np.float64), boxes)
         seg.frames.append(
-            SimWaymoFrame(t0 + int(round(t_f * 1e6)), pose_f, lidars, boxes, types.copy(), list(ids), counts, pts)
+            SimWaymoFrame(t0 + int(round(t_f * 1e6)), pose_f, lidars, boxes, types.copy(), list(ids), counts, pts,
+                          [o.class_name for o in world.objects])
         )
     return seg
 
@@ -405,3 +407,24 @@ def write_waymo_v2(
         root / "vehicle_pose" / f"{seg}.parquet",
     )
     return root
+
+
+def write_as_kitti(segment: SimWaymoSegment, root: str | Path, seed: int = 0) -> list[str]:
+    """Write the same frames in KITTI layout (``root/training/…``), for cross-format checks.
+
+    The KITTI LiDAR frame is the Waymo vehicle frame, the velodyne file holds the simulator's
+    expected points (all lidars), and labels are the same boxes (every object, exact floats, KITTI
+    class names) through a KITTI-like camera calibration. Returns the KITTI frame ids in order.
+    """
+    from labelaudit.sim.kitti_writer import kitti_labels, make_calibration, write_kitti_frame
+
+    rng = np.random.default_rng(seed)
+    ids = []
+    for i, fr in enumerate(segment.frames):
+        frame_id = f"{i:06d}"
+        calib = make_calibration(rng)
+        info = kitti_labels(fr.boxes, fr.boxes, fr.sim_classes, np.zeros(len(fr.boxes)), calib,
+                            label_fov="all", precision=None)
+        write_kitti_frame(root, frame_id, fr.points, info.lines, calib)
+        ids.append(frame_id)
+    return ids
