@@ -276,6 +276,7 @@ def rank(
     status: Optional[list[str]] = typer.Option(None, "--status", help="Only these statuses: ok, few_points, no_points, skipped, error."),
     min_points: Optional[int] = typer.Option(None, "--min-points", help="Only objects with at least this many points."),
     max_distance: Optional[float] = typer.Option(None, "--max-distance", help="Only objects at most this far from the sensor (m)."),
+    where: Optional[list[str]] = typer.Option(None, "--where", help="Extra condition COLUMN OP VALUE, e.g. 'occluded<=1' (repeat: all must hold)."),
     out_format: OutputFormat = typer.Option(OutputFormat.table, "--format", help="table (Rich), json (array of row objects) or csv."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
@@ -290,6 +291,8 @@ def rank(
       labelaudit rank results/ --by label_error --top 50 --class Car
 
       labelaudit rank results/ --status few_points --max-distance 40 --format csv > worst.csv
+
+      labelaudit rank results/ --where 'difficulty==Easy' --where 'num_points>=50'
     """
     from labelaudit.rank import RankQuery, rank_results, to_csv, to_json
     from labelaudit.results import STATUSES, open_results
@@ -299,7 +302,7 @@ def rank(
         bad = [s for s in statuses if s not in STATUSES]
         if bad:
             raise typer.BadParameter(f"unknown status {', '.join(bad)}; expected {', '.join(STATUSES)}", param_hint="--status")
-        query = RankQuery(by, top, descending, _split_list(class_), statuses, min_points, max_distance)
+        query = RankQuery(by, top, descending, _split_list(class_), statuses, min_points, max_distance, tuple(where or ()))
         result = rank_results(open_results(results), query)
         if out_format is OutputFormat.json:
             sys.stdout.write(to_json(result.table) + "\n")

@@ -10,6 +10,7 @@ import csv
 import io
 import json
 import math
+import re
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -42,6 +43,7 @@ class RankQuery:
     statuses: tuple[str, ...] = ()
     min_points: int | None = None
     max_distance: float | None = None
+    where: tuple[str, ...] = ()  # conditions like "num_points>=10", "difficulty==Hard" (all must hold)
 
     @property
     def is_descending(self) -> bool:
@@ -61,6 +63,40 @@ def _numeric_columns(schema: pa.Schema) -> list[str]:
     return [f.name for f in schema if pa.types.is_integer(f.type) or pa.types.is_floating(f.type)]
 
 
+_OPS = {">=": pc.greater_equal, "<=": pc.less_equal, "!=": pc.not_equal, "==": pc.equal, ">": pc.greater, "<": pc.less, "=": pc.equal}
+_WHERE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(>=|<=|!=|==|>|<|=)\s*(.+?)\s*$")
+
+
+def parse_where(condition: str, schema: pa.Schema) -> tuple[str, Any, Any]:
+    """Parse ``"column OP value"`` (OP one of == != >= <= > <) against the results schema.
+
+    Returns
+    -------
+    (column, compute function, typed value)
+
+    Raises
+    ------
+    ResultsError
+        Malformed condition, unknown column or a value of the wrong type.
+    """
+    m = _WHERE.match(condition)
+    if not m:
+        raise ResultsError(f"--where {condition!r}: expected COLUMN OP VALUE with OP one of ==, !=, >=, <=, >, < (e.g. 'num_points>=10')")
+    column, op, raw = m.groups()
+    if column not in schema.names:
+        raise ResultsError(f"--where {condition!r}: unknown column {column!r}; columns: {', '.join(schema.names)}")
+    typ = schema.field(column).type
+    value: Any = raw.strip("'\"")
+    if pa.types.is_integer(typ) or pa.types.is_floating(typ):
+        try:
+            value = float(value)
+        except ValueError:
+            raise ResultsError(f"--where {condition!r}: {column} is numeric, got {raw!r}") from None
+    elif not pa.types.is_string(typ):
+        raise ResultsError(f"--where {condition!r}: cannot compare the {typ} column {column!r}")
+    return column, _OPS[op], value
+
+
 def rank_results(results: Results, query: RankQuery) -> RankResult:
     """Rank objects by a numeric column, worst first.
 
@@ -78,8 +114,12 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
     if query.top < 1:
         raise ResultsError(f"--top must be ≥ 1, got {query.top}")
 
+    conditions = [parse_where(w, schema) for w in query.where]
     needed = ["frame_id", "object_index", query.by]
-    needed += [c for c, used in (("class_name", query.classes), ("status", query.statuses), ("num_points", query.min_points is not None), ("distance", query.max_distance is not None)) if used and c not in needed]
+    for c, used in (("class_name", query.classes), ("status", query.statuses), ("num_points", query.min_points is not None), ("distance", query.max_distance is not None)):
+        if used and c not in needed:
+            needed.append(c)
+    needed += [c for c, _, _ in conditions if c not in needed]
     table = results.read(needed)
     by = table.column(query.by)
     mask = pc.is_valid(by)
@@ -93,6 +133,8 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
         mask = pc.and_(mask, pc.greater_equal(table.column("num_points"), query.min_points))
     if query.max_distance is not None:
         mask = pc.and_(mask, pc.less_equal(table.column("distance"), query.max_distance))
+    for column, op, value in conditions:
+        mask = pc.and_(mask, op(table.column(column), value))
     mask = pc.fill_null(mask, False)
     kept = table.filter(mask)
     order = "descending" if query.is_descending else "ascending"

@@ -204,3 +204,11 @@ def test_demo_runs_the_whole_loop(tmp_path):
     assert r.exit_code == 0, r.output
     assert "worst" in r.stdout and "labelaudit check" in r.stdout
     assert (tmp_path / "demo" / "results" / "manifest.json").is_file()
+
+
+def test_rank_where_option(mixed):
+    r = invoke("rank", mixed, "--where", "label_error>=0.4", "--format", "json")
+    assert r.exit_code == 0, r.output
+    assert sorted(x["label_error"] for x in json.loads(r.stdout)) == [0.4, 0.8]
+    r = invoke("rank", mixed, "--where", "oops")
+    assert r.exit_code == 2 and "COLUMN OP VALUE" in r.stderr

@@ -180,3 +180,13 @@ def test_summarize_counts_statuses_and_medians(ranked_results):
     assert s["by_status"] == {"ok": 4, "no_points": 1, "skipped": 1}
     assert math.isclose(s["classes"]["Car"]["median_jiou_gt"], 0.4)  # 0.9 0.2 0.5 0.3
     assert s["classes"]["Pedestrian"]["median_jiou_gt"] == 0.1
+
+
+def test_rank_where_conditions(ranked_results):
+    res = rank_results(ranked_results, RankQuery(where=("class_name==Car", "jiou_gt>=0.3")))
+    assert res.table.column("jiou_gt").to_pylist() == [0.3, 0.5, 0.9]
+    res = rank_results(ranked_results, RankQuery(where=("distance > 20",)))
+    assert _keys(res.table) == [("000002", 0)]
+    for bad, match in [("num_points>>3", "numeric"), ("jiou_gt 0.3", "expected COLUMN"), ("nope==1", "unknown column"), ("num_points>=many", "numeric"), ("cov==1", "cannot compare")]:
+        with pytest.raises(R.ResultsError, match=match):
+            rank_results(ranked_results, RankQuery(where=(bad,)))
