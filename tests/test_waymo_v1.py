@@ -210,3 +210,12 @@ def test_garbage_payload_with_valid_crc(tmp_path: Path) -> None:
 def test_no_tfrecords_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="no \\*.tfrecord"):
         WaymoV1Reader(tmp_path).list_units()
+
+
+def test_split_option(tmp_path: Path, segment) -> None:
+    write_waymo_v1(segment, tmp_path / "training" / "a.tfrecord")
+    write_waymo_v1(segment, tmp_path / "validation" / "sub" / "b.tfrecord")
+    assert [Path(u.key).name for u in WaymoV1Reader(tmp_path).list_units()] == ["a.tfrecord", "b.tfrecord"]
+    assert [Path(u.key).name for u in WaymoV1Reader(tmp_path, split="validation").list_units()] == ["b.tfrecord"]
+    with pytest.raises(DatasetError, match="split folder 'test' not found"):
+        WaymoV1Reader(tmp_path, split="test")

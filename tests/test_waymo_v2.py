@@ -211,6 +211,12 @@ def test_split_folder_layout_and_class_filter(tmp_path: Path, segment) -> None:
     f = next(iter(reader.load_unit(units[0])))
     assert set(f.class_names) == {"Vehicle"}
     assert len(f.boxes) == int((segment.frames[0].types == 1).sum()) > 0
+    write_waymo_v2(segment, tmp_path / "validation")
+    assert len(WaymoV2Reader(tmp_path).list_units()) == 2
+    units = WaymoV2Reader(tmp_path, split="validation").list_units()
+    assert len(units) == 1 and "validation" in units[0].key
+    with pytest.raises(DatasetError, match="split folder 'test' not found"):
+        WaymoV2Reader(tmp_path, split="test")
 
 
 def _two_segments(tmp_path: Path, segment) -> Path:

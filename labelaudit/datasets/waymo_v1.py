@@ -204,14 +204,21 @@ class WaymoV1Reader:
     classes : class names to keep ("Vehicle", "Pedestrian", "Sign", "Cyclist", "Unknown");
         None keeps every label
     verify_crc : check both CRCs of every record (cheap; on by default)
+    split : search only ``root/<split>/`` (e.g. "training", "validation")
     """
 
     format_name = FORMAT
 
-    def __init__(self, root: str | Path, classes: tuple[str, ...] | list[str] | None = None, verify_crc: bool = True):
-        self.root = Path(root)
+    def __init__(
+        self,
+        root: str | Path,
+        classes: tuple[str, ...] | list[str] | None = None,
+        verify_crc: bool = True,
+        split: str | None = None,
+    ):
+        self.root = Path(root) / split if split else Path(root)
         if not self.root.exists():
-            raise DatasetError(self.root, "dataset path does not exist")
+            raise DatasetError(self.root, "dataset path does not exist" if not split else f"split folder {split!r} not found")
         self.classes = None if classes is None else tuple(classes)
         self.verify_crc = verify_crc
 

@@ -174,20 +174,27 @@ class WaymoV2Reader:
         above split folders that do
     classes : class names to keep ("Vehicle", "Pedestrian", "Sign", "Cyclist", "Unknown");
         None keeps every label
+    split : read only ``root/<split>/`` (e.g. "training", "validation")
     """
 
     format_name = FORMAT
 
-    def __init__(self, root: str | Path, classes: tuple[str, ...] | list[str] | None = None):
+    def __init__(
+        self, root: str | Path, classes: tuple[str, ...] | list[str] | None = None, split: str | None = None
+    ):
         self.root = Path(root)
         if not self.root.is_dir():
             raise DatasetError(self.root, "expected a Waymo v2 folder (with lidar_box/, lidar/ …)")
+        if split is not None and not (self.root / split).is_dir():
+            raise DatasetError(self.root / split, f"split folder {split!r} not found")
         self.classes = None if classes is None else tuple(classes)
+        self.split = split
 
     def _split_dirs(self) -> list[Path]:
-        if (self.root / "lidar_box").is_dir():
-            return [self.root]
-        return sorted(p.parent for p in self.root.glob("*/lidar_box") if p.is_dir())
+        base = self.root / self.split if self.split else self.root
+        if (base / "lidar_box").is_dir():
+            return [base]
+        return sorted(p.parent for p in base.glob("*/lidar_box") if p.is_dir())
 
     def list_units(self) -> list[FrameRef]:
         """One unit per ``lidar_box/<segment>.parquet`` file, sorted by path."""
