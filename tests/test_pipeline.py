@@ -266,3 +266,21 @@ def test_same_rows_for_one_and_two_workers(sim_kitti, tmp_path):
     assert statuses <= {"ok", "few_points", "no_points"} and "ok" in statuses
     ok = [r for r in rows1 if r["status"] == "ok"]
     assert all(0.0 < r["jiou_gt"] <= 1.0 and r["cov_dim"] == 6 and len(r["cov"]) == 36 for r in ok)
+
+
+@needs_core
+@pytest.mark.realdata
+def test_real_kitti_frames(realdata, tmp_path):
+    root = realdata / "openpcdet-pr653-kitti"
+    cfg = resolve_config(None, "kitti", ["all"])
+    summary = run_infer(InferRequest(root, tmp_path / "res"), cfg, executor=SerialExecutor())
+    assert summary.frames == 6 and summary.failed_frames == 0
+    rows = _rows(tmp_path / "res")
+    assert {r["status"] for r in rows} <= {"ok", "few_points", "no_points"}
+    cars = [r for r in rows if r["class_name"] == "Car" and r["status"] == "ok"]
+    assert cars and all(0.0 < r["jiou_gt"] <= 1.0 for r in cars)
+    # near, well-observed cars are more certain than far ones (direction, not a value)
+    near = [r["jiou_gt"] for r in cars if r["distance"] < 20]
+    far = [r["jiou_gt"] for r in cars if r["distance"] > 40]
+    if near and far:
+        assert np.median(near) > np.median(far)
