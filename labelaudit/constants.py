@@ -11,6 +11,7 @@ DEFAULT_MIN_POINTS = 3  # boxes with fewer points get status "few_points" (still
 SIGMA_FLOOR = 0.01  # lower bound (m) on an EM noise estimate used as σ, so exact-fit points cannot give σ = 0
 EM_MAX_ITERATIONS = 50  # cap on EM iterations for the noise σ̂ (per object and per dataset)
 EM_TOLERANCE = 1e-4  # EM stops when σ̂ changes by less than this fraction (σ̂ is reported to ~mm)
+EM_RESIDUAL_DOF = 1.0  # noise components left in a residual to the nearest surface point (the normal); D would give σ/√D
 OUTLIER_REGION_MARGIN = 0.5  # m; the uniform outlier density is 1 / size of the box grown by this on every side
 PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (parallelogram shear) / the yaw std
 

@@ -174,8 +174,9 @@ def _nearest_distinct(local: FloatArray, half: FloatArray, cand: FloatArray, sqd
     """
     n, f, d = cand.shape
     outside = np.empty((n, f), dtype=bool)
-    outside[:, 0::2] = local <= -half
-    outside[:, 1::2] = local >= half
+    tol = 1e-9 * float(np.max(half))  # points on an edge up to round-off count as on both faces
+    outside[:, 0::2] = local <= -half + tol
+    outside[:, 1::2] = local >= half - tol
     sqdist = np.where(outside & (np.cumsum(outside, axis=1) > 1), np.inf, sqdist)
     order = np.argsort(sqdist, axis=1, kind="stable")[:, :m]
     return np.take_along_axis(cand, order[:, :, None], axis=1), np.take_along_axis(sqdist, order, axis=1)
@@ -283,13 +284,17 @@ def prior_precision(box: ArrayLike, prior: ClassPrior, weight: float, model: Mod
 # ----------------------------------------------------------------------------------------------
 
 
-def em_sigma_step(sqdist: FloatArray, resp: FloatArray, d: int) -> tuple[float, float]:
-    """Sufficient statistics of the σ update: (Σ r·‖x−v̄‖², d·Σ r); σ² = first / second.
+def em_sigma_step(sqdist: FloatArray, resp: FloatArray, dof: float = C.EM_RESIDUAL_DOF) -> tuple[float, float]:
+    """Sufficient statistics of the σ update: (Σ r·‖x−v̄‖², dof·Σ r); σ² = first / second.
 
+    ``dof`` is the number of noise components a residual keeps. The candidates are the *nearest*
+    surface points, so the surface absorbs the tangential noise and a residual keeps only its
+    normal component: dof = 1 (the surface's codimension) gives an unbiased per-axis σ, where the
+    point dimension D (DESIGN.md §4, the authors' code) would return σ/√D.
     Missing candidates (``sqdist = inf``) carry r = 0 and are skipped.
     """
     num = float(np.sum(resp * np.where(np.isfinite(sqdist), sqdist, 0.0)))
-    return num, float(d * np.sum(resp))
+    return num, float(dof * np.sum(resp))
 
 
 def _outlier_log_density(y: FloatArray, d: int) -> float:
@@ -307,13 +312,13 @@ def _em(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier
         for sqd, sqd0, log_density in regs:
             r = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
             num += float(np.sum(r * sqd0))
-            den += d * float(np.sum(r))
+            den += C.EM_RESIDUAL_DOF * float(np.sum(r))
         if den <= 0:
             return float("nan")
         new = float(np.sqrt(num / den))
         converged = np.isfinite(estimate) and abs(new - estimate) <= C.EM_TOLERANCE * max(estimate, C.SIGMA_FLOOR)
         estimate = new
-        if converged or d * num == 0.0:
+        if converged or num == 0.0:
             break
         sigma = max(new, C.SIGMA_FLOOR)
     return estimate
@@ -328,7 +333,8 @@ def estimate_sigma(
     sigma_init: float = C.DEFAULT_SIGMA,
     outlier_prob: float = 0.0,
 ) -> float:
-    """Per-object noise σ̂ by EM: σ² = Σ r‖x − v̄‖² / (D Σ r), responsibilities re-computed with σ̂.
+    """Per-object noise σ̂ by EM: σ² = Σ r‖x − v̄‖² / (dof · Σ r), responsibilities re-computed with σ̂
+    (dof: see :func:`em_sigma_step`).
 
     With the box fixed at the label this is the RMS fit residual of the points to the box surface:
     large when the label does not fit its points. NaN for fewer than 2 points.
