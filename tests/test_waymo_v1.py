@@ -219,3 +219,12 @@ def test_split_option(tmp_path: Path, segment) -> None:
     assert [Path(u.key).name for u in WaymoV1Reader(tmp_path, split="validation").list_units()] == ["b.tfrecord"]
     with pytest.raises(DatasetError, match="split folder 'test' not found"):
         WaymoV1Reader(tmp_path, split="test")
+
+
+def test_empty_file_is_an_error(tmp_path: Path) -> None:
+    path = tmp_path / "empty.tfrecord"
+    path.write_bytes(b"")
+    reader = WaymoV1Reader(tmp_path)
+    with pytest.raises(DatasetError, match="empty TFRecord") as info:
+        list(reader.load_unit(reader.list_units()[0]))
+    assert str(path) in str(info.value)

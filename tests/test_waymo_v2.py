@@ -191,6 +191,7 @@ def test_simulated_v2_reproduces_points_and_labels(tmp_path: Path, segment, pose
         assert f.class_names == [names[int(t)] for t in sf.types]
         np.testing.assert_array_equal(f.extras["num_lidar_points_in_box"], sf.num_points)
         assert set(f.extras["detection_difficulty"]) <= {1, 2}
+        assert f.extras["num_lidar_points_in_box"].dtype == np.int64 and f.extras["speed_x"].dtype == np.float64
 
 
 def test_rolling_shutter_correction_matters(segment) -> None:

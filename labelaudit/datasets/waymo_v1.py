@@ -243,5 +243,9 @@ class WaymoV1Reader:
         path = Path(ref.key)
         if not path.is_file():
             raise DatasetError(path, "segment file not found")
+        count = 0
         for index, payload in enumerate(iter_records(path, self.verify_crc)):
             yield decode_frame(payload, path, self.classes, index)
+            count += 1
+        if count == 0:
+            raise DatasetError(path, "empty TFRecord file: no records")

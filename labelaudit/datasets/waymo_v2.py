@@ -237,7 +237,14 @@ class WaymoV2Reader:
             rows_of[int(ts_all[i])].append(int(i))
         box_arrays = {k: boxes_t.column(c).to_numpy(zero_copy_only=False) for k, c in BOX_COLUMNS.items()}
         ids = boxes_t.column(K_OBJ).to_pylist()
-        extras_all = {k: boxes_t.column(c).to_numpy(zero_copy_only=False) for k, c in BOX_EXTRAS.items() if c in boxes_t.schema.names}
+        # same dtypes as the v1 reader (int64 counts and levels, float64 speeds), nulls → 0
+        extras_all = {
+            k: np.nan_to_num(boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64)).astype(
+                np.float64 if k.startswith("speed") else np.int64
+            )
+            for k, c in BOX_EXTRAS.items()
+            if c in boxes_t.schema.names
+        }
 
         for ts in sorted(rows_of):
             idx = np.asarray(rows_of[ts])
