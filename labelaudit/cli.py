@@ -82,13 +82,13 @@ def _err() -> Console:
 @contextmanager
 def _handle_errors(debug: bool) -> Iterator[None]:
     """Turn library errors into a one-line message and exit code 2 (bugs: 3, traceback with --debug)."""
-    from labelaudit.pipeline import InferError, StrictError
+    from labelaudit.pipeline import InferError, StrictError, WorkerCrashed
 
     try:
         yield
     except (typer.Exit, TyperException):
         raise
-    except (ConfigError, ResultsError, InferError, StrictError, DatasetError, CliError) as exc:
+    except (ConfigError, ResultsError, InferError, StrictError, WorkerCrashed, DatasetError, CliError) as exc:
         if debug:
             raise
         _err().print(f"[red]error:[/red] {escape(str(exc))}", markup=True, highlight=False, soft_wrap=True)

@@ -20,6 +20,8 @@ from __future__ import annotations
 import hashlib
 import math
 import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 import os
 import shutil
 import time
@@ -137,6 +139,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             points = frame.points[idx]
             try:
                 result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin)
+                R.normalize_row({**row, **result})  # values the schema cannot hold fail here, per object
             except Exception as exc:  # one bad object never sinks the frame (DESIGN.md §9)
                 row.update(status="error", message=f"{type(exc).__name__}: {exc}", num_points=len(idx))
                 continue
@@ -269,33 +272,46 @@ def _single_threaded_children() -> Iterator[None]:
                 os.environ[k] = v
 
 
+class WorkerCrashed(RuntimeError):
+    """A worker process died (killed, out of memory, a crash in native code)."""
+
+
 class PoolExecutor:
-    """A :mod:`multiprocessing` pool of ``workers`` processes (spawned: safe with Open3D threads)."""
+    """A pool of ``workers`` processes (spawned: safe with Open3D/BLAS threads).
+
+    Built on :class:`concurrent.futures.ProcessPoolExecutor`, so a worker that dies raises
+    :class:`WorkerCrashed` instead of hanging the run; finished shards are kept for ``--resume``.
+    """
 
     def __init__(self, workers: int, start_method: str = C.POOL_START_METHOD):
         if workers < 1:
             raise ValueError(f"workers must be ≥ 1, got {workers}")
         self.workers = workers
         self.start_method = start_method
-        self._pool: Any = None
+        self._pool: ProcessPoolExecutor | None = None
 
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
         if not units:
             return
         ctx = multiprocessing.get_context(self.start_method)
         with _single_threaded_children():
-            self._pool = ctx.Pool(min(self.workers, len(units)))
+            self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(units)), mp_context=ctx)
+            futures = [self._pool.submit(fn, u) for u in units]
         try:
-            yield from self._pool.imap_unordered(fn, units, chunksize=1)
-            self._pool.close()
-            self._pool.join()
+            for future in as_completed(futures):
+                try:
+                    yield future.result()
+                except BrokenProcessPool:
+                    raise WorkerCrashed(
+                        "a worker process died (killed, out of memory or a native crash); finished shards are kept — "
+                        "rerun the same command to resume, with fewer --workers if memory is short"
+                    ) from None
         finally:
             self.close()
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.terminate()
-            self._pool.join()
+            self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
 

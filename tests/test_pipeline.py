@@ -284,3 +284,21 @@ def test_real_kitti_frames(realdata, tmp_path):
     far = [r["jiou_gt"] for r in cars if r["distance"] > 40]
     if near and far:
         assert np.median(near) > np.median(far)
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def _die(x: int) -> int:
+    import os
+
+    os._exit(3)
+
+
+def test_pool_executor_returns_every_result_and_reports_a_dead_worker():
+    from labelaudit.pipeline import PoolExecutor, WorkerCrashed
+
+    assert sorted(PoolExecutor(2).run([1, 2, 3], _square)) == [1, 4, 9]
+    with pytest.raises(WorkerCrashed, match="rerun the same command to resume"):
+        list(PoolExecutor(2).run([1, 2], _die))
