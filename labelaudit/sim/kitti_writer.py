@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.geometry import box_corners
+from labelaudit.sim.scene import corners_of
 from labelaudit.datasets.kitti import (
     Calibration,
     alpha_from_location,
@@ -22,7 +22,6 @@ from labelaudit.datasets.kitti import (
     boxes_lidar_to_camera,
     format_calib,
     format_label_line,
-    project_box_to_image,
     write_velodyne,
 )
 
@@ -98,13 +97,26 @@ class KittiLabelInfo:
     lines: list[str]
 
 
-def _unclipped_image_box(box: FloatArray, calib: Calibration) -> FloatArray:
-    corners = box_corners(box, "3d")
-    cam = corners @ calib.T_cam_velo[:3, :3].T + calib.T_cam_velo[:3, 3]
-    cam[:, 2] = np.maximum(cam[:, 2], _MIN_DEPTH)
-    uvw = np.c_[cam, np.ones(8)] @ calib.P2.T
-    uv = uvw[:, :2] / uvw[:, 2:3]
-    return np.r_[uv.min(0), uv.max(0)]
+def image_boxes(boxes: FloatArray, calib: Calibration) -> FloatArray:
+    """Unclipped 2D boxes (left, top, right, bottom) of LiDAR-frame boxes in the P2 image.
+
+    Corners nearer than 0.1 m to the camera plane are clamped to it, like
+    :func:`labelaudit.datasets.kitti.project_box_to_image` (which also clips to the image).
+
+    Parameters
+    ----------
+    boxes : (K, 7)
+
+    Returns
+    -------
+    (K, 4)
+    """
+    T = calib.T_cam_velo
+    cam = corners_of(boxes) @ T[:3, :3].T + T[:3, 3]  # (K, 8, 3)
+    cam[..., 2] = np.maximum(cam[..., 2], _MIN_DEPTH)
+    uvw = cam @ calib.P2[:, :3].T + calib.P2[:, 3]
+    uv = uvw[..., :2] / uvw[..., 2:3]
+    return np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)
 
 
 def occlusion_level(occlusion_fraction: FloatArray) -> NDArray[np.int64]:
@@ -146,23 +158,18 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
     written_boxes = np.asarray(written_boxes, dtype=float).reshape(-1, 7)
     k = len(true_boxes)
     width, height = image_size
-    truncated = np.ones(k)
-    bbox2d = np.zeros((k, 4))
-    in_fov = np.zeros(k, dtype=bool)
-    centre_depth = (true_boxes[:, :3] @ calib.T_cam_velo[:3, :3].T + calib.T_cam_velo[:3, 3])[:, 2]
-    for i in range(k):
-        if centre_depth[i] < _MIN_CENTRE_DEPTH:
-            continue
-        full = _unclipped_image_box(true_boxes[i], calib)
-        clipped = project_box_to_image(true_boxes[i], calib, image_size, _MIN_DEPTH)
-        area_full = max(full[2] - full[0], 0.0) * max(full[3] - full[1], 0.0)
-        area_clip = max(clipped[2] - clipped[0], 0.0) * max(clipped[3] - clipped[1], 0.0)
-        inside = full[2] > 0 and full[0] < width - 1 and full[3] > 0 and full[1] < height - 1
-        if not inside or area_full <= 0:
-            continue
-        truncated[i] = float(np.clip(1.0 - area_clip / area_full, 0.0, 1.0))
-        bbox2d[i] = clipped
-        in_fov[i] = truncated[i] <= C.SIM_MAX_TRUNCATION
+    T = calib.T_cam_velo
+    centre_depth = true_boxes[:, :3] @ T[2, :3] + T[2, 3]
+    full = image_boxes(true_boxes, calib)
+    clipped = np.clip(full, 0.0, [width - 1, height - 1, width - 1, height - 1])
+    area_full = np.clip(full[:, 2] - full[:, 0], 0, None) * np.clip(full[:, 3] - full[:, 1], 0, None)
+    area_clip = (clipped[:, 2] - clipped[:, 0]) * (clipped[:, 3] - clipped[:, 1])
+    overlaps = (full[:, 2] > 0) & (full[:, 0] < width - 1) & (full[:, 3] > 0) & (full[:, 1] < height - 1)
+    visible = (centre_depth >= _MIN_CENTRE_DEPTH) & overlaps & (area_full > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        truncated = np.where(visible, np.clip(1.0 - area_clip / area_full, 0.0, 1.0), 1.0)
+    bbox2d = np.where(visible[:, None], clipped, 0.0)
+    in_fov = visible & (truncated <= C.SIM_MAX_TRUNCATION)
     occluded = occlusion_level(occlusion_fraction)
     write = in_fov if label_fov == "camera" else np.ones(k, dtype=bool)
     loc, dims, ry = boxes_lidar_to_camera(written_boxes, calib)
@@ -176,11 +183,12 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
             truncated[i] = 1.0
         line = format_label_line(class_names[i], truncated[i], int(occluded[i]), alpha[i], bbox2d[i], dims[i], loc[i],
                                  ry[i], precision=precision)
-        # Read the numbers back the way the reader does, so the manifest holds the boxes it will see.
-        tok = [float(t) for t in line.split()[1:]]
-        written[i] = boxes_camera_to_lidar(tok[10:13], tok[7:10], [tok[13]], calib)[0]
         object_index[i] = len(lines)
         lines.append(line)
+    if lines:
+        # Read the numbers back the way the reader does, so the manifest holds the boxes it will see.
+        tok = np.array([[float(t) for t in line.split()[1:]] for line in lines])
+        written[object_index >= 0] = boxes_camera_to_lidar(tok[:, 10:13], tok[:, 7:10], tok[:, 13], calib)
     return KittiLabelInfo(object_index, written, truncated, occluded, alpha, bbox2d, in_fov, lines)
 
 
