@@ -66,7 +66,7 @@ def _frame_note(frame_id: str | None, unit: str, message: str, level: str = "err
 
 def _extras_for(frame: Frame, i: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for name in R.KITTI_EXTRA_COLUMNS:
+    for name in R.EXTRA_COLUMNS:
         if name not in frame.extras:
             continue
         value = frame.extras[name][i]

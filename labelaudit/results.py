@@ -87,6 +87,12 @@ COLUMNS: tuple[tuple[str, pa.DataType, bool, str, str], ...] = (
     ("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)"),
     ("difficulty", pa.string(), True, "", "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown"),
     ("label_line", pa.int32(), True, "", "1-based line of the box in its KITTI label file"),
+    # Waymo extras (null for KITTI)
+    ("num_lidar_points_in_box", pa.int32(), True, "", "Waymo's own point count of the box (all lidars), to compare with num_points"),
+    ("detection_difficulty", pa.int32(), True, "", "Waymo detection difficulty level (0 unknown, 1 LEVEL_1, 2 LEVEL_2)"),
+    ("tracking_difficulty", pa.int32(), True, "", "Waymo tracking difficulty level"),
+    ("speed_x", pa.float64(), True, "m/s", "Waymo object speed along x (vehicle frame)"),
+    ("speed_y", pa.float64(), True, "m/s", "Waymo object speed along y"),
 )
 
 SCHEMA = pa.schema([pa.field(n, t, nullable=nullable) for n, t, nullable, _, _ in COLUMNS])
@@ -98,6 +104,9 @@ INT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_integer(t))
 LIST_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_list(t))
 NUMERIC_COLUMNS = FLOAT_COLUMNS | INT_COLUMNS
 KITTI_EXTRA_COLUMNS = ("truncated", "occluded", "difficulty", "label_line")
+WAYMO_EXTRA_COLUMNS = ("num_lidar_points_in_box", "detection_difficulty", "tracking_difficulty", "speed_x", "speed_y")
+EXTRA_COLUMNS = KITTI_EXTRA_COLUMNS + WAYMO_EXTRA_COLUMNS
+"""Per-object ``Frame.extras`` copied into the results under the same name (others are not kept)."""
 
 ERRORS_SCHEMA = pa.schema(
     [
