@@ -110,9 +110,13 @@ def normal_samples(dim: int, num: int, seed: int) -> FloatArray:
 
 
 def _sqrt_psd(cov: FloatArray) -> FloatArray:
-    """L with L Lᵀ = cov for a symmetric PSD matrix (eigen-decomposition: also fine when singular)."""
+    """The symmetric square root of a PSD matrix (L Lᵀ = cov, L = Lᵀ).
+
+    Unlike a Cholesky factor or V·√Λ it is unique and continuous in ``cov`` and commutes with
+    rotations, so equal covariances always give equal samples (also when singular).
+    """
     lam, V = np.linalg.eigh(cov)
-    return V * np.sqrt(np.clip(lam, 0.0, None))
+    return (V * np.sqrt(np.clip(lam, 0.0, None))) @ V.T
 
 
 @dataclass(frozen=True)

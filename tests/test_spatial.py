@@ -1,0 +1,297 @@
+"""Spatial distribution, probabilistic Jaccard, JIoU and JIoU-GT."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from labelaudit import geometry as g
+from labelaudit import model as M
+from labelaudit import spatial as sp
+from labelaudit.config import ModelParams, SpatialParams
+
+from _core_synth import face_points, rigid_motion
+
+NEAR = np.array([15.0, 5.0, 0.75, 4.2, 1.7, 1.5, 0.0])  # sensor at the origin sees −x and −y
+FAR = np.array([40.0, 12.0, 0.75, 4.2, 1.7, 1.5, 0.0])
+SP = SpatialParams()
+
+
+def jgt(box, pts, model="bev", spatial=SP, **model_kw):
+    post = M.infer_label(box, pts, "Car", ModelParams(model=model, **model_kw))
+    return sp.jiou_gt(post, spatial)
+
+
+# ---------------------------------------------------------------------------------------------
+# probabilistic Jaccard
+# ---------------------------------------------------------------------------------------------
+
+
+def jaccard_brute(p, q):
+    total = 0.0
+    for i in range(len(p)):
+        if p[i] > 0 and q[i] > 0:
+            total += 1.0 / sum(max(p[j] / p[i], q[j] / q[i]) for j in range(len(p)))
+    return total
+
+
+def test_jaccard_matches_brute_force_on_random_inputs():
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        n = int(rng.integers(1, 25))
+        p = rng.exponential(size=n) * (rng.random(n) < 0.7)
+        q = rng.exponential(size=n) * (rng.random(n) < 0.7)
+        if trial % 4 == 0:  # exact ties of the ratio p/q
+            q[: n // 2] = 2.0 * p[: n // 2]
+        if trial % 5 == 0:
+            p = np.round(p, 1)
+            q = np.round(q, 1)
+        assert sp.jaccard(p, q) == pytest.approx(jaccard_brute(p, q), rel=1e-9, abs=1e-12)
+
+
+def test_jaccard_counts_equal_repeated_cells():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        n = int(rng.integers(1, 12))
+        p = rng.exponential(size=n) * (rng.random(n) < 0.8)
+        q = rng.exponential(size=n) * (rng.random(n) < 0.8)
+        c = rng.integers(1, 5, n)
+        expected = jaccard_brute(np.repeat(p, c), np.repeat(q, c))
+        assert sp.jaccard(p, q, c) == pytest.approx(expected, rel=1e-9, abs=1e-12)
+
+
+def test_jaccard_of_uniform_sets_is_iou_and_scale_free():
+    a = np.zeros(100)
+    b = np.zeros(100)
+    a[10:60] = 1.0
+    b[40:90] = 1.0
+    assert sp.jaccard(a / a.sum(), 7 * b) == pytest.approx(20 / 80)
+    assert sp.jaccard(a, a) == pytest.approx(1.0)
+    c = np.zeros(100)
+    c[70:90] = 1.0
+    assert sp.jaccard(a, c) == 0.0
+    with pytest.raises(ValueError):
+        sp.jaccard(-a, b)
+
+
+# ---------------------------------------------------------------------------------------------
+# deterministic boxes: JIoU = IoU
+# ---------------------------------------------------------------------------------------------
+
+
+def _random_pairs(n, seed):
+    rng = np.random.default_rng(seed)
+    pairs = []
+    for i in range(n):
+        a = np.r_[rng.uniform(-2, 2, 2), rng.uniform(-0.6, 0.6), rng.uniform(1, 5), rng.uniform(0.5, 2.5), rng.uniform(0.5, 2), rng.uniform(-np.pi, np.pi)]
+        b = np.r_[rng.uniform(-2, 2, 2), rng.uniform(-0.6, 0.6), rng.uniform(1, 5), rng.uniform(0.5, 2.5), rng.uniform(0.5, 2), rng.uniform(-np.pi, np.pi)]
+        if i % 10 == 0:
+            b[:2] = a[:2] + 8.0  # far apart: IoU 0
+        pairs.append((a, b))
+    return pairs
+
+
+def test_deterministic_jiou_equals_exact_bev_iou():
+    errors = []
+    for a, b in _random_pairs(200, 0):
+        j = sp.jiou(sp.BoxDistribution.deterministic(a, "bev"), sp.BoxDistribution.deterministic(b, "bev"), SP)
+        errors.append(j - g.bev_iou_exact(a, b))
+    assert np.max(np.abs(errors)) < 0.01
+
+
+def test_deterministic_jiou_equals_exact_3d_iou():
+    errors = []
+    for a, b in _random_pairs(200, 1):
+        j = sp.jiou(sp.BoxDistribution.deterministic(a, "3d"), sp.BoxDistribution.deterministic(b, "3d"), SP)
+        errors.append(j - g.iou_3d_exact(a, b))
+    assert np.max(np.abs(errors)) < 0.01
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_identical_and_disjoint_boxes(model):
+    det = sp.BoxDistribution.deterministic(NEAR, model)
+    assert sp.jiou(det, det, SP) == pytest.approx(1.0, abs=1e-12)
+    shifted = NEAR + np.array([10.0, 0, 0, 0, 0, 0, 0])
+    assert sp.jiou(sp.BoxDistribution.deterministic(shifted, model), det, SP) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# JIoU-GT: limits and known values
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_dense_points_on_all_faces_give_jiou_gt_near_one(model):
+    faces = ["-x", "+x", "-y", "+y"] + (["-z", "+z"] if model == "3d" else [])
+    pts = face_points(NEAR, faces, 400, 0.03)
+    assert jgt(NEAR, pts, model) >= 0.97
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_zero_points_jiou_gt_is_the_prior_only_value(model):
+    post = M.infer_label(NEAR, np.zeros((0, 3)), "Car", ModelParams(model=model))
+    value = sp.jiou_gt(post, SP)
+    assert np.isfinite(value) and 0.0 < value < 1.0
+    prior_only = sp.BoxDistribution(NEAR, model, M.prior_covariance(NEAR, ModelParams().prior_for("Car"), 1.0, model))
+    assert value == pytest.approx(sp.jiou(sp.BoxDistribution.deterministic(NEAR, model), prior_only, SP), abs=1e-6)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_jiou_gt_tends_to_one_as_covariance_vanishes(model):
+    post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], 50, 0.03), "Car", ModelParams(model=model))
+    values = [sp.jiou_gt(dataclasses.replace(post, cov=post.cov * s), SP) for s in (1.0, 1e-2, 1e-4, 1e-8)]
+    assert np.all(np.diff(values) > 0)
+    assert values[-1] > 0.999
+
+
+# ---------------------------------------------------------------------------------------------
+# JIoU-GT: directions
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_more_points_on_the_same_faces_raise_jiou_gt(model):
+    values = [jgt(NEAR, face_points(NEAR, ["-x", "-y"], n, 0.03), model) for n in (2, 10, 50, 300)]
+    assert np.all(np.diff(values) > 0), values
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_larger_sigma_lowers_jiou_gt(model):
+    pts = face_points(NEAR, ["-x", "-y"], 40, 0.03)
+    values = [jgt(NEAR, pts, model, sigma=s) for s in (0.05, 0.2, 0.5)]
+    assert np.all(np.diff(values) < 0), values
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_larger_prior_weight_raises_jiou_gt(model):
+    pts = face_points(NEAR, ["-x"], 20, 0.03)
+    values = [jgt(NEAR, pts, model, prior_weight=w) for w in (0.5, 1.0, 4.0)]
+    assert np.all(np.diff(values) > 0), values
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_far_sparse_box_is_less_certain_than_near_dense(model):
+    near = jgt(NEAR, face_points(NEAR, ["-x", "-y"], 150, 0.03), model)
+    far = jgt(FAR, face_points(FAR, ["-x"], 10, 0.05, seed=2), model)
+    assert far < near
+
+
+# ---------------------------------------------------------------------------------------------
+# invariance and numerical stability
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_jiou_gt_is_invariant_to_rigid_motion(model):
+    pts = face_points(NEAR, ["-x", "-y"], 30, 0.03)
+    params = ModelParams(model=model)
+    base = M.infer_label(NEAR, pts, "Car", params)
+    for yaw, shift in ((0.7, (5.0, -3.0, 0.2)), (2.9, (-30.0, 20.0, -1.0))):
+        b2, p2, o2 = rigid_motion(NEAR, pts, yaw, shift)
+        moved = M.infer_label(b2, p2, "Car", params, sensor_origin=o2)
+        assert sp.jiou_gt(moved, SP) == pytest.approx(sp.jiou_gt(base, SP), abs=0.01)
+        assert np.allclose(moved.corner_tv, base.corner_tv, rtol=0.01)
+
+
+CASES = {
+    "dense two faces": (NEAR, lambda: face_points(NEAR, ["-x", "-y"], 300, 0.05)),
+    "far sparse": (FAR, lambda: face_points(FAR, ["-x", "-y"], 5, 0.05)),
+    "one face": (NEAR, lambda: face_points(NEAR, ["-y"], 60, 0.05)),
+    "two points": (NEAR, lambda: face_points(NEAR, ["-x"], 2, 0.05)),
+    "no points": (NEAR, lambda: np.zeros((0, 3))),
+}
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_jiou_gt_is_stable_under_doubling_grid_and_samples(model, case):
+    box, make = CASES[case]
+    post = M.infer_label(box, make(), "Car", ModelParams(model=model))
+    base = sp.jiou_gt(post, SP)
+    finer = sp.jiou_gt(post, dataclasses.replace(SP, cells_per_side=2 * SP.cells_per_side))
+    more = sp.jiou_gt(post, dataclasses.replace(SP, num_samples=2 * SP.num_samples))
+    other_seed = sp.jiou_gt(post, dataclasses.replace(SP, seed=SP.seed + 1))
+    assert finer == pytest.approx(base, abs=0.01)
+    assert more == pytest.approx(base, abs=0.01)
+    assert other_seed == pytest.approx(base, abs=0.01)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_degenerate_boxes_give_finite_jiou_gt(model):
+    params = ModelParams(model=model)
+    # a 1 mm box with the car prior (std 0.25 m): its uncertainty dwarfs it, JIoU-GT ≈ 0
+    tiny = sp.jiou_gt(M.infer_label([1.0, 1.0, 0.0, 1e-3, 1e-3, 1e-3, 0.2], None, "Car", params), SP)
+    assert np.isfinite(tiny) and 0.0 <= tiny < 0.01
+    for box, pts in [
+        (np.array([0.0, 0.0, 0.0, 1e3, 5e2, 1e2, 1.0]), face_points([0, 0, 0, 1e3, 5e2, 1e2, 1.0], ["+x"], 50)),
+        (NEAR, np.tile([[13.0, 4.0, 0.8]], (50, 1))),
+        (NEAR, np.array([[100.0, -50.0, 3.0], [-80.0, 40.0, -2.0]])),
+    ]:
+        value = sp.jiou_gt(M.infer_label(box, pts, "Car", params), SP)
+        assert np.isfinite(value) and 0.0 < value <= 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# box distributions with covariance on y, spatial distribution
+# ---------------------------------------------------------------------------------------------
+
+
+def test_covariance_on_box_parameters_matches_the_same_covariance_on_phi():
+    # A rectangular box with std on (cx, cy, l, w, yaw): sampled on y, or propagated to φ to first
+    # order with a tiny shear — nearly the same distribution.
+    std = np.array([0.2, 0.1, 0.3, 0.1, 0.1])
+    on_y = sp.BoxDistribution(NEAR, "bev", np.diag(std**2), cov_on="box")
+    G = g.dphi_dext(NEAR, "bev")
+    S_ext = np.zeros((6, 6))
+    S_ext[:4, :4] = np.diag(std[:4] ** 2)
+    S_ext[4:, 4:] = std[4] ** 2 + 1e-8 * np.eye(2)
+    on_phi = sp.BoxDistribution(NEAR, "bev", G @ S_ext @ G.T)
+    det = sp.BoxDistribution.deterministic(NEAR, "bev")
+    assert sp.jiou(det, on_y, SP) == pytest.approx(sp.jiou(det, on_phi, SP), abs=0.02)
+    assert sp.jiou(on_y, on_phi, SP) > 0.9
+    # BEV also takes the full 7×7 covariance (cz, h ignored)
+    full = np.zeros((7, 7))
+    idx = [0, 1, 3, 4, 6]
+    full[np.ix_(idx, idx)] = np.diag(std**2)
+    on_y7 = sp.BoxDistribution(NEAR, "bev", full, cov_on="box")
+    assert sp.jiou(det, on_y7, SP) == pytest.approx(sp.jiou(det, on_y, SP), abs=1e-12)
+
+
+def test_uncertain_detection_against_a_label():
+    post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], 100, 0.03), "Car", ModelParams())
+    label = sp.BoxDistribution.from_posterior(post)
+    good = NEAR + np.array([0.1, 0.05, 0, 0, 0, 0, 0.02])
+    bad = NEAR + np.array([1.0, 0.5, 0, 0, 0, 0, 0.2])
+    j_good = sp.jiou(sp.BoxDistribution.deterministic(good, "bev"), label, SP)
+    j_bad = sp.jiou(sp.BoxDistribution.deterministic(bad, "bev"), label, SP)
+    assert 0 < j_bad < j_good < 1
+    wide = sp.BoxDistribution(good, "bev", np.diag([0.3, 0.3, 0.2, 0.1, 0.1]) ** 2, cov_on="box")
+    assert sp.jiou(wide, label, SP) < j_good
+
+
+def test_box_distribution_validates_its_covariance():
+    with pytest.raises(ValueError):
+        sp.BoxDistribution(NEAR, "bev", np.eye(8))
+    with pytest.raises(ValueError):
+        sp.BoxDistribution(NEAR, "3d", np.eye(5), cov_on="box")
+    with pytest.raises(ValueError):
+        sp.BoxDistribution([0, 0, 0, -1, 1, 1, 0], "bev")
+    with pytest.raises(ValueError):
+        sp.jiou(sp.BoxDistribution.deterministic(NEAR, "bev"), sp.BoxDistribution.deterministic(NEAR, "3d"), SP)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_spatial_distribution_is_a_probability_on_the_grid(model):
+    post = M.infer_label(NEAR, face_points(NEAR, ["-x"], 20, 0.03), "Car", ModelParams(model=model))
+    grid, mass = sp.spatial_distribution(sp.BoxDistribution.from_posterior(post), SP)
+    assert mass.shape == grid.shape
+    assert np.all(mass >= 0)
+    assert mass.sum() == pytest.approx(1.0, abs=0.02)  # the tails beyond support_std are cut
+    det_grid, det_mass = sp.spatial_distribution(sp.BoxDistribution.deterministic(NEAR, model), SP)
+    assert det_mass.sum() == pytest.approx(1.0, abs=1e-9)
+    centres = det_grid.cell_centres_world()
+    inside = np.all(np.abs(g.world_to_unit(centres.reshape(-1, 2), NEAR, "bev")) < 0.5, axis=1).reshape(centres.shape[:2])
+    bev_mass = det_mass if model == "bev" else det_mass.sum(axis=2)
+    assert np.all(bev_mass[~inside] == 0)
