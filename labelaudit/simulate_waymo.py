@@ -34,6 +34,7 @@ from labelaudit.datasets import waymo_proto as wp
 from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
+from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, SimObject, sample_scene
 
@@ -115,6 +116,8 @@ class SimWaymoFrame:
     num_points: NDArray[np.int64]
     points: NDArray[np.float32]  # (N, 4) expected x, y, z, intensity, vehicle frame
     sim_classes: list[str] = field(default_factory=list)  # the simulator's KITTI class names
+    true_boxes: FloatArray | None = None  # (K, 7) before label noise (None: boxes are exact)
+    perturbation: list[str] = field(default_factory=list)  # per object, labelaudit.sim.noise kinds
 
 
 @dataclass
@@ -174,6 +177,7 @@ def simulate_waymo_segment(
     chunks: int = 16,
     second_return_fraction: float = 0.2,
     noise: bool = True,
+    label_noise: NoiseSpec | None = None,
     scene_spec: SceneSpec | None = None,
     world_offset: tuple[float, float] = (1200.0, -340.0),
     name: str | None = None,
@@ -189,6 +193,8 @@ def simulate_waymo_segment(
     chunks : TOP column groups rendered from their own pose (rolling shutter); 1 = no motion blur
     second_return_fraction : share of object pixels that also get a second (ground) return
     noise : range noise and dropout of the simulator's sensor
+    label_noise : label noise injected into the written boxes (vehicles only, per frame, from the
+        KITTI simulator); ``true_boxes`` and ``perturbation`` record it
     scene_spec : object counts and distances (default: the simulator's)
     world_offset : where the scene sits in the world frame, so poses have large translations
     name : segment context name (default derived from the seed)
@@ -261,12 +267,17 @@ def simulate_waymo_segment(
                 yaw_c = np.arctan2(pose_c[1, 0], pose_c[0, 0])
                 ppose[:, j0:j1] = (0.0, 0.0, yaw_c, pose_c[0, 3], pose_c[1, 3], pose_c[2, 3])
             lidars[name_] = SimLidarFrame([r1, r2], ppose if name_ == 1 else None)
-        boxes = _scene_in_vehicle(world, pose_f).boxes
+        true_boxes = _scene_in_vehicle(world, pose_f).boxes
+        classes = [o.class_name for o in world.objects]
+        if label_noise is not None:
+            boxes, kinds = perturb_boxes(true_boxes, classes, label_noise, np.random.default_rng([seed, f, 7]))
+        else:
+            boxes, kinds = true_boxes, ["none"] * len(classes)
         pts = np.concatenate(expected) if expected else np.zeros((0, 4), np.float32)
         counts = _points_in_boxes(pts[:, :3].astype(np.float64), boxes)
         seg.frames.append(
             SimWaymoFrame(t0 + int(round(t_f * 1e6)), pose_f, lidars, boxes, types.copy(), list(ids), counts, pts,
-                          [o.class_name for o in world.objects])
+                          classes, true_boxes, kinds)
         )
     return seg
 
@@ -428,3 +439,56 @@ def write_as_kitti(segment: SimWaymoSegment, root: str | Path, seed: int = 0) ->
         write_kitti_frame(root, frame_id, fr.points, info.lines, calib)
         ids.append(frame_id)
     return ids
+
+
+def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
+    """One row per object: frame_id, object_id, class names, true and written box, perturbation."""
+    rows: dict[str, list] = {k: [] for k in ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation")}
+    for seg in segments:
+        for fr in seg.frames:
+            true = fr.boxes if fr.true_boxes is None else fr.true_boxes
+            for k in range(len(fr.boxes)):
+                rows["frame_id"].append(f"{seg.name}:{fr.timestamp}")
+                rows["object_id"].append(fr.object_ids[k])
+                rows["class_name"].append({1: "Vehicle", 2: "Pedestrian", 4: "Cyclist"}.get(int(fr.types[k]), "Unknown"))
+                rows["sim_class"].append(fr.sim_classes[k] if fr.sim_classes else "")
+                rows["true_box"].append([float(v) for v in true[k]])
+                rows["written_box"].append([float(v) for v in fr.boxes[k]])
+                rows["perturbation"].append(fr.perturbation[k] if fr.perturbation else "none")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.table(rows), path)
+    return path
+
+
+def simulate_waymo_dataset(
+    out_dir: str | Path,
+    segments: int = 2,
+    frames: int = 3,
+    seed: int = 0,
+    size: str = "small",
+    formats: tuple[str, ...] = ("waymo-v2", "waymo-v1"),
+    label_noise: NoiseSpec | None = None,
+) -> dict[str, Path]:
+    """Simulate ``segments`` Waymo segments and write them in each of ``formats``.
+
+    Layout: ``out_dir/waymo_v2/<component>/<segment>.parquet``,
+    ``out_dir/waymo_v1/<segment>.tfrecord`` and ``out_dir/manifest.parquet`` (true vs written
+    boxes). Returns ``{format: dataset root}``.
+    """
+    unknown = set(formats) - {"waymo-v2", "waymo-v1"}
+    if unknown:
+        raise ValueError(f"unknown formats {sorted(unknown)}; expected waymo-v2 and/or waymo-v1")
+    out = Path(out_dir)
+    segs = [simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=label_noise) for i in range(segments)]
+    roots: dict[str, Path] = {}
+    if "waymo-v2" in formats:
+        roots["waymo-v2"] = out / "waymo_v2"
+        for seg in segs:
+            write_waymo_v2(seg, roots["waymo-v2"])
+    if "waymo-v1" in formats:
+        roots["waymo-v1"] = out / "waymo_v1"
+        for seg in segs:
+            write_waymo_v1(seg, roots["waymo-v1"] / f"{seg.name}.tfrecord")
+    write_manifest(segs, out / "manifest.parquet")
+    return roots

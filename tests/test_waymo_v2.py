@@ -314,3 +314,25 @@ def test_kitti_and_waymo_renderings_of_one_scene_agree(tmp_path: Path) -> None:
         for key in ("cx", "cy", "length", "yaw", "jiou_gt", "std_cx", "std_length"):
             if a.get(key) is not None:
                 assert a[key] == pytest.approx(b[key], abs=1e-3, nan_ok=True), key
+
+
+def test_simulated_dataset_with_label_noise(tmp_path: Path) -> None:
+    from labelaudit.sim.noise import NoiseSpec
+    from labelaudit.simulate_waymo import simulate_waymo_dataset
+
+    roots = simulate_waymo_dataset(tmp_path, segments=2, frames=1, seed=11, label_noise=NoiseSpec(gross_fraction=0.5))
+    manifest = pq.read_table(tmp_path / "manifest.parquet").to_pylist()
+    by_id = {(m["frame_id"], m["object_id"]): m for m in manifest}
+    kinds = {m["perturbation"] for m in manifest}
+    assert kinds & {"shift", "swap_lw", "yaw90"}  # some gross errors were injected
+    for fmt, root in roots.items():
+        reader = open_dataset(root, fmt)
+        units = reader.list_units()
+        assert len(units) == 2
+        for unit in units:
+            for f in reader.load_unit(unit):
+                for box, oid in zip(f.boxes, f.object_ids):
+                    m = by_id[(f.frame_id, oid)]
+                    np.testing.assert_allclose(box, m["written_box"], atol=1e-12)
+                    moved = not np.allclose(m["true_box"], m["written_box"])
+                    assert moved == (m["perturbation"] != "none")
