@@ -302,3 +302,26 @@ def test_pool_executor_returns_every_result_and_reports_a_dead_worker():
     assert sorted(PoolExecutor(2).run([1, 2, 3], _square)) == [1, 4, 9]
     with pytest.raises(WorkerCrashed, match="rerun the same command to resume"):
         list(PoolExecutor(2).run([1, 2], _die))
+
+
+def test_waymo_v1_and_v2_give_the_same_rows(fake_core, tmp_path):
+    from labelaudit.simulate_waymo import simulate_waymo_dataset
+
+    roots = simulate_waymo_dataset(tmp_path / "waymo", segments=2, frames=2, seed=5)
+    cfg = RunConfig(classes=(ALL_CLASSES,))
+    out = {}
+    for fmt, root in roots.items():
+        summary = run_infer(InferRequest(root, tmp_path / fmt, fmt), cfg, executor=SerialExecutor())
+        assert summary.units == 2 and summary.chunks == 2 and summary.frames == 4  # one shard per segment
+        out[fmt] = _rows(tmp_path / fmt)
+    v1, v2 = out["waymo-v1"], out["waymo-v2"]
+    assert v1 and all(r["dataset"] == "waymo-v1" for r in v1)
+    assert all(r["num_lidar_points_in_box"] is not None and r["truncated"] is None for r in v2)
+    drop = {"dataset"}
+    strip = lambda rows: [{k: v for k, v in r.items() if k not in drop} for r in rows]  # noqa: E731
+    a, b = strip(v1), strip(v2)
+    assert [(r["frame_id"], r["object_id"], r["class_name"]) for r in a] == [(r["frame_id"], r["object_id"], r["class_name"]) for r in b]
+    assert [r["num_points"] for r in a] == [r["num_points"] for r in b]
+    # --limit N on Waymo: first N segments, at most N frames each
+    summary = run_infer(InferRequest(roots["waymo-v2"], tmp_path / "lim", "waymo-v2", limit=1), cfg, executor=SerialExecutor())
+    assert summary.units == 1 and summary.frames == 1
