@@ -311,3 +311,44 @@ def test_unknown_class_uses_the_default_prior():
     a = M.infer_label(CAR, None, "Tram", params)
     b = M.infer_label(CAR, None, "Car", dataclasses.replace(params))
     assert np.allclose(a.cov, b.cov)
+
+
+# ---------------------------------------------------------------------------------------------
+# audit_object (the per-object entry point of the pipeline)
+# ---------------------------------------------------------------------------------------------
+
+from labelaudit.audit import MODEL_COLUMNS, audit_object  # noqa: E402
+from labelaudit.config import load_config  # noqa: E402
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_audit_object_row(model):
+    cfg = load_config(None, "kitti")
+    cfg = cfg.with_overrides(model=dataclasses.replace(cfg.model, model=model))
+    row = audit_object(CAR, face_points(CAR, ["-x", "-y"], 100, 0.03), "Car", cfg, (0.0, 0.0, 0.0))
+    assert set(MODEL_COLUMNS) <= set(row)
+    assert row["status"] == "ok" and row["num_points"] == 200
+    assert row["model"] == model
+    p = 6 if model == "bev" else 8
+    assert row["cov_dim"] == p and len(row["cov"]) == p * p
+    cov = np.array(row["cov"]).reshape(p, p)
+    _assert_spd(cov)
+    assert len(row["corner_tv"]) == 4 and row["corner_tv"][0] < row["corner_tv"][3]
+    assert 0.5 < row["jiou_gt"] < 1.0
+    assert row["sigma"] == 0.2 and 0 < row["sigma_hat"] < 0.1
+    assert row["label_error"] is None and row["fit_offset_m"] is None
+    assert np.isnan(row["std_cz"]) == (model == "bev")
+    assert all(isinstance(row[k], float) for k in ("std_cx", "std_length", "std_yaw", "jiou_gt"))
+
+
+def test_audit_object_status_by_point_count():
+    cfg = load_config(None, "kitti")
+    empty = audit_object(CAR, np.zeros((0, 4)), "Car", cfg)
+    assert empty["status"] == "no_points" and empty["num_points"] == 0
+    assert 0 < empty["jiou_gt"] < 1 and np.isnan(empty["sigma_hat"])
+    assert audit_object(CAR, None, "Car", cfg)["jiou_gt"] == empty["jiou_gt"]
+    few = audit_object(CAR, face_points(CAR, ["-x"], 2), "Car", cfg)
+    assert few["status"] == "few_points"
+    assert few["jiou_gt"] > empty["jiou_gt"]
+    with pytest.raises(ValueError, match="width"):
+        audit_object([0, 0, 0, 4, 0, 1, 0], None, "Car", cfg)
