@@ -24,6 +24,7 @@ from __future__ import annotations
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -35,7 +36,7 @@ from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
-from labelaudit.sim.raycast import LidarSpec, render_range_image
+from labelaudit.sim.raycast import LidarSpec, ray_directions, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, SimObject, sample_scene
 
 FloatArray = NDArray[np.float64]
@@ -149,10 +150,12 @@ def _spec(calib: LidarCalibration, width: int, height: int, name: int, noise: bo
                      min_range=0.3, max_range=MAX_RANGE[name], **kw)
 
 
-def _points_of(image, rows_cols_mask: NDArray[np.bool_], ranges: NDArray[np.float32]) -> NDArray[np.float64]:
-    """Vehicle-frame (render-time) xyz of the pixels in ``mask`` with the given ranges."""
-    from labelaudit.sim.raycast import ray_directions
+def _points_of(image: Any, rows_cols_mask: NDArray[np.bool_], ranges: NDArray[np.float32]) -> NDArray[np.float64]:
+    """Vehicle-frame (render-time) xyz of the pixels in ``mask`` with the given ranges.
 
+    Uses the simulator's own ray geometry (not the readers'), so the readers are checked against
+    an independent implementation of the same convention.
+    """
     dirs = ray_directions(image.inclinations, image.azimuths)[rows_cols_mask]
     xyz = dirs * ranges[rows_cols_mask][:, None].astype(np.float64)
     return xyz @ image.extrinsic[:3, :3].T + image.extrinsic[:3, 3]
