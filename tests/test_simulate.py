@@ -88,6 +88,47 @@ def test_box_face_hit_at_exact_range():
     assert np.allclose(ri.range[hit_rows, hit_cols][body_rows], expected[body_rows], rtol=1e-5)
 
 
+def test_object_behind_the_sensor_across_the_azimuth_seam():
+    # Column azimuths are symmetric under x → −x, so a mirrored car gets exactly as many rays,
+    # although its azimuth sector wraps around ±π (the first and last columns).
+    front = render_range_image(Scene([_car(10.0, 0.0, 0.0)], GROUND_Z), COARSE)
+    back = render_range_image(Scene([_car(-10.0, 0.0, np.pi)], GROUND_Z), COARSE)
+    assert back.ray_counts[0] == front.ray_counts[0] > 50
+    cols = np.nonzero((back.hit == 0).any(axis=0))[0]
+    assert 0 in cols and COARSE.columns - 1 in cols
+
+
+def test_extrinsic_pose_equals_moving_the_scene():
+    # A sensor turned by a whole number of azimuth steps and lifted above a z = 0 ground sees the
+    # turned, lifted scene exactly as the unmoved sensor sees the original: columns shift by that number.
+    shift = 37
+    psi = shift * 2 * np.pi / COARSE.columns
+    scene_a = sample_scene(np.random.default_rng(11), SceneSpec(num_vehicles=(12, 12)))
+    c, s = np.cos(psi), np.sin(psi)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[2, 3] = 1.73
+    objs = []
+    for o in scene_a.objects:
+        def move(b):
+            out = b.copy()
+            out[..., 0], out[..., 1] = c * b[..., 0] - s * b[..., 1], s * b[..., 0] + c * b[..., 1]
+            out[..., 2] += 1.73
+            out[..., 6] += psi
+            return out
+        objs.append(type(o)(o.class_name, move(o.box), move(o.parts), o.reflectivity))
+    scene_b = Scene(objs, 0.0, scene_a.ground_reflectivity)
+    a = render_range_image(scene_a, COARSE)
+    b = render_range_image(scene_b, COARSE, T)
+    a_rolled = np.roll(a.range, -shift, axis=1)
+    assert np.mean(np.roll(a.hit, -shift, axis=1) == b.hit) > 0.999  # grazing rays may flip
+    same = np.roll(a.hit, -shift, axis=1) == b.hit
+    assert np.allclose(a_rolled[same], b.range[same], atol=1e-3)
+    pts_b, hits_b = b.points()
+    assert np.allclose(pts_b[hits_b == HIT_GROUND, 2], 0.0, atol=1e-4)
+    assert np.abs(a.ray_counts - b.ray_counts).max() <= 2 and a.ray_counts.sum() > 1000
+
+
 @pytest.mark.parametrize("noisy", [False, True])
 def test_points_lie_on_the_ground_or_an_object(noisy: bool):
     rng = np.random.default_rng(3)
