@@ -69,6 +69,7 @@ SIM_BENCH_NOISE = (0.3, 0.2, 0.1)  # issue-6 benchmark jitter: centre std (m), s
 SIM_BENCH_FRACTIONS = (0.2, 0.02)  # issue-6 benchmark: jittered share, gross-error share of vehicle labels
 SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a random BEV direction
 SIM_MAX_TRUNCATION = 0.9  # objects whose 2D box is truncated more than this are outside the camera FOV (not labelled)
+SIM_MAX_LABEL_OCCLUSION = 0.9  # objects with more of their LiDAR rays blocked than this are not labelled (unseen)
 
 # --- product loop: infer / results (labelaudit.pipeline) ---
 DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`

@@ -295,7 +295,7 @@ def test_manifest_records_points_and_camera_view(small_dataset):
         on = frame.point_hits == m["scene_index"]
         assert m["num_points"] == np.count_nonzero(on)
         if m["labelled"]:
-            assert m["in_camera_fov"]
+            assert m["in_camera_fov"] and m["visible_rays"] > 0
             cam = frame.calib.T_cam_velo @ np.r_[m["true_cx"], m["true_cy"], m["true_cz"], 1.0]
             assert cam[2] > 0  # in front of the camera
     labels = read_label(out / "training" / "label_2" / "000000.txt")
@@ -306,8 +306,9 @@ def test_manifest_records_points_and_camera_view(small_dataset):
 def test_label_fov_all_labels_every_object(tmp_path):
     simulate_dataset(tmp_path, frames=1, seed=7, lidar=COARSE, progress=False, label_fov="all")
     rows = read_manifest(tmp_path).to_pylist()
-    assert all(m["labelled"] for m in rows)
-    assert any(not m["in_camera_fov"] for m in rows)
+    seen = [m["occlusion_fraction"] is not None and m["occlusion_fraction"] <= 0.9 for m in rows]
+    assert [m["labelled"] for m in rows] == seen
+    assert any(m["labelled"] and not m["in_camera_fov"] for m in rows)
 
 
 def test_same_seed_same_bytes_and_noise_leaves_points_alone(tmp_path, small_dataset):
@@ -346,3 +347,14 @@ def test_frame_streams_are_independent_of_frame_count():
     b = frame_generators(5, 3)["scene"].random(4)
     c = frame_generators(5, 4)["scene"].random(4)
     assert np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+def test_hidden_objects_get_no_label():
+    from labelaudit.sim.kitti_writer import kitti_labels, make_calibration
+
+    calib = make_calibration(np.random.default_rng(0))
+    boxes = np.array([_car(15.0, 0.0).box, _car(25.0, 0.5).box, _car(35.0, -1.0).box])
+    info = kitti_labels(boxes, boxes, ["Car"] * 3, np.array([0.0, 0.95, np.nan]), calib)
+    assert info.in_camera_fov.all()
+    assert info.object_index.tolist() == [0, -1, -1] and len(info.lines) == 1
+    assert info.occluded.tolist() == [0, 2, 3]

@@ -147,8 +147,9 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
     occlusion_fraction : (K,) share of each object's rays blocked by other objects (NaN: no rays)
     calib : the frame's calibration
     label_fov : "camera" — only objects in the camera's field of view are labelled (KITTI);
-        "all" — every object (360°, like Waymo); objects outside the image get bbox 0 0 0 0 and
-        truncation 1
+        "all" — objects all around (360°, like Waymo); objects outside the image get bbox 0 0 0 0
+        and truncation 1. Either way, objects with more than ``SIM_MAX_LABEL_OCCLUSION`` of their
+        rays blocked (or no rays at all) are not labelled.
     precision : decimals in the label file (2 like KITTI; ``None`` exact)
     image_size : (width, height) of the P2 image in pixels
     """
@@ -171,7 +172,10 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
     bbox2d = np.where(visible[:, None], clipped, 0.0)
     in_fov = visible & (truncated <= C.SIM_MAX_TRUNCATION)
     occluded = occlusion_level(occlusion_fraction)
-    write = in_fov if label_fov == "camera" else np.ones(k, dtype=bool)
+    # Annotators label what they can see: objects hidden behind others (or between beams) get no label.
+    frac = np.asarray(occlusion_fraction, dtype=float)
+    seen = np.isfinite(frac) & (frac <= C.SIM_MAX_LABEL_OCCLUSION)
+    write = seen & in_fov if label_fov == "camera" else seen
     loc, dims, ry = boxes_lidar_to_camera(written_boxes, calib)
     alpha = np.atleast_1d(alpha_from_location(loc, ry))
     lines: list[str] = []
