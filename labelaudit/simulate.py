@@ -274,6 +274,8 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         raise ValueError(f"workers must be >= 1, got {workers}")
     if label_fov not in ("camera", "all"):
         raise ValueError(f"label_fov must be 'camera' or 'all', got {label_fov!r}")
+    if label_precision is not None and not (isinstance(label_precision, int) and 0 <= label_precision <= 17):
+        raise ValueError(f"label_precision must be None or an integer 0..17, got {label_precision!r}")
     out = Path(out_dir)
     existing = [out / name for name in _OWNED if (out / name).exists()]
     if existing:
