@@ -48,6 +48,7 @@ __all__ = [
     "render_range_image",
     "simulate_dataset",
     "simulate_frame",
+    "write_manifest",
 ]
 
 MANIFEST_NAME = "manifest.parquet"
@@ -157,7 +158,7 @@ def manifest_schema() -> pa.Schema:
 
 def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(), lidar: LidarSpec = LidarSpec(),
                    scene_spec: SceneSpec = SceneSpec(), label_fov: str = "camera",
-                   label_precision: int | None = 2) -> SimFrame:
+                   label_precision: int | None = 2, scene: Scene | None = None) -> SimFrame:
     """Simulate frame ``index`` of the dataset with ``seed`` (pure: writes nothing).
 
     Parameters
@@ -167,9 +168,13 @@ def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
     noise, lidar, scene_spec : label noise, sensor and scene distributions
     label_fov : "camera" (KITTI: label only objects in the camera view) or "all" (360°)
     label_precision : decimals of the label file (2 like KITTI, ``None`` exact)
+    scene : render this scene instead of drawing one (its frame must be the KITTI LiDAR frame:
+        sensor at the origin, ground at ``-lidar.sensor_height``) — e.g. to write the KITTI
+        rendering of a scene also rendered for Waymo
     """
     gens = frame_generators(seed, index)
-    scene = sample_scene(gens["scene"], scene_spec, ground_z=-lidar.sensor_height)
+    if scene is None:
+        scene = sample_scene(gens["scene"], scene_spec, ground_z=-lidar.sensor_height)
     ri = render_range_image(scene, lidar, None, gens["lidar"])
     points, hits = ri.points("scene")
     calib = make_calibration(gens["calib"])
@@ -177,6 +182,21 @@ def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
     labels = kitti_labels(scene.boxes, written, scene.class_names, ri.occlusion_fraction, calib,
                           label_fov=label_fov, precision=label_precision)
     return SimFrame(f"{index:06d}", scene, ri, points, hits, calib, written, kinds, labels)
+
+
+def write_manifest(out_dir: str | Path, rows: list[dict[str, list[Any]]], metadata: dict[str, str] | None = None) -> Path:
+    """Write ``manifest.parquet`` (atomically) from per-frame :meth:`SimFrame.manifest_rows`."""
+    schema = manifest_schema()
+    columns: dict[str, list[Any]] = {name: [] for name in schema.names}
+    for frame_rows in rows:
+        for name in columns:
+            columns[name].extend(frame_rows[name])
+    table = pa.table(columns, schema=schema).replace_schema_metadata(metadata or {})
+    manifest = Path(out_dir) / MANIFEST_NAME
+    tmp = manifest.with_name(f".{manifest.name}.tmp-{os.getpid()}")
+    pq.write_table(table, tmp)
+    tmp.replace(manifest)
+    return manifest
 
 
 @dataclass
@@ -306,11 +326,6 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         bar.close()
     results.sort(key=lambda r: r[0])
 
-    columns: dict[str, list[Any]] = {name: [] for name in manifest_schema().names}
-    for _, rows, _ in results:
-        for name in columns:
-            columns[name].extend(rows[name])
-    table = pa.table(columns, schema=manifest_schema())
     meta = {
         "labelaudit.simulator_version": MANIFEST_VERSION,
         "labelaudit.seed": str(seed),
@@ -320,15 +335,11 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         "labelaudit.scene": json.dumps(asdict(scene)),
         "labelaudit.label_fov": label_fov,
     }
-    table = table.replace_schema_metadata(meta)
-    manifest = out / MANIFEST_NAME
-    tmp = manifest.with_name(f".{manifest.name}.tmp-{os.getpid()}")
-    pq.write_table(table, tmp)
-    tmp.replace(manifest)
+    manifest = write_manifest(out, [rows for _, rows, _ in results], meta)
     _write_imagesets(out, frames, seed)
 
-    labelled = np.asarray(columns["labelled"], dtype=bool)
-    kinds = np.asarray(columns["perturbation"], dtype=object)[labelled] if len(labelled) else np.array([], dtype=object)
+    labelled = np.concatenate([np.asarray(rows["labelled"], dtype=bool) for _, rows, _ in results])
+    kinds = np.concatenate([np.asarray(rows["perturbation"], dtype=object) for _, rows, _ in results])[labelled]
     return SimulationSummary(
         out_dir=out, manifest=manifest, frames=frames, seed=seed, num_points=int(sum(r[2] for r in results)),
         num_objects=len(labelled), num_labels=int(labelled.sum()),

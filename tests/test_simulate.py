@@ -358,3 +358,13 @@ def test_hidden_objects_get_no_label():
     assert info.in_camera_fov.all()
     assert info.object_index.tolist() == [0, -1, -1] and len(info.lines) == 1
     assert info.occluded.tolist() == [0, 2, 3]
+
+
+def test_a_given_scene_renders_and_empty_frames_write(tmp_path):
+    frame = simulate_frame(0, lidar=COARSE, scene=Scene([_car(12.0, 1.0)], GROUND_Z))
+    assert len(frame.labels.lines) == 1 and frame.labels.lines[0].startswith("Car ")
+    assert frame.manifest_rows()["num_points"][0] == np.count_nonzero(frame.point_hits == 0) > 50
+    empty = SceneSpec(num_vehicles=(0, 0), num_vru=(0, 0))
+    summary = simulate_dataset(tmp_path, frames=1, lidar=COARSE, scene=empty, progress=False)
+    assert summary.num_labels == 0 and (tmp_path / "training" / "label_2" / "000000.txt").read_text() == ""
+    assert len(next(KittiReader(tmp_path).load_unit(KittiReader(tmp_path).list_units()[0])).points) > 1000
