@@ -277,7 +277,12 @@ class WorkerCrashed(RuntimeError):
 
 
 class PoolExecutor:
-    """A pool of ``workers`` processes (spawned: safe with Open3D/BLAS threads).
+    """A pool of ``workers`` processes.
+
+    Workers fork from a ``forkserver`` that has imported the heavy modules once
+    (:data:`~labelaudit.constants.WORKER_PRELOAD`: Open3D, SciPy, the core), so they start warm;
+    the server is single-threaded, so forking it is safe with Open3D/BLAS (forking the main
+    process, which may run Arrow threads, is not).
 
     Built on :class:`concurrent.futures.ProcessPoolExecutor`, so a worker that dies raises
     :class:`WorkerCrashed` instead of hanging the run; finished shards are kept for ``--resume``.
@@ -294,6 +299,8 @@ class PoolExecutor:
         if not units:
             return
         ctx = multiprocessing.get_context(self.start_method)
+        if self.start_method == "forkserver":
+            ctx.set_forkserver_preload(list(C.WORKER_PRELOAD))  # missing modules are skipped
         with _single_threaded_children():
             self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(units)), mp_context=ctx)
             futures = [self._pool.submit(fn, u) for u in units]
@@ -337,7 +344,7 @@ class InferRequest:
     overwrite: bool = False
     strict: bool = False
     debug: bool = False
-    chunk_units: int | None = None  # None: per-format default (constants.CHUNK_UNITS)
+    chunk_units: int | None = None  # None: chunk_size_for(format, number of units)
 
 
 @dataclass
@@ -420,6 +427,14 @@ def chunk_name(refs: Sequence[FrameRef]) -> str:
     """Shard file name of a chunk: a hash of its unit keys, so a resumed run finds it again."""
     digest = hashlib.sha256("\n".join(r.key for r in refs).encode()).hexdigest()[:20]
     return f"part-{digest}.parquet"
+
+
+def chunk_size_for(dataset_format: str, num_units: int) -> int:
+    """Units per chunk: about :data:`~labelaudit.constants.TARGET_CHUNKS` chunks, at most the
+    format's :data:`~labelaudit.constants.CHUNK_UNITS`. Depends only on the unit list, never on
+    the worker count, so a run resumed with other ``--workers`` finds its shards again."""
+    cap = C.CHUNK_UNITS.get(dataset_format, 1)
+    return int(min(cap, max(1, math.ceil(num_units / C.TARGET_CHUNKS))))
 
 
 def plan_chunks(refs: Sequence[FrameRef], chunk_units: int) -> list[tuple[str, tuple[FrameRef, ...]]]:
@@ -515,7 +530,7 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     output = Path(request.output)
     prepare_output(output, metadata, request.overwrite)
 
-    chunk_units = request.chunk_units or C.CHUNK_UNITS.get(fmt, 1)
+    chunk_units = request.chunk_units or chunk_size_for(fmt, len(refs))
     chunks = plan_chunks(refs, chunk_units)
     shard_dir, err_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR
     done = {name for name, _ in chunks if (shard_dir / name).is_file() and _is_whole_parquet(shard_dir / name)}

@@ -47,11 +47,10 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None, help="reuse (or create) the simulated dataset here")
     args = ap.parse_args()
 
-    from labelaudit.pipeline import InferRequest, PoolExecutor, SerialExecutor, plan_chunks, resolve_config, run_infer
+    from labelaudit.pipeline import InferRequest, PoolExecutor, SerialExecutor, chunk_size_for, plan_chunks, resolve_config, run_infer
     from labelaudit.datasets import open_dataset
     from labelaudit.sim.noise import NoiseSpec
     from labelaudit.simulate import simulate_dataset
-    from labelaudit import constants as C
 
     tmp = tempfile.TemporaryDirectory(prefix="bench-infer-")
     data = args.data or Path(tmp.name) / "sim"
@@ -71,7 +70,7 @@ def main() -> None:
     print(f"(a)  read + crop, 1 process:        {floor:7.2f} s  ({frames / floor:6.1f} frames/s, {boxes / floor:7.0f} boxes/s, {boxes} boxes)")
 
     # (a2) floor over the pool, same chunks as infer
-    chunks = [(c, cfg) for _, c in plan_chunks(refs, C.CHUNK_UNITS["kitti"])]
+    chunks = [(c, cfg) for _, c in plan_chunks(refs, chunk_size_for("kitti", len(refs)))]
     ex = PoolExecutor(args.workers)
     t = time.perf_counter()
     list(ex.run(chunks, _read_and_crop))

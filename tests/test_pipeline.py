@@ -325,3 +325,12 @@ def test_waymo_v1_and_v2_give_the_same_rows(fake_core, tmp_path):
     # --limit N on Waymo: first N segments, at most N frames each
     summary = run_infer(InferRequest(roots["waymo-v2"], tmp_path / "lim", "waymo-v2", limit=1), cfg, executor=SerialExecutor())
     assert summary.units == 1 and summary.frames == 1
+
+
+def test_chunk_size_depends_on_the_unit_count_only():
+    from labelaudit.pipeline import chunk_size_for
+
+    assert chunk_size_for("kitti", 12) == 1  # small runs: one frame per chunk, balanced workers
+    assert chunk_size_for("kitti", 300) == 10
+    assert chunk_size_for("kitti", 7481) == 16  # capped: shards stay a few hundred
+    assert chunk_size_for("waymo-v2", 800) == 1  # a segment is already ~200 frames
