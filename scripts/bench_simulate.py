@@ -57,17 +57,55 @@ def bench_dataset(frames: int, workers: int, lidar: LidarSpec, keep: Path | None
             shutil.rmtree(root, ignore_errors=True)
 
 
+def _points_in_box(points: np.ndarray, box: np.ndarray) -> int:
+    d = points[:, :3] - box[:3]
+    c, s = np.cos(box[6]), np.sin(box[6])
+    u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    return int(np.count_nonzero((np.abs(u) <= box[3] / 2) & (np.abs(v) <= box[4] / 2) & (np.abs(d[:, 2]) <= box[5] / 2)))
+
+
+def realism(realdata: Path, frames: int) -> None:
+    """Points inside unoccluded vehicle boxes by distance: real KITTI frames vs simulated ones."""
+    from labelaudit.datasets.kitti import KittiReader
+    from labelaudit.simulate import simulate_frame
+
+    kitti = realdata / "openpcdet-pr653-kitti"
+    rows: dict[str, list[tuple[float, int]]] = {"real": [], "sim": []}
+    if kitti.is_dir():
+        reader = KittiReader(kitti, classes=["Car", "Van", "Truck"])
+        for ref in reader.list_units():
+            f = next(reader.load_unit(ref))
+            for b, occ in zip(f.boxes, f.extras["occluded"]):
+                if occ == 0:
+                    rows["real"].append((float(np.hypot(b[0], b[1])), _points_in_box(f.points, b)))
+    for i in range(frames):
+        f = simulate_frame(i, seed=0)
+        for j, o in enumerate(f.scene.objects):
+            if f.labels.object_index[j] >= 0 and f.labels.occluded[j] == 0 and o.class_name in ("Car", "Van", "Truck"):
+                rows["sim"].append((float(np.hypot(o.box[0], o.box[1])), _points_in_box(f.points, o.box)))
+    print("points in unoccluded vehicle boxes (median [min, max], count) by distance:")
+    for lo, hi in ((0, 10), (10, 20), (20, 30), (30, 45), (45, 70)):
+        cells = []
+        for name in ("real", "sim"):
+            a = np.array([n for d, n in rows[name] if lo <= d < hi])
+            cells.append(f"{name} {np.median(a):6.0f} [{a.min():.0f}, {a.max():.0f}] n={len(a)}" if len(a) else f"{name} {'-':>6s}")
+        print(f"  {lo:2d}-{hi:2d} m: " + "   ".join(cells))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=500)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--raycast-frames", type=int, default=100)
     ap.add_argument("--keep", type=Path, default=None, help="write the dataset here and keep it")
+    ap.add_argument("--realdata", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "realdata",
+                    help="real KITTI frames to compare point densities with (skipped when absent)")
     args = ap.parse_args()
     lidar = LidarSpec()
     print(f"sensor: {lidar.beams} beams, {lidar.columns} columns ({lidar.azimuth_step_deg:.3f}° step), "
           f"{lidar.max_range:.0f} m; numpy {np.__version__}")
     bench_raycast(args.raycast_frames, lidar)
+    realism(args.realdata, 30)
     for w in args.workers:
         bench_dataset(args.frames, w, lidar, args.keep)
 
