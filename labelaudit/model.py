@@ -221,9 +221,19 @@ def register(
     """
     y = g.validate_box(box)
     d = g.point_dim(model)
-    pts = _clean_points(points, d)
+    return _register(y, _clean_points(points, d), d, num_nearest, sigma, outlier_prob)
+
+
+def _register(y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: float, outlier_prob: float) -> Registration:
+    """:func:`register` for a validated box and clean (N, d) points."""
     half = 0.5 * y[3 : 3 + d]
-    local = g.world_to_unit(pts, y, model) * y[3 : 3 + d]  # box frame, metres
+    c, s = np.cos(y[6]), np.sin(y[6])
+    rel = pts[:, :2] - y[:2]
+    local = np.empty_like(pts)  # box frame, metres: Rᵀ (x − c)
+    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
+    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
+    if d == 3:
+        local[:, 2] = pts[:, 2] - y[2]
     m = min(int(num_nearest), 2 * d)
     cand, sqd = surface_candidates(local, half)
     cand, sqd = _nearest_distinct(local, half, cand, sqd, m)
@@ -304,8 +314,13 @@ def _outlier_log_density(y: FloatArray, d: int) -> float:
 
 def _em(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier_prob: float) -> float:
     """Pooled EM for σ over registrations given as (sqdist (N, M), outlier log density)."""
-    sigma = max(float(sigma0), C.SIGMA_FLOOR)
     regs = [(sqd, np.where(np.isfinite(sqd), sqd, 0.0), ld) for sqd, ld in regs]
+    # Start at the nearest-candidate residual (the small-σ limit): EM then needs few iterations.
+    n_pts = sum(len(sqd) for sqd, _, _ in regs)
+    if n_pts == 0:
+        return float("nan")
+    start = np.sqrt(sum(float(np.sum(sqd0[:, 0])) for _, sqd0, _ in regs) / (C.EM_RESIDUAL_DOF * n_pts))
+    sigma = max(float(start) if outlier_prob == 0 else float(sigma0), C.SIGMA_FLOOR)
     estimate = np.nan
     for _ in range(C.EM_MAX_ITERATIONS):
         num = den = 0.0
@@ -390,12 +405,19 @@ def corner_total_variance(
     tv : (4,) total variances (m²), C1 = corner nearest to the sensor (BEV distance).
     order : (4,) indices into :func:`labelaudit.geometry.box_corners` (BEV order) of C1..C4.
     """
-    y = g.validate_box(box)
-    cov = np.asarray(cov, dtype=float)
-    J = g.design_matrix(corner_unit_coords(model), model)  # (4, d, p)
+    return _corner_tv(g.validate_box(box), np.asarray(cov, dtype=float), model, sensor_origin)
+
+
+_CORNER_J = {m: g.design_matrix(corner_unit_coords(m), m) for m in ("bev", "3d")}  # (4, d, p), box-independent
+
+
+def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
+    J = _CORNER_J[model]
     tv = np.einsum("cdp,pq,cdq->c", J, cov, J)
-    corners = g.box_corners(y, "bev")
-    dist = np.linalg.norm(corners - np.asarray(sensor_origin, dtype=float)[:2], axis=1)
+    c, s = np.cos(y[6]), np.sin(y[6])
+    u = g.BEV_CORNERS_UNIT * y[3:5]
+    corners = np.c_[c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1]] + y[:2]
+    dist = np.hypot(*(corners - np.asarray(sensor_origin, dtype=float)[:2]).T)
     order = np.argsort(dist, kind="stable")
     return tv[order], order
 
@@ -503,18 +525,18 @@ def infer_label(
 
     sigma_hat = float("nan")
     sigma = float(params.sigma)
-    reg = register(y, pts, model, num_nearest=params.num_nearest, sigma=sigma, outlier_prob=params.outlier_prob)
+    reg = _register(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
     if n >= 2:
         sigma_hat = _em([(reg.sqdist, _outlier_log_density(y, d))], d, sigma, params.outlier_prob)
         if params.estimate_sigma and n >= max(params.min_points, 2) and np.isfinite(sigma_hat):
             sigma = max(sigma_hat, C.SIGMA_FLOOR)
-            reg = register(y, pts, model, num_nearest=params.num_nearest, sigma=sigma, outlier_prob=params.outlier_prob)
+            reg = _register(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
 
     m = reg.vstar.shape[1]
     J = g.design_matrix(reg.vstar.reshape(-1, d), model)
     x = np.repeat(pts, m, axis=0)
     fit_mean, cov, _ = linear_gaussian_posterior(J, x, sigma, phi, prior_precision=P0, weights=reg.resp.reshape(-1))
-    tv, order = corner_total_variance(y, cov, model, sensor_origin)
+    tv, order = _corner_tv(y, cov, model, sensor_origin)
     p = phi.size
     K = np.vstack([E[: p - 2], 0.5 * (E[p - 2] + E[p - 1])])  # as geometry.box_param_jacobian
     S0 = G @ (prior_cov_extended(prior, model) / params.prior_weight) @ G.T

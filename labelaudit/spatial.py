@@ -125,7 +125,9 @@ class _Samples:
 
     centres (S, 2), in-plane axes (S, 2, 2) (columns: length and width edge vectors), z-intervals
     (S, 2) for 3D, weights (S,) = 1 / (size · number of valid samples); corner_mean (4, 2) and
-    corner_std (largest corner total std), edge_std (smallest principal std of any corner, 3D also
+    corner_std (largest corner total std), blur (d,): per grid axis, the smallest std of the
+    coordinate along that axis of the points (corners, face midpoints) of the faces most normal to
+    it — how sharp the distribution's boundary is across that axis (zeros for one sample);
     of the bottom/top), z_mean/z_std (2,) of the z-interval ends.
     """
 
@@ -135,7 +137,7 @@ class _Samples:
     weights: FloatArray
     corner_mean: FloatArray
     corner_std: float
-    edge_std: float
+    blur: FloatArray
     z_mean: FloatArray | None
     z_std: FloatArray | None
 
@@ -201,20 +203,24 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
     a0, a1 = 0.5 * A[:, :, 0], 0.5 * A[:, :, 1]
     corners = centre[:, None, :2] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1], axis=1)  # (S, 4, 2)
     corner_mean = corners.mean(axis=0)
-    corner_std = edge_std = 0.0
+    corner_std = 0.0
+    blur = np.zeros(d)
     z_mean = z_std = None
     if zint is not None:
         z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
     if len(corners) > 1:
-        dev = corners - corner_mean
-        vxx, vyy, vxy = (dev[..., 0] ** 2).mean(0), (dev[..., 1] ** 2).mean(0), (dev[..., 0] * dev[..., 1]).mean(0)
-        tr = vxx + vyy
-        lam_min = 0.5 * tr - np.sqrt(np.maximum(0.25 * tr**2 - (vxx * vyy - vxy**2), 0.0))
-        corner_std = float(np.sqrt(np.max(tr)))
-        edge_std = float(np.sqrt(max(float(np.min(lam_min)), 0.0)))
+        corner_var = corners.var(axis=0)  # (4, 2)
+        corner_std = float(np.sqrt(np.max(corner_var.sum(axis=1))))
+        # Faces of the length edge vector (±½, ·) are normal to x when that vector points along x.
+        mid_var = np.stack([(centre[:, :2] + sgn * half_axis).var(axis=0) for half_axis in (a0, a1) for sgn in (1, -1)])
+        along_x = abs(A[:, 0, 0].mean()) >= abs(A[:, 1, 0].mean())
+        len_mid, wid_mid = mid_var[:2], mid_var[2:]
+        x_pts, y_pts = (len_mid, wid_mid) if along_x else (wid_mid, len_mid)
+        blur[0] = np.sqrt(min(float(np.min(corner_var[:, 0])), float(np.min(x_pts[:, 0]))))
+        blur[1] = np.sqrt(min(float(np.min(corner_var[:, 1])), float(np.min(y_pts[:, 1]))))
         if z_std is not None:
-            edge_std = min(edge_std, float(np.min(z_std)))
-    return _Samples(centre[:, :2], A, zint, weights, corner_mean, corner_std, edge_std, z_mean, z_std)
+            blur[2] = float(np.min(z_std))
+    return _Samples(centre[:, :2], A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -281,13 +287,14 @@ def _make_grid(
     samples: list[_Samples],
     params: SpatialParams,
     boxes: list[FloatArray] | None = None,
-    blur: float = 0.0,
+    blur: FloatArray | None = None,
 ) -> Grid:
     """Grid in the frame of ``ref``.
 
-    Cell size = max(longer BEV side of the smallest of ``boxes`` (default ``ref``),
-    CELL_STD_SPAN × ``blur``) / cells_per_side: the smaller box sets the accuracy, and a distribution
-    whose boundary is blurred by ``blur`` (m, smallest edge std) needs no cells much finer than that.
+    Cell size along axis a = max(longer BEV side of the smallest of ``boxes`` (default ``ref``),
+    CELL_STD_SPAN × ``blur[a]``) / cells_per_side: the smaller box sets the accuracy, and a
+    distribution whose boundary is blurred by ``blur[a]`` (m) across axis a needs no cells much
+    finer than that along a.
     """
     d = g.point_dim(model)
     lo = np.full(d, np.inf)
@@ -297,10 +304,11 @@ def _make_grid(
         lo, hi = np.minimum(lo, a), np.maximum(hi, b)
     cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     size = min(max(b[3], b[4]) for b in (boxes or [ref]))
-    cell = max(size, C.CELL_STD_SPAN * blur) / max(cells, 1.0)
-    xe = _axis_edges(ref[3] / 2, lo[0], hi[0], cell)
-    ye = _axis_edges(ref[4] / 2, lo[1], hi[1], cell)
-    ze = _axis_edges(ref[5] / 2, lo[2], hi[2], cell) if d == 3 else None
+    blur = np.zeros(d) if blur is None else blur
+    cell = np.maximum(size, C.CELL_STD_SPAN * blur) / max(cells, 1.0)
+    xe = _axis_edges(ref[3] / 2, lo[0], hi[0], cell[0])
+    ye = _axis_edges(ref[4] / 2, lo[1], hi[1], cell[1])
+    ze = _axis_edges(ref[5] / 2, lo[2], hi[2], cell[2]) if d == 3 else None
     return Grid(ref, xe, ye, ze)
 
 
@@ -360,12 +368,29 @@ def _events(s: _Samples, xe: FloatArray, ye: FloatArray) -> _Events:
     return _Events(base + k_lo, base + k_hi, f_lo, f_hi, valid, ny, nx, dx, dy / nsub)
 
 
+def _overlap(lo: float, hi: float, edges: FloatArray) -> FloatArray:
+    """Length of [lo, hi] inside each cell of ``edges``."""
+    return np.clip(np.minimum(hi, edges[1:]) - np.maximum(lo, edges[:-1]), 0.0, None)
+
+
+def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray | None:
+    """Exact separable area per cell for a single axis-aligned box (the label in its own frame), else None."""
+    A = s.axes
+    if len(A) != 1 or A[0, 0, 1] != 0.0 or A[0, 1, 0] != 0.0:
+        return None
+    (cx, cy), hx, hy = s.centres[0], 0.5 * abs(A[0, 0, 0]), 0.5 * abs(A[0, 1, 1])
+    return np.outer(_overlap(cy - hy, cy + hy, ye), _overlap(cx - hx, cx + hx, xe))
+
+
 def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
     """Weighted area of the sample boxes in every BEV cell, (ny, nx).
 
     Per interval, coverage(j) = dx·[k_lo ≤ j < k_hi] + f_hi·[j = k_hi] − f_lo·[j = k_lo]: the first
     term goes into a difference array (cumulative sum along x), the others directly.
     """
+    aligned = _aligned_single(s, xe, ye)
+    if aligned is not None:
+        return aligned * s.weights[0]
     e = _events(s, xe, ye)
     nb = e.ny * (e.nx + 1)
     w = np.broadcast_to(s.weights[:, None], e.i_lo.shape)
@@ -387,6 +412,9 @@ def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> F
     """
     from scipy.sparse import coo_matrix
 
+    aligned = _aligned_single(s, xe, ye)
+    if aligned is not None:
+        return aligned[:, :, None] * zw[0]
     e = _events(s, xe, ye)
     nb = e.ny * (e.nx + 1)
     S = e.i_lo.shape[0]
@@ -500,7 +528,7 @@ def spatial_distribution(
     ref = dist.box if grid is None else grid.ref
     s = _sample_boxes(dist, ref, params)
     if grid is None:
-        grid = _make_grid(ref, dist.model, [s], params, blur=s.edge_std)
+        grid = _make_grid(ref, dist.model, [s], params, blur=s.blur)
     return grid, _rasterise(s, grid)
 
 
@@ -515,8 +543,9 @@ def jiou(a: BoxDistribution, b: BoxDistribution, params: SpatialParams) -> float
     sa, sb = _sample_boxes(a, ref, params), _sample_boxes(b, ref, params)
     # The boundary blur sets the cell size; a deterministic box counts as sharp (blur 0) unless it
     # is the reference box itself, whose edges lie on cell boundaries and are rasterised exactly.
-    blurs = [s.edge_std for s, dist in ((sa, a), (sb, b)) if not (dist.cov is None and np.array_equal(dist.box, ref))]
-    grid = _make_grid(ref, b.model, [sa, sb], params, [a.box, b.box], min(blurs) if blurs else 0.0)
+    blurs = [s.blur for s, dist in ((sa, a), (sb, b)) if not (dist.cov is None and np.array_equal(dist.box, ref))]
+    blur = np.min(blurs, axis=0) if blurs else None
+    grid = _make_grid(ref, b.model, [sa, sb], params, [a.box, b.box], blur)
     return jaccard(*_pair_masses(sa, sb, grid))
 
 
