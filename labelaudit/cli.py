@@ -16,6 +16,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Iterator, Optional
 
+import pyarrow as pa
 import typer
 from typer.exceptions import TyperException
 from rich.console import Console
@@ -151,7 +152,8 @@ class RichProgress:
 
 
 def _print_run_summary(console: Console, summary, stats: dict) -> None:  # type: ignore[no-untyped-def]
-    table = Table(title=f"labelaudit infer → {summary.output}", title_justify="left")
+    console.print(f"[bold]labelaudit infer[/bold] → {escape(str(summary.output))}")
+    table = Table()
     table.add_column("class")
     table.add_column("objects", justify="right")
     table.add_column("median JIoU-GT", justify="right")
@@ -250,17 +252,21 @@ def _split_list(values: Optional[list[str]]) -> tuple[str, ...]:
     return tuple(out)
 
 
-def print_rank_table(console: Console, result) -> None:  # type: ignore[no-untyped-def]
+def print_rank_table(console: Console, result, extra: dict[str, list[str]] | None = None) -> None:  # type: ignore[no-untyped-def]
+    """Rich table of a :class:`~labelaudit.rank.RankResult`; ``extra`` adds display-only columns."""
     from labelaudit.rank import display_columns, format_cell
 
     q = result.query
     table = result.table
-    cols = display_columns(table, q.by)
+    for name, values in (extra or {}).items():
+        table = table.append_column(name, pa.array(values, pa.string()))
+    cols = display_columns(table, q.by) + list(extra or {})
     order = "highest" if q.is_descending else "lowest"
-    t = Table(title=f"worst {table.num_rows} of {result.matched} objects by {q.by} ({order} first)", title_justify="left")
+    scope = f" with ≥ {q.min_points} points" if q.min_points else ""
+    t = Table(title=f"worst {table.num_rows} of {result.matched} objects{scope} by {q.by} ({order} first)", title_justify="left")
     t.add_column("#", justify="right")
     for c in cols:
-        t.add_column(c, justify="right" if c not in ("frame_id", "class_name", "status") else "left")
+        t.add_column(c, justify="left" if c in ("frame_id", "class_name", "status") or c in (extra or {}) else "right")
     for i, row in enumerate(table.select(cols).to_pylist(), start=1):
         t.add_row(str(i), *(format_cell(row[c]) for c in cols))
     console.print(t)
@@ -463,10 +469,17 @@ def demo(
             console.print(f"[bold]2/4 infer[/bold] {data} → {results}")
             run_infer_command(data, results, "kitti", workers=workers, overwrite=True, debug=debug)
             opened = open_results(results)
-            console.print("[bold]3/4 rank[/bold] the worst labels (lowest JIoU-GT first)")
-            print_rank_table(_out(), rank_results(opened, RankQuery(top=10)))
-            if "label_error" in opened.columns and opened.read(["label_error"]).column("label_error").null_count < opened.dataset.count_rows():
-                print_rank_table(_out(), rank_results(opened, RankQuery(by="label_error", top=10)))
+            console.print(
+                "[bold]3/4 rank[/bold] the worst labels; 'injected' is the simulator's ground truth "
+                "(none = exact label). Boxes without points are all equally uncertain (prior only), so they are left out here."
+            )
+            truth = _injected_by_object(data / "manifest.parquet")
+            for query in (RankQuery(top=10, min_points=1), RankQuery(by="label_error", top=10)):
+                if query.by not in opened.columns or opened.read([query.by]).column(query.by).null_count == opened.dataset.count_rows():
+                    continue
+                ranked = rank_results(opened, query)
+                injected = [truth.get(o, "?") for o in ranked.table.column("object_id").to_pylist()]
+                print_rank_table(_out(), ranked, {"injected": injected})
             console.print("[bold]4/4 check[/bold] the built-in gate (configs/gate.toml)")
             report = evaluate_gate(opened, load_gate(None))
             print_gate_table(_out(), report)
@@ -478,6 +491,17 @@ def demo(
         finally:
             if tmp is not None:
                 tmp.cleanup()
+
+
+def _injected_by_object(manifest: Path) -> dict[str, str]:
+    """object_id → perturbation kind from a simulator manifest (empty when unreadable)."""
+    import pyarrow.parquet as pq
+
+    try:
+        t = pq.read_table(manifest, columns=["object_id", "perturbation"])
+    except (OSError, pa.ArrowInvalid, KeyError):
+        return {}
+    return dict(zip(t.column("object_id").to_pylist(), t.column("perturbation").to_pylist()))
 
 
 def main() -> None:

@@ -266,7 +266,7 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
             values = _finite(lerr[evaluated])
             count = len(values)
             if count == 0:
-                out.append(RuleResult(name, rule, None, thr, "skip", 0, "label_error not computed (inactive)"))
+                out.append(RuleResult(name, rule, None, thr, "skip", 0, "inactive: no label_error yet"))
                 continue
             value = float(np.mean(values > rules["label_error_threshold"]))
             note = f"above {_fmt(rules['label_error_threshold'])}"
