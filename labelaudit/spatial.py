@@ -146,9 +146,14 @@ def _cos_sin(angle: float) -> tuple[float, float]:
     return math.cos(angle), math.sin(angle)
 
 
+_IDX_3D_PLANAR = np.ix_([0, 1, 3, 4, 5, 6], [0, 1, 3, 4, 5, 6])  # the three in-plane 2-vectors of a 3D φ
+# Unit coordinates (2, 8) of the 4 BEV corners (box_corners' order) and of the ±length, ±width face midpoints.
+_FACE_POINTS_UNIT = np.array([[0.5, -0.5, -0.5, 0.5, 0.5, -0.5, 0.0, 0.0], [0.5, 0.5, -0.5, -0.5, 0.0, 0.0, 0.5, -0.5]])
+
+
 def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams) -> _Samples:
     """Samples of ``dist`` expressed in the frame of ``ref`` (deterministic: one sample)."""
-    d, p = g.point_dim(dist.model), g.phi_dim(dist.model)
+    d = g.point_dim(dist.model)
     box = dist.box
     c0, s0 = _cos_sin(ref[6])
     Rt = np.array([[c0, s0], [-s0, c0]])
@@ -160,16 +165,20 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
     if dist.cov is None or dist.cov_on == "phi":
         phi = np.array([yl[0], yl[1], yl[3] * cl, yl[3] * sl, yl[4] * cl, yl[4] * sl])
         if d == 3:
-            phi = np.r_[phi[:2], yl[2], phi[2:], yl[5]]
+            phi = np.array([yl[0], yl[1], yl[2], *phi[2:], yl[5]])
         if dist.cov is None:
             phis = phi[None, :]
         else:
             # φ in the grid frame is a linear map of φ: rotate the three in-plane 2-vectors.
-            T = np.eye(p)
-            for idx in ((0, 1), (2, 3), (4, 5)) if d == 2 else ((0, 1), (3, 4), (5, 6)):
-                T[np.ix_(idx, idx)] = Rt
-            z = normal_samples(p, params.num_samples, params.seed)
-            phis = phi + z @ _sqrt_psd(T @ dist.cov @ T.T).T
+            T6 = np.zeros((6, 6))
+            T6[0:2, 0:2] = T6[2:4, 2:4] = T6[4:6, 4:6] = Rt
+            if d == 2:
+                T = T6
+            else:
+                T = np.eye(8)
+                T[_IDX_3D_PLANAR] = T6
+            z = normal_samples(phi.size, params.num_samples, params.seed)
+            phis = phi + z @ _sqrt_psd(T @ dist.cov @ T.T)
         o = d - 2
         centre = phis[:, :d]
         A = np.empty((len(phis), 2, 2))
@@ -182,7 +191,7 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
         T[:2, :2] = Rt
         z = normal_samples(k, params.num_samples, params.seed)
         mean = yl[[0, 1, 3, 4, 6]] if k == 5 else yl
-        ys = mean + z @ _sqrt_psd(T @ dist.cov @ T.T).T
+        ys = mean + z @ _sqrt_psd(T @ dist.cov @ T.T)
         if k == 5:
             ys = np.c_[ys[:, 0:2], np.full(len(ys), yl[2]), ys[:, 2:4], np.full(len(ys), yl[5]), ys[:, 4]]
         c, sn = np.cos(ys[:, 6]), np.sin(ys[:, 6])
@@ -195,31 +204,35 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
     zint = None
     if height is not None:
         hh = 0.5 * np.abs(height)
-        zint = np.c_[centre[:, 2] - hh, centre[:, 2] + hh]
+        zint = np.stack([centre[:, 2] - hh, centre[:, 2] + hh], axis=1)
         size = size * 2.0 * hh
+    S = len(A)
+    if S == 1:
+        weights = 1.0 / size if size[0] > 0 else np.zeros(1)
+        a0, a1 = 0.5 * A[0, :, 0], 0.5 * A[0, :, 1]
+        corners = centre[0, :2] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1])
+        return _Samples(centre[:, :2], A, zint, weights, corners, 0.0, np.zeros(d), None if zint is None else zint[0], None if zint is None else np.zeros(2))
     ok = size > 1e-12 * max(float(np.max(size)), 1e-300)  # degenerate samples carry no area: drop
     weights = np.where(ok, 1.0 / np.where(ok, size, 1.0), 0.0) / np.count_nonzero(ok)
-    # Corners in box_corners' BEV order: (+,+), (−,+), (−,−), (+,−) in unit coordinates.
-    a0, a1 = 0.5 * A[:, :, 0], 0.5 * A[:, :, 1]
-    corners = centre[:, None, :2] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1], axis=1)  # (S, 4, 2)
-    corner_mean = corners.mean(axis=0)
-    corner_std = 0.0
+    # Corners in box_corners' BEV order ((+,+), (−,+), (−,−), (+,−) in unit coordinates), then the
+    # midpoints of the ±length and ±width faces.
+    pts = np.matmul(A, _FACE_POINTS_UNIT) + centre[:, :2, None]  # (S, 2, 8)
+    mean = pts.mean(axis=0)  # (2, 8)
+    dev = (pts - mean).reshape(S, 16)
+    var = (np.einsum("ij,ij->j", dev, dev) / S).reshape(2, 8).T  # (8, 2)
+    corner_mean = mean[:, :4].T
+    corner_std = float(np.sqrt(np.max(var[:4].sum(axis=1))))
+    # Blur across axis x: the faces most normal to x are the ±length faces when the length edge
+    # points along x (corners and those faces' midpoints); likewise y.
+    along_x = abs(A[:, 0, 0].sum()) >= abs(A[:, 1, 0].sum())
+    x_mid, y_mid = (var[4:6], var[6:8]) if along_x else (var[6:8], var[4:6])
     blur = np.zeros(d)
+    blur[0] = np.sqrt(min(float(var[:4, 0].min()), float(x_mid[:, 0].min())))
+    blur[1] = np.sqrt(min(float(var[:4, 1].min()), float(y_mid[:, 1].min())))
     z_mean = z_std = None
     if zint is not None:
         z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
-    if len(corners) > 1:
-        corner_var = corners.var(axis=0)  # (4, 2)
-        corner_std = float(np.sqrt(np.max(corner_var.sum(axis=1))))
-        # Faces of the length edge vector (±½, ·) are normal to x when that vector points along x.
-        mid_var = np.stack([(centre[:, :2] + sgn * half_axis).var(axis=0) for half_axis in (a0, a1) for sgn in (1, -1)])
-        along_x = abs(A[:, 0, 0].mean()) >= abs(A[:, 1, 0].mean())
-        len_mid, wid_mid = mid_var[:2], mid_var[2:]
-        x_pts, y_pts = (len_mid, wid_mid) if along_x else (wid_mid, len_mid)
-        blur[0] = np.sqrt(min(float(np.min(corner_var[:, 0])), float(np.min(x_pts[:, 0]))))
-        blur[1] = np.sqrt(min(float(np.min(corner_var[:, 1])), float(np.min(y_pts[:, 1]))))
-        if z_std is not None:
-            blur[2] = float(np.min(z_std))
+        blur[2] = float(z_std.min())
     return _Samples(centre[:, :2], A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
 
 
