@@ -368,3 +368,26 @@ def test_a_given_scene_renders_and_empty_frames_write(tmp_path):
     summary = simulate_dataset(tmp_path, frames=1, lidar=COARSE, scene=empty, progress=False)
     assert summary.num_labels == 0 and (tmp_path / "training" / "label_2" / "000000.txt").read_text() == ""
     assert len(next(KittiReader(tmp_path).load_unit(KittiReader(tmp_path).list_units()[0])).points) > 1000
+
+
+def test_clutter_returns_points_occludes_and_is_never_labelled(tmp_path):
+    from labelaudit.sim.raycast import HIT_CLUTTER
+
+    plain = sample_scene(np.random.default_rng(5), SceneSpec())
+    spec = SceneSpec(num_clutter=(15, 15))
+    busy = sample_scene(np.random.default_rng(5), spec)
+    assert plain.clutter == [] and len(busy.clutter) >= 10
+    assert np.array_equal(plain.boxes, busy.boxes)  # clutter is drawn after the objects
+    ri = render_range_image(busy, COARSE)
+    pts, hits = ri.points()
+    on = hits == HIT_CLUTTER
+    assert on.sum() > 200
+    assert _surface_distance(pts[on, :3].astype(float), np.stack([c.box for c in busy.clutter])).max() < 1e-4
+    wall = make_object("Car", (15.0, 0.0), 0.0, np.array([1.0, 6.0, 3.0]), GROUND_Z, np.random.default_rng(0))
+    wall.class_name = "Clutter"
+    car = _car(25.0, 0.0)
+    hidden = render_range_image(Scene([car], GROUND_Z, clutter=[wall]), COARSE)
+    assert hidden.ray_counts[0] > 20 and hidden.visible_counts[0] == 0 and hidden.occlusion_fraction[0] == 1.0
+    summary = simulate_dataset(tmp_path, frames=2, lidar=COARSE, scene=spec, progress=False)
+    rows = read_manifest(tmp_path).to_pylist()
+    assert summary.num_labels > 0 and all(m["class_name"] != "Clutter" for m in rows)

@@ -32,6 +32,8 @@ HIT_GROUND = -1
 """``RangeImage.hit`` value of a ray whose first hit is the ground."""
 HIT_NOTHING = -2
 """``RangeImage.hit`` value of a ray that hits nothing within the maximum range."""
+HIT_CLUTTER = -3
+"""``RangeImage.hit`` value of a ray whose first hit is unlabelled clutter (``Scene.clutter``)."""
 
 
 @dataclass(frozen=True)
@@ -130,8 +132,8 @@ class RangeImage:
     ----------
     range : (H, W) float32 range along each ray (m); ``NO_RETURN`` (−1) where nothing came back
     intensity : (H, W) float32 return intensity in [0, 1]; 0 where nothing came back
-    hit : (H, W) int32 first hit per ray before noise/dropout: object index, ``HIT_GROUND`` or
-        ``HIT_NOTHING``
+    hit : (H, W) int32 first hit per ray before noise/dropout: object index, ``HIT_GROUND``,
+        ``HIT_CLUTTER`` or ``HIT_NOTHING``
     inclinations : (H,) beam elevations (rad), top row first
     azimuths : (W,) sensor-frame azimuth of each column (rad), decreasing
     extrinsic : (4, 4) sensor pose in the scene frame (``T_scene_sensor``)
@@ -173,7 +175,7 @@ class RangeImage:
         Returns
         -------
         points : (N, 4) float32 x, y, z, intensity
-        hit : (N,) int32 what each point hit (object index or ``HIT_GROUND``)
+        hit : (N,) int32 what each point hit (object index, ``HIT_GROUND`` or ``HIT_CLUTTER``)
         """
         if frame not in ("scene", "sensor"):
             raise ValueError(f"frame must be 'scene' or 'sensor', got {frame!r}")
@@ -367,18 +369,23 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
     intensity = _intensity(f32(scene.ground_reflectivity), np.abs(dz))
 
     k = len(scene.objects)
+    solids = scene.objects + scene.clutter  # clutter takes indices k, k+1, … here, HIT_CLUTTER outside
+    n_solid = len(solids)
     T_sensor_scene = invert_transform(T)
-    all_corners = corners_of(scene.boxes) @ T_sensor_scene[:3, :3].T + T_sensor_scene[:3, 3]  # (K, 8, 3)
+    solid_boxes = np.stack([o.box for o in solids]) if solids else np.zeros((0, 7))
+    all_corners = corners_of(solid_boxes) @ T_sensor_scene[:3, :3].T + T_sensor_scene[:3, 3]  # (K', 8, 3)
     windows: list[tuple[slice, NDArray[np.int64]]] = []
     pair_rays: list[NDArray[np.int64]] = []
     pair_obj: list[int] = []
-    for idx in range(k):
+    for idx in range(n_solid):
         window = _object_window(all_corners[idx], inc, yaw, width, lidar.max_range)
         if window is None:
-            windows.append((slice(0, 0), np.zeros(0, dtype=np.int64)))
+            if idx < k:
+                windows.append((slice(0, 0), np.zeros(0, dtype=np.int64)))
             continue
         rows, cols = window
-        windows.append(window)
+        if idx < k:
+            windows.append(window)
         pair_rays.append((np.arange(rows.start, rows.stop)[:, None] * width + cols[None, :]).ravel())
         pair_obj.append(idx)
     ray_counts = np.zeros(k, dtype=np.int64)
@@ -387,23 +394,23 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
         # All (object, ray) candidate pairs in one batch: a few ten thousand, whatever the object count.
         ray = np.concatenate(pair_rays)
         obj = np.repeat(np.asarray(pair_obj, dtype=np.int64), [len(r) for r in pair_rays])
-        n_parts = max(len(o.parts) for o in scene.objects)
-        parts = np.zeros((k, n_parts, 7))
+        n_parts = max(len(o.parts) for o in solids)
+        parts = np.zeros((n_solid, n_parts, 7))
         parts[:, :, :3] = 1e9  # padding boxes no ray reaches
         parts[:, :, 3:6] = 1.0
-        refl = np.zeros((k, n_parts))
-        for i, o in enumerate(scene.objects):
+        refl = np.zeros((n_solid, n_parts))
+        for i, o in enumerate(solids):
             parts[i, : len(o.parts)] = o.parts
             refl[i, : len(o.parts)] = o.reflectivity
         # float32 for the slab test: half the memory traffic; 1e-7 relative is micrometres at 120 m.
         t_obj, int_obj = _intersect_objects(origin.astype(f32), dirs.reshape(-1, 3)[ray], parts.astype(f32),
                                             refl.astype(f32), obj)
         t_obj[t_obj > lidar.max_range] = np.inf
-        ray_counts = np.bincount(obj[np.isfinite(t_obj)], minlength=k).astype(np.int64)
+        ray_counts = np.bincount(obj[np.isfinite(t_obj)], minlength=n_solid)[:k].astype(np.int64)
         # Depth buffer: the nearest of ground and objects per ray (ties: the later object).
         np.minimum.at(t_flat, ray, t_obj)
         win = np.isfinite(t_obj) & (t_obj == t_flat[ray])
-        hit_flat[ray[win]] = obj[win]
+        hit_flat[ray[win]] = np.where(obj[win] < k, obj[win], HIT_CLUTTER)
         int_flat[ray[win]] = int_obj[win]
 
     visible_counts = np.bincount(hit[hit >= 0], minlength=k).astype(np.int64)

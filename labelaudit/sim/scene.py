@@ -105,14 +105,17 @@ class Scene:
 
     Attributes
     ----------
-    objects : the objects, in placement order (nearest first is *not* guaranteed)
+    objects : the labelled objects, in placement order (nearest first is *not* guaranteed)
     ground_z : height of the ground plane (m)
     ground_reflectivity : reflectivity of the road surface
+    clutter : unlabelled static surroundings (buildings, poles, bushes; class "Clutter"): they
+        return points and occlude objects but never get a label
     """
 
     objects: list[SimObject] = field(default_factory=list)
     ground_z: float = -C.SIM_SENSOR_HEIGHT
     ground_reflectivity: float = 0.2
+    clutter: list[SimObject] = field(default_factory=list)
 
     @property
     def boxes(self) -> FloatArray:
@@ -138,6 +141,8 @@ class SceneSpec:
     front_fraction : share of objects placed in the camera's horizontal field of view
     front_half_angle_deg : half-width of that field of view (KITTI's camera: about 40°)
     road_aligned_fraction : share of objects heading along the road (yaw near 0 or π)
+    num_clutter : (min, max) unlabelled static surroundings per frame — building walls along the
+        road, poles, bushes (default none: a flat, empty world)
     """
 
     num_vehicles: tuple[int, int] = C.SIM_NUM_VEHICLES
@@ -146,9 +151,10 @@ class SceneSpec:
     front_fraction: float = C.SIM_FRONT_FRACTION
     front_half_angle_deg: float = 38.0
     road_aligned_fraction: float = C.SIM_ROAD_ALIGNED_FRACTION
+    num_clutter: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
-        for name in ("num_vehicles", "num_vru", "distance"):
+        for name in ("num_vehicles", "num_vru", "distance", "num_clutter"):
             lo, hi = getattr(self, name)
             if not (0 <= lo <= hi):
                 raise ValueError(f"SceneSpec.{name} must be (min, max) with 0 <= min <= max, got ({lo}, {hi})")
@@ -294,4 +300,37 @@ def sample_scene(rng: np.random.Generator, spec: SceneSpec = SceneSpec(), *, gro
             footprints.append(corners)
             scene.objects.append(make_object(class_name, cxy, yaw, lwh, ground_z, rng))
             break
+    if spec.num_clutter[1] > 0:  # no draws otherwise: callers that keep using rng see the same stream
+        _add_clutter(rng, scene, spec, footprints)
     return scene
+
+
+_CLUTTER_REFLECTIVITY = (0.1, 0.6)
+
+
+def _add_clutter(rng: np.random.Generator, scene: Scene, spec: SceneSpec, footprints: list[FloatArray]) -> None:
+    """Unlabelled surroundings: building walls beside the road, poles, bushes; no overlaps."""
+    n = int(rng.integers(spec.num_clutter[0], spec.num_clutter[1] + 1))
+    for _ in range(n):
+        kind = rng.choice(["building", "pole", "bush"], p=[0.4, 0.3, 0.3])
+        for _ in range(_PLACEMENT_TRIES):
+            if kind == "building":  # beside the road, along it
+                lwh = np.array([rng.uniform(8, 25), rng.uniform(4, 12), rng.uniform(4, 12)])
+                side = rng.choice([-1.0, 1.0])
+                cxy = (rng.uniform(-60, 60), side * (rng.uniform(12, 30) + lwh[1] / 2))
+                yaw = rng.normal(0.0, 0.05)
+            else:
+                lwh = (np.array([0.3, 0.3, rng.uniform(4, 8)]) if kind == "pole"
+                       else np.array([rng.uniform(1, 4), rng.uniform(1, 3), rng.uniform(0.5, 2.5)]))
+                azimuth, dist = rng.uniform(-np.pi, np.pi), rng.uniform(*spec.distance)
+                cxy = (dist * np.cos(azimuth), dist * np.sin(azimuth))
+                yaw = rng.uniform(-np.pi, np.pi)
+            corners = corners_of(np.array([cxy[0], cxy[1], 0.0, lwh[0], lwh[1], 1.0, yaw]))[0, :4, :2]
+            if np.hypot(*cxy) - 0.5 * np.hypot(lwh[0], lwh[1]) < _MIN_SENSOR_CLEARANCE:
+                continue
+            if _footprints_overlap(corners, np.asarray(footprints).reshape(-1, 4, 2), _MIN_GAP):
+                continue
+            footprints.append(corners)
+            box = np.array([cxy[0], cxy[1], scene.ground_z + lwh[2] / 2, *lwh, normalize_angle(yaw)])
+            scene.clutter.append(SimObject("Clutter", box, box[None].copy(), np.array([rng.uniform(*_CLUTTER_REFLECTIVITY)])))
+            break
