@@ -203,27 +203,29 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
     errors: list[dict[str, Any]] = []
     frames = 0
     for ref in task.refs:
-        frame_id: str | None = None
         try:
             reader = _reader(ref, task.reader_options)
             for n, frame in enumerate(reader.load_unit(ref)):
                 if task.max_frames_per_unit is not None and n >= task.max_frames_per_unit:
                     break
-                frame_id = frame.frame_id
-                frame_rows, notes = process_frame(frame, task.cfg)
+                try:  # a frame that fails (e.g. in the crop) never takes the rest of its unit along
+                    frame_rows, notes = process_frame(frame, task.cfg)
+                except Exception as exc:
+                    if task.debug:
+                        raise
+                    errors.append(_frame_note(frame.frame_id, ref.key, f"{type(exc).__name__} in frame {frame.frame_id}: {exc}"))
+                    continue
                 for note in notes:
                     note["unit"] = ref.key
                 rows.extend(frame_rows)
                 errors.extend(notes)
                 frames += 1
-                frame_id = None
-        except DatasetError as exc:
-            errors.append(_frame_note(frame_id, ref.key, str(exc), file=exc.path, line=exc.line))
+        except DatasetError as exc:  # the reader gave up on the unit (or on the rest of it)
+            errors.append(_frame_note(None, ref.key, str(exc), file=exc.path, line=exc.line))
         except Exception as exc:
             if task.debug:
                 raise
-            where = f" (frame {frame_id})" if frame_id else ""
-            errors.append(_frame_note(frame_id, ref.key, f"{type(exc).__name__}{where}: {exc}"))
+            errors.append(_frame_note(None, ref.key, f"{type(exc).__name__} while reading {ref.key}: {exc}"))
     table = R.rows_to_table(rows)
     return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start)
 

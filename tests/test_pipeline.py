@@ -334,3 +334,29 @@ def test_chunk_size_depends_on_the_unit_count_only():
     assert chunk_size_for("kitti", 300) == 10
     assert chunk_size_for("kitti", 7481) == 16  # capped: shards stay a few hundred
     assert chunk_size_for("waymo-v2", 800) == 1  # a segment is already ~200 frames
+
+
+def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tmp_path):
+    import labelaudit.pipeline as P
+    from labelaudit.pipeline import ChunkTask, process_chunk
+
+    frames = [replace(_frame(), frame_id=f"seg:{t}") for t in range(3)]
+
+    class Reader:
+        def load_unit(self, ref):
+            yield from frames
+
+    monkeypatch.setitem(P._READERS, ("fake", "/r", ()), Reader())
+    real = P.process_frame
+
+    def flaky(frame, cfg):
+        if frame.frame_id == "seg:1":
+            raise RuntimeError("crop exploded")
+        return real(frame, cfg)
+
+    monkeypatch.setattr(P, "process_frame", flaky)
+    result = process_chunk(ChunkTask("x", (FrameRef("fake", "/r", "seg"),), RunConfig()))
+    assert result.frames == 2
+    assert set(result.table.column("frame_id").to_pylist()) == {"seg:0", "seg:2"}
+    (err,) = result.failed
+    assert err["frame_id"] == "seg:1" and "crop exploded" in err["message"] and err["unit"] == "seg"
