@@ -12,6 +12,7 @@ vectorised over points; a box costs a few hundred microseconds.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
@@ -31,6 +32,7 @@ __all__ = [
     "linear_gaussian_posterior",
     "surface_candidates",
     "register",
+    "registration_information",
     "prior_cov_extended",
     "prior_covariance",
     "prior_precision",
@@ -242,6 +244,36 @@ def _register(y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: f
     return Registration(vstar=cand / y[3 : 3 + d], sqdist=sqd, resp=resp, points=pts)
 
 
+def _design_basis(model: ModelKind) -> tuple[FloatArray, FloatArray]:
+    """J(v*) = B_0 + Σ_i v*_i B_i: the basis B (d+1, d, p) and the products B_aᵀB_b (d+1, d+1, p, p)."""
+    d = g.point_dim(model)
+    B0 = g.design_matrix(np.zeros(d), model)
+    B = np.stack([B0] + [g.design_matrix(np.eye(d)[i], model) - B0 for i in range(d)])
+    return B, np.einsum("adp,bdq->abpq", B, B)
+
+
+_BASIS = {m: _design_basis(m) for m in ("bev", "3d")}
+
+
+def registration_information(reg: Registration, model: ModelKind) -> tuple[FloatArray, FloatArray]:
+    """Σ_km r_km J_kmᵀJ_km (p, p) and Σ_km r_km J_kmᵀ x_k (p,) of a registration (σ not applied).
+
+    J is linear in v*, so both follow from the weighted moments of ṽ = (1, v*): no per-point
+    design matrices are formed. Equals the sums over :func:`labelaudit.geometry.design_matrix`.
+    """
+    B, BB = _BASIS[model]
+    n, m, d = reg.vstar.shape
+    vt = np.empty((n, m, d + 1))
+    vt[..., 0] = 1.0
+    vt[..., 1:] = reg.vstar
+    rv = vt * reg.resp[..., None]
+    rv2 = rv.reshape(n * m, d + 1)
+    moments = rv2.T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
+    cross = np.einsum("kma,kd->ad", rv, reg.points)  # (d+1, d): Σ r ṽ_a x
+    return np.einsum("ab,abpq->pq", moments, BB), np.einsum("ad,adp->p", cross, B)
+
+
+# ----------------------------------------------------------------------------------------------
 # Prior
 # ----------------------------------------------------------------------------------------------
 
@@ -268,6 +300,14 @@ def prior_cov_extended(prior: ClassPrior, model: ModelKind) -> FloatArray:
     return S
 
 
+@functools.lru_cache(maxsize=64)
+def _prior_info_extended(prior: ClassPrior, model: ModelKind) -> FloatArray:
+    """Σ_ỹ⁻¹ (cached per class prior: it does not depend on the box)."""
+    info = np.linalg.inv(prior_cov_extended(prior, model))
+    info.setflags(write=False)
+    return info
+
+
 def prior_covariance(box: ArrayLike, prior: ClassPrior, weight: float, model: ModelKind) -> FloatArray:
     """Σ0 = G · Σ_ỹ / w · Gᵀ with G = ∂φ/∂ỹ at the label (full rank).
 
@@ -280,7 +320,7 @@ def prior_covariance(box: ArrayLike, prior: ClassPrior, weight: float, model: Mo
 
 
 def _prior_precision_from(E: FloatArray, prior: ClassPrior, weight: float, model: ModelKind) -> FloatArray:
-    P = E.T @ (np.linalg.inv(prior_cov_extended(prior, model)) * weight) @ E
+    P = E.T @ (_prior_info_extended(prior, model) * weight) @ E
     return 0.5 * (P + P.T)
 
 
@@ -532,10 +572,10 @@ def infer_label(
             sigma = max(sigma_hat, C.SIGMA_FLOOR)
             reg = _register(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
 
-    m = reg.vstar.shape[1]
-    J = g.design_matrix(reg.vstar.reshape(-1, d), model)
-    x = np.repeat(pts, m, axis=0)
-    fit_mean, cov, _ = linear_gaussian_posterior(J, x, sigma, phi, prior_precision=P0, weights=reg.resp.reshape(-1))
+    data_precision, data_eta = registration_information(reg, model)
+    precision = P0 + data_precision / sigma**2
+    cov = _spd_inverse(0.5 * (precision + precision.T))
+    fit_mean = cov @ (P0 @ phi + data_eta / sigma**2)
     tv, order = _corner_tv(y, cov, model, sensor_origin)
     p = phi.size
     K = np.vstack([E[: p - 2], 0.5 * (E[p - 2] + E[p - 1])])  # as geometry.box_param_jacobian

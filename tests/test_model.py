@@ -352,3 +352,25 @@ def test_audit_object_status_by_point_count():
     assert few["jiou_gt"] > empty["jiou_gt"]
     with pytest.raises(ValueError, match="width"):
         audit_object([0, 0, 0, 4, 0, 1, 0], None, "Car", cfg)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_moment_form_equals_the_generic_posterior(model):
+    # infer_label builds Σ r JᵀJ from moments of v*; it must equal the generic posterior on J(v*).
+    pts = face_points(CAR, ["-x", "-y", "+z"], 40, 0.05)
+    params = ModelParams(model=model)
+    post = M.infer_label(CAR, pts, "Car", params)
+    d = g.point_dim(model)
+    reg = M.register(CAR, pts, model, num_nearest=params.num_nearest, sigma=params.sigma)
+    m = reg.vstar.shape[1]
+    J = g.design_matrix(reg.vstar.reshape(-1, d), model)
+    mean, cov, _ = M.linear_gaussian_posterior(
+        J,
+        np.repeat(reg.points, m, axis=0),
+        params.sigma,
+        post.phi,
+        prior_precision=M.prior_precision(CAR, params.prior_for("Car"), params.prior_weight, model),
+        weights=reg.resp.reshape(-1),
+    )
+    assert np.allclose(post.cov, cov, rtol=1e-9, atol=1e-14)
+    assert np.allclose(post.fit_mean, mean, rtol=1e-9, atol=1e-9)
