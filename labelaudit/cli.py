@@ -168,8 +168,8 @@ def _print_run_summary(console: Console, summary, stats: dict) -> None:  # type:
         f"frames this run: {summary.frames}{resumed}; failed frames: {summary.failed_frames}; warnings: {summary.warnings}; "
         f"wall time {summary.wall_seconds:.1f} s"
     )
-    if summary.failed_frames:
-        console.print(f"failed frames are listed in {summary.output / 'errors.parquet'}")
+    if summary.failed_frames or summary.warnings:
+        console.print(f"failed frames and warnings are listed in {escape(str(summary.output / 'errors.parquet'))}")
 
 
 def run_infer_command(

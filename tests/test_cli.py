@@ -212,3 +212,16 @@ def test_rank_where_option(mixed):
     assert sorted(x["label_error"] for x in json.loads(r.stdout)) == [0.4, 0.8]
     r = invoke("rank", mixed, "--where", "oops")
     assert r.exit_code == 2 and "COLUMN OP VALUE" in r.stderr
+
+
+def test_internal_errors_exit_3_with_one_line_and_debug_shows_the_traceback(mixed, monkeypatch):
+    import labelaudit.rank
+
+    def boom(*a, **k):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(labelaudit.rank, "rank_results", boom)
+    r = invoke("rank", mixed)
+    assert r.exit_code == 3 and "a bug" in r.stderr and "--debug" in r.stderr and "Traceback" not in r.output
+    r = invoke("rank", mixed, "--debug")
+    assert r.exit_code != 0 and isinstance(r.exception, RuntimeError)
