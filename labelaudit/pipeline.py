@@ -453,6 +453,63 @@ def _is_whole_parquet(path: Path) -> bool:
         return False
 
 
+LOCK_NAME = ".labelaudit.lock"
+"""Lock file of a results folder while ``infer`` writes to it (holds the writer's pid)."""
+
+
+def check_output_folder(output: Path) -> None:
+    """Refuse a path that is a file, or a non-empty folder that is not a results folder."""
+    if output.exists() and not output.is_dir():
+        raise InferError(f"{output}: exists and is not a folder; choose another -o/--output")
+    if output.is_dir() and not (output / R.MANIFEST_NAME).exists() and any(p.name != LOCK_NAME for p in output.iterdir()):
+        raise InferError(
+            f"{output}: folder is not empty and has no {R.MANIFEST_NAME} (not a labelaudit results folder); "
+            "choose a new or empty -o/--output"
+        )
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+@contextmanager
+def output_lock(output: Path) -> Iterator[None]:
+    """Hold ``output/.labelaudit.lock`` for the duration of a run.
+
+    A second ``infer`` on the same folder stops with :class:`InferError` instead of interleaving
+    shards; a lock left by a killed run (its pid is gone) is taken over. Same-machine only.
+    """
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / LOCK_NAME
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                pid = int(path.read_text().strip() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid and pid != os.getpid() and _pid_alive(pid):
+                raise InferError(f"{output}: another labelaudit infer (pid {pid}) is writing to this folder; wait for it or choose another -o/--output") from None
+            path.unlink(missing_ok=True)  # stale: its writer is gone
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        break
+    else:
+        raise InferError(f"{output}: cannot take the lock {path}")
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
 def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -> None:
     """Create, reset (``--overwrite``) or check for resume a results folder.
 
@@ -462,11 +519,8 @@ def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -
         The folder is not a results folder, or holds results of other parameters / another input
         (unless ``overwrite``).
     """
-    if output.exists() and not output.is_dir():
-        raise InferError(f"{output}: exists and is not a folder; choose another -o/--output")
+    check_output_folder(output)
     manifest = R.read_manifest(output) if output.is_dir() else None
-    if output.is_dir() and manifest is None and any(output.iterdir()):
-        raise InferError(f"{output}: folder is not empty and has no {R.MANIFEST_NAME} (not a labelaudit results folder); choose a new or empty -o/--output")
     if manifest is not None and overwrite:
         for sub in (R.OBJECTS_DIR, R.ERRORS_DIR):
             if (output / sub).is_dir():
@@ -530,6 +584,23 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
 
     metadata = R.run_metadata(cfg.to_dict(), cfg.param_hash(), str(dataset.resolve()), fmt, split=request.split, limit=request.limit)
     output = Path(request.output)
+    check_output_folder(output)
+    with output_lock(output):
+        return _run_locked(request, cfg, fmt, refs, reader_options, metadata, output, progress, executor, start)
+
+
+def _run_locked(
+    request: InferRequest,
+    cfg: RunConfig,
+    fmt: str,
+    refs: Sequence[FrameRef],
+    reader_options: tuple[tuple[str, Any], ...],
+    metadata: dict[str, Any],
+    output: Path,
+    progress: Progress,
+    executor: Executor | None,
+    start: float,
+) -> RunSummary:
     prepare_output(output, metadata, request.overwrite)
 
     chunk_units = request.chunk_units or chunk_size_for(fmt, len(refs))

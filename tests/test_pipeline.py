@@ -360,3 +360,22 @@ def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tm
     assert set(result.table.column("frame_id").to_pylist()) == {"seg:0", "seg:2"}
     (err,) = result.failed
     assert err["frame_id"] == "seg:1" and "crop exploded" in err["message"] and err["unit"] == "seg"
+
+
+def test_a_second_writer_is_refused_and_a_stale_lock_taken_over(fake_core, sim_kitti, tmp_path):
+    import os
+    import subprocess
+
+    from labelaudit.pipeline import LOCK_NAME
+
+    out = tmp_path / "res"
+    out.mkdir()
+    lock = out / LOCK_NAME
+    lock.write_text(str(os.getppid()))  # a live process that is not us
+    with pytest.raises(InferError, match="another labelaudit infer"):
+        _run(sim_kitti, out)
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    lock.write_text(str(dead.pid))  # its writer is gone
+    summary = _run(sim_kitti, out)
+    assert summary.frames == 5 and not lock.exists()
