@@ -309,7 +309,10 @@ def rank(
         if bad:
             raise typer.BadParameter(f"unknown status {', '.join(bad)}; expected {', '.join(STATUSES)}", param_hint="--status")
         query = RankQuery(by, top, descending, _split_list(class_), statuses, min_points, max_distance, tuple(where or ()))
-        result = rank_results(open_results(results), query)
+        opened = open_results(results)
+        if not opened.complete:
+            _err().print(f"note: {escape(str(results))} is incomplete (a run is in progress or stopped); rerun infer to finish it", soft_wrap=True)
+        result = rank_results(opened, query)
         if out_format is OutputFormat.json:
             sys.stdout.write(to_json(result.table) + "\n")
         elif out_format is OutputFormat.csv:

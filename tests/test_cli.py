@@ -225,3 +225,9 @@ def test_internal_errors_exit_3_with_one_line_and_debug_shows_the_traceback(mixe
     assert r.exit_code == 3 and "a bug" in r.stderr and "--debug" in r.stderr and "Traceback" not in r.output
     r = invoke("rank", mixed, "--debug")
     assert r.exit_code != 0 and isinstance(r.exception, RuntimeError)
+
+
+def test_rank_notes_incomplete_results(tmp_path):
+    partial = make_results(tmp_path / "partial", [[make_row("000001", 0)]], complete=False)
+    r = invoke("rank", partial, "--format", "json")
+    assert r.exit_code == 0 and len(json.loads(r.stdout)) == 1 and "incomplete" in r.stderr
