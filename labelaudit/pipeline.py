@@ -25,9 +25,8 @@ from concurrent.futures.process import BrokenProcessPool
 import os
 import shutil
 import time
-import traceback
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Protocol, Sequence, TypeVar
 
