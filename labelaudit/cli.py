@@ -486,11 +486,14 @@ def demo(
             console.print("[bold]4/4 check[/bold] the built-in gate (configs/gate.toml)")
             report = evaluate_gate(opened, load_gate(None))
             print_gate_table(_out(), report)
-            manifest = data / "manifest.parquet"
-            console.print(
-                f"the simulator's ground truth (which labels were perturbed) is in {manifest}"
-                + ("" if tmp is None else "; pass a FOLDER to keep it")
-            )
+            if tmp is None:
+                console.print(
+                    f"kept: results in {escape(str(results))} (try `labelaudit rank {escape(str(results))} --by sigma_hat`), "
+                    f"the simulator's ground truth in {escape(str(data / 'manifest.parquet'))}",
+                    soft_wrap=True,
+                )
+            else:
+                console.print("run `labelaudit demo DIR` to keep the data, the results and the simulator's ground truth", soft_wrap=True)
         finally:
             if tmp is not None:
                 tmp.cleanup()
