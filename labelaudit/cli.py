@@ -14,7 +14,7 @@ import time
 from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import TYPE_CHECKING, Any, Iterator, Optional
 
 import pyarrow as pa
 import typer
@@ -29,6 +29,12 @@ from labelaudit import constants as C
 from labelaudit.config import ConfigError
 from labelaudit.datasets import DatasetError
 from labelaudit.results import ResultsError
+
+if TYPE_CHECKING:  # heavy modules are imported inside the commands, so `--help` stays fast
+    from labelaudit.gate import GateReport
+    from labelaudit.pipeline import ChunkResult, RunSummary
+    from labelaudit.rank import RankResult
+    from labelaudit.sim.noise import NoiseSpec
 
 app = typer.Typer(
     name="labelaudit",
@@ -141,7 +147,7 @@ class RichProgress:
         self.task = self.bar.add_task("infer", total=total_units, completed=done_units, rate="")
         self.bar.start()
 
-    def advance(self, result) -> None:  # type: ignore[no-untyped-def]
+    def advance(self, result: ChunkResult) -> None:
         self.frames += result.frames
         self.objects += result.objects
         dt = max(time.perf_counter() - self.t0, 1e-9)
@@ -151,7 +157,7 @@ class RichProgress:
         self.bar.stop()
 
 
-def _print_run_summary(console: Console, summary, stats: dict) -> None:  # type: ignore[no-untyped-def]
+def _print_run_summary(console: Console, summary: RunSummary, stats: dict[str, Any]) -> None:
     console.print(f"[bold]labelaudit infer[/bold] → {escape(str(summary.output))}")
     table = Table()
     table.add_column("class")
@@ -186,7 +192,7 @@ def run_infer_command(
     strict: bool = False,
     quiet: bool = False,
     debug: bool = False,
-):  # type: ignore[no-untyped-def]
+) -> RunSummary:
     """Library-level body of ``infer`` (also used by ``demo``); returns the run summary."""
     from labelaudit.pipeline import InferRequest, NoProgress, resolve_config, resolve_format, run_infer
     from labelaudit.rank import summarize
@@ -252,7 +258,7 @@ def _split_list(values: Optional[list[str]]) -> tuple[str, ...]:
     return tuple(out)
 
 
-def print_rank_table(console: Console, result, extra: dict[str, list[str]] | None = None) -> None:  # type: ignore[no-untyped-def]
+def print_rank_table(console: Console, result: RankResult, extra: dict[str, list[str]] | None = None) -> None:
     """Rich table of a :class:`~labelaudit.rank.RankResult`; ``extra`` adds display-only columns."""
     from labelaudit.rank import display_columns, format_cell
 
@@ -326,7 +332,7 @@ def rank(
 # --------------------------------------------------------------------------- check
 
 
-def print_gate_table(console: Console, report) -> None:  # type: ignore[no-untyped-def]
+def print_gate_table(console: Console, report: GateReport) -> None:
     from labelaudit.gate import _fmt
 
     colour = {"pass": "green", "fail": "red", "skip": "yellow", "error": "magenta"}
@@ -384,7 +390,7 @@ def check(
 # --------------------------------------------------------------------------- simulate & demo
 
 
-def _noise_spec(fraction: float, center_std: float, size_std: float, yaw_std: float, gross_fraction: float):  # type: ignore[no-untyped-def]
+def _noise_spec(fraction: float, center_std: float, size_std: float, yaw_std: float, gross_fraction: float) -> NoiseSpec:
     from labelaudit.sim.noise import NoiseSpec
 
     try:
@@ -426,7 +432,7 @@ def simulate(
         _err().print(f"wrote {frames} frames to {out} (next: labelaudit infer {out})")
 
 
-def _simulate(out: Path, frames: int, seed: int, spec, quiet: bool, workers: int = 1, overwrite: bool = False) -> None:  # type: ignore[no-untyped-def]
+def _simulate(out: Path, frames: int, seed: int, spec: NoiseSpec, quiet: bool, workers: int = 1, overwrite: bool = False) -> None:
     from labelaudit.simulate import simulate_dataset
 
     if workers < 1:

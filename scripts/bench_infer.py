@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 
-def _read_and_crop(refs_and_cfg):  # type: ignore[no-untyped-def]
+def _read_and_crop(refs_and_cfg: tuple) -> tuple[int, int]:
     """Worker of the floor: read + crop only, return (frames, boxes)."""
     refs, cfg = refs_and_cfg
     from labelaudit.crop import crop_frame
