@@ -379,3 +379,18 @@ def test_a_second_writer_is_refused_and_a_stale_lock_taken_over(fake_core, sim_k
     lock.write_text(str(dead.pid))  # its writer is gone
     summary = _run(sim_kitti, out)
     assert summary.frames == 5 and not lock.exists()
+
+
+@needs_core
+def test_every_column_the_core_returns_has_a_place_in_the_schema():
+    from labelaudit.audit import MODEL_COLUMNS, audit_object
+
+    assert set(MODEL_COLUMNS) <= set(R.COLUMN_NAMES), "add new model columns to labelaudit/results.py COLUMNS and docs"
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(-2, 2, 50), rng.uniform(-0.9, 0.9, 50), rng.uniform(-0.7, 0.7, 50)]
+    for model in ("bev", "3d"):
+        cfg = resolve_config(None, "kitti", model=model)
+        row = audit_object(np.array([0, 0, 0, 4.0, 1.8, 1.5, 0.2]), pts, "Car", cfg)
+        assert set(row) <= set(R.COLUMN_NAMES)
+        clean = R.normalize_row(row)
+        assert clean["cov_dim"] in (6, 8) and len(clean["cov"]) == clean["cov_dim"] ** 2
