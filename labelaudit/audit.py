@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike
 
 from labelaudit import geometry as g
 from labelaudit.config import RunConfig
-from labelaudit.model import infer_label
+from labelaudit.model import fit_label, hull_iou, infer_label
 from labelaudit.spatial import jiou_gt
 
 MODEL_COLUMNS: tuple[str, ...] = (
@@ -34,6 +34,16 @@ MODEL_COLUMNS: tuple[str, ...] = (
     "cov",
     "cov_dim",
     "model",
+    "fit_cx",
+    "fit_cy",
+    "fit_cz",
+    "fit_length",
+    "fit_width",
+    "fit_height",
+    "fit_yaw",
+    "hull_iou",
+    "mahalanobis",
+    "fit_offset_mahal",
 )
 """Keys of the dictionary returned by :func:`audit_object`."""
 
@@ -60,10 +70,14 @@ def audit_object(
     dict with the keys of :data:`MODEL_COLUMNS`:
         ``status`` "no_points" (0 points: prior-only posterior), "few_points" (fewer than
         ``cfg.model.min_points``) or "ok"; ``num_points``; ``sigma`` (noise std used, m);
-        ``jiou_gt``; ``label_error`` and ``fit_offset_m`` (None until the label-error model);
-        ``sigma_hat`` (per-object EM residual, NaN below 2 points); ``corner_tv`` (4 floats, m², C1
-        first); ``std_cx`` … ``std_yaw`` (NaN for cz/height in BEV); ``cov`` (row-major flattened
-        φ covariance), ``cov_dim`` (6 BEV, 8 3D); ``model``.
+        ``jiou_gt``; ``sigma_hat`` (per-object EM residual at the label, NaN below 2 points);
+        ``corner_tv`` (4 floats, m², C1 first); ``std_cx`` … ``std_yaw`` (NaN for cz/height in BEV);
+        ``cov`` (row-major flattened φ covariance), ``cov_dim`` (6 BEV, 8 3D); ``model``.
+        Label error (:func:`labelaudit.model.fit_label`, docs/label-error.md): ``label_error`` in
+        [0, 1] (higher = more likely wrong), ``fit_cx`` … ``fit_yaw`` the suggested box (3D fit;
+        written in the form nearest the label), ``fit_offset_m`` (BEV centre offset, m),
+        ``mahalanobis`` (label vs suggested box, in posterior std); baseline ``hull_iou`` (BEV IoU
+        of the box and the convex hull of its points; 0 below 3 points).
 
     Raises
     ------
@@ -79,14 +93,15 @@ def audit_object(
         status = "few_points"
     else:
         status = "ok"
+    fit = fit_label(y, points, class_name, cfg.model)
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
         "sigma": float(post.sigma),
         "jiou_gt": float(jiou_gt(post, cfg.spatial)),
-        "label_error": None,
+        "label_error": float(fit.label_error),
         "sigma_hat": float(post.sigma_hat),
-        "fit_offset_m": None,
+        "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
         "corner_tv": [float(v) for v in post.corner_tv],
     }
     for name in g.BOX_FIELDS:
@@ -94,4 +109,11 @@ def audit_object(
     row["cov"] = [float(v) for v in np.asarray(post.cov).ravel()]
     row["cov_dim"] = int(post.cov.shape[0])
     row["model"] = post.model
+    for name, value in zip(g.BOX_FIELDS, fit.box):
+        row[f"fit_{name}"] = float(value)
+    if fit.model == "bev":  # points without z: the fit does not touch cz and height
+        row["fit_cz"] = row["fit_height"] = float("nan")
+    row["hull_iou"] = hull_iou(y, points)
+    row["mahalanobis"] = float(fit.mahalanobis)
+    row["fit_offset_mahal"] = row["mahalanobis"]  # the name results.SCHEMA uses
     return row

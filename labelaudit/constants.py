@@ -15,6 +15,13 @@ EM_RESIDUAL_DOF = 1.0  # noise components left in a residual to the nearest surf
 OUTLIER_REGION_MARGIN = 0.5  # m; the uniform outlier density is 1 / size of the box grown by this on every side
 PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (parallelogram shear) / the yaw std
 
+# --- label-error model (DESIGN.md §6) ---
+FIT_MAX_ITERATIONS = 30  # cap on EM iterations of the box fit (suggested box)
+FIT_TOLERANCE = 1e-3  # m; the box fit stops when no entry of φ moves by more than this
+FIT_SWAP_RESIDUAL = 0.5  # try an l/w-swapped start when the fit's RMS point-to-surface residual exceeds this × σ
+FIT_MIN_SIZE_FRACTION = 1e-3  # fitted sizes are kept ≥ this fraction of the label's (no collapse)
+LABEL_TOLERANCE = {"center": 0.10, "length": 0.10, "width": 0.10, "height": 0.10, "yaw": 0.03}  # offsets of about this std (m, rad) are not errors
+
 # --- spatial distribution p_G and JIoU (DESIGN.md §5) ---
 DEFAULT_CELLS_PER_SIDE = 64  # grid cells across the longer box side; JIoU stable ±0.01 when doubled
 DEFAULT_NUM_SAMPLES = 128  # quasi-random (Sobol) samples of φ for form (b) of p_G (128 vs 1024: JIoU-GT within 0.003)

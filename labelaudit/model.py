@@ -12,6 +12,7 @@ vectorised over points; a box costs a few hundred microseconds.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
@@ -42,6 +43,9 @@ __all__ = [
     "corner_total_variance",
     "box_std",
     "infer_label",
+    "LabelFit",
+    "fit_label",
+    "hull_iou",
 ]
 
 
@@ -595,3 +599,267 @@ def infer_label(
         class_name=class_name,
         fit_mean=fit_mean,
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# Label error: the model's suggested box and how far the label is from it (DESIGN.md §6)
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LabelFit:
+    """The box the points support (EM fit regularised by the prior) and the label's distance to it.
+
+    Attributes
+    ----------
+    model : "3d" when the points had z (always, from the pipeline), else "bev"
+    box : (7,) suggested box, written in the equivalent form (yaw + kπ/2, l/w swapped for odd k)
+        closest to the label; a BEV fit keeps the label's cz and height.
+    phi : (p,) φ of ``box``
+    cov : (p, p) posterior covariance of φ at the fit
+    offsets : fit − label per box field (yaw wrapped to [−π, π)); NaN for cz/height in BEV
+    offset_m : centre offset (BEV: in x, y; 3D: x, y, z), metres
+    mahalanobis : √(Δφᵀ Σ_fit⁻¹ Δφ), Δφ = φ_label − φ_fit
+    tolerance_distance : √(Δφᵀ (Σ_fit + Σ_tol)⁻¹ Δφ), Σ_tol from :data:`~labelaudit.constants.LABEL_TOLERANCE`
+    label_error : chi2.cdf(tolerance_distance², k), k = 7 box parameters (5 for a BEV fit)
+    sigma_hat : EM noise estimate at the fit (NaN below 2 points)
+    iterations : EM iterations of the chosen start
+    converged : whether the chosen start converged within the iteration cap
+    swapped_start : the chosen fit started from the label with length and width swapped
+    """
+
+    model: ModelKind
+    box: FloatArray
+    phi: FloatArray
+    cov: FloatArray
+    offsets: dict[str, float]
+    offset_m: float
+    mahalanobis: float
+    tolerance_distance: float
+    label_error: float
+    sigma_hat: float
+    iterations: int
+    converged: bool
+    swapped_start: bool
+
+
+def _equivalent_boxes(y: FloatArray) -> list[FloatArray]:
+    """The four (l, w, yaw) forms of the same rectangle: yaw + kπ/2, l and w swapped for odd k."""
+    out = []
+    for k in range(4):
+        b = y.copy()
+        if k % 2:
+            b[3], b[4] = y[4], y[3]
+        b[6] = float(g.normalize_angle(y[6] + k * np.pi / 2))
+        out.append(b)
+    return out
+
+
+def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind) -> FloatArray:
+    """Of the equivalent forms of rectangle ``y``, the one whose φ is nearest ``phi_ref`` in metric W."""
+    forms = _equivalent_boxes(y)
+    cost = [float((f := g.box_to_phi(b, model) - phi_ref) @ W @ f) for b in forms]
+    return forms[int(np.argmin(cost))]
+
+
+def _rect_from_phi(phi: FloatArray, model: ModelKind, label: FloatArray) -> FloatArray:
+    """Rectangle (7,) of a φ (mean axis direction); sizes kept ≥ a fraction of the label's."""
+    y = g.phi_to_box(phi, model, cz=label[2], height=label[5])
+    y[3:6] = np.maximum(y[3:6], C.FIT_MIN_SIZE_FRACTION * label[3:6])
+    return y
+
+
+def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, Registration]:
+    """Point-to-surface rows for a box fit: a_k = J(v*_k)ᵀ n_k (N, p) and b_k = n_kᵀ x_k (N,).
+
+    Each point is registered to its single nearest surface point v̄_k, and only the residual along
+    n_k (the face normal, or the direction to the nearest edge/corner when the point lies beyond
+    one) is used. Unlike the full J rows, the position *along* the face then carries no information,
+    so a face can slide while the box is fitted (no anchoring to the current box, no pull of the
+    second-nearest face at corners).
+    """
+    d = g.point_dim(model)
+    reg = _register(y, pts, d, 1, 1.0, 0.0)
+    v = reg.vstar[:, 0, :]  # (N, d) unit coordinates of the nearest surface point
+    c, s = np.cos(y[6]), np.sin(y[6])
+    rel = pts[:, :2] - y[:2]
+    local = np.empty_like(pts)
+    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
+    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
+    if d == 3:
+        local[:, 2] = pts[:, 2] - y[2]
+    resid = local - v * y[3 : 3 + d]
+    norm = np.linalg.norm(resid, axis=1)
+    # On the surface (zero residual): the normal of the face the point lies on.
+    axis = np.argmax(np.abs(v) * (1.0 / y[3 : 3 + d]) * y[3 : 3 + d], axis=1)
+    face_n = np.zeros_like(v)
+    face_n[np.arange(len(v)), axis] = np.sign(v[np.arange(len(v)), axis])
+    use_resid = norm > 1e-9 * float(np.max(y[3 : 3 + d]))
+    n_local = np.where(use_resid[:, None], resid / np.where(use_resid, norm, 1.0)[:, None], face_n)
+    n = n_local.copy()  # to the world frame: rotate the in-plane part by yaw
+    n[:, 0] = c * n_local[:, 0] - s * n_local[:, 1]
+    n[:, 1] = s * n_local[:, 0] + c * n_local[:, 1]
+    B, _ = _BASIS[model]
+    vt = np.c_[np.ones(len(v)), v]
+    a = np.einsum("ka,adp,kd->kp", vt, B, n)
+    b = np.einsum("kd,kd->k", n, pts)
+    return a, b, reg
+
+
+def _fit_em(
+    start: FloatArray,
+    pts: FloatArray,
+    phi_label: FloatArray,
+    P0: FloatArray,
+    label: FloatArray,
+    sigma: float,
+    params: ModelParams,
+) -> tuple[FloatArray, FloatArray, int, bool, float, FloatArray]:
+    """Box fit from ``start`` (a rectangle): register each point to its nearest surface point of the
+    current box, take the Gaussian mean of the point-to-surface model with the prior centred on
+    the label, repeat (Gauss–Newton / EM). Returns (φ, Σ, iterations, converged, log posterior,
+    fitted rectangle)."""
+    model = params.model
+    y_cur = start
+    phi = g.box_to_phi(start, model)
+    prior_eta = P0 @ phi_label
+    converged = False
+    it = 0
+    cov = _spd_inverse(P0)
+    for it in range(1, C.FIT_MAX_ITERATIONS + 1):
+        a, b, _ = _plane_rows(y_cur, pts, model)
+        precision = P0 + (a.T @ a) / sigma**2
+        cov = _spd_inverse(0.5 * (precision + precision.T))
+        new = cov @ (prior_eta + (a.T @ b) / sigma**2)
+        step = float(np.max(np.abs(new - phi)))
+        phi = new
+        y_cur = _rect_from_phi(phi, model, label)
+        if step < C.FIT_TOLERANCE:
+            converged = True
+            break
+    a, b, _ = _plane_rows(y_cur, pts, model)
+    precision = P0 + (a.T @ a) / sigma**2
+    cov = _spd_inverse(0.5 * (precision + precision.T))
+    phi_rect = g.box_to_phi(y_cur, model)
+    resid = a @ phi_rect - b
+    dphi = phi_rect - phi_label
+    log_post = -0.5 * float(resid @ resid) / sigma**2 - 0.5 * float(dphi @ P0 @ dphi)
+    rms = float(np.sqrt(np.mean(resid**2))) if len(resid) else 0.0
+    return phi, cov, it, converged, log_post, y_cur, rms
+
+
+def fit_label(
+    box: ArrayLike,
+    points: ArrayLike | None,
+    class_name: str,
+    params: ModelParams,
+) -> LabelFit:
+    """The model's suggested box for a label, and scores of how far the label is from it.
+
+    The posterior mean of φ is no longer pinned to the label: EM alternates registration to the
+    current box with the Gaussian mean ``Σ(Σ0⁻¹φ̄ + σ⁻² Σ r Jᵀx)`` — the prior, centred on the label,
+    keeps sparse boxes from running away. Registration is to the single nearest surface point and
+    only the residual across the surface counts (point-to-plane), so faces slide freely while
+    fitting. When the fit from the label leaves the points far from its surface, a second start
+    with length and width swapped is tried (a gross error nearest-face registration cannot climb
+    out of); the one with the higher log posterior wins. Symmetries are handled honestly: the suggested box is
+    written in the equivalent form (yaw + kπ/2, l/w swapped for odd k) nearest the label, so a label
+    whose box is right but whose heading is reversed (or described with l/w swapped and yaw turned
+    by 90°) is the same rectangle and is not called an error — points cannot tell heading.
+
+    ``label_error`` = chi2.cdf(d², k): d² is the squared Mahalanobis distance between label and fit
+    with the fit's covariance plus a tolerance covariance (LABEL_TOLERANCE: offsets of ~10 cm /
+    2° are annotation noise, not errors), k the number of box parameters. It is near 0 when the
+    points agree with the label *or cannot tell* (few points: wide posterior), and near 1 when the
+    points put the box clearly elsewhere. Rough reading: 0.5 ≈ two tolerances off in one parameter
+    (≈ 20 cm), 0.9 ≈ three, 0.99 ≈ four.
+    """
+    y = g.validate_box(box)
+    # The fit is 3D whenever the points have a z: in BEV, roof and hood points lie *inside* the
+    # rectangle and would pull its edges inwards; in 3D they register to the top face.
+    arr = None if points is None else np.asarray(points, dtype=float)
+    model: ModelKind = "3d" if arr is not None and arr.ndim == 2 and arr.shape[1] >= 3 else "bev"
+    if model != params.model:
+        params = dataclasses.replace(params, model=model)
+    d = g.point_dim(model)
+    pts = _clean_points(arr, d)
+    n = pts.shape[0]
+    prior = params.prior_for(class_name)
+    phi_label = g.box_to_phi(y, model)
+    G = g.dphi_dext(y, model)
+    P0 = _prior_precision_from(np.linalg.inv(G), prior, params.prior_weight, model)
+    tol = ClassPrior(**C.LABEL_TOLERANCE)
+    S_tol = G @ prior_cov_extended(tol, model) @ G.T
+    sigma = float(params.sigma)
+    if params.estimate_sigma and n >= max(params.min_points, 2):
+        s_hat = estimate_sigma(y, pts, model, num_nearest=params.num_nearest, sigma_init=sigma, outlier_prob=params.outlier_prob)
+        if np.isfinite(s_hat):
+            sigma = max(s_hat, C.SIGMA_FLOOR)
+
+    best = (_fit_em(y, pts, phi_label, P0, y, sigma, params), False)
+    # A second start with length and width swapped, when the first fit leaves the points far from
+    # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by
+    # 90° on its own. The start with the higher log posterior wins.
+    if n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9 and best[0][6] > C.FIT_SWAP_RESIDUAL * sigma:
+        swapped = y.copy()
+        swapped[3], swapped[4] = y[4], y[3]
+        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts, phi_label, P0, y, sigma, params)
+        if alt[4] > best[0][4] + 1e-9:
+            best = (alt, True)
+    (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best
+
+    W = np.linalg.inv(cov + S_tol)
+    y_fit = _closest_form(y_rect, phi_label, W, model)
+    phi_rect = g.box_to_phi(y_fit, model)
+    delta = phi_label - phi_rect
+    d2_tol = float(delta @ W @ delta)
+    d2 = float(delta @ np.linalg.solve(cov, delta))
+    k = 5 if d == 2 else 7
+    from scipy.stats import chi2
+
+    offsets = {name: float(y_fit[i] - y[i]) for i, name in enumerate(g.BOX_FIELDS)}
+    offsets["yaw"] = float(g.normalize_angle(y_fit[6] - y[6]))
+    if d == 2:
+        offsets["cz"] = offsets["height"] = float("nan")
+    sigma_hat = float("nan")
+    if n >= 2:
+        reg = _register(y_fit, pts, d, params.num_nearest, sigma, params.outlier_prob)
+        sigma_hat = _em([(reg.sqdist, _outlier_log_density(y_fit, d))], d, sigma, params.outlier_prob)
+    return LabelFit(
+        model=model,
+        box=y_fit,
+        phi=phi_rect,
+        cov=cov,
+        offsets=offsets,
+        offset_m=float(np.linalg.norm(y_fit[:d] - y[:d])),
+        mahalanobis=float(np.sqrt(max(d2, 0.0))),
+        tolerance_distance=float(np.sqrt(max(d2_tol, 0.0))),
+        label_error=float(chi2.cdf(max(d2_tol, 0.0), k)),
+        sigma_hat=sigma_hat,
+        iterations=iterations,
+        converged=converged,
+        swapped_start=is_swapped,
+    )
+
+
+def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
+    """BEV IoU between a box and the convex hull of its points (a baseline label-quality score).
+
+    0.0 when the hull has no area (fewer than 3 points, or all on a line).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+    from shapely.geometry import Polygon
+
+    y = g.validate_box(box)
+    pts = _clean_points(points, 2)
+    if len(pts) < 3:
+        return 0.0
+    try:
+        hull = ConvexHull(pts)
+    except QhullError:
+        return 0.0  # collinear or coincident points
+    hull_poly = Polygon(pts[hull.vertices])
+    box_poly = Polygon(g.box_corners(y, "bev"))
+    inter = hull_poly.intersection(box_poly).area
+    union = hull_poly.area + box_poly.area - inter
+    return float(inter / union) if union > 0 else 0.0

@@ -336,7 +336,9 @@ def test_audit_object_row(model):
     assert len(row["corner_tv"]) == 4 and row["corner_tv"][0] < row["corner_tv"][3]
     assert 0.5 < row["jiou_gt"] < 1.0
     assert row["sigma"] == 0.2 and 0 < row["sigma_hat"] < 0.1
-    assert row["label_error"] is None and row["fit_offset_m"] is None
+    assert 0.0 <= row["label_error"] < 0.1 and row["fit_offset_m"] < 0.05  # the label is exact
+    assert row["fit_length"] == pytest.approx(CAR[3], abs=0.05) and np.isfinite(row["fit_cz"])
+    assert 0.0 < row["hull_iou"] < 1.0 and row["mahalanobis"] >= 0.0
     assert np.isnan(row["std_cz"]) == (model == "bev")
     assert all(isinstance(row[k], float) for k in ("std_cx", "std_length", "std_yaw", "jiou_gt"))
 
@@ -374,3 +376,99 @@ def test_moment_form_equals_the_generic_posterior(model):
     )
     assert np.allclose(post.cov, cov, rtol=1e-9, atol=1e-14)
     assert np.allclose(post.fit_mean, mean, rtol=1e-9, atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# label error: suggested box, offsets, score, symmetries, hull baseline (issue 6)
+# ---------------------------------------------------------------------------------------------
+
+ALL_SIDES = ["-x", "+x", "-y", "+y", "+z", "-z"]
+
+
+def _shifted(box, **delta):
+    out = np.asarray(box, dtype=float).copy()
+    for name, value in delta.items():
+        out[g.BOX_FIELDS.index(name)] += value
+    return out
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_label_error_orders_exact_slight_bad(model):
+    pts = face_points(CAR, ["-x", "-y"], 150, 0.03)
+    params = ModelParams(model=model)
+    scores = [M.fit_label(b, pts, "Car", params).label_error for b in (CAR, _shifted(CAR, cx=0.15), _shifted(CAR, cx=0.5, cy=0.3))]
+    assert scores[0] < scores[1] < scores[2]
+    assert scores[0] < 0.05 and scores[2] > 0.99
+    for bad in (_shifted(CAR, yaw=0.15), _shifted(CAR, cy=-0.4)):
+        assert M.fit_label(bad, pts, "Car", params).label_error > 0.9
+
+
+def test_suggested_box_recovers_a_known_perturbation():
+    pts = face_points(CAR, ALL_SIDES, 200, 0.03, seed=1)
+    label = _shifted(CAR, cx=0.3, cy=-0.2, cz=0.1, length=0.2, width=-0.1, height=0.1, yaw=0.05)
+    fit = M.fit_label(label, pts, "Car", ModelParams())
+    assert fit.converged
+    assert np.allclose(fit.box[:6], CAR[:6], atol=0.03)
+    assert abs(g.normalize_angle(fit.box[6] - CAR[6])) < 0.01
+    assert fit.offset_m == pytest.approx(np.linalg.norm(label[:3] - fit.box[:3]))
+    assert fit.offsets["cx"] == pytest.approx(-0.3, abs=0.03)
+    assert fit.label_error > 0.99 and fit.mahalanobis > 10
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3])
+def test_sparse_correct_labels_are_not_false_alarms(n):
+    rng = np.random.default_rng(n)
+    for seed in range(10):
+        pts = face_points(CAR, ["-x", "-y"], 10, 0.05, seed=seed)[rng.choice(20, n, replace=False)]
+        fit = M.fit_label(CAR, pts, "Car", ModelParams())
+        assert fit.label_error < 0.1
+    # a sparse wrong label scores lower than the same error on a dense box: low confidence
+    wrong = _shifted(CAR, cx=0.5, cy=0.3)
+    sparse = M.fit_label(wrong, face_points(CAR, ["-x", "-y"], 10, 0.05)[:n], "Car", ModelParams())
+    dense = M.fit_label(wrong, face_points(CAR, ["-x", "-y"], 100, 0.05), "Car", ModelParams())
+    assert sparse.label_error < dense.label_error
+    if n == 0:
+        assert sparse.label_error < 1e-9 and sparse.offset_m < 1e-9 and np.isnan(sparse.sigma_hat)
+
+
+def test_symmetric_forms_of_the_same_rectangle_are_not_errors():
+    pts = face_points(CAR, ["-x", "-y", "+z"], 150, 0.03)
+    base = M.fit_label(CAR, pts, "Car", ModelParams())
+    flipped = _shifted(CAR, yaw=np.pi)  # heading reversed: same rectangle
+    turned = CAR.copy()
+    turned[3], turned[4], turned[6] = CAR[4], CAR[3], CAR[6] + np.pi / 2  # l/w swapped and turned 90°
+    for label in (flipped, turned):
+        fit = M.fit_label(label, pts, "Car", ModelParams())
+        assert fit.label_error == pytest.approx(base.label_error, abs=0.02)
+        assert abs(g.normalize_angle(fit.box[6] - label[6])) < 0.05  # reported in the label's form
+        assert fit.box[3] == pytest.approx(label[3], abs=0.1)
+
+
+def test_swapped_length_and_width_is_an_error():
+    pts = face_points(CAR, ["-x", "-y", "+z"], 150, 0.03)
+    swapped = CAR.copy()
+    swapped[3], swapped[4] = CAR[4], CAR[3]
+    fit = M.fit_label(swapped, pts, "Car", ModelParams())
+    assert fit.label_error > 0.99
+    assert fit.swapped_start
+    ninety = _shifted(CAR, yaw=np.pi / 2)
+    assert M.fit_label(ninety, pts, "Car", ModelParams()).label_error > 0.99
+
+
+def test_fit_without_z_is_bev():
+    pts = face_points(CAR, ["-x", "-y"], 100, 0.03)[:, :2]
+    fit = M.fit_label(_shifted(CAR, cx=0.3), pts, "Car", ModelParams())
+    assert fit.model == "bev" and np.isnan(fit.offsets["cz"])
+    # the seen −x face goes back to its points; the unseen +x face is held by the prior
+    assert fit.box[0] - fit.box[3] / 2 == pytest.approx(CAR[0] - CAR[3] / 2, abs=0.03)
+    assert fit.label_error > 0.5
+
+
+def test_hull_iou_baseline():
+    rng = np.random.default_rng(0)
+    inside = g.unit_to_world(rng.uniform(-0.5, 0.5, (500, 2)), CAR, "bev")
+    assert M.hull_iou(CAR, inside) > 0.95
+    assert M.hull_iou(_shifted(CAR, cx=1.0), inside) < M.hull_iou(_shifted(CAR, cx=0.2), inside) < M.hull_iou(CAR, inside)
+    assert M.hull_iou(CAR, inside[:2]) == 0.0
+    assert M.hull_iou(CAR, np.c_[np.linspace(13, 17, 5), np.full(5, 5.0)]) == 0.0  # collinear
+    assert M.hull_iou(CAR, None) == 0.0
