@@ -80,8 +80,16 @@ COLUMNS: tuple[tuple[str, pa.DataType, bool, str, str], ...] = (
     ("cov_dim", pa.int32(), True, "", "dimension of φ: 6 (BEV) or 8 (3D)"),
     ("model", pa.string(), False, "", "bev or 3d"),
     # Diagnostics of the core beyond the paper (DESIGN.md §6); null when the core does not report them.
-    ("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline)"),
-    ("fit_offset_mahal", pa.float64(), True, "", "offset between fitted and labeled box in Mahalanobis units"),
+    ("fit_cx", pa.float64(), True, "m", "centre x of the box the model fits to the points (its suggested box)"),
+    ("fit_cy", pa.float64(), True, "m", "centre y of the suggested box"),
+    ("fit_cz", pa.float64(), True, "m", "centre z of the suggested box (null when not fitted in 3D)"),
+    ("fit_length", pa.float64(), True, "m", "length of the suggested box"),
+    ("fit_width", pa.float64(), True, "m", "width of the suggested box"),
+    ("fit_height", pa.float64(), True, "m", "height of the suggested box (null when not fitted in 3D)"),
+    ("fit_yaw", pa.float64(), True, "rad", "yaw of the suggested box"),
+    ("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)"),
+    ("fit_offset_mahal", pa.float64(), True, "", "same value as mahalanobis (the name of an earlier draft of this schema)"),
+    ("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)"),
     # KITTI extras (null for other formats)
     ("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]"),
     ("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)"),
