@@ -79,7 +79,7 @@ class OutputFormat(str, Enum):
 def _out() -> Console:
     # Built per call: Typer's test runner swaps sys.stdout between invocations.
     # Not a terminal (pipe, CI log): wide enough that tables do not wrap.
-    return Console(file=sys.stdout, highlight=False, width=None if sys.stdout.isatty() else 120)
+    return Console(file=sys.stdout, highlight=False, width=None if sys.stdout.isatty() else 140)
 
 
 def _err() -> Console:

@@ -208,7 +208,7 @@ def summarize(results: Results) -> dict[str, Any]:
 
 def display_columns(table: pa.Table, by: str) -> list[str]:
     """Columns shown in the Rich table of ``rank`` (``by`` always included; empty optional ones dropped)."""
-    base = ["frame_id", "object_index", "class_name", "status", "num_points", "distance", "jiou_gt", "label_error", "sigma_hat", "fit_offset_m"]
+    base = ["frame_id", "object_index", "class_name", "status", "num_points", "distance", "jiou_gt", "label_error", "sigma_hat"]
     cols = [c for c in base if c in table.schema.names]
     cols = [c for c in cols if c in ("frame_id", "object_index", "class_name", "status") or c == by or table.column(c).null_count < table.num_rows]
     if by not in cols:
