@@ -19,6 +19,8 @@ PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (par
 FIT_MAX_ITERATIONS = 30  # cap on EM iterations of the box fit (suggested box)
 FIT_TOLERANCE = 1e-3  # m; the box fit stops when no entry of φ moves by more than this
 FIT_SWAP_RESIDUAL = 0.5  # try an l/w-swapped start when the fit's RMS point-to-surface residual exceeds this × σ
+FIT_INSIDE_SIGMA_RATIO = 3.0  # box fit: points inside the box count with σ × this (real surfaces lie inside their box)
+FIT_INSIDE_FREE_DEPTH = 0.05  # m; points less deep than this inside the box count fully (LiDAR noise, ~2σ)
 FIT_MIN_SIZE_FRACTION = 1e-3  # fitted sizes are kept ≥ this fraction of the label's (no collapse)
 LABEL_TOLERANCE = {"center": 0.10, "length": 0.10, "width": 0.10, "height": 0.10, "yaw": 0.03}  # offsets of about this std (m, rad) are not errors
 

@@ -670,7 +670,8 @@ def _rect_from_phi(phi: FloatArray, model: ModelKind, label: FloatArray) -> Floa
 
 
 def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, Registration]:
-    """Point-to-surface rows for a box fit: a_k = J(v*_k)ᵀ n_k (N, p) and b_k = n_kᵀ x_k (N,).
+    """Point-to-surface rows for a box fit: a_k = J(v*_k)ᵀ n_k (N, p) and b_k = n_kᵀ x_k (N,),
+    scaled by 1/FIT_INSIDE_SIGMA_RATIO for points inside the box.
 
     Each point is registered to its single nearest surface point v̄_k, and only the residual along
     n_k (the face normal, or the direction to the nearest edge/corner when the point lies beyond
@@ -703,7 +704,13 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     vt = np.c_[np.ones(len(v)), v]
     a = np.einsum("ka,adp,kd->kp", vt, B, n)
     b = np.einsum("kd,kd->k", n, pts)
-    return a, b, reg
+    # A real object's surface lies *inside* its bounding box (hood, windscreen, rounded corners,
+    # returns through windows): points inside the box are down-weighted, points outside are not,
+    # so the fit is a soft bounding box rather than a box through the mean surface.
+    # Points within FIT_INSIDE_FREE_DEPTH of the surface (LiDAR noise) count fully either way.
+    inside = np.all(np.abs(local) < 0.5 * y[3 : 3 + d], axis=1) & (norm > C.FIT_INSIDE_FREE_DEPTH)
+    w = np.where(inside, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, 1.0)  # √weight = σ / σ_inside
+    return a * w[:, None], b * w, reg
 
 
 def _fit_em(
@@ -737,14 +744,14 @@ def _fit_em(
         if step < C.FIT_TOLERANCE:
             converged = True
             break
-    a, b, _ = _plane_rows(y_cur, pts, model)
+    a, b, reg = _plane_rows(y_cur, pts, model)
     precision = P0 + (a.T @ a) / sigma**2
     cov = _spd_inverse(0.5 * (precision + precision.T))
     phi_rect = g.box_to_phi(y_cur, model)
     resid = a @ phi_rect - b
     dphi = phi_rect - phi_label
     log_post = -0.5 * float(resid @ resid) / sigma**2 - 0.5 * float(dphi @ P0 @ dphi)
-    rms = float(np.sqrt(np.mean(resid**2))) if len(resid) else 0.0
+    rms = float(np.sqrt(np.mean(reg.sqdist[:, 0]))) if len(resid) else 0.0  # unweighted distance to the surface
     return phi, cov, it, converged, log_post, y_cur, rms
 
 
@@ -819,6 +826,7 @@ def fit_label(
 
     offsets = {name: float(y_fit[i] - y[i]) for i, name in enumerate(g.BOX_FIELDS)}
     offsets["yaw"] = float(g.normalize_angle(y_fit[6] - y[6]))
+    y_fit[6] = y[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
     if d == 2:
         offsets["cz"] = offsets["height"] = float("nan")
     sigma_hat = float("nan")
