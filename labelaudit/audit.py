@@ -54,6 +54,8 @@ def audit_object(
     class_name: str,
     cfg: RunConfig,
     sensor_origin: ArrayLike = (0.0, 0.0, 0.0),
+    *,
+    fit_points: ArrayLike | None = None,
 ) -> dict[str, Any]:
     """Audit one labeled box against its LiDAR points.
 
@@ -64,6 +66,9 @@ def audit_object(
     class_name : selects the prior.
     cfg : run configuration (``cfg.model``, ``cfg.spatial``).
     sensor_origin : (3,) sensor position in the same frame (orders the corners, C1 nearest).
+    fit_points : optional (M, ≥3) points of a *wider* crop for the label-error fit (a box shifted
+        off its object loses, in its own crop, the points that would show it; ≈ 0.5 m margin
+        recommended, docs/label-error.md). Default: ``points``.
 
     Returns
     -------
@@ -93,7 +98,7 @@ def audit_object(
         status = "few_points"
     else:
         status = "ok"
-    fit = fit_label(y, points, class_name, cfg.model)
+    fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model)
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),

@@ -472,3 +472,15 @@ def test_hull_iou_baseline():
     assert M.hull_iou(CAR, inside[:2]) == 0.0
     assert M.hull_iou(CAR, np.c_[np.linspace(13, 17, 5), np.full(5, 5.0)]) == 0.0  # collinear
     assert M.hull_iou(CAR, None) == 0.0
+
+
+def test_audit_object_can_fit_on_a_wider_crop():
+    cfg = load_config(None, "kitti")
+    pts = face_points(CAR, ["-x", "-y", "+z"], 100, 0.03)
+    label = _shifted(CAR, cy=0.6)  # shifted away: its own tight crop misses the −y face points
+    tight = pts[np.all(np.abs(g.world_to_unit(pts, label, "3d") * label[3:6]) <= label[3:6] / 2 + 0.1, axis=1)]
+    own = audit_object(label, tight, "Car", cfg)
+    wide = audit_object(label, tight, "Car", cfg, fit_points=pts)
+    assert wide["label_error"] > own["label_error"]
+    assert wide["label_error"] > 0.99
+    assert wide["num_points"] == own["num_points"] == len(tight)
