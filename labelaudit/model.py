@@ -365,7 +365,8 @@ def _em(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier
         return float("nan")
     start = np.sqrt(sum(float(np.sum(sqd0[:, 0])) for _, sqd0, _ in regs) / (C.EM_RESIDUAL_DOF * n_pts))
     sigma = max(float(start) if outlier_prob == 0 else float(sigma0), C.SIGMA_FLOOR)
-    estimate = np.nan
+    # With one-hot responsibilities the first M-step returns the start: then one step suffices.
+    estimate = float(start) if outlier_prob == 0 else np.nan
     for _ in range(C.EM_MAX_ITERATIONS):
         num = den = 0.0
         for sqd, sqd0, log_density in regs:
