@@ -364,7 +364,10 @@ def open_results(path: str | Path) -> Results:
                 f"{root}: no result shards in {shard_dir}; is this a labelaudit results folder? "
                 "Run `labelaudit infer DATASET -o FOLDER` first"
             )
-        dataset = pads.dataset([str(f) for f in files], format="parquet")
+        # One schema for all shards: the current SCHEMA plus whatever columns the files add, so
+        # shards of an older build (fewer columns) read as nulls instead of hiding columns.
+        schema = pa.unify_schemas([SCHEMA] + [pq.read_schema(f) for f in files]).with_metadata(pq.read_schema(files[0]).metadata)
+        dataset = pads.dataset([str(f) for f in files], format="parquet", schema=schema)
         return Results(root, dataset, manifest)
     except (pa.ArrowInvalid, OSError) as exc:
         raise ResultsError(f"{root}: unreadable results ({exc}); rerun `labelaudit infer --overwrite`") from None

@@ -190,3 +190,13 @@ def test_rank_where_conditions(ranked_results):
     for bad, match in [("num_points>>3", "numeric"), ("jiou_gt 0.3", "expected COLUMN"), ("nope==1", "unknown column"), ("num_points>=many", "numeric"), ("cov==1", "cannot compare")]:
         with pytest.raises(R.ResultsError, match=match):
             rank_results(ranked_results, RankQuery(where=(bad,)))
+
+
+def test_shards_with_fewer_columns_read_as_nulls(tmp_path):
+    root = make_results(tmp_path / "r", [[make_row("000002", 0, jiou_gt=0.7, hull_iou=0.5)]])
+    old = R.rows_to_table([make_row("000001", 0, jiou_gt=0.4)]).drop_columns(["hull_iou", "label_line"])
+    pq.write_table(old, root / R.OBJECTS_DIR / "part-0000-old.parquet")  # sorts first
+    res = R.open_results(root)
+    t = res.read(["frame_id", "hull_iou"])
+    assert sorted(zip(t.column("frame_id").to_pylist(), t.column("hull_iou").to_pylist())) == [("000001", None), ("000002", 0.5)]
+    assert "label_line" in res.read().schema.names
