@@ -5,11 +5,13 @@ p_G (DESIGN.md §5, form (b)) is the density of "a point drawn uniformly from th
     p_G(u) = E_φ[ 1{u ∈ B(φ)} / size(B(φ)) ],    φ ~ N(φ̄, Σ),
 
 estimated with a fixed set of scrambled-Sobol normal samples φ_s. Each sample box (a parallelogram
-``c + A v*``, in 3D times a z-interval) is rasterised *exactly along x* and with sub-rows along y:
-for a horizontal line y = const, {x : |v*₁| ≤ ½, |v*₂| ≤ ½} is an interval (two slabs intersected in
-closed form), and the exact length of its overlap with every cell of the row is accumulated with a
-difference array — O(samples × rows) work, no per-cell loop. 3D multiplies each sample's BEV raster
-by its z-interval coverage and contracts over samples with one matrix product.
+``c + A v*``, in 3D times a z-interval) is rasterised *exactly along x* on the centre line of every
+row: for a horizontal line y = const, {x : |v*₁| ≤ ½, |v*₂| ≤ ½} is an interval (two slabs
+intersected in closed form), and the exact length of its overlap with every cell of the row is
+accumulated with a difference array — O(samples × rows) work, no per-cell loop. 3D multiplies each
+sample's BEV raster by its z-interval coverage and contracts over samples with one sparse matrix
+product; z-layers every sample covers completely are merged (the Jaccard takes cell counts).
+Method, choices and measured accuracy: docs/method.md.
 
 The grid lives in the frame of a reference box (the label): origin at its centre, x along its
 length, so that the label itself is rasterised exactly (its edges fall on cell boundaries). A
