@@ -299,8 +299,9 @@ class PoolExecutor:
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
         if not units:
             return
-        ctx = multiprocessing.get_context(self.start_method)
-        if self.start_method == "forkserver":
+        method = self.start_method if self.start_method in multiprocessing.get_all_start_methods() else "spawn"  # Windows
+        ctx = multiprocessing.get_context(method)
+        if method == "forkserver":
             ctx.set_forkserver_preload(list(C.WORKER_PRELOAD))  # missing modules are skipped
         with _single_threaded_children():
             self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(units)), mp_context=ctx)
