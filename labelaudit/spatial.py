@@ -564,7 +564,30 @@ def jiou(a: BoxDistribution, b: BoxDistribution, params: SpatialParams) -> float
     return jaccard(*_pair_masses(sa, sb, grid))
 
 
+def _reference_samples(ref: FloatArray, model: ModelKind) -> _Samples:
+    """The uniform distribution on the reference box itself, in its own frame (one aligned sample)."""
+    d = g.point_dim(model)
+    hl, hw = 0.5 * ref[3], 0.5 * ref[4]
+    A = np.array([[[ref[3], 0.0], [0.0, ref[4]]]])
+    corners = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+    size = ref[3] * ref[4] * (ref[5] if d == 3 else 1.0)
+    z = np.array([[-0.5 * ref[5], 0.5 * ref[5]]]) if d == 3 else None
+    return _Samples(np.zeros((1, 2)), A, z, np.array([1.0 / size]), corners, 0.0, np.zeros(d), None if z is None else z[0], None if z is None else np.zeros(2))
+
+
 def jiou_gt(post: "object", params: SpatialParams) -> float:
-    """JIoU-GT of a label posterior: J(uniform on the labeled box, p_G of its posterior); 1 = certain."""
-    label = BoxDistribution.from_posterior(post)
-    return jiou(BoxDistribution.deterministic(label.box, label.model), label, params)
+    """JIoU-GT of a label posterior: J(uniform on the labeled box, p_G of its posterior); 1 = certain.
+
+    Same as ``jiou(BoxDistribution.deterministic(box), BoxDistribution.from_posterior(post))``
+    (a test checks it), without re-validating what the posterior already guarantees.
+    """
+    ref = np.asarray(post.box, dtype=float)  # type: ignore[attr-defined]
+    model = post.model  # type: ignore[attr-defined]
+    label = BoxDistribution.__new__(BoxDistribution)  # validated box and SPD covariance from the model
+    object.__setattr__(label, "box", ref)
+    object.__setattr__(label, "model", model)
+    object.__setattr__(label, "cov", np.asarray(post.cov, dtype=float))  # type: ignore[attr-defined]
+    object.__setattr__(label, "cov_on", "phi")
+    sa, sb = _reference_samples(ref, model), _sample_boxes(label, ref, params)
+    grid = _make_grid(ref, model, [sa, sb], params, [ref], sb.blur)
+    return jaccard(*_pair_masses(sa, sb, grid))

@@ -295,3 +295,11 @@ def test_spatial_distribution_is_a_probability_on_the_grid(model):
     inside = np.all(np.abs(g.world_to_unit(centres.reshape(-1, 2), NEAR, "bev")) < 0.5, axis=1).reshape(centres.shape[:2])
     bev_mass = det_mass if model == "bev" else det_mass.sum(axis=2)
     assert np.all(bev_mass[~inside] == 0)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_jiou_gt_equals_the_generic_jiou(model):
+    for n in (0, 3, 100):
+        post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], n, 0.03), "Car", ModelParams(model=model))
+        generic = sp.jiou(sp.BoxDistribution.deterministic(NEAR, model), sp.BoxDistribution.from_posterior(post), SP)
+        assert sp.jiou_gt(post, SP) == pytest.approx(generic, abs=1e-12)
