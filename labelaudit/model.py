@@ -241,11 +241,39 @@ def _register(y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: f
     if d == 3:
         local[:, 2] = pts[:, 2] - y[2]
     m = min(int(num_nearest), 2 * d)
-    cand, sqd = surface_candidates(local, half)
-    cand, sqd = _nearest_distinct(local, half, cand, sqd, m)
+    vstar, sqd = _nearest_faces(local, half, m)
     log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN))))
     resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
-    return Registration(vstar=cand / y[3 : 3 + d], sqdist=sqd, resp=resp, points=pts)
+    return Registration(vstar=vstar, sqdist=sqd, resp=resp, points=pts)
+
+
+def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatArray, FloatArray]:
+    """The m nearest distinct face candidates of every point, as unit coordinates (N, m, d) and
+    squared distances (N, m), nearest first — :func:`surface_candidates` + :func:`_nearest_distinct`
+    without forming the (N, 2d, d) candidate array.
+
+    The nearest point on face (a, ±) is the clamped point with coordinate a set to ±half_a, so its
+    squared distance is Σ_{j≠a} excess_j² + (x_a ∓ half_a)², excess = x − clamp(x).
+    """
+    n, d = local.shape
+    clamped = np.clip(local, -half, half)
+    excess = (local - clamped) ** 2
+    base = np.sum(excess, axis=1)[:, None] - excess  # (N, d)
+    sq = np.empty((n, 2 * d))
+    sq[:, 0::2] = base + (local + half) ** 2
+    sq[:, 1::2] = base + (local - half) ** 2
+    # Faces a point lies outside of (or on) all clamp to the same edge/corner point: keep the first.
+    tol = 1e-9 * float(np.max(half))
+    outside = np.empty((n, 2 * d), dtype=bool)
+    outside[:, 0::2] = local <= -half + tol
+    outside[:, 1::2] = local >= half - tol
+    sq[outside & (np.cumsum(outside, axis=1) > 1)] = np.inf
+    order = np.argsort(sq, axis=1, kind="stable")[:, :m]
+    sqd = sq[np.arange(n)[:, None], order]
+    axis = order // 2
+    value = np.where(order % 2 == 1, 0.5, -0.5)
+    vstar = np.where(axis[:, :, None] == np.arange(d), value[:, :, None], (clamped / (2.0 * half))[:, None, :])
+    return vstar, sqd
 
 
 def _design_basis(model: ModelKind) -> tuple[FloatArray, FloatArray]:
