@@ -78,6 +78,7 @@ class CropParams:
 
     margin: float = C.DEFAULT_CROP_MARGIN
     ground_cut: float = C.DEFAULT_GROUND_CUT
+    fit_margin: float = C.DEFAULT_FIT_CROP_MARGIN  # crop of the label-error fit (≥ margin)
 
 
 @dataclass(frozen=True)
@@ -217,6 +218,7 @@ def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams
         (spatial.support_std > 0, f"[spatial] support_std must be > 0, got {spatial.support_std}"),
         (crop.margin >= 0, f"[crop] margin must be ≥ 0, got {crop.margin}"),
         (crop.ground_cut >= 0, f"[crop] ground_cut must be ≥ 0, got {crop.ground_cut}"),
+        (crop.fit_margin >= crop.margin, f"[crop] fit_margin must be ≥ margin ({crop.margin}), got {crop.fit_margin}"),
     ]
     for name, prior in model.priors.items():
         for f in fields(ClassPrior):

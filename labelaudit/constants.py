@@ -36,6 +36,7 @@ CELL_STD_SPAN = 32.0  # cells_per_side spans max(box side, this × smallest edge
 
 # --- crop (DESIGN.md §2) ---
 DEFAULT_CROP_MARGIN = 0.1  # BEV margin in metres added around each box when selecting points
+DEFAULT_FIT_CROP_MARGIN = 0.5  # wider BEV margin (m) of the points given to the label-error fit: a shifted box must still see its object (docs/label-error.md)
 DEFAULT_GROUND_CUT = 0.1  # points within this height above the box bottom are ground, dropped
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---

@@ -133,11 +133,14 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     if to_audit:
         boxes = np.ascontiguousarray(frame.boxes[to_audit], dtype=float)
         indices = crop_frame(frame.points, boxes, cfg.crop)
-        for i, idx in zip(to_audit, indices):
+        # The label-error fit gets a wider crop: a box shifted off its object must still see it.
+        wide = cfg.crop.fit_margin > cfg.crop.margin
+        fit_indices = crop_frame(frame.points, boxes, replace(cfg.crop, margin=cfg.crop.fit_margin)) if wide else indices
+        for i, idx, fit_idx in zip(to_audit, indices, fit_indices):
             row = rows[i]
             points = frame.points[idx]
             try:
-                result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin)
+                result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin, fit_points=frame.points[fit_idx])
                 R.normalize_row({**row, **result})  # values the schema cannot hold fail here, per object
             except Exception as exc:  # one bad object never sinks the frame (DESIGN.md §9)
                 row.update(status="error", message=f"{type(exc).__name__}: {exc}", num_points=len(idx))

@@ -37,8 +37,9 @@ HAVE_CORE = importlib.util.find_spec("labelaudit.audit") is not None
 needs_core = pytest.mark.skipif(not HAVE_CORE, reason="labelaudit.audit (core model, issue 2) not available yet")
 
 
-def _fake_audit(box, points, class_name, cfg, sensor_origin):
+def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None):
     """Stand-in for the core: more points → higher JIoU-GT; raises for a marker class."""
+    assert fit_points is not None and len(fit_points) >= len(points)  # the wider crop of the fit
     if class_name == "Boom":
         raise RuntimeError("synthetic failure")
     n = len(points)
@@ -394,3 +395,21 @@ def test_every_column_the_core_returns_has_a_place_in_the_schema():
         assert set(row) <= set(R.COLUMN_NAMES)
         clean = R.normalize_row(row)
         assert clean["cov_dim"] in (6, 8) and len(clean["cov"]) == clean["cov_dim"] ** 2
+
+
+def test_the_label_error_fit_gets_the_wider_crop(fake_core, monkeypatch):
+    seen = {}
+
+    def recording(box, points, class_name, cfg, sensor_origin, *, fit_points=None):
+        seen[class_name, round(float(box[0]))] = (len(points), len(fit_points))
+        return _fake_audit(box, points, class_name, cfg, sensor_origin, fit_points=fit_points)
+
+    monkeypatch.setattr(fake_core, "audit_object", recording)
+    frame = _frame()
+    outside = np.array([[10.0, 1.2, 0.0, 0.0]], dtype=np.float32)  # 0.3 m beside box 0 (width 1.8)
+    frame.points = np.vstack([frame.points, outside])
+    process_frame(frame, RunConfig(classes=("Car",)))
+    assert seen["Car", 10] == (200, 201)
+    narrow = RunConfig(classes=("Car",), crop=replace(RunConfig().crop, fit_margin=RunConfig().crop.margin))
+    process_frame(frame, narrow)
+    assert seen["Car", 10] == (200, 200)
