@@ -698,9 +698,10 @@ def _rect_from_phi(phi: FloatArray, model: ModelKind, label: FloatArray) -> Floa
     return y
 
 
-def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, Registration]:
+def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Point-to-surface rows for a box fit: a_k = J(v*_k)ᵀ n_k (N, p) and b_k = n_kᵀ x_k (N,),
-    scaled by 1/FIT_INSIDE_SIGMA_RATIO for points inside the box.
+    scaled by 1/FIT_INSIDE_SIGMA_RATIO for points deep inside the box; plus the squared distances
+    (N,) of the points to the surface.
 
     Each point is registered to its single nearest surface point v̄_k, and only the residual along
     n_k (the face normal, or the direction to the nearest edge/corner when the point lies beyond
@@ -709,8 +710,7 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     second-nearest face at corners).
     """
     d = g.point_dim(model)
-    reg = _register(y, pts, d, 1, 1.0, 0.0)
-    v = reg.vstar[:, 0, :]  # (N, d) unit coordinates of the nearest surface point
+    size = y[3 : 3 + d]
     c, s = np.cos(y[6]), np.sin(y[6])
     rel = pts[:, :2] - y[:2]
     local = np.empty_like(pts)
@@ -718,28 +718,33 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
     if d == 3:
         local[:, 2] = pts[:, 2] - y[2]
-    resid = local - v * y[3 : 3 + d]
-    norm = np.linalg.norm(resid, axis=1)
+    vstar, sqd = _nearest_faces(local, 0.5 * size, 1)
+    v = vstar[:, 0, :]  # (N, d) unit coordinates of the nearest surface point
+    resid = local - v * size
+    norm = np.sqrt(sqd[:, 0])
     # On the surface (zero residual): the normal of the face the point lies on.
-    axis = np.argmax(np.abs(v) * (1.0 / y[3 : 3 + d]) * y[3 : 3 + d], axis=1)
+    rows = np.arange(len(v))
+    axis = np.argmax(np.abs(v), axis=1)
     face_n = np.zeros_like(v)
-    face_n[np.arange(len(v)), axis] = np.sign(v[np.arange(len(v)), axis])
-    use_resid = norm > 1e-9 * float(np.max(y[3 : 3 + d]))
-    n_local = np.where(use_resid[:, None], resid / np.where(use_resid, norm, 1.0)[:, None], face_n)
-    n = n_local.copy()  # to the world frame: rotate the in-plane part by yaw
-    n[:, 0] = c * n_local[:, 0] - s * n_local[:, 1]
-    n[:, 1] = s * n_local[:, 0] + c * n_local[:, 1]
-    B, _ = _BASIS[model]
-    vt = np.c_[np.ones(len(v)), v]
-    a = np.einsum("ka,adp,kd->kp", vt, B, n)
-    b = np.einsum("kd,kd->k", n, pts)
+    face_n[rows, axis] = np.sign(v[rows, axis])
+    use_resid = norm > 1e-9 * float(np.max(size))
+    n = np.where(use_resid[:, None], resid / np.where(use_resid, norm, 1.0)[:, None], face_n)
+    n0 = c * n[:, 0] - s * n[:, 1]  # to the world frame: rotate the in-plane part by yaw
+    n1 = s * n[:, 0] + c * n[:, 1]
+    # a = J(v*)ᵀ n, written out from geometry.design_matrix
+    v0, v1 = v[:, 0], v[:, 1]
+    cols = [n0, n1] + ([n[:, 2]] if d == 3 else []) + [v0 * n0, v0 * n1, v1 * n1, -v1 * n0]
+    if d == 3:
+        cols.append(v[:, 2] * n[:, 2])
+    a = np.stack(cols, axis=1)
+    b = n0 * pts[:, 0] + n1 * pts[:, 1] + (n[:, 2] * pts[:, 2] if d == 3 else 0.0)
     # A real object's surface lies *inside* its bounding box (hood, windscreen, rounded corners,
     # returns through windows): points inside the box are down-weighted, points outside are not,
     # so the fit is a soft bounding box rather than a box through the mean surface.
     # Points within FIT_INSIDE_FREE_DEPTH of the surface (LiDAR noise) count fully either way.
-    inside = np.all(np.abs(local) < 0.5 * y[3 : 3 + d], axis=1) & (norm > C.FIT_INSIDE_FREE_DEPTH)
+    inside = np.all(np.abs(local) < 0.5 * size, axis=1) & (norm > C.FIT_INSIDE_FREE_DEPTH)
     w = np.where(inside, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, 1.0)  # √weight = σ / σ_inside
-    return a * w[:, None], b * w, reg
+    return a * w[:, None], b * w, sqd[:, 0]
 
 
 def _fit_em(
@@ -773,14 +778,14 @@ def _fit_em(
         if step < C.FIT_TOLERANCE:
             converged = True
             break
-    a, b, reg = _plane_rows(y_cur, pts, model)
+    a, b, sqd = _plane_rows(y_cur, pts, model)
     precision = P0 + (a.T @ a) / sigma**2
     cov = _spd_inverse(0.5 * (precision + precision.T))
     phi_rect = g.box_to_phi(y_cur, model)
     resid = a @ phi_rect - b
     dphi = phi_rect - phi_label
     log_post = -0.5 * float(resid @ resid) / sigma**2 - 0.5 * float(dphi @ P0 @ dphi)
-    rms = float(np.sqrt(np.mean(reg.sqdist[:, 0]))) if len(resid) else 0.0  # unweighted distance to the surface
+    rms = float(np.sqrt(np.mean(sqd))) if len(resid) else 0.0  # unweighted distance to the surface
     return phi, cov, it, converged, log_post, y_cur, rms
 
 

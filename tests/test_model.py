@@ -484,3 +484,22 @@ def test_audit_object_can_fit_on_a_wider_crop():
     assert wide["label_error"] > own["label_error"]
     assert wide["label_error"] > 0.99
     assert wide["num_points"] == own["num_points"] == len(tight)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_plane_rows_are_design_matrix_rows_along_the_normal(model):
+    # the fit's hand-written rows a = J(v*)ᵀ n must match geometry.design_matrix
+    d = g.point_dim(model)
+    pts = face_points(CAR, ["-x", "+y", "+z"], 20, 0.2, seed=3)[:, :d]
+    a, b, sqd = M._plane_rows(CAR, pts, model)
+    reg = M.register(CAR, pts, model, num_nearest=1)
+    J = g.design_matrix(reg.vstar[:, 0, :], model)  # (N, d, p)
+    phi = g.box_to_phi(CAR, model)
+    resid = pts - J @ phi
+    n = resid / np.linalg.norm(resid, axis=1, keepdims=True)
+    u = np.einsum("kdp,kd->kp", J, n)
+    w = np.sum(a * u, axis=1) / np.sum(u * u, axis=1)  # per-row weight (deep inside points count less)
+    assert np.all((w > 0) & (w <= 1))
+    assert np.allclose(a, w[:, None] * u, atol=1e-9)
+    assert np.allclose(b, w * np.sum(n * pts, axis=1))
+    assert np.allclose(sqd, reg.sqdist[:, 0])
