@@ -172,7 +172,7 @@ def surface_candidates(local: ArrayLike, half: ArrayLike) -> tuple[FloatArray, F
 
 
 def _nearest_distinct(local: FloatArray, half: FloatArray, cand: FloatArray, sqdist: FloatArray, m: int) -> tuple[FloatArray, FloatArray]:
-    """Keep the m nearest *distinct* face candidates per point.
+    """Keep the m nearest *distinct* face candidates per point (reference for :func:`_nearest_faces`).
 
     Two faces give the same candidate exactly when the point lies outside (or on) both of them:
     then both clamp to the same edge/corner point. Of the faces a point is outside of, only the

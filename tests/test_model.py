@@ -503,3 +503,19 @@ def test_plane_rows_are_design_matrix_rows_along_the_normal(model):
     assert np.allclose(a, w[:, None] * u, atol=1e-9)
     assert np.allclose(b, w * np.sum(n * pts, axis=1))
     assert np.allclose(sqd, reg.sqdist[:, 0])
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_fast_nearest_faces_match_the_reference(d):
+    rng = np.random.default_rng(5)
+    half = np.array([2.1, 0.85, 0.75])[:d]
+    local = rng.uniform(-1.5, 1.5, (400, d)) * half
+    local[:20] = np.sign(local[:20]) * half  # exactly on edges / corners
+    for m in range(1, 2 * d + 1):
+        cand, sqd = M.surface_candidates(local, half)
+        ref_c, ref_d = M._nearest_distinct(local, half, cand, sqd, m)
+        vstar, fast_d = M._nearest_faces(local, half, m)
+        assert np.array_equal(np.isinf(fast_d), np.isinf(ref_d))
+        fin = np.isfinite(ref_d)
+        assert np.allclose(fast_d[fin], ref_d[fin], atol=1e-12)
+        assert np.allclose((vstar * 2 * half)[fin], ref_c[fin], atol=1e-12)
