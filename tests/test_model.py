@@ -176,8 +176,11 @@ def test_zero_points_gives_the_prior(model):
     assert post.num_points == 0
     assert np.isnan(post.sigma_hat)
     assert np.allclose(post.cov, post.prior_cov, rtol=1e-9, atol=1e-12)
-    assert post.std_box["cx"] == pytest.approx(0.25)
-    assert post.std_box["yaw"] == pytest.approx(0.17)
+    prior = params.prior_for("Car")  # w = 1: the reported stds are the class prior's own
+    assert post.std_box["cx"] == pytest.approx(prior.center)
+    assert post.std_box["length"] == pytest.approx(prior.length)
+    assert post.std_box["width"] == pytest.approx(prior.width)
+    assert post.std_box["yaw"] == pytest.approx(prior.yaw)
 
 
 def _assert_spd(cov):
