@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
@@ -692,10 +693,25 @@ def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: Mode
 
 
 def _rect_from_phi(phi: FloatArray, model: ModelKind, label: FloatArray) -> FloatArray:
-    """Rectangle (7,) of a φ (mean axis direction); sizes kept ≥ a fraction of the label's."""
-    y = g.phi_to_box(phi, model, cz=label[2], height=label[5])
-    y[3:6] = np.maximum(y[3:6], C.FIT_MIN_SIZE_FRACTION * label[3:6])
-    return y
+    """Rectangle (7,) of a φ (mean axis direction); sizes kept ≥ a fraction of the label's.
+
+    Equals ``geometry.phi_to_box`` (then the size floor), in scalar arithmetic: it runs once per
+    fit iteration on 8 numbers, where NumPy's per-call overhead would dominate.
+    """
+    o = 1 if model == "3d" else 0
+    lc, ls, wc, ws = (float(v) for v in phi[2 + o : 6 + o])
+    a, b = math.atan2(ls, lc), math.atan2(ws, wc)
+    two_pi = 2.0 * math.pi
+    yaw = (a + 0.5 * ((b - a + math.pi) % two_pi - math.pi) + math.pi) % two_pi - math.pi
+    cz, height = (float(phi[2]), float(phi[7])) if o else (float(label[2]), float(label[5]))
+    floor = C.FIT_MIN_SIZE_FRACTION
+    return np.array([
+        float(phi[0]), float(phi[1]), cz,
+        max(math.hypot(lc, ls), floor * float(label[3])),
+        max(math.hypot(wc, ws), floor * float(label[4])),
+        max(height, floor * float(label[5])),
+        yaw,
+    ])
 
 
 def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -709,42 +725,76 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     so a face can slide while the box is fitted (no anchoring to the current box, no pull of the
     second-nearest face at corners).
     """
+    a, b, sqd = _plane_rows_t(y, np.ascontiguousarray(np.asarray(pts, dtype=float).T), model)
+    return a.T, b, sqd
+
+
+def _plane_rows_t(y: FloatArray, pts_t: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`_plane_rows` on transposed points (d, N); returns the rows transposed, a (p, N).
+
+    Coordinates are rows of (d, N) arrays: with N ≫ d every operation runs over one contiguous
+    vector instead of reducing short (N, d) rows, which costs most of the time for a few hundred
+    points (this runs once per fit iteration).
+    """
     d = g.point_dim(model)
     size = y[3 : 3 + d]
+    half = (0.5 * size)[:, None]
     c, s = np.cos(y[6]), np.sin(y[6])
-    rel = pts[:, :2] - y[:2]
-    local = np.empty_like(pts)
-    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
-    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
-    if d == 3:
-        local[:, 2] = pts[:, 2] - y[2]
-    vstar, sqd = _nearest_faces(local, 0.5 * size, 1)
-    v = vstar[:, 0, :]  # (N, d) unit coordinates of the nearest surface point
-    resid = local - v * size
-    norm = np.sqrt(sqd[:, 0])
-    # On the surface (zero residual): the normal of the face the point lies on.
-    rows = np.arange(len(v))
-    axis = np.argmax(np.abs(v), axis=1)
-    face_n = np.zeros_like(v)
-    face_n[rows, axis] = np.sign(v[rows, axis])
+    rot = np.eye(d)
+    rot[:2, :2] = [[c, -s], [s, c]]
+    local = rot.T @ (pts_t - y[:d, None])  # box frame, metres: Rᵀ (x − c)
+    # Nearest surface point (equal to _nearest_faces with m = 1, without the 2d candidates): a
+    # point outside the box projects to its clamped position; a point inside to its nearest face
+    # (ties: the lower face index, as there: axis first, the − face before the + face).
+    near = np.minimum(np.maximum(local, -half), half)
+    same = near == local
+    inside = same[0] & same[1] if d == 2 else same[0] & same[1] & same[2]
+    cols = np.flatnonzero(inside)
+    if len(cols):
+        li = local[:, cols]
+        axis = np.argmin((half - np.abs(li)) ** 2, axis=0)  # = (x ∓ half)² of each axis' nearer face
+        value = li[axis, np.arange(len(cols))]
+        near[axis, cols] = np.where(value > 0, half[axis, 0], -half[axis, 0])
+    resid = local - near
+    sq = resid * resid
+    sqd = sq[0] + sq[1] if d == 2 else sq[0] + sq[1] + sq[2]
+    norm = np.sqrt(sqd)
+    v = near / size[:, None]  # (d, N) unit coordinates of the nearest surface point
+    # n: the direction point − surface (face normal, or towards the nearest edge/corner beyond one);
+    # on the surface (zero residual): the normal of the face the point lies on.
     use_resid = norm > 1e-9 * float(np.max(size))
-    n = np.where(use_resid[:, None], resid / np.where(use_resid, norm, 1.0)[:, None], face_n)
-    n0 = c * n[:, 0] - s * n[:, 1]  # to the world frame: rotate the in-plane part by yaw
-    n1 = s * n[:, 0] + c * n[:, 1]
+    n = resid / np.where(use_resid, norm, 1.0)
+    if not np.all(use_resid):
+        cols = np.flatnonzero(~use_resid)
+        axis = np.argmax(np.abs(v[:, cols]), axis=0)
+        n[:, cols] = 0.0
+        n[axis, cols] = np.sign(v[axis, cols])
+    nw = rot @ n  # to the world frame (z unchanged)
+    n0, n1 = nw[0], nw[1]
     # a = J(v*)ᵀ n, written out from geometry.design_matrix
-    v0, v1 = v[:, 0], v[:, 1]
-    cols = [n0, n1] + ([n[:, 2]] if d == 3 else []) + [v0 * n0, v0 * n1, v1 * n1, -v1 * n0]
+    v0, v1 = v[0], v[1]
+    a = np.empty((6 if d == 2 else 8, v.shape[1]))
+    a[:d] = nw
+    np.multiply(v0, n0, out=a[d])
+    np.multiply(v0, n1, out=a[d + 1])
+    np.multiply(v1, n1, out=a[d + 2])
+    np.multiply(v1, n0, out=a[d + 3])
+    np.negative(a[d + 3], out=a[d + 3])
     if d == 3:
-        cols.append(v[:, 2] * n[:, 2])
-    a = np.stack(cols, axis=1)
-    b = n0 * pts[:, 0] + n1 * pts[:, 1] + (n[:, 2] * pts[:, 2] if d == 3 else 0.0)
+        np.multiply(v[2], nw[2], out=a[7])
+    nx = nw * pts_t
+    b = nx[0] + nx[1] if d == 2 else nx[0] + nx[1] + nx[2]
     # A real object's surface lies *inside* its bounding box (hood, windscreen, rounded corners,
     # returns through windows): points inside the box are down-weighted, points outside are not,
     # so the fit is a soft bounding box rather than a box through the mean surface.
     # Points within FIT_INSIDE_FREE_DEPTH of the surface (LiDAR noise) count fully either way.
-    inside = np.all(np.abs(local) < 0.5 * size, axis=1) & (norm > C.FIT_INSIDE_FREE_DEPTH)
-    w = np.where(inside, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, 1.0)  # √weight = σ / σ_inside
-    return a * w[:, None], b * w, sqd[:, 0]
+    strict = np.abs(local) < half
+    deep = (strict[0] & strict[1] if d == 2 else strict[0] & strict[1] & strict[2]) & (norm > C.FIT_INSIDE_FREE_DEPTH)
+    if np.any(deep):
+        w = np.where(deep, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, 1.0)  # √weight = σ / σ_inside
+        a *= w
+        b *= w
+    return a, b, sqd
 
 
 def _fit_em(
@@ -759,32 +809,47 @@ def _fit_em(
     """Box fit from ``start`` (a rectangle): register each point to its nearest surface point of the
     current box, take the Gaussian mean of the point-to-surface model with the prior centred on
     the label, repeat (Gauss–Newton / EM). Returns (φ, Σ, iterations, converged, log posterior,
-    fitted rectangle)."""
+    fitted rectangle).
+
+    ``pts`` is (d, N) (transposed, see :func:`_plane_rows_t`). The iterations only need the mean
+    (a linear solve); the covariance is formed once, at the fitted box. When the iteration has
+    entered an exact 2-cycle (a point flipping between two faces, so that φ repeats bit for bit),
+    it can never converge: the state the iteration cap would end on is known, and is returned
+    without running the remaining iterations.
+    """
     model = params.model
     y_cur = start
     phi = g.box_to_phi(start, model)
     prior_eta = P0 @ phi_label
+    inv_s2 = 1.0 / sigma**2
     converged = False
     it = 0
-    cov = _spd_inverse(P0)
+    phi_prev = None
     for it in range(1, C.FIT_MAX_ITERATIONS + 1):
-        a, b, _ = _plane_rows(y_cur, pts, model)
-        precision = P0 + (a.T @ a) / sigma**2
-        cov = _spd_inverse(0.5 * (precision + precision.T))
-        new = cov @ (prior_eta + (a.T @ b) / sigma**2)
+        a, b, _ = _plane_rows_t(y_cur, pts, model)
+        precision = P0 + (a @ a.T) * inv_s2
+        new = np.linalg.solve(0.5 * (precision + precision.T), prior_eta + (a @ b) * inv_s2)
         step = float(np.max(np.abs(new - phi)))
-        phi = new
+        if it >= 3 and step >= C.FIT_TOLERANCE and np.array_equal(new, phi_prev):
+            # φ_it = φ_(it−2): the states alternate up to the cap. End on the cap's state.
+            if (C.FIT_MAX_ITERATIONS - it) % 2 == 1:
+                new = phi
+            phi = new
+            y_cur = _rect_from_phi(phi, model, label)
+            it = C.FIT_MAX_ITERATIONS
+            break
+        phi_prev, phi = phi, new
         y_cur = _rect_from_phi(phi, model, label)
         if step < C.FIT_TOLERANCE:
             converged = True
             break
-    a, b, sqd = _plane_rows(y_cur, pts, model)
-    precision = P0 + (a.T @ a) / sigma**2
+    a, b, sqd = _plane_rows_t(y_cur, pts, model)
+    precision = P0 + (a @ a.T) * inv_s2
     cov = _spd_inverse(0.5 * (precision + precision.T))
     phi_rect = g.box_to_phi(y_cur, model)
-    resid = a @ phi_rect - b
+    resid = phi_rect @ a - b
     dphi = phi_rect - phi_label
-    log_post = -0.5 * float(resid @ resid) / sigma**2 - 0.5 * float(dphi @ P0 @ dphi)
+    log_post = -0.5 * float(resid @ resid) * inv_s2 - 0.5 * float(dphi @ P0 @ dphi)
     rms = float(np.sqrt(np.mean(sqd))) if len(resid) else 0.0  # unweighted distance to the surface
     return phi, cov, it, converged, log_post, y_cur, rms
 
@@ -837,14 +902,15 @@ def fit_label(
         if np.isfinite(s_hat):
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
-    best = (_fit_em(y, pts, phi_label, P0, y, sigma, params), False)
+    pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_plane_rows_t)
+    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params), False)
     # A second start with length and width swapped, when the first fit leaves the points far from
     # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by
     # 90° on its own. The start with the higher log posterior wins.
     if n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9 and best[0][6] > C.FIT_SWAP_RESIDUAL * sigma:
         swapped = y.copy()
         swapped[3], swapped[4] = y[4], y[3]
-        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts, phi_label, P0, y, sigma, params)
+        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params)
         if alt[4] > best[0][4] + 1e-9:
             best = (alt, True)
     (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best
