@@ -9,7 +9,8 @@ VENV="${LABELAUDIT_VENV:-.venv}"
 
 ensure_system_libs() {
     # Open3D's wheel links against libusb-1.0 and will not import without it.
-    if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+    # (no grep -q: with pipefail, its early exit would fail the pipeline through SIGPIPE)
+    if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
         echo "installing libusb-1.0-0 (needed by Open3D)" >&2
         local SUDO=""
         [ "$(id -u)" -ne 0 ] && SUDO="sudo"
