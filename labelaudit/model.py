@@ -653,7 +653,8 @@ class LabelFit:
     tolerance_distance : √(Δφᵀ (Σ_fit + Σ_tol)⁻¹ Δφ), Σ_tol from :data:`~labelaudit.constants.LABEL_TOLERANCE`
     label_error : chi2.cdf(tolerance_distance², k), k = 7 box parameters (5 when the run's model is
         BEV or the points have no z: then only the BEV marginal of Δφ is scored, here and in mahalanobis)
-    sigma_hat : EM noise estimate at the fit (NaN below 2 points)
+    sigma_hat : EM noise estimate at the fit (NaN below 2 points); computed on first access (the
+        pipeline reports σ̂ at the label, from :func:`infer_label`, and never pays for this one)
     iterations : EM iterations of the chosen start
     converged : whether the chosen start converged within the iteration cap
     swapped_start : the chosen fit started from the label with length and width swapped
@@ -668,10 +669,19 @@ class LabelFit:
     mahalanobis: float
     tolerance_distance: float
     label_error: float
-    sigma_hat: float
     iterations: int
     converged: bool
     swapped_start: bool
+    _residual_inputs: tuple = field(default=(), repr=False, compare=False)  # (box, points, d, params, σ)
+
+    @functools.cached_property
+    def sigma_hat(self) -> float:
+        """EM noise estimate σ̂ of the points at the suggested box (NaN below 2 points)."""
+        if not self._residual_inputs:
+            return float("nan")
+        y_fit, pts, d, params, sigma = self._residual_inputs
+        reg = _register(y_fit, pts, d, params.num_nearest, sigma, params.outlier_prob)
+        return _em([(reg.sqdist, _outlier_log_density(y_fit, d))], d, sigma, params.outlier_prob)
 
 
 def _equivalent_boxes(y: FloatArray) -> list[FloatArray]:
@@ -953,10 +963,6 @@ def fit_label(
     y_fit[6] = y[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
     if d == 2:
         offsets["cz"] = offsets["height"] = float("nan")
-    sigma_hat = float("nan")
-    if n >= 2:
-        reg = _register(y_fit, pts, d, params.num_nearest, sigma, params.outlier_prob)
-        sigma_hat = _em([(reg.sqdist, _outlier_log_density(y_fit, d))], d, sigma, params.outlier_prob)
     return LabelFit(
         model=model,
         box=y_fit,
@@ -967,10 +973,10 @@ def fit_label(
         mahalanobis=float(np.sqrt(max(d2, 0.0))),
         tolerance_distance=float(np.sqrt(max(d2_tol, 0.0))),
         label_error=float(chi2.cdf(max(d2_tol, 0.0), k)),
-        sigma_hat=sigma_hat,
         iterations=iterations,
         converged=converged,
         swapped_start=is_swapped,
+        _residual_inputs=(y_fit.copy(), pts, d, params, sigma) if n >= 2 else (),
     )
 
 
@@ -983,7 +989,7 @@ def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
     from shapely.geometry import Polygon
 
     y = g.validate_box(box)
-    pts = _clean_points(points, 2)
+    pts = _hull_candidates(_clean_points(points, 2))
     if len(pts) < 3:
         return 0.0
     try:
@@ -995,3 +1001,22 @@ def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
     inter = hull_poly.intersection(box_poly).area
     union = hull_poly.area + box_poly.area - inter
     return float(inter / union) if union > 0 else 0.0
+
+
+def _hull_candidates(pts: FloatArray) -> FloatArray:
+    """The points (N, 2) that can be convex-hull vertices (Akl–Toussaint): a point strictly inside
+    the quadrilateral of the extreme points in x and y is inside the hull and is dropped. Exact;
+    dense boxes keep a few percent of their points, so Qhull gets little to do."""
+    if len(pts) < 8:
+        return pts
+    x, y = pts[:, 0], pts[:, 1]
+    quad = pts[[np.argmin(x), np.argmin(y), np.argmax(x), np.argmax(y)]]  # counter-clockwise
+    keep = np.zeros(len(pts), dtype=bool)
+    edges = 0
+    for (qx, qy), (rx, ry) in zip(quad, np.roll(quad, -1, axis=0)):
+        ex, ey = rx - qx, ry - qy
+        if ex == 0.0 and ey == 0.0:
+            continue  # two extremes are the same point: the polygon has fewer sides
+        edges += 1
+        keep |= ex * (y - qy) - ey * (x - qx) <= 0.0  # not strictly left of this edge (on it: kept)
+    return pts[keep] if edges else pts

@@ -522,3 +522,28 @@ def test_fast_nearest_faces_match_the_reference(d):
         fin = np.isfinite(ref_d)
         assert np.allclose(fast_d[fin], ref_d[fin], atol=1e-12)
         assert np.allclose((vstar * 2 * half)[fin], ref_c[fin], atol=1e-12)
+
+
+def test_fit_sigma_hat_is_the_em_residual_at_the_suggested_box():
+    pts = face_points(CAR, ["-x", "-y", "+z"], 60, 0.04, seed=2)
+    fit = M.fit_label(_shifted(CAR, cx=0.2), pts, "Car", ModelParams())
+    assert fit.sigma_hat == pytest.approx(M.estimate_sigma(fit.box, pts, "3d"), rel=1e-12)
+    assert np.isnan(M.fit_label(CAR, pts[:1], "Car", ModelParams()).sigma_hat)
+
+
+def test_hull_candidates_keep_every_hull_vertex():
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(4)
+    clouds = [
+        rng.normal(size=(500, 2)),
+        g.unit_to_world(rng.uniform(-0.5, 0.5, (300, 2)), CAR, "bev"),
+        np.stack(np.meshgrid(np.arange(10.0), np.arange(7.0)), -1).reshape(-1, 2),  # many points on hull edges
+        face_points(CAR, ["-x", "-y"], 100, 0.02)[:, :2],  # an L-shape
+    ]
+    for pts in clouds:
+        kept = M._hull_candidates(pts)
+        assert len(kept) < len(pts)
+        full = pts[ConvexHull(pts).vertices]
+        assert {tuple(p) for p in full} <= {tuple(p) for p in kept}
+        assert ConvexHull(kept).volume == pytest.approx(ConvexHull(pts).volume, rel=1e-12)
