@@ -547,3 +547,12 @@ def test_hull_candidates_keep_every_hull_vertex():
         full = pts[ConvexHull(pts).vertices]
         assert {tuple(p) for p in full} <= {tuple(p) for p in kept}
         assert ConvexHull(kept).volume == pytest.approx(ConvexHull(pts).volume, rel=1e-12)
+
+
+def test_closed_form_chi2_cdf_equals_scipy():
+    from scipy.stats import chi2
+
+    for k in range(1, 10):
+        for x in np.r_[0.0, np.logspace(-6, 2.5, 60)]:
+            assert M._chi2_cdf(float(x), k) == pytest.approx(chi2.cdf(x, k), abs=1e-13)
+    assert M._chi2_cdf(-1.0, 7) == 0.0
