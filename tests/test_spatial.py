@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from labelaudit import constants as C
 from labelaudit import geometry as g
 from labelaudit import model as M
 from labelaudit import spatial as sp
@@ -319,3 +320,31 @@ def test_jiou_gt_equals_the_generic_jiou(model):
         # jiou_gt rasterises inside the box only and takes the outside mass as 1 − inside (no
         # truncated tails); the generic grid cuts the tails beyond support_std: nearly equal.
         assert sp.jiou_gt(post, SP) == pytest.approx(generic, abs=0.005)
+
+
+def test_stored_default_samples_equal_the_generated_ones():
+    import labelaudit.spatial as S
+
+    with np.load(S.SAMPLE_TABLE) as table:
+        assert sorted(table.files) == [f"d{d}_n{C.DEFAULT_NUM_SAMPLES}_s{C.DEFAULT_QMC_SEED}" for d in (5, 6, 7, 8)]
+        for key in table.files:
+            d = int(key.split("_")[0][1:])
+            assert np.array_equal(table[key], S._generate_normal_samples(d, C.DEFAULT_NUM_SAMPLES, C.DEFAULT_QMC_SEED))
+    assert np.array_equal(S.normal_samples(6, 64, 3), S._generate_normal_samples(6, 64, 3))  # not stored: generated
+
+
+def test_auditing_an_object_does_not_import_scipy_stats():
+    # scipy.stats takes about a second to import in every worker process
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from labelaudit.audit import audit_object\n"
+        "from labelaudit.config import load_config\n"
+        "pts = np.random.default_rng(0).normal([15, 3, 0.7], 0.5, (50, 3))\n"
+        "audit_object(np.array([15.0, 3.0, 0.75, 4.2, 1.7, 1.5, 0.3]), pts, 'Car', load_config(None, 'kitti'))\n"
+        "print('scipy.stats' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
