@@ -39,7 +39,7 @@ import pyarrow.parquet as pq
 
 from labelaudit.evaluation_metrics import RankingRow, bin_index, ranking_table
 from labelaudit.pipeline import InferRequest, process_frame, resolve_config, run_infer
-from labelaudit.simulate import NoiseSpec, simulate_dataset
+from labelaudit.simulate import NoiseSpec, SceneSpec, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_REAL = REPO.parent / "shared" / "realdata" / "openpcdet-pr653-kitti"
@@ -51,6 +51,7 @@ SCORES = ("label_error", "1 − jiou_gt", "−num_points", "1 − hull_iou")
 VISIBLE_CENTER = 0.1  # m; extra view: a jitter counts when its centre moved at least this …
 VISIBLE_YAW = 0.05  # rad; … or its yaw at least this
 TOP = 0.05  # precision at the top 5 %
+CLUTTER = (5, 15)  # --clutter: unlabelled walls, poles, bushes per frame (SceneSpec.num_clutter)
 AUDITED = ("ok", "few_points", "no_points")
 
 
@@ -110,17 +111,19 @@ def kind_rows(scores: dict[str, np.ndarray], kinds: np.ndarray, base: np.ndarray
 # ---------------------------------------------------------------------------------- synthetic
 
 
-def simulate(out: Path, frames: int, seed: int, workers: int, reuse: bool) -> Path:
+def simulate(out: Path, frames: int, seed: int, workers: int, reuse: bool, clutter: bool = False) -> Path:
     sim = out / "sim"
     manifest = sim / "manifest.parquet"
     if reuse and manifest.is_file():
         meta = {k.decode(): v.decode() for k, v in (pq.read_schema(manifest).metadata or {}).items()}
         noise = json.loads(meta.get("labelaudit.noise", "{}"))
-        if meta.get("labelaudit.seed") == str(seed) and meta.get("labelaudit.frames") == str(frames) and noise == dataclasses.asdict(NoiseSpec.benchmark()) | {"gross_kinds": list(NoiseSpec.benchmark().gross_kinds), "classes": list(NoiseSpec.benchmark().classes)}:
+        same_scene = json.loads(meta.get("labelaudit.scene", "{}")).get("num_clutter") == list(CLUTTER if clutter else SceneSpec().num_clutter)
+        if same_scene and meta.get("labelaudit.seed") == str(seed) and meta.get("labelaudit.frames") == str(frames) and noise == dataclasses.asdict(NoiseSpec.benchmark()) | {"gross_kinds": list(NoiseSpec.benchmark().gross_kinds), "classes": list(NoiseSpec.benchmark().classes)}:
             print(f"reusing simulated dataset {sim} ({frames} frames, seed {seed})", flush=True)
             return sim
     t = time.perf_counter()
-    summary = simulate_dataset(sim, frames=frames, seed=seed, noise=NoiseSpec.benchmark(), workers=workers, progress=False, overwrite=True)
+    summary = simulate_dataset(sim, frames=frames, seed=seed, noise=NoiseSpec.benchmark(), workers=workers, progress=False, overwrite=True,
+                               scene=SceneSpec(num_clutter=CLUTTER) if clutter else SceneSpec())
     print(f"simulated {summary.frames} frames in {time.perf_counter() - t:.0f} s: {summary.num_labels} labels, perturbations {summary.perturbations}", flush=True)
     return sim
 
@@ -169,14 +172,14 @@ def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
 
 
 def synthetic(args: argparse.Namespace) -> str:
-    sim = simulate(args.out, args.frames, args.seed, args.workers, args.reuse)
+    sim = simulate(args.out, args.frames, args.seed, args.workers, args.reuse, args.clutter)
     res = infer(sim, args.out, args.workers, args.reuse)
     t = joined_table(sim, res)
     scores = score_columns(t)
     kinds = t["perturbation"]
     pos = kinds != "none"
     n_pts = t["num_points"]
-    md = [f"Synthetic: {args.frames} simulated frames (seed {args.seed}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
+    md = [f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
           f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))}).\n"]
     rows = ranking_table(scores, pos, standard_subsets(n_pts, t["distance"]), TOP)
     md.append(print_table("Synthetic, issue-6 definition (positive = any perturbation)", rows))
@@ -202,7 +205,7 @@ def synthetic(args: argparse.Namespace) -> str:
     thr = np.quantile(le[~pos & (n_pts >= 10)], 0.95) if np.any(~pos & (n_pts >= 10)) else 1.0
     miss = pos & (n_pts >= 10) & (le < thr)
     verdicts.append(f"positives with ≥ 10 points below the 95th percentile of the negatives' label_error ({thr:.3f}): {int(miss.sum())} of {int((pos & (n_pts >= 10)).sum())}; "
-                    f"by kind: {dict(zip(*np.unique(kinds[miss], return_counts=True)))}; median centre offset {np.median(t['center_offset_m'][miss]) if miss.any() else float('nan'):.3f} m, "
+                    f"by kind: {', '.join(f'{k} {int(c)}' for k, c in zip(*np.unique(kinds[miss], return_counts=True))) or 'none'}; median centre offset {np.median(t['center_offset_m'][miss]) if miss.any() else float('nan'):.3f} m, "
                     f"median |Δyaw| {np.median(np.abs(t['delta_yaw'][miss])) if miss.any() else float('nan'):.3f} rad")
     fa = ~pos & (n_pts >= 10) & (le >= 0.9)
     verdicts.append(f"unperturbed labels with ≥ 10 points and label_error ≥ 0.9: {int(fa.sum())} of {int((~pos & (n_pts >= 10)).sum())}")
@@ -230,7 +233,7 @@ def real(args: argparse.Namespace) -> str:
     # 2 : 20 ratio), and the unperturbed label is added once as a negative.
     bench = NoiseSpec.benchmark()
     spec = dataclasses.replace(bench, fraction=1.0 - bench.gross_fraction / (bench.fraction + bench.gross_fraction), gross_fraction=bench.gross_fraction / (bench.fraction + bench.gross_fraction))
-    cols: dict[str, list[Any]] = {k: [] for k in ("label_error", "jiou_gt", "hull_iou", "num_points", "distance", "perturbation", "center_offset_m", "delta_yaw", "status", "box")}
+    cols: dict[str, list[Any]] = {k: [] for k in ("label_error", "jiou_gt", "hull_iou", "num_points", "distance", "perturbation", "center_offset_m", "delta_yaw", "status", "box", "source")}
     n_boxes = 0
     t0 = time.perf_counter()
     for ref in reader.list_units():
@@ -257,6 +260,7 @@ def real(args: argparse.Namespace) -> str:
                 cols["center_offset_m"].append(float(np.hypot(*(b[:2] - tb[:2]))))
                 cols["delta_yaw"].append(float(np.angle(np.exp(1j * (b[6] - tb[6])))))
                 cols["box"].append(b)
+                cols["source"].append(str(r["object_id"]).rsplit(":", 1)[0])
     wall = time.perf_counter() - t0
     t = {k: np.array([np.nan if x is None else x for x in v]) if k in ("label_error", "jiou_gt", "hull_iou") else np.array(v) for k, v in cols.items() if k != "box"}
     ok = np.isin(t["status"], AUDITED)
@@ -270,12 +274,24 @@ def real(args: argparse.Namespace) -> str:
     md = [f"Real KITTI ({root.name}): {n_boxes} vehicle labels, each perturbed {args.real_copies} times (seed {args.seed}) + the original as a negative.\n"]
     md.append(print_table("Real KITTI, perturbed copies vs originals", ranking_table(scores, pos, standard_subsets(t["num_points"], t["distance"]), TOP), note))
     md.append(print_table("Real KITTI, by perturbation kind", kind_rows(scores, kinds, np.ones(len(kinds), bool)), note))
-    # Per original: its own score, and how its perturbed copies rank against it.
+    # Paired view: every real box against its own unperturbed label, so the looseness of one
+    # original does not decide the ranking of the others' copies.
+    src = t["source"]
     orig = np.flatnonzero(~pos)
-    per = [f"{scores['label_error'][o]:.3f}" for o in orig]
-    line = f"label_error of the {len(orig)} unperturbed real labels: {', '.join(per)} (num_points {', '.join(str(int(x)) for x in t['num_points'][orig])})"
-    print(line, flush=True)
-    md.append(f"- {line}\n")
+    paired = {name: [] for name in SCORES}
+    for o in orig:
+        copies = (src == src[o]) & pos
+        for name in SCORES:
+            sc = scores[name]
+            paired[name].append(float(np.mean((sc[copies] > sc[o]) + 0.5 * (sc[copies] == sc[o]))) if copies.any() else float("nan"))
+    head = "| real box | num_points | label_error of the original | " + " | ".join(f"share of copies above the original: {s}" for s in SCORES) + " |"
+    lines = ["**Real KITTI, paired** — each box's perturbed copies against its own original (SMALL n)", "", head, "|" + "---|" * (3 + len(SCORES))]
+    for j, o in enumerate(orig):
+        lines.append(f"| {src[o]} | {int(t['num_points'][o])} | {scores['label_error'][o]:.3f} | " + " | ".join(f"{paired[s][j]:.2f}" for s in SCORES) + " |")
+    lines.append("| mean | | | " + " | ".join(f"{np.nanmean(paired[s]):.2f}" for s in SCORES) + " |")
+    text = "\n".join(lines) + "\n"
+    print(text, flush=True)
+    md.append(text)
     return "\n".join(md)
 
 
@@ -288,6 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realdata", type=Path, default=DEFAULT_REAL, help="real KITTI root (skipped when absent)")
     ap.add_argument("--real-copies", type=int, default=20, help="perturbed copies of every real label")
     ap.add_argument("--reuse", action="store_true", help="reuse a simulated dataset / complete results already in --out")
+    ap.add_argument("--clutter", action="store_true", help=f"add {CLUTTER[0]}–{CLUTTER[1]} unlabelled clutter objects per frame (not the issue's setting)")
     ap.add_argument("--skip-real", action="store_true", help="leave out the real-data part")
     ap.add_argument("--markdown", type=Path, default=None, help="also write the tables as Markdown to this file")
     args = ap.parse_args(argv)
