@@ -556,3 +556,34 @@ def test_closed_form_chi2_cdf_equals_scipy():
         for x in np.r_[0.0, np.logspace(-6, 2.5, 60)]:
             assert M._chi2_cdf(float(x), k) == pytest.approx(chi2.cdf(x, k), abs=1e-13)
     assert M._chi2_cdf(-1.0, 7) == 0.0
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_plane_rows_break_ties_like_the_nearest_face_registration(model):
+    # points equally deep below two or three faces, on edges and at the centre: the compiled rows
+    # must pick the same face as _nearest_faces (lower face index first)
+    d = g.point_dim(model)
+    half = CAR[3:6] / 2
+    t = 0.3
+    local = np.array([
+        [half[0] - t, half[1] - t, 0.0],  # +x and +y faces equally near
+        [-half[0] + t, -half[1] + t, 0.0],
+        [half[0] - t, 0.0, half[2] - t],
+        [0.0, -half[1] + t, -half[2] + t],
+        [half[0] - 0.2, half[1] - 0.2, half[2] - 0.2],
+        [0.0, 0.0, 0.0],  # the centre
+        [-half[0] - 0.1, half[1] + 0.1, 0.0],  # beyond a corner
+    ])[:, :d]
+    pts = local.copy()
+    pts[:, :2] = local[:, :2] @ g.rotation_z(CAR[6])[:2, :2].T + CAR[:2]
+    if d == 3:
+        pts[:, 2] += CAR[2]
+    a, b, sqd = M._plane_rows(CAR, pts, model)
+    reg = M.register(CAR, pts, model, num_nearest=1)
+    J = g.design_matrix(reg.vstar[:, 0, :], model)
+    resid = pts - J @ g.box_to_phi(CAR, model)
+    n = resid / np.linalg.norm(resid, axis=1, keepdims=True)
+    u = np.einsum("kdp,kd->kp", J, n)
+    w = np.sum(a * u, axis=1) / np.sum(u * u, axis=1)
+    assert np.allclose(a, w[:, None] * u, atol=1e-9) and np.all(w > 0)
+    assert np.allclose(sqd, reg.sqdist[:, 0])
