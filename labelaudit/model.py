@@ -754,16 +754,17 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     d = g.point_dim(model)
     pts_t = np.ascontiguousarray(np.asarray(pts, dtype=float)[:, :d].T)
     n = pts_t.shape[1]
-    a = np.empty((n, 2 * d + 2))
+    a = np.empty((2 * d + 2, n))
     b = np.empty(n)
     sqd = np.empty(n)
     _rows_kernel(np.asarray(y, dtype=float), pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, a, b, sqd)
-    return a, b, sqd
+    return a.T, b, sqd
 
 
 @numba.njit(cache=True)
 def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no cover - compiled
-    """Rows a (N, p), b (N,) and squared distances (N,) of :func:`_plane_rows` for points (d, N).
+    """Rows a — transposed, (p, N) — b (N,) and squared distances (N,) of :func:`_plane_rows` for
+    points (d, N).
 
     Nearest surface point: a point outside the box projects to its clamped position; a point
     inside to its nearest face (ties: the lower face index — axis first, the − face before the +
@@ -817,32 +818,65 @@ def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no
         n1 = s * q0 + c * q1
         w = deep_weight if strict and norm > free_depth else 1.0  # √weight = σ / σ_inside
         # a = J(v*)ᵀ n, written out from geometry.design_matrix
-        a[k, 0] = w * n0
-        a[k, 1] = w * n1
+        a[0, k] = w * n0
+        a[1, k] = w * n1
         bk = n0 * pts_t[0, k] + n1 * pts_t[1, k]
         if d == 3:
-            a[k, 2] = w * q2
-            a[k, 7] = w * v2 * q2
+            a[2, k] = w * q2
+            a[7, k] = w * v2 * q2
             bk += q2 * pts_t[2, k]
-        a[k, d] = w * v0 * n0
-        a[k, d + 1] = w * v0 * n1
-        a[k, d + 2] = w * v1 * n1
-        a[k, d + 3] = -w * v1 * n0
+        a[d, k] = w * v0 * n0
+        a[d + 1, k] = w * v0 * n1
+        a[d + 2, k] = w * v1 * n1
+        a[d + 3, k] = -w * v1 * n0
         b[k] = w * bk
         sqd[k] = sq
 
 
-def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray) -> tuple[FloatArray, FloatArray, float, float]:
-    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)² and Σ ‖x_k − v̄_k‖² of the rows of
-    :func:`_plane_rows` for points (d, N): one compiled pass over the points (as NumPy array code
-    it took ~40 calls per fit iteration, and a fit runs 5–30 iterations), then BLAS products."""
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+def _gram_kernel(a, b, phi):  # pragma: no cover - compiled
+    """a aᵀ (p, p), a b (p,) and ‖aᵀφ − b‖² for rows a (p, N): dot products of contiguous rows.
+    Reassociation only (no other fast-math), so the sums vectorise; the result differs from the
+    sequential sums by rounding alone. No BLAS: its threads oversubscribe the cores of a worker pool."""
+    p, n = a.shape
+    ata = np.empty((p, p))
+    atb = np.empty(p)
+    for i in range(p):
+        for j in range(i, p):
+            acc = 0.0
+            for k in range(n):
+                acc += a[i, k] * a[j, k]
+            ata[i, j] = acc
+            ata[j, i] = acc
+        acc = 0.0
+        for k in range(n):
+            acc += a[i, k] * b[k]
+        atb[i] = acc
+    rr = 0.0
+    for k in range(n):
+        r = -b[k]
+        for i in range(p):
+            r += a[i, k] * phi[i]
+        rr += r * r
+    return ata, atb, rr
+
+
+@numba.njit(cache=True)
+def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, phi):  # pragma: no cover - compiled
     n = pts_t.shape[1]
-    a = np.empty((n, 2 * d + 2))
+    a = np.empty((2 * d + 2, n))
     b = np.empty(n)
     sqd = np.empty(n)
-    _rows_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, a, b, sqd)
-    r = a @ phi - b
-    return a.T @ a, b @ a, float(r @ r), float(sqd.sum())
+    _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd)
+    ata, atb, rr = _gram_kernel(a, b, phi)
+    return ata, atb, rr, sqd.sum()
+
+
+def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray) -> tuple[FloatArray, FloatArray, float, float]:
+    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)² and Σ ‖x_k − v̄_k‖² of the rows of
+    :func:`_plane_rows` for points (d, N): one compiled call per fit iteration (as NumPy array code
+    it took ~40 calls, and a fit runs 5–30 iterations)."""
+    return _normal_eq_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, phi)
 
 
 def _fit_iterate(
