@@ -303,8 +303,9 @@ def registration_information(reg: Registration, model: ModelKind) -> tuple[Float
     rv = vt * reg.resp[..., None]
     rv2 = rv.reshape(n * m, d + 1)
     moments = rv2.T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
-    cross = np.einsum("kma,kd->ad", rv, reg.points)  # (d+1, d): Σ r ṽ_a x
-    return np.einsum("ab,abpq->pq", moments, BB), np.einsum("ad,adp->p", cross, B)
+    cross = rv.sum(axis=1).T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
+    p = B.shape[-1]
+    return (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), cross.reshape(-1) @ B.reshape(-1, p)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -502,10 +503,10 @@ _CORNER_J = {m: g.design_matrix(corner_unit_coords(m), m) for m in ("bev", "3d")
 def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
     J = _CORNER_J[model]
     tv = np.einsum("cdp,pq,cdq->c", J, cov, J)
-    c, s = np.cos(y[6]), np.sin(y[6])
+    c, s = math.cos(y[6]), math.sin(y[6])
     u = g.BEV_CORNERS_UNIT * y[3:5]
-    corners = np.c_[c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1]] + y[:2]
-    dist = np.hypot(*(corners - np.asarray(sensor_origin, dtype=float)[:2]).T)
+    o = np.asarray(sensor_origin, dtype=float)
+    dist = np.hypot((c * u[:, 0] - s * u[:, 1] + y[0]) - o[0], (s * u[:, 0] + c * u[:, 1] + y[1]) - o[1])  # corners − sensor
     order = np.argsort(dist, kind="stable")
     return tv[order], order
 
