@@ -43,7 +43,6 @@ MODEL_COLUMNS: tuple[str, ...] = (
     "fit_yaw",
     "hull_iou",
     "mahalanobis",
-    "fit_offset_mahal",
 )
 """Keys of the dictionary returned by :func:`audit_object`."""
 
@@ -120,5 +119,4 @@ def audit_object(
         row["fit_cz"] = row["fit_height"] = float("nan")
     row["hull_iou"] = hull_iou(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
-    row["fit_offset_mahal"] = row["mahalanobis"]  # the name results.SCHEMA uses
     return row

@@ -88,7 +88,6 @@ COLUMNS: tuple[tuple[str, pa.DataType, bool, str, str], ...] = (
     ("fit_height", pa.float64(), True, "m", "height of the suggested box (null when not fitted in 3D)"),
     ("fit_yaw", pa.float64(), True, "rad", "yaw of the suggested box"),
     ("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)"),
-    ("fit_offset_mahal", pa.float64(), True, "", "same value as mahalanobis (the name of an earlier draft of this schema)"),
     ("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)"),
     # KITTI extras (null for other formats)
     ("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]"),
