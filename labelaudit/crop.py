@@ -10,9 +10,15 @@ The selection region of a box ``(cx, cy, cz, l, w, h, yaw)`` is the box
 Boundaries are inclusive. :func:`crop_frame` builds **one** Open3D point cloud per frame and asks
 each box's ``OrientedBoundingBox`` for its indices; :func:`points_in_boxes_numpy` is the plain
 NumPy reference. They agree except for points within floating-point rounding of a face.
+
+:func:`crop_frame_pair` serves the pipeline, which needs two nested crops per box (the model's and
+the wider one of the label-error fit): Open3D crops once with the wide margin and the narrow crop
+is taken from those points by :func:`refine_crop`, which repeats Open3D's arithmetic exactly.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import open3d as o3d
@@ -23,7 +29,7 @@ from labelaudit.geometry import rotation_z
 
 IndexArray = NDArray[np.int64]
 
-__all__ = ["crop_frame", "points_in_boxes_numpy", "selection_boxes"]
+__all__ = ["crop_frame", "crop_frame_pair", "points_in_boxes_numpy", "refine_crop", "selection_boxes"]
 
 
 def _check_inputs(points: ArrayLike, boxes: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -120,3 +126,62 @@ def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[
         idx = np.asarray(obb.get_point_indices_within_bounding_box(cloud.points), dtype=np.int64)
         out.append(np.sort(idx))
     return out
+
+
+def refine_crop(points: ArrayLike, boxes: ArrayLike, candidates: list[IndexArray], params: CropParams) -> list[IndexArray]:
+    """The indices :func:`crop_frame` ``(points, boxes, params)`` returns, taken from a superset.
+
+    Open3D's ``OrientedBoundingBox`` keeps a point p when ``|(p − c)·R[:, a]| ≤ extent_a / 2`` for
+    a = x, y, z. The same float64 operations in the same order are done here on the candidate
+    points only, so the result is identical (tested against Open3D on random and real frames) at
+    the cost of the candidates, not the frame.
+
+    Parameters
+    ----------
+    points : (N, ≥3) the frame's points
+    boxes : (K, 7) cx, cy, cz, l, w, h, yaw
+    candidates : K sorted index arrays, each a superset of the crop by ``params`` (e.g. a crop
+        with a larger margin and the same ground cut)
+    params : margin and ground cut of the wanted crop
+
+    Returns
+    -------
+    indices : K sorted int64 arrays, each a subset of its candidates
+    """
+    pts, b = _check_inputs(points, boxes)
+    if len(candidates) != len(b):
+        raise ValueError(f"need one candidate array per box: {len(candidates)} arrays for {len(b)} boxes")
+    sel = selection_boxes(b, params.margin, params.ground_cut)
+    rotations = rotation_z(sel[:, 6])
+    out: list[IndexArray] = []
+    for box, R, cand in zip(sel, rotations, candidates):
+        if box[5] <= 0 or len(cand) == 0:
+            out.append(np.empty(0, dtype=np.int64))
+            continue
+        d = pts[cand, :3].astype(np.float64) - box[:3]
+        half = box[3:6] / 2.0
+        inside = np.ones(len(cand), dtype=bool)
+        for a in range(3):  # d·R[:, a] summed left to right, as Eigen's 3-vector dot
+            proj = d[:, 0] * R[0, a] + d[:, 1] * R[1, a] + d[:, 2] * R[2, a]
+            inside &= np.abs(proj) <= half[a]
+        out.append(np.asarray(cand, dtype=np.int64)[inside])
+    return out
+
+
+def crop_frame_pair(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> tuple[list[IndexArray], list[IndexArray]]:
+    """The model's crop (``params.margin``) and the label-error fit's wider crop (``params.fit_margin``).
+
+    One Open3D pass with the wide margin; the narrow crop is refined from it
+    (:func:`refine_crop`), equal to ``crop_frame(points, boxes, params)``.
+
+    Returns
+    -------
+    indices : K sorted int64 arrays, the crop with ``params.margin``
+    fit_indices : K sorted int64 arrays, the crop with ``max(params.margin, params.fit_margin)``
+        (the same list as ``indices`` when the fit margin is not wider)
+    """
+    if params.fit_margin <= params.margin:
+        indices = crop_frame(points, boxes, params)
+        return indices, indices
+    fit_indices = crop_frame(points, boxes, replace(params, margin=params.fit_margin))
+    return refine_crop(points, boxes, fit_indices, params), fit_indices

@@ -96,7 +96,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     notes : frame warnings (level ``warning``) as rows of the errors table
     """
     from labelaudit.audit import audit_object
-    from labelaudit.crop import crop_frame
+    from labelaudit.crop import crop_frame_pair
     from labelaudit.geometry import validate_box
 
     notes = [_frame_note(frame.frame_id, frame.frame_id, w, level="warning") for w in frame.warnings]
@@ -132,10 +132,9 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
 
     if to_audit:
         boxes = np.ascontiguousarray(frame.boxes[to_audit], dtype=float)
-        indices = crop_frame(frame.points, boxes, cfg.crop)
-        # The label-error fit gets a wider crop: a box shifted off its object must still see it.
-        wide = cfg.crop.fit_margin > cfg.crop.margin
-        fit_indices = crop_frame(frame.points, boxes, replace(cfg.crop, margin=cfg.crop.fit_margin)) if wide else indices
+        # The label-error fit gets a wider crop (a box shifted off its object must still see it);
+        # one Open3D pass gives both crops, the narrow one refined from the wide one exactly.
+        indices, fit_indices = crop_frame_pair(frame.points, boxes, cfg.crop)
         for i, idx, fit_idx in zip(to_audit, indices, fit_indices):
             row = rows[i]
             points = frame.points[idx]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from labelaudit.config import CropParams
-from labelaudit.crop import crop_frame, points_in_boxes_numpy, selection_boxes
+from labelaudit.crop import crop_frame, crop_frame_pair, points_in_boxes_numpy, refine_crop, selection_boxes
 from labelaudit.datasets.kitti import KittiReader, read_velodyne
 
 
@@ -83,6 +83,73 @@ def test_empty_inputs_and_shapes() -> None:
         crop_frame(np.ones((5, 3)), np.ones((2, 6)), CropParams())
     with pytest.raises(ValueError, match=r"\(N, ≥3\)"):
         crop_frame(np.ones((5, 2)), box, CropParams())
+
+
+def _boundary_points(boxes: np.ndarray, params: CropParams, rng: np.random.Generator, per_box: int) -> np.ndarray:
+    """Points on and within a few ulps of every face of the selection boxes (float32, as read)."""
+    out = []
+    for cx, cy, cz, l, w, h, yaw in selection_boxes(boxes, params.margin, params.ground_cut):
+        local = rng.uniform(-0.5, 0.5, (per_box, 3)) * [l, w, h]
+        axis = rng.integers(0, 3, per_box)
+        local[np.arange(per_box), axis] = np.where(rng.random(per_box) < 0.5, -0.5, 0.5) * np.array([l, w, h])[axis]
+        c, s = np.cos(yaw), np.sin(yaw)
+        world = np.c_[cx + c * local[:, 0] - s * local[:, 1], cy + s * local[:, 0] + c * local[:, 1], cz + local[:, 2]]
+        world = world.astype(np.float32)
+        out.append(np.nextafter(world, world + rng.choice([-1, 0, 1], world.shape).astype(np.float32)))
+    return np.concatenate(out)
+
+
+@pytest.mark.parametrize("ground_cut", [0.0, 0.25, 0.15])
+def test_refined_crop_equals_open3d_crop(ground_cut: float) -> None:
+    """The narrow crop taken from the wide one has exactly Open3D's indices, also for points on the faces."""
+    rng = np.random.default_rng(7)
+    boxes = np.c_[rng.uniform(-8, 8, (30, 3)), rng.uniform(0.4, 6.0, (30, 3)), rng.uniform(-np.pi, np.pi, 30)]
+    boxes[3:6, 6] = [np.pi / 2, -np.pi, 1e-12]
+    # Dyadic boxes at yaw 0: faces exact in floating point, so points land exactly on them (ties).
+    boxes[:3] = [[1.5, -2.25, 0.5, 4.0, 2.0, 1.5, 0.0], [-3.0, 4.5, 0.25, 1.75, 0.75, 2.0, 0.0], [6.0, 6.0, -1.0, 3.5, 1.5, 1.0, 0.0]]
+    params = CropParams(margin=0.125, ground_cut=ground_cut, fit_margin=0.5)
+    random = rng.uniform(-12, 12, (40_000, 3)).astype(np.float32)
+    edges = _boundary_points(boxes, params, rng, 400)  # on the narrow faces: ties decide
+    points = np.c_[np.concatenate([random, edges]), np.zeros(len(random) + len(edges), np.float32)]
+    narrow, wide = crop_frame_pair(points, boxes, params)
+    exact = selection_boxes(boxes[:3], params.margin, params.ground_cut)
+    local = np.abs(points[:, None, :3].astype(float) - exact[:, :3])  # yaw 0: box frame = world frame
+    ties = np.sum(np.any(local == exact[:, 3:6] / 2, axis=2) & np.all(local <= exact[:, 3:6] / 2, axis=2))
+    assert ties > 100
+    expected = crop_frame(points, boxes, params)
+    expected_wide = crop_frame(points, boxes, CropParams(margin=0.5, ground_cut=ground_cut))
+    on_face = 0
+    for k in range(len(boxes)):
+        np.testing.assert_array_equal(narrow[k], expected[k])
+        np.testing.assert_array_equal(wide[k], expected_wide[k])
+        assert narrow[k].dtype == np.int64 and np.all(np.isin(narrow[k], wide[k]))
+        on_face += np.sum(expected[k] >= len(random))
+    assert on_face > 2000 and sum(len(w) - len(n) for n, w in zip(narrow, wide)) > 1000  # ties and a real difference
+    # Fit margin not wider: one crop, the same list for both.
+    same, same_fit = crop_frame_pair(points, boxes, CropParams(margin=0.125, ground_cut=ground_cut, fit_margin=0.125))
+    assert same is same_fit and all(np.array_equal(a, b) for a, b in zip(same, expected))
+
+
+def test_refine_crop_rejects_mismatched_candidates() -> None:
+    box = np.array([[0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="one candidate array per box"):
+        refine_crop(np.zeros((3, 3)), box, [], CropParams())
+
+
+def test_real_refined_crop_equals_open3d_crop(realdata: Path) -> None:
+    """On the real KITTI frames, with the pipeline's default margins and a few others."""
+    reader = KittiReader(realdata / "openpcdet-pr653-kitti")
+    boxes_seen = 0
+    for ref in reader.list_units():
+        frame = reader.load_frame(ref.key)
+        for params in (CropParams(), CropParams(margin=0.0, ground_cut=0.0, fit_margin=0.3), CropParams(margin=0.05, ground_cut=0.3, fit_margin=1.0)):
+            narrow, wide = crop_frame_pair(frame.points, frame.boxes, params)
+            for a, b in zip(narrow, crop_frame(frame.points, frame.boxes, params)):
+                np.testing.assert_array_equal(a, b)
+            for a, b in zip(wide, crop_frame(frame.points, frame.boxes, CropParams(params.fit_margin, params.ground_cut))):
+                np.testing.assert_array_equal(a, b)
+        boxes_seen += len(frame.boxes)
+    assert boxes_seen >= 10
 
 
 def _gt_database_rows(realdata: Path):
