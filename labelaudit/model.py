@@ -1130,24 +1130,84 @@ def _chi2_cdf(x: float, k: int) -> float:
 def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
     """BEV IoU between a box and the convex hull of its points (a baseline label-quality score).
 
-    0.0 when the hull has no area (fewer than 3 points, or all on a line).
+    0.0 when the hull has no area (fewer than 3 points, or all on a line). The hull (monotone
+    chain), its clipping by the box (Sutherland–Hodgman) and the areas (shoelace) are one compiled
+    call, :func:`_hull_iou_kernel`; coordinates are taken relative to the box centre.
     """
-    from scipy.spatial import ConvexHull, QhullError
-    from shapely.geometry import Polygon
-
     y = g.validate_box(box)
     pts = _hull_candidates(_clean_points(points, 2))
     if len(pts) < 3:
         return 0.0
-    try:
-        hull = ConvexHull(pts)
-    except QhullError:
-        return 0.0  # collinear or coincident points
-    hull_poly = Polygon(pts[hull.vertices])
-    box_poly = Polygon(g.box_corners(y, "bev"))
-    inter = hull_poly.intersection(box_poly).area
-    union = hull_poly.area + box_poly.area - inter
-    return float(inter / union) if union > 0 else 0.0
+    local = pts - y[:2]
+    order = np.lexsort((local[:, 1], local[:, 0]))  # by x, then y
+    corners = g.box_corners(y, "bev") - y[:2]  # counter-clockwise
+    return float(_hull_iou_kernel(np.ascontiguousarray(local[order]), np.ascontiguousarray(corners)))
+
+
+@numba.njit(cache=True)
+def _cross(o0, o1, a0, a1, b0, b1):  # pragma: no cover - compiled
+    """z of (a − o) × (b − o): > 0 when o → a → b turns left."""
+    return (a0 - o0) * (b1 - o1) - (a1 - o1) * (b0 - o0)
+
+
+@numba.njit(cache=True)
+def _shoelace(poly, m):  # pragma: no cover - compiled
+    s = 0.0
+    for i in range(m):
+        j = (i + 1) % m
+        s += poly[i, 0] * poly[j, 1] - poly[j, 0] * poly[i, 1]
+    return 0.5 * s
+
+
+@numba.njit(cache=True)
+def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
+    """IoU of the convex hull of ``pts`` (N, 2), sorted by x then y, and the convex polygon
+    ``corners`` (4, 2), counter-clockwise; 0.0 when the hull has no area."""
+    n = pts.shape[0]
+    hull = np.empty((2 * n + 1, 2))
+    k = 0
+    for i in range(n):  # lower hull; collinear and repeated points are dropped (≤ 0)
+        while k >= 2 and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0:
+            k -= 1
+        hull[k, 0], hull[k, 1] = pts[i, 0], pts[i, 1]
+        k += 1
+    lower = k + 1
+    for i in range(n - 2, -1, -1):  # upper hull
+        while k >= lower and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0:
+            k -= 1
+        hull[k, 0], hull[k, 1] = pts[i, 0], pts[i, 1]
+        k += 1
+    m = k - 1  # the last point repeats the first
+    if m < 3:
+        return 0.0
+    hull_area = _shoelace(hull, m)
+    if not hull_area > 0.0:
+        return 0.0
+    poly = hull[:m].copy()
+    for e in range(4):  # clip by each edge of the box: keep the left side (inside, on the edge)
+        a0, a1 = corners[e, 0], corners[e, 1]
+        b0, b1 = corners[(e + 1) % 4, 0], corners[(e + 1) % 4, 1]
+        out = np.empty((2 * m + 2, 2))
+        q = 0
+        for i in range(m):
+            p0, p1 = poly[i - 1, 0], poly[i - 1, 1]  # i − 1 = −1: the last vertex
+            c0, c1 = poly[i, 0], poly[i, 1]
+            sp = _cross(a0, a1, b0, b1, p0, p1)
+            sc = _cross(a0, a1, b0, b1, c0, c1)
+            if (sc >= 0.0) != (sp >= 0.0):  # the edge p → c crosses the line: add the crossing
+                t = sp / (sp - sc)
+                out[q, 0], out[q, 1] = p0 + t * (c0 - p0), p1 + t * (c1 - p1)
+                q += 1
+            if sc >= 0.0:
+                out[q, 0], out[q, 1] = c0, c1
+                q += 1
+        poly = out[:q].copy()
+        m = q
+        if m < 3:
+            return 0.0
+    inter = max(_shoelace(poly, m), 0.0)
+    union = hull_area + _shoelace(corners, 4) - inter
+    return inter / union if union > 0.0 else 0.0
 
 
 def _hull_candidates(pts: FloatArray) -> FloatArray:

@@ -467,6 +467,25 @@ def test_fit_without_z_is_bev():
     assert fit.label_error > 0.5
 
 
+def test_hull_iou_equals_qhull_and_shapely():
+    """The compiled hull/clip/area equals the SciPy (Qhull) hull intersected by Shapely."""
+    from scipy.spatial import ConvexHull
+    from shapely.geometry import Polygon
+
+    rng = np.random.default_rng(11)
+    for trial in range(200):
+        box = np.array([rng.uniform(-40, 40), rng.uniform(-40, 40), 0.8, rng.uniform(1, 8), rng.uniform(0.5, 3), 1.5, rng.uniform(-4, 4)])
+        n = int(rng.integers(3, 150))
+        spread = [0.5, 0.7, 1.5][trial % 3]  # inside, around, mostly outside the box
+        pts = g.unit_to_world(rng.uniform(-spread, spread, (n, 3)) + [0.4 * (trial % 2), 0, 0], box, "3d")
+        xy = pts[:, :2]
+        hull = Polygon(xy[ConvexHull(xy).vertices])
+        rect = Polygon(g.box_corners(box, "bev"))
+        inter = hull.intersection(rect).area
+        expected = inter / (hull.area + rect.area - inter)
+        assert M.hull_iou(box, pts) == pytest.approx(expected, rel=1e-10, abs=1e-12), trial
+
+
 def test_hull_iou_baseline():
     rng = np.random.default_rng(0)
     inside = g.unit_to_world(rng.uniform(-0.5, 0.5, (500, 2)), CAR, "bev")
