@@ -413,3 +413,12 @@ def test_the_label_error_fit_gets_the_wider_crop(fake_core, monkeypatch):
     narrow = RunConfig(classes=("Car",), crop=replace(RunConfig().crop, fit_margin=RunConfig().crop.margin))
     process_frame(frame, narrow)
     assert seen["Car", 10] == (200, 200)
+
+
+def test_worker_warmup_runs_the_audit() -> None:
+    """The fork server's warm-up (constants.WORKER_PRELOAD) really audits an object, in both models."""
+    from labelaudit import constants
+    from labelaudit.worker_warmup import warm_up
+
+    assert "labelaudit.worker_warmup" in constants.WORKER_PRELOAD
+    warm_up(strict=True)
