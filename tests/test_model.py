@@ -606,3 +606,11 @@ def test_plane_rows_break_ties_like_the_nearest_face_registration(model):
     w = np.sum(a * u, axis=1) / np.sum(u * u, axis=1)
     assert np.allclose(a, w[:, None] * u, atol=1e-9) and np.all(w > 0)
     assert np.allclose(sqd, reg.sqdist[:, 0])
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_unchecked_phi_equals_geometry(model):
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        y = np.r_[rng.normal(0, 20, 3), rng.uniform(0.3, 8, 3), rng.uniform(-7, 7)]
+        assert np.array_equal(M._box_to_phi_valid(y, model), g.box_to_phi(y, model))
