@@ -1224,7 +1224,7 @@ def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
 def _hull_candidates(pts: FloatArray) -> FloatArray:
     """The points (N, 2) that can be convex-hull vertices (Akl–Toussaint): a point strictly inside
     the quadrilateral of the extreme points in x and y is inside the hull and is dropped. Exact;
-    dense boxes keep a few percent of their points, so Qhull gets little to do."""
+    dense boxes keep a few percent of their points, so the hull gets little to do."""
     if len(pts) < 8:
         return pts
     x, y = pts[:, 0], pts[:, 1]
