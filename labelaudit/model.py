@@ -769,26 +769,26 @@ def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: Mode
     return forms[int(np.argmin(cost))]
 
 
-def _rect_from_phi(phi: FloatArray, model: ModelKind, label: FloatArray) -> FloatArray:
-    """Rectangle (7,) of a φ (mean axis direction); sizes kept ≥ a fraction of the label's.
+@numba.njit(cache=True)
+def _rect_from_phi(phi, three_d, label, floor):  # pragma: no cover - compiled
+    """Rectangle (7,) of a φ (mean axis direction); sizes kept ≥ ``floor`` × the label's.
 
     Equals ``geometry.phi_to_box`` (then the size floor), in scalar arithmetic: it runs once per
-    fit iteration on 8 numbers, where NumPy's per-call overhead would dominate.
+    fit iteration on 8 numbers, inside the compiled fit loop (:func:`_fit_iterate_kernel`).
     """
-    o = 1 if model == "3d" else 0
-    lc, ls, wc, ws = (float(v) for v in phi[2 + o : 6 + o])
+    o = 1 if three_d else 0
+    lc, ls, wc, ws = phi[2 + o], phi[3 + o], phi[4 + o], phi[5 + o]
     a, b = math.atan2(ls, lc), math.atan2(ws, wc)
     two_pi = 2.0 * math.pi
     yaw = (a + 0.5 * ((b - a + math.pi) % two_pi - math.pi) + math.pi) % two_pi - math.pi
-    cz, height = (float(phi[2]), float(phi[7])) if o else (float(label[2]), float(label[5]))
-    floor = C.FIT_MIN_SIZE_FRACTION
-    return np.array([
-        float(phi[0]), float(phi[1]), cz,
-        max(math.hypot(lc, ls), floor * float(label[3])),
-        max(math.hypot(wc, ws), floor * float(label[4])),
-        max(height, floor * float(label[5])),
-        yaw,
-    ])
+    cz, height = (phi[2], phi[7]) if three_d else (label[2], label[5])
+    out = np.empty(7)
+    out[0], out[1], out[2] = phi[0], phi[1], cz
+    out[3] = max(math.hypot(lc, ls), floor * label[3])
+    out[4] = max(math.hypot(wc, ws), floor * label[4])
+    out[5] = max(height, floor * label[5])
+    out[6] = yaw
+    return out
 
 
 def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -931,6 +931,64 @@ def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray) ->
     return _normal_eq_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, phi)
 
 
+@numba.njit(cache=True)
+def _solve_spd(M, rhs):  # pragma: no cover - compiled
+    """x with M x = rhs for a small symmetric positive definite M (p, p): Cholesky, two
+    triangular substitutions (scalars only; a LAPACK call from here would need scipy)."""
+    p = M.shape[0]
+    L = np.zeros((p, p))
+    for j in range(p):
+        acc = M[j, j]
+        for k in range(j):
+            acc -= L[j, k] * L[j, k]
+        L[j, j] = math.sqrt(acc)  # NaN when M is not positive definite: the fit then reports NaN
+        for i in range(j + 1, p):
+            acc = M[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / L[j, j]
+    z = np.empty(p)
+    for i in range(p):
+        acc = rhs[i]
+        for k in range(i):
+            acc -= L[i, k] * z[k]
+        z[i] = acc / L[i, i]
+    x = np.empty(p)
+    for i in range(p - 1, -1, -1):
+        acc = z[i]
+        for k in range(i + 1, p):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+    return x
+
+
+@numba.njit(cache=True)
+def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, tol, P0, prior_eta, label, inv_s2, floor, max_iter):  # pragma: no cover - compiled
+    d = 3 if three_d else 2
+    p, n = phi.shape[0], pts_t.shape[1]
+    a = np.empty((p, n))
+    b = np.empty(n)
+    sqd = np.empty(n)
+    phi_prev = phi.copy()
+    it = 0
+    for it in range(1, max_iter + 1):
+        _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, a, b, sqd)
+        ata, atb, _ = _gram_kernel(a, b, phi)
+        precision = P0 + ata * inv_s2
+        new = _solve_spd(0.5 * (precision + precision.T), prior_eta + atb * inv_s2)
+        step = np.max(np.abs(new - phi))
+        if it >= 3 and step >= tol and np.all(new == phi_prev):
+            # φ_it = φ_(it−2): the states alternate up to the cap. End on the cap's state.
+            if (max_iter - it) % 2 == 0:
+                phi = new
+            return phi, _rect_from_phi(phi, three_d, label, floor), max_iter, False
+        phi_prev, phi = phi, new
+        y_cur = _rect_from_phi(phi, three_d, label, floor)
+        if step < tol:
+            return phi, y_cur, it, True
+    return phi, y_cur, it, False
+
+
 def _fit_iterate(
     y_cur: FloatArray,
     phi: FloatArray,
@@ -948,25 +1006,16 @@ def _fit_iterate(
     The iterations only need the mean (a linear solve). When the iteration has entered an exact
     2-cycle (a point flipping between two faces, so that φ repeats bit for bit), it can never
     converge: the state the iteration cap would end on is known, and is returned without running
-    the remaining iterations.
+    the remaining iterations. The whole loop — point pass, Gram product, the p × p solve and the
+    rectangle of φ — is one compiled call (:func:`_fit_iterate_kernel`): per iteration, the NumPy
+    calls around the point pass cost as much as the pass itself.
     """
-    d = g.point_dim(model)
-    it = 0
-    phi_prev = None
-    for it in range(1, C.FIT_MAX_ITERATIONS + 1):
-        ata, atb, _, _ = _fit_normal_eq(y_cur, pts, d, phi)
-        precision = P0 + ata * inv_s2
-        new = np.linalg.solve(0.5 * (precision + precision.T), prior_eta + atb * inv_s2)
-        step = float(np.max(np.abs(new - phi)))
-        if it >= 3 and step >= tol and np.array_equal(new, phi_prev):
-            # φ_it = φ_(it−2): the states alternate up to the cap. End on the cap's state.
-            phi = phi if (C.FIT_MAX_ITERATIONS - it) % 2 == 1 else new
-            return phi, _rect_from_phi(phi, model, label), C.FIT_MAX_ITERATIONS, False
-        phi_prev, phi = phi, new
-        y_cur = _rect_from_phi(phi, model, label)
-        if step < tol:
-            return phi, y_cur, it, True
-    return phi, y_cur, it, False
+    phi, y_cur, it, converged = _fit_iterate_kernel(
+        np.asarray(y_cur, dtype=float), np.asarray(phi, dtype=float), pts, model == "3d",
+        C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, float(tol), P0, prior_eta,
+        np.asarray(label, dtype=float), float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS,
+    )
+    return phi, y_cur, int(it), bool(converged)
 
 
 def _fit_em(

@@ -614,3 +614,32 @@ def test_unchecked_phi_equals_geometry(model):
     for _ in range(50):
         y = np.r_[rng.normal(0, 20, 3), rng.uniform(0.3, 8, 3), rng.uniform(-7, 7)]
         assert np.array_equal(M._box_to_phi_valid(y, model), g.box_to_phi(y, model))
+
+
+def test_compiled_spd_solve_matches_numpy():
+    # the fit's p × p solve (Cholesky) against LAPACK's LU, on badly scaled SPD systems like a
+    # fit's precision (prior + σ⁻² Σ a aᵀ, entries from ~1 to ~1e6)
+    rng = np.random.default_rng(4)
+    for p in (6, 8):
+        for _ in range(200):
+            A = rng.normal(size=(p, 3 * p)) * rng.uniform(0.01, 100, size=(p, 1))
+            P = A @ A.T + np.diag(rng.uniform(0.1, 10, p))
+            rhs = rng.normal(size=p) * 100
+            x = M._solve_spd(P, rhs)
+            ref = np.linalg.solve(P, rhs)
+            assert np.allclose(x, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+    assert np.all(np.isnan(M._solve_spd(-np.eye(6), np.ones(6))))  # not positive definite
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_fit_rectangle_of_phi_equals_geometry(model):
+    rng = np.random.default_rng(5)
+    label = np.array([1.0, 2.0, -0.5, 4.2, 1.8, 1.5, 0.3])
+    for _ in range(200):
+        y = np.r_[rng.normal(0, 20, 3), rng.uniform(0.3, 8, 3), rng.uniform(-np.pi, np.pi)]
+        phi = g.box_to_phi(y, model)
+        rect = M._rect_from_phi(phi, model == "3d", label, 1e-3)
+        ref = g.phi_to_box(phi, model, cz=label[2], height=label[5])
+        assert np.allclose(rect, ref, rtol=1e-12, atol=1e-12)
+    tiny = g.box_to_phi(np.r_[label[:3], 1e-9, 1e-9, 1e-9, 0.2], model)  # collapsed sizes are floored
+    assert np.allclose(M._rect_from_phi(tiny, model == "3d", label, 1e-3)[3:5], 1e-3 * label[3:5])
