@@ -90,7 +90,8 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
 
     Returns
     -------
-    rows : one dict per audited box (columns of :data:`labelaudit.results.SCHEMA`); boxes of
+    rows : one dict per audited box, normalised (:func:`labelaudit.results.normalize_row`: every
+        column of :data:`labelaudit.results.SCHEMA`, plain Python values, NaN as None); boxes of
         other classes are left out, boxes outside the length range get status ``skipped``, a
         box whose inference raised gets status ``error`` and the exception in ``message``.
     notes : frame warnings (level ``warning``) as rows of the errors table
@@ -103,6 +104,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     origin = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
     selected = [i for i, name in enumerate(frame.class_names) if wants_class(cfg, name)]
     rows: dict[int, dict[str, Any]] = {}
+    final: set[int] = set()  # indices whose row is already normalised
     to_audit: list[int] = []
     for i in selected:
         box = frame.boxes[i]
@@ -140,12 +142,12 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             points = frame.points[idx]
             try:
                 result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin, fit_points=frame.points[fit_idx])
-                R.normalize_row({**row, **result})  # values the schema cannot hold fail here, per object
+                # values the schema cannot hold fail here, per object; the row is final after this
+                rows[i] = R.normalize_row({**row, **result})
+                final.add(i)
             except Exception as exc:  # one bad object never sinks the frame (DESIGN.md §9)
                 row.update(status="error", message=f"{type(exc).__name__}: {exc}", num_points=len(idx))
-                continue
-            row.update(result)
-    return [rows[i] for i in selected], notes
+    return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
 
 
 # --------------------------------------------------------------------------- layer 2: one chunk
@@ -227,7 +229,7 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
             if task.debug:
                 raise
             errors.append(_frame_note(None, ref.key, f"{type(exc).__name__} while reading {ref.key}: {exc}"))
-    table = R.rows_to_table(rows)
+    table = R.rows_to_table(rows, normalized=True)  # process_frame's rows are normalised
     return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start)
 
 

@@ -170,9 +170,13 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None) -> pa.Table:
-    """Build the objects table from row dicts, sorted by (frame_id, object_index) for reproducibility."""
-    clean = sorted((normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"]))
+def rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None, *, normalized: bool = False) -> pa.Table:
+    """Build the objects table from row dicts, sorted by (frame_id, object_index) for reproducibility.
+
+    ``normalized=True``: the rows already come from :func:`normalize_row` (as
+    ``pipeline.process_frame``'s do), so they are not coerced a second time.
+    """
+    clean = sorted(rows if normalized else (normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"]))
     table = pa.Table.from_pylist(clean, schema=SCHEMA)
     return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
 
