@@ -438,25 +438,24 @@ def _em(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier
     sigma = max(float(start) if outlier_prob == 0 else float(sigma0), C.SIGMA_FLOOR)
     # With one-hot responsibilities the first M-step returns the start: then one step suffices.
     estimate = float(start) if outlier_prob == 0 else np.nan
-    # Without outliers the responsibilities of a point sum to 1 and only exp(−(d² − min d²)/2σ²)
-    # changes with σ: precompute those differences, candidates as rows (M, N) — the same sums as
-    # _responsibilities with a few contiguous operations per iteration.
-    fast = outlier_prob == 0 and all(np.all(np.isfinite(sqd[:, 0])) for sqd, _, _ in regs) and all(sqd.shape[1] for sqd, _, _ in regs)
+    fast = (
+        outlier_prob == 0
+        and all(np.all(np.isfinite(sqd[:, 0])) for sqd, _, _ in regs)
+        and all(sqd.shape[1] for sqd, _, _ in regs)
+        and len({sqd.shape[1] for sqd, _, _ in regs}) == 1
+    )
     if fast:
-        rows = [(np.ascontiguousarray((sqd - np.min(sqd, axis=1, keepdims=True)).T), np.ascontiguousarray(sqd0.T)) for sqd, sqd0, _ in regs]
+        # Without outliers the responsibilities of a point sum to 1 and only exp(−(d² − min d²)/2σ²)
+        # changes with σ: the candidate differences, as rows (M, N), go to one compiled loop.
+        diff = np.concatenate([(sqd - np.min(sqd, axis=1, keepdims=True)).T for sqd, _, _ in regs], axis=1)
+        sq = np.concatenate([sqd0.T for _, sqd0, _ in regs], axis=1)
+        return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
     for _ in range(C.EM_MAX_ITERATIONS):
         num = den = 0.0
-        if fast:
-            scale = -0.5 / sigma**2
-            for diff, sq in rows:
-                e = np.exp(diff * scale)  # (M, N); missing candidates (inf) give 0
-                num += float(np.sum(np.sum(e * sq, axis=0) / np.sum(e, axis=0)))
-                den += C.EM_RESIDUAL_DOF * diff.shape[1]
-        else:
-            for sqd, sqd0, log_density in regs:
-                r = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
-                num += float(np.sum(r * sqd0))
-                den += C.EM_RESIDUAL_DOF * float(np.sum(r))
+        for sqd, sqd0, log_density in regs:
+            r = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
+            num += float(np.sum(r * sqd0))
+            den += C.EM_RESIDUAL_DOF * float(np.sum(r))
         if den <= 0:
             return float("nan")
         new = float(np.sqrt(num / den))
@@ -465,6 +464,34 @@ def _em(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier
         if converged or num == 0.0:
             break
         sigma = max(new, C.SIGMA_FLOOR)
+    return estimate
+
+
+@numba.njit(cache=True)
+def _em_fast_kernel(diff, sq, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
+    """The EM of :func:`_em` without outliers: candidate differences d² − min d² and squared
+    distances as rows (M, N); per point the responsibility-weighted d² over its candidates."""
+    m, n = diff.shape
+    den = dof * n
+    for _ in range(max_iter):
+        scale = -0.5 / sigma**2
+        num = 0.0
+        for k in range(n):
+            se = 0.0
+            s = 0.0
+            for j in range(m):
+                e = math.exp(diff[j, k] * scale)  # missing candidates (inf) give 0
+                se += e
+                s += e * sq[j, k]
+            num += s / se
+        if den <= 0:
+            return math.nan
+        new = math.sqrt(num / den)
+        converged = math.isfinite(estimate) and abs(new - estimate) <= tol * max(estimate, floor)
+        estimate = new
+        if converged or num == 0.0:
+            break
+        sigma = max(new, floor)
     return estimate
 
 
