@@ -674,7 +674,7 @@ def infer_label(
     pts = _clean_points(points, d)
     n = pts.shape[0]
     prior = params.prior_for(class_name)
-    phi = g.box_to_phi(y, model)
+    phi = _box_to_phi_valid(y, model)
     G = g.dphi_dext(y, model)
     E = np.linalg.inv(G)
     P0 = _prior_precision_from(E, prior, params.prior_weight, model)
@@ -767,8 +767,8 @@ class LabelFit:
 
 
 def _box_to_phi_valid(y: FloatArray, model: ModelKind) -> FloatArray:
-    """:func:`geometry.box_to_phi` of a box (7,) float64 known to be valid (the fit's own
-    rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost
+    """:func:`geometry.box_to_phi` of a box (7,) float64 known to be valid (labels
+    after ``validate_box``, the fit's own rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost
     more than φ itself at a dozen calls per fit."""
     cx, cy, cz, length, width, height, yaw = y
     c, s = np.cos(yaw), np.sin(yaw)
@@ -1137,7 +1137,7 @@ def fit_label(
     pts = _clean_points(arr, d)
     n = pts.shape[0]
     prior = params.prior_for(class_name)
-    phi_label = g.box_to_phi(y, model)
+    phi_label = _box_to_phi_valid(y, model)
     G = g.dphi_dext(y, model)
     P0 = _prior_precision_from(np.linalg.inv(G), prior, params.prior_weight, model)
     tol = ClassPrior(**C.LABEL_TOLERANCE)
@@ -1163,7 +1163,7 @@ def fit_label(
 
     W = _scored_metric(cov + S_tol, model, scored)
     y_fit = _closest_form(y_rect, phi_label, W, model)
-    phi_rect = g.box_to_phi(y_fit, model)
+    phi_rect = _box_to_phi_valid(y_fit, model)
     delta = phi_label - phi_rect
     d2_tol = float(delta @ W @ delta)
     d2 = float(delta @ _scored_metric(cov, model, scored) @ delta)
