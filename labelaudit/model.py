@@ -913,8 +913,9 @@ def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
-def _gram_kernel(a, b, phi):  # pragma: no cover - compiled
-    """a aᵀ (p, p), a b (p,) and ‖aᵀφ − b‖² for rows a (p, N): dot products of contiguous rows.
+def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
+    """a aᵀ (p, p), a b (p,) and ‖aᵀφ − b‖² (0 unless ``with_residual``: the fit's iterations do
+    not need it) for rows a (p, N): dot products of contiguous rows.
     Reassociation only (no other fast-math), so the sums vectorise; the result differs from the
     sequential sums by rounding alone. No BLAS: its threads oversubscribe the cores of a worker pool."""
     p, n = a.shape
@@ -932,6 +933,8 @@ def _gram_kernel(a, b, phi):  # pragma: no cover - compiled
             acc += a[i, k] * b[k]
         atb[i] = acc
     rr = 0.0
+    if not with_residual:
+        return ata, atb, rr
     for k in range(n):
         r = -b[k]
         for i in range(p):
@@ -947,7 +950,7 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, phi):  # pragma: no 
     b = np.empty(n)
     sqd = np.empty(n)
     _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd)
-    ata, atb, rr = _gram_kernel(a, b, phi)
+    ata, atb, rr = _gram_kernel(a, b, phi, True)
     return ata, atb, rr, sqd.sum()
 
 
@@ -1000,7 +1003,7 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, tol
     it = 0
     for it in range(1, max_iter + 1):
         _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, a, b, sqd)
-        ata, atb, _ = _gram_kernel(a, b, phi)
+        ata, atb, _ = _gram_kernel(a, b, phi, False)
         precision = P0 + ata * inv_s2
         new = _solve_spd(0.5 * (precision + precision.T), prior_eta + atb * inv_s2)
         step = np.max(np.abs(new - phi))
