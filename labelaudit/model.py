@@ -33,7 +33,6 @@ __all__ = [
     "LabelPosterior",
     "Registration",
     "linear_gaussian_posterior",
-    "surface_candidates",
     "register",
     "registration_information",
     "prior_cov_extended",
@@ -148,48 +147,6 @@ class Registration:
     points: FloatArray
 
 
-def surface_candidates(local: ArrayLike, half: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """Nearest point on every face of an axis-aligned box centred at 0.
-
-    Parameters
-    ----------
-    local : (N, d) points in the box frame (metres).
-    half : (d,) half sizes.
-
-    Returns
-    -------
-    cand : (N, 2d, d) nearest point on each face (faces ordered -x, +x, -y, +y[, -z, +z]).
-    sqdist : (N, 2d) squared distances.
-    """
-    local = np.asarray(local, dtype=float)
-    half = np.asarray(half, dtype=float)
-    n, d = local.shape
-    clamped = np.clip(local, -half, half)
-    cand = np.repeat(clamped[:, None, :], 2 * d, axis=1)
-    for a in range(d):
-        cand[:, 2 * a, a] = -half[a]
-        cand[:, 2 * a + 1, a] = half[a]
-    sqdist = np.sum((local[:, None, :] - cand) ** 2, axis=-1)
-    return cand, sqdist
-
-
-def _nearest_distinct(local: FloatArray, half: FloatArray, cand: FloatArray, sqdist: FloatArray, m: int) -> tuple[FloatArray, FloatArray]:
-    """Keep the m nearest *distinct* face candidates per point (reference for :func:`_nearest_faces`).
-
-    Two faces give the same candidate exactly when the point lies outside (or on) both of them:
-    then both clamp to the same edge/corner point. Of the faces a point is outside of, only the
-    first is kept.
-    """
-    n, f, d = cand.shape
-    outside = np.empty((n, f), dtype=bool)
-    tol = 1e-9 * float(np.max(half))  # points on an edge up to round-off count as on both faces
-    outside[:, 0::2] = local <= -half + tol
-    outside[:, 1::2] = local >= half - tol
-    sqdist = np.where(outside & (np.cumsum(outside, axis=1) > 1), np.inf, sqdist)
-    order = np.argsort(sqdist, axis=1, kind="stable")[:, :m]
-    return np.take_along_axis(cand, order[:, :, None], axis=1), np.take_along_axis(sqdist, order, axis=1)
-
-
 def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: float, outlier_log_density: float) -> FloatArray:
     """r_km ∝ exp(−d²/2σ²) over the M candidates, plus an optional uniform outlier component."""
     if sqdist.size == 0:
@@ -251,8 +208,8 @@ def _register(y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: f
 
 def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatArray, FloatArray]:
     """The m nearest distinct face candidates of every point, as unit coordinates (N, m, d) and
-    squared distances (N, m), nearest first — :func:`surface_candidates` + :func:`_nearest_distinct`
-    without forming the (N, 2d, d) candidate array.
+    squared distances (N, m), nearest first, without forming the (N, 2d, d) array of all face
+    candidates (tests/test_model.py keeps that plain form as the reference).
 
     The nearest point on face (a, ±) is the clamped point with coordinate a set to ±half_a, so its
     squared distance is Σ_{j≠a} excess_j² + (x_a ∓ half_a)², excess = x − clamp(x). Faces a point

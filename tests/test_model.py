@@ -527,6 +527,48 @@ def test_plane_rows_are_design_matrix_rows_along_the_normal(model):
     assert np.allclose(sqd, reg.sqdist[:, 0])
 
 
+def _surface_candidates(local: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest point on every face of an axis-aligned box centred at 0.
+
+    Parameters
+    ----------
+    local : (N, d) points in the box frame (metres).
+    half : (d,) half sizes.
+
+    Returns
+    -------
+    cand : (N, 2d, d) nearest point on each face (faces ordered -x, +x, -y, +y[, -z, +z]).
+    sqdist : (N, 2d) squared distances.
+    """
+    local = np.asarray(local, dtype=float)
+    half = np.asarray(half, dtype=float)
+    n, d = local.shape
+    clamped = np.clip(local, -half, half)
+    cand = np.repeat(clamped[:, None, :], 2 * d, axis=1)
+    for a in range(d):
+        cand[:, 2 * a, a] = -half[a]
+        cand[:, 2 * a + 1, a] = half[a]
+    sqdist = np.sum((local[:, None, :] - cand) ** 2, axis=-1)
+    return cand, sqdist
+
+
+def _nearest_distinct(local: np.ndarray, half: np.ndarray, cand: np.ndarray, sqdist: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the m nearest *distinct* face candidates per point (reference for ``model._nearest_faces``).
+
+    Two faces give the same candidate exactly when the point lies outside (or on) both of them:
+    then both clamp to the same edge/corner point. Of the faces a point is outside of, only the
+    first is kept.
+    """
+    n, f, d = cand.shape
+    outside = np.empty((n, f), dtype=bool)
+    tol = 1e-9 * float(np.max(half))  # points on an edge up to round-off count as on both faces
+    outside[:, 0::2] = local <= -half + tol
+    outside[:, 1::2] = local >= half - tol
+    sqdist = np.where(outside & (np.cumsum(outside, axis=1) > 1), np.inf, sqdist)
+    order = np.argsort(sqdist, axis=1, kind="stable")[:, :m]
+    return np.take_along_axis(cand, order[:, :, None], axis=1), np.take_along_axis(sqdist, order, axis=1)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_fast_nearest_faces_match_the_reference(d):
     rng = np.random.default_rng(5)
@@ -534,8 +576,8 @@ def test_fast_nearest_faces_match_the_reference(d):
     local = rng.uniform(-1.5, 1.5, (400, d)) * half
     local[:20] = np.sign(local[:20]) * half  # exactly on edges / corners
     for m in range(1, 2 * d + 1):
-        cand, sqd = M.surface_candidates(local, half)
-        ref_c, ref_d = M._nearest_distinct(local, half, cand, sqd, m)
+        cand, sqd = _surface_candidates(local, half)
+        ref_c, ref_d = _nearest_distinct(local, half, cand, sqd, m)
         vstar, fast_d = M._nearest_faces(local, half, m)
         assert np.array_equal(np.isinf(fast_d), np.isinf(ref_d))
         fin = np.isfinite(ref_d)
