@@ -101,13 +101,50 @@ class RunConfig:
         return d
 
     def param_hash(self) -> str:
-        """Stable hash of all parameters (sha256 of canonical JSON, first 16 hex digits)."""
-        blob = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+        """Stable hash of everything that can change a row (sha256 of canonical JSON, 16 hex digits).
+
+        It covers the resolved parameters (:meth:`to_dict`), the digest of the fixed numbers
+        (:func:`constants_digest`), the results schema version and the package version, so a
+        results folder is never resumed by a run that would compute other rows.
+        """
+        return _digest(hash_inputs(self))
 
     def with_overrides(self, **kw: Any) -> "RunConfig":
         """Copy with top-level fields replaced (``model=``, ``classes=`` …)."""
         return replace(self, **kw)
+
+
+def constants_digest() -> str:
+    """Digest of every fixed number of :mod:`labelaudit.constants` and of the stored Sobol samples.
+
+    All upper-case names of the constants module enter it (a constant that cannot change a row
+    only costs a needless re-run when it changes; a forgotten one would mix models in a folder).
+    """
+    from labelaudit.spatial import SAMPLE_TABLE
+
+    values = {name: getattr(C, name) for name in dir(C) if name.isupper()}
+    blob = json.dumps(values, sort_keys=True, default=repr, separators=(",", ":"))
+    h = hashlib.sha256(blob.encode())
+    h.update(SAMPLE_TABLE.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def hash_inputs(cfg: RunConfig) -> dict[str, Any]:
+    """What :meth:`RunConfig.param_hash` hashes; the manifest records each part, so a refused
+    resume can say which one differs."""
+    from labelaudit import SCHEMA_VERSION, __version__
+
+    return {
+        "params": cfg.to_dict(),
+        "constants_digest": constants_digest(),
+        "schema_version": SCHEMA_VERSION,
+        "tool_version": __version__,
+    }
+
+
+def _digest(data: Mapping[str, Any]) -> str:
+    blob = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def _check_keys(section: Mapping[str, Any], allowed: set[str], where: str, source: str) -> None:

@@ -35,7 +35,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from labelaudit import constants as C
-from labelaudit.config import ConfigError, RunConfig, load_config, CONFIG_DIR
+from labelaudit.config import CONFIG_DIR, ConfigError, RunConfig, hash_inputs, load_config
 from labelaudit.datasets import DatasetError, FORMATS, Frame, FrameRef, detect_format, open_dataset
 from labelaudit import results as R
 
@@ -532,18 +532,9 @@ def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -
         for name in (R.ERRORS_FILE, R.MANIFEST_NAME):
             (output / name).unlink(missing_ok=True)
     elif manifest is not None:
-        checks = [
-            ("param_hash", "parameters", "--config/--classes/--model"),
-            ("schema_version", "results schema version", "the labelaudit version"),
-            ("input", "input dataset", "DATASET"),
-            ("format", "dataset format", "--format"),
-        ]
-        for key, what, knob in checks:
-            if manifest.get(key) != metadata.get(key):
-                raise InferError(
-                    f"{output}: holds results for another {what} ({key} {manifest.get(key)!r}, now {metadata.get(key)!r}); "
-                    f"pass --overwrite to replace them, or another -o/--output (or restore {knob})"
-                )
+        why = R.resume_mismatch(manifest, metadata)
+        if why is not None:
+            raise InferError(f"{output}: cannot resume: {why}; pass --overwrite to replace these results, or choose another -o/--output")
     output.mkdir(parents=True, exist_ok=True)
     R.remove_temp_files(output)
 
@@ -586,7 +577,10 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     if not refs:
         raise InferError(f"{dataset}: no frames found (format {fmt}{', split ' + request.split if request.split else ''})")
 
-    metadata = R.run_metadata(cfg.to_dict(), cfg.param_hash(), str(dataset.resolve()), fmt, split=request.split, limit=request.limit)
+    inputs = hash_inputs(cfg)
+    metadata = R.run_metadata(
+        inputs["params"], cfg.param_hash(), str(dataset.resolve()), fmt, constants_digest=inputs["constants_digest"], split=request.split, limit=request.limit
+    )
     output = Path(request.output)
     check_output_folder(output)
     with output_lock(output):

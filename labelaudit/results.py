@@ -212,6 +212,45 @@ def run_metadata(params: Mapping[str, Any], param_hash: str, input_path: str, da
     }
 
 
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, Mapping):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def resume_mismatch(manifest: Mapping[str, Any], metadata: Mapping[str, Any]) -> str | None:
+    """Why a results folder (its ``manifest``) cannot be resumed by a run of ``metadata``; None if it can.
+
+    The versions are compared first and on their own: a folder written by another labelaudit or
+    schema version is never resumed into, whatever its hash says. Then the fixed numbers
+    (``constants_digest``), the parameters (naming the keys that differ), the input, and last
+    the hash itself (which covers all of them).
+    """
+    for key, what in (("tool_version", "labelaudit version"), ("schema_version", "results schema version")):
+        if manifest.get(key) != metadata.get(key):
+            return f"written by {what} {manifest.get(key)!r}, running {metadata.get(key)!r}"
+    if manifest.get("constants_digest") != metadata.get("constants_digest"):
+        return (
+            f"computed with other model constants (constants_digest {manifest.get('constants_digest')!r}, "
+            f"now {metadata.get('constants_digest')!r}: labelaudit/constants.py or its data changed)"
+        )
+    old, new = _flatten(manifest.get("params", {})), _flatten(metadata.get("params", {}))
+    differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    if differ:
+        shown = "; ".join(f"{k} {old.get(k)!r} → {new.get(k)!r}" for k in differ[:5])
+        more = f" and {len(differ) - 5} more" if len(differ) > 5 else ""
+        return f"computed with other parameters ({shown}{more}; set by --config/--classes/--model)"
+    for key, what in (("input", "input dataset (DATASET)"), ("format", "dataset format (--format)")):
+        if manifest.get(key) != metadata.get(key):
+            return f"holds results for another {what}: {manifest.get(key)!r}, now {metadata.get(key)!r}"
+    if manifest.get("param_hash") != metadata.get("param_hash"):
+        return f"parameter hash {manifest.get('param_hash')!r} differs from this run's {metadata.get('param_hash')!r}"
+    return None
+
+
 def _encode_metadata(metadata: Mapping[str, Any]) -> dict[bytes, bytes]:
     return {METADATA_KEY: json.dumps(metadata, sort_keys=True).encode()}
 

@@ -200,12 +200,51 @@ def test_resume_refuses_other_parameters_unless_overwrite(fake_core, sim_kitti, 
     out = tmp_path / "res"
     _run(sim_kitti, out)
     other = replace(RunConfig(), classes=("Car",))
-    with pytest.raises(InferError, match="another parameters.*--overwrite"):
+    with pytest.raises(InferError, match="other parameters.*classes.*--overwrite"):
         _run(sim_kitti, out, other)
     summary = _run(sim_kitti, out, other, overwrite=True)
     assert summary.chunks_skipped == 0
     assert {r["class_name"] for r in _rows(out)} == {"Car"}
     assert R.read_manifest(out)["param_hash"] == other.param_hash()
+
+
+def test_resume_refuses_a_changed_model_constant(fake_core, sim_kitti, tmp_path, monkeypatch):
+    from labelaudit import constants as C
+
+    out = tmp_path / "res"
+    _run(sim_kitti, out)
+    before = RunConfig().param_hash()
+    monkeypatch.setattr(C, "FIT_TOLERANCE", C.FIT_TOLERANCE / 2)  # an upgrade that changes label_error
+    assert RunConfig().param_hash() != before
+    with pytest.raises(InferError, match="cannot resume: computed with other model constants.*--overwrite"):
+        _run(sim_kitti, out)
+    monkeypatch.setattr(C, "LABEL_TOLERANCE", {**C.LABEL_TOLERANCE, "yaw": 0.5})
+    with pytest.raises(InferError, match="other model constants"):
+        _run(sim_kitti, out)
+
+
+@pytest.mark.parametrize("key, value, what", [("tool_version", "0.0.1", "labelaudit version"), ("schema_version", "0", "results schema version")])
+def test_resume_refuses_another_version_whatever_the_hash(fake_core, sim_kitti, tmp_path, key, value, what):
+    out = tmp_path / "res"
+    _run(sim_kitti, out)
+    manifest = R.read_manifest(out)
+    R.write_json_atomic({**manifest, key: value}, out / R.MANIFEST_NAME)  # same param_hash, other version
+    with pytest.raises(InferError, match=f"cannot resume: written by {what} '{value}'"):
+        _run(sim_kitti, out)
+    _run(sim_kitti, out, overwrite=True)
+    assert R.read_manifest(out)[key] != value
+
+
+def test_param_hash_covers_versions_and_constants(monkeypatch):
+    import labelaudit
+    from labelaudit import constants as C
+
+    base = RunConfig().param_hash()
+    monkeypatch.setattr(labelaudit, "__version__", "99.0")
+    assert RunConfig().param_hash() != base
+    monkeypatch.undo()
+    monkeypatch.setattr(C, "EM_MAX_ITERATIONS", C.EM_MAX_ITERATIONS + 1)
+    assert RunConfig().param_hash() != base
 
 
 def test_output_folder_that_is_not_results_is_refused(fake_core, sim_kitti, tmp_path):
