@@ -15,15 +15,12 @@ from pathlib import Path
 from typing import Any, Literal, Mapping
 
 from labelaudit import constants as C
+from labelaudit.errors import ConfigError
 
 ModelKind = Literal["bev", "3d"]
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 """Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
-
-
-class ConfigError(ValueError):
-    """A configuration file or value is invalid; the message names the file, key and expectation."""
 
 
 @dataclass(frozen=True)
@@ -46,7 +43,7 @@ def default_priors() -> dict[str, ClassPrior]:
 class ModelParams:
     """Parameters of the generative label model (DESIGN.md §4)."""
 
-    model: ModelKind = C.DEFAULT_MODEL
+    kind: ModelKind = C.DEFAULT_MODEL  # "bev" or "3d": which φ (and which rows of the fit) the model uses
     sigma: float = C.DEFAULT_SIGMA
     estimate_sigma: bool = False
     num_nearest: int = C.DEFAULT_NUM_NEAREST
@@ -120,7 +117,7 @@ def constants_digest() -> str:
     All upper-case names of the constants module enter it (a constant that cannot change a row
     only costs a needless re-run when it changes; a forgotten one would mix models in a folder).
     """
-    from labelaudit.spatial import SAMPLE_TABLE
+    from labelaudit.core.spatial import SAMPLE_TABLE
 
     values = {name: getattr(C, name) for name in dir(C) if name.isupper()}
     blob = json.dumps(values, sort_keys=True, default=repr, separators=(",", ":"))
@@ -218,8 +215,8 @@ def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", datas
         raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {classes!r}")
 
     model_kw = _build(ModelParams, data.get("model", {}), "model", source, skip={"priors"})
-    if "model" in model_kw and model_kw["model"] not in ("bev", "3d"):
-        raise ConfigError(f"{source}: [model] model must be 'bev' or '3d', got {model_kw['model']!r}")
+    if "kind" in model_kw and model_kw["kind"] not in ("bev", "3d"):
+        raise ConfigError(f"{source}: [model] kind must be 'bev' or '3d', got {model_kw['kind']!r}")
     priors = default_priors()
     for cls_name, section in data.get("prior", {}).items():
         kw = _build(ClassPrior, section, f"prior.{cls_name}", source)

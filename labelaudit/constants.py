@@ -81,12 +81,12 @@ SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a
 SIM_MAX_TRUNCATION = 0.9  # objects whose 2D box is truncated more than this are outside the camera FOV (not labelled)
 SIM_MAX_LABEL_OCCLUSION = 0.9  # objects with more of their LiDAR rays blocked than this are not labelled (unseen)
 
-# --- product loop: infer / results (labelaudit.pipeline) ---
+# --- product loop: infer / results (labelaudit.infer) ---
 DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`
 CHUNK_UNITS = {"kitti": 16, "waymo-v2": 1, "waymo-v1": 1}  # most units per shard: 16 KITTI frames, 1 Waymo segment (~200 frames)
 TARGET_CHUNKS = 32  # small runs are cut into about this many chunks (≥ 1 unit each) so workers stay balanced
 POOL_START_METHOD = "forkserver"  # workers fork from a clean, single-threaded server (not from the busy main process)
-WORKER_PRELOAD = ("labelaudit.pipeline", "labelaudit.crop", "labelaudit.audit", "scipy.stats", "labelaudit.worker_warmup")  # imported once in the fork server: ~4 s saved per worker (worker_warmup: compiled kernels, ~0.5 s more)
+WORKER_PRELOAD = ("labelaudit.infer.run", "labelaudit.infer.crop", "labelaudit.infer.rows", "scipy.stats", "labelaudit.infer.warmup")  # imported once in the fork server: ~4 s saved per worker (worker_warmup: compiled kernels, ~0.5 s more)
 DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)
 DEFAULT_RANK_TOP = 20  # rows shown by `labelaudit rank`
 DEMO_FRAMES = 12  # simulated frames of `labelaudit demo`: a few hundred objects, seconds on 2 cores

@@ -1,4 +1,4 @@
-"""Threshold evaluation for ``labelaudit check`` — a CI gate on label quality (DESIGN.md §8).
+"""Threshold evaluation for ``labelaudit check`` — a CI gate on label quality (docs/ci-gate.md).
 
 A gate file is TOML with a ``[default]`` table (rules for every class) and optional
 ``[class.<Name>]`` tables that override single keys for one class::
@@ -202,7 +202,7 @@ class GateReport:
         )
         for r in self.results:
             case = ET.SubElement(suite, "testcase", classname=f"labelaudit.check.{r.scope}", name=r.rule)
-            text = f"{r.rule} = {_fmt(r.value)} (must be {r.comparison} {_fmt(r.threshold)}; {r.objects} objects){' — ' + r.note if r.note else ''}"
+            text = f"{r.rule} = {format_number(r.value)} (must be {r.comparison} {format_number(r.threshold)}; {r.objects} objects){' — ' + r.note if r.note else ''}"
             if r.status == "fail":
                 ET.SubElement(case, "failure", message=text, type="threshold")
             elif r.status == "error":
@@ -214,7 +214,8 @@ class GateReport:
         return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(suites, encoding="unicode") + "\n"
 
 
-def _fmt(v: float | None) -> str:
+def format_number(v: float | None) -> str:
+    """A rule value or threshold as shown in reports: whole numbers without decimals, else 4 digits."""
     if v is None:
         return "n/a"
     return f"{int(v)}" if float(v).is_integer() and abs(v) >= 1 else f"{v:.4g}"
@@ -261,7 +262,7 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
                 value = float(np.median(values))
             else:
                 value = float(np.mean(values < rules["jiou_gt_threshold"]))
-                note = f"below {_fmt(rules['jiou_gt_threshold'])}"
+                note = f"below {format_number(rules['jiou_gt_threshold'])}"
         elif rule == "max_fraction_label_error_above":
             values = _finite(lerr[evaluated])
             count = len(values)
@@ -269,7 +270,7 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
                 out.append(RuleResult(name, rule, None, thr, "skip", 0, "inactive: no label_error yet"))
                 continue
             value = float(np.mean(values > rules["label_error_threshold"]))
-            note = f"above {_fmt(rules['label_error_threshold'])}"
+            note = f"above {format_number(rules['label_error_threshold'])}"
         if value is None:
             out.append(RuleResult(name, rule, None, thr, "error", count, note or "could not be evaluated"))
         else:

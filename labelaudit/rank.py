@@ -1,7 +1,8 @@
-"""Ranking queries for ``labelaudit rank``: the worst labels first, filtered, as rows or text.
+"""Ranking queries for ``labelaudit rank``: the worst labels first, filtered, as rows, JSON or CSV.
 
 Reads only the columns a query needs through :mod:`pyarrow.dataset`, sorts, keeps the top N and
-only then fetches their full rows, so it stays fast on millions of objects.
+only then fetches their full rows, so it stays fast on millions of objects. Machine formats (JSON,
+CSV) are made here; the Rich table is the CLI's (:mod:`labelaudit.cli.tables`). No printing.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import re
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.dataset as pads
@@ -192,39 +192,6 @@ def to_csv(table: pa.Table) -> str:
     return buf.getvalue()
 
 
-def summarize(results: Results) -> dict[str, Any]:
-    """Counts by status, median JIoU-GT per class and failed frames (for the end-of-run summary)."""
-    t = results.read(["class_name", "status", "jiou_gt"])
-    status = np.asarray(t.column("status").to_pylist(), dtype=object)
-    classes = np.asarray(t.column("class_name").to_pylist(), dtype=object)
-    jiou = t.column("jiou_gt").to_numpy(zero_copy_only=False).astype(float)
-    by_status = {s: int(np.sum(status == s)) for s in R.STATUSES if np.any(status == s)}
-    per_class = {}
-    for name in sorted(set(classes.tolist())):
-        v = jiou[(classes == name) & np.isfinite(jiou)]
-        per_class[name] = {"objects": int(np.sum(classes == name)), "median_jiou_gt": float(np.median(v)) if len(v) else None}
-    return {"objects": t.num_rows, "by_status": by_status, "classes": per_class, "failed_frames": results.failed_frames()}
-
-
-def display_columns(table: pa.Table, by: str) -> list[str]:
-    """Columns shown in the Rich table of ``rank`` (``by`` always included; empty optional ones dropped)."""
-    base = ["frame_id", "object_index", "class_name", "status", "num_points", "distance", "jiou_gt", "label_error", "sigma_hat"]
-    cols = [c for c in base if c in table.schema.names]
-    cols = [c for c in cols if c in ("frame_id", "object_index", "class_name", "status") or c == by or table.column(c).null_count < table.num_rows]
-    if by not in cols:
-        cols.append(by)
-    return cols
-
-
-def format_cell(value: Any) -> str:
-    """Short text for a table cell."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "–"
-    if isinstance(value, float):
-        return f"{value:.3f}"
-    return str(value)
-
-
 __all__: Sequence[str] = [
     "RankQuery",
     "RankResult",
@@ -232,6 +199,5 @@ __all__: Sequence[str] = [
     "to_json",
     "to_csv",
     "to_records",
-    "summarize",
     "default_descending",
 ]

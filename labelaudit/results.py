@@ -18,9 +18,11 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -29,6 +31,8 @@ import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
 from labelaudit import SCHEMA_VERSION, __version__
+from labelaudit.core.geometry import BOX_FIELDS
+from labelaudit.errors import InferError, ResultsError
 
 MANIFEST_NAME = "manifest.json"
 OBJECTS_DIR = "objects"
@@ -41,68 +45,80 @@ STATUSES = ("ok", "few_points", "no_points", "skipped", "error")
 """Per-object status values: inferred with ≥ min_points / with fewer / with none; not audited
 because the box is outside the configured length range; inference raised (see ``message``)."""
 
-BOX_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw")
+BOX_COLUMNS = BOX_FIELDS  # the 7 box parameters, in the order of a box array
 STD_COLUMNS = tuple(f"std_{c}" for c in BOX_COLUMNS)
 
-# (name, type, nullable, unit, description) — the single definition of the results table.
-# docs/results-schema.md documents the same list; tests/test_results.py checks they agree.
-COLUMNS: tuple[tuple[str, pa.DataType, bool, str, str], ...] = (
-    ("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2 or waymo-v1"),
-    ("frame_id", pa.string(), False, "", "frame id (KITTI '000123', Waymo '<segment>:<timestamp>')"),
-    ("object_index", pa.int32(), False, "", "position of the box among the frame's labels (0-based, DontCare excluded)"),
-    ("object_id", pa.string(), False, "", "Waymo laser_object_id, else '<frame_id>:<object_index>'"),
-    ("class_name", pa.string(), False, "", "class as written by the dataset"),
-    ("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre)"),
-    ("cy", pa.float64(), False, "m", "box centre y"),
-    ("cz", pa.float64(), False, "m", "box centre z"),
-    ("length", pa.float64(), False, "m", "box length (along the heading)"),
-    ("width", pa.float64(), False, "m", "box width"),
-    ("height", pa.float64(), False, "m", "box height"),
-    ("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)"),
-    ("distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre"),
-    ("num_points", pa.int32(), True, "", "LiDAR points cropped for the box (after margin and ground cut); null when skipped"),
-    ("status", pa.string(), False, "", "ok | few_points | no_points | skipped | error"),
-    ("message", pa.string(), True, "", "why the status is skipped or error; null otherwise"),
-    ("sigma", pa.float64(), True, "m", "LiDAR noise std σ used by the model"),
-    ("jiou_gt", pa.float64(), True, "", "JIoU between the labeled box and its spatial distribution; 1 = no uncertainty"),
-    ("label_error", pa.float64(), True, "", "how likely the label is wrong (higher = worse); null until computed"),
-    ("sigma_hat", pa.float64(), True, "m", "per-object RMS fit residual of the points to the box (EM σ̂); null with < 2 points"),
-    ("fit_offset_m", pa.float64(), True, "m", "distance between the labeled box and the model's fitted box; null until computed"),
-    ("corner_tv", pa.list_(pa.float64()), True, "m²", "total variance of the 4 BEV corners, nearest to the sensor first (C1..C4)"),
-    ("std_cx", pa.float64(), True, "m", "posterior std of cx"),
-    ("std_cy", pa.float64(), True, "m", "posterior std of cy"),
-    ("std_cz", pa.float64(), True, "m", "posterior std of cz (null for the BEV model)"),
-    ("std_length", pa.float64(), True, "m", "posterior std of the length"),
-    ("std_width", pa.float64(), True, "m", "posterior std of the width"),
-    ("std_height", pa.float64(), True, "m", "posterior std of the height (null for the BEV model)"),
-    ("std_yaw", pa.float64(), True, "rad", "posterior std of the yaw"),
-    ("cov", pa.list_(pa.float64()), True, "SI", "posterior covariance of φ, row-major cov_dim × cov_dim"),
-    ("cov_dim", pa.int32(), True, "", "dimension of φ: 6 (BEV) or 8 (3D)"),
-    ("model", pa.string(), False, "", "bev or 3d"),
+
+class Column(NamedTuple):
+    """One column of the objects table."""
+
+    name: str
+    type: pa.DataType
+    nullable: bool
+    unit: str
+    description: str
+    source: str  # who fills it: identity / box (infer.rows from the Frame), model (audit_object), row, extra (Frame.extras)
+
+
+# The single definition of the results table. docs/results-schema.md documents the same list;
+# tests/test_results.py checks they agree.
+COLUMNS: tuple[Column, ...] = (
+    Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2 or waymo-v1", "identity"),
+    Column("frame_id", pa.string(), False, "", "frame id (KITTI '000123', Waymo '<segment>:<timestamp>')", "identity"),
+    Column("object_index", pa.int32(), False, "", "position of the box among the frame's labels (0-based, DontCare excluded)", "identity"),
+    Column("object_id", pa.string(), False, "", "Waymo laser_object_id, else '<frame_id>:<object_index>'", "identity"),
+    Column("class_name", pa.string(), False, "", "class as written by the dataset", "identity"),
+    Column("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre)", "box"),
+    Column("cy", pa.float64(), False, "m", "box centre y", "box"),
+    Column("cz", pa.float64(), False, "m", "box centre z", "box"),
+    Column("length", pa.float64(), False, "m", "box length (along the heading)", "box"),
+    Column("width", pa.float64(), False, "m", "box width", "box"),
+    Column("height", pa.float64(), False, "m", "box height", "box"),
+    Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
+    Column("distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre", "box"),
+    Column("num_points", pa.int32(), True, "", "LiDAR points cropped for the box (after margin and ground cut); null when skipped", "model"),
+    Column("status", pa.string(), False, "", "ok | few_points | no_points | skipped | error", "model"),
+    Column("message", pa.string(), True, "", "why the status is skipped or error; null otherwise", "row"),
+    Column("sigma", pa.float64(), True, "m", "LiDAR noise std σ used by the model", "model"),
+    Column("jiou_gt", pa.float64(), True, "", "JIoU between the labeled box and its spatial distribution; 1 = no uncertainty", "model"),
+    Column("label_error", pa.float64(), True, "", "how likely the label is wrong (higher = worse); null until computed", "model"),
+    Column("sigma_hat", pa.float64(), True, "m", "per-object RMS fit residual of the points to the box (EM σ̂); null with < 2 points", "model"),
+    Column("fit_offset_m", pa.float64(), True, "m", "distance between the labeled box and the model's fitted box; null until computed", "model"),
+    Column("corner_tv", pa.list_(pa.float64()), True, "m²", "total variance of the 4 BEV corners, nearest to the sensor first (C1..C4)", "model"),
+    Column("std_cx", pa.float64(), True, "m", "posterior std of cx", "model"),
+    Column("std_cy", pa.float64(), True, "m", "posterior std of cy", "model"),
+    Column("std_cz", pa.float64(), True, "m", "posterior std of cz (null for the BEV model)", "model"),
+    Column("std_length", pa.float64(), True, "m", "posterior std of the length", "model"),
+    Column("std_width", pa.float64(), True, "m", "posterior std of the width", "model"),
+    Column("std_height", pa.float64(), True, "m", "posterior std of the height (null for the BEV model)", "model"),
+    Column("std_yaw", pa.float64(), True, "rad", "posterior std of the yaw", "model"),
+    Column("cov", pa.list_(pa.float64()), True, "SI", "posterior covariance of φ, row-major cov_dim × cov_dim", "model"),
+    Column("cov_dim", pa.int32(), True, "", "dimension of φ: 6 (BEV) or 8 (3D)", "model"),
+    Column("model", pa.string(), False, "", "bev or 3d", "model"),
     # Diagnostics of the core beyond the paper (DESIGN.md §6); null when the core does not report them.
-    ("fit_cx", pa.float64(), True, "m", "centre x of the box the model fits to the points (its suggested box)"),
-    ("fit_cy", pa.float64(), True, "m", "centre y of the suggested box"),
-    ("fit_cz", pa.float64(), True, "m", "centre z of the suggested box (null when not fitted in 3D)"),
-    ("fit_length", pa.float64(), True, "m", "length of the suggested box"),
-    ("fit_width", pa.float64(), True, "m", "width of the suggested box"),
-    ("fit_height", pa.float64(), True, "m", "height of the suggested box (null when not fitted in 3D)"),
-    ("fit_yaw", pa.float64(), True, "rad", "yaw of the suggested box"),
-    ("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)"),
-    ("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)"),
+    Column("fit_cx", pa.float64(), True, "m", "centre x of the box the model fits to the points (its suggested box)", "model"),
+    Column("fit_cy", pa.float64(), True, "m", "centre y of the suggested box", "model"),
+    Column("fit_cz", pa.float64(), True, "m", "centre z of the suggested box (null when not fitted in 3D)", "model"),
+    Column("fit_length", pa.float64(), True, "m", "length of the suggested box", "model"),
+    Column("fit_width", pa.float64(), True, "m", "width of the suggested box", "model"),
+    Column("fit_height", pa.float64(), True, "m", "height of the suggested box (null when not fitted in 3D)", "model"),
+    Column("fit_yaw", pa.float64(), True, "rad", "yaw of the suggested box", "model"),
+    Column("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)", "model"),
+    Column("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)", "model"),
     # KITTI extras (null for other formats)
-    ("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]"),
-    ("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)"),
-    ("difficulty", pa.string(), True, "", "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown"),
-    ("label_line", pa.int32(), True, "", "1-based line of the box in its KITTI label file"),
+    Column("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]", "extra"),
+    Column("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)", "extra"),
+    Column("difficulty", pa.string(), True, "", "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown", "extra"),
+    Column("label_line", pa.int32(), True, "", "1-based line of the box in its KITTI label file", "extra"),
     # Waymo extras (null for KITTI)
-    ("num_lidar_points_in_box", pa.int32(), True, "", "Waymo's own point count of the box (all lidars), to compare with num_points"),
-    ("detection_difficulty", pa.int32(), True, "", "Waymo detection difficulty level (0 unknown, 1 LEVEL_1, 2 LEVEL_2)"),
-    ("tracking_difficulty", pa.int32(), True, "", "Waymo tracking difficulty level"),
-    ("speed_x", pa.float64(), True, "m/s", "Waymo object speed along x (vehicle frame)"),
-    ("speed_y", pa.float64(), True, "m/s", "Waymo object speed along y"),
+    Column("num_lidar_points_in_box", pa.int32(), True, "", "Waymo's own point count of the box (all lidars), to compare with num_points", "extra"),
+    Column("detection_difficulty", pa.int32(), True, "", "Waymo detection difficulty level (0 unknown, 1 LEVEL_1, 2 LEVEL_2)", "extra"),
+    Column("tracking_difficulty", pa.int32(), True, "", "Waymo tracking difficulty level", "extra"),
+    Column("speed_x", pa.float64(), True, "m/s", "Waymo object speed along x (vehicle frame)", "extra"),
+    Column("speed_y", pa.float64(), True, "m/s", "Waymo object speed along y", "extra"),
 )
 
-SCHEMA = pa.schema([pa.field(n, t, nullable=nullable) for n, t, nullable, _, _ in COLUMNS])
+SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=c.nullable) for c in COLUMNS])
 """Arrow schema of the objects table (one row per labeled box)."""
 
 COLUMN_NAMES: tuple[str, ...] = tuple(SCHEMA.names)
@@ -110,6 +126,12 @@ FLOAT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_floating(t))
 INT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_integer(t))
 LIST_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_list(t))
 NUMERIC_COLUMNS = FLOAT_COLUMNS | INT_COLUMNS
+IDENTITY_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS if c.source == "identity")
+"""dataset, frame_id, object_index, object_id, class_name: what names an object."""
+KEY_COLUMNS = ("frame_id", "object_index")
+"""The key of a row: joins with the dataset's labels (object_index = position in the frame's labels)."""
+MODEL_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS if c.source == "model")
+"""The keys :func:`labelaudit.infer.rows.audit_object` returns (status, scores, covariance, fit …)."""
 KITTI_EXTRA_COLUMNS = ("truncated", "occluded", "difficulty", "label_line")
 WAYMO_EXTRA_COLUMNS = ("num_lidar_points_in_box", "detection_difficulty", "tracking_difficulty", "speed_x", "speed_y")
 EXTRA_COLUMNS = KITTI_EXTRA_COLUMNS + WAYMO_EXTRA_COLUMNS
@@ -126,10 +148,6 @@ ERRORS_SCHEMA = pa.schema(
     ]
 )
 """Arrow schema of ``errors.parquet``: one row per failed frame (or per warning about a frame)."""
-
-
-class ResultsError(ValueError):
-    """A results folder is missing, unreadable or incompatible; the message names the path and the fix."""
 
 
 # --------------------------------------------------------------------------- rows → Arrow
@@ -413,3 +431,109 @@ def open_results(path: str | Path) -> Results:
         return Results(root, dataset, manifest)
     except (pa.ArrowInvalid, OSError) as exc:
         raise ResultsError(f"{root}: unreadable results ({exc}); rerun `labelaudit infer --overwrite`") from None
+
+
+# --------------------------------------------------------------------------- writing: lock and resume
+
+
+def is_whole_parquet(path: Path) -> bool:
+    """Whether ``path`` is a complete Parquet file (its footer reads)."""
+    try:
+        pq.read_metadata(path)
+        return True
+    except Exception:
+        return False
+
+
+LOCK_NAME = ".labelaudit.lock"
+"""Lock file of a results folder while ``infer`` writes to it (holds the writer's pid)."""
+
+
+def check_output_folder(output: Path) -> None:
+    """Refuse a path that is a file, or a non-empty folder that is not a results folder."""
+    if output.exists() and not output.is_dir():
+        raise InferError(f"{output}: exists and is not a folder; choose another -o/--output")
+    if output.is_dir() and not (output / MANIFEST_NAME).exists() and any(p.name != LOCK_NAME for p in output.iterdir()):
+        raise InferError(
+            f"{output}: folder is not empty and has no {MANIFEST_NAME} (not a labelaudit results folder); "
+            "choose a new or empty -o/--output"
+        )
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+@contextmanager
+def output_lock(output: Path) -> Iterator[None]:
+    """Hold ``output/.labelaudit.lock`` for the duration of a run.
+
+    A second ``infer`` on the same folder stops with :class:`InferError` instead of interleaving
+    shards; a lock left by a killed run (its pid is gone) is taken over. Same-machine only.
+    """
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / LOCK_NAME
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                pid = int(path.read_text().strip() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid and pid != os.getpid() and _pid_alive(pid):
+                raise InferError(f"{output}: another labelaudit infer (pid {pid}) is writing to this folder; wait for it or choose another -o/--output") from None
+            path.unlink(missing_ok=True)  # stale: its writer is gone
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        break
+    else:
+        raise InferError(f"{output}: cannot take the lock {path}")
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -> None:
+    """Create, reset (``--overwrite``) or check for resume a results folder.
+
+    Raises
+    ------
+    InferError
+        The folder is not a results folder, or holds results of other parameters / another input
+        (unless ``overwrite``).
+    """
+    check_output_folder(output)
+    manifest = read_manifest(output) if output.is_dir() else None
+    if manifest is not None and overwrite:
+        for sub in (OBJECTS_DIR, ERRORS_DIR):
+            if (output / sub).is_dir():
+                shutil.rmtree(output / sub)
+        for name in (ERRORS_FILE, MANIFEST_NAME):
+            (output / name).unlink(missing_ok=True)
+    elif manifest is not None:
+        why = resume_mismatch(manifest, metadata)
+        if why is not None:
+            raise InferError(f"{output}: cannot resume: {why}; pass --overwrite to replace these results, or choose another -o/--output")
+    output.mkdir(parents=True, exist_ok=True)
+    remove_temp_files(output)
+
+
+def read_results(path: str | Path, columns: Sequence[str] | None = None) -> pa.Table:
+    """The objects table of a results folder (or one Parquet file) as one Arrow table.
+
+    Shorthand for ``open_results(path).read(columns)``; missing optional columns come back as nulls.
+
+    Examples
+    --------
+    >>> table = read_results("results/", ["frame_id", "object_index", "jiou_gt"])  # doctest: +SKIP
+    """
+    return open_results(path).read(columns)

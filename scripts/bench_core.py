@@ -17,10 +17,11 @@ import time
 
 import numpy as np
 
-from labelaudit import geometry as g
+from labelaudit.core import geometry as g
 from labelaudit.config import ModelParams, SpatialParams, load_config
-from labelaudit.model import fit_label, infer_label
-from labelaudit.spatial import jiou_gt
+from labelaudit.core.fit import fit_label
+from labelaudit.core.posterior import infer_label
+from labelaudit.core.spatial import jiou_gt
 
 
 def points_on_faces(box, faces, n, noise, rng):

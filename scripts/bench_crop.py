@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 
 from labelaudit.config import CropParams
-from labelaudit.crop import crop_frame, points_in_boxes_numpy
+from labelaudit.infer.crop import crop_frame, points_in_boxes_numpy
 from labelaudit.datasets.kitti import KittiReader
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "openpcdet-pr653-kitti"

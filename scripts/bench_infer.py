@@ -26,8 +26,9 @@ from pathlib import Path
 def _read_and_crop(refs_and_cfg: tuple) -> tuple[int, int]:
     """Worker of the floor: read + crop only, return (frames, boxes)."""
     refs, cfg = refs_and_cfg
-    from labelaudit.crop import crop_frame
-    from labelaudit.pipeline import _reader, wants_class
+    from labelaudit.infer.crop import crop_frame
+    from labelaudit.infer.rows import wants_class
+    from labelaudit.infer.run import _reader
 
     frames = boxes = 0
     for ref in refs:
@@ -47,10 +48,11 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None, help="reuse (or create) the simulated dataset here")
     args = ap.parse_args()
 
-    from labelaudit.pipeline import InferRequest, PoolExecutor, chunk_size_for, plan_chunks, resolve_config, run_infer
+    from labelaudit.executors import PoolExecutor
+    from labelaudit.infer.run import chunk_size_for, InferRequest, plan_chunks, resolve_config, run_infer
     from labelaudit.datasets import open_dataset
     from labelaudit.sim.noise import NoiseSpec
-    from labelaudit.simulate import simulate_dataset
+    from labelaudit.sim.dataset import simulate_dataset
 
     tmp = tempfile.TemporaryDirectory(prefix="bench-infer-")
     data = args.data or Path(tmp.name) / "sim"
@@ -105,7 +107,7 @@ def main() -> None:
     # serial cost per object on a sample, after a warm-up frame (imports, caches)
     sample = refs[1 : 1 + max(1, min(len(refs) - 1, 16))]
     _read_and_crop((refs[:1], cfg))
-    from labelaudit.pipeline import ChunkTask, process_chunk
+    from labelaudit.infer.run import ChunkTask, process_chunk
 
     process_chunk(ChunkTask("warm", tuple(refs[:1]), cfg))
     t = time.perf_counter()

@@ -4,7 +4,7 @@
 1. Simulate ``--frames`` KITTI-format frames with the issue-6 label noise
    (``NoiseSpec.benchmark()``: 20 % of vehicle labels jittered — centre N(0, 0.3 m) per axis, size
    N(0, 0.2 m), yaw N(0, 0.1 rad) — plus 2 % gross errors: 1 m shift, l/w swap, 90° yaw).
-2. Run the real pipeline (``labelaudit.pipeline.run_infer``, built-in KITTI config) into a
+2. Run the real pipeline (``labelaudit.infer.run.run_infer``, built-in KITTI config) into a
    results folder.
 3. Join the rows to ``manifest.parquet`` on (frame_id, object_index); positive = perturbation ≠ none.
 4. Print AUROC and precision at the top 5 % for ``label_error``, ``1 − jiou_gt``, ``−num_points``
@@ -37,9 +37,10 @@ import numpy as np
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
-from labelaudit.evaluation_metrics import RankingRow, bin_index, ranking_table
-from labelaudit.pipeline import InferRequest, process_frame, resolve_config, run_infer
-from labelaudit.simulate import NoiseSpec, SceneSpec, simulate_dataset
+from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
+from labelaudit.infer.rows import process_frame
+from labelaudit.infer.run import InferRequest, resolve_config, run_infer
+from labelaudit.sim.dataset import NoiseSpec, SceneSpec, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_REAL = REPO.parent / "shared" / "realdata" / "openpcdet-pr653-kitti"

@@ -21,7 +21,7 @@ import numpy as np
 
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import SceneSpec, sample_scene
-from labelaudit.simulate import NoiseSpec, frame_generators, simulate_dataset
+from labelaudit.sim.dataset import NoiseSpec, frame_generators, simulate_dataset
 
 
 def bench_raycast(frames: int, lidar: LidarSpec) -> None:
@@ -67,7 +67,7 @@ def _points_in_box(points: np.ndarray, box: np.ndarray) -> int:
 def realism(realdata: Path, frames: int) -> None:
     """Points inside unoccluded vehicle boxes by distance: real KITTI frames vs simulated ones."""
     from labelaudit.datasets.kitti import KittiReader
-    from labelaudit.simulate import simulate_frame
+    from labelaudit.sim.dataset import simulate_frame
 
     kitti = realdata / "openpcdet-pr653-kitti"
     rows: dict[str, list[tuple[float, int]]] = {"real": [], "sim": []}

@@ -18,7 +18,7 @@ import numpy as np
 
 from labelaudit.datasets import open_dataset
 from labelaudit.datasets.waymo_common import LidarData, frame_points
-from labelaudit.simulate_waymo import SIZES, simulate_waymo_segment, write_waymo_v1, write_waymo_v2
+from labelaudit.sim.waymo_writer import SIZES, simulate_waymo_segment, write_waymo_v1, write_waymo_v2
 
 
 def _time_reader(root: Path, fmt: str, repeat: int) -> tuple[float, int, int]:

@@ -1,6 +1,6 @@
 """Write labelaudit/data/normal_samples.npz: the default quasi-random normal samples of p_G.
 
-They are what ``labelaudit.spatial._generate_normal_samples`` (scipy.stats.qmc) returns for the
+They are what ``labelaudit.core.spatial._generate_normal_samples`` (scipy.stats.qmc) returns for the
 dimensions used (φ: 6 BEV, 8 3D; box parameters: 5 BEV, 7 3D) with the default sample count and
 seed; stored so worker processes do not import scipy.stats. tests/test_spatial.py checks equality.
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from labelaudit import constants as C
-from labelaudit.spatial import SAMPLE_TABLE, _generate_normal_samples
+from labelaudit.core.spatial import SAMPLE_TABLE, _generate_normal_samples
 
 
 def main() -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from labelaudit import geometry as g
+from labelaudit.core import geometry as g
 
 # unit-box coordinate fixed by each face: (axis, value)
 FACES = {"-x": (0, -0.5), "+x": (0, 0.5), "-y": (1, -0.5), "+y": (1, 0.5), "-z": (2, -0.5), "+z": (2, 0.5)}

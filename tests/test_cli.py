@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import io
 import json
 import xml.etree.ElementTree as ET
@@ -18,8 +17,6 @@ from labelaudit.cli import app
 from results_factory import make_results, make_row
 
 runner = CliRunner()
-HAVE_CORE = importlib.util.find_spec("labelaudit.audit") is not None
-needs_core = pytest.mark.skipif(not HAVE_CORE, reason="labelaudit.audit (core model, issue 2) not available yet")
 COMMANDS = ["infer", "rank", "check", "simulate", "demo"]
 
 
@@ -153,7 +150,7 @@ def test_infer_bad_inputs_exit_2_with_one_line(tmp_path):
 
 
 def test_infer_unknown_config_key_exit_2(tmp_path):
-    from labelaudit.simulate import simulate_dataset
+    from labelaudit.sim.dataset import simulate_dataset
 
     data = tmp_path / "data"
     simulate_dataset(data, frames=1, seed=0, progress=False)
@@ -172,7 +169,6 @@ def test_simulate_writes_a_kitti_dataset(tmp_path):
     assert invoke("simulate", out, "--frames", "0").exit_code == 2
 
 
-@needs_core
 @pytest.mark.slow
 def test_infer_rank_check_end_to_end_and_resume(tmp_path):
     r = invoke("simulate", tmp_path / "data", "--frames", "4", "--seed", "2", "--gross-fraction", "0.2", "-q")
@@ -197,7 +193,6 @@ def test_infer_rank_check_end_to_end_and_resume(tmp_path):
     assert r.exit_code == 0, r.output
 
 
-@needs_core
 @pytest.mark.slow
 def test_demo_runs_the_whole_loop(tmp_path):
     r = invoke("demo", tmp_path / "demo", "--frames", "4", "--workers", "1")

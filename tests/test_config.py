@@ -64,8 +64,10 @@ def test_wrong_type_and_range_are_errors(tmp_path):
         load_config(_write(tmp_path, '[model]\nsigma = "big"\n'))
     with pytest.raises(ConfigError, match="sigma must be > 0"):
         load_config(_write(tmp_path, "[model]\nsigma = 0.0\n"))
-    with pytest.raises(ConfigError, match="model must be"):
-        load_config(_write(tmp_path, '[model]\nmodel = "2d"\n'))
+    with pytest.raises(ConfigError, match="kind must be"):
+        load_config(_write(tmp_path, '[model]\nkind = "2d"\n'))
+    with pytest.raises(ConfigError, match="unknown key.*model.*expected one of.*kind"):  # the key's old name
+        load_config(_write(tmp_path, '[model]\nmodel = "3d"\n'))
     with pytest.raises(ConfigError, match="missing"):
         load_config(_write(tmp_path, "[prior.Car]\ncenter = 0.2\n"))
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from labelaudit.config import CropParams
-from labelaudit.crop import crop_frame, crop_frame_pair, points_in_boxes_numpy, refine_crop, selection_boxes
+from labelaudit.infer.crop import crop_frame, crop_frame_pair, points_in_boxes_numpy, refine_crop, selection_boxes
 from labelaudit.datasets.kitti import KittiReader, read_velodyne
 
 

@@ -24,7 +24,7 @@ from labelaudit.datasets.kitti import (
     read_velodyne,
     write_velodyne,
 )
-from labelaudit.geometry import rotation_z
+from labelaudit.core.geometry import rotation_z
 
 # Ideal KITTI-like mounting: camera x = −LiDAR y, camera y = −LiDAR z, camera z = LiDAR x, plus an
 # offset (the camera sits 0.27 m behind and 0.08 m below the LiDAR origin in camera coordinates).
@@ -395,7 +395,7 @@ def _camera_frame_counts(points: np.ndarray, labels, calib: Calibration, rows: n
 
 def test_real_boxes_hold_the_same_points_as_in_camera_frame(realdata: Path) -> None:
     """The converted LiDAR boxes select what the camera-frame boxes select (up to the ~0.3° tilt)."""
-    from labelaudit.crop import points_in_boxes_numpy
+    from labelaudit.infer.crop import points_in_boxes_numpy
 
     root = realdata / "openpcdet-pr653-kitti"
     reader = KittiReader(root)

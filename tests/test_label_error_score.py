@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from labelaudit import model as M
+from labelaudit.core import fit as LF
 from labelaudit.config import ModelParams
 
 from _core_synth import face_points
@@ -25,15 +25,15 @@ def test_bev_run_scores_the_bev_marginal_3d_run_scores_height():
     # Points on the seen faces and the roof: the 3D fit recovers a label 0.5 m too high.
     pts = face_points(CAR, ["-x", "-y", "+z", "-z"], 150, 0.03)
     too_high = _moved(cz=0.5)
-    bev = M.fit_label(too_high, pts, "Car", ModelParams(model="bev"))
-    full = M.fit_label(too_high, pts, "Car", ModelParams(model="3d"))
+    bev = LF.fit_label(too_high, pts, "Car", ModelParams(kind="bev"))
+    full = LF.fit_label(too_high, pts, "Car", ModelParams(kind="3d"))
     assert bev.offsets["cz"] == pytest.approx(-0.5, abs=0.05)  # the fit sees it either way …
     assert full.label_error > 0.99  # … a 3D audit flags it,
     assert bev.label_error < 0.1  # a BEV audit does not judge cz
     # a BEV error is flagged by both, and the BEV score is chi2 with 5 degrees of freedom
     shifted = _moved(cy=-0.4)
-    for params in (ModelParams(model="bev"), ModelParams(model="3d")):
-        assert M.fit_label(shifted, pts, "Car", params).label_error > 0.9
+    for params in (ModelParams(kind="bev"), ModelParams(kind="3d")):
+        assert LF.fit_label(shifted, pts, "Car", params).label_error > 0.9
     assert bev.label_error == pytest.approx(chi2.cdf(bev.tolerance_distance**2, 5))
     assert full.label_error == pytest.approx(chi2.cdf(full.tolerance_distance**2, 7))
 
@@ -42,7 +42,7 @@ def test_a_centre_shift_outweighs_the_same_size_change():
     # Same 15 cm offset of one face: as a centre shift of the whole box it weighs more than as a
     # size change (sizes have the wider tolerance: the fit sees them least well).
     pts = face_points(CAR, ["-x", "+x", "-y", "+y", "+z"], 150, 0.02)
-    centre = M.fit_label(_moved(cx=0.15), pts, "Car", ModelParams())
-    size = M.fit_label(_moved(length=0.15), pts, "Car", ModelParams())
-    exact = M.fit_label(CAR, pts, "Car", ModelParams())
+    centre = LF.fit_label(_moved(cx=0.15), pts, "Car", ModelParams())
+    size = LF.fit_label(_moved(length=0.15), pts, "Car", ModelParams())
+    exact = LF.fit_label(CAR, pts, "Car", ModelParams())
     assert exact.label_error < size.label_error < centre.label_error

@@ -1,4 +1,4 @@
-"""Ranking metrics of labelaudit.evaluation_metrics against known answers and brute force."""
+"""Ranking metrics of labelaudit.sim.benchmark against known answers and brute force."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from labelaudit.evaluation_metrics import (
+from labelaudit.sim.benchmark import (
     auroc,
     average_ranks,
     bin_index,

@@ -7,8 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from labelaudit import geometry as g
-from labelaudit import model as M
+from labelaudit.core import geometry as g
+from labelaudit.core import fit as LF
+from labelaudit.core import iou as IOU
+from labelaudit.core import posterior as M
 from labelaudit.config import ClassPrior, ModelParams
 
 from _core_synth import face_points, rigid_motion
@@ -171,7 +173,7 @@ def test_prior_covariance_and_precision_are_inverse_and_match_the_class_std():
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_zero_points_gives_the_prior(model):
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     post = M.infer_label(CAR, np.zeros((0, 3)), "Car", params)
     assert post.num_points == 0
     assert np.isnan(post.sigma_hat)
@@ -191,7 +193,7 @@ def _assert_spd(cov):
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_covariances_are_spd_and_finite_for_degenerate_inputs(model):
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     cases = {
         "normal": (CAR, face_points(CAR, ["-x", "-y"], 100, 0.03)),
         "one spot": (CAR, np.tile([[13.0, 4.0, 0.8]], (50, 1))),
@@ -223,7 +225,7 @@ def test_malformed_points_raise():
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_more_points_shrink_the_covariance(model):
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     few = M.infer_label(CAR, face_points(CAR, ["-x", "-y"], 5, 0.03), "Car", params)
     many = M.infer_label(CAR, face_points(CAR, ["-x", "-y"], 200, 0.03), "Car", params)
     assert np.trace(many.cov) < np.trace(few.cov) < np.trace(few.prior_cov)
@@ -238,7 +240,7 @@ def test_more_points_shrink_the_covariance(model):
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_l_shape_nearest_corner_has_least_variance(model):
     pts = face_points(CAR, ["-x", "-y"], 150, 0.03)  # the two faces the sensor at the origin sees
-    post = M.infer_label(CAR, pts, "Car", ModelParams(model=model))
+    post = M.infer_label(CAR, pts, "Car", ModelParams(kind=model))
     # C1 is the corner nearest the sensor: unit (−½, −½), index 2 in box_corners' order
     assert post.corner_order[0] == 2
     corners = g.box_corners(CAR, "bev")[post.corner_order]
@@ -250,7 +252,7 @@ def test_l_shape_nearest_corner_has_least_variance(model):
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_corner_tv_and_std_are_invariant_to_rigid_motion(model):
     pts = face_points(CAR, ["-x", "-y"], 80, 0.03)
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     base = M.infer_label(CAR, pts, "Car", params)
     for yaw, shift in ((0.9, (3.0, -7.0, 0.5)), (-2.5, (-40.0, 12.0, -1.0))):
         b2, p2, o2 = rigid_motion(CAR, pts, yaw, shift)
@@ -271,7 +273,7 @@ def test_em_recovers_the_noise_level(model):
         pts = face_points(CAR, ["-x", "-y", "+x", "+y"], 400, true, seed=7)
         est = M.estimate_sigma(CAR, pts, model)
         assert est == pytest.approx(true, rel=0.15)
-        post = M.infer_label(CAR, pts, "Car", ModelParams(model=model))
+        post = M.infer_label(CAR, pts, "Car", ModelParams(kind=model))
         assert post.sigma_hat == pytest.approx(est, rel=1e-3)
 
 
@@ -320,16 +322,17 @@ def test_unknown_class_uses_the_default_prior():
 # audit_object (the per-object entry point of the pipeline)
 # ---------------------------------------------------------------------------------------------
 
-from labelaudit.audit import MODEL_COLUMNS, audit_object  # noqa: E402
+from labelaudit.infer.rows import audit_object  # noqa: E402
+from labelaudit.results import MODEL_COLUMNS  # noqa: E402
 from labelaudit.config import load_config  # noqa: E402
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_audit_object_row(model):
     cfg = load_config(None, "kitti")
-    cfg = cfg.with_overrides(model=dataclasses.replace(cfg.model, model=model))
+    cfg = cfg.with_overrides(model=dataclasses.replace(cfg.model, kind=model))
     row = audit_object(CAR, face_points(CAR, ["-x", "-y"], 100, 0.03), "Car", cfg, (0.0, 0.0, 0.0))
-    assert set(MODEL_COLUMNS) <= set(row)
+    assert set(row) == set(MODEL_COLUMNS)  # a row's model columns are defined once, in labelaudit/results.py
     assert row["status"] == "ok" and row["num_points"] == 200
     assert row["model"] == model
     p = 6 if model == "bev" else 8
@@ -363,7 +366,7 @@ def test_audit_object_status_by_point_count():
 def test_moment_form_equals_the_generic_posterior(model):
     # infer_label builds Σ r JᵀJ from moments of v*; it must equal the generic posterior on J(v*).
     pts = face_points(CAR, ["-x", "-y", "+z"], 40, 0.05)
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     post = M.infer_label(CAR, pts, "Car", params)
     d = g.point_dim(model)
     reg = M.register(CAR, pts, model, num_nearest=params.num_nearest, sigma=params.sigma)
@@ -398,18 +401,18 @@ def _shifted(box, **delta):
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_label_error_orders_exact_slight_bad(model):
     pts = face_points(CAR, ["-x", "-y"], 150, 0.03)
-    params = ModelParams(model=model)
-    scores = [M.fit_label(b, pts, "Car", params).label_error for b in (CAR, _shifted(CAR, cx=0.15), _shifted(CAR, cx=0.5, cy=0.3))]
+    params = ModelParams(kind=model)
+    scores = [LF.fit_label(b, pts, "Car", params).label_error for b in (CAR, _shifted(CAR, cx=0.15), _shifted(CAR, cx=0.5, cy=0.3))]
     assert scores[0] < scores[1] < scores[2]
     assert scores[0] < 0.05 and scores[2] > 0.99
     for bad in (_shifted(CAR, yaw=0.15), _shifted(CAR, cy=-0.4)):
-        assert M.fit_label(bad, pts, "Car", params).label_error > 0.9
+        assert LF.fit_label(bad, pts, "Car", params).label_error > 0.9
 
 
 def test_suggested_box_recovers_a_known_perturbation():
     pts = face_points(CAR, ALL_SIDES, 200, 0.03, seed=1)
     label = _shifted(CAR, cx=0.3, cy=-0.2, cz=0.1, length=0.2, width=-0.1, height=0.1, yaw=0.05)
-    fit = M.fit_label(label, pts, "Car", ModelParams())
+    fit = LF.fit_label(label, pts, "Car", ModelParams())
     assert fit.converged
     assert np.allclose(fit.box[:6], CAR[:6], atol=0.03)
     assert abs(g.normalize_angle(fit.box[6] - CAR[6])) < 0.01
@@ -423,12 +426,12 @@ def test_sparse_correct_labels_are_not_false_alarms(n):
     rng = np.random.default_rng(n)
     for seed in range(10):
         pts = face_points(CAR, ["-x", "-y"], 10, 0.05, seed=seed)[rng.choice(20, n, replace=False)]
-        fit = M.fit_label(CAR, pts, "Car", ModelParams())
+        fit = LF.fit_label(CAR, pts, "Car", ModelParams())
         assert fit.label_error < 0.1
     # a sparse wrong label scores lower than the same error on a dense box: low confidence
     wrong = _shifted(CAR, cx=0.5, cy=0.3)
-    sparse = M.fit_label(wrong, face_points(CAR, ["-x", "-y"], 10, 0.05)[:n], "Car", ModelParams())
-    dense = M.fit_label(wrong, face_points(CAR, ["-x", "-y"], 100, 0.05), "Car", ModelParams())
+    sparse = LF.fit_label(wrong, face_points(CAR, ["-x", "-y"], 10, 0.05)[:n], "Car", ModelParams())
+    dense = LF.fit_label(wrong, face_points(CAR, ["-x", "-y"], 100, 0.05), "Car", ModelParams())
     assert sparse.label_error < dense.label_error
     if n == 0:
         assert sparse.label_error < 1e-9 and sparse.offset_m < 1e-9 and np.isnan(sparse.sigma_hat)
@@ -436,12 +439,12 @@ def test_sparse_correct_labels_are_not_false_alarms(n):
 
 def test_symmetric_forms_of_the_same_rectangle_are_not_errors():
     pts = face_points(CAR, ["-x", "-y", "+z"], 150, 0.03)
-    base = M.fit_label(CAR, pts, "Car", ModelParams())
+    base = LF.fit_label(CAR, pts, "Car", ModelParams())
     flipped = _shifted(CAR, yaw=np.pi)  # heading reversed: same rectangle
     turned = CAR.copy()
     turned[3], turned[4], turned[6] = CAR[4], CAR[3], CAR[6] + np.pi / 2  # l/w swapped and turned 90°
     for label in (flipped, turned):
-        fit = M.fit_label(label, pts, "Car", ModelParams())
+        fit = LF.fit_label(label, pts, "Car", ModelParams())
         assert fit.label_error == pytest.approx(base.label_error, abs=0.02)
         assert abs(g.normalize_angle(fit.box[6] - label[6])) < 0.05  # reported in the label's form
         assert fit.box[3] == pytest.approx(label[3], abs=0.1)
@@ -451,16 +454,16 @@ def test_swapped_length_and_width_is_an_error():
     pts = face_points(CAR, ["-x", "-y", "+z"], 150, 0.03)
     swapped = CAR.copy()
     swapped[3], swapped[4] = CAR[4], CAR[3]
-    fit = M.fit_label(swapped, pts, "Car", ModelParams())
+    fit = LF.fit_label(swapped, pts, "Car", ModelParams())
     assert fit.label_error > 0.99
     assert fit.swapped_start
     ninety = _shifted(CAR, yaw=np.pi / 2)
-    assert M.fit_label(ninety, pts, "Car", ModelParams()).label_error > 0.99
+    assert LF.fit_label(ninety, pts, "Car", ModelParams()).label_error > 0.99
 
 
 def test_fit_without_z_is_bev():
     pts = face_points(CAR, ["-x", "-y"], 100, 0.03)[:, :2]
-    fit = M.fit_label(_shifted(CAR, cx=0.3), pts, "Car", ModelParams())
+    fit = LF.fit_label(_shifted(CAR, cx=0.3), pts, "Car", ModelParams())
     assert fit.model == "bev" and np.isnan(fit.offsets["cz"])
     # the seen −x face goes back to its points; the unseen +x face is held by the prior
     assert fit.box[0] - fit.box[3] / 2 == pytest.approx(CAR[0] - CAR[3] / 2, abs=0.03)
@@ -483,17 +486,17 @@ def test_hull_iou_equals_qhull_and_shapely():
         rect = Polygon(g.box_corners(box, "bev"))
         inter = hull.intersection(rect).area
         expected = inter / (hull.area + rect.area - inter)
-        assert M.hull_iou(box, pts) == pytest.approx(expected, rel=1e-10, abs=1e-12), trial
+        assert IOU.hull_iou(box, pts) == pytest.approx(expected, rel=1e-10, abs=1e-12), trial
 
 
 def test_hull_iou_baseline():
     rng = np.random.default_rng(0)
     inside = g.unit_to_world(rng.uniform(-0.5, 0.5, (500, 2)), CAR, "bev")
-    assert M.hull_iou(CAR, inside) > 0.95
-    assert M.hull_iou(_shifted(CAR, cx=1.0), inside) < M.hull_iou(_shifted(CAR, cx=0.2), inside) < M.hull_iou(CAR, inside)
-    assert M.hull_iou(CAR, inside[:2]) == 0.0
-    assert M.hull_iou(CAR, np.c_[np.linspace(13, 17, 5), np.full(5, 5.0)]) == 0.0  # collinear
-    assert M.hull_iou(CAR, None) == 0.0
+    assert IOU.hull_iou(CAR, inside) > 0.95
+    assert IOU.hull_iou(_shifted(CAR, cx=1.0), inside) < IOU.hull_iou(_shifted(CAR, cx=0.2), inside) < IOU.hull_iou(CAR, inside)
+    assert IOU.hull_iou(CAR, inside[:2]) == 0.0
+    assert IOU.hull_iou(CAR, np.c_[np.linspace(13, 17, 5), np.full(5, 5.0)]) == 0.0  # collinear
+    assert IOU.hull_iou(CAR, None) == 0.0
 
 
 def test_audit_object_can_fit_on_a_wider_crop():
@@ -513,7 +516,7 @@ def test_plane_rows_are_design_matrix_rows_along_the_normal(model):
     # the fit's hand-written rows a = J(v*)ᵀ n must match geometry.design_matrix
     d = g.point_dim(model)
     pts = face_points(CAR, ["-x", "+y", "+z"], 20, 0.2, seed=3)[:, :d]
-    a, b, sqd = M._plane_rows(CAR, pts, model)
+    a, b, sqd = LF._plane_rows(CAR, pts, model)
     reg = M.register(CAR, pts, model, num_nearest=1)
     J = g.design_matrix(reg.vstar[:, 0, :], model)  # (N, d, p)
     phi = g.box_to_phi(CAR, model)
@@ -587,9 +590,9 @@ def test_fast_nearest_faces_match_the_reference(d):
 
 def test_fit_sigma_hat_is_the_em_residual_at_the_suggested_box():
     pts = face_points(CAR, ["-x", "-y", "+z"], 60, 0.04, seed=2)
-    fit = M.fit_label(_shifted(CAR, cx=0.2), pts, "Car", ModelParams())
+    fit = LF.fit_label(_shifted(CAR, cx=0.2), pts, "Car", ModelParams())
     assert fit.sigma_hat == pytest.approx(M.estimate_sigma(fit.box, pts, "3d"), rel=1e-12)
-    assert np.isnan(M.fit_label(CAR, pts[:1], "Car", ModelParams()).sigma_hat)
+    assert np.isnan(LF.fit_label(CAR, pts[:1], "Car", ModelParams()).sigma_hat)
 
 
 def test_hull_candidates_keep_every_hull_vertex():
@@ -603,7 +606,7 @@ def test_hull_candidates_keep_every_hull_vertex():
         face_points(CAR, ["-x", "-y"], 100, 0.02)[:, :2],  # an L-shape
     ]
     for pts in clouds:
-        kept = M._hull_candidates(pts)
+        kept = IOU._hull_candidates(pts)
         assert len(kept) < len(pts)
         full = pts[ConvexHull(pts).vertices]
         assert {tuple(p) for p in full} <= {tuple(p) for p in kept}
@@ -615,8 +618,8 @@ def test_closed_form_chi2_cdf_equals_scipy():
 
     for k in range(1, 10):
         for x in np.r_[0.0, np.logspace(-6, 2.5, 60)]:
-            assert M._chi2_cdf(float(x), k) == pytest.approx(chi2.cdf(x, k), abs=1e-13)
-    assert M._chi2_cdf(-1.0, 7) == 0.0
+            assert LF._chi2_cdf(float(x), k) == pytest.approx(chi2.cdf(x, k), abs=1e-13)
+    assert LF._chi2_cdf(-1.0, 7) == 0.0
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
@@ -639,7 +642,7 @@ def test_plane_rows_break_ties_like_the_nearest_face_registration(model):
     pts[:, :2] = local[:, :2] @ g.rotation_z(CAR[6])[:2, :2].T + CAR[:2]
     if d == 3:
         pts[:, 2] += CAR[2]
-    a, b, sqd = M._plane_rows(CAR, pts, model)
+    a, b, sqd = LF._plane_rows(CAR, pts, model)
     reg = M.register(CAR, pts, model, num_nearest=1)
     J = g.design_matrix(reg.vstar[:, 0, :], model)
     resid = pts - J @ g.box_to_phi(CAR, model)
@@ -655,7 +658,7 @@ def test_unchecked_phi_equals_geometry(model):
     rng = np.random.default_rng(2)
     for _ in range(50):
         y = np.r_[rng.normal(0, 20, 3), rng.uniform(0.3, 8, 3), rng.uniform(-7, 7)]
-        assert np.array_equal(M._box_to_phi_valid(y, model), g.box_to_phi(y, model))
+        assert np.array_equal(g.phi_of_valid_box(y, model), g.box_to_phi(y, model))
 
 
 def test_compiled_spd_solve_matches_numpy():
@@ -667,10 +670,10 @@ def test_compiled_spd_solve_matches_numpy():
             A = rng.normal(size=(p, 3 * p)) * rng.uniform(0.01, 100, size=(p, 1))
             P = A @ A.T + np.diag(rng.uniform(0.1, 10, p))
             rhs = rng.normal(size=p) * 100
-            x = M._solve_spd(P, rhs)
+            x = LF._solve_spd(P, rhs)
             ref = np.linalg.solve(P, rhs)
             assert np.allclose(x, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
-    assert np.all(np.isnan(M._solve_spd(-np.eye(6), np.ones(6))))  # not positive definite
+    assert np.all(np.isnan(LF._solve_spd(-np.eye(6), np.ones(6))))  # not positive definite
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
@@ -680,8 +683,8 @@ def test_fit_rectangle_of_phi_equals_geometry(model):
     for _ in range(200):
         y = np.r_[rng.normal(0, 20, 3), rng.uniform(0.3, 8, 3), rng.uniform(-np.pi, np.pi)]
         phi = g.box_to_phi(y, model)
-        rect = M._rect_from_phi(phi, model == "3d", label, 1e-3)
+        rect = LF._rect_from_phi(phi, model == "3d", label, 1e-3)
         ref = g.phi_to_box(phi, model, cz=label[2], height=label[5])
         assert np.allclose(rect, ref, rtol=1e-12, atol=1e-12)
     tiny = g.box_to_phi(np.r_[label[:3], 1e-9, 1e-9, 1e-9, 0.2], model)  # collapsed sizes are floored
-    assert np.allclose(M._rect_from_phi(tiny, model == "3d", label, 1e-3)[3:5], 1e-3 * label[3:5])
+    assert np.allclose(LF._rect_from_phi(tiny, model == "3d", label, 1e-3)[3:5], 1e-3 * label[3:5])

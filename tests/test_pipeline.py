@@ -7,9 +7,6 @@ the real core, simulator and KITTI reader.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-import types
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,21 +17,11 @@ import pytest
 from labelaudit import results as R
 from labelaudit.config import RunConfig
 from labelaudit.datasets import Frame, FrameRef
-from labelaudit.pipeline import (
-    ALL_CLASSES,
-    InferError,
-    InferRequest,
-    SerialExecutor,
-    StrictError,
-    chunk_name,
-    plan_chunks,
-    process_frame,
-    resolve_config,
-    run_infer,
-)
+from labelaudit.errors import InferError, StrictError
+from labelaudit.executors import SerialExecutor
+from labelaudit.infer.rows import ALL_CLASSES, process_frame
+from labelaudit.infer.run import chunk_name, InferRequest, plan_chunks, resolve_config, run_infer
 
-HAVE_CORE = importlib.util.find_spec("labelaudit.audit") is not None
-needs_core = pytest.mark.skipif(not HAVE_CORE, reason="labelaudit.audit (core model, issue 2) not available yet")
 
 
 def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None):
@@ -58,19 +45,16 @@ def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None)
         "std_height": float("nan"),
         "cov": list(np.eye(6).ravel()),
         "cov_dim": 6,
-        "model": cfg.model.model,
+        "model": cfg.model.kind,
     }
 
 
 @pytest.fixture()
 def fake_core(monkeypatch):
-    module = types.ModuleType("labelaudit.audit")
-    module.audit_object = _fake_audit  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "labelaudit.audit", module)
-    import labelaudit
+    from labelaudit.infer import rows
 
-    monkeypatch.setattr(labelaudit, "audit", module, raising=False)
-    return module
+    monkeypatch.setattr(rows, "audit_object", _fake_audit)
+    return rows
 
 
 def _frame() -> Frame:
@@ -126,7 +110,7 @@ def test_process_frame_all_classes_and_invalid_box(fake_core):
 
 def test_resolve_config_overrides():
     cfg = resolve_config(None, "kitti", ["Car", " Van"], "3d")
-    assert cfg.classes == ("Car", "Van") and cfg.model.model == "3d" and cfg.dataset_format == "kitti"
+    assert cfg.classes == ("Car", "Van") and cfg.model.kind == "3d" and cfg.dataset_format == "kitti"
     assert resolve_config(None, "kitti", ["all"]).classes == (ALL_CLASSES,)
     assert resolve_config(None, "kitti", ["Car"]).param_hash() != resolve_config(None, "kitti", ["Van"]).param_hash()
 
@@ -145,7 +129,7 @@ def test_chunks_do_not_depend_on_anything_but_the_unit_list():
 @pytest.fixture(scope="module")
 def sim_kitti(tmp_path_factory) -> Path:
     from labelaudit.sim.noise import NoiseSpec
-    from labelaudit.simulate import simulate_dataset
+    from labelaudit.sim.dataset import simulate_dataset
 
     root = tmp_path_factory.mktemp("sim") / "kitti"
     simulate_dataset(root, frames=5, seed=3, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False)
@@ -292,10 +276,9 @@ def test_input_errors(fake_core, tmp_path):
 # --------------------------------------------------------------------------- end to end with the real core
 
 
-@needs_core
 @pytest.mark.slow
 def test_same_rows_for_one_and_two_workers(sim_kitti, tmp_path):
-    from labelaudit.pipeline import PoolExecutor
+    from labelaudit.executors import PoolExecutor
 
     cfg = resolve_config(None, "kitti")
     run_infer(InferRequest(sim_kitti, tmp_path / "w1", chunk_units=2), cfg, executor=SerialExecutor())
@@ -308,7 +291,6 @@ def test_same_rows_for_one_and_two_workers(sim_kitti, tmp_path):
     assert all(0.0 < r["jiou_gt"] <= 1.0 and r["cov_dim"] == 6 and len(r["cov"]) == 36 for r in ok)
 
 
-@needs_core
 @pytest.mark.realdata
 def test_real_kitti_frames(realdata, tmp_path):
     root = realdata / "openpcdet-pr653-kitti"
@@ -337,7 +319,8 @@ def _die(x: int) -> int:
 
 
 def test_pool_executor_returns_every_result_and_reports_a_dead_worker():
-    from labelaudit.pipeline import PoolExecutor, WorkerCrashed
+    from labelaudit.errors import WorkerCrashed
+    from labelaudit.executors import PoolExecutor
 
     assert sorted(PoolExecutor(2).run([1, 2, 3], _square)) == [1, 4, 9]
     with pytest.raises(WorkerCrashed, match="rerun the same command to resume"):
@@ -345,7 +328,7 @@ def test_pool_executor_returns_every_result_and_reports_a_dead_worker():
 
 
 def test_waymo_v1_and_v2_give_the_same_rows(fake_core, tmp_path):
-    from labelaudit.simulate_waymo import simulate_waymo_dataset
+    from labelaudit.sim.waymo_writer import simulate_waymo_dataset
 
     roots = simulate_waymo_dataset(tmp_path / "waymo", segments=2, frames=2, seed=5)
     cfg = RunConfig(classes=(ALL_CLASSES,))
@@ -368,7 +351,7 @@ def test_waymo_v1_and_v2_give_the_same_rows(fake_core, tmp_path):
 
 
 def test_chunk_size_depends_on_the_unit_count_only():
-    from labelaudit.pipeline import chunk_size_for
+    from labelaudit.infer.run import chunk_size_for
 
     assert chunk_size_for("kitti", 12) == 1  # small runs: one frame per chunk, balanced workers
     assert chunk_size_for("kitti", 300) == 10
@@ -377,8 +360,8 @@ def test_chunk_size_depends_on_the_unit_count_only():
 
 
 def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tmp_path):
-    import labelaudit.pipeline as P
-    from labelaudit.pipeline import ChunkTask, process_chunk
+    import labelaudit.infer.run as P
+    from labelaudit.infer.run import ChunkTask, process_chunk
 
     frames = [replace(_frame(), frame_id=f"seg:{t}") for t in range(3)]
 
@@ -406,7 +389,7 @@ def test_a_second_writer_is_refused_and_a_stale_lock_taken_over(fake_core, sim_k
     import os
     import subprocess
 
-    from labelaudit.pipeline import LOCK_NAME
+    from labelaudit.results import LOCK_NAME
 
     out = tmp_path / "res"
     out.mkdir()
@@ -421,17 +404,16 @@ def test_a_second_writer_is_refused_and_a_stale_lock_taken_over(fake_core, sim_k
     assert summary.frames == 5 and not lock.exists()
 
 
-@needs_core
 def test_every_column_the_core_returns_has_a_place_in_the_schema():
-    from labelaudit.audit import MODEL_COLUMNS, audit_object
+    from labelaudit.infer.rows import audit_object
 
-    assert set(MODEL_COLUMNS) <= set(R.COLUMN_NAMES), "add new model columns to labelaudit/results.py COLUMNS and docs"
+    assert set(R.MODEL_COLUMNS) <= set(R.COLUMN_NAMES), "add new model columns to labelaudit/results.py COLUMNS and docs"
     rng = np.random.default_rng(1)
     pts = np.c_[rng.uniform(-2, 2, 50), rng.uniform(-0.9, 0.9, 50), rng.uniform(-0.7, 0.7, 50)]
     for model in ("bev", "3d"):
         cfg = resolve_config(None, "kitti", model=model)
         row = audit_object(np.array([0, 0, 0, 4.0, 1.8, 1.5, 0.2]), pts, "Car", cfg)
-        assert set(row) <= set(R.COLUMN_NAMES)
+        assert set(row) <= set(R.COLUMN_NAMES) and set(row) == set(R.MODEL_COLUMNS)
         clean = R.normalize_row(row)
         assert clean["cov_dim"] in (6, 8) and len(clean["cov"]) == clean["cov_dim"] ** 2
 
@@ -457,7 +439,7 @@ def test_the_label_error_fit_gets_the_wider_crop(fake_core, monkeypatch):
 def test_worker_warmup_runs_the_audit() -> None:
     """The fork server's warm-up (constants.WORKER_PRELOAD) really audits an object, in both models."""
     from labelaudit import constants
-    from labelaudit.worker_warmup import warm_up
+    from labelaudit.infer.warmup import warm_up
 
-    assert "labelaudit.worker_warmup" in constants.WORKER_PRELOAD
+    assert "labelaudit.infer.warmup" in constants.WORKER_PRELOAD
     warm_up(strict=True)

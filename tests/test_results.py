@@ -14,7 +14,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from labelaudit import results as R
-from labelaudit.rank import RankQuery, default_descending, rank_results, summarize, to_csv, to_json
+from labelaudit.rank import RankQuery, default_descending, rank_results, to_csv, to_json
+from labelaudit.summary import summarize
 from results_factory import make_results, make_row
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"

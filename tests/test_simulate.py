@@ -10,11 +10,11 @@ import pyarrow.parquet as pq
 import pytest
 
 from labelaudit.datasets.kitti import KittiReader, read_label, read_velodyne
-from labelaudit.geometry import BOX_FIELDS
+from labelaudit.core.geometry import BOX_FIELDS
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import HIT_GROUND, HIT_NOTHING, LidarSpec, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, make_object, sample_scene
-from labelaudit.simulate import frame_generators, read_manifest, simulate_dataset, simulate_frame
+from labelaudit.sim.dataset import frame_generators, read_manifest, simulate_dataset, simulate_frame
 
 COARSE = LidarSpec.coarse()
 GROUND_Z = -1.73
@@ -173,7 +173,7 @@ def test_far_objects_get_fewer_points():
 def test_scene_objects_do_not_overlap_and_stand_on_the_ground():
     from shapely.geometry import Polygon
 
-    from labelaudit.geometry import box_corners
+    from labelaudit.core.geometry import box_corners
 
     for seed in range(5):
         scene = sample_scene(np.random.default_rng(seed), SceneSpec(num_vehicles=(25, 25)))

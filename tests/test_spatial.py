@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from labelaudit import constants as C
-from labelaudit import geometry as g
-from labelaudit import model as M
-from labelaudit import spatial as sp
+from labelaudit.core import geometry as g
+from labelaudit.core import iou as IOU
+from labelaudit.core import posterior as M
+from labelaudit.core import spatial as sp
 from labelaudit.config import ModelParams, SpatialParams
 
 from _core_synth import face_points, rigid_motion
@@ -21,7 +22,7 @@ SP = SpatialParams()
 
 
 def jgt(box, pts, model="bev", spatial=SP, **model_kw):
-    post = M.infer_label(box, pts, "Car", ModelParams(model=model, **model_kw))
+    post = M.infer_label(box, pts, "Car", ModelParams(kind=model, **model_kw))
     return sp.jiou_gt(post, spatial)
 
 
@@ -110,7 +111,7 @@ def test_deterministic_jiou_equals_exact_bev_iou():
     errors = []
     for a, b in _random_pairs(200, 0):
         j = sp.jiou(sp.BoxDistribution.deterministic(a, "bev"), sp.BoxDistribution.deterministic(b, "bev"), SP)
-        errors.append(j - g.bev_iou_exact(a, b))
+        errors.append(j - IOU.bev_iou_exact(a, b))
     assert np.max(np.abs(errors)) < 0.01
 
 
@@ -118,7 +119,7 @@ def test_deterministic_jiou_equals_exact_3d_iou():
     errors = []
     for a, b in _random_pairs(200, 1):
         j = sp.jiou(sp.BoxDistribution.deterministic(a, "3d"), sp.BoxDistribution.deterministic(b, "3d"), SP)
-        errors.append(j - g.iou_3d_exact(a, b))
+        errors.append(j - IOU.iou_3d_exact(a, b))
     assert np.max(np.abs(errors)) < 0.01
 
 
@@ -144,7 +145,7 @@ def test_dense_points_on_all_faces_give_jiou_gt_near_one(model):
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_zero_points_jiou_gt_is_the_prior_only_value(model):
-    post = M.infer_label(NEAR, np.zeros((0, 3)), "Car", ModelParams(model=model))
+    post = M.infer_label(NEAR, np.zeros((0, 3)), "Car", ModelParams(kind=model))
     value = sp.jiou_gt(post, SP)
     assert np.isfinite(value) and 0.0 < value < 1.0
     prior_cov = M.prior_covariance(NEAR, ModelParams().prior_for("Car"), 1.0, model)
@@ -155,7 +156,7 @@ def test_zero_points_jiou_gt_is_the_prior_only_value(model):
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_jiou_gt_tends_to_one_as_covariance_vanishes(model):
-    post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], 50, 0.03), "Car", ModelParams(model=model))
+    post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], 50, 0.03), "Car", ModelParams(kind=model))
     values = [sp.jiou_gt(dataclasses.replace(post, cov=post.cov * s), SP) for s in (1.0, 1e-2, 1e-4, 1e-8)]
     assert np.all(np.diff(values) > 0)
     assert values[-1] > 0.999
@@ -201,7 +202,7 @@ def test_far_sparse_box_is_less_certain_than_near_dense(model):
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_jiou_gt_is_invariant_to_rigid_motion(model):
     pts = face_points(NEAR, ["-x", "-y"], 30, 0.03)
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     base = M.infer_label(NEAR, pts, "Car", params)
     for yaw, shift in ((0.7, (5.0, -3.0, 0.2)), (2.9, (-30.0, 20.0, -1.0))):
         b2, p2, o2 = rigid_motion(NEAR, pts, yaw, shift)
@@ -223,7 +224,7 @@ CASES = {
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_jiou_gt_is_stable_under_doubling_grid_and_samples(model, case):
     box, make = CASES[case]
-    post = M.infer_label(box, make(), "Car", ModelParams(model=model))
+    post = M.infer_label(box, make(), "Car", ModelParams(kind=model))
     base = sp.jiou_gt(post, SP)
     finer = sp.jiou_gt(post, dataclasses.replace(SP, cells_per_side=2 * SP.cells_per_side))
     more = sp.jiou_gt(post, dataclasses.replace(SP, num_samples=2 * SP.num_samples))
@@ -235,7 +236,7 @@ def test_jiou_gt_is_stable_under_doubling_grid_and_samples(model, case):
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_degenerate_boxes_give_finite_jiou_gt(model):
-    params = ModelParams(model=model)
+    params = ModelParams(kind=model)
     # a 1 mm box with the car prior (std 0.25 m): its uncertainty dwarfs it, JIoU-GT ≈ 0
     tiny = sp.jiou_gt(M.infer_label([1.0, 1.0, 0.0, 1e-3, 1e-3, 1e-3, 0.2], None, "Car", params), SP)
     assert np.isfinite(tiny) and 0.0 <= tiny < 0.01
@@ -299,7 +300,7 @@ def test_box_distribution_validates_its_covariance():
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_spatial_distribution_is_a_probability_on_the_grid(model):
-    post = M.infer_label(NEAR, face_points(NEAR, ["-x"], 20, 0.03), "Car", ModelParams(model=model))
+    post = M.infer_label(NEAR, face_points(NEAR, ["-x"], 20, 0.03), "Car", ModelParams(kind=model))
     grid, mass = sp.spatial_distribution(sp.BoxDistribution.from_posterior(post), SP)
     assert mass.shape == grid.shape
     assert np.all(mass >= 0)
@@ -315,7 +316,7 @@ def test_spatial_distribution_is_a_probability_on_the_grid(model):
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_jiou_gt_equals_the_generic_jiou(model):
     for n in (0, 3, 100):
-        post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], n, 0.03), "Car", ModelParams(model=model))
+        post = M.infer_label(NEAR, face_points(NEAR, ["-x", "-y"], n, 0.03), "Car", ModelParams(kind=model))
         generic = sp.jiou(sp.BoxDistribution.deterministic(NEAR, model), sp.BoxDistribution.from_posterior(post), SP)
         # jiou_gt rasterises inside the box only and takes the outside mass as 1 − inside (no
         # truncated tails); the generic grid cuts the tails beyond support_std: nearly equal.
@@ -323,7 +324,7 @@ def test_jiou_gt_equals_the_generic_jiou(model):
 
 
 def test_stored_default_samples_equal_the_generated_ones():
-    import labelaudit.spatial as S
+    import labelaudit.core.spatial as S
 
     with np.load(S.SAMPLE_TABLE) as table:
         assert sorted(table.files) == [f"d{d}_n{C.DEFAULT_NUM_SAMPLES}_s{C.DEFAULT_QMC_SEED}" for d in (5, 6, 7, 8)]
@@ -340,7 +341,7 @@ def test_auditing_an_object_does_not_import_scipy_stats():
 
     code = (
         "import sys, numpy as np\n"
-        "from labelaudit.audit import audit_object\n"
+        "from labelaudit.infer.rows import audit_object\n"
         "from labelaudit.config import load_config\n"
         "pts = np.random.default_rng(0).normal([15, 3, 0.7], 0.5, (50, 3))\n"
         "audit_object(np.array([15.0, 3.0, 0.75, 4.2, 1.7, 1.5, 0.3]), pts, 'Car', load_config(None, 'kitti'))\n"

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from labelaudit.datasets import DatasetError, detect_format, open_dataset
 from labelaudit.datasets.waymo_v1 import WaymoV1Reader, encode_record, iter_records, masked_crc32c
-from labelaudit.simulate_waymo import simulate_waymo_segment, write_waymo_v1
+from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_waymo_v1
 
 MMDET_FRAME = "mmdet3d-waymo/tests/data/waymo/waymo_format/validation/val.tfrecord"
 PVPS_FRAME = "waymo-od-testdata/src/waymo_open_dataset/utils/testdata/pvps_data_one_frame.tfrecord"

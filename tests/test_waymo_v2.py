@@ -22,7 +22,7 @@ from labelaudit.datasets.waymo_common import (
     range_image_to_points,
 )
 from labelaudit.datasets.waymo_v2 import K_TS, WaymoV2Reader, read_vehicle_poses
-from labelaudit.simulate_waymo import simulate_waymo_segment, write_waymo_v2
+from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_waymo_v2
 
 REAL_POSE = "waymo-od-testdata/src/waymo_open_dataset/v2/testdata/dataset/vehicle_pose/10023947602400723454_1120_000_1140_000.parquet"
 
@@ -286,7 +286,7 @@ def test_no_lidar_box_folder(tmp_path: Path) -> None:
 def test_kitti_and_waymo_renderings_of_one_scene_agree(tmp_path: Path) -> None:
     """The same simulated frame written as KITTI and as Waymo v2 reads to the same boxes and points,
     and (once the core model is installed) audits to the same rows up to frame conventions."""
-    from labelaudit.simulate_waymo import write_as_kitti
+    from labelaudit.sim.waymo_writer import write_as_kitti
 
     seg = simulate_waymo_segment(seed=8, frames=1, size="small", chunks=1)
     write_as_kitti(seg, tmp_path / "kitti")
@@ -300,9 +300,9 @@ def test_kitti_and_waymo_renderings_of_one_scene_agree(tmp_path: Path) -> None:
     vehicle = {"Car", "Van", "Truck"}
     assert [n in vehicle for n in kf.class_names] == [n == "Vehicle" for n in wf.class_names]
 
-    pytest.importorskip("labelaudit.audit")
+    pytest.importorskip("labelaudit.infer.rows")
     from labelaudit.config import RunConfig
-    from labelaudit.pipeline import process_frame
+    from labelaudit.infer.rows import process_frame
 
     kf.sensor_origin = wf.sensor_origin  # frame convention: KITTI puts its LiDAR at the origin
     krows, _ = process_frame(kf, RunConfig(dataset_format="kitti", classes=("Car", "Van", "Truck")))
@@ -318,7 +318,7 @@ def test_kitti_and_waymo_renderings_of_one_scene_agree(tmp_path: Path) -> None:
 
 def test_simulated_dataset_with_label_noise(tmp_path: Path) -> None:
     from labelaudit.sim.noise import NoiseSpec
-    from labelaudit.simulate_waymo import simulate_waymo_dataset
+    from labelaudit.sim.waymo_writer import simulate_waymo_dataset
 
     roots = simulate_waymo_dataset(tmp_path, segments=2, frames=1, seed=11, label_noise=NoiseSpec(gross_fraction=0.5))
     manifest = pq.read_table(tmp_path / "manifest.parquet").to_pylist()

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from labelaudit.datasets.base import DatasetError, DatasetReader, Frame, FrameRef
+from labelaudit.datasets.base import DatasetReader, Frame, FrameRef
+from labelaudit.errors import DatasetError
 
 FORMATS = ("kitti", "waymo-v2", "waymo-v1")
 

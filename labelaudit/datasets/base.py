@@ -3,21 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Iterator, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-
-
-class DatasetError(ValueError):
-    """Bad input: the message names the file (and line for text files) and what was expected."""
-
-    def __init__(self, path: str | Path, message: str, line: int | None = None):
-        self.path = str(path)
-        self.line = line
-        where = f"{path}:{line}" if line is not None else f"{path}"
-        super().__init__(f"{where}: {message}")
 
 
 @dataclass
@@ -71,7 +60,7 @@ class FrameRef:
 
 
 class DatasetReader(Protocol):
-    """What :mod:`labelaudit.pipeline` needs from a format.
+    """What :mod:`labelaudit.infer` needs from a format.
 
     A reader lists its units of work cheaply in the main process; workers then load them by
     reference, so the main process never holds the whole dataset.

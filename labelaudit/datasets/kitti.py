@@ -28,8 +28,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
-from labelaudit.datasets.base import DatasetError, Frame, FrameRef
-from labelaudit.geometry import box_corners, normalize_angle
+from labelaudit.datasets.base import Frame, FrameRef
+from labelaudit.errors import DatasetError
+from labelaudit.core.geometry import box_corners, normalize_angle
 
 FloatArray = NDArray[np.float64]
 

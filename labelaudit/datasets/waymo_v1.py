@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit.datasets import waymo_proto as wp
-from labelaudit.datasets.base import DatasetError, Frame, FrameRef
+from labelaudit.datasets.base import Frame, FrameRef
+from labelaudit.errors import DatasetError
 from labelaudit.datasets.waymo_common import (
     TOP,
     LidarCalibration,

@@ -28,7 +28,8 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
-from labelaudit.datasets.base import DatasetError, Frame, FrameRef
+from labelaudit.datasets.base import Frame, FrameRef
+from labelaudit.errors import DatasetError
 from labelaudit.datasets.waymo_common import (
     TOP,
     LidarCalibration,

@@ -1,6 +1,6 @@
 """Synthetic LiDAR scenes: scene sampling, the range-image ray-caster, label noise, dataset writers.
 
-The dataset-level entry point is :func:`labelaudit.simulate.simulate_dataset`.
+The dataset-level entry point is :func:`labelaudit.sim.dataset.simulate_dataset`.
 """
 
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.geometry import normalize_angle
+from labelaudit.core.geometry import normalize_angle
 from labelaudit.sim.scene import VEHICLE_CLASSES
 
 FloatArray = NDArray[np.float64]

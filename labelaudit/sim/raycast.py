@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.geometry import invert_transform
+from labelaudit.core.geometry import invert_transform
 from labelaudit.sim.scene import Scene, corners_of
 
 FloatArray = NDArray[np.float64]

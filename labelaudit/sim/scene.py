@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.geometry import normalize_angle
+from labelaudit.core.geometry import normalize_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -59,7 +59,7 @@ _UNIT_CORNERS = np.array(
 
 
 def corners_of(boxes: FloatArray) -> FloatArray:
-    """Corners of many boxes at once, in the order of :func:`labelaudit.geometry.box_corners`.
+    """Corners of many boxes at once, in the order of :func:`labelaudit.core.geometry.box_corners`.
 
     A vectorised, unvalidated version for the simulator's inner loops.
 

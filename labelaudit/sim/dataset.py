@@ -15,7 +15,6 @@ and the point clouds byte-identical (a clean and a noisy dataset from one seed s
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import shutil
 import sys
@@ -32,11 +31,13 @@ from tqdm import tqdm
 
 from labelaudit import constants as C
 from labelaudit.datasets.kitti import Calibration
-from labelaudit.geometry import BOX_FIELDS, normalize_angle
+from labelaudit.core.geometry import BOX_FIELDS, normalize_angle
 from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calibration, write_kitti_frame
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, sample_scene
+from labelaudit.errors import OutputExistsError
+from labelaudit.executors import make_executor
 
 __all__ = [
     "LidarSpec",
@@ -283,8 +284,8 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     ------
     ValueError
         Bad ``frames``, ``seed``, ``workers`` or ``label_fov``.
-    FileExistsError
-        ``out_dir`` already holds a dataset and ``overwrite`` is false.
+    OutputExistsError
+        (a FileExistsError) ``out_dir`` already holds a dataset and ``overwrite`` is false.
     """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
@@ -300,7 +301,7 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     existing = [out / name for name in _OWNED if (out / name).exists()]
     if existing:
         if not overwrite:
-            raise FileExistsError(f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite")
+            raise OutputExistsError(f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite it (--overwrite)")
         for p in existing:
             shutil.rmtree(p) if p.is_dir() else p.unlink()
     out.mkdir(parents=True, exist_ok=True)
@@ -311,18 +312,13 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     jobs = [(i, dict(opts)) for i in range(frames)]
     results: list[tuple[int, dict[str, list[Any]], int]] = []
     bar = tqdm(total=frames, desc="simulate", unit="frame", file=sys.stderr, disable=not progress)
+    executor = make_executor(min(workers, frames))  # frames are independent: same files for any count
     try:
-        if workers == 1:
-            for job in jobs:
-                results.append(_write_one(job))
-                bar.update(1)
-        else:
-            ctx = multiprocessing.get_context("spawn")  # no fork: safe next to threads (Open3D, Dask)
-            with ctx.Pool(min(workers, frames)) as pool:
-                for res in pool.imap_unordered(_write_one, jobs, chunksize=max(1, min(8, frames // (4 * workers)))):
-                    results.append(res)
-                    bar.update(1)
+        for res in executor.run(jobs, _write_one):
+            results.append(res)
+            bar.update(1)
     finally:
+        executor.close()
         bar.close()
     results.sort(key=lambda r: r[0])
 

@@ -25,7 +25,7 @@ import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit.config import CropParams
-from labelaudit.geometry import rotation_z
+from labelaudit.core.geometry import rotation_z
 
 IndexArray = NDArray[np.int64]
 

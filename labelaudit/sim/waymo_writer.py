@@ -38,6 +38,7 @@ from labelaudit.datasets.waymo_v1 import encode_record
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, ray_directions, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, SimObject, sample_scene
+from labelaudit.infer.crop import points_in_boxes_numpy
 
 FloatArray = NDArray[np.float64]
 
@@ -161,16 +162,6 @@ def _points_of(image: Any, rows_cols_mask: NDArray[np.bool_], ranges: NDArray[np
     return xyz @ image.extrinsic[:3, :3].T + image.extrinsic[:3, 3]
 
 
-def _points_in_boxes(xyz: FloatArray, boxes: FloatArray) -> NDArray[np.int64]:
-    counts = np.zeros(len(boxes), dtype=np.int64)
-    for k, b in enumerate(boxes):
-        d = xyz - b[:3]
-        c, s = np.cos(b[6]), np.sin(b[6])
-        u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-        counts[k] = int(np.count_nonzero((np.abs(u) <= b[3] / 2) & (np.abs(v) <= b[4] / 2) & (np.abs(d[:, 2]) <= b[5] / 2)))
-    return counts
-
-
 def simulate_waymo_segment(
     seed: int = 0,
     frames: int = 2,
@@ -277,7 +268,7 @@ def simulate_waymo_segment(
         else:
             boxes, kinds = true_boxes, ["none"] * len(classes)
         pts = np.concatenate(expected) if expected else np.zeros((0, 4), np.float32)
-        counts = _points_in_boxes(pts[:, :3].astype(np.float64), boxes)
+        counts = np.array([len(idx) for idx in points_in_boxes_numpy(pts, boxes)], dtype=np.int64)  # Waymo counts every point in the box
         seg.frames.append(
             SimWaymoFrame(t0 + int(round(t_f * 1e6)), pose_f, lidars, boxes, types.copy(), list(ids), counts, pts,
                           classes, true_boxes, kinds)

@@ -17,16 +17,16 @@ def warm_up(strict: bool = False) -> None:
 
         import numpy as np
 
-        from labelaudit.audit import audit_object
+        from labelaudit.infer.rows import audit_object
         from labelaudit.config import load_config
-        from labelaudit.crop import crop_frame_pair
+        from labelaudit.infer.crop import crop_frame_pair
 
         box = np.array([15.0, 3.0, 0.75, 4.2, 1.7, 1.5, 0.3])
         rng = np.random.default_rng(0)
         pts = np.c_[box[:3] + rng.normal(0.0, 1.0, (64, 3)), np.zeros(64)].astype(np.float32)
         base = load_config(None, "kitti")
         for model in ("bev", "3d"):
-            cfg = base.with_overrides(model=replace(base.model, model=model))
+            cfg = base.with_overrides(model=replace(base.model, kind=model))
             idx, fit_idx = crop_frame_pair(pts, box[None, :], cfg.crop)
             audit_object(box, pts[idx[0]], "Car", cfg, fit_points=pts[fit_idx[0]])
     except Exception:  # a warm-up must never stop the fork server; workers then load lazily

@@ -1,6 +1,8 @@
 """Box parametrisations, rotations, the feature map φ(y) and its Jacobians, frame transforms.
 
-Conventions (DESIGN.md §3): everything is computed in the LiDAR/vehicle frame, x forward, y left,
+This module owns the geometry every other part shares; it does no I/O and holds no model.
+
+Conventions (docs/method.md): everything is computed in the LiDAR/vehicle frame, x forward, y left,
 z up, yaw about +z, box centre at the geometric centre.
 
 A box is ``y = (cx, cy, cz, l, w, h, yaw)``. A point of the box with unit coordinates
@@ -32,6 +34,8 @@ FloatArray = NDArray[np.float64]
 
 BOX_FIELDS: tuple[str, ...] = ("cx", "cy", "cz", "length", "width", "height", "yaw")
 """Names of the 7 box parameters, in the order of ``y``."""
+
+BEV_OF_3D = np.array([0, 1, 3, 4, 5, 6])  # entries of φ_3d that make φ_bev: cx, cy, l·cos, l·sin, w·cos, w·sin
 
 
 def point_dim(model: ModelKind) -> int:
@@ -347,24 +351,26 @@ def make_transform(R: ArrayLike, t: ArrayLike) -> FloatArray:
     return T
 
 
-def bev_iou_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
-    """Exact BEV IoU of two rotated boxes (shapely polygon intersection)."""
-    from shapely.geometry import Polygon
+def clean_points(points: ArrayLike | None, d: int) -> FloatArray:
+    """The first ``d`` coordinates of ``points`` (N, ≥d) as float64, rows with non-finite values dropped
+    (None or empty → (0, d)); raises ValueError for another shape."""
+    if points is None:
+        return np.zeros((0, d))
+    pts = np.asarray(points, dtype=float)
+    if pts.size == 0:
+        return np.zeros((0, d))
+    if pts.ndim != 2 or pts.shape[1] < d:
+        raise ValueError(f"points must be an (N, ≥{d}) array, got shape {pts.shape}")
+    pts = pts[:, :d]
+    return pts[np.all(np.isfinite(pts), axis=1)]  # non-finite returns cannot be registered
 
-    pa, pb = Polygon(box_corners(box_a, "bev")), Polygon(box_corners(box_b, "bev"))
-    inter = pa.intersection(pb).area
-    union = pa.area + pb.area - inter
-    return float(inter / union) if union > 0 else 0.0
 
-
-def iou_3d_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
-    """Exact 3D IoU of two yaw-only boxes (BEV intersection × z overlap)."""
-    from shapely.geometry import Polygon
-
-    a, b = validate_box(box_a), validate_box(box_b)
-    pa, pb = Polygon(box_corners(a, "bev")), Polygon(box_corners(b, "bev"))
-    z_lo = max(a[2] - a[5] / 2, b[2] - b[5] / 2)
-    z_hi = min(a[2] + a[5] / 2, b[2] + b[5] / 2)
-    inter = pa.intersection(pb).area * max(0.0, z_hi - z_lo)
-    union = a[3] * a[4] * a[5] + b[3] * b[4] * b[5] - inter
-    return float(inter / union) if union > 0 else 0.0
+def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:
+    """:func:`box_to_phi` of a box (7,) float64 known to be valid (labels
+    after ``validate_box``, the fit's own rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost
+    more than φ itself at a dozen calls per fit."""
+    cx, cy, cz, length, width, height, yaw = y
+    c, s = np.cos(yaw), np.sin(yaw)
+    if model == "bev":
+        return np.array([cx, cy, length * c, length * s, width * c, width * s])
+    return np.array([cx, cy, cz, length * c, length * s, width * c, width * s, height])

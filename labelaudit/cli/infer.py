@@ -1,0 +1,75 @@
+"""``labelaudit infer``: parse the options into an :class:`~labelaudit.infer.run.InferRequest`, run, print the summary."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from labelaudit import constants as C
+from labelaudit.cli.app import app, err, handle_errors
+
+
+class DatasetFormat(str, Enum):
+    auto = "auto"
+    kitti = "kitti"
+    waymo_v2 = "waymo-v2"
+    waymo_v1 = "waymo-v1"
+
+
+class ModelChoice(str, Enum):
+    bev = "bev"
+    three_d = "3d"
+
+
+@app.command()
+def infer(
+    dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder) or a Waymo v1 .tfrecord."),
+    output: Path = typer.Option(Path(C.DEFAULT_RESULTS_DIR), "-o", "--output", help="Results folder (Parquet shards + manifest)."),
+    dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML (default: the built-in one of the format)."),
+    classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
+    model: Optional[ModelChoice] = typer.Option(None, "--model", help="bev (default) or 3d."),
+    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …)."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
+    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo)."),
+    resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters, or start over."),
+    strict: bool = typer.Option(False, "--strict", help="Stop at the first frame or object that fails."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and summary."),
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
+) -> None:
+    """Audit every labeled box of a dataset: crop its points, infer its spatial uncertainty, write Parquet.
+
+    Results go to a folder of Parquet shards with a manifest (see docs/results-schema.md). A stopped run resumes where it left off when started again with the same options.
+
+    [bold]Examples[/bold]
+
+      labelaudit infer /data/kitti -o results/
+
+      labelaudit infer /data/kitti --split val --classes Car,Van --workers 8
+
+      labelaudit infer /data/waymo_v2/validation --dataset-format waymo-v2 --model 3d -o waymo-results/
+    """
+    from labelaudit.infer.run import InferRequest
+
+    with handle_errors(debug):
+        request = InferRequest(
+            dataset, output, dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug,
+            config=config, classes=None if classes is None else tuple(classes.split(",")), model=model.value if model else None,
+        )
+        run_and_report(request, quiet)
+
+
+def run_and_report(request: object, quiet: bool) -> None:
+    """Run ``infer`` for a request with the progress bar and the end-of-run summary on stderr (also used by ``demo``)."""
+    from labelaudit.cli.display import RichProgress, print_run_summary
+    from labelaudit.infer.run import NoProgress, infer_dataset
+    from labelaudit.results import open_results
+    from labelaudit.summary import summarize
+
+    console = err()
+    summary = infer_dataset(request, NoProgress() if quiet else RichProgress(console))  # type: ignore[arg-type]
+    if not quiet:
+        print_run_summary(console, summary, summarize(open_results(summary.output)))

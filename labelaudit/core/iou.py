@@ -1,0 +1,141 @@
+"""Overlaps of boxes: exact BEV and 3D IoU of two boxes, and the hull-IoU baseline score.
+
+``hull_iou`` (BEV IoU between a box and the convex hull of its points) is the simple label-quality
+baseline of docs/label-error.md; ``bev_iou_exact`` / ``iou_3d_exact`` are the reference overlaps
+(Shapely polygons) that the probabilistic JIoU of :mod:`labelaudit.core.spatial` reduces to for
+deterministic boxes. No I/O.
+"""
+
+from __future__ import annotations
+
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+from labelaudit.core import geometry as g
+from labelaudit.core.geometry import FloatArray
+
+def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
+    """BEV IoU between a box and the convex hull of its points (a baseline label-quality score).
+
+    0.0 when the hull has no area (fewer than 3 points, or all on a line). The hull (monotone
+    chain), its clipping by the box (Sutherland–Hodgman) and the areas (shoelace) are one compiled
+    call, :func:`_hull_iou_kernel`; coordinates are taken relative to the box centre.
+    """
+    y = g.validate_box(box)
+    pts = _hull_candidates(g.clean_points(points, 2))
+    if len(pts) < 3:
+        return 0.0
+    local = pts - y[:2]
+    order = np.lexsort((local[:, 1], local[:, 0]))  # by x, then y
+    corners = g.box_corners(y, "bev") - y[:2]  # counter-clockwise
+    return float(_hull_iou_kernel(np.ascontiguousarray(local[order]), np.ascontiguousarray(corners)))
+
+
+@numba.njit(cache=True)
+def _cross(o0, o1, a0, a1, b0, b1):  # pragma: no cover - compiled
+    """z of (a − o) × (b − o): > 0 when o → a → b turns left."""
+    return (a0 - o0) * (b1 - o1) - (a1 - o1) * (b0 - o0)
+
+
+@numba.njit(cache=True)
+def _shoelace(poly, m):  # pragma: no cover - compiled
+    s = 0.0
+    for i in range(m):
+        j = (i + 1) % m
+        s += poly[i, 0] * poly[j, 1] - poly[j, 0] * poly[i, 1]
+    return 0.5 * s
+
+
+@numba.njit(cache=True)
+def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
+    """IoU of the convex hull of ``pts`` (N, 2), sorted by x then y, and the convex polygon
+    ``corners`` (4, 2), counter-clockwise; 0.0 when the hull has no area."""
+    n = pts.shape[0]
+    hull = np.empty((2 * n + 1, 2))
+    k = 0
+    for i in range(n):  # lower hull; collinear and repeated points are dropped (≤ 0)
+        while k >= 2 and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0:
+            k -= 1
+        hull[k, 0], hull[k, 1] = pts[i, 0], pts[i, 1]
+        k += 1
+    lower = k + 1
+    for i in range(n - 2, -1, -1):  # upper hull
+        while k >= lower and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0:
+            k -= 1
+        hull[k, 0], hull[k, 1] = pts[i, 0], pts[i, 1]
+        k += 1
+    m = k - 1  # the last point repeats the first
+    if m < 3:
+        return 0.0
+    hull_area = _shoelace(hull, m)
+    if not hull_area > 0.0:
+        return 0.0
+    poly = hull[:m].copy()
+    for e in range(4):  # clip by each edge of the box: keep the left side (inside, on the edge)
+        a0, a1 = corners[e, 0], corners[e, 1]
+        b0, b1 = corners[(e + 1) % 4, 0], corners[(e + 1) % 4, 1]
+        out = np.empty((2 * m + 2, 2))
+        q = 0
+        for i in range(m):
+            p0, p1 = poly[i - 1, 0], poly[i - 1, 1]  # i − 1 = −1: the last vertex
+            c0, c1 = poly[i, 0], poly[i, 1]
+            sp = _cross(a0, a1, b0, b1, p0, p1)
+            sc = _cross(a0, a1, b0, b1, c0, c1)
+            if (sc >= 0.0) != (sp >= 0.0):  # the edge p → c crosses the line: add the crossing
+                t = sp / (sp - sc)
+                out[q, 0], out[q, 1] = p0 + t * (c0 - p0), p1 + t * (c1 - p1)
+                q += 1
+            if sc >= 0.0:
+                out[q, 0], out[q, 1] = c0, c1
+                q += 1
+        poly = out[:q].copy()
+        m = q
+        if m < 3:
+            return 0.0
+    inter = max(_shoelace(poly, m), 0.0)
+    union = hull_area + _shoelace(corners, 4) - inter
+    return inter / union if union > 0.0 else 0.0
+
+
+def _hull_candidates(pts: FloatArray) -> FloatArray:
+    """The points (N, 2) that can be convex-hull vertices (Akl–Toussaint): a point strictly inside
+    the quadrilateral of the extreme points in x and y is inside the hull and is dropped. Exact;
+    dense boxes keep a few percent of their points, so the hull gets little to do."""
+    if len(pts) < 8:
+        return pts
+    x, y = pts[:, 0], pts[:, 1]
+    quad = pts[[np.argmin(x), np.argmin(y), np.argmax(x), np.argmax(y)]]  # counter-clockwise
+    keep = np.zeros(len(pts), dtype=bool)
+    edges = 0
+    for (qx, qy), (rx, ry) in zip(quad, np.roll(quad, -1, axis=0)):
+        ex, ey = rx - qx, ry - qy
+        if ex == 0.0 and ey == 0.0:
+            continue  # two extremes are the same point: the polygon has fewer sides
+        edges += 1
+        keep |= ex * (y - qy) - ey * (x - qx) <= 0.0  # not strictly left of this edge (on it: kept)
+    return pts[keep] if edges else pts
+
+
+def bev_iou_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
+    """Exact BEV IoU of two rotated boxes (shapely polygon intersection)."""
+    from shapely.geometry import Polygon
+
+    pa, pb = Polygon(g.box_corners(box_a, "bev")), Polygon(g.box_corners(box_b, "bev"))
+    inter = pa.intersection(pb).area
+    union = pa.area + pb.area - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def iou_3d_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
+    """Exact 3D IoU of two yaw-only boxes (BEV intersection × z overlap)."""
+    from shapely.geometry import Polygon
+
+    a, b = g.validate_box(box_a), g.validate_box(box_b)
+    pa, pb = Polygon(g.box_corners(a, "bev")), Polygon(g.box_corners(b, "bev"))
+    z_lo = max(a[2] - a[5] / 2, b[2] - b[5] / 2)
+    z_hi = min(a[2] + a[5] / 2, b[2] + b[5] / 2)
+    inter = pa.intersection(pb).area * max(0.0, z_hi - z_lo)
+    union = a[3] * a[4] * a[5] + b[3] * b[4] * b[5] - inter
+    return float(inter / union) if union > 0 else 0.0

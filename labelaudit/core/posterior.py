@@ -1,0 +1,641 @@
+"""The paper's generative label model (docs/method.md): registration, posterior covariance, noise EM.
+
+Each LiDAR point x_k of a box is explained by one of the M nearest points v̄_km = J(v*_km)·φ̄ on the
+surface of the *labeled* box, with isotropic Gaussian noise σ. With the mean fixed at the label the
+posterior of the feature vector φ (see :mod:`labelaudit.core.geometry`) is Gaussian with precision
+
+    Λ = Σ0⁻¹ + σ⁻² Σ_k Σ_m r_km J(v*_km)ᵀ J(v*_km)
+
+where r_km are the registration responsibilities and Σ0 is the per-class prior. This module owns
+that posterior and its summaries (per-parameter std, corner variances, σ̂); the label-error box fit
+lives in :mod:`labelaudit.core.fit`. Like all of ``core/`` it does no I/O and knows no file format.
+Everything is vectorised over points; a box costs a few hundred microseconds.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from labelaudit import constants as C
+from labelaudit.core import geometry as g
+from labelaudit.config import ClassPrior, ModelParams
+from labelaudit.core.geometry import ModelKind
+
+FloatArray = NDArray[np.float64]
+
+
+# ----------------------------------------------------------------------------------------------
+# Generic linear-Gaussian posterior
+# ----------------------------------------------------------------------------------------------
+
+
+def linear_gaussian_posterior(
+    J: ArrayLike,
+    x: ArrayLike,
+    sigma: float,
+    prior_mean: ArrayLike,
+    *,
+    prior_cov: ArrayLike | None = None,
+    prior_precision: ArrayLike | None = None,
+    weights: ArrayLike | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Posterior of θ for observations ``x_k = J_k θ + ε``, ``ε ~ N(0, σ² I / w_k)``, prior N(μ0, Σ0).
+
+    Information form: ``Λ = Σ0⁻¹ + σ⁻² Σ_k w_k J_kᵀ J_k``, ``η = Σ0⁻¹ μ0 + σ⁻² Σ_k w_k J_kᵀ x_k``,
+    posterior ``N(Λ⁻¹ η, Λ⁻¹)``. Solved with a Cholesky factor; the covariance is symmetrised.
+
+    Parameters
+    ----------
+    J : array of shape (n, d, p)
+        Design matrices (n observations of dimension d).
+    x : array of shape (n, d)
+    sigma : float
+        Observation noise std.
+    prior_mean : array of shape (p,)
+    prior_cov, prior_precision : array of shape (p, p), optional
+        Give one of them. A zero ``prior_precision`` is a flat prior (then the data must determine θ).
+    weights : array of shape (n,), optional
+        Per-observation weights (responsibilities); default 1.
+
+    Returns
+    -------
+    mean : (p,)
+    cov : (p, p)
+    precision : (p, p)
+
+    Raises
+    ------
+    ValueError
+        When the precision is not positive definite (flat prior and too little data).
+    """
+    J = np.asarray(J, dtype=float)
+    x = np.asarray(x, dtype=float)
+    n, d, p = J.shape
+    mu0 = np.asarray(prior_mean, dtype=float)
+    if (prior_cov is None) == (prior_precision is None):
+        raise ValueError("give exactly one of prior_cov and prior_precision")
+    P0 = np.linalg.inv(np.asarray(prior_cov, dtype=float)) if prior_precision is None else np.asarray(prior_precision, dtype=float)
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
+    # Stack rows of sqrt(w)·J so that one matmul gives Σ w JᵀJ.
+    sw = np.sqrt(w)[:, None, None]
+    A = (J * sw).reshape(n * d, p)
+    b = (x[..., None] * sw[..., 0][:, :, None]).reshape(n * d) if n else np.zeros(0)
+    precision = P0 + (A.T @ A) / sigma**2
+    eta = P0 @ mu0 + (A.T @ b) / sigma**2
+    precision = 0.5 * (precision + precision.T)
+    cov = spd_inverse(precision)
+    return cov @ eta, cov, precision
+
+
+def spd_inverse(P: FloatArray) -> FloatArray:
+    """Inverse of a symmetric positive definite matrix via Cholesky, symmetrised."""
+    try:
+        L = np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"posterior precision is not positive definite (eigenvalues {np.linalg.eigvalsh(P)})") from None
+    Linv = np.linalg.solve(L, np.eye(P.shape[0]))  # L is tiny (≤ 8×8): a generic solve is fine
+    cov = Linv.T @ Linv
+    return 0.5 * (cov + cov.T)
+
+
+# ----------------------------------------------------------------------------------------------
+# Registration
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Points registered to their nearest surface points of a box.
+
+    Attributes
+    ----------
+    vstar : (N, M, d) unit-box coordinates of the M candidate surface points per point.
+    sqdist : (N, M) squared distances (m²) point → candidate; ``inf`` marks a missing candidate.
+    resp : (N, M) responsibilities r_km (rows sum to ≤ 1; < 1 when the outlier term takes weight).
+    points : (N, d) the points used.
+    """
+
+    vstar: FloatArray
+    sqdist: FloatArray
+    resp: FloatArray
+    points: FloatArray
+
+
+def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: float, outlier_log_density: float) -> FloatArray:
+    """r_km ∝ exp(−d²/2σ²) over the M candidates, plus an optional uniform outlier component."""
+    if sqdist.size == 0:
+        return np.zeros_like(sqdist)
+    m = sqdist.shape[1]
+    logw = -sqdist / (2.0 * sigma**2)  # -inf for missing candidates
+    top = np.max(logw, axis=1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    e = np.exp(logw - top)
+    norm = np.sum(e, axis=1, keepdims=True)
+    if outlier_prob > 0:
+        # Mixture: (1-p)/M · N(x | v̄, σ²I) per candidate, p · uniform. Compare in log space.
+        log_gauss_const = np.log((1.0 - outlier_prob) / m) - 0.5 * d * np.log(2.0 * np.pi * sigma**2)
+        log_out = np.log(outlier_prob) + outlier_log_density - log_gauss_const
+        norm = norm + np.exp(np.minimum(log_out - top, 700.0))
+    return e / norm
+
+
+def register(
+    box: ArrayLike,
+    points: ArrayLike,
+    model: ModelKind,
+    *,
+    num_nearest: int = C.DEFAULT_NUM_NEAREST,
+    sigma: float = C.DEFAULT_SIGMA,
+    outlier_prob: float = 0.0,
+) -> Registration:
+    """Register points to the ``num_nearest`` nearest distinct points of the labeled box surface.
+
+    For every point the nearest point on each face (BEV: 4 edges, 3D: 6 faces) is computed in
+    closed form; the M nearest distinct ones are kept (M is capped at the number of faces).
+
+    Parameters
+    ----------
+    box : (7,) labeled box.
+    points : (N, ≥d) points; only the first d columns are used.
+    """
+    y = g.validate_box(box)
+    d = g.point_dim(model)
+    return register_validated(y, g.clean_points(points, d), d, num_nearest, sigma, outlier_prob)
+
+
+def register_validated(y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: float, outlier_prob: float) -> Registration:
+    """:func:`register` for a validated box and clean (N, d) points."""
+    half = 0.5 * y[3 : 3 + d]
+    c, s = np.cos(y[6]), np.sin(y[6])
+    rel = pts[:, :2] - y[:2]
+    local = np.empty_like(pts)  # box frame, metres: Rᵀ (x − c)
+    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
+    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
+    if d == 3:
+        local[:, 2] = pts[:, 2] - y[2]
+    m = min(int(num_nearest), 2 * d)
+    vstar, sqd = _nearest_faces(local, half, m)
+    log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN))))
+    resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
+    return Registration(vstar=vstar, sqdist=sqd, resp=resp, points=pts)
+
+
+def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatArray, FloatArray]:
+    """The m nearest distinct face candidates of every point, as unit coordinates (N, m, d) and
+    squared distances (N, m), nearest first, without forming the (N, 2d, d) array of all face
+    candidates (tests/test_model.py keeps that plain form as the reference).
+
+    The nearest point on face (a, ±) is the clamped point with coordinate a set to ±half_a, so its
+    squared distance is Σ_{j≠a} excess_j² + (x_a ∓ half_a)², excess = x − clamp(x). Faces a point
+    lies outside of (or on) all clamp to the same edge/corner point: only the first is kept. One
+    compiled pass over the points (:func:`_nearest_faces_kernel`; as NumPy array code it was ~20
+    calls per registration).
+    """
+    local = np.ascontiguousarray(local, dtype=np.float64)
+    half = np.ascontiguousarray(half, dtype=np.float64)
+    return _nearest_faces_kernel(local, half, int(m), 1e-9 * float(np.max(half)))
+
+
+@numba.njit(cache=True)
+def _nearest_faces_kernel(local, half, m, tol):  # pragma: no cover - compiled
+    n, d = local.shape
+    f = 2 * d
+    vstar = np.empty((n, m, d))
+    sqd = np.empty((n, m))
+    clamped = np.empty(d)
+    excess = np.empty(d)
+    sq = np.empty(f)
+    order = np.empty(f, dtype=np.int64)
+    for k in range(n):
+        total = 0.0
+        for a in range(d):
+            x = local[k, a]
+            c = min(max(x, -half[a]), half[a])
+            clamped[a] = c
+            excess[a] = (x - c) * (x - c)
+            total += excess[a]
+        seen = 0  # faces the point is outside of (or on), so far
+        for a in range(d):
+            x = local[k, a]
+            base = total - excess[a]
+            lo_d, hi_d = x + half[a], x - half[a]
+            sq[2 * a] = base + lo_d * lo_d
+            sq[2 * a + 1] = base + hi_d * hi_d
+            if x <= -half[a] + tol:
+                seen += 1
+                if seen > 1:
+                    sq[2 * a] = np.inf
+            if x >= half[a] - tol:
+                seen += 1
+                if seen > 1:
+                    sq[2 * a + 1] = np.inf
+        # Stable insertion sort of the 2d faces by distance (ties: lower face index first).
+        for i in range(f):
+            order[i] = i
+        for i in range(1, f):
+            j = i
+            while j > 0 and sq[order[j - 1]] > sq[order[j]]:
+                order[j - 1], order[j] = order[j], order[j - 1]
+                j -= 1
+        for j in range(m):
+            face = order[j]
+            sqd[k, j] = sq[face]
+            axis = face // 2
+            for a in range(d):
+                if a == axis:
+                    vstar[k, j, a] = 0.5 if face % 2 == 1 else -0.5
+                else:
+                    vstar[k, j, a] = clamped[a] / (2.0 * half[a])
+    return vstar, sqd
+
+
+def _design_basis(model: ModelKind) -> tuple[FloatArray, FloatArray]:
+    """J(v*) = B_0 + Σ_i v*_i B_i: the basis B (d+1, d, p) and the products B_aᵀB_b (d+1, d+1, p, p)."""
+    d = g.point_dim(model)
+    B0 = g.design_matrix(np.zeros(d), model)
+    B = np.stack([B0] + [g.design_matrix(np.eye(d)[i], model) - B0 for i in range(d)])
+    return B, np.einsum("adp,bdq->abpq", B, B)
+
+
+_BASIS = {m: _design_basis(m) for m in ("bev", "3d")}
+
+
+def registration_information(reg: Registration, model: ModelKind) -> tuple[FloatArray, FloatArray]:
+    """Σ_km r_km J_kmᵀJ_km (p, p) and Σ_km r_km J_kmᵀ x_k (p,) of a registration (σ not applied).
+
+    J is linear in v*, so both follow from the weighted moments of ṽ = (1, v*): no per-point
+    design matrices are formed. Equals the sums over :func:`labelaudit.core.geometry.design_matrix`.
+    """
+    B, BB = _BASIS[model]
+    n, m, d = reg.vstar.shape
+    vt = np.empty((n, m, d + 1))
+    vt[..., 0] = 1.0
+    vt[..., 1:] = reg.vstar
+    rv = vt * reg.resp[..., None]
+    rv2 = rv.reshape(n * m, d + 1)
+    moments = rv2.T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
+    cross = rv.sum(axis=1).T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
+    p = B.shape[-1]
+    return (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), cross.reshape(-1) @ B.reshape(-1, p)
+
+
+# ----------------------------------------------------------------------------------------------
+# Prior
+# ----------------------------------------------------------------------------------------------
+
+
+def prior_cov_extended(prior: ClassPrior, model: ModelKind) -> FloatArray:
+    """Prior covariance of the extended parameters ỹ, before the weight w.
+
+    Centre, sizes: independent with the class std. The two axis angles are written
+    ``a = yaw + s/2``, ``b = yaw − s/2`` with independent yaw ~ N(0, σ_yaw²) and shear
+    s ~ N(0, (r·σ_yaw)²), r = :data:`~labelaudit.constants.PRIOR_SHEAR_STD_RATIO`. The reported yaw
+    (a + b)/2 then has exactly the class yaw std, and the prior stays full rank.
+    """
+    d = g.point_dim(model)
+    if d == 2:
+        diag = [prior.center, prior.center, prior.length, prior.width]
+    else:
+        diag = [prior.center, prior.center, prior.center, prior.length, prior.width, prior.height]
+    k = len(diag)
+    S = np.zeros((k + 2, k + 2))
+    S[:k, :k] = np.diag(np.square(diag))
+    var_yaw = prior.yaw**2
+    var_shear = (C.PRIOR_SHEAR_STD_RATIO * prior.yaw) ** 2
+    S[k:, k:] = [[var_yaw + var_shear / 4, var_yaw - var_shear / 4], [var_yaw - var_shear / 4, var_yaw + var_shear / 4]]
+    return S
+
+
+@functools.lru_cache(maxsize=64)
+def _prior_info_extended(prior: ClassPrior, model: ModelKind) -> FloatArray:
+    """Σ_ỹ⁻¹ (cached per class prior: it does not depend on the box)."""
+    info = np.linalg.inv(prior_cov_extended(prior, model))
+    info.setflags(write=False)
+    return info
+
+
+def prior_covariance(box: ArrayLike, prior: ClassPrior, weight: float, model: ModelKind) -> FloatArray:
+    """Σ0 = G · Σ_ỹ / w · Gᵀ with G = ∂φ/∂ỹ at the label (full rank).
+
+    The weight divides the prior *variance* (it multiplies the prior precision), as the authors'
+    code does with its ``prior_scaler``.
+    """
+    G = g.dphi_dext(box, model)
+    S = G @ (prior_cov_extended(prior, model) / weight) @ G.T
+    return 0.5 * (S + S.T)
+
+
+def prior_precision_from(E: FloatArray, prior: ClassPrior, weight: float, model: ModelKind) -> FloatArray:
+    P = E.T @ (_prior_info_extended(prior, model) * weight) @ E
+    return 0.5 * (P + P.T)
+
+
+def prior_precision(box: ArrayLike, prior: ClassPrior, weight: float, model: ModelKind) -> FloatArray:
+    """Σ0⁻¹ = Eᵀ · w Σ_ỹ⁻¹ · E with E = ∂ỹ/∂φ (Σ_ỹ is well conditioned; Σ0 need not be)."""
+    return prior_precision_from(g.dext_dphi(box, model), prior, weight, model)
+
+
+# ----------------------------------------------------------------------------------------------
+# Noise σ by EM
+# ----------------------------------------------------------------------------------------------
+
+
+def em_sigma_step(sqdist: FloatArray, resp: FloatArray, dof: float = C.EM_RESIDUAL_DOF) -> tuple[float, float]:
+    """Sufficient statistics of the σ update: (Σ r·‖x−v̄‖², dof·Σ r); σ² = first / second.
+
+    ``dof`` is the number of noise components a residual keeps. The candidates are the *nearest*
+    surface points, so the surface absorbs the tangential noise and a residual keeps only its
+    normal component: dof = 1 (the surface's codimension) gives an unbiased per-axis σ, where the
+    point dimension D (DESIGN.md §4, the authors' code) would return σ/√D.
+    Missing candidates (``sqdist = inf``) carry r = 0 and are skipped.
+    """
+    num = float(np.sum(resp * np.where(np.isfinite(sqdist), sqdist, 0.0)))
+    return num, float(dof * np.sum(resp))
+
+
+def outlier_log_density(y: FloatArray, d: int) -> float:
+    """log of the uniform outlier density: 1 / size of the box grown by the outlier margin."""
+    return -float(np.sum(np.log(y[3 : 3 + d] + 2.0 * C.OUTLIER_REGION_MARGIN)))
+
+
+def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier_prob: float) -> float:
+    """Pooled EM for σ over registrations given as (sqdist (N, M), outlier log density)."""
+    regs = [(sqd, np.where(np.isfinite(sqd), sqd, 0.0), ld) for sqd, ld in regs]
+    # Start at the nearest-candidate residual (the small-σ limit): EM then needs few iterations.
+    n_pts = sum(len(sqd) for sqd, _, _ in regs)
+    if n_pts == 0:
+        return float("nan")
+    start = np.sqrt(sum(float(np.sum(sqd0[:, 0])) for _, sqd0, _ in regs) / (C.EM_RESIDUAL_DOF * n_pts))
+    sigma = max(float(start) if outlier_prob == 0 else float(sigma0), C.SIGMA_FLOOR)
+    # With one-hot responsibilities the first M-step returns the start: then one step suffices.
+    estimate = float(start) if outlier_prob == 0 else np.nan
+    fast = (
+        outlier_prob == 0
+        and all(np.all(np.isfinite(sqd[:, 0])) for sqd, _, _ in regs)
+        and all(sqd.shape[1] for sqd, _, _ in regs)
+        and len({sqd.shape[1] for sqd, _, _ in regs}) == 1
+    )
+    if fast:
+        # Without outliers the responsibilities of a point sum to 1 and only exp(−(d² − min d²)/2σ²)
+        # changes with σ: the candidate differences, as rows (M, N), go to one compiled loop.
+        diff = np.concatenate([(sqd - np.min(sqd, axis=1, keepdims=True)).T for sqd, _, _ in regs], axis=1)
+        sq = np.concatenate([sqd0.T for _, sqd0, _ in regs], axis=1)
+        return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+    for _ in range(C.EM_MAX_ITERATIONS):
+        num = den = 0.0
+        for sqd, sqd0, log_density in regs:
+            r = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
+            num += float(np.sum(r * sqd0))
+            den += C.EM_RESIDUAL_DOF * float(np.sum(r))
+        if den <= 0:
+            return float("nan")
+        new = float(np.sqrt(num / den))
+        converged = np.isfinite(estimate) and abs(new - estimate) <= C.EM_TOLERANCE * max(estimate, C.SIGMA_FLOOR)
+        estimate = new
+        if converged or num == 0.0:
+            break
+        sigma = max(new, C.SIGMA_FLOOR)
+    return estimate
+
+
+@numba.njit(cache=True)
+def _em_fast_kernel(diff, sq, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
+    """The EM of :func:`em_sigma` without outliers: candidate differences d² − min d² and squared
+    distances as rows (M, N); per point the responsibility-weighted d² over its candidates."""
+    m, n = diff.shape
+    den = dof * n
+    for _ in range(max_iter):
+        scale = -0.5 / sigma**2
+        num = 0.0
+        for k in range(n):
+            se = 0.0
+            s = 0.0
+            for j in range(m):
+                e = math.exp(diff[j, k] * scale)  # missing candidates (inf) give 0
+                se += e
+                s += e * sq[j, k]
+            num += s / se
+        if den <= 0:
+            return math.nan
+        new = math.sqrt(num / den)
+        converged = math.isfinite(estimate) and abs(new - estimate) <= tol * max(estimate, floor)
+        estimate = new
+        if converged or num == 0.0:
+            break
+        sigma = max(new, floor)
+    return estimate
+
+
+def estimate_sigma(
+    box: ArrayLike,
+    points: ArrayLike,
+    model: ModelKind,
+    *,
+    num_nearest: int = C.DEFAULT_NUM_NEAREST,
+    sigma_init: float = C.DEFAULT_SIGMA,
+    outlier_prob: float = 0.0,
+) -> float:
+    """Per-object noise σ̂ by EM: σ² = Σ r‖x − v̄‖² / (dof · Σ r), responsibilities re-computed with σ̂
+    (dof: see :func:`em_sigma_step`).
+
+    With the box fixed at the label this is the RMS fit residual of the points to the box surface:
+    large when the label does not fit its points. NaN for fewer than 2 points.
+    """
+    y = g.validate_box(box)
+    reg = register(y, points, model, num_nearest=num_nearest, sigma=sigma_init, outlier_prob=outlier_prob)
+    if reg.points.shape[0] < 2:
+        return float("nan")
+    d = g.point_dim(model)
+    return em_sigma([(reg.sqdist, outlier_log_density(y, d))], d, sigma_init, outlier_prob)
+
+
+def estimate_sigma_dataset(
+    objects: Iterable[tuple[ArrayLike, ArrayLike]],
+    model: ModelKind,
+    *,
+    num_nearest: int = C.DEFAULT_NUM_NEAREST,
+    sigma_init: float = C.DEFAULT_SIGMA,
+    outlier_prob: float = 0.0,
+) -> float:
+    """Dataset-level σ̂ by EM with sums pooled over many (box, points) pairs; use it to calibrate a config."""
+    d = g.point_dim(model)
+    regs = []
+    for box, points in objects:
+        y = g.validate_box(box)
+        reg = register(y, points, model, num_nearest=num_nearest, sigma=sigma_init, outlier_prob=outlier_prob)
+        if reg.points.shape[0]:
+            regs.append((reg.sqdist, outlier_log_density(y, d)))
+    if not regs:
+        return float("nan")
+    return em_sigma(regs, d, sigma_init, outlier_prob)
+
+
+# ----------------------------------------------------------------------------------------------
+# Derived quantities
+# ----------------------------------------------------------------------------------------------
+
+
+def corner_unit_coords(model: ModelKind) -> FloatArray:
+    """Unit coordinates of the 4 BEV corners (3D: at mid-height, v*₃ = 0), order of box_corners."""
+    if g.point_dim(model) == 2:
+        return g.BEV_CORNERS_UNIT.copy()
+    return np.c_[g.BEV_CORNERS_UNIT, np.zeros(4)]
+
+
+def corner_total_variance(
+    box: ArrayLike, cov: ArrayLike, model: ModelKind, sensor_origin: ArrayLike = (0.0, 0.0, 0.0)
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Total variance trace(J(v*_c) Σ J(v*_c)ᵀ) at the 4 BEV corners, nearest-to-sensor first.
+
+    Returns
+    -------
+    tv : (4,) total variances (m²), C1 = corner nearest to the sensor (BEV distance).
+    order : (4,) indices into :func:`labelaudit.core.geometry.box_corners` (BEV order) of C1..C4.
+    """
+    return _corner_tv(g.validate_box(box), np.asarray(cov, dtype=float), model, sensor_origin)
+
+
+_CORNER_J = {m: g.design_matrix(corner_unit_coords(m), m) for m in ("bev", "3d")}  # (4, d, p), box-independent
+
+
+def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
+    J = _CORNER_J[model]
+    tv = np.einsum("cdp,pq,cdq->c", J, cov, J)
+    c, s = math.cos(y[6]), math.sin(y[6])
+    u = g.BEV_CORNERS_UNIT * y[3:5]
+    o = np.asarray(sensor_origin, dtype=float)
+    dist = np.hypot((c * u[:, 0] - s * u[:, 1] + y[0]) - o[0], (s * u[:, 0] + c * u[:, 1] + y[1]) - o[1])  # corners − sensor
+    order = np.argsort(dist, kind="stable")
+    return tv[order], order
+
+
+def box_std(box: ArrayLike, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
+    """Std of (cx, cy, cz, length, width, height, yaw) from K Σ Kᵀ; NaN for cz/height in BEV."""
+    K, _ = g.box_param_jacobian(box, model)
+    return _std_from_K(K, cov, model)
+
+
+def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
+    names = ("cx", "cy", "length", "width", "yaw") if g.point_dim(model) == 2 else g.BOX_FIELDS
+    var = np.einsum("ip,pq,iq->i", K, np.asarray(cov, dtype=float), K)
+    out = {name: float("nan") for name in g.BOX_FIELDS}
+    for name, v in zip(names, var):
+        out[name] = float(np.sqrt(max(v, 0.0)))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Inference for one label
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LabelPosterior:
+    """Posterior of one label's feature vector φ (mean fixed at the label).
+
+    Attributes
+    ----------
+    model : "bev" or "3d"
+    box : (7,) the labeled box
+    phi : (p,) φ of the label (the posterior mean)
+    cov : (p, p) posterior covariance of φ
+    sigma : noise std used (m)
+    num_points : points used
+    std_box : per-parameter std, keys cx, cy, cz, length, width, height, yaw (NaN for cz, height in BEV)
+    corner_tv : (4,) corner total variance, C1 (nearest the sensor) first
+    sigma_hat : per-object EM noise estimate (NaN when < 2 points)
+    prior_cov : (p, p) prior covariance Σ0
+    corner_order : (4,) indices of C1..C4 in box_corners' BEV order
+    class_name : class the prior came from
+    fit_mean : (p,) Gaussian mean with the registration held fixed (one step of the box fit)
+    """
+
+    model: ModelKind
+    box: FloatArray
+    phi: FloatArray
+    cov: FloatArray
+    sigma: float
+    num_points: int
+    std_box: dict[str, float]
+    corner_tv: FloatArray
+    sigma_hat: float
+    prior_cov: FloatArray
+    corner_order: NDArray[np.int64]
+    class_name: str = ""
+    fit_mean: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+
+def infer_label(
+    box: ArrayLike,
+    points: ArrayLike | None,
+    class_name: str,
+    params: ModelParams,
+    sensor_origin: ArrayLike = (0.0, 0.0, 0.0),
+) -> LabelPosterior:
+    """Posterior covariance of a label given its LiDAR points.
+
+    Parameters
+    ----------
+    box : (7,) labeled box (cx, cy, cz, l, w, h, yaw), LiDAR frame.
+    points : (N, ≥3) points of the box (x, y, z, ...); rows with non-finite values are dropped.
+    class_name : selects the prior (``params.priors``; unknown classes use ``default``).
+    params : model parameters.
+    sensor_origin : (3,) sensor position, used to order the corners (C1 nearest).
+
+    Raises
+    ------
+    ValueError
+        Invalid box (non-positive size, non-finite values) or malformed points.
+    """
+    y = g.validate_box(box)
+    model = params.kind
+    d = g.point_dim(model)
+    pts = g.clean_points(points, d)
+    n = pts.shape[0]
+    prior = params.prior_for(class_name)
+    phi = g.phi_of_valid_box(y, model)
+    G = g.dphi_dext(y, model)
+    E = np.linalg.inv(G)
+    P0 = prior_precision_from(E, prior, params.prior_weight, model)
+
+    sigma_hat = float("nan")
+    sigma = float(params.sigma)
+    reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
+    if n >= 2:
+        sigma_hat = em_sigma([(reg.sqdist, outlier_log_density(y, d))], d, sigma, params.outlier_prob)
+        if params.estimate_sigma and n >= max(params.min_points, 2) and np.isfinite(sigma_hat):
+            sigma = max(sigma_hat, C.SIGMA_FLOOR)
+            reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
+
+    data_precision, data_eta = registration_information(reg, model)
+    precision = P0 + data_precision / sigma**2
+    cov = spd_inverse(0.5 * (precision + precision.T))
+    fit_mean = cov @ (P0 @ phi + data_eta / sigma**2)
+    tv, order = _corner_tv(y, cov, model, sensor_origin)
+    p = phi.size
+    K = np.vstack([E[: p - 2], 0.5 * (E[p - 2] + E[p - 1])])  # as geometry.box_param_jacobian
+    S0 = G @ (prior_cov_extended(prior, model) / params.prior_weight) @ G.T
+    return LabelPosterior(
+        model=model,
+        box=y,
+        phi=phi,
+        cov=cov,
+        sigma=sigma,
+        num_points=n,
+        std_box=_std_from_K(K, cov, model),
+        corner_tv=tv,
+        sigma_hat=sigma_hat,
+        prior_cov=0.5 * (S0 + S0.T),
+        corner_order=order,
+        class_name=class_name,
+        fit_mean=fit_mean,
+    )
+
+

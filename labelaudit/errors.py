@@ -1,0 +1,52 @@
+"""Every error labelaudit raises on purpose: bad input, a bad config, an unusable folder.
+
+All of them subclass :class:`LabelAuditError`; the CLI turns any ``LabelAuditError`` into a one-line
+message and exit code 2, so a new error class needs no registration anywhere. Anything else that
+escapes is a bug (exit 3, traceback with ``--debug``). This module only defines classes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class LabelAuditError(Exception):
+    """Base of all expected errors; the message names the file or option and the fix."""
+
+
+class ConfigError(LabelAuditError, ValueError):
+    """A model or gate config is unreadable, has an unknown key or a value out of range."""
+
+
+class DatasetError(LabelAuditError, ValueError):
+    """Bad input: the message names the file (and line for text files) and what was expected."""
+
+    def __init__(self, path: str | Path, message: str, line: int | None = None):
+        self.path = str(path)
+        self.line = line
+        where = f"{path}:{line}" if line is not None else f"{path}"
+        super().__init__(f"{where}: {message}")
+
+
+class ResultsError(LabelAuditError, ValueError):
+    """A results folder is missing, unreadable or incompatible; the message names the path and the fix."""
+
+
+class InferError(LabelAuditError, ValueError):
+    """Bad input, output folder or options for ``infer``; the message names the path and the fix."""
+
+
+class StrictError(LabelAuditError, RuntimeError):
+    """``--strict``: a frame or an object failed; the message says which and why."""
+
+
+class WorkerCrashed(LabelAuditError, RuntimeError):
+    """A worker process died (killed, out of memory, a crash in native code)."""
+
+
+class OutputExistsError(LabelAuditError, FileExistsError):
+    """An output folder already holds what a command would write, and overwriting was not asked for."""
+
+
+class UsageError(LabelAuditError, ValueError):
+    """A command-line value the library cannot use (for checks the CLI itself makes)."""

@@ -1,0 +1,197 @@
+"""Frame → result rows: the one place a row of the objects table is built.
+
+:func:`audit_object` runs the label model on one box and returns the model columns of its row
+(:data:`labelaudit.results.MODEL_COLUMNS`); :func:`process_frame` crops every selected box of a
+:class:`~labelaudit.datasets.Frame`, adds the identity, box and dataset-extra columns and returns
+normalised rows. Pure functions: no files, no printing; the columns themselves are defined in
+:mod:`labelaudit.results`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from numpy.typing import ArrayLike
+
+from labelaudit import results as R
+from labelaudit.config import RunConfig
+from labelaudit.core import geometry as g
+from labelaudit.core.fit import fit_label
+from labelaudit.core.iou import hull_iou
+from labelaudit.core.posterior import infer_label
+from labelaudit.core.spatial import jiou_gt
+from labelaudit.datasets import Frame
+from labelaudit.infer.crop import crop_frame_pair
+
+ALL_CLASSES = "all"
+"""Put this alone in ``classes`` to audit every class (``--classes all``)."""
+
+DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
+
+
+# --------------------------------------------------------------------------- layer 1: one frame
+
+
+def frame_note(frame_id: str | None, unit: str, message: str, level: str = "error", file: str | None = None, line: int | None = None) -> dict[str, Any]:
+    return {"unit": unit, "frame_id": frame_id, "file": file, "line": line, "level": level, "message": message}
+
+
+def _extras_for(frame: Frame, i: int) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name in R.EXTRA_COLUMNS:
+        if name not in frame.extras:
+            continue
+        value = frame.extras[name][i]
+        if name == "difficulty" and not isinstance(value, str):
+            value = DIFFICULTY_NAMES.get(int(value), "unknown")
+        out[name] = value
+    return out
+
+
+def wants_class(cfg: RunConfig, class_name: str) -> bool:
+    """Whether objects of ``class_name`` are audited under ``cfg`` (``classes = ["all"]`` = every class)."""
+    return ALL_CLASSES in cfg.classes or class_name in cfg.classes
+
+
+def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Audit every selected box of one frame.
+
+    Parameters
+    ----------
+    frame : points (N, 4) and boxes (K, 7) in the LiDAR frame
+    cfg : run configuration (classes, length range, crop and model parameters)
+
+    Returns
+    -------
+    rows : one dict per audited box, normalised (:func:`labelaudit.results.normalize_row`: every
+        column of :data:`labelaudit.results.SCHEMA`, plain Python values, NaN as None); boxes of
+        other classes are left out, boxes outside the length range get status ``skipped``, a
+        box whose inference raised gets status ``error`` and the exception in ``message``.
+    notes : frame warnings (level ``warning``) as rows of the errors table
+    """
+    notes = [frame_note(frame.frame_id, frame.frame_id, w, level="warning") for w in frame.warnings]
+    origin = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    selected = [i for i, name in enumerate(frame.class_names) if wants_class(cfg, name)]
+    rows: dict[int, dict[str, Any]] = {}
+    final: set[int] = set()  # indices whose row is already normalised
+    to_audit: list[int] = []
+    for i in selected:
+        box = frame.boxes[i]
+        row: dict[str, Any] = {
+            "dataset": cfg.dataset_format,
+            "frame_id": frame.frame_id,
+            "object_index": i,
+            "object_id": frame.object_ids[i],
+            "class_name": frame.class_names[i],
+            **dict(zip(R.BOX_COLUMNS, (float(v) for v in box))),
+            "distance": float(math.hypot(box[0] - origin[0], box[1] - origin[1])),
+            "model": cfg.model.kind,
+            "sigma": cfg.model.sigma,
+            **_extras_for(frame, i),
+        }
+        rows[i] = row
+        try:
+            g.validate_box(box)
+        except ValueError as exc:
+            row.update(status="error", message=f"invalid box: {exc}")
+            continue
+        length = float(box[3])
+        if not (cfg.min_length <= length <= cfg.max_length):
+            row.update(status="skipped", message=f"length {length:.2f} m outside [{cfg.min_length:g}, {cfg.max_length:g}] m")
+            continue
+        to_audit.append(i)
+
+    if to_audit:
+        boxes = np.ascontiguousarray(frame.boxes[to_audit], dtype=float)
+        # The label-error fit gets a wider crop (a box shifted off its object must still see it);
+        # one Open3D pass gives both crops, the narrow one refined from the wide one exactly.
+        indices, fit_indices = crop_frame_pair(frame.points, boxes, cfg.crop)
+        for i, idx, fit_idx in zip(to_audit, indices, fit_indices):
+            row = rows[i]
+            points = frame.points[idx]
+            try:
+                result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin, fit_points=frame.points[fit_idx])
+                # values the schema cannot hold fail here, per object; the row is final after this
+                rows[i] = R.normalize_row({**row, **result})
+                final.add(i)
+            except Exception as exc:  # one bad object never sinks the frame (DESIGN.md §9)
+                row.update(status="error", message=f"{type(exc).__name__}: {exc}", num_points=len(idx))
+    return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
+
+
+def audit_object(
+    box: ArrayLike,
+    points: ArrayLike | None,
+    class_name: str,
+    cfg: RunConfig,
+    sensor_origin: ArrayLike = (0.0, 0.0, 0.0),
+    *,
+    fit_points: ArrayLike | None = None,
+) -> dict[str, Any]:
+    """Audit one labeled box against its LiDAR points.
+
+    Parameters
+    ----------
+    box : (7,) labeled box (cx, cy, cz, l, w, h, yaw), LiDAR/vehicle frame.
+    points : (N, ≥3) the box's cropped points (x, y, z, ...), or None / empty.
+    class_name : selects the prior.
+    cfg : run configuration (``cfg.model``, ``cfg.spatial``).
+    sensor_origin : (3,) sensor position in the same frame (orders the corners, C1 nearest).
+    fit_points : optional (M, ≥3) points of a *wider* crop for the label-error fit (a box shifted
+        off its object loses, in its own crop, the points that would show it; ≈ 0.5 m margin
+        recommended, docs/label-error.md). Default: ``points``.
+
+    Returns
+    -------
+    dict with the keys of :data:`labelaudit.results.MODEL_COLUMNS`:
+        ``status`` "no_points" (0 points: prior-only posterior), "few_points" (fewer than
+        ``cfg.model.min_points``) or "ok"; ``num_points``; ``sigma`` (noise std used, m);
+        ``jiou_gt``; ``sigma_hat`` (per-object EM residual at the label, NaN below 2 points);
+        ``corner_tv`` (4 floats, m², C1 first); ``std_cx`` … ``std_yaw`` (NaN for cz/height in BEV);
+        ``cov`` (row-major flattened φ covariance), ``cov_dim`` (6 BEV, 8 3D); ``model``.
+        Label error (:func:`labelaudit.core.fit.fit_label`, docs/label-error.md): ``label_error`` in
+        [0, 1] (higher = more likely wrong), ``fit_cx`` … ``fit_yaw`` the suggested box (3D fit;
+        written in the form nearest the label), ``fit_offset_m`` (BEV centre offset, m),
+        ``mahalanobis`` (label vs suggested box, in posterior std); baseline ``hull_iou`` (BEV IoU
+        of the box and the convex hull of its points; 0 below 3 points).
+
+    Raises
+    ------
+    ValueError
+        Invalid box (non-positive size, non-finite values) or malformed points.
+    """
+    y = g.validate_box(box)
+    post = infer_label(y, points, class_name, cfg.model, sensor_origin)
+    n = post.num_points
+    if n == 0:
+        status = "no_points"
+    elif n < cfg.model.min_points:
+        status = "few_points"
+    else:
+        status = "ok"
+    fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model)
+    row: dict[str, Any] = {
+        "status": status,
+        "num_points": int(n),
+        "sigma": float(post.sigma),
+        "jiou_gt": float(jiou_gt(post, cfg.spatial)),
+        "label_error": float(fit.label_error),
+        "sigma_hat": float(post.sigma_hat),
+        "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
+        "corner_tv": [float(v) for v in post.corner_tv],
+    }
+    for name in g.BOX_FIELDS:
+        row[f"std_{name}"] = float(post.std_box[name])
+    row["cov"] = [float(v) for v in np.asarray(post.cov).ravel()]
+    row["cov_dim"] = int(post.cov.shape[0])
+    row["model"] = post.model
+    for name, value in zip(g.BOX_FIELDS, fit.box):
+        row[f"fit_{name}"] = float(value)
+    if fit.model == "bev":  # points without z: the fit does not touch cz and height
+        row["fit_cz"] = row["fit_height"] = float("nan")
+    row["hull_iou"] = hull_iou(y, points)
+    row["mahalanobis"] = float(fit.mahalanobis)
+    return row

@@ -1,0 +1,389 @@
+"""The ``labelaudit infer`` run: resolve format and config, plan chunks, resume, hand chunks to an executor.
+
+:func:`run_infer` plans fixed chunks of units (independent of the worker count), skips those already
+written (``--resume``), hands the rest to an :class:`~labelaudit.executors.Executor` and writes each
+returned table as an atomic shard. :func:`process_chunk` is the pure function a worker runs: a
+:class:`ChunkTask` (a few :class:`~labelaudit.datasets.FrameRef` s and the config) in, a
+:class:`ChunkResult` (an Arrow table and the errors) out; it loads its own frames, so it runs in any
+process or cluster node. Rows are built by :mod:`labelaudit.infer.rows`; the folder layout, lock and
+resume checks belong to :mod:`labelaudit.results`. Nothing here prints.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Protocol, Sequence
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from labelaudit import constants as C
+from labelaudit.config import CONFIG_DIR, ConfigError, RunConfig, hash_inputs, load_config
+from labelaudit.datasets import DatasetError, FORMATS, FrameRef, detect_format, open_dataset
+from labelaudit import results as R
+from labelaudit.errors import InferError, ResultsError, StrictError
+from labelaudit.executors import Executor, make_executor
+from labelaudit.infer.rows import ALL_CLASSES, frame_note, process_frame
+
+
+# --------------------------------------------------------------------------- layer 2: one chunk
+
+
+@dataclass(frozen=True)
+class ChunkTask:
+    """Everything a worker needs to produce one shard: picklable, no open files."""
+
+    name: str  # shard file name (derived from the unit keys)
+    refs: tuple[FrameRef, ...]
+    cfg: RunConfig
+    reader_options: tuple[tuple[str, Any], ...] = ()
+    max_frames_per_unit: int | None = None
+    debug: bool = False
+
+
+@dataclass
+class ChunkResult:
+    """What a worker returns for one chunk."""
+
+    name: str
+    table: pa.Table
+    errors: list[dict[str, Any]]
+    units: int
+    frames: int
+    objects: int
+    seconds: float
+
+    @property
+    def failed(self) -> list[dict[str, Any]]:
+        """Frame-level errors (warnings excluded)."""
+        return [e for e in self.errors if e["level"] == "error"]
+
+
+_READERS: dict[tuple[Any, ...], Any] = {}
+
+
+def _reader(ref: FrameRef, options: tuple[tuple[str, Any], ...]) -> Any:
+    """One reader per process and dataset: opening a reader lists folders, so reuse it."""
+    key = (ref.dataset_format, ref.root, options)
+    if key not in _READERS:
+        _READERS[key] = open_dataset(ref.root, ref.dataset_format, **dict(options))
+    return _READERS[key]
+
+
+def process_chunk(task: ChunkTask) -> ChunkResult:
+    """Load and audit every frame of a chunk of units; never raises for bad input.
+
+    A unit that cannot be read (or a frame whose crop fails) becomes an error row; objects whose
+    inference fails become rows with status ``error``. With ``task.debug`` unexpected exceptions
+    (bugs, not bad input) propagate so their traceback is visible.
+    """
+    start = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    errors: list[dict[str, Any]] = []
+    frames = 0
+    for ref in task.refs:
+        try:
+            reader = _reader(ref, task.reader_options)
+            for n, frame in enumerate(reader.load_unit(ref)):
+                if task.max_frames_per_unit is not None and n >= task.max_frames_per_unit:
+                    break
+                try:  # a frame that fails (e.g. in the crop) never takes the rest of its unit along
+                    frame_rows, notes = process_frame(frame, task.cfg)
+                except Exception as exc:
+                    if task.debug:
+                        raise
+                    errors.append(frame_note(frame.frame_id, ref.key, f"{type(exc).__name__} in frame {frame.frame_id}: {exc}"))
+                    continue
+                for note in notes:
+                    note["unit"] = ref.key
+                rows.extend(frame_rows)
+                errors.extend(notes)
+                frames += 1
+        except DatasetError as exc:  # the reader gave up on the unit (or on the rest of it)
+            errors.append(frame_note(None, ref.key, str(exc), file=exc.path, line=exc.line))
+        except Exception as exc:
+            if task.debug:
+                raise
+            errors.append(frame_note(None, ref.key, f"{type(exc).__name__} while reading {ref.key}: {exc}"))
+    table = R.rows_to_table(rows, normalized=True)  # process_frame's rows are normalised
+    return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start)
+
+
+# --------------------------------------------------------------------------- layer 3: a run
+
+
+@dataclass(frozen=True)
+class InferRequest:
+    """The options of ``labelaudit infer``: input, output, run options and the config overrides.
+
+    ``config``, ``classes`` and ``model`` are used by :func:`infer_dataset` to resolve the
+    :class:`~labelaudit.config.RunConfig` (:func:`resolve_config`); :func:`run_infer` takes a
+    resolved config instead and ignores them.
+    """
+
+    dataset: Path
+    output: Path = Path(C.DEFAULT_RESULTS_DIR)
+    dataset_format: str = "auto"
+    split: str | None = None
+    workers: int | None = None
+    limit: int | None = None
+    overwrite: bool = False
+    strict: bool = False
+    debug: bool = False
+    chunk_units: int | None = None  # None: chunk_size_for(format, number of units)
+    config: Path | None = None  # model config TOML; None: the built-in one of the format
+    classes: tuple[str, ...] | None = None  # None: the config's; ("all",): every class
+    model: str | None = None  # "bev" / "3d" override of the config's [model] kind
+
+
+@dataclass
+class RunSummary:
+    """What a run did (the shards themselves are on disk)."""
+
+    output: Path
+    manifest: dict[str, Any]
+    units: int
+    chunks: int
+    chunks_skipped: int
+    frames: int
+    objects: int
+    failed_frames: int
+    warnings: int
+    wall_seconds: float
+
+
+class Progress(Protocol):
+    """Receives progress events (the CLI shows a Rich bar; the library default shows nothing)."""
+
+    def start(self, total_units: int, done_units: int) -> None: ...
+
+    def advance(self, result: ChunkResult) -> None: ...
+
+    def stop(self) -> None: ...
+
+
+class NoProgress:
+    def start(self, total_units: int, done_units: int) -> None:
+        pass
+
+    def advance(self, result: ChunkResult) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+
+def resolve_format(dataset: Path, fmt: str) -> str:
+    """``auto`` → the detected format; raises :class:`InferError` with the reason."""
+    if fmt != "auto" and fmt not in FORMATS:
+        raise InferError(f"--dataset-format {fmt!r}: expected auto or one of {', '.join(FORMATS)}")
+    if not dataset.exists():
+        raise InferError(f"{dataset}: dataset path does not exist")
+    if fmt == "auto":
+        try:
+            return detect_format(dataset)
+        except DatasetError as exc:
+            raise InferError(str(exc)) from None
+    return fmt
+
+
+def resolve_config(config_path: Path | None, dataset_format: str, classes: Sequence[str] | None = None, model: str | None = None) -> RunConfig:
+    """Load the TOML config (or the built-in one of the format) and apply CLI overrides.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, unknown key, bad value.
+    """
+    if config_path is None:
+        name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
+        cfg = load_config(None, dataset_format) if (CONFIG_DIR / name).is_file() else RunConfig(dataset_format=dataset_format)
+    else:
+        cfg = load_config(config_path, dataset_format)
+    if classes is not None:
+        classes = tuple(c.strip() for c in classes if c.strip())
+        if not classes:
+            raise ConfigError("--classes: expected a comma-separated list of class names or 'all'")
+        cfg = cfg.with_overrides(classes=(ALL_CLASSES,) if ALL_CLASSES in classes else classes)
+    if model is not None:
+        if model not in ("bev", "3d"):
+            raise ConfigError(f"--model: expected bev or 3d, got {model!r}")
+        cfg = cfg.with_overrides(model=replace(cfg.model, kind=model))
+    return cfg
+
+
+def chunk_name(refs: Sequence[FrameRef]) -> str:
+    """Shard file name of a chunk: a hash of its unit keys, so a resumed run finds it again."""
+    digest = hashlib.sha256("\n".join(r.key for r in refs).encode()).hexdigest()[:20]
+    return f"part-{digest}.parquet"
+
+
+def chunk_size_for(dataset_format: str, num_units: int) -> int:
+    """Units per chunk: about :data:`~labelaudit.constants.TARGET_CHUNKS` chunks, at most the
+    format's :data:`~labelaudit.constants.CHUNK_UNITS`. Depends only on the unit list, never on
+    the worker count, so a run resumed with other ``--workers`` finds its shards again."""
+    cap = C.CHUNK_UNITS.get(dataset_format, 1)
+    return int(min(cap, max(1, math.ceil(num_units / C.TARGET_CHUNKS))))
+
+
+def plan_chunks(refs: Sequence[FrameRef], chunk_units: int) -> list[tuple[str, tuple[FrameRef, ...]]]:
+    """Split units into fixed-size chunks in list order (independent of the worker count)."""
+    chunks = [tuple(refs[i : i + chunk_units]) for i in range(0, len(refs), chunk_units)]
+    return [(chunk_name(c), c) for c in chunks]
+
+
+def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None = None, executor: Executor | None = None) -> RunSummary:
+    """Audit a dataset folder into a results folder (``labelaudit infer``).
+
+    Parameters
+    ----------
+    request : input, output and run options
+    cfg : model configuration (its ``dataset_format`` must be the resolved format)
+    progress : progress sink (default: silent)
+    executor : default :func:`make_executor` of ``request.workers``
+
+    Raises
+    ------
+    InferError
+        Unreadable dataset, no frames, output folder of another run.
+    StrictError
+        ``request.strict`` and a frame or an object failed.
+    """
+    start = time.perf_counter()
+    progress = progress or NoProgress()
+    dataset = Path(request.dataset)
+    fmt = resolve_format(dataset, request.dataset_format)
+    if cfg.dataset_format != fmt:
+        cfg = cfg.with_overrides(dataset_format=fmt)
+    reader_options: tuple[tuple[str, Any], ...] = (("split", request.split),) if request.split else ()
+    try:
+        reader = open_dataset(dataset, fmt, **dict(reader_options))
+        refs = reader.list_units()
+    except DatasetError as exc:
+        raise InferError(str(exc)) from None
+    except TypeError as exc:  # a reader without a split option
+        raise InferError(f"{dataset}: option not supported by the {fmt} reader ({exc})") from None
+    if request.limit is not None:
+        if request.limit < 1:
+            raise InferError(f"--limit must be ≥ 1, got {request.limit}")
+        refs = refs[: request.limit]
+    if not refs:
+        raise InferError(f"{dataset}: no frames found (format {fmt}{', split ' + request.split if request.split else ''})")
+
+    inputs = hash_inputs(cfg)
+    metadata = R.run_metadata(
+        inputs["params"], cfg.param_hash(), str(dataset.resolve()), fmt, constants_digest=inputs["constants_digest"], split=request.split, limit=request.limit
+    )
+    output = Path(request.output)
+    R.check_output_folder(output)
+    with R.output_lock(output):
+        return _run_locked(request, cfg, fmt, refs, reader_options, metadata, output, progress, executor, start)
+
+
+def _run_locked(
+    request: InferRequest,
+    cfg: RunConfig,
+    fmt: str,
+    refs: Sequence[FrameRef],
+    reader_options: tuple[tuple[str, Any], ...],
+    metadata: dict[str, Any],
+    output: Path,
+    progress: Progress,
+    executor: Executor | None,
+    start: float,
+) -> RunSummary:
+    R.prepare_output(output, metadata, request.overwrite)
+
+    chunk_units = request.chunk_units or chunk_size_for(fmt, len(refs))
+    chunks = plan_chunks(refs, chunk_units)
+    shard_dir, err_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR
+    done = {name for name, _ in chunks if (shard_dir / name).is_file() and R.is_whole_parquet(shard_dir / name)}
+    R.write_json_atomic({**metadata, "complete": False, "units": len(refs), "chunks": len(chunks)}, output / R.MANIFEST_NAME)
+
+    tasks = [
+        ChunkTask(name, c, cfg, reader_options, request.limit if fmt != "kitti" else None, request.debug)
+        for name, c in chunks
+        if name not in done
+    ]
+    executor = executor or make_executor(request.workers)
+    frames = objects = 0
+    progress.start(len(refs), sum(len(c) for name, c in chunks if name in done))
+    try:
+        for result in executor.run(tasks, process_chunk):
+            if request.strict:
+                _raise_if_failed(result)
+            if result.errors:
+                R.write_parquet_atomic(R.errors_to_table(result.errors, metadata), err_dir / result.name)
+            else:
+                (err_dir / result.name).unlink(missing_ok=True)
+            # The object shard is written last: its presence marks the chunk complete for --resume.
+            R.write_parquet_atomic(R.with_metadata(result.table, metadata), shard_dir / result.name)
+            frames += result.frames
+            objects += result.objects
+            progress.advance(result)
+    finally:
+        executor.close()
+        progress.stop()
+
+    # Shards of an earlier plan (e.g. another --limit) would mix into the results: remove them.
+    planned = {name for name, _ in chunks}
+    for d in (shard_dir, err_dir):
+        if d.is_dir():
+            for p in d.glob("*.parquet"):
+                if p.name not in planned:
+                    p.unlink()
+    error_parts = sorted(err_dir.glob("*.parquet")) if err_dir.is_dir() else []
+    errors = pa.concat_tables([pq.read_table(p) for p in error_parts]).cast(R.ERRORS_SCHEMA) if error_parts else R.ERRORS_SCHEMA.empty_table()
+    R.write_parquet_atomic(R.with_metadata(errors, metadata), output / R.ERRORS_FILE)
+    failed = sum(1 for v in errors.column("level").to_pylist() if v == "error")
+    wall = time.perf_counter() - start
+    manifest = {
+        **metadata,
+        "complete": True,
+        "units": len(refs),
+        "chunks": len(chunks),
+        "failed_frames": failed,
+        "wall_seconds_last_run": round(wall, 3),
+    }
+    R.write_json_atomic(manifest, output / R.MANIFEST_NAME)
+    return RunSummary(output, manifest, len(refs), len(chunks), len(done), frames, objects, failed, errors.num_rows - failed, wall)
+
+
+def _raise_if_failed(result: ChunkResult) -> None:
+    failed = result.failed
+    if failed:
+        e = failed[0]
+        raise StrictError(f"--strict: unit {e['unit']} failed: {e['message']}")
+    if result.table.num_rows:
+        status = result.table.column("status").to_pylist()
+        if "error" in status:
+            i = status.index("error")
+            row = result.table.slice(i, 1).to_pylist()[0]
+            raise StrictError(f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {row['message']}")
+
+
+def infer_dataset(request: InferRequest, progress: Progress | None = None, executor: Executor | None = None) -> RunSummary:
+    """``labelaudit infer``: resolve the format and config of ``request``, run, check something was audited.
+
+    Raises
+    ------
+    InferError, ConfigError
+        Unreadable dataset or config, bad options, output folder of another run.
+    ResultsError
+        The run audited no object at all (e.g. ``--classes`` names no class of the dataset).
+    """
+    if request.workers is not None and request.workers < 1:
+        raise InferError(f"--workers must be ≥ 1, got {request.workers}")
+    fmt = resolve_format(Path(request.dataset), request.dataset_format)
+    cfg = resolve_config(request.config, fmt, request.classes, request.model)
+    summary = run_infer(replace(request, dataset_format=fmt), cfg, progress, executor)
+    if R.open_results(summary.output).dataset.count_rows() == 0:
+        raise ResultsError(
+            f"{summary.output}: no objects audited (classes {', '.join(cfg.classes)}); check --classes "
+            f"(or pass --classes all) and {summary.output / R.ERRORS_FILE}"
+        )
+    return summary
