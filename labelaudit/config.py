@@ -12,7 +12,7 @@ import json
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, Literal, Mapping, Sequence
 
 from labelaudit import constants as C
 from labelaudit.errors import ConfigError
@@ -20,6 +20,9 @@ from labelaudit.errors import ConfigError
 ModelKind = Literal["bev", "3d"]
 
 CONFIG_DIR = Path(__file__).parent / "configs"
+
+ALL_CLASSES = "all"
+"""Put this alone in ``classes`` to audit every class (``--classes all``)."""
 """Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
 
 
@@ -41,7 +44,7 @@ def default_priors() -> dict[str, ClassPrior]:
 
 @dataclass(frozen=True)
 class ModelParams:
-    """Parameters of the generative label model (DESIGN.md §4)."""
+    """Parameters of the generative label model (docs/method.md)."""
 
     kind: ModelKind = C.DEFAULT_MODEL  # "bev" or "3d": which φ (and which rows of the fit) the model uses
     sigma: float = C.DEFAULT_SIGMA
@@ -61,7 +64,7 @@ class ModelParams:
 
 @dataclass(frozen=True)
 class SpatialParams:
-    """Grid and sampling of the spatial distribution p_G (DESIGN.md §5)."""
+    """Grid and sampling of the spatial distribution p_G (docs/method.md §6–7)."""
 
     cells_per_side: int = C.DEFAULT_CELLS_PER_SIDE
     num_samples: int = C.DEFAULT_NUM_SAMPLES
@@ -71,7 +74,7 @@ class SpatialParams:
 
 @dataclass(frozen=True)
 class CropParams:
-    """Point selection per box (DESIGN.md §2)."""
+    """Point selection per box (docs/datasets.md)."""
 
     margin: float = C.DEFAULT_CROP_MARGIN
     ground_cut: float = C.DEFAULT_GROUND_CUT
@@ -144,8 +147,9 @@ def _digest(data: Mapping[str, Any]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def _check_keys(section: Mapping[str, Any], allowed: set[str], where: str, source: str) -> None:
-    unknown = sorted(set(section) - allowed)
+def check_keys(section: Mapping[str, Any], allowed: set[str] | Mapping[str, Any], where: str, source: str) -> None:
+    """Refuse keys of a TOML table outside ``allowed``, naming them and the accepted ones (model and gate files)."""
+    unknown = sorted(set(section) - set(allowed))
     if unknown:
         raise ConfigError(
             f"{source}: unknown key(s) {', '.join(unknown)} in [{where}]; expected one of {', '.join(sorted(allowed))}"
@@ -166,7 +170,7 @@ def _typed(value: Any, kind: type, key: str, source: str) -> Any:
 
 def _build(cls: type, section: Mapping[str, Any], where: str, source: str, skip: set[str] = set()) -> Any:
     names = {f.name: f for f in fields(cls) if f.name not in skip}
-    _check_keys(section, set(names), where, source)
+    check_keys(section, set(names), where, source)
     kw = {}
     for key, value in section.items():
         f = names[key]
@@ -195,21 +199,28 @@ def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -
         name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
         path = CONFIG_DIR / name
     path = Path(path)
-    source = str(path)
+    return config_from_dict(read_toml(path, "config file"), source=str(path), dataset_format=dataset_format)
+
+
+def read_toml(path: Path, what: str) -> dict[str, Any]:
+    """Parse a TOML file (model config or gate file); every failure is a :class:`ConfigError` naming it."""
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ConfigError(f"{source}: config file not found") from None
+        raise ConfigError(f"{path}: {what} not found") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: {what} is not UTF-8 text (byte {exc.start}); save it as UTF-8") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML ({exc})") from None
-    return config_from_dict(data, source=source, dataset_format=dataset_format)
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
 
 
 def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", dataset_format: str = "kitti") -> RunConfig:
     """Build a :class:`RunConfig` from a parsed TOML mapping (see :func:`load_config`)."""
-    _check_keys(data, {"dataset", "model", "prior", "spatial", "crop"}, "top level", source)
+    check_keys(data, {"dataset", "model", "prior", "spatial", "crop"}, "top level", source)
     ds = dict(data.get("dataset", {}))
-    _check_keys(ds, {"classes", "min_length", "max_length"}, "dataset", source)
+    check_keys(ds, {"classes", "min_length", "max_length"}, "dataset", source)
     classes = ds.get("classes", list(C.DEFAULT_CLASSES))
     if not (isinstance(classes, list) and all(isinstance(c, str) for c in classes) and classes):
         raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {classes!r}")
@@ -261,3 +272,28 @@ def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams
     for ok, message in checks:
         if not ok:
             raise ConfigError(f"{source}: {message}")
+
+
+def resolve_config(config_path: Path | None, dataset_format: str, classes: Sequence[str] | None = None, model: str | None = None) -> RunConfig:
+    """Load the TOML config (or the built-in one of the format) and apply CLI overrides.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, unknown key, bad value.
+    """
+    if config_path is None:
+        name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
+        cfg = load_config(None, dataset_format) if (CONFIG_DIR / name).is_file() else RunConfig(dataset_format=dataset_format)
+    else:
+        cfg = load_config(config_path, dataset_format)
+    if classes is not None:
+        classes = tuple(c.strip() for c in classes if c.strip())
+        if not classes:
+            raise ConfigError("--classes: expected a comma-separated list of class names or 'all'")
+        cfg = cfg.with_overrides(classes=(ALL_CLASSES,) if ALL_CLASSES in classes else classes)
+    if model is not None:
+        if model not in ("bev", "3d"):
+            raise ConfigError(f"--model: expected bev or 3d, got {model!r}")
+        cfg = cfg.with_overrides(model=replace(cfg.model, kind=model))
+    return cfg

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-# --- model (DESIGN.md §4) ---
+# --- model (docs/method.md) ---
 DEFAULT_MODEL = "bev"  # BEV is what the paper evaluates and what most label tools show
 DEFAULT_SIGMA = 0.2  # LiDAR noise std in metres; the paper uses 0.2 for KITTI, 0.3 for Waymo
 DEFAULT_NUM_NEAREST = 3  # M: surface points each LiDAR point may be registered to (paper: 3)
@@ -15,7 +15,7 @@ EM_RESIDUAL_DOF = 1.0  # noise components left in a residual to the nearest surf
 OUTLIER_REGION_MARGIN = 0.5  # m; the uniform outlier density is 1 / size of the box grown by this on every side
 PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (parallelogram shear) / the yaw std
 
-# --- label-error model (DESIGN.md §6) ---
+# --- label-error model (docs/label-error.md) ---
 FIT_MAX_ITERATIONS = 30  # cap on EM iterations of the box fit (suggested box)
 FIT_TOLERANCE = 1e-3  # m; the box fit stops when no entry of φ moves by more than this
 FIT_SWAP_RESIDUAL = 0.5  # try an l/w-swapped start when the fit's RMS point-to-surface residual exceeds this × σ
@@ -24,7 +24,7 @@ FIT_INSIDE_FREE_DEPTH = 0.05  # m; points less deep than this inside the box cou
 FIT_MIN_SIZE_FRACTION = 1e-3  # fitted sizes are kept ≥ this fraction of the label's (no collapse)
 LABEL_TOLERANCE = {"center": 0.10, "length": 0.20, "width": 0.20, "height": 0.10, "yaw": 0.02}  # offsets of about this std (m, rad) are not errors; sizes wider: the fit barely sees them (docs/label-error.md)
 
-# --- spatial distribution p_G and JIoU (DESIGN.md §5) ---
+# --- spatial distribution p_G and JIoU (docs/method.md §6–7) ---
 DEFAULT_CELLS_PER_SIDE = 64  # grid cells across the longer box side; JIoU stable ±0.01 when doubled
 DEFAULT_NUM_SAMPLES = 128  # quasi-random (Sobol) samples of φ for form (b) of p_G (128 vs 1024: JIoU-GT within 0.003)
 DEFAULT_SUPPORT_STD = 3.0  # grid extends this many corner stds beyond the box
@@ -34,7 +34,7 @@ MAX_CELLS_PER_AXIS = 256  # cap on grid cells per axis (tiny boxes with wide pri
 CELLS_PER_SIDE_3D_FACTOR = 1.0  # 3D voxel grids use this fraction of cells_per_side (cost grows with the cube)
 CELL_STD_SPAN = 32.0  # cells_per_side spans max(box side, this × smallest edge std): cells ≈ std/2 for blurred boxes
 
-# --- crop (DESIGN.md §2) ---
+# --- crop (docs/datasets.md) ---
 DEFAULT_CROP_MARGIN = 0.1  # BEV margin in metres added around each box when selecting points
 DEFAULT_FIT_CROP_MARGIN = 0.5  # wider BEV margin (m) of the points given to the label-error fit: a shifted box must still see its object (docs/label-error.md)
 DEFAULT_GROUND_CUT = 0.1  # points within this height above the box bottom are ground, dropped
@@ -51,7 +51,7 @@ DEFAULT_CLASSES = ("Car", "Van", "Truck")  # vehicles: the paper's evaluation cl
 # Prior std per class (metres, radians), before the weight w.
 DEFAULT_PRIORS: dict[str, dict[str, float]] = {
     # KITTI car, from the authors' code (x_std of uncertain_label_3D): centre 0.25 m per axis,
-    # l 0.44, w 0.10, h 0.10, yaw 0.1745 rad (10°). DESIGN.md rounds width to 0.11; the code wins.
+    # l 0.44, w 0.10, h 0.10, yaw 0.1745 rad (10°). the paper's design notes round width to 0.11; the code wins (docs/method.md).
     "default": {"center": 0.25, "length": 0.44, "width": 0.10, "height": 0.10, "yaw": 0.1745},
     # Not in the paper: people and bikes are small, and their heading is harder to annotate.
     "Pedestrian": {"center": 0.10, "length": 0.10, "width": 0.10, "height": 0.10, "yaw": 0.50},

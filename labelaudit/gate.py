@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,7 +28,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from labelaudit.config import CONFIG_DIR, ConfigError
+from labelaudit.config import CONFIG_DIR, ConfigError, check_keys, read_toml
 from labelaudit import constants as C
 from labelaudit.results import Results, ResultsError
 
@@ -77,9 +76,7 @@ class GateConfig:
 def _check_section(section: Any, where: str, source: str) -> dict[str, float]:
     if not isinstance(section, dict):
         raise ConfigError(f"{source}: [{where}] must be a table of thresholds")
-    unknown = sorted(set(section) - set(KEYS))
-    if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {', '.join(unknown)} in [{where}]; expected one of {', '.join(KEYS)}")
+    check_keys(section, KEYS, where, source)
     out: dict[str, float] = {}
     for key, value in section.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -123,15 +120,7 @@ def gate_from_dict(data: Mapping[str, Any], source: str = "<gate>") -> GateConfi
 def load_gate(path: str | Path | None = None) -> GateConfig:
     """Load a gate file (default: the built-in ``configs/gate.toml``); raises :class:`ConfigError`."""
     path = Path(path) if path is not None else DEFAULT_GATE_PATH
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: gate file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read gate file ({exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    return gate_from_dict(data, source=str(path))
+    return gate_from_dict(read_toml(path, "gate file"), source=str(path))
 
 
 # --------------------------------------------------------------------------- evaluation

@@ -1,4 +1,4 @@
-"""The results contract (DESIGN.md §7): Arrow schema, atomic Parquet shards, manifest and reader.
+"""The results contract (docs/results-schema.md): Arrow schema, atomic Parquet shards, manifest and reader.
 
 A results folder looks like this::
 
@@ -95,7 +95,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("cov", pa.list_(pa.float64()), True, "SI", "posterior covariance of φ, row-major cov_dim × cov_dim", "model"),
     Column("cov_dim", pa.int32(), True, "", "dimension of φ: 6 (BEV) or 8 (3D)", "model"),
     Column("model", pa.string(), False, "", "bev or 3d", "model"),
-    # Diagnostics of the core beyond the paper (DESIGN.md §6); null when the core does not report them.
+    # Diagnostics of the core beyond the paper (docs/label-error.md); null when the core does not report them.
     Column("fit_cx", pa.float64(), True, "m", "centre x of the box the model fits to the points (its suggested box)", "model"),
     Column("fit_cy", pa.float64(), True, "m", "centre y of the suggested box", "model"),
     Column("fit_cz", pa.float64(), True, "m", "centre z of the suggested box (null when not fitted in 3D)", "model"),

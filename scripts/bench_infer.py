@@ -49,7 +49,8 @@ def main() -> None:
     args = ap.parse_args()
 
     from labelaudit.executors import PoolExecutor
-    from labelaudit.infer.run import chunk_size_for, InferRequest, plan_chunks, resolve_config, run_infer
+    from labelaudit.config import resolve_config
+    from labelaudit.infer.run import chunk_size_for, InferRequest, plan_chunks, run_infer
     from labelaudit.datasets import open_dataset
     from labelaudit.sim.noise import NoiseSpec
     from labelaudit.sim.dataset import simulate_dataset

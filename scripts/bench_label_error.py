@@ -39,7 +39,8 @@ import pyarrow.parquet as pq
 
 from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
 from labelaudit.infer.rows import process_frame
-from labelaudit.infer.run import InferRequest, resolve_config, run_infer
+from labelaudit.config import resolve_config
+from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.sim.dataset import NoiseSpec, SceneSpec, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]

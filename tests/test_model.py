@@ -17,7 +17,7 @@ from _core_synth import face_points, rigid_motion
 
 CAR = np.array([15.0, 5.0, 0.75, 4.2, 1.7, 1.5, 0.0])  # near faces seen from the origin: −x and −y
 
-# DESIGN.md §4 worked example: y = (x_min, y_min, l, w); each point observes one corner.
+# The paper's worked example (docs/method.md §4): y = (x_min, y_min, l, w); each point observes one corner.
 GOLDEN_J = np.array(
     [
         [[1, 0, 1, 0], [0, 1, 0, 0]],  # (x_min + l, y_min)      observed at (1.8, 0)

@@ -19,8 +19,9 @@ from labelaudit.config import RunConfig
 from labelaudit.datasets import Frame, FrameRef
 from labelaudit.errors import InferError, StrictError
 from labelaudit.executors import SerialExecutor
-from labelaudit.infer.rows import ALL_CLASSES, process_frame
-from labelaudit.infer.run import chunk_name, InferRequest, plan_chunks, resolve_config, run_infer
+from labelaudit.config import ALL_CLASSES, resolve_config
+from labelaudit.infer.rows import process_frame
+from labelaudit.infer.run import chunk_name, InferRequest, plan_chunks, run_infer
 
 
 

@@ -36,7 +36,7 @@ def rank(
 ) -> None:
     """List the worst labels first, by JIoU-GT (lowest first) or any numeric column.
 
-    json and csv print every column of the matching rows to stdout, for pipes.
+    json and csv print every column of the matching rows to stdout, for pipes (csv: list columns as JSON arrays). Rows whose --by value is null (skipped or failed objects) are left out; --where takes any column with ==, !=, >=, <=, > or <. Only the needed columns are read to sort; full rows are fetched for the top N only.
 
     [bold]Examples[/bold]
 

@@ -27,7 +27,7 @@ def simulate(
 ) -> None:
     """Write a synthetic LiDAR dataset in KITTI layout with known, injected label noise.
 
-    manifest.parquet in OUT records every object's true box, written box and perturbation.
+    manifest.parquet in OUT records every object's true box, written box and perturbation (docs/simulator.md).
 
     [bold]Examples[/bold]
 

@@ -33,7 +33,7 @@ from labelaudit.core.posterior import (
 )
 
 # ----------------------------------------------------------------------------------------------
-# Label error: the model's suggested box and how far the label is from it (DESIGN.md §6)
+# Label error: the model's suggested box and how far the label is from it (docs/label-error.md)
 # ----------------------------------------------------------------------------------------------
 
 

@@ -353,7 +353,7 @@ def em_sigma_step(sqdist: FloatArray, resp: FloatArray, dof: float = C.EM_RESIDU
     ``dof`` is the number of noise components a residual keeps. The candidates are the *nearest*
     surface points, so the surface absorbs the tangential noise and a residual keeps only its
     normal component: dof = 1 (the surface's codimension) gives an unbiased per-axis σ, where the
-    point dimension D (DESIGN.md §4, the authors' code) would return σ/√D.
+    point dimension D (the authors' code; docs/method.md §5) would return σ/√D.
     Missing candidates (``sqdist = inf``) carry r = 0 and are skipped.
     """
     num = float(np.sum(resp * np.where(np.isfinite(sqdist), sqdist, 0.0)))

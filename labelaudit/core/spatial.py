@@ -1,6 +1,6 @@
 """Spatial distribution p_G of an uncertain box on a grid, probabilistic Jaccard, JIoU and JIoU-GT.
 
-p_G (DESIGN.md §5, form (b)) is the density of "a point drawn uniformly from the random box":
+p_G (docs/method.md §6, form (b)) is the density of "a point drawn uniformly from the random box":
 
     p_G(u) = E_φ[ 1{u ∈ B(φ)} / size(B(φ)) ],    φ ~ N(φ̄, Σ),
 

@@ -1,6 +1,6 @@
 """KITTI object-detection layout: calibration, label and point-cloud files, and the reader.
 
-Frames (DESIGN.md §3)
+Frames (docs/datasets.md)
 ---------------------
 ``label_2`` boxes live in the *rectified camera* frame: x right, y down, z forward; ``location`` is
 the centre of the box **bottom**, ``rotation_y`` turns about camera y, dimensions are written

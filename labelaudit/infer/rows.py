@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from labelaudit import results as R
-from labelaudit.config import RunConfig
+from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label
 from labelaudit.core.iou import hull_iou
@@ -25,9 +25,6 @@ from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
 from labelaudit.infer.crop import crop_frame_pair
-
-ALL_CLASSES = "all"
-"""Put this alone in ``classes`` to audit every class (``--classes all``)."""
 
 DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
 
@@ -117,7 +114,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
                 # values the schema cannot hold fail here, per object; the row is final after this
                 rows[i] = R.normalize_row({**row, **result})
                 final.add(i)
-            except Exception as exc:  # one bad object never sinks the frame (DESIGN.md §9)
+            except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
                 row.update(status="error", message=f"{type(exc).__name__}: {exc}", num_points=len(idx))
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
 

@@ -22,12 +22,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from labelaudit import constants as C
-from labelaudit.config import CONFIG_DIR, ConfigError, RunConfig, hash_inputs, load_config
+from labelaudit.config import RunConfig, hash_inputs, resolve_config
 from labelaudit.datasets import DatasetError, FORMATS, FrameRef, detect_format, open_dataset
 from labelaudit import results as R
 from labelaudit.errors import InferError, ResultsError, StrictError
 from labelaudit.executors import Executor, make_executor
-from labelaudit.infer.rows import ALL_CLASSES, frame_note, process_frame
+from labelaudit.infer.rows import frame_note, process_frame
 
 
 # --------------------------------------------------------------------------- layer 2: one chunk
@@ -189,31 +189,6 @@ def resolve_format(dataset: Path, fmt: str) -> str:
         except DatasetError as exc:
             raise InferError(str(exc)) from None
     return fmt
-
-
-def resolve_config(config_path: Path | None, dataset_format: str, classes: Sequence[str] | None = None, model: str | None = None) -> RunConfig:
-    """Load the TOML config (or the built-in one of the format) and apply CLI overrides.
-
-    Raises
-    ------
-    ConfigError
-        Unreadable file, unknown key, bad value.
-    """
-    if config_path is None:
-        name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
-        cfg = load_config(None, dataset_format) if (CONFIG_DIR / name).is_file() else RunConfig(dataset_format=dataset_format)
-    else:
-        cfg = load_config(config_path, dataset_format)
-    if classes is not None:
-        classes = tuple(c.strip() for c in classes if c.strip())
-        if not classes:
-            raise ConfigError("--classes: expected a comma-separated list of class names or 'all'")
-        cfg = cfg.with_overrides(classes=(ALL_CLASSES,) if ALL_CLASSES in classes else classes)
-    if model is not None:
-        if model not in ("bev", "3d"):
-            raise ConfigError(f"--model: expected bev or 3d, got {model!r}")
-        cfg = cfg.with_overrides(model=replace(cfg.model, kind=model))
-    return cfg
 
 
 def chunk_name(refs: Sequence[FrameRef]) -> str:
