@@ -1,4 +1,5 @@
 """Typed run configuration: model, prior, spatial grid, crop and class selection, loaded from TOML.
+It owns the run parameters, their validation and their hash; it computes nothing and reads no dataset.
 
 Every tunable has a default in :mod:`labelaudit.constants`; a TOML file overrides them per dataset
 (``configs/kitti.toml``, ``configs/waymo.toml``). Unknown keys are an error, so a typo never

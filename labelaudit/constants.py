@@ -1,4 +1,5 @@
-"""Tunables and their defaults, one comment each. Per-dataset values live in ``configs/*.toml``."""
+"""Tunables and their defaults, one comment each. Per-dataset values live in ``configs/*.toml``.
+Every fixed number that can change a result row lives here (all of them enter the parameter hash); no logic."""
 
 from __future__ import annotations
 

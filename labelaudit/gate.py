@@ -1,4 +1,5 @@
 """Threshold evaluation for ``labelaudit check`` — a CI gate on label quality (docs/ci-gate.md).
+It parses gate files and evaluates rules over a results folder; it prints nothing (the CLI shows the report).
 
 A gate file is TOML with a ``[default]`` table (rules for every class) and optional
 ``[class.<Name>]`` tables that override single keys for one class::

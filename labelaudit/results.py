@@ -1,4 +1,5 @@
 """The results contract (docs/results-schema.md): Arrow schema, atomic Parquet shards, manifest and reader.
+It is the only module that knows the folder layout and the columns; it computes no scores.
 
 A results folder looks like this::
 

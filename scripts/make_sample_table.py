@@ -1,6 +1,6 @@
 """Write labelaudit/data/normal_samples.npz: the default quasi-random normal samples of p_G.
 
-They are what ``labelaudit.core.spatial._generate_normal_samples`` (scipy.stats.qmc) returns for the
+They are what ``labelaudit.core.spatial.generate_normal_samples`` (scipy.stats.qmc) returns for the
 dimensions used (φ: 6 BEV, 8 3D; box parameters: 5 BEV, 7 3D) with the default sample count and
 seed; stored so worker processes do not import scipy.stats. tests/test_spatial.py checks equality.
 
@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from labelaudit import constants as C
-from labelaudit.core.spatial import SAMPLE_TABLE, _generate_normal_samples
+from labelaudit.core.spatial import SAMPLE_TABLE, generate_normal_samples
 
 
 def main() -> None:
     n, seed = C.DEFAULT_NUM_SAMPLES, C.DEFAULT_QMC_SEED
-    arrays = {f"d{d}_n{n}_s{seed}": _generate_normal_samples(d, n, seed) for d in (5, 6, 7, 8)}
+    arrays = {f"d{d}_n{n}_s{seed}": generate_normal_samples(d, n, seed) for d in (5, 6, 7, 8)}
     SAMPLE_TABLE.parent.mkdir(exist_ok=True)
     np.savez_compressed(SAMPLE_TABLE, **arrays)
     print(f"wrote {SAMPLE_TABLE} ({', '.join(arrays)})")

@@ -330,8 +330,8 @@ def test_stored_default_samples_equal_the_generated_ones():
         assert sorted(table.files) == [f"d{d}_n{C.DEFAULT_NUM_SAMPLES}_s{C.DEFAULT_QMC_SEED}" for d in (5, 6, 7, 8)]
         for key in table.files:
             d = int(key.split("_")[0][1:])
-            assert np.array_equal(table[key], S._generate_normal_samples(d, C.DEFAULT_NUM_SAMPLES, C.DEFAULT_QMC_SEED))
-    assert np.array_equal(S.normal_samples(6, 64, 3), S._generate_normal_samples(6, 64, 3))  # not stored: generated
+            assert np.array_equal(table[key], S.generate_normal_samples(d, C.DEFAULT_NUM_SAMPLES, C.DEFAULT_QMC_SEED))
+    assert np.array_equal(S.normal_samples(6, 64, 3), S.generate_normal_samples(6, 64, 3))  # not stored: generated
 
 
 def test_auditing_an_object_does_not_import_scipy_stats():

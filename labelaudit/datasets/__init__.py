@@ -1,4 +1,5 @@
-"""Dataset readers (KITTI, Waymo v2 Parquet, Waymo v1 TFRecord) behind one entry point."""
+"""Dataset readers (KITTI, Waymo v2 Parquet, Waymo v1 TFRecord) behind one entry point.
+Readers turn files into :class:`Frame` s (LiDAR frame, one box type) and raise :class:`~labelaudit.errors.DatasetError` naming file and line; they never audit or write."""
 
 from __future__ import annotations
 

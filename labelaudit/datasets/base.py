@@ -1,4 +1,5 @@
-"""The common frame type every dataset reader produces, and the reader protocol."""
+"""The common frame type every dataset reader produces, and the reader protocol.
+Types only: no file access here."""
 
 from __future__ import annotations
 

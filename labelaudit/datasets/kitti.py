@@ -1,4 +1,5 @@
 """KITTI object-detection layout: calibration, label and point-cloud files, and the reader.
+It reads and writes KITTI files and converts boxes between the camera and LiDAR frames; it does not audit.
 
 Frames (docs/datasets.md)
 ---------------------

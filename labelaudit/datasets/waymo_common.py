@@ -1,4 +1,5 @@
 """What the Waymo v1 (TFRecord) and v2 (Parquet) readers share: classes, calibration, range image → points.
+Pure conversions, no file access.
 
 Both forms store the same data: per lidar a range image (H × W × 4: range, intensity, elongation,
 no-label-zone flag) per return, a calibration (extrinsic, beam inclinations), and for the TOP

@@ -1,4 +1,5 @@
 """Waymo Open Dataset v1 reader: ``*.tfrecord`` segment files of ``Frame`` protos, without TensorFlow.
+It reads files and builds Frames; it does not audit.
 
 A DATASET is a folder searched recursively for ``*.tfrecord`` files, or one such file. Each file
 is one segment, the unit of work and of resume.

@@ -1,4 +1,5 @@
 """Waymo Open Dataset v2 reader: one Parquet file per component and segment.
+It reads files and builds Frames; it does not audit.
 
 Layout: ``<root>/<component>/<segment_context_name>.parquet`` (``root`` may also be the folder
 above one or more split folders: ``<root>/<split>/<component>/…``). Components read:

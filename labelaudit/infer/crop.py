@@ -1,4 +1,5 @@
 """Points of each labelled box: Open3D oriented-box selection with a BEV margin and a ground cut.
+It selects point indices only; the model and the rows are elsewhere.
 
 The selection region of a box ``(cx, cy, cz, l, w, h, yaw)`` is the box
 

@@ -1,4 +1,5 @@
 """Synthetic LiDAR scenes: scene sampling, the range-image ray-caster, label noise, dataset writers.
+Simulation never imports the model: it only makes data with known truth.
 
 The dataset-level entry point is :func:`labelaudit.sim.dataset.simulate_dataset`.
 """

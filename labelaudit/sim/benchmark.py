@@ -1,4 +1,5 @@
 """Ranking metrics for label-error detection: AUROC, precision at the top k %, binning.
+Pure functions over score arrays, used by the label-error benchmark (scripts/bench_label_error.py); no I/O.
 
 Vectorised NumPy, no scikit-learn. Used by ``scripts/bench_label_error.py`` (issue 6) to compare
 ``label_error`` with the baselines; ties are handled exactly (average ranks for AUROC, expected

@@ -1,4 +1,5 @@
 """Synthetic LiDAR datasets with known label noise (``labelaudit simulate OUT``).
+It writes files through :mod:`labelaudit.sim.kitti_writer` and runs frames on :mod:`labelaudit.executors`; it never audits.
 
 One frame = a random scene (:mod:`labelaudit.sim.scene`), one sweep of a spinning LiDAR ray-cast
 into it (:mod:`labelaudit.sim.raycast`, a range image first, points from it), label noise

@@ -1,4 +1,5 @@
 """Write a simulated frame in the KITTI object-detection layout.
+File writing only; the scene and noise come from the other ``sim`` modules.
 
 Uses the KITTI helpers of :mod:`labelaudit.datasets.kitti` (calibration text, camera ↔ LiDAR box
 conversion, label lines, velodyne files), so what the simulator writes is exactly what the reader

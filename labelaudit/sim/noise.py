@@ -1,4 +1,5 @@
 """Known label noise: jitter and gross errors injected into true boxes, recorded per object.
+Pure functions of seeded generators; no I/O.
 
 Each vehicle label draws one uniform number ``u``: ``u < gross_fraction`` → a gross error (one of
 ``gross_kinds``, uniformly); else ``u < gross_fraction + fraction`` → Gaussian jitter; else the

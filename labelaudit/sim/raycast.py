@@ -1,4 +1,5 @@
 """A spinning LiDAR that ray-casts a :class:`~labelaudit.sim.scene.Scene` into a range image.
+Pure NumPy; no I/O.
 
 The range image is the sensor's native output and the layout Waymo stores: rows are beams, the top
 row has the highest elevation; columns are azimuth, from +π at column 0 down to −π (Waymo's

@@ -1,4 +1,5 @@
 """Random driving scenes: a ground plane and vehicles (plus a few pedestrians and cyclists).
+Pure functions of a seeded generator; no I/O.
 
 Every object is a small set of boxes ("parts") — a car is a body plus a narrower cabin on top, a
 truck a cab plus a cargo box — and its label is the union bounding box of its parts, so the label

@@ -1,4 +1,5 @@
 """Simulated Waymo segments, written as v2 Parquet components and as a v1 TFRecord.
+Test and benchmark fixtures with known truth, built from the published v2 schema; it never audits.
 
 The scene and the ray-caster are the KITTI simulator's (:mod:`labelaudit.sim.scene`,
 :mod:`labelaudit.sim.raycast`); this module adds what Waymo needs:
