@@ -46,3 +46,4 @@ def test_split_help_finds_examples():
         ["labelaudit x a", "labelaudit x b"],
     )
     assert gen.split_help("Only text.") == (["Only text."], [])
+
