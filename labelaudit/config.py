@@ -13,12 +13,12 @@ import json
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 from labelaudit import constants as C
+from labelaudit.core.geometry import ModelKind
 from labelaudit.errors import ConfigError
 
-ModelKind = Literal["bev", "3d"]
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 
