@@ -91,3 +91,16 @@ WORKER_PRELOAD = ("labelaudit.infer.run", "labelaudit.infer.crop", "labelaudit.i
 DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)
 DEFAULT_RANK_TOP = 20  # rows shown by `labelaudit rank`
 DEMO_FRAMES = 12  # simulated frames of `labelaudit demo`: a few hundred objects, seconds on 2 cores
+
+# --- export: training targets (labelaudit.training / labelaudit.export, docs/training.md) ---
+HEURISTIC_NUM_POINTS_HALF = 10.0  # "num points" source: the prior variance halves at this many points (var = prior · n0/(n0+n))
+HEURISTIC_HULL_IOU_FLOOR = 0.01  # "hull_iou" source: var = prior · max(1 − IoU, this), so a perfect hull never claims zero variance
+DEFAULT_ANCHOR_SIZES: dict[str, dict[str, tuple[float, float, float]]] = {
+    # l, w, h (m) of the anchors OpenPCDet's KITTI configs (second.yaml, pointpillar.yaml) and
+    # mmdetection3d's pointpillars_hv_secfpn_kitti ship; only the sizes enter the residual's variance.
+    "kitti": {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)},
+    # OpenPCDet's waymo_models/second.yaml anchors.
+    "waymo": {"Vehicle": (4.7, 2.1, 1.7), "Pedestrian": (0.91, 0.86, 1.73), "Cyclist": (1.78, 0.84, 1.78)},
+}
+INFOS_DIMENSION_TOLERANCE = 1e-3  # m; an infos object whose l/w/h differ from the result row's by more is a mismatch
+INFOS_PICKLE_PROTOCOL = 4  # pickle protocol of written infos copies: loads on every Python 3 that OpenPCDet/mmdet3d support
