@@ -334,7 +334,7 @@ def test_kld_variance_optimum_is_the_label_variance_plus_the_error():
     from scipy.optimize import minimize_scalar
 
     for delta, var_p in ((0.0, 0.01), (0.2, 0.05), (1.0, 0.3)):
-        best = minimize_scalar(lambda s: float(T.kld_loss(delta, s, 0.0, var_p)), bounds=(-20, 5), method="bounded", options={"xatol": 1e-10})
+        best = minimize_scalar(lambda s, d=delta, v=var_p: float(T.kld_loss(d, s, 0.0, v)), bounds=(-20, 5), method="bounded", options={"xatol": 1e-10})
         assert math.exp(best.x) == pytest.approx(var_p + delta**2, rel=1e-5)
         assert float(T.kld_loss_grad(delta, math.log(var_p + delta**2), 0.0, var_p)[1]) == pytest.approx(0.0, abs=1e-12)
     # NLL at the target: the log-variance gradient stays +½, pushing σ_q² to zero without bound
