@@ -18,9 +18,10 @@ import os
 import pickle
 import warnings
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Literal, Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -460,19 +461,26 @@ def load_infos(path: str | Path) -> Any:
 # --------------------------------------------------------------------------- infos pickles: writing
 
 
-class _CompatPickler(pickle._Pickler):  # type: ignore[name-defined]
-    """Writes NumPy-2 objects under their ``numpy.core`` names, which every NumPy (1.x and 2.x) can load."""
+@contextmanager
+def _numpy1_global_names() -> Iterator[None]:
+    """Pickle NumPy-2 arrays and scalars under their ``numpy.core.multiarray`` names while inside.
 
-    def save_global(self, obj: Any, name: str | None = None) -> None:
-        qual = name or getattr(obj, "__qualname__", None)
-        module = getattr(obj, "__module__", None) or ""
-        if module.startswith("numpy._core.") and ("numpy.core." + module[len("numpy._core.") :], qual) in _ALLOWED_GLOBALS:
-            self.save("numpy.core." + module[len("numpy._core.") :])
-            self.save(qual)
-            self.write(pickle.STACK_GLOBAL)
-            self.memoize(obj)
-            return
-        super().save_global(obj, name)
+    NumPy 2 pickles name ``numpy._core.multiarray._reconstruct``, which NumPy < 1.26 cannot import;
+    ``numpy.core.multiarray`` holds the same two functions in every NumPy (1.x, and 2.x's
+    compatibility module), so the file loads everywhere. Their ``__module__`` is set for the
+    duration of the dump only (the C pickler takes the name from it) and restored afterwards.
+    """
+    import numpy.core.multiarray as legacy  # noqa: F401 - must resolve for the pickler's identity check
+
+    funcs = [f for f in (getattr(legacy, "_reconstruct", None), getattr(legacy, "scalar", None)) if f is not None]
+    saved = [f.__module__ for f in funcs]
+    try:
+        for f in funcs:
+            f.__module__ = "numpy.core.multiarray"
+        yield
+    finally:
+        for f, m in zip(funcs, saved):
+            f.__module__ = m
 
 
 def dump_infos(obj: Any, path: str | Path) -> Path:
@@ -481,8 +489,9 @@ def dump_infos(obj: Any, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}{R.TMP_MARKER}{os.getpid()}")
     try:
-        with open(tmp, "wb") as f:
-            _CompatPickler(f, protocol=C.INFOS_PICKLE_PROTOCOL).dump(obj)
+        with open(tmp, "wb") as f, warnings.catch_warnings(), _numpy1_global_names():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pickle.dump(obj, f, protocol=C.INFOS_PICKLE_PROTOCOL)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -552,42 +561,57 @@ def _openpcdet_frames(infos: Any, path: str) -> tuple[str, list[_FrameObjects]]:
     if not isinstance(infos, list):
         raise ExportError(f"{path}: an OpenPCDet infos file is a list of frame dicts, got {type(infos).__name__}")
     frames: list[_FrameObjects] = []
-    kind = None
+    kinds = set()
     for i, info in enumerate(infos):
         where = f"{path}: frame entry {i}"
-        if not isinstance(info, dict) or "point_cloud" not in info:
-            raise ExportError(f"{where}: expected a dict with 'point_cloud' and 'annos' (OpenPCDet infos)")
-        annos = info.get("annos")
-        if not isinstance(annos, dict) or "name" not in annos:
-            raise ExportError(f"{where}: no 'annos' with 'name' (a test-split infos file has no labels to attach targets to)")
-        names = [str(n) for n in np.asarray(annos["name"]).tolist()]
-        k = len(names)
-        dims = np.asarray(annos.get("dimensions", np.full((k, 3), np.nan)), dtype=float).reshape(k, 3) if k else np.zeros((0, 3))
-        pc_info = info["point_cloud"]
-        this_kind = "waymo" if "lidar_sequence" in pc_info or "obj_ids" in annos else "kitti"
-        if kind is None:
-            kind = this_kind
-        elif kind != this_kind:
+        with _malformed(where):
+            kind, frame = _openpcdet_frame(info, where)
+        kinds.add(kind)
+        if len(kinds) > 1:
             raise ExportError(f"{where}: mixes KITTI and Waymo frame entries")
-        if this_kind == "kitti":
-            if "lidar_idx" not in pc_info:
-                raise ExportError(f"{where}: 'point_cloud' has no 'lidar_idx' (the KITTI frame id)")
-            fid = _kitti_frame_id(pc_info["lidar_idx"])
-            not_dc = np.array([n != DONTCARE for n in names], dtype=bool)
-            ordinal = np.cumsum(not_dc) - 1  # position among the non-DontCare rows = results object_index
-            keys: list[Any] = [int(o) if nd else None for o, nd in zip(ordinal, not_dc)]
-            dims_lwh = dims[:, [0, 2, 1]]  # OpenPCDet KITTI 'dimensions' are l, h, w (camera order)
-        else:
-            md = info.get("metadata") or {}
-            if "context_name" not in md or "timestamp_micros" not in md:
-                raise ExportError(f"{where}: Waymo infos need 'metadata' with context_name and timestamp_micros to find the frame")
-            fid = f"{md['context_name']}:{int(md['timestamp_micros'])}"
-            if "obj_ids" not in annos:
-                raise ExportError(f"{where}: Waymo 'annos' have no 'obj_ids' (laser object ids) to align objects by")
-            keys = [str(x) for x in np.asarray(annos["obj_ids"]).tolist()]
-            dims_lwh = dims  # Waymo 'dimensions' are l, w, h
-        frames.append(_FrameObjects(fid, keys, names, dims_lwh))
-    return kind or "kitti", frames
+        frames.append(frame)
+    return (kinds.pop() if kinds else "kitti"), frames
+
+
+@contextmanager
+def _malformed(where: str) -> Iterator[None]:
+    """Turn a type/shape error while reading one infos entry into an ExportError naming it."""
+    try:
+        yield
+    except ExportError:
+        raise
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError) as exc:
+        raise ExportError(f"{where}: malformed entry ({type(exc).__name__}: {exc})") from None
+
+
+def _openpcdet_frame(info: Any, where: str) -> tuple[str, _FrameObjects]:
+    if not isinstance(info, dict) or "point_cloud" not in info:
+        raise ExportError(f"{where}: expected a dict with 'point_cloud' and 'annos' (OpenPCDet infos)")
+    annos = info.get("annos")
+    if not isinstance(annos, dict) or "name" not in annos:
+        raise ExportError(f"{where}: no 'annos' with 'name' (a test-split infos file has no labels to attach targets to)")
+    names = [str(n) for n in np.asarray(annos["name"]).reshape(-1).tolist()]
+    k = len(names)
+    dims = np.asarray(annos.get("dimensions", np.full((k, 3), np.nan)), dtype=float).reshape(k, 3)
+    pc_info = info["point_cloud"]
+    if "lidar_sequence" in pc_info or "obj_ids" in annos:
+        md = info.get("metadata") or {}
+        if "context_name" not in md or "timestamp_micros" not in md:
+            raise ExportError(f"{where}: Waymo infos need 'metadata' with context_name and timestamp_micros to find the frame")
+        if "obj_ids" not in annos:
+            raise ExportError(f"{where}: Waymo 'annos' have no 'obj_ids' (laser object ids) to align objects by")
+        keys: list[Any] = [str(x) for x in np.asarray(annos["obj_ids"]).reshape(-1).tolist()]
+        if len(keys) != k:
+            raise ExportError(f"{where}: 'obj_ids' has {len(keys)} entries, 'name' {k}")
+        # Waymo 'dimensions' are l, w, h
+        return "waymo", _FrameObjects(f"{md['context_name']}:{int(md['timestamp_micros'])}", keys, names, dims)
+    if "lidar_idx" not in pc_info:
+        raise ExportError(f"{where}: 'point_cloud' has no 'lidar_idx' (the KITTI frame id)")
+    not_dc = np.array([n != DONTCARE for n in names], dtype=bool)
+    ordinal = np.cumsum(not_dc) - 1  # position among the non-DontCare rows = results object_index
+    keys = [int(o) if nd else None for o, nd in zip(ordinal, not_dc)]
+    # OpenPCDet KITTI 'dimensions' are l, h, w (camera order)
+    return "kitti", _FrameObjects(_kitti_frame_id(pc_info["lidar_idx"]), keys, names, dims[:, [0, 2, 1]])
 
 
 def _mmdet3d_frames(infos: Any, path: str) -> list[_FrameObjects]:
@@ -598,36 +622,41 @@ def _mmdet3d_frames(infos: Any, path: str) -> list[_FrameObjects]:
             f"{path}: mmdet3d infos of dataset {meta.get('dataset')!r}: only KITTI v2 infos can be aligned "
             "(mmdet3d's Waymo infos keep no laser object ids); use --format openpcdet or parquet"
         )
-    cats = meta.get("categories") or {}
-    label_name = {int(v): str(k) for k, v in cats.items() if int(v) >= 0}
+    with _malformed(f"{path}: metainfo"):
+        label_name = {int(v): str(k) for k, v in (meta.get("categories") or {}).items() if int(v) >= 0}
     frames = []
     for i, item in enumerate(infos.get("data_list") or []):
         where = f"{path}: data_list[{i}]"
-        if not isinstance(item, dict) or "instances" not in item:
-            raise ExportError(f"{where}: expected a dict with 'instances' (mmdet3d v2 info)")
-        lidar = item.get("lidar_points") or {}
-        if lidar.get("lidar_path"):
-            fid = Path(str(lidar["lidar_path"])).stem
-        elif "sample_idx" in item:
-            fid = _kitti_frame_id(item["sample_idx"])
-        else:
-            raise ExportError(f"{where}: neither lidar_points.lidar_path nor sample_idx names the frame")
-        keys, names, dims = [], [], []
-        ordinal = -1
-        for j, inst in enumerate(item["instances"]):
-            label = int(inst.get("bbox_label_3d", inst.get("bbox_label", -1)))
-            if "index" in inst:
-                idx = int(inst["index"])
-            else:  # DontCare is the only KITTI class mmdet3d labels -1
-                idx = ordinal + 1 if label >= 0 else -1
-            ordinal = max(ordinal, idx)
-            keys.append(idx if idx >= 0 else None)
-            names.append(label_name.get(label, DONTCARE if idx < 0 else f"label{label}"))
-            bb = inst.get("bbox_3d")
-            # mmdet3d KITTI bbox_3d: camera x, y, z, l, h, w, ry
-            dims.append([bb[3], bb[5], bb[4]] if bb is not None and len(bb) >= 7 else [np.nan] * 3)
-        frames.append(_FrameObjects(fid, keys, names, np.asarray(dims, dtype=float).reshape(-1, 3)))
+        with _malformed(where):
+            frames.append(_mmdet3d_frame(item, label_name, where))
     return frames
+
+
+def _mmdet3d_frame(item: Any, label_name: Mapping[int, str], where: str) -> _FrameObjects:
+    if not isinstance(item, dict) or "instances" not in item:
+        raise ExportError(f"{where}: expected a dict with 'instances' (mmdet3d v2 info)")
+    lidar = item.get("lidar_points") or {}
+    if lidar.get("lidar_path"):
+        fid = Path(str(lidar["lidar_path"])).stem
+    elif "sample_idx" in item:
+        fid = _kitti_frame_id(item["sample_idx"])
+    else:
+        raise ExportError(f"{where}: neither lidar_points.lidar_path nor sample_idx names the frame")
+    keys, names, dims = [], [], []
+    ordinal = -1
+    for inst in item["instances"]:
+        label = int(inst.get("bbox_label_3d", inst.get("bbox_label", -1)))
+        if "index" in inst:
+            idx = int(inst["index"])
+        else:  # DontCare is the only KITTI class mmdet3d labels -1
+            idx = ordinal + 1 if label >= 0 else -1
+        ordinal = max(ordinal, idx)
+        keys.append(idx if idx >= 0 else None)
+        names.append(label_name.get(label, DONTCARE if idx < 0 else f"label{label}"))
+        bb = inst.get("bbox_3d")
+        # mmdet3d KITTI bbox_3d: camera x, y, z, l, h, w, ry
+        dims.append([bb[3], bb[5], bb[4]] if bb is not None and len(bb) >= 7 else [np.nan] * 3)
+    return _FrameObjects(fid, keys, names, np.asarray(dims, dtype=float).reshape(-1, 3))
 
 
 def _align(
@@ -641,69 +670,77 @@ def _align(
         At the first frame (in file order) whose objects disagree with its result rows: an object
         the infos lack, another class, or other sizes.
     """
-    tol = C.INFOS_DIMENSION_TOLERANCE
     audited_classes = set(arrays.class_name.tolist())
-    rows_out: list[NDArray[np.int64]] = []
     stats: Counter[str] = Counter()
-    seen_frames: set[str] = set()
-    matched_rows = 0
+    first_extra: tuple[int, str] | None = None  # (frame position, message) of a result row the infos lack
     frames_without = 0
-    for fr in frames:
+    per_frame: list[list[int]] = []
+    for f, fr in enumerate(frames):
         results = index.by_frame.get(fr.frame_id)
-        seen_frames.add(fr.frame_id)
-        rows = np.full(len(fr.keys), -1, dtype=np.int64)
         if results is None:
             frames_without += 1
+            results = {}
         present = {k for k in fr.keys if k is not None}
-        for key, row in (results or {}).items():
-            if key not in present and not (index.key == "object_id" and arrays.class_name[row] == "Unknown"):
+        if first_extra is None:
+            extra_keys = [k for k in results.keys() - present if not (index.key == "object_id" and arrays.class_name[results[k]] == "Unknown")]
+            if extra_keys:
+                key = min(extra_keys, key=str)
                 what = f"object_index {key}" if index.key == "object_index" else f"object id {key!r}"
-                n_obj = len(present)
-                raise InfosMismatchError(
-                    f"{path}: frame {fr.frame_id}: the results have {what} ({arrays.class_name[row]}) but the infos list "
-                    f"{n_obj} non-DontCare object(s) there; the infos file does not belong to these results"
-                )
-        for j, key in enumerate(fr.keys):
-            name = fr.names[j]
-            if key is None:
+                first_extra = (f, f"frame {fr.frame_id}: the results have {what} ({arrays.class_name[results[key]]}) but the infos "
+                               f"list {len(present)} non-DontCare object(s) there")  # fmt: skip
+        rows = [-2 if k is None else results.get(k, -1) for k in fr.keys]  # -2: DontCare, -1: no row
+        for j, r in enumerate(rows):
+            if r == -2:
                 stats["DontCare"] += 1
-                continue
-            row = (results or {}).get(key, -1)
-            if row < 0:
-                if results is None:
+            elif r == -1:
+                name = fr.names[j]
+                if fr.frame_id not in index.by_frame:
                     stats["frame not in the results"] += 1
                 elif name not in audited_classes:
                     stats[f"class {name} not audited"] += 1
                 else:
                     stats["no result row"] += 1
-                continue
-            res_name = arrays.class_name[row]
-            lwh = arrays.boxes[row, 3:6]
-            dims = fr.dims_lwh[j]
-            if res_name != name or (np.all(np.isfinite(dims)) and np.max(np.abs(dims - lwh)) > tol):
-                raise InfosMismatchError(
-                    f"{path}: frame {fr.frame_id} object {j} (key {key}): infos say {name} l,w,h = "
-                    f"{', '.join(f'{v:.3f}' for v in dims)}, the results say {res_name} "
-                    f"{', '.join(f'{v:.3f}' for v in lwh)}; the infos file does not belong to these results"
-                )
-            rows[j] = row
-            matched_rows += 1
-            if not targets.valid[row]:
-                stats[targets.reason[row]] += 1
-        rows_out.append(rows)
+        per_frame.append(rows)
+
+    # class and size of every matched object at once; the earliest disagreement in file order wins
+    sizes = [len(r) for r in per_frame]
+    flat = np.array([r for rows in per_frame for r in rows], dtype=np.int64)
+    frame_of = np.repeat(np.arange(len(frames)), sizes)
+    hit = np.flatnonzero(flat >= 0)
+    first_bad: tuple[int, str] | None = None
+    if len(hit):
+        names = np.array([n for fr in frames for n in fr.names], dtype=object)[hit]
+        dims = np.concatenate([fr.dims_lwh for fr in frames])[hit]
+        res_rows = flat[hit]
+        lwh = arrays.boxes[res_rows, 3:6]
+        off = np.where(np.isfinite(dims), np.abs(dims - lwh), 0.0).max(axis=1)
+        bad = np.flatnonzero((names != arrays.class_name[res_rows]) | (off > C.INFOS_DIMENSION_TOLERANCE))
+        if len(bad):
+            i = int(bad[0])
+            f = int(frame_of[hit[i]])
+            j = int(hit[i] - np.sum(sizes[:f]))
+            first_bad = (f, f"frame {frames[f].frame_id} object {j} (key {frames[f].keys[j]}): infos say {names[i]} l,w,h = "
+                         f"{', '.join(f'{v:.3f}' for v in dims[i])}, the results say {arrays.class_name[res_rows[i]]} "
+                         f"{', '.join(f'{v:.3f}' for v in lwh[i])}")  # fmt: skip
+        stats.update(r for r in targets.reason[res_rows].tolist() if r)
+    errors = [e for e in (first_extra, first_bad) if e is not None]
+    if errors:
+        raise InfosMismatchError(f"{path}: {min(errors)[1]}; the infos file does not belong to these results")
     if frames and frames_without == len(frames):
         first_res = next(iter(index.by_frame), "?")
         raise InfosMismatchError(
             f"{path}: none of its {len(frames)} frames is in the results (first infos frame {frames[0].frame_id}, "
             f"first results frame {first_res}); the infos file does not belong to these results"
         )
+    seen_frames = {fr.frame_id for fr in frames}
+    rows_out = np.split(np.where(flat >= 0, flat, -1), np.cumsum(sizes)[:-1]) if sizes else []
     extra = {
         "frames_without_results": frames_without,
         "reasons": dict(stats),
         "results_frames_not_in_infos": len(set(index.by_frame) - seen_frames),
-        "results_rows_not_in_infos": len(arrays) - matched_rows,
+        "results_rows_not_in_infos": len(arrays) - len(hit),
     }
-    return rows_out, extra
+    return list(rows_out), extra
 
 
 def _gather(targets: ExportTargets, rows: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
@@ -758,12 +795,18 @@ def attach_to_infos(
             n_with += int(valid.sum())
     else:
         infos.setdefault("metainfo", {})[INFOS_META_KEY] = meta
-        for item, r in zip(infos["data_list"], rows):
-            std, cov, valid = _gather(targets, r)
-            for inst, s, c, v in zip(item["instances"], std.astype(float).tolist(), cov.astype(float).tolist(), valid.tolist()):
-                inst[INFOS_KEYS[0]], inst[INFOS_KEYS[1]], inst[INFOS_KEYS[2]] = s, c, bool(v)
-            n_obj += len(r)
-            n_with += int(valid.sum())
+        flat = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+        hit = flat >= 0
+        valid = np.zeros(len(flat), dtype=bool)
+        valid[hit] = targets.valid[flat[hit]]
+        take = np.where(hit, flat, 0)
+        # lists of Python floats (mmdet3d's convention), float64 as computed; NaN where no target
+        stds = np.where(valid[:, None], targets.std[take], np.nan).tolist()
+        covs = np.where(valid[:, None, None], targets.cov[take], np.nan).tolist()
+        instances = (inst for item in infos["data_list"] for inst in item["instances"])
+        for inst, s_, c_, v in zip(instances, stds, covs, valid.tolist()):
+            inst[INFOS_KEYS[0]], inst[INFOS_KEYS[1]], inst[INFOS_KEYS[2]] = s_, c_, v
+        n_obj, n_with = len(flat), int(valid.sum())
     extra.update(frames=len(frames), objects=n_obj, objects_with_targets=n_with)
     return infos, extra
 

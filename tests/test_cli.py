@@ -17,7 +17,7 @@ from labelaudit.cli import app
 from results_factory import make_results, make_row
 
 runner = CliRunner()
-COMMANDS = ["infer", "rank", "check", "simulate", "demo"]
+COMMANDS = ["infer", "rank", "check", "simulate", "demo", "export"]
 
 
 def invoke(*args: str):

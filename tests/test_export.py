@@ -254,6 +254,21 @@ def test_openpcdet_mismatch_exits_2_naming_the_first_frame(kitti, tmp_path):
     assert result.exit_code == 2 and "none of its 4 frames" in result.stderr
 
 
+def test_malformed_or_unlabelled_infos_exit_2_naming_the_entry(kitti, tmp_path):
+    res, infos, _ = kitti
+    data = pickle.loads(infos.read_bytes())
+    data[2]["annos"]["dimensions"] = np.zeros((5, 2))
+    bad = tmp_path / "bad.pkl"
+    bad.write_bytes(pickle.dumps(data))
+    result = invoke("export", res, "-o", tmp_path / "o.pkl", "--format", "openpcdet", "--infos", bad)
+    assert result.exit_code == 2 and "frame entry 2: malformed entry" in result.stderr
+    for info in data:
+        del info["annos"]  # a test-split infos file
+    bad.write_bytes(pickle.dumps(data))
+    result = invoke("export", res, "-o", tmp_path / "o.pkl", "--format", "openpcdet", "--infos", bad)
+    assert result.exit_code == 2 and "frame entry 0: no 'annos'" in result.stderr
+
+
 def test_openpcdet_waymo_infos_align_by_laser_object_id(tmp_path):
     seg, ts = "1071392229495085036_1844_790_1864_790", "1507315488219118"
     fid = f"{seg}:{ts}"
@@ -269,7 +284,7 @@ def test_openpcdet_waymo_infos_align_by_laser_object_id(tmp_path):
     summary = E.export_results(res, out, fmt="openpcdet", infos=infos, encoding="residual")
     annos = pickle.loads(out.read_bytes())[0]["annos"]
     assert list(annos["label_std_valid"]) == [True, False, True]
-    assert annos["label_std"][2, 3] > annos["label_std"][0, 3] * 0  # finite
+    assert np.isfinite(annos["label_std"][[0, 2]][:, [0, 1, 3, 4, 6]]).all() and np.isnan(annos["label_std"][1]).all()
     # residual with the Waymo default anchors: xt std = std_x / diagonal of the Vehicle anchor (4.7, 2.1)
     assert annos["label_std"][0, 0] == pytest.approx(np.sqrt(1e-3) / np.hypot(4.7, 2.1), rel=1e-6)
     assert annos["label_std"][2, 0] == pytest.approx(np.sqrt(2e-3) / np.hypot(4.7, 2.1), rel=1e-6)
