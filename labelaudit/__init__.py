@@ -62,6 +62,9 @@ _EXPORTS: dict[str, str] = {
     "summarize": "labelaudit.summary",
     "load_gate": "labelaudit.gate",
     "evaluate_gate": "labelaudit.gate",
+    # training targets (σ_p) and the KLD loss
+    "export_results": "labelaudit.export",
+    "kld_loss": "labelaudit.training",
     # simulation
     "NoiseSpec": "labelaudit.sim.noise",
     "simulate_dataset": "labelaudit.sim.dataset",
@@ -71,6 +74,7 @@ _EXPORTS: dict[str, str] = {
     "DatasetError": "labelaudit.errors",
     "ResultsError": "labelaudit.errors",
     "InferError": "labelaudit.errors",
+    "ExportError": "labelaudit.errors",
 }
 
 __all__ = sorted(_EXPORTS) + ["SCHEMA_VERSION", "__version__"]

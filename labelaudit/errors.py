@@ -50,3 +50,15 @@ class OutputExistsError(LabelAuditError, FileExistsError):
 
 class UsageError(LabelAuditError, ValueError):
     """A command-line value the library cannot use (for checks the CLI itself makes)."""
+
+
+class ExportError(LabelAuditError, ValueError):
+    """Bad input to ``export`` (results, infos file, options); the message names the file and what was expected."""
+
+
+class InfosMismatchError(ExportError):
+    """An infos file does not describe the frames and objects of the results; the message names the first frame."""
+
+
+class UnsafePickleError(ExportError):
+    """An infos pickle references a global outside the numpy/builtin allow-list (refused before it runs)."""

@@ -5,8 +5,9 @@ turning them into arrays for :mod:`labelaudit.training` (which does all the math
 the Parquet table of targets, and adding the targets to a copy of an OpenPCDet (KITTI, Waymo) or
 mmdetection3d (v2 ``instances``, KITTI) infos pickle, aligned with that file's own object order.
 Infos pickles are read with a restricted unpickler (numpy arrays and builtin containers only).
-Every file is written to a temporary name and renamed. It prints nothing: the CLI
-(:mod:`labelaudit.cli_export`) shows the :class:`ExportSummary`.
+Every file is written to a temporary name and renamed. It computes no statistics of its own (that
+is :mod:`labelaudit.training`) and prints nothing: the CLI (:mod:`labelaudit.cli.export`) shows the
+:class:`ExportSummary`.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit import training as T
+from labelaudit.errors import ExportError, InfosMismatchError, UnsafePickleError
 
 FloatArray = NDArray[np.float64]
 
@@ -60,18 +62,6 @@ AUDITED_STATUSES = ("ok", "few_points", "no_points")
 DONTCARE = "DontCare"
 
 Format = Literal["parquet", "openpcdet", "mmdet3d"]
-
-
-class ExportError(ValueError):
-    """Bad input to the export (results, infos file, options); the message names the file and what was expected."""
-
-
-class InfosMismatchError(ExportError):
-    """The infos file does not describe the frames and objects of the results."""
-
-
-class UnsafePickleError(ExportError):
-    """An infos pickle references a global outside the numpy/builtin allow-list."""
 
 
 # --------------------------------------------------------------------------- results → arrays

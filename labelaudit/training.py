@@ -9,7 +9,7 @@ of the paper's model), the heuristic sources of σ_p the paper compares against 
 It does no I/O: reading results and writing Parquet or infos files is :mod:`labelaudit.export`'s.
 
 Box parameters are always ``y = (cx, cy, cz, l, w, h, yaw)`` (LiDAR frame, geometric centre,
-:data:`labelaudit.geometry.BOX_FIELDS`); arrays of boxes have shape (N, 7).
+:data:`labelaudit.core.geometry.BOX_FIELDS`); arrays of boxes have shape (N, 7).
 """
 
 from __future__ import annotations
@@ -266,7 +266,7 @@ def box_jacobian(boxes: ArrayLike, model: Literal["bev", "3d"]) -> FloatArray:
     φ is BEV ``(c1, c2, l·cos, l·sin, w·cos, w·sin)`` or 3D ``(c1, c2, c3, l·cos, l·sin, w·cos,
     w·sin, h)`` (docs/method.md). The reported yaw of a parallelogram is the mean direction of its
     two axes, so its row is half the sum of the two axis-angle rows — the same map as
-    :func:`labelaudit.geometry.box_param_jacobian`, whose rows it equals (cz and h rows are zero
+    :func:`labelaudit.core.geometry.box_param_jacobian`, whose rows it equals (cz and h rows are zero
     for BEV, where φ does not hold them).
 
     Returns

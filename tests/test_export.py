@@ -17,7 +17,7 @@ from labelaudit import export as E
 from labelaudit import training as T
 from labelaudit.cli import app
 from labelaudit.config import ModelParams
-from labelaudit.model import infer_label
+from labelaudit.core.posterior import infer_label
 
 from _core_synth import face_points
 from infos_factory import kitti_frames_and_rows, mmdet3d_kitti_infos, openpcdet_kitti_infos, openpcdet_waymo_infos
@@ -105,7 +105,7 @@ def test_box_encoding_std_equals_the_results_std_columns(tmp_path):
     rows = []
     for i, (model, yaw) in enumerate((("bev", 0.4), ("3d", -2.9), ("3d", 1.57))):
         box = np.array([12.0 + i, 4.0, -0.8, 4.2, 1.7, 1.5, yaw])
-        post = infer_label(box, face_points(box, ["-x", "-y"], 50, noise=0.03, seed=i), "Car", ModelParams(model=model))
+        post = infer_label(box, face_points(box, ["-x", "-y"], 50, noise=0.03, seed=i), "Car", ModelParams(kind=model))
         rows.append(make_row(f"00000{i}", 0, cx=box[0], cy=box[1], cz=box[2], length=4.2, width=1.7, height=1.5, yaw=yaw,
                              cov=post.cov.ravel().tolist(), cov_dim=post.cov.shape[0], model=model,
                              **{f"std_{k}": v for k, v in post.std_box.items()}))  # fmt: skip
@@ -401,9 +401,10 @@ def test_cli_refuses_to_overwrite_the_input_infos_and_missing_results(kitti, tmp
 @pytest.mark.slow
 def test_real_kitti_frames_into_openpcdet_infos(realdata, tmp_path):
     """Six real KITTI frames (DontCare rows, Truck/Misc/Pedestrian/Cyclist): infer, then attach to infos built from label_2."""
+    from labelaudit import InferRequest, run_infer
+    from labelaudit.config import resolve_config
     from labelaudit.datasets.kitti import read_label
     from labelaudit.executors import SerialExecutor
-    from labelaudit.pipeline import InferRequest, resolve_config, run_infer
 
     root = realdata / "openpcdet-pr653-kitti"
     cfg = resolve_config(None, "kitti", ["Car", "Pedestrian", "Cyclist"])

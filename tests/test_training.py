@@ -9,10 +9,10 @@ import pytest
 from scipy import integrate
 
 from labelaudit import constants as C
-from labelaudit import geometry as g
+from labelaudit.core import geometry as g
 from labelaudit import training as T
 from labelaudit.config import ClassPrior, ModelParams
-from labelaudit.model import infer_label, prior_covariance
+from labelaudit.core.posterior import infer_label, prior_covariance
 
 from _core_synth import face_points
 
@@ -95,7 +95,7 @@ def assert_matches_mc(box, cov_phi, model, encodings=ENCODINGS, rel=0.03):
 
 
 def posterior(box, points, model, sigma=0.2):
-    params = ModelParams(model=model, sigma=sigma)
+    params = ModelParams(kind=model, sigma=sigma)
     return infer_label(box, points, "Car", params)
 
 

@@ -1,7 +1,6 @@
-"""``labelaudit export``: the Typer command (parse, call :func:`labelaudit.export.export_results`, print).
+"""``labelaudit export``: options → :func:`labelaudit.export.export_results`, its summary as a table (stderr) or JSON.
 
-Only this module turns export errors into exit codes and prints; the work is in
-:mod:`labelaudit.export` and :mod:`labelaudit.training`. It is registered by ``labelaudit/cli.py``.
+It computes nothing: the targets are :mod:`labelaudit.training`'s, the files :mod:`labelaudit.export`'s.
 """
 
 from __future__ import annotations
@@ -16,6 +15,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from labelaudit.cli.app import app, err, handle_errors
 
 
 class Encoding(str, Enum):
@@ -32,6 +32,7 @@ class ExportFormat(str, Enum):
     mmdet3d = "mmdet3d"
 
 
+@app.command()
 def export(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer` (or one Parquet file of rows)."),
     output: Path = typer.Option(..., "-o", "--output", help="File to write: the Parquet table, or the copy of the infos pickle."),
@@ -45,7 +46,9 @@ def export(
 ) -> None:
     """Write per-object label uncertainty σ_p as training targets in a detector's encoding.
 
-    Variances and covariances of the encoded targets come from the posterior covariance of each label (first-order propagation with the exact Jacobian at the label) or from a heuristic (docs/training.md). Objects without targets (DontCare, classes not audited, skipped rows) get NaN and a False mask, never a shifted row; the summary counts them. An infos file whose frames or objects do not match the results exits 2 naming the first mismatching frame.
+    Variances and covariances of the encoded targets come from the posterior covariance of each label (first-order propagation with the exact Jacobian at the label) or from a heuristic; formulas, sources and file formats: docs/training.md. The Parquet output is keyed by (frame_id, object_index, object_id); openpcdet and mmdet3d write a copy of --infos with label_std, label_cov and label_std_valid added to every object, in that file's own object order.
+
+    Objects without targets (DontCare, classes not audited, rows without a posterior, frames missing from the results) get NaN and a False mask, never a neighbour's values; the summary (stderr, or --json on stdout) counts them by reason. Exit 2 for bad options, unreadable results, a pickle with a disallowed global, an infos file that does not match the results (the message names the first mismatching frame), or when no object got targets; nothing is written then.
 
     [bold]Examples[/bold]
 
@@ -57,26 +60,21 @@ def export(
 
       labelaudit export results/ -o fixed.parquet --source fixed:0.01 --json
     """
-    from labelaudit.cli import CliError, _err, _handle_errors  # here: labelaudit.cli imports this module
-    from labelaudit.export import ExportError, export_results, parse_anchor_sizes
+    from labelaudit.export import export_results, parse_anchor_sizes
 
-    with _handle_errors(debug):
-        try:
-            anchors = parse_anchor_sizes(anchor_size or ())
-            summary = export_results(
-                results,
-                output,
-                encoding=encoding.value,
-                source=source,
-                fmt=out_format.value,  # type: ignore[arg-type]
-                infos=infos,
-                anchor_sizes=anchors,
-            )
-        except ExportError as exc:
-            raise CliError(str(exc)) from None
+    with handle_errors(debug):
+        summary = export_results(
+            results,
+            output,
+            encoding=encoding.value,
+            source=source,
+            fmt=out_format.value,  # type: ignore[arg-type]
+            infos=infos,
+            anchor_sizes=parse_anchor_sizes(anchor_size or ()),
+        )
         if as_json:
             sys.stdout.write(json.dumps(summary.to_dict(), indent=2, sort_keys=True) + "\n")
-        console = _err()
+        console = err()
         t = Table(title=f"labelaudit export — {summary.encoding}, source {escape(summary.source)}", title_justify="left")
         t.add_column("what")
         t.add_column("count", justify="right")
