@@ -755,8 +755,8 @@ def attach_to_infos(
     OpenPCDet: each frame's ``annos`` gains ``label_std`` (K, T) float32, ``label_cov`` (K, T, T)
     float32 and ``label_std_valid`` (K,) bool, K = every object of the frame including DontCare
     (so OpenPCDet's ``drop_info_with_name`` keeps them aligned); each frame gets ``label_uncertainty``
-    (the description). mmdet3d v2: every instance dict gains the same three keys as a list of T
-    floats, a T×T nested list and a bool; ``metainfo`` gets ``label_uncertainty``. Objects without
+    (the description). mmdet3d v2: every instance dict gains the same three keys as a (T,) and a
+    (T, T) float32 array and a bool; ``metainfo`` gets ``label_uncertainty``. Objects without
     targets (DontCare, classes not audited, missing rows) get NaN and False.
 
     Returns
@@ -790,12 +790,12 @@ def attach_to_infos(
         valid = np.zeros(len(flat), dtype=bool)
         valid[hit] = targets.valid[flat[hit]]
         take = np.where(hit, flat, 0)
-        # lists of Python floats (mmdet3d's convention), float64 as computed; NaN where no target
-        stds = np.where(valid[:, None], targets.std[take], np.nan).tolist()
-        covs = np.where(valid[:, None, None], targets.cov[take], np.nan).tolist()
+        # float32 arrays, one per instance (not nested lists: half the size, ~8× faster to load); NaN where none
+        stds = np.where(valid[:, None], targets.std[take], np.nan).astype(np.float32)
+        covs = np.where(valid[:, None, None], targets.cov[take], np.nan).astype(np.float32)
         instances = (inst for item in infos["data_list"] for inst in item["instances"])
-        for inst, s_, c_, v in zip(instances, stds, covs, valid.tolist()):
-            inst[INFOS_KEYS[0]], inst[INFOS_KEYS[1]], inst[INFOS_KEYS[2]] = s_, c_, v
+        for i, (inst, v) in enumerate(zip(instances, valid.tolist())):
+            inst[INFOS_KEYS[0]], inst[INFOS_KEYS[1]], inst[INFOS_KEYS[2]] = stds[i].copy(), covs[i].copy(), v
         n_obj, n_with = len(flat), int(valid.sum())
     extra.update(frames=len(frames), objects=n_obj, objects_with_targets=n_with)
     return infos, extra

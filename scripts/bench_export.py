@@ -5,7 +5,8 @@ objects, shards of 16 frames written by the results writer like a real run, rand
 posterior covariances) and an OpenPCDet-style ``kitti_infos_train.pkl`` of the same frames (each
 with 2 DontCare and 1 unaudited Pedestrian more), then times :func:`labelaudit.export.export_results`
 end to end (read the results, propagate, write) for the Parquet output in every encoding and for
-the OpenPCDet and mmdet3d infos copies. Prints the median wall time of a few repetitions.
+the OpenPCDet and mmdet3d infos copies. Prints the median wall and CPU time of a few repetitions
+(the machine may be shared: CPU time is the steadier figure).
 
     python scripts/bench_export.py [--objects 30000] [--repeat 3] [--model bev|3d]
 """
@@ -66,13 +67,15 @@ def synthesise(root: Path, n_objects: int, model: str, seed: int = 0) -> dict[st
     return frames
 
 
-def median_s(fn, repeat: int) -> float:
-    times = []
+def median_s(fn, repeat: int) -> tuple[float, float]:
+    """Median wall and CPU time (s); CPU time (process_time) is not inflated by other processes on a shared machine."""
+    wall, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def main() -> None:
@@ -90,12 +93,12 @@ def main() -> None:
         print(f"synthesised {args.objects} objects in {len(frames)} frames ({args.model} model) in {time.perf_counter() - t0:.1f} s (not timed)")
         cases = [("parquet", enc, "model") for enc in ("box", "log-size", "pixor", "residual")]
         cases += [("parquet", "log-size", "num_points"), ("openpcdet", "residual", "model"), ("mmdet3d", "log-size", "model")]
-        print(f"{'format':<10} {'encoding':<9} {'source':<11} {'objects':>8} {'median s':>9} {'objects/s':>10}")
+        print(f"{'format':<10} {'encoding':<9} {'source':<11} {'objects':>8} {'wall s':>7} {'cpu s':>6} {'objects/s (wall)':>17}")
         for fmt, enc, src in cases:
             infos = None if fmt == "parquet" else tmp / ("kitti_infos_train.pkl" if fmt == "openpcdet" else "mmdet3d_infos_train.pkl")
             out = tmp / f"out-{fmt}-{enc}.{'parquet' if fmt == 'parquet' else 'pkl'}"
-            s = median_s(lambda: export_results(tmp / "res", out, encoding=enc, source=src, fmt=fmt, infos=infos), args.repeat)  # noqa: B023
-            print(f"{fmt:<10} {enc:<9} {src:<11} {args.objects:>8} {s:>9.2f} {args.objects / s:>10.0f}")
+            wall, cpu = median_s(lambda: export_results(tmp / "res", out, encoding=enc, source=src, fmt=fmt, infos=infos), args.repeat)  # noqa: B023
+            print(f"{fmt:<10} {enc:<9} {src:<11} {args.objects:>8} {wall:>7.2f} {cpu:>6.2f} {args.objects / wall:>17.0f}")
 
 
 if __name__ == "__main__":

@@ -307,10 +307,10 @@ def test_mmdet3d_round_trip(kitti, tmp_path):
         fid = Path(item["lidar_points"]["lidar_path"]).stem
         for inst in item["instances"]:
             std, cov, valid = (inst[k] for k in E.INFOS_KEYS)
-            assert isinstance(std, list) and len(std) == 8 and len(cov) == 8 and isinstance(valid, bool)
+            assert std.shape == (8,) and cov.shape == (8, 8) and std.dtype == np.float32 and isinstance(valid, bool)
             key = (fid, inst["index"])
             if inst["index"] >= 0 and key in expected:
-                assert valid and np.allclose(std, expected[key][0], equal_nan=True, rtol=1e-6)
+                assert valid and np.allclose(std, expected[key][0].astype(np.float32), equal_nan=True)
             else:
                 assert not valid and np.isnan(std).all()
     assert summary.infos_objects_with_targets == len(rows)
