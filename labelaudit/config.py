@@ -298,3 +298,39 @@ def resolve_config(config_path: Path | None, dataset_format: str, classes: Seque
             raise ConfigError(f"--model: expected bev or 3d, got {model!r}")
         cfg = cfg.with_overrides(model=replace(cfg.model, kind=model))
     return cfg
+
+
+def config_from_params(params: Mapping[str, Any], *, source: str = "<params>") -> RunConfig:
+    """Rebuild the :class:`RunConfig` that :meth:`RunConfig.to_dict` wrote (a results manifest's ``params``).
+
+    The inverse of ``to_dict``: ``config_from_params(cfg.to_dict()) == cfg``, so a results folder's
+    pictures can be recomputed with the very configuration of its run.
+
+    Raises
+    ------
+    ConfigError
+        A key is missing, unknown or of the wrong type.
+    """
+    try:
+        top = dict(params)
+        check_keys(top, {f.name for f in fields(RunConfig)}, "params", source)
+        model = dict(top.get("model", {}))
+        priors = {name: ClassPrior(**dict(p)) for name, p in dict(model.pop("priors", {})).items()} or default_priors()
+        check_keys(model, {f.name for f in fields(ModelParams)}, "params.model", source)
+        spatial, crop = dict(top.get("spatial", {})), dict(top.get("crop", {}))
+        check_keys(spatial, {f.name for f in fields(SpatialParams)}, "params.spatial", source)
+        check_keys(crop, {f.name for f in fields(CropParams)}, "params.crop", source)
+        max_length = top.get("max_length")
+        return RunConfig(
+            dataset_format=str(top.get("dataset_format", "kitti")),
+            classes=tuple(top.get("classes", C.DEFAULT_CLASSES)),
+            min_length=float(top.get("min_length", 0.0)),
+            max_length=float("inf") if max_length is None else float(max_length),
+            model=ModelParams(priors=priors, **model),
+            spatial=SpatialParams(**spatial),
+            crop=CropParams(**crop),
+        )
+    except ConfigError:
+        raise
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise ConfigError(f"{source}: malformed run parameters ({exc})") from None

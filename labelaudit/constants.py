@@ -104,3 +104,24 @@ DEFAULT_ANCHOR_SIZES: dict[str, dict[str, tuple[float, float, float]]] = {
 }
 INFOS_DIMENSION_TOLERANCE = 1e-3  # m; an infos object whose l/w/h differ from the result row's by more is a mismatch
 INFOS_PICKLE_PROTOCOL = 4  # pickle protocol of written infos copies: loads on every Python 3 that OpenPCDet/mmdet3d support
+
+# --- pictures and the review report (labelaudit/viz, docs/review.md) ---
+VIZ_DPI = 100  # matplotlib dots per inch of every picture: figure size = pixels / this
+VIZ_NEAREST_IDS = 5  # an unknown frame/object id lists this many nearest valid ids
+VIZ_FRAME_CACHE = 8  # frames kept in memory while a gallery renders (several pictures per frame)
+SHOW_SIZE = (640, 600)  # default `show` picture of one object, width × height in pixels
+SHOW_FRAME_SIZE = (1000, 800)  # default `show` picture of a whole frame, pixels
+SHOW_CONTEXT_MARGIN = 2.0  # m; points this far around the box are drawn (grey) for orientation
+SHOW_VIEW_MARGIN = 0.8  # m of free space around the label, suggested box and 2-σ corner ellipses
+SHOW_FRAME_WORST = 5  # `show` of a frame numbers this many worst boxes
+SHOW_FRAME_MARGIN = 6.0  # m around the frame's boxes (and the sensor) in the frame picture
+REPORT_TOP = 12  # default gallery size per ranking of `labelaudit report`
+REPORT_GALLERY_SIZE = (520, 480)  # gallery pictures, pixels (smaller than `show`'s: the HTML stays light)
+REPORT_PLOT_SIZE = (620, 400)  # aggregate plots, pixels
+REPORT_DISTANCE_BIN = 10.0  # m; Fig. 7b bins of the distance to the sensor
+REPORT_LOG_POINTS_BIN = 0.25  # Fig. 7c bins of log10(number of points)
+REPORT_MIN_BIN_COUNT = 3  # a plot bin with fewer objects is not drawn (its mean is noise)
+REPORT_MAX_ERROR_ROWS = 50  # failed frames listed in the report (the rest are counted)
+REPORT_AP_THRESHOLDS = {"Car": 0.7, "Vehicle": 0.7}  # usual AP overlap threshold per class (KITTI Car, Waymo Vehicle); others 0.5
+REPORT_AP_DEFAULT_THRESHOLD = 0.5  # usual AP overlap threshold of every other class
+REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's official since 2019)

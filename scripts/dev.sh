@@ -19,6 +19,18 @@ ensure_system_libs() {
     fi
 }
 
+ensure_browser() {
+    # The report's browser test (tests/test_viz_browser.py) drives the system Chromium; Playwright
+    # never downloads a browser of its own here.
+    if ! command -v chromium >/dev/null 2>&1; then
+        echo "installing chromium (for the report's browser test)" >&2
+        local SUDO=""
+        [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium; } >&2 \
+            || echo "could not install chromium: the browser test will be skipped" >&2
+    fi
+}
+
 ensure_venv() {
     if [ ! -x "$VENV/bin/python" ]; then
         python3 -m venv "$VENV" >&2
@@ -38,6 +50,6 @@ ensure_venv
 case "$cmd" in
     setup) echo "ready: $VENV/bin/labelaudit --help" >&2 ;;
     demo) exec "$VENV/bin/labelaudit" demo "$@" ;;
-    test) exec "$VENV/bin/python" -m pytest -q "$@" ;;
+    test) ensure_browser; exec "$VENV/bin/python" -m pytest -q "$@" ;;
     *) echo "usage: bash scripts/dev.sh [setup|demo|test] [args...]" >&2; exit 2 ;;
 esac

@@ -1,0 +1,91 @@
+"""``labelaudit show``: a bird's-eye-view picture of one label (or of a whole frame) as PNG.
+
+Parses the options, calls :mod:`labelaudit.viz` and prints the written path on stdout; the
+picture is recomputed from the dataset with the run's own configuration (docs/review.md).
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.markup import escape
+
+from labelaudit import constants as C
+from labelaudit.cli.app import app, err, handle_errors
+from labelaudit.errors import UsageError
+
+
+class ShowBy(str, Enum):
+    jiou_gt = "jiou_gt"
+    label_error = "label_error"
+
+
+@app.command()
+def show(
+    results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
+    frame: str = typer.Argument(..., help="Frame id as in the results (KITTI '000123', Waymo '<segment>:<timestamp>')."),
+    object_index: Optional[int] = typer.Argument(None, metavar="[OBJECT]", help="object_index of the label in the frame; omit it for the whole frame."),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="PNG file to write (default: show-<frame>[-<object>].png)."),
+    dataset: Optional[Path] = typer.Option(None, "--dataset", help="The dataset's current location, when it moved since `infer` (default: the manifest's)."),
+    size: Optional[str] = typer.Option(None, "--size", help=f"Picture size WIDTHxHEIGHT in pixels (default {C.SHOW_SIZE[0]}x{C.SHOW_SIZE[1]}; a frame {C.SHOW_FRAME_SIZE[0]}x{C.SHOW_FRAME_SIZE[1]})."),
+    by: ShowBy = typer.Option(ShowBy.jiou_gt, "--by", help="Whole frame: colour the boxes by this score."),
+    worst: int = typer.Option(C.SHOW_FRAME_WORST, "--worst", help="Whole frame: number this many worst boxes."),
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
+) -> None:
+    """Draw one label with its spatial distribution p_G, or a whole frame's boxes coloured by a score.
+
+    One object: its crop's points coloured by height, the labeled box, p_G as a heatmap, the 1-σ ellipses of its corners (C1 nearest the sensor), the suggested box of the label-error fit, the direction to the sensor, a scale bar and the row's numbers. Everything is recomputed from the dataset with the run's parameters, so the picture matches the row. Prints the PNG's path on stdout.
+
+    [bold]Examples[/bold]
+
+      labelaudit show results/ 000123 4 -o worst.png
+
+      labelaudit show results/ 000123 --by label_error -o frame.png
+
+      labelaudit show results/ 000123 4 --dataset /mnt/new/kitti --size 900x800
+    """
+    from labelaudit.results import open_results
+    from labelaudit.viz.objects import frame_rows, load_frame, object_row, open_source, recompute
+    from labelaudit.viz.show import parse_size, render_frame, render_object
+
+    with handle_errors(debug):
+        if worst < 0:
+            raise typer.BadParameter(f"must be ≥ 0, got {worst}", param_hint="--worst")
+        try:
+            px = parse_size(size) if size else (C.SHOW_SIZE if object_index is not None else C.SHOW_FRAME_SIZE)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--size") from None
+        opened = open_results(results)
+        rows = frame_rows(opened, frame)
+        row = object_row(rows, object_index) if object_index is not None else None
+        source = open_source(opened, dataset)
+        for note in source.notes:
+            err().print(f"warning: {escape(note)}", soft_wrap=True)
+        if row is not None:
+            audit = recompute(source, row)
+            for col, (want, got) in audit.mismatches(rtol=1e-6).items():
+                err().print(f"warning: recomputed {col} = {got} but the row says {want} (dataset or labelaudit changed since infer)", soft_wrap=True)
+            png = render_object(audit, px).png
+        else:
+            fr = load_frame(source, frame)
+            png = render_frame(frame, fr.points, rows.to_pylist(), by.value, px, worst, fr.sensor_origin).png
+        safe = frame.replace("/", "_").replace(":", "_")
+        out = output or Path(f"show-{safe}{'' if object_index is None else f'-{object_index}'}.png")
+        _write_png(png, out)
+        typer.echo(str(out))
+
+
+def _write_png(png: bytes, path: Path) -> None:
+    """Atomic write (temporary dot-file, then rename)."""
+    import os
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        tmp.write_bytes(png)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot write the picture ({exc.strerror})") from None

@@ -1,0 +1,427 @@
+"""Bird's-eye-view pictures of labels: one object with its spatial distribution, or a whole frame.
+
+:func:`render_object` draws the paper's Fig. 1 view of one :class:`~labelaudit.viz.objects.ObjectAudit`
+in the label's own frame (x along its length): p_G as a heatmap, the crop's points coloured by
+height, the labeled box, the 1-σ ellipses of its four corners (C1, nearest the sensor, marked),
+the label-error fit's suggested box, the direction to the sensor, a metric scale bar and a caption
+with the row's numbers. :func:`render_frame` draws every box of a frame over its points, coloured
+by a score, the worst numbered. Both return the arrays they plot next to the PNG bytes, so tests
+can check what is drawn. Matplotlib's object API on an Agg canvas (no pyplot state, no display).
+This module computes no model quantity itself; it only transforms and draws.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib import colormaps
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Ellipse, Polygon
+from numpy.typing import NDArray
+
+from labelaudit import constants as C
+from labelaudit.core import geometry as g
+from labelaudit.core.posterior import corner_unit_coords
+from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["ObjectPicture", "FramePicture", "render_object", "render_frame", "parse_size", "corner_covariances", "SCORES"]
+
+SCORES = {"jiou_gt": "JIoU-GT", "label_error": "label_error"}
+"""Scores a frame picture can colour boxes by (low JIoU-GT is bad; high label_error is bad)."""
+
+# Colours: the heatmap is the background, everything drawn over it must stay visible on it.
+HEAT_CMAP = "magma"
+HEIGHT_CMAP = "cool"  # bright at both ends: visible on the dark surround and on the bright box interior
+SCORE_CMAP = {"jiou_gt": "RdYlGn", "label_error": "RdYlGn_r"}
+LABEL_COLOUR = "#ffffff"
+FIT_COLOUR = "#00e5ff"
+ELLIPSE_COLOUR = "#7CFC00"
+CONTEXT_COLOUR = "#8a8a8a"
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"640x600"`` or ``"640"`` (square) → (width, height) in pixels.
+
+    Raises
+    ------
+    ValueError
+        Not of that form, or a side outside [64, 8192].
+    """
+    parts = text.lower().replace("×", "x").split("x")
+    try:
+        w, h = (int(parts[0]), int(parts[-1])) if len(parts) in (1, 2) else (0, 0)
+    except ValueError:
+        w = h = 0
+    if not (64 <= w <= 8192 and 64 <= h <= 8192):
+        raise ValueError(f"size {text!r}: expected WIDTHxHEIGHT in pixels (e.g. 640x600, or 640 for a square), each 64–8192")
+    return w, h
+
+
+def _figure(size: tuple[int, int]) -> Figure:
+    fig = Figure(figsize=(size[0] / C.VIZ_DPI, size[1] / C.VIZ_DPI), dpi=C.VIZ_DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig: Figure) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=C.VIZ_DPI)  # no bbox_inches: the PNG has exactly the requested size
+    return buf.getvalue()
+
+
+def _to_box_frame(xy: FloatArray, box: FloatArray) -> FloatArray:
+    """World BEV points (N, 2) → the box frame (origin at the centre, x along the length)."""
+    c, s = math.cos(box[6]), math.sin(box[6])
+    d = np.asarray(xy, dtype=float)[:, :2] - box[:2]
+    return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]]
+
+
+def corner_covariances(audit: ObjectAudit) -> FloatArray:
+    """BEV covariance (4, 2, 2) of the label's corners, world frame, C1..C4 (nearest the sensor first).
+
+    J(v*_c) Σ J(v*_c)ᵀ at the four corners (:func:`labelaudit.core.posterior.corner_total_variance` is
+    their trace); the x–y block for a 3D model.
+    """
+    post = audit.posterior
+    J = g.design_matrix(corner_unit_coords(post.model), post.model)  # (4, d, p)
+    cov = np.einsum("cdp,pq,ceq->cde", J, post.cov, J)[:, :2, :2]
+    return cov[post.corner_order]
+
+
+def _nice_length(span: float) -> float:
+    """A round scale-bar length of about a fifth of ``span`` metres."""
+    target = span / 5.0
+    for v in (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0):
+        if v >= target:
+            return v
+    return 100.0
+
+
+def _fmt(v: Any, spec: str = ".3f", unit: str = "") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:{spec}}{unit}"
+
+
+def _add_scale_bar(ax: Any, view: tuple[float, float, float, float], colour: str) -> float:
+    """A metric scale bar in the lower right corner (a plain line and label: cheap to draw)."""
+    span_x, span_y = view[1] - view[0], view[3] - view[2]
+    length = _nice_length(span_x)
+    x1, y = view[1] - 0.04 * span_x, view[2] + 0.06 * span_y
+    ax.plot([x1 - length, x1], [y, y], color=colour, linewidth=3, solid_capstyle="butt", zorder=9)
+    ax.text(x1 - length / 2, y + 0.015 * span_y, f"{length:g} m", color=colour, fontsize=8, ha="center", va="bottom", zorder=9)
+    return length
+
+
+# --------------------------------------------------------------------------- one object
+
+
+@dataclass(frozen=True)
+class ObjectPicture:
+    """A rendered object picture and the arrays it shows (box frame: x along the label's length, metres).
+
+    Attributes
+    ----------
+    png : the PNG file's bytes
+    size : (width, height) in pixels
+    density : (ny, nx) p_G density as drawn, relative to the label's uniform density 1/(l·w)
+        (1 = the density of a certain box); row 0 at ``extent[2]``
+    extent : (x0, x1, y0, y1) of the heatmap
+    points_xy : (N, 2) the model's points; point_height : (N,) their height above the box bottom (m)
+    fit_only_xy : (M, 2) points only the label-error fit saw; context_xy : (K, 2) other nearby points
+    label_corners, fit_corners : (4, 2) the labeled and the suggested box (box_corners' order)
+    ellipse_centres : (4, 2) the label's corners C1..C4; ellipse_covs : (4, 2, 2) their covariances
+    sensor_direction : (2,) unit vector from the box centre towards the sensor
+    view : (x0, x1, y0, y1) axes limits
+    caption : the caption text
+    """
+
+    png: bytes
+    size: tuple[int, int]
+    density: FloatArray
+    extent: tuple[float, float, float, float]
+    points_xy: FloatArray
+    point_height: FloatArray
+    fit_only_xy: FloatArray
+    context_xy: FloatArray
+    label_corners: FloatArray
+    fit_corners: FloatArray
+    ellipse_centres: FloatArray
+    ellipse_covs: FloatArray
+    sensor_direction: FloatArray
+    view: tuple[float, float, float, float]
+    caption: str
+
+
+def _caption(audit: ObjectAudit) -> str:
+    row = audit.row or {}
+    where = f"frame {row['frame_id']} · object {row['object_index']}" if "frame_id" in row else "object"
+    status = row.get("status", "")
+    first = f"{audit.class_name} · {where} · {audit.distance:.1f} m · {len(audit.points)} points" + (f" ({status})" if status and status != "ok" else "")
+    second = f"JIoU-GT {_fmt(audit.jiou_gt)}   label_error {_fmt(audit.label_error)}   σ̂ {_fmt(audit.sigma_hat, '.3f', ' m')}"
+    return f"{first}\n{second}"
+
+
+def _ellipse(ax: Any, centre: FloatArray, cov: FloatArray, **kw: Any) -> None:
+    lam, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    lam = np.clip(lam, 0.0, None)
+    angle = math.degrees(math.atan2(V[1, 1], V[0, 1]))
+    ax.add_patch(Ellipse(tuple(centre), 2 * math.sqrt(lam[1]), 2 * math.sqrt(lam[0]), angle=angle, **kw))
+
+
+def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, overlays: bool = True, compact: bool = False) -> ObjectPicture:
+    """Draw one label with its spatial distribution (the paper's Fig. 1 look).
+
+    Parameters
+    ----------
+    audit : the recomputed object (:func:`labelaudit.viz.objects.recompute` or ``audit_view``)
+    size : (width, height) of the PNG in pixels
+    overlays : False draws the heatmap alone (no points, boxes, ellipses, scale or labels), for
+        checking the rendered pixels against p_G
+    compact : no colour bars and no legend (the report's gallery explains the colours once): a
+        larger plot and about half the drawing time
+
+    Returns
+    -------
+    ObjectPicture
+    """
+    box = audit.box
+    grid = audit.grid
+    # p_G is computed in the label's frame (grid.ref is the label): the picture is drawn there too.
+    cell = np.outer(np.diff(grid.y_edges), np.diff(grid.x_edges))
+    density = audit.mass / cell * (box[3] * box[4])
+    extent = (float(grid.x_edges[0]), float(grid.x_edges[-1]), float(grid.y_edges[0]), float(grid.y_edges[-1]))
+
+    pts = _to_box_frame(audit.points[:, :2], box) if len(audit.points) else np.zeros((0, 2))
+    height = (audit.points[:, 2] - (box[2] - box[5] / 2)) if len(audit.points) else np.zeros(0)
+    model_set = {tuple(p) for p in np.asarray(audit.points[:, :3], dtype=float)} if len(audit.points) else set()
+    fit_only = np.array([p for p in np.asarray(audit.fit_points[:, :3], dtype=float) if tuple(p) not in model_set]).reshape(-1, 3)
+    fit_set = model_set | {tuple(p) for p in fit_only}
+    ctx = np.array([p for p in np.asarray(audit.context[:, :3], dtype=float) if tuple(p) not in fit_set]).reshape(-1, 3)
+    fit_only_xy = _to_box_frame(fit_only[:, :2], box) if len(fit_only) else np.zeros((0, 2))
+    context_xy = _to_box_frame(ctx[:, :2], box) if len(ctx) else np.zeros((0, 2))
+
+    label_corners = _to_box_frame(g.box_corners(box, "bev"), box)
+    fit_corners = _to_box_frame(g.box_corners(audit.fit.box, "bev"), box)
+    covs_world = corner_covariances(audit)
+    R = g.rotation_2d(box[6])
+    covs = np.einsum("ji,cjk,kl->cil", R, covs_world, R)  # Rᵀ C R: into the box frame
+    centres = label_corners[audit.posterior.corner_order]
+    to_sensor = audit.sensor_origin[:2] - box[:2]
+    sensor_dir = _to_box_frame((audit.sensor_origin[:2])[None], box)[0]
+    sensor_dir = sensor_dir / max(float(np.linalg.norm(sensor_dir)), 1e-12)
+
+    # View: the label, the suggested box and the 2-σ corner ellipses, plus a margin; the figure's aspect.
+    reach = np.vstack([label_corners, fit_corners, centres + 2 * np.sqrt(covs[:, [0, 1], [0, 1]]), centres - 2 * np.sqrt(covs[:, [0, 1], [0, 1]])])
+    lo, hi = reach.min(axis=0) - C.SHOW_VIEW_MARGIN, reach.max(axis=0) + C.SHOW_VIEW_MARGIN
+    fig = _figure(size)
+    ax_rect = ((0.02, 0.02, 0.96, 0.86) if compact else (0.1, 0.13, 0.72, 0.74)) if overlays else (0.0, 0.0, 1.0, 1.0)
+    ax = fig.add_axes(ax_rect)
+    aspect = (ax_rect[3] * size[1]) / (ax_rect[2] * size[0])
+    span_x, span_y = hi[0] - lo[0], hi[1] - lo[1]
+    if span_y / span_x < aspect:
+        span_y = span_x * aspect
+    else:
+        span_x = span_y / aspect
+    mid = 0.5 * (lo + hi)
+    view = (float(mid[0] - span_x / 2), float(mid[0] + span_x / 2), float(mid[1] - span_y / 2), float(mid[1] + span_y / 2))
+
+    heat_norm = Normalize(0.0, max(1.0, float(density.max())))
+    heat_cmap = colormaps[HEAT_CMAP]
+    ax.set_facecolor(heat_cmap(0.0))  # beyond the grid p_G is 0: the background continues the heatmap
+    heat = ax.imshow(density, extent=extent, origin="lower", cmap=heat_cmap, norm=heat_norm, interpolation="nearest", zorder=0)
+    ax.set_xlim(view[0], view[1])
+    ax.set_ylim(view[2], view[3])
+    ax.set_aspect("equal")
+    caption = _caption(audit)
+    if not overlays:
+        ax.set_axis_off()
+        png = _png(fig)
+        return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption)
+
+    if len(context_xy):
+        ax.scatter(context_xy[:, 0], context_xy[:, 1], s=2, c=CONTEXT_COLOUR, linewidths=0, zorder=2)
+    if len(fit_only_xy):
+        ax.scatter(fit_only_xy[:, 0], fit_only_xy[:, 1], s=5, facecolors="none", edgecolors="#d0d0d0", linewidths=0.6, zorder=3)
+    h_top = max(float(box[5]), 0.5)
+    pts_art = ax.scatter(pts[:, 0], pts[:, 1], s=9, c=height, cmap=HEIGHT_CMAP, vmin=0.0, vmax=h_top, edgecolors="black", linewidths=0.3, zorder=4) if len(pts) else None
+    ax.add_patch(Polygon(label_corners, closed=True, fill=False, edgecolor=LABEL_COLOUR, linewidth=1.6, zorder=5))
+    ax.add_patch(Polygon(fit_corners, closed=True, fill=False, edgecolor=FIT_COLOUR, linewidth=1.4, linestyle=(0, (4, 2)), zorder=5))
+    # Heading: a short tick from the centre to the front face.
+    ax.plot([0.0, box[3] / 2], [0.0, 0.0], color=LABEL_COLOUR, linewidth=0.8, alpha=0.7, zorder=5)
+    for k, (c, cv) in enumerate(zip(centres, covs)):
+        _ellipse(ax, c, cv, fill=False, edgecolor=ELLIPSE_COLOUR, linewidth=1.2 if k else 1.8, zorder=6)
+    ax.scatter(centres[1:, 0], centres[1:, 1], s=10, c=ELLIPSE_COLOUR, zorder=7)
+    ax.scatter(centres[:1, 0], centres[:1, 1], s=40, marker="*", c=ELLIPSE_COLOUR, edgecolors="black", linewidths=0.4, zorder=7)
+    out = centres[0] / max(float(np.linalg.norm(centres[0])), 1e-9)
+    ax.annotate("C1", xy=tuple(centres[0]), xytext=tuple(out * 14), textcoords="offset points", color=ELLIPSE_COLOUR, fontsize=9, fontweight="bold", ha="center", va="center", zorder=8)
+
+    # Direction to the sensor: an arrow in the upper-left corner of the axes.
+    # Direction to the sensor: an arrow near the upper-left corner (data coordinates keep its angle).
+    start = np.array([view[0] + 0.16 * span_x, view[3] - 0.16 * span_y])
+    tip = start + 0.08 * span_x * sensor_dir
+    ax.annotate("", xy=tuple(tip), xytext=tuple(start - 0.08 * span_x * sensor_dir), arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.4}, zorder=8)
+    label_at = start - 0.15 * span_x * sensor_dir  # behind the arrow's tail, whichever way it points
+    label_at = np.clip(label_at, [view[0] + 0.08 * span_x, view[2] + 0.05 * span_y], [view[1] - 0.08 * span_x, view[3] - 0.05 * span_y])
+    ax.text(label_at[0], label_at[1], f"to sensor\n{np.hypot(*to_sensor):.1f} m", color="white", fontsize=7, ha="center", va="center", zorder=8)
+    _add_scale_bar(ax, view, "white")
+
+    fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=9)
+    if compact:  # the scale bar gives the metres; ticks cost a third of the drawing
+        ax.set_xticks([])
+        ax.set_yticks([])
+        return ObjectPicture(_png(fig), size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption)
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("along the label's length (m)", fontsize=8)
+    ax.set_ylabel("across (m)", fontsize=8)
+    cax1 = fig.add_axes((0.855, 0.52, 0.025, 0.35))
+    cb1 = fig.colorbar(heat, cax=cax1)
+    cb1.set_label("p_G × l·w (1 = certain box)", fontsize=7)
+    cb1.ax.tick_params(labelsize=6)
+    if pts_art is not None:
+        cax2 = fig.add_axes((0.855, 0.13, 0.025, 0.33))
+        cb2 = fig.colorbar(pts_art, cax=cax2)
+        cb2.set_label("point height above box bottom (m)", fontsize=7)
+        cb2.ax.tick_params(labelsize=6)
+    handles = [
+        Line2D([], [], color=LABEL_COLOUR, lw=1.6, label="label"),
+        Line2D([], [], color=FIT_COLOUR, lw=1.4, ls=(0, (4, 2)), label="suggested box (fit)"),
+        Line2D([], [], color=ELLIPSE_COLOUR, lw=1.2, marker="*", markersize=7, markeredgecolor="black", label="corner 1-σ (C1 ★ nearest sensor)"),
+        Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="#8f70ff", markeredgecolor="black", label="model's points"),
+        Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="none", markeredgecolor="#777", label="fit-only points"),
+        Line2D([], [], ls="", marker="o", markersize=3, markerfacecolor=CONTEXT_COLOUR, markeredgecolor="none", label="other points"),
+    ]
+    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06, 0.0), ncol=3, fontsize=6.5, frameon=True, handlelength=2.2, columnspacing=1.0, labelcolor="white")
+    leg.get_frame().set_facecolor(heat_cmap(0.0))  # the label's white line needs the heatmap's dark ground
+    leg.get_frame().set_edgecolor("none")
+    png = _png(fig)
+    return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption)
+
+
+# --------------------------------------------------------------------------- a whole frame
+
+
+@dataclass(frozen=True)
+class FramePicture:
+    """A rendered frame picture and what it shows (LiDAR frame, metres).
+
+    Attributes
+    ----------
+    png : PNG bytes; size : (width, height) pixels
+    object_indices : (K,) object_index of every drawn box (all rows of the frame)
+    corners : (K, 4, 2) BEV corners of those boxes
+    scores : (K,) the ``by`` score (NaN for rows without one: skipped, error)
+    numbered : object_index of the numbered boxes, worst first (number 1 = worst)
+    view : (x0, x1, y0, y1) axes limits
+    caption : the caption text
+    """
+
+    png: bytes
+    size: tuple[int, int]
+    object_indices: NDArray[np.int64]
+    corners: FloatArray
+    scores: FloatArray
+    numbered: list[int]
+    view: tuple[float, float, float, float]
+    caption: str
+
+
+def worst_order(scores: FloatArray, by: str) -> NDArray[np.int64]:
+    """Indices of the finite scores, worst first (JIoU-GT ascending, label_error descending); ties by position."""
+    ok = np.flatnonzero(np.isfinite(scores))
+    key = scores[ok] if by == "jiou_gt" else -scores[ok]
+    return ok[np.argsort(key, kind="stable")]
+
+
+def render_frame(
+    frame_id: str,
+    points: FloatArray,
+    rows: Sequence[Mapping[str, Any]],
+    by: str = "jiou_gt",
+    size: tuple[int, int] = C.SHOW_FRAME_SIZE,
+    worst: int = C.SHOW_FRAME_WORST,
+    sensor_origin: FloatArray = np.zeros(3),
+) -> FramePicture:
+    """Draw every audited box of a frame over its points, coloured by ``by``, the ``worst`` numbered.
+
+    Parameters
+    ----------
+    frame_id : for the caption
+    points : (N, ≥3) the frame's points
+    rows : the frame's result rows (box columns, status and the score)
+    by : "jiou_gt" or "label_error"
+    size : (width, height) pixels
+    worst : how many of the worst boxes get a number
+    sensor_origin : (3,) sensor position (drawn as a marker)
+    """
+    if by not in SCORES:
+        raise ValueError(f"by must be one of {', '.join(SCORES)}, got {by!r}")
+    boxes = np.array([[r[c] for c in ("cx", "cy", "cz", "length", "width", "height", "yaw")] for r in rows], dtype=float).reshape(-1, 7)
+    scores = np.array([np.nan if r.get(by) is None or r.get("status") not in AUDITED_STATUSES else float(r[by]) for r in rows], dtype=float)
+    indices = np.array([int(r["object_index"]) for r in rows], dtype=np.int64)
+    corners = np.array([g.box_corners(b, "bev") for b in boxes]).reshape(-1, 4, 2)
+    order = worst_order(scores, by)[:worst]
+    numbered = [int(indices[k]) for k in order]
+
+    origin = np.asarray(sensor_origin, dtype=float).reshape(3)
+    reach = np.vstack([corners.reshape(-1, 2), origin[None, :2]])
+    lo, hi = reach.min(axis=0) - C.SHOW_FRAME_MARGIN, reach.max(axis=0) + C.SHOW_FRAME_MARGIN
+    fig = _figure(size)
+    ax_rect = (0.07, 0.08, 0.8, 0.84)
+    ax = fig.add_axes(ax_rect)
+    aspect = (ax_rect[3] * size[1]) / (ax_rect[2] * size[0])
+    span_x, span_y = hi[0] - lo[0], hi[1] - lo[1]
+    if span_y / span_x < aspect:
+        span_y = span_x * aspect
+    else:
+        span_x = span_y / aspect
+    mid = 0.5 * (lo + hi)
+    view = (float(mid[0] - span_x / 2), float(mid[0] + span_x / 2), float(mid[1] - span_y / 2), float(mid[1] + span_y / 2))
+
+    ax.set_facecolor("#111111")
+    pts = np.asarray(points, dtype=float)
+    if len(pts):
+        inside = (pts[:, 0] >= view[0]) & (pts[:, 0] <= view[1]) & (pts[:, 1] >= view[2]) & (pts[:, 1] <= view[3])
+        p = pts[inside]
+        if len(p):
+            # Ground returns dim, anything standing on it bright: height above the 10th z percentile.
+            rise = np.clip((p[:, 2] - np.percentile(p[:, 2], 10)) / 1.5, 0.0, 1.0)
+            ax.scatter(p[:, 0], p[:, 1], s=0.5, c=0.25 + 0.75 * rise, cmap="Greys_r", vmin=0.0, vmax=1.0, linewidths=0, rasterized=True, zorder=1)
+    cmap = colormaps[SCORE_CMAP[by]]
+    norm = Normalize(0.0, 1.0)
+    for k in range(len(boxes)):
+        colour = "#9e9e9e" if not np.isfinite(scores[k]) else cmap(norm(scores[k]))
+        ax.add_patch(Polygon(corners[k], closed=True, fill=False, edgecolor=colour, linewidth=1.5, linestyle="-" if np.isfinite(scores[k]) else ":", zorder=3))
+        front = corners[k][[0, 3]].mean(axis=0)
+        ax.plot([boxes[k, 0], front[0]], [boxes[k, 1], front[1]], color=colour, linewidth=0.8, zorder=3)
+    for n, k in enumerate(order, start=1):
+        ax.text(boxes[k, 0], boxes[k, 1], str(n), color="white", fontsize=9, fontweight="bold", ha="center", va="center", zorder=5,
+                bbox={"boxstyle": "circle,pad=0.2", "facecolor": "black", "edgecolor": cmap(norm(scores[k])), "linewidth": 1.2})
+    ax.scatter([origin[0]], [origin[1]], marker="^", s=60, c="#00e5ff", edgecolors="black", zorder=6)
+    ax.annotate("sensor", xy=(origin[0], origin[1]), xytext=(6, -10), textcoords="offset points", color="#00e5ff", fontsize=8, zorder=6)
+    ax.set_xlim(view[0], view[1])
+    ax.set_ylim(view[2], view[3])
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("x (m, forward)", fontsize=8)
+    ax.set_ylabel("y (m, left)", fontsize=8)
+    _add_scale_bar(ax, view, "white")
+    cax = fig.add_axes((0.89, 0.08, 0.02, 0.84))
+    cb = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax)
+    cb.set_label(f"{SCORES[by]} ({'low' if by == 'jiou_gt' else 'high'} = worse; grey dotted: not audited)", fontsize=7)
+    cb.ax.tick_params(labelsize=6)
+    listed = "  ".join(f"{n}: #{i} ({_fmt(scores[k], '.2f')})" for n, (i, k) in enumerate(zip(numbered, order), start=1))
+    caption = f"frame {frame_id} · {len(boxes)} boxes coloured by {SCORES[by]} · worst numbered\n{listed or 'no scored boxes'}"
+    fig.text(0.07, 0.985, caption, ha="left", va="top", fontsize=9)
+    png = _png(fig)
+    return FramePicture(png, size, indices, corners, scores, numbered, view, caption)
