@@ -233,3 +233,23 @@ def test_real_kitti_pictures_match_their_rows(realdata, tmp_path):
         assert recompute(source, row).mismatches(rtol=0.0) == {}
     pic = render_object(recompute(source, rows[0]))
     assert _png_shape(pic.png)[:2] == (600, 640)
+
+
+@pytest.mark.parametrize("fmt", ["waymo-v2", "waymo-v1"])
+def test_waymo_frames_are_found_in_their_segment(fmt, tmp_path):
+    """Waymo frame ids are '<segment>:<timestamp>': the picture loads the frame from its segment file."""
+    from labelaudit.config import resolve_config
+    from labelaudit.executors import SerialExecutor
+    from labelaudit.infer.run import InferRequest, run_infer
+    from labelaudit.sim.waymo_writer import simulate_waymo_dataset
+
+    roots = simulate_waymo_dataset(tmp_path / "waymo", segments=2, frames=2, seed=5)
+    run_infer(InferRequest(roots[fmt], tmp_path / "res", fmt), resolve_config(None, fmt), executor=SerialExecutor())
+    opened = open_results(tmp_path / "res")
+    source = open_source(opened)
+    rows = [r for r in opened.read().to_pylist() if r["status"] in ("ok", "few_points", "no_points")]
+    last = max(rows, key=lambda r: (r["frame_id"], r["object_index"]))  # a frame of the second segment
+    for row in (rows[0], last):
+        audit = recompute(source, row)
+        assert audit.mismatches(rtol=0.0) == {}
+    assert len({r["frame_id"].rsplit(":", 1)[0] for r in rows}) == 2
