@@ -3,7 +3,7 @@
 Simulates a small KITTI-format dataset with injected label errors, audits it with ``infer``, then
 runs the real commands: ``labelaudit show`` on one object and on its frame, and ``labelaudit
 report``, whose page is screenshot in headless Chromium (Playwright driving /usr/bin/chromium).
-Writes docs/img/review-show.png, docs/img/review-frame.png and docs/img/review-report.png.
+Writes docs/img/review-show.png, review-frame.png, review-report.png (the gallery) and review-plots.png.
 
     python scripts/make_review_figures.py [--frames 8] [--seed 5]
 """
@@ -69,8 +69,9 @@ def main() -> None:
         cli("show", results, frame, index, "-o", IMG / "review-show.png")
         cli("show", results, frame, "--by", "label_error", "-o", IMG / "review-frame.png", "--size", "1000x640")
         html = Path(cli("report", results, "-o", work / "report.html", "--top", "6", "--gate", "default", "--quiet"))
-        screenshot(html, "plots", IMG / "review-report.png")
-    for name in ("review-show.png", "review-frame.png", "review-report.png"):
+        screenshot(html, "by-label_error", IMG / "review-report.png")
+        screenshot(html, "plots", IMG / "review-plots.png")
+    for name in ("review-show.png", "review-frame.png", "review-report.png", "review-plots.png"):
         print(f"wrote {IMG / name} ({(IMG / name).stat().st_size / 1e3:.0f} kB)")
 
 

@@ -104,7 +104,10 @@ def open_source(results: Results, dataset: str | Path | None = None) -> AuditSou
     try:
         cfg = config_from_params(manifest["params"], source=f"{where} params")
     except ConfigError as exc:
-        raise ViewError(str(exc)) from None
+        raise ViewError(
+            f"{exc}; these results were written by labelaudit {manifest.get('tool_version', '?')} with other parameter names: "
+            "rerun `labelaudit infer --overwrite` with this version to draw them"
+        ) from None
     if cfg.to_dict() != manifest["params"]:
         raise ViewError(f"{where}: the run parameters do not rebuild into a configuration of this labelaudit (edited manifest?); rerun `labelaudit infer`")
     notes = []
