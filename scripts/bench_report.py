@@ -24,7 +24,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import pyarrow as pa
 
 from labelaudit import results as R
@@ -97,8 +96,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
     args = ap.parse_args()
-    from labelaudit.sim.noise import NoiseSpec
     from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.noise import NoiseSpec
 
     tmp = None if args.keep else tempfile.TemporaryDirectory(prefix="bench-report-")
     work = args.keep or Path(tmp.name)

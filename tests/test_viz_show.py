@@ -9,15 +9,30 @@ import shutil
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
+from _core_synth import face_points
 from matplotlib import colormaps
 from matplotlib.colors import Normalize
+from viz_data import simulate_and_infer
 
-from _core_synth import face_points
 from labelaudit.config import config_from_params, load_config
 from labelaudit.results import open_results
-from labelaudit.viz.objects import ViewError, audit_view, frame_rows, load_frame, object_row, open_source, recompute
-from labelaudit.viz.show import HEAT_CMAP, corner_covariances, parse_size, render_frame, render_object, worst_order
-from viz_data import simulate_and_infer
+from labelaudit.viz.objects import (
+    ViewError,
+    audit_view,
+    frame_rows,
+    load_frame,
+    object_row,
+    open_source,
+    recompute,
+)
+from labelaudit.viz.show import (
+    HEAT_CMAP,
+    corner_covariances,
+    parse_size,
+    render_frame,
+    render_object,
+    worst_order,
+)
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,8 @@ from labelaudit.infer.run import InferRequest, run_infer
 
 def simulate_and_infer(root: Path, frames: int = 3, seed: int = 3) -> tuple[Path, Path]:
     """Simulate ``frames`` KITTI frames with injected label errors and run ``infer`` on them (serial)."""
-    from labelaudit.sim.noise import NoiseSpec
     from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.noise import NoiseSpec
 
     data, results = root / "sim", root / "results"
     simulate_dataset(data, frames=frames, seed=seed, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False)

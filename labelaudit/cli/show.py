@@ -48,7 +48,13 @@ def show(
       labelaudit show results/ 000123 4 --dataset /mnt/new/kitti --size 900x800
     """
     from labelaudit.results import open_results
-    from labelaudit.viz.objects import frame_rows, load_frame, object_row, open_source, recompute
+    from labelaudit.viz.objects import (
+        frame_rows,
+        load_frame,
+        object_row,
+        open_source,
+        recompute,
+    )
     from labelaudit.viz.show import parse_size, render_frame, render_object
 
     with handle_errors(debug):

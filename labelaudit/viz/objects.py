@@ -285,7 +285,7 @@ def audit_view(
     fit_points: FloatArray,
     class_name: str,
     cfg: RunConfig,
-    sensor_origin: FloatArray = np.zeros(3),
+    sensor_origin: FloatArray | None = None,
     context: FloatArray | None = None,
     row: Mapping[str, Any] | None = None,
 ) -> ObjectAudit:
@@ -301,7 +301,7 @@ def audit_view(
     row : the results row, kept for :meth:`ObjectAudit.mismatches`
     """
     y = g.validate_box(box)
-    origin = np.asarray(sensor_origin, dtype=float).reshape(3)
+    origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float).reshape(3)
     post = infer_label(y, points, class_name, cfg.model, origin)
     fit = fit_label(y, fit_points, class_name, cfg.model)
     score = float(jiou_gt(post, cfg.spatial))

@@ -179,7 +179,8 @@ def _summary(results: R.Results, table: pa.Table) -> dict[str, Any]:
 def _gate(results: R.Results, gate_path: str | Path | None) -> dict[str, Any] | None:
     if gate_path is None:
         return None
-    from labelaudit.gate import evaluate_gate, format_number as _fmt, load_gate
+    from labelaudit.gate import evaluate_gate, load_gate
+    from labelaudit.gate import format_number as _fmt
 
     gate = load_gate(None if str(gate_path) == "default" else gate_path)  # a bad gate file fails the command (exit 2)
     try:

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.cm import ScalarMappable
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
@@ -350,7 +350,7 @@ def render_frame(
     by: str = "jiou_gt",
     size: tuple[int, int] = C.SHOW_FRAME_SIZE,
     worst: int = C.SHOW_FRAME_WORST,
-    sensor_origin: FloatArray = np.zeros(3),
+    sensor_origin: FloatArray | None = None,
 ) -> FramePicture:
     """Draw every audited box of a frame over its points, coloured by ``by``, the ``worst`` numbered.
 
@@ -373,7 +373,7 @@ def render_frame(
     order = worst_order(scores, by)[:worst]
     numbered = [int(indices[k]) for k in order]
 
-    origin = np.asarray(sensor_origin, dtype=float).reshape(3)
+    origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float).reshape(3)
     reach = np.vstack([corners.reshape(-1, 2), origin[None, :2]])
     lo, hi = reach.min(axis=0) - C.SHOW_FRAME_MARGIN, reach.max(axis=0) + C.SHOW_FRAME_MARGIN
     fig = _figure(size)
