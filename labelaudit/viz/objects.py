@@ -225,7 +225,9 @@ class ObjectAudit:
     sensor_origin : (3,) sensor position
     points : (N, ≥3) the model's crop (``[crop] margin``)
     fit_points : (M, ≥3) the label-error fit's wider crop (``[crop] fit_margin``), a superset
-    context : (K, ≥3) points around the box for orientation (same ground cut, a wide margin)
+    fit_only : (M', ≥3) the fit's points that are not the model's (``fit_points`` minus ``points``)
+    context : (K, ≥3) other points around the box for orientation (same ground cut, a wide
+        margin), none of them in ``fit_points``
     posterior : the label posterior (covariance of φ, corner order)
     fit : the label-error fit (suggested box, ``label_error``)
     jiou_gt : JIoU-GT of the posterior
@@ -239,6 +241,7 @@ class ObjectAudit:
     sensor_origin: FloatArray
     points: FloatArray
     fit_points: FloatArray
+    fit_only: FloatArray
     context: FloatArray
     posterior: LabelPosterior
     fit: LabelFit
@@ -297,7 +300,7 @@ def audit_view(
     points : (N, ≥3) the model's crop; fit_points : (M, ≥3) the fit's crop
     class_name : class (prior); cfg : run configuration
     sensor_origin : (3,) sensor position
-    context : (K, ≥3) extra points to draw (default: ``fit_points``)
+    context : (K, ≥3) other points to draw for orientation (those also in ``fit_points`` are dropped)
     row : the results row, kept for :meth:`ObjectAudit.mismatches`
     """
     y = g.validate_box(box)
@@ -308,8 +311,19 @@ def audit_view(
     grid, mass = spatial_distribution(BoxDistribution.from_posterior(post), cfg.spatial)
     if mass.ndim == 3:  # 3D model: the picture is the BEV marginal
         mass = mass.sum(axis=2)
-    ctx = fit_points if context is None else context
-    return ObjectAudit(y, class_name, origin, np.asarray(points), np.asarray(fit_points), np.asarray(ctx), post, fit, score, grid, mass, row)
+    pts, fpts = np.asarray(points), np.asarray(fit_points)
+    ctx = np.zeros((0, fpts.shape[1] if fpts.ndim == 2 else 3)) if context is None else _rows_not_in(np.asarray(context), fpts)
+    return ObjectAudit(y, class_name, origin, pts, fpts, _rows_not_in(fpts, pts), ctx, post, fit, score, grid, mass, row)
+
+
+def _rows_not_in(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Rows of ``a`` whose x, y, z are not a row of ``b`` (exact float equality; vectorised)."""
+    if len(a) == 0 or len(b) == 0:
+        return a
+    def key(m: FloatArray) -> NDArray[np.void]:
+        xyz = np.ascontiguousarray(np.asarray(m, dtype=np.float64)[:, :3])
+        return xyz.view(np.dtype((np.void, 24))).ravel()
+    return a[~np.isin(key(a), key(b))]
 
 
 def _check_box(frame: Frame, row: Mapping[str, Any], where: Path) -> int:
@@ -348,6 +362,6 @@ def recompute(source: AuditSource, row: Mapping[str, Any], frame: Frame | None =
         frame.class_names[i],
         source.cfg,
         np.asarray(frame.sensor_origin, dtype=float),
-        context=frame.points[ctx_idx],
+        context=frame.points[np.setdiff1d(ctx_idx, fit_idx[0], assume_unique=True)],
         row=row,
     )
