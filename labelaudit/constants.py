@@ -111,6 +111,7 @@ VIZ_NEAREST_IDS = 5  # an unknown frame/object id lists this many nearest valid 
 VIZ_FRAME_CACHE = 8  # frames kept in memory while a gallery renders (several pictures per frame)
 SHOW_SIZE = (640, 600)  # default `show` picture of one object, width × height in pixels
 SHOW_FRAME_SIZE = (1000, 800)  # default `show` picture of a whole frame, pixels
+SHOW_MAX_POINTS_DRAWN = 1500  # a denser crop is drawn with an even subsample (same look, bounded drawing time)
 SHOW_CONTEXT_MARGIN = 2.0  # m; points this far around the box are drawn (grey) for orientation
 SHOW_VIEW_MARGIN = 0.8  # m of free space around the label, suggested box and 2-σ corner ellipses
 SHOW_FRAME_WORST = 5  # `show` of a frame numbers this many worst boxes

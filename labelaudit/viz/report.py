@@ -59,7 +59,8 @@ class ReportSummary:
     gallery : entries per gallery key (``label_error``, ``jiou_gt``)
     gate_verdict : PASS / FAIL / ERROR, or None without a gate
     seconds : wall time
-    timings : seconds per stage (read, summary, gate, plots, gallery, html)
+    timings : wall seconds per stage (read, summary, gate, plots, gallery, html)
+    cpu_timings : CPU seconds of this process per stage (the same keys)
     """
 
     path: Path
@@ -71,6 +72,7 @@ class ReportSummary:
     gate_verdict: str | None
     seconds: float
     timings: dict[str, float]
+    cpu_timings: dict[str, float]
 
 
 def anchor_of(frame_id: str, object_index: int) -> str:
@@ -360,13 +362,14 @@ def build_report(
     if top < 1:
         raise ViewError(f"--top must be ≥ 1, got {top}")
     timings: dict[str, float] = {}
-    t = time.perf_counter()
+    cpu_timings: dict[str, float] = {}
+    t, c = time.perf_counter(), time.process_time()
 
     def lap(name: str) -> None:
-        nonlocal t
-        now = time.perf_counter()
-        timings[name] = now - t
-        t = now
+        nonlocal t, c
+        now, cpu = time.perf_counter(), time.process_time()
+        timings[name], cpu_timings[name] = now - t, cpu - c
+        t, c = now, cpu
 
     results = open_for_report(results_path)
     eval_section = _eval(eval_dir)  # bad inputs fail before the expensive part
@@ -399,5 +402,5 @@ def build_report(
     lap("html")
     return ReportSummary(
         out, out.stat().st_size, summary["objects"], summary["evaluated"], pictures,
-        {g["key"]: len(g["entries"]) for g in galleries}, None if gate_section is None else gate_section["verdict"], time.perf_counter() - start, timings,
+        {g["key"]: len(g["entries"]) for g in galleries}, None if gate_section is None else gate_section["verdict"], time.perf_counter() - start, timings, cpu_timings,
     )
