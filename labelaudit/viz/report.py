@@ -260,6 +260,7 @@ def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress:
                 "frame_id": r["frame_id"],
                 "object_index": r["object_index"],
                 "object_id": r["object_id"],
+                "class_name": r["class_name"],
                 "numbers": [(c, r.get(c)) for c in GALLERY_COLUMNS],
                 "command": f"labelaudit show {root} {shlex.quote(str(r['frame_id']))} {r['object_index']} -o {shlex.quote(anchor)}.png",
                 **pictures[anchor],
