@@ -118,16 +118,23 @@ class RunConfig:
 def constants_digest() -> str:
     """Digest of every fixed number of :mod:`labelaudit.constants` and of the stored Sobol samples.
 
-    All upper-case names of the constants module enter it (a constant that cannot change a row
-    only costs a needless re-run when it changes; a forgotten one would mix models in a folder).
+    Every upper-case name of the constants module enters it except those listed as never changing
+    a row (:data:`~labelaudit.constants.UNHASHED_PREFIXES`, :data:`~labelaudit.constants.UNHASHED_NAMES`):
+    a new constant is hashed by default, so forgetting to list one costs a needless re-run, never a
+    folder that mixes two models.
     """
     from labelaudit.core.spatial import SAMPLE_TABLE
 
-    values = {name: getattr(C, name) for name in dir(C) if name.isupper()}
+    values = {name: getattr(C, name) for name in dir(C) if name.isupper() and not is_unhashed(name)}
     blob = json.dumps(values, sort_keys=True, default=repr, separators=(",", ":"))
     h = hashlib.sha256(blob.encode())
     h.update(SAMPLE_TABLE.read_bytes())
     return h.hexdigest()[:16]
+
+
+def is_unhashed(name: str) -> bool:
+    """Whether a constant is left out of the parameter hash (it cannot change a result row)."""
+    return name.startswith(C.UNHASHED_PREFIXES) or name in C.UNHASHED_NAMES
 
 
 def hash_inputs(cfg: RunConfig) -> dict[str, Any]:

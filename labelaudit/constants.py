@@ -91,6 +91,7 @@ WORKER_PRELOAD = ("labelaudit.infer.run", "labelaudit.infer.crop", "labelaudit.i
 DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)
 DEFAULT_RANK_TOP = 20  # rows shown by `labelaudit rank`
 DEMO_FRAMES = 12  # simulated frames of `labelaudit demo`: a few hundred objects, seconds on 2 cores
+DEMO_REPORT_NAME = "labelaudit-demo-report.html"  # where `labelaudit demo` without FOLDER writes its report (the current folder)
 
 # --- export: training targets (labelaudit.training / labelaudit.export, docs/training.md) ---
 HEURISTIC_NUM_POINTS_HALF = 10.0  # "num points" source: the prior variance halves at this many points (var = prior · n0/(n0+n))
@@ -126,3 +127,10 @@ REPORT_MAX_ERROR_ROWS = 50  # failed frames listed in the report (the rest are c
 REPORT_AP_THRESHOLDS = {"Car": 0.7, "Vehicle": 0.7}  # usual AP overlap threshold per class (KITTI Car, Waymo Vehicle); others 0.5
 REPORT_AP_DEFAULT_THRESHOLD = 0.5  # usual AP overlap threshold of every other class
 REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's official since 2019)
+
+# --- what the parameter hash leaves out (labelaudit.config.constants_digest) ---
+# Numbers that never change a row of `infer`: the simulator, pictures and reports, exports, detector
+# evaluation, CLI defaults and scheduling. Changing them never blocks `--resume`; every other
+# upper-case name of this module is hashed (a new one is hashed unless it is listed here).
+UNHASHED_PREFIXES = ("SIM_", "VIZ_", "SHOW_", "REPORT_", "EXPORT_", "EVAL_", "DEMO_", "HEURISTIC_", "INFOS_", "DEFAULT_ANCHOR_", "DASK_", "UNHASHED_")
+UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP"})

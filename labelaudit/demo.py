@@ -1,4 +1,4 @@
-"""The demo loop on simulated data: simulate → infer → rank → check, with the simulator's ground truth.
+"""The demo loop on simulated data: simulate → infer → rank → check → report, with the simulator's ground truth.
 
 :func:`run_demo` does the work and returns what a caller shows (the ranked tables with an
 ``injected`` column from the simulator's manifest, the gate report); it reports its steps through
@@ -22,6 +22,7 @@ from labelaudit.rank import RankQuery, RankResult, rank_results
 from labelaudit.results import open_results
 from labelaudit.sim.dataset import simulate_dataset
 from labelaudit.sim.noise import NoiseSpec
+from labelaudit.viz.report import build_report
 
 DEMO_NOISE = NoiseSpec(
     fraction=0.2, center_std=C.SIM_BENCH_NOISE[0], size_std=C.SIM_BENCH_NOISE[1], yaw_std=C.SIM_BENCH_NOISE[2], gross_fraction=0.05
@@ -40,6 +41,7 @@ class DemoRun:
     results: Path
     ranked: list[tuple[RankResult, list[str]]] = field(default_factory=list)  # (ranking, injected kind per row)
     gate: GateReport | None = None
+    report: Path | None = None  # the HTML review page
 
 
 def injected_by_object(manifest: Path) -> dict[str, str]:
@@ -59,23 +61,25 @@ def run_demo(
     say: Callable[[str], Any] = lambda message: None,
     progress: Progress | None = None,
     after_infer: Callable[[RunSummary], Any] = lambda summary: None,
+    report: Path | None = None,
     debug: bool = False,
 ) -> DemoRun:
     """Simulate ``frames`` frames with injected label errors into ``folder``, audit, rank and gate them.
 
     ``say`` receives one line per step (Rich markup allowed); ``progress`` is the infer progress sink;
-    ``after_infer`` gets the infer run summary before the ranking starts.
+    ``after_infer`` gets the infer run summary before the ranking starts; the HTML review page goes
+    to ``report`` (default ``folder/report.html``).
     """
     data, results = folder / "sim-kitti", folder / "results"
-    say(f"[bold]1/4 simulate[/bold] {frames} frames with injected label errors → {data}")
+    say(f"[bold]1/5 simulate[/bold] {frames} frames with injected label errors → {data}")
     simulate_dataset(data, frames=frames, seed=0, noise=DEMO_NOISE, progress=progress is not None,
                      workers=workers or os.cpu_count() or 1, overwrite=True)
-    say(f"[bold]2/4 infer[/bold] {data} → {results}")
+    say(f"[bold]2/5 infer[/bold] {data} → {results}")
     after_infer(infer_dataset(InferRequest(data, results, "kitti", workers=workers, overwrite=True, debug=debug), progress))
     run = DemoRun(data, results)
     opened = open_results(results)
     say(
-        "[bold]3/4 rank[/bold] the worst labels; 'injected' is the simulator's ground truth "
+        "[bold]3/5 rank[/bold] the worst labels; 'injected' is the simulator's ground truth "
         "(none = exact label). Boxes without points are all equally uncertain (prior only), so they are left out here."
     )
     truth = injected_by_object(data / "manifest.parquet")
@@ -84,6 +88,9 @@ def run_demo(
             continue
         ranked = rank_results(opened, query)
         run.ranked.append((ranked, [truth.get(o, "?") for o in ranked.table.column("object_id").to_pylist()]))
-    say("[bold]4/4 check[/bold] the built-in gate (configs/gate.toml)")
+    say("[bold]4/5 check[/bold] the built-in gate (configs/gate.toml)")
     run.gate = evaluate_gate(opened, load_gate(None))
+    run.report = Path(report) if report is not None else folder / "report.html"
+    say(f"[bold]5/5 report[/bold] the HTML review page (plots and the worst labels' pictures) → {run.report}")
+    build_report(results, run.report, gate="default")
     return run

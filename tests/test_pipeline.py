@@ -230,6 +230,19 @@ def test_param_hash_covers_versions_and_constants(monkeypatch):
     monkeypatch.undo()
     monkeypatch.setattr(C, "EM_MAX_ITERATIONS", C.EM_MAX_ITERATIONS + 1)
     assert RunConfig().param_hash() != base
+    monkeypatch.undo()
+    monkeypatch.setattr(C, "SIM_BEAMS", 32)  # the simulator's numbers cannot change a row of infer
+    monkeypatch.setattr(C, "DEFAULT_RANK_TOP", 5)
+    assert RunConfig().param_hash() == base
+
+
+def test_unhashed_constants_are_only_those_that_cannot_change_a_row():
+    from labelaudit import constants as C
+    from labelaudit.config import is_unhashed
+
+    hashed = {n for n in dir(C) if n.isupper() and not is_unhashed(n)}
+    for name in ("FIT_TOLERANCE", "LABEL_TOLERANCE", "EM_TOLERANCE", "DEFAULT_GROUND_CUT", "KITTI_MIN_HEIGHT", "DEFAULT_PRIORS", "MAX_CELLS_PER_AXIS"):
+        assert name in hashed, name
 
 
 def test_output_folder_that_is_not_results_is_refused(fake_core, sim_kitti, tmp_path):

@@ -22,7 +22,7 @@ def demo(
 ) -> None:
     """Simulate a small dataset with injected label errors, audit it, rank the worst and run the gate.
 
-    Shows the whole loop in seconds: simulate (12 frames, 20 % jittered and 5 % grossly wrong vehicle labels) → infer → rank (the worst boxes with points, and by label_error, with the simulator's ground truth `injected`: none, jitter, shift, swap_lw, yaw90) → check with the built-in gate. Exits 0 when the loop ran (whatever the gate verdict); pass FOLDER to keep the data and results (default: a temporary folder, deleted afterwards).
+    Shows the whole loop in seconds: simulate (12 frames, 20 % jittered and 5 % grossly wrong vehicle labels) → infer → rank (the worst boxes with points, and by label_error, with the simulator's ground truth `injected`: none, jitter, shift, swap_lw, yaw90) → check with the built-in gate → report (an HTML review page: FOLDER/report.html, or ./labelaudit-demo-report.html without FOLDER). Exits 0 when the loop ran (whatever the gate verdict); pass FOLDER to keep the data and results (default: a temporary folder, deleted afterwards).
 
     [bold]Examples[/bold]
 
@@ -43,14 +43,17 @@ def demo(
         assert root is not None
         console = err()
         try:
+            # A temporary folder is deleted at the end: its report goes to the current folder instead.
+            page = Path(C.DEMO_REPORT_NAME).resolve() if tmp is not None else None
             run = run_demo(
-                root, frames, workers, say=console.print, progress=RichProgress(console), debug=debug,
+                root, frames, workers, say=console.print, progress=RichProgress(console), debug=debug, report=page,
                 after_infer=lambda summary: print_run_summary(console, summary, summarize(open_results(summary.output))),
             )
             for ranked, injected in run.ranked:
                 print_rank_table(out(), ranked, {"injected": injected})
             assert run.gate is not None
             print_gate_table(out(), run.gate)
+            console.print(f"report: {escape(str(run.report))} (open it in a browser)", soft_wrap=True)
             if tmp is None:
                 console.print(
                     f"kept: results in {escape(str(run.results))} (try `labelaudit rank {escape(str(run.results))} --by sigma_hat`), "
