@@ -45,6 +45,18 @@ KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must 
 KITTI_MAX_OCCLUSION = (0, 1, 2)  # Easy/Moderate/Hard: largest allowed occlusion level (3 = unknown)
 KITTI_MAX_TRUNCATION = (0.15, 0.30, 0.50)  # Easy/Moderate/Hard: largest allowed truncation fraction
 
+# --- detector evaluation (labelaudit/evaluate, docs/eval.md) ---
+EVAL_RECALL_POINTS = 41  # devkit N_SAMPLE_PTS: recall samples 0, 1/40, …, 1 (R40 averages the last 40, R11 every 4th)
+EVAL_MIN_OVERLAP = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5, "Vehicle": 0.7}  # the usual threshold per class: devkit MIN_OVERLAP (KITTI), Waymo's 3D-detection thresholds
+EVAL_DEFAULT_MIN_OVERLAP = 0.5  # usual threshold of a class not listed above
+EVAL_MAP_THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9)  # mAP over localisation thresholds 0.5:0.05:0.9 (the paper's Table II)
+EVAL_NEIGHBOUR_CLASSES = {"Car": ("Van",), "Pedestrian": ("Person_sitting",)}  # devkit: GT of these classes is ignored (neither TP nor FN) when evaluating the key
+EVAL_CLASSES = {"kitti": ("Car", "Pedestrian", "Cyclist"), "waymo": ("Vehicle", "Pedestrian", "Cyclist")}  # evaluated by default (those detected at least once, like the devkit)
+EVAL_DISTANCE_BINS = (20.0, 40.0)  # m; mean overlaps per GT distance bin 0–20, 20–40, ≥ 40 m (the paper's Figs. 10–11)
+EVAL_ASSOCIATION_MIN_IOU = 0.1  # a detection "localises" a GT (per-detection table, mean overlaps) when the devkit matching pairs them at IoU above this
+EVAL_WAYMO_LEVEL2_MAX_POINTS = 5  # Waymo: GT boxes with at most this many LiDAR points are LEVEL_2 whatever their label says
+EVAL_WORKER_PRELOAD = ("labelaudit.evaluate.warmup",)  # eval's fork server: the JIoU kernels only (no Open3D), warmed once; several s less than WORKER_PRELOAD when the server starts
+
 # --- classes ---
 DEFAULT_CLASSES = ("Car", "Van", "Truck")  # vehicles: the paper's evaluation classes
 
@@ -81,6 +93,15 @@ SIM_BENCH_FRACTIONS = (0.2, 0.02)  # issue-6 benchmark: jittered share, gross-er
 SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a random BEV direction
 SIM_MAX_TRUNCATION = 0.9  # objects whose 2D box is truncated more than this are outside the camera FOV (not labelled)
 SIM_MAX_LABEL_OCCLUSION = 0.9  # objects with more of their LiDAR rays blocked than this are not labelled (unseen)
+SIM_DET_CENTER_STD = 0.07  # synthetic detector (labelaudit/sim/detector.py): centre error std near the sensor (m)
+SIM_DET_SIZE_STD = 0.04  # synthetic detector: length/width/height error std near the sensor (m)
+SIM_DET_YAW_STD = 0.02  # synthetic detector: yaw error std near the sensor (rad)
+SIM_DET_RANGE_SCALE = 40.0  # m; the synthetic detector's error stds double at this distance
+SIM_DET_MISS = (0.05, 0.6)  # synthetic detector: miss probability of an object with ≥ / < SIM_DET_FEW_POINTS returns
+SIM_DET_FEW_POINTS = 10  # synthetic detector: objects with fewer LiDAR returns are hard to detect
+SIM_DET_FALSE_POSITIVES = 9.0  # synthetic detector: mean background false positives per frame (mostly low scores, like a detector's raw output)
+SIM_DET_DUPLICATES = 0.1  # synthetic detector: share of detections with a shifted, lower-scoring duplicate
+SIM_DET_VAN_AS_CAR = 0.3  # synthetic detector: probability that a Van is reported as a Car (else missed)
 
 # --- product loop: infer / results (labelaudit.infer) ---
 DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`

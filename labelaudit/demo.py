@@ -1,8 +1,9 @@
-"""The demo loop on simulated data: simulate → infer → rank → check → report, with the simulator's ground truth.
+"""The demo loop on simulated data: simulate → infer → rank → check → eval → report, with the simulator's ground truth.
 
 :func:`run_demo` does the work and returns what a caller shows (the ranked tables with an
-``injected`` column from the simulator's manifest, the gate report); it reports its steps through
-a callback and prints nothing itself (``labelaudit demo`` prints, :mod:`labelaudit.cli.demo`).
+``injected`` column from the simulator's manifest, the gate report, the evaluation of a synthetic
+detector); it reports its steps through a callback and prints nothing itself (``labelaudit demo``
+prints, :mod:`labelaudit.cli.demo`).
 """
 
 from __future__ import annotations
@@ -16,11 +17,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from labelaudit import constants as C
+from labelaudit.evaluate.output import write_eval_dir
+from labelaudit.evaluate.run import EvalRequest, run_eval
 from labelaudit.gate import GateReport, evaluate_gate, load_gate
 from labelaudit.infer.run import InferRequest, Progress, RunSummary, infer_dataset
 from labelaudit.rank import RankQuery, RankResult, rank_results
 from labelaudit.results import open_results
 from labelaudit.sim.dataset import simulate_dataset
+from labelaudit.sim.detector import DetectorSpec, simulate_detections
 from labelaudit.sim.noise import NoiseSpec
 from labelaudit.viz.report import build_report
 
@@ -41,6 +45,8 @@ class DemoRun:
     results: Path
     ranked: list[tuple[RankResult, list[str]]] = field(default_factory=list)  # (ranking, injected kind per row)
     gate: GateReport | None = None
+    evaluation: dict[str, Any] | None = None  # summary of the synthetic detector's evaluation (labelaudit eval)
+    eval_dir: Path | None = None  # its EVAL_DIR
     report: Path | None = None  # the HTML review page
 
 
@@ -64,22 +70,23 @@ def run_demo(
     report: Path | None = None,
     debug: bool = False,
 ) -> DemoRun:
-    """Simulate ``frames`` frames with injected label errors into ``folder``, audit, rank and gate them.
+    """Simulate ``frames`` frames with injected label errors into ``folder``, audit, rank and gate them,
+    evaluate a synthetic detector on them and write the review page.
 
     ``say`` receives one line per step (Rich markup allowed); ``progress`` is the infer progress sink;
     ``after_infer`` gets the infer run summary before the ranking starts; the HTML review page goes
     to ``report`` (default ``folder/report.html``).
     """
     data, results = folder / "sim-kitti", folder / "results"
-    say(f"[bold]1/5 simulate[/bold] {frames} frames with injected label errors → {data}")
+    say(f"[bold]1/6 simulate[/bold] {frames} frames with injected label errors → {data}")
     simulate_dataset(data, frames=frames, seed=0, noise=DEMO_NOISE, progress=progress is not None,
                      workers=workers or os.cpu_count() or 1, overwrite=True)
-    say(f"[bold]2/5 infer[/bold] {data} → {results}")
+    say(f"[bold]2/6 infer[/bold] {data} → {results}")
     after_infer(infer_dataset(InferRequest(data, results, "kitti", workers=workers, overwrite=True, debug=debug), progress))
     run = DemoRun(data, results)
     opened = open_results(results)
     say(
-        "[bold]3/5 rank[/bold] the worst labels; 'injected' is the simulator's ground truth "
+        "[bold]3/6 rank[/bold] the worst labels; 'injected' is the simulator's ground truth "
         "(none = exact label). Boxes without points are all equally uncertain (prior only), so they are left out here."
     )
     truth = injected_by_object(data / "manifest.parquet")
@@ -88,9 +95,18 @@ def run_demo(
             continue
         ranked = rank_results(opened, query)
         run.ranked.append((ranked, [truth.get(o, "?") for o in ranked.table.column("object_id").to_pylist()]))
-    say("[bold]4/5 check[/bold] the built-in gate (configs/gate.toml)")
+    say("[bold]4/6 check[/bold] the built-in gate (configs/gate.toml)")
     run.gate = evaluate_gate(opened, load_gate(None))
+    run.eval_dir = folder / "eval"
+    det = simulate_detections(data, DetectorSpec(), seed=0)
+    say(
+        f"[bold]5/6 eval[/bold] a synthetic detector ({det.detections} detections: localisation noise, misses, false positives) "
+        f"against the labels and their uncertainty — IoU, JIoU and JIoU-ratio AP → {run.eval_dir}"
+    )
+    evaluated = run_eval(EvalRequest(dataset=data, detections=det.folder, results=results, output=run.eval_dir, classes=("Car",), workers=workers, debug=debug))
+    write_eval_dir(evaluated, run.eval_dir)
+    run.evaluation = evaluated.summary
     run.report = Path(report) if report is not None else folder / "report.html"
-    say(f"[bold]5/5 report[/bold] the HTML review page (plots and the worst labels' pictures) → {run.report}")
-    build_report(results, run.report, gate="default")
+    say(f"[bold]6/6 report[/bold] the HTML review page (plots, the worst labels' pictures, the evaluation) → {run.report}")
+    build_report(results, run.report, gate="default", eval_dir=run.eval_dir)
     return run

@@ -62,3 +62,11 @@ class InfosMismatchError(ExportError):
 
 class UnsafePickleError(ExportError):
     """An infos pickle references a global outside the numpy/builtin allow-list (refused before it runs)."""
+
+
+class EvalError(LabelAuditError, ValueError):
+    """``eval`` cannot run as asked: options, results that do not fit the dataset, nothing to evaluate."""
+
+
+class DetectionsError(DatasetError):
+    """A detections file is unreadable or holds a bad value; the message names file, line/row/object and field."""

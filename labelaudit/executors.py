@@ -77,11 +77,12 @@ class PoolExecutor:
     :class:`WorkerCrashed` instead of hanging the run; finished shards are kept for ``--resume``.
     """
 
-    def __init__(self, workers: int, start_method: str = C.POOL_START_METHOD):
+    def __init__(self, workers: int, start_method: str = C.POOL_START_METHOD, preload: Sequence[str] = C.WORKER_PRELOAD):
         if workers < 1:
             raise ValueError(f"workers must be ≥ 1, got {workers}")
         self.workers = workers
         self.start_method = start_method
+        self.preload = tuple(preload)  # modules the fork server imports (only the first pool of a process starts it)
         self._pool: ProcessPoolExecutor | None = None
 
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
@@ -90,7 +91,7 @@ class PoolExecutor:
         method = self.start_method if self.start_method in multiprocessing.get_all_start_methods() else "spawn"  # Windows
         ctx = multiprocessing.get_context(method)
         if method == "forkserver":
-            ctx.set_forkserver_preload(list(C.WORKER_PRELOAD))  # missing modules are skipped
+            ctx.set_forkserver_preload(list(self.preload))  # missing modules are skipped
         with _single_threaded_children():
             self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(units)), mp_context=ctx)
             futures = [self._pool.submit(fn, u) for u in units]
@@ -112,7 +113,7 @@ class PoolExecutor:
             self._pool = None
 
 
-def make_executor(workers: int | None) -> Executor:
-    """Serial for one worker, else a process pool (``None`` = every core)."""
+def make_executor(workers: int | None, preload: Sequence[str] = C.WORKER_PRELOAD) -> Executor:
+    """Serial for one worker, else a process pool (``None`` = every core) whose fork server imports ``preload``."""
     n = workers if workers is not None else (os.cpu_count() or 1)
-    return SerialExecutor() if n <= 1 else PoolExecutor(n)
+    return SerialExecutor() if n <= 1 else PoolExecutor(n, preload=preload)

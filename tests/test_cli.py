@@ -17,7 +17,7 @@ from labelaudit.cli import app
 from results_factory import make_results, make_row
 
 runner = CliRunner()
-COMMANDS = ["infer", "rank", "check", "simulate", "demo", "export"]
+COMMANDS = ["infer", "rank", "check", "simulate", "demo", "export", "eval"]
 
 
 def invoke(*args: str):
@@ -199,6 +199,10 @@ def test_demo_runs_the_whole_loop(tmp_path):
     assert r.exit_code == 0, r.output
     assert "worst" in r.stdout and "labelaudit check" in r.stdout
     assert (tmp_path / "demo" / "results" / "manifest.json").is_file()
+    # it ends with a short eval of a synthetic detector, included in the report
+    assert "5/6 eval" in r.stderr and "JIoU-ratio" in r.stdout
+    assert (tmp_path / "demo" / "eval" / "summary.json").is_file()
+    assert "JIoU" in (tmp_path / "demo" / "report.html").read_text()
 
 
 def test_rank_where_option(mixed):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from labelaudit.cli.app import app
 # Importing a command module registers its command; the order here is the order of `--help`.
-from labelaudit.cli import infer, rank, check, show, report, export, simulate, demo  # noqa: F401,I001
+from labelaudit.cli import infer, rank, check, show, report, export, eval, simulate, demo  # noqa: F401,I001
 
 __all__ = ["app", "main"]
 

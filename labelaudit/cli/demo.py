@@ -20,9 +20,9 @@ def demo(
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
-    """Simulate a small dataset with injected label errors, audit it, rank the worst and run the gate.
+    """Simulate a small dataset with injected label errors, audit it, rank the worst, run the gate, evaluate a detector.
 
-    Shows the whole loop in seconds: simulate (12 frames, 20 % jittered and 5 % grossly wrong vehicle labels) → infer → rank (the worst boxes with points, and by label_error, with the simulator's ground truth `injected`: none, jitter, shift, swap_lw, yaw90) → check with the built-in gate → report (an HTML review page: FOLDER/report.html, or ./labelaudit-demo-report.html without FOLDER). Exits 0 when the loop ran (whatever the gate verdict); pass FOLDER to keep the data and results (default: a temporary folder, deleted afterwards).
+    Shows the whole loop in seconds: simulate (12 frames, 20 % jittered and 5 % grossly wrong vehicle labels) → infer → rank (the worst boxes with points, and by label_error, with the simulator's ground truth `injected`: none, jitter, shift, swap_lw, yaw90) → check with the built-in gate → eval (a synthetic detector scored with IoU, JIoU and JIoU-ratio AP, docs/eval.md) → report (an HTML review page: FOLDER/report.html, or ./labelaudit-demo-report.html without FOLDER). Exits 0 when the loop ran (whatever the gate verdict); pass FOLDER to keep the data and results (default: a temporary folder, deleted afterwards).
 
     [bold]Examples[/bold]
 
@@ -31,6 +31,7 @@ def demo(
       labelaudit demo demo-out/ --frames 30
     """
     from labelaudit.cli.display import RichProgress, print_gate_table, print_rank_table, print_run_summary
+    from labelaudit.cli.eval import print_eval_tables
     from labelaudit.demo import run_demo
     from labelaudit.results import open_results
     from labelaudit.summary import summarize
@@ -53,6 +54,8 @@ def demo(
                 print_rank_table(out(), ranked, {"injected": injected})
             assert run.gate is not None
             print_gate_table(out(), run.gate)
+            if run.evaluation is not None:
+                print_eval_tables(out(), run.evaluation, brief=True)
             console.print(f"report: {escape(str(run.report))} (open it in a browser)", soft_wrap=True)
             if tmp is None:
                 console.print(

@@ -34,6 +34,12 @@ Field numbers (``waymo.open_dataset``, ``dataset.proto`` / ``label.proto``)::
                      num_top_lidar_points_in_box 13
     Label.Box        center_x 1, center_y 2, center_z 3, width 4, length 5, height 6, heading 7
     Label.Metadata   speed_x 1, speed_y 2, accel_x 3, accel_y 4, speed_z 5, accel_z 6
+
+and, for detections (``protos/metrics.proto``, what the Waymo evaluation tools read)::
+
+    Objects          objects 1 (no_label_zone_objects 2 is skipped)
+    Object           object 1 (a Label), score 2 (float, default 1.0), overlap_with_nlz 3,
+                     context_name 4, frame_timestamp_micros 5, camera_name 6
 """
 
 from __future__ import annotations
@@ -55,6 +61,8 @@ __all__ = [
     "Transform",
     "Label",
     "LabelBox",
+    "Object",
+    "Objects",
     "LabelMetadata",
     "decode_matrix_float",
     "encode_matrix_float",
@@ -154,7 +162,21 @@ _MESSAGES: list[tuple[str, list[tuple[str, int, int, int, str | None, bool]]]] =
             ("laser_labels", 6, _F.TYPE_MESSAGE, _REP, "Label", False),
         ],
     ),
+    # protos/metrics.proto: predictions (and GT) for the Waymo evaluation tools
+    (
+        "Object",
+        [
+            ("object", 1, _F.TYPE_MESSAGE, _OPT, "Label", False),
+            ("score", 2, _F.TYPE_FLOAT, _OPT, None, False),
+            ("overlap_with_nlz", 3, _F.TYPE_BOOL, _OPT, None, False),
+            ("context_name", 4, _F.TYPE_STRING, _OPT, None, False),
+            ("frame_timestamp_micros", 5, _F.TYPE_INT64, _OPT, None, False),
+            ("camera_name", 6, _F.TYPE_INT32, _OPT, None, False),
+        ],
+    ),
+    ("Objects", [("objects", 1, _F.TYPE_MESSAGE, _REP, "Object", False)]),
 ]
+_DEFAULTS = {("Object", "score"): "1"}  # metrics.proto: an Object without a score is a GT box (score 1.0)
 
 
 def _build_classes() -> dict[str, Any]:
@@ -169,6 +191,8 @@ def _build_classes() -> dict[str, Any]:
                 f.type_name = f".{_PACKAGE}.{type_name}"
             if packed:
                 f.options.packed = True
+            if (msg_name, name) in _DEFAULTS:
+                f.default_value = _DEFAULTS[(msg_name, name)]
     pool = descriptor_pool.DescriptorPool()
     pool.Add(fdp)
     return {
@@ -189,6 +213,8 @@ LabelBox = _CLASSES["LabelBox"]
 LabelMetadata = _CLASSES["LabelMetadata"]
 Label = _CLASSES["Label"]
 Frame = _CLASSES["Frame"]
+Object = _CLASSES["Object"]
+Objects = _CLASSES["Objects"]
 
 
 # --- MatrixFloat fast path ------------------------------------------------------------------------

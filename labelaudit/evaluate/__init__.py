@@ -1,0 +1,30 @@
+"""Detector evaluation with IoU, JIoU and JIoU-ratio (``labelaudit eval``, docs/eval.md).
+
+The KITTI object devkit's matching and AP (:mod:`~labelaudit.evaluate.matching`,
+:mod:`~labelaudit.evaluate.ap`), run with three overlap measures: the IoU of the boxes
+(:mod:`~labelaudit.evaluate.overlap`), the JIoU of the detection and the uncertain label
+(:mod:`~labelaudit.evaluate.jiou`), and JIoU / JIoU-GT. Labels come from
+:mod:`~labelaudit.evaluate.gt`, detections from :mod:`~labelaudit.evaluate.detections`, label
+covariances from an ``infer`` results folder (:mod:`~labelaudit.evaluate.labels`);
+:mod:`~labelaudit.evaluate.run` ties them together and :mod:`~labelaudit.evaluate.output` writes
+EVAL_DIR. Nothing here prints; the CLI is :mod:`labelaudit.cli_eval`.
+
+Examples
+--------
+>>> from pathlib import Path
+>>> from labelaudit.evaluate import EvalRequest, run_eval, write_eval_dir
+>>> result = run_eval(EvalRequest(Path("kitti"), Path("pointgnn/data"), results=Path("kitti-results")))  # doctest: +SKIP
+>>> [r["ap"] for r in result.summary["ap"] if r["metric"] == "jiou_ratio" and r["threshold"] == 0.7][:3]  # doctest: +SKIP
+"""
+
+from labelaudit.evaluate.run import EvalRequest, EvalResult, evaluate, run_eval
+
+
+def write_eval_dir(result: EvalResult, out):  # noqa: ANN001, ANN201 - thin re-export, imports matplotlib lazily
+    """Write ``result`` into EVAL_DIR (see :func:`labelaudit.evaluate.output.write_eval_dir`)."""
+    from labelaudit.evaluate.output import write_eval_dir as _write
+
+    return _write(result, out)
+
+
+__all__ = ["EvalRequest", "EvalResult", "evaluate", "run_eval", "write_eval_dir"]

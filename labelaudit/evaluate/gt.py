@@ -1,0 +1,377 @@
+"""Ground truth for detector evaluation: the labels of a dataset without its point clouds.
+
+``eval`` needs every label (DontCare rows and the devkit's difficulty fields included) but no
+LiDAR points, so this module reads label files only — the same files, conversions and object
+numbering as the readers of :mod:`labelaudit.datasets` (``object_index`` here equals the results'
+``object_index``, so rows of an ``infer`` results folder join by ``(frame_id, object_index)``):
+
+* KITTI: ``label_2`` (through :func:`~labelaudit.datasets.kitti.read_label`) and ``calib`` (kept
+  per frame: KITTI detections are converted to the LiDAR frame with it); the 2D box height,
+  occlusion and truncation drive the difficulty; DontCare rows become DontCare regions when they
+  carry a real 3D box (KITTI's carry placeholders, −1 sizes at −1000 m, see docs/eval.md).
+* Waymo v1: the ``laser_labels`` of each ``Frame`` record (range images are not decoded).
+* Waymo v2: the ``lidar_box`` component only.
+
+It never reads detections or results.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+from numpy.typing import NDArray
+
+from labelaudit.datasets import DatasetError, FrameRef, open_dataset
+from labelaudit.datasets.kitti import Calibration, KittiLabels, boxes_camera_to_lidar, kitti_difficulty, read_calib, read_label
+from labelaudit.datasets.waymo_common import class_name as waymo_class_name
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["GroundTruth", "GroundTruthFrame", "load_ground_truth"]
+
+
+@dataclass
+class GroundTruthFrame:
+    """The labels of one frame (LiDAR/vehicle frame), in the order of the label file.
+
+    Attributes
+    ----------
+    frame_id : as the dataset readers name it
+    boxes : (K, 7) non-DontCare boxes
+    class_names : K names
+    object_index : (K,) position among the frame's objects as the reader numbers them
+    height : (K,) 2D box height in pixels (NaN when the format has none)
+    occluded : (K,) KITTI occlusion level (−1 unknown)
+    truncated : (K,) KITTI truncation (NaN unknown)
+    difficulty : (K,) KITTI devkit difficulty 0/1/2 (−1 none), or Waymo level 1/2
+    num_points : (K,) the dataset's own LiDAR point count per box (Waymo; −1 unknown)
+    dontcare : (M, 7) DontCare regions with a real 3D box
+    dontcare_rows : DontCare rows in the file (with or without a 3D box)
+    calib : KITTI calibration (None for Waymo)
+    sensor_origin : (3,) sensor position (distances are measured from it)
+    source : the label file (or segment file)
+    """
+
+    frame_id: str
+    boxes: FloatArray
+    class_names: list[str]
+    object_index: NDArray[np.int64]
+    height: FloatArray
+    occluded: NDArray[np.int64]
+    truncated: FloatArray
+    difficulty: NDArray[np.int8]
+    num_points: NDArray[np.int64]
+    dontcare: FloatArray
+    dontcare_rows: int
+    calib: Calibration | None
+    sensor_origin: FloatArray
+    source: str
+
+
+@dataclass
+class GroundTruth:
+    """Every evaluated frame's labels, concatenated (frames in the dataset's order).
+
+    ``gt_off[f]:gt_off[f+1]`` are frame f's rows, ``dc_off`` the same for DontCare regions.
+    """
+
+    dataset_format: str
+    frame_ids: list[str]
+    gt_off: NDArray[np.int64]
+    boxes: FloatArray
+    class_names: list[str]
+    object_index: NDArray[np.int64]
+    height: FloatArray
+    occluded: NDArray[np.int64]
+    truncated: FloatArray
+    difficulty: NDArray[np.int8]
+    num_points: NDArray[np.int64]
+    distance: FloatArray
+    dc_off: NDArray[np.int64]
+    dontcare: FloatArray
+    dontcare_rows: int
+    calibs: list[Calibration | None]
+    sources: list[str]
+    errors: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frame_ids)
+
+    @property
+    def frame_of_row(self) -> NDArray[np.int64]:
+        """(N,) frame index of every GT row."""
+        return np.repeat(np.arange(self.num_frames), np.diff(self.gt_off))
+
+    def index(self) -> dict[str, int]:
+        """frame_id → frame position."""
+        return {fid: i for i, fid in enumerate(self.frame_ids)}
+
+    @classmethod
+    def from_frames(cls, dataset_format: str, frames: list[GroundTruthFrame], errors: list[dict[str, Any]] | None = None) -> "GroundTruth":
+        counts = [len(f.boxes) for f in frames]
+        dcs = [len(f.dontcare) for f in frames]
+        cat = lambda xs, shape, dtype: np.concatenate(xs).astype(dtype) if xs else np.zeros(shape, dtype)  # noqa: E731
+        boxes = cat([f.boxes for f in frames], (0, 7), float).reshape(-1, 7)
+        origins = np.repeat(np.array([f.sensor_origin for f in frames]).reshape(-1, 3), counts, axis=0) if frames else np.zeros((0, 3))
+        return cls(
+            dataset_format=dataset_format,
+            frame_ids=[f.frame_id for f in frames],
+            gt_off=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            boxes=boxes,
+            class_names=[n for f in frames for n in f.class_names],
+            object_index=cat([f.object_index for f in frames], 0, np.int64),
+            height=cat([f.height for f in frames], 0, float),
+            occluded=cat([f.occluded for f in frames], 0, np.int64),
+            truncated=cat([f.truncated for f in frames], 0, float),
+            difficulty=cat([f.difficulty for f in frames], 0, np.int8),
+            num_points=cat([f.num_points for f in frames], 0, np.int64),
+            distance=np.hypot(boxes[:, 0] - origins[:, 0], boxes[:, 1] - origins[:, 1]) if len(boxes) else np.zeros(0),
+            dc_off=np.concatenate([[0], np.cumsum(dcs)]).astype(np.int64),
+            dontcare=cat([f.dontcare for f in frames], (0, 7), float).reshape(-1, 7),
+            dontcare_rows=int(sum(f.dontcare_rows for f in frames)),
+            calibs=[f.calib for f in frames],
+            sources=[f.source for f in frames],
+            errors=list(errors or []),
+        )
+
+
+# --------------------------------------------------------------------------- KITTI
+
+
+def fast_read_label(path: Path) -> KittiLabels:
+    """:func:`~labelaudit.datasets.kitti.read_label`, parsing all numbers of a file in one NumPy call.
+
+    Same result for well-formed files; anything unusual (wrong column count, a bad number, a
+    non-integer occlusion, an unreadable file) is handed to ``read_label`` itself, so errors carry
+    its message naming file, line and column.
+    """
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError):
+        return read_label(path)
+    rows, lines = [], []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        tokens = raw.split()
+        if tokens:
+            rows.append(tokens)
+            lines.append(lineno)
+    if not rows:
+        return read_label(path)
+    ncol = len(rows[0])
+    if ncol not in (15, 16) or any(len(r) != ncol for r in rows):
+        return read_label(path)
+    try:
+        a = np.array([r[1:] for r in rows], dtype=float)
+    except ValueError:
+        return read_label(path)
+    if not (np.all(np.isfinite(a[:, 1])) and np.all(a[:, 1] == np.trunc(a[:, 1]))):
+        return read_label(path)
+    if ncol == 15:
+        a = np.concatenate([a, np.full((len(a), 1), np.nan)], axis=1)
+    return KittiLabels(
+        class_names=[r[0] for r in rows], truncated=a[:, 0].copy(), occluded=a[:, 1].astype(np.int64), alpha=a[:, 2].copy(),
+        bbox2d=a[:, 3:7].copy(), dims_hwl=a[:, 7:10].copy(), location=a[:, 10:13].copy(), rotation_y=a[:, 13].copy(),
+        score=a[:, 14].copy(), line=np.array(lines, dtype=np.int64),
+    )
+
+
+def kitti_frame(label_path: Path, calib_path: Path, frame_id: str) -> GroundTruthFrame:
+    """Labels of one KITTI frame (raises :class:`DatasetError` naming file and line)."""
+    labels = fast_read_label(label_path)
+    calib = read_calib(calib_path)
+    is_dc = np.array([n == "DontCare" for n in labels.class_names], dtype=bool)
+    rows = np.flatnonzero(~is_dc)
+    dims = labels.dims_hwl[rows]
+    bad = np.flatnonzero(~np.all(dims > 0, axis=1))
+    if len(bad):
+        r = rows[bad[0]]
+        h, w, l = labels.dims_hwl[r]
+        raise DatasetError(label_path, f"box dimensions must be > 0, got height={h:g} width={w:g} length={l:g}", int(labels.line[r]))
+    boxes = boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib).reshape(-1, 7) if len(rows) else np.zeros((0, 7))
+    dc_rows = np.flatnonzero(is_dc)
+    real = dc_rows[np.all(labels.dims_hwl[dc_rows] > 0, axis=1) & np.all(labels.location[dc_rows] > -999, axis=1)]
+    dontcare = boxes_camera_to_lidar(labels.location[real], labels.dims_hwl[real], labels.rotation_y[real], calib).reshape(-1, 7) if len(real) else np.zeros((0, 7))
+    bbox = labels.bbox2d[rows]
+    return GroundTruthFrame(
+        frame_id=frame_id,
+        boxes=boxes,
+        class_names=[labels.class_names[r] for r in rows],
+        object_index=np.arange(len(rows), dtype=np.int64),
+        height=bbox[:, 3] - bbox[:, 1],
+        occluded=labels.occluded[rows].astype(np.int64),
+        truncated=labels.truncated[rows].astype(float),
+        difficulty=kitti_difficulty(bbox, labels.occluded[rows], labels.truncated[rows]),
+        num_points=np.full(len(rows), -1, dtype=np.int64),
+        dontcare=dontcare,
+        dontcare_rows=int(len(dc_rows)),
+        calib=calib,
+        sensor_origin=np.zeros(3),
+        source=str(label_path),
+    )
+
+
+# --------------------------------------------------------------------------- Waymo
+
+
+def _waymo_frame(frame_id: str, boxes: FloatArray, types: NDArray[np.integer], level: NDArray[np.integer], points: NDArray[np.integer], origin: FloatArray, source: str) -> GroundTruthFrame:
+    from labelaudit.evaluate.matching import waymo_level
+
+    k = len(boxes)
+    return GroundTruthFrame(
+        frame_id=frame_id,
+        boxes=np.asarray(boxes, dtype=float).reshape(k, 7),
+        class_names=[waymo_class_name(int(t)) for t in types],
+        object_index=np.arange(k, dtype=np.int64),
+        height=np.full(k, np.nan),
+        occluded=np.full(k, -1, dtype=np.int64),
+        truncated=np.full(k, np.nan),
+        difficulty=waymo_level(level, points),
+        num_points=np.asarray(points, dtype=np.int64),
+        dontcare=np.zeros((0, 7)),
+        dontcare_rows=0,
+        calib=None,
+        sensor_origin=np.asarray(origin, dtype=float),
+        source=source,
+    )
+
+
+def _waymo_v1_frames(path: Path, verify: bool = True) -> Iterator[GroundTruthFrame]:
+    from labelaudit.datasets import waymo_proto as wp
+    from labelaudit.datasets.waymo_common import sensor_origin
+    from labelaudit.datasets.waymo_v1 import _calibrations, iter_records
+
+    count = 0
+    for index, payload in enumerate(iter_records(path, verify)):
+        try:
+            msg = wp.Frame.FromString(payload)
+        except Exception as exc:  # protobuf's DecodeError
+            raise DatasetError(path, f"record {index} is not a Waymo Frame: {exc}") from exc
+        segment = msg.context.name or path.stem
+        frame_id = f"{segment}:{msg.timestamp_micros}"
+        labels = msg.laser_labels
+        boxes = np.array([[l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading] for l in labels], dtype=float).reshape(-1, 7)
+        origin = sensor_origin(_calibrations(msg.context, f"{path} record {index}"))
+        yield _waymo_frame(
+            frame_id, boxes, np.array([l.type for l in labels], dtype=np.int64),
+            np.array([l.detection_difficulty_level for l in labels], dtype=np.int64),
+            np.array([l.num_lidar_points_in_box for l in labels], dtype=np.int64), origin, str(path),
+        )
+        count += 1
+    if count == 0:
+        raise DatasetError(path, "empty TFRecord file: no records")
+
+
+def _waymo_v2_frames(box_path: Path) -> Iterator[GroundTruthFrame]:
+    from labelaudit.datasets import waymo_v2 as v2
+    from labelaudit.datasets.waymo_common import sensor_origin
+
+    segment = box_path.stem
+    t = v2._read(box_path, [v2.K_TS, *v2.BOX_COLUMNS.values()], list(v2.BOX_EXTRAS.values()))
+    cal_path = box_path.parent.parent / "lidar_calibration" / f"{segment}.parquet"
+    origin = sensor_origin(v2.WaymoV2Reader._calibrations(cal_path)) if cal_path.is_file() else np.zeros(3)
+    ts_all = t.column(v2.K_TS).to_numpy()
+    order = np.argsort(ts_all, kind="stable")  # the reader's order: by timestamp, file order within
+    rows_of: dict[int, list[int]] = defaultdict(list)
+    for i in order:
+        rows_of[int(ts_all[i])].append(int(i))
+    cols = {k: t.column(c).to_numpy(zero_copy_only=False) for k, c in v2.BOX_COLUMNS.items()}
+
+    def extra(name: str, default: int) -> NDArray[np.int64]:
+        c = v2.BOX_EXTRAS[name]
+        if c not in t.schema.names:
+            return np.full(t.num_rows, default, dtype=np.int64)
+        return np.nan_to_num(t.column(c).to_numpy(zero_copy_only=False).astype(float), nan=default).astype(np.int64)
+
+    level, points = extra("detection_difficulty", 0), extra("num_lidar_points_in_box", -1)
+    for ts in sorted(rows_of):
+        idx = np.asarray(rows_of[ts])
+        boxes = np.stack([cols[k][idx].astype(float) for k in ("cx", "cy", "cz", "length", "width", "height", "heading")], axis=1)
+        yield _waymo_frame(f"{segment}:{ts}", boxes, cols["type"][idx].astype(np.int64), level[idx], points[idx], origin, str(box_path))
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def _frames_of(fmt: str, reader: Any, ref: FrameRef) -> Iterator[GroundTruthFrame]:
+    if fmt == "kitti":
+        yield kitti_frame(reader.label_path(ref.key), reader.calib_path(ref.key), ref.key)
+    elif fmt == "waymo-v1":
+        yield from _waymo_v1_frames(Path(ref.key), getattr(reader, "verify_crc", True))
+    elif fmt == "waymo-v2":
+        yield from _waymo_v2_frames(Path(ref.key))
+    else:
+        raise ValueError(f"unknown dataset format {fmt!r}")
+
+
+_MIN_UNITS_FOR_POOL = 200  # below this many units reading in one process is faster than starting workers
+
+
+def _load_units(task: tuple[int, str, str, tuple[tuple[str, Any], ...], list[FrameRef], bool]) -> tuple[int, list[GroundTruthFrame], list[dict[str, Any]]]:
+    """Worker: the frames of some units (in order) and the errors of the units that failed."""
+    index, root, fmt, options, refs, strict = task
+    reader = open_dataset(root, fmt, **dict(options))
+    frames: list[GroundTruthFrame] = []
+    errors: list[dict[str, Any]] = []
+    for ref in refs:
+        try:
+            frames.extend(_frames_of(fmt, reader, ref))
+        except DatasetError as exc:
+            if strict:
+                raise
+            errors.append({"unit": ref.key, "frame_id": ref.key if fmt == "kitti" else None, "file": exc.path, "line": exc.line, "level": "error", "message": str(exc)})
+    return index, frames, errors
+
+
+def load_ground_truth(
+    dataset: str | Path,
+    fmt: str,
+    *,
+    split: str | None = None,
+    limit: int | None = None,
+    strict: bool = True,
+    workers: int | None = 1,
+) -> GroundTruth:
+    """Read the labels of every frame of a dataset (no point clouds).
+
+    Parameters
+    ----------
+    dataset : dataset folder (or a Waymo v1 .tfrecord file)
+    fmt : "kitti", "waymo-v2" or "waymo-v1" (already resolved)
+    split : KITTI ImageSets split, Waymo split folder
+    limit : only the first N units (KITTI frames, Waymo segments), like ``infer --limit``
+    strict : raise at the first unreadable unit; otherwise record it in ``errors`` and go on
+    workers : processes (None: all cores); many units are read in consecutive chunks, in order
+
+    Raises
+    ------
+    DatasetError
+        Unreadable dataset, or (``strict``) an unreadable label/calibration file.
+    """
+    options = tuple({"split": split}.items()) if split else ()
+    reader = open_dataset(dataset, fmt, **dict(options))
+    refs = reader.list_units()
+    if limit is not None:
+        refs = refs[:limit]
+    n_workers = workers if workers is not None else (os.cpu_count() or 1)
+    if n_workers <= 1 or len(refs) < _MIN_UNITS_FOR_POOL:
+        _, frames, errors = _load_units((0, str(dataset), fmt, options, refs, strict))
+        return GroundTruth.from_frames(fmt, frames, errors)
+    from labelaudit import constants as C
+    from labelaudit.executors import make_executor
+
+    size = -(-len(refs) // (4 * n_workers))
+    tasks = [(i, str(dataset), fmt, options, refs[a : a + size], strict) for i, a in enumerate(range(0, len(refs), size))]
+    parts: dict[int, tuple[list[GroundTruthFrame], list[dict[str, Any]]]] = {}
+    executor = make_executor(n_workers, C.EVAL_WORKER_PRELOAD)
+    try:
+        for index, frames, errors in executor.run(tasks, _load_units):
+            parts[index] = (frames, errors)
+    finally:
+        executor.close()
+    return GroundTruth.from_frames(fmt, [f for i in sorted(parts) for f in parts[i][0]], [e for i in sorted(parts) for e in parts[i][1]])
