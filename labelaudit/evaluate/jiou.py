@@ -1,17 +1,24 @@
 """JIoU of many (detection, label) pairs, each computed once and reused for every threshold.
 
 JIoU(detection, label) is the probabilistic Jaccard index of the detection's spatial distribution
-(uniform on its box, or p_G of its own covariance) and the label's p_G (docs/method.md), exactly
-:func:`labelaudit.core.spatial.jiou`. Here the pairs are grouped by label: the label's samples, the
-common grid and — in BEV — its raster are built once per label and shared by all its candidate
-detections. The grid covers the supports of the label and of all those detections, and its cells
-are as fine as the smallest box and the sharpest boundary among them require, so each pair gets a
-grid at least as fine as ``spatial.jiou`` would build for it alone (tests compare the two).
+(uniform on its box, or p_G of its own covariance) and the label's p_G (docs/method.md), as
+:func:`labelaudit.core.spatial.jiou` defines it, with spatial's samples, grid and rasteriser. Here
+the pairs are grouped by label: the label's samples and grid are built once and shared by all its
+candidate detections. The grid covers the supports of the label and of those detections, its cells
+as fine as the smallest box and the sharpest boundary among them require.
+
+For a *deterministic* detection (the common case) the pair is one compiled call
+(:func:`_jiou_uniform_bev_kernel`): the label is rasterised only on the window of cells the
+detection covers (its mass elsewhere enters through its total), the detection's share of each cell
+is exact (polygon clipping) and partly covered cells are split between the box and the rest. That
+makes the cell-level Jaccard of two uniform boxes their IoU, where rasterising the detection into
+whole cells (as ``spatial.jiou`` does for "the other box") biases it by up to 0.02 at 64 cells per
+side; against a 3× finer grid the result is within 0.01 (tested).
 
 Labels without a covariance (their inference failed or was skipped) are deterministic boxes: a
 deterministic detection then gets its exact IoU. Large batches are split over worker processes.
-This module owns the pairing and batching only; p_G and the Jaccard index are
-:mod:`labelaudit.core.spatial`'s.
+This module owns the pairing, batching and the compiled pair kernel; p_G sampling and the Jaccard
+index are :mod:`labelaudit.core.spatial`'s.
 """
 
 from __future__ import annotations
