@@ -214,53 +214,24 @@ def _read_kitti_file(path: Path, calib: Any) -> _Rows:
     return rows
 
 
-def _read_kitti_files(task: tuple[int, list[tuple[str, Path, Any]], bool]) -> tuple[int, dict[str, _Rows], list[dict[str, Any]]]:
-    """Worker: read some KITTI result files ((frame id, path, calibration) each)."""
-    index, items, strict = task
+def _read_kitti(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
+    folder = _kitti_dir(path)
+    files = {p.stem: p for p in folder.glob("*.txt")}
+    index = gt.index()
     out: dict[str, _Rows] = {}
     errors: list[dict[str, Any]] = []
-    for fid, p, calib in items:
+    missing = []
+    for fid, f in index.items():
+        p = files.get(fid)
+        if p is None:
+            missing.append(fid)
+            continue
         try:
-            out[fid] = _read_kitti_file(p, calib)
+            out[fid] = _read_kitti_file(p, gt.calibs[f])
         except DetectionsError as exc:
             if strict:
                 raise
             errors.append(_error(fid, exc))
-    return index, out, errors
-
-
-_MIN_FILES_FOR_POOL = 200  # below this many files reading in one process is faster than starting workers
-
-
-def _read_kitti(path: Path, gt: GroundTruth, strict: bool, workers: int | None = 1) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
-    import os
-
-    folder = _kitti_dir(path)
-    files = {p.stem: p for p in folder.glob("*.txt")}
-    index = gt.index()
-    items = [(fid, files[fid], gt.calibs[f]) for fid, f in index.items() if fid in files]
-    missing = [fid for fid in index if fid not in files]
-    n_workers = workers if workers is not None else (os.cpu_count() or 1)
-    out: dict[str, _Rows] = {}
-    errors: list[dict[str, Any]] = []
-    if n_workers <= 1 or len(items) < _MIN_FILES_FOR_POOL:
-        _, out, errors = _read_kitti_files((0, items, strict))
-    else:
-        from labelaudit import constants as C
-        from labelaudit.executors import make_executor
-
-        size = -(-len(items) // (4 * n_workers))
-        tasks = [(i, items[a : a + size], strict) for i, a in enumerate(range(0, len(items), size))]
-        parts: dict[int, tuple[dict[str, _Rows], list[dict[str, Any]]]] = {}
-        executor = make_executor(n_workers, C.EVAL_WORKER_PRELOAD)
-        try:
-            for i, rows, errs in executor.run(tasks, _read_kitti_files):
-                parts[i] = (rows, errs)
-        finally:
-            executor.close()
-        for i in sorted(parts):
-            out.update(parts[i][0])
-            errors.extend(parts[i][1])
     unknown = {}
     for stem, p in sorted(files.items()):
         if stem not in index:
@@ -466,7 +437,7 @@ def write_parquet_detections(path: str | Path, table: pa.Table) -> Path:
 # --------------------------------------------------------------------------- entry point
 
 
-def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, strict: bool = True, view: str = "bev", workers: int | None = 1) -> Detections:
+def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, strict: bool = True, view: str = "bev") -> Detections:
     """Read detections and align them with the frames of ``gt``.
 
     Parameters
@@ -477,7 +448,6 @@ def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, str
     strict : raise at the first bad value; otherwise the frame's detections are dropped, the frame
         recorded in ``errors`` (and excluded from the evaluation by the caller)
     view : "bev" or "3d" — the dimension a Parquet ``cov`` must have
-    workers : processes for many KITTI result files (None: all cores)
 
     Raises
     ------
@@ -494,7 +464,7 @@ def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, str
     if fmt == "kitti":
         if gt.dataset_format != "kitti":
             raise DetectionsError(path, f"KITTI result files need a KITTI dataset, not {gt.dataset_format} (use Parquet detections in the vehicle frame)")
-        rows, missing, unknown, errors = _read_kitti(path, gt, strict, workers)
+        rows, missing, unknown, errors = _read_kitti(path, gt, strict)
     elif fmt == "waymo":
         rows, missing, unknown, errors = _read_waymo(path, gt, strict)
     else:

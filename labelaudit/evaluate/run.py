@@ -237,13 +237,13 @@ def run_eval(request: EvalRequest, progress: Progress | None = None) -> EvalResu
 
     progress.stage(f"reading labels of {request.dataset} ({fmt})")
     try:
-        gt = load_ground_truth(request.dataset, fmt, split=request.split, limit=request.limit, strict=request.strict, workers=request.workers)
+        gt = load_ground_truth(request.dataset, fmt, split=request.split, limit=request.limit, strict=request.strict)
     except TypeError as exc:
         raise EvalError(f"{request.dataset}: option not supported by the {fmt} reader ({exc})") from None
     if gt.num_frames == 0:
         raise EvalError(f"{request.dataset}: no frames to evaluate (format {fmt}{', split ' + request.split if request.split else ''})")
     progress.stage(f"reading detections {request.detections}")
-    dets = read_detections(request.detections, gt, request.detections_format, strict=request.strict, view=request.view, workers=request.workers)
+    dets = read_detections(request.detections, gt, request.detections_format, strict=request.strict, view=request.view)
     failed = {e["frame_id"] for e in dets.errors if e.get("frame_id")}
     if failed:
         gt, dets = _drop_frames(gt, dets, failed)
