@@ -17,14 +17,19 @@ Examples
 >>> [r["ap"] for r in result.summary["ap"] if r["metric"] == "jiou_ratio" and r["threshold"] == 0.7][:3]  # doctest: +SKIP
 """
 
-from labelaudit.evaluate.run import EvalRequest, EvalResult, evaluate, run_eval
-
-
-def write_eval_dir(result: EvalResult, out):  # noqa: ANN001, ANN201 - thin re-export, imports matplotlib lazily
-    """Write ``result`` into EVAL_DIR (see :func:`labelaudit.evaluate.output.write_eval_dir`)."""
-    from labelaudit.evaluate.output import write_eval_dir as _write
-
-    return _write(result, out)
-
+from typing import Any
 
 __all__ = ["EvalRequest", "EvalResult", "evaluate", "run_eval", "write_eval_dir"]
+
+
+def __getattr__(name: str) -> Any:
+    # Lazy: worker processes import labelaudit.evaluate.jiou without the orchestration (Arrow, readers).
+    if name in ("EvalRequest", "EvalResult", "evaluate", "run_eval"):
+        from labelaudit.evaluate import run
+
+        return getattr(run, name)
+    if name == "write_eval_dir":
+        from labelaudit.evaluate.output import write_eval_dir
+
+        return write_eval_dir
+    raise AttributeError(f"module 'labelaudit.evaluate' has no attribute {name!r}")
