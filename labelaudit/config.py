@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -246,40 +247,52 @@ def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", datas
     model = ModelParams(priors=priors, **model_kw)
     spatial = SpatialParams(**_build(SpatialParams, data.get("spatial", {}), "spatial", source))
     crop = CropParams(**_build(CropParams, data.get("crop", {}), "crop", source))
-    validate_params(model, spatial, crop, source)
-    return RunConfig(
+    lengths = {k: _typed(ds[k], float, f"[dataset] {k}", source) for k in ("min_length", "max_length") if k in ds}
+    cfg = RunConfig(
         dataset_format=dataset_format,
         classes=tuple(classes),
-        min_length=float(ds.get("min_length", 0.0)),
-        max_length=float(ds.get("max_length", float("inf"))),
+        min_length=lengths.get("min_length", 0.0),
+        max_length=lengths.get("max_length", float("inf")),
         model=model,
         spatial=spatial,
         crop=crop,
     )
+    validate_config(cfg, source)
+    return cfg
+
+
+def validate_config(cfg: RunConfig, source: str = "<config>") -> None:
+    """Check every value of a run configuration against :data:`~labelaudit.constants.PARAM_RANGES`
+    (and the length range), raising :class:`ConfigError` with the value and the accepted range."""
+    lo, hi = cfg.min_length, cfg.max_length
+    if not (math.isfinite(lo) and lo >= 0 and hi > lo):  # max_length = inf is the default: no upper cut
+        raise ConfigError(f"{source}: [dataset] min_length must be finite and ≥ 0 and max_length > min_length, got {lo} and {hi}")
+    if not cfg.classes or not all(isinstance(c, str) and c for c in cfg.classes):
+        raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {list(cfg.classes)!r}")
+    validate_params(cfg.model, cfg.spatial, cfg.crop, source)
 
 
 def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams, source: str = "<config>") -> None:
-    """Check ranges in one place; the message shows the bad value and the accepted range."""
-    checks = [
-        (model.sigma > 0, f"[model] sigma must be > 0, got {model.sigma}"),
-        (model.num_nearest >= 1, f"[model] num_nearest must be ≥ 1, got {model.num_nearest}"),
-        (0 <= model.outlier_prob < 1, f"[model] outlier_prob must be in [0, 1), got {model.outlier_prob}"),
-        (model.prior_weight > 0, f"[model] prior_weight must be > 0, got {model.prior_weight}"),
-        (model.min_points >= 0, f"[model] min_points must be ≥ 0, got {model.min_points}"),
-        (spatial.cells_per_side >= 8, f"[spatial] cells_per_side must be ≥ 8, got {spatial.cells_per_side}"),
-        (spatial.num_samples >= 16, f"[spatial] num_samples must be ≥ 16, got {spatial.num_samples}"),
-        (spatial.support_std > 0, f"[spatial] support_std must be > 0, got {spatial.support_std}"),
-        (crop.margin >= 0, f"[crop] margin must be ≥ 0, got {crop.margin}"),
-        (crop.ground_cut >= 0, f"[crop] ground_cut must be ≥ 0, got {crop.ground_cut}"),
-        (crop.fit_margin >= crop.margin, f"[crop] fit_margin must be ≥ margin ({crop.margin}), got {crop.fit_margin}"),
+    """Check every number against its sane range (:data:`~labelaudit.constants.PARAM_RANGES`).
+
+    NaN, ±inf and values like ``sigma = 1e308`` (every object would fail, or every std would be
+    the prior's) are refused; the message shows the key, the value and the accepted range.
+    """
+    values: list[tuple[str, str, Any]] = [
+        *((f"model.{f.name}", f"[model] {f.name}", getattr(model, f.name)) for f in fields(ModelParams) if f.name not in ("kind", "estimate_sigma", "priors")),
+        *((f"spatial.{f.name}", f"[spatial] {f.name}", getattr(spatial, f.name)) for f in fields(SpatialParams)),
+        *((f"crop.{f.name}", f"[crop] {f.name}", getattr(crop, f.name)) for f in fields(CropParams)),
+        *((f"prior.{f.name}", f"[prior.{name}] {f.name}", getattr(prior, f.name)) for name, prior in model.priors.items() for f in fields(ClassPrior)),
     ]
-    for name, prior in model.priors.items():
-        for f in fields(ClassPrior):
-            value = getattr(prior, f.name)
-            checks.append((value > 0, f"[prior.{name}] {f.name} must be > 0, got {value}"))
-    for ok, message in checks:
+    for key, label, value in values:
+        lo, hi, lo_open, hi_open = C.PARAM_RANGES[key]
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        ok = ok and (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
         if not ok:
-            raise ConfigError(f"{source}: {message}")
+            accepted = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+            raise ConfigError(f"{source}: {label} must be in {accepted}, got {value!r}")
+    if crop.fit_margin < crop.margin:
+        raise ConfigError(f"{source}: [crop] fit_margin must be ≥ margin ({crop.margin}), got {crop.fit_margin}")
 
 
 def resolve_config(config_path: Path | None, dataset_format: str, classes: Sequence[str] | None = None, model: str | None = None) -> RunConfig:

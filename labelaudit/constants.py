@@ -39,6 +39,9 @@ CELL_STD_SPAN = 32.0  # cells_per_side spans max(box side, this × smallest edge
 DEFAULT_CROP_MARGIN = 0.1  # BEV margin in metres added around each box when selecting points
 DEFAULT_FIT_CROP_MARGIN = 0.5  # wider BEV margin (m) of the points given to the label-error fit: a shifted box must still see its object (docs/label-error.md)
 DEFAULT_GROUND_CUT = 0.1  # points within this height above the box bottom are ground, dropped
+CROP_GRID_MIN_BOXES = 64  # frames with this many boxes are cropped through a BEV grid (same indices; Open3D per box costs K·N)
+CROP_GRID_CELL = 2.0  # m; BEV grid cell of that crop (a car touches ~10 cells: few extra candidates, few runs)
+CROP_GRID_BATCH = 256  # boxes per vectorised batch of that crop (bounds its temporary arrays)
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
 KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)
@@ -56,6 +59,33 @@ EVAL_DISTANCE_BINS = (20.0, 40.0)  # m; mean overlaps per GT distance bin 0–20
 EVAL_ASSOCIATION_MIN_IOU = 0.1  # a detection "localises" a GT (per-detection table, mean overlaps) when the devkit matching pairs them at IoU above this
 EVAL_WAYMO_LEVEL2_MAX_POINTS = 5  # Waymo: GT boxes with at most this many LiDAR points are LEVEL_2 whatever their label says
 EVAL_WORKER_PRELOAD = ("labelaudit.evaluate.warmup",)  # eval's fork server: the JIoU kernels only (no Open3D), warmed once; several s less than WORKER_PRELOAD when the server starts
+
+# --- sane ranges of label values (readers: labelaudit/datasets/base.py box_problems) ---
+MIN_BOX_SIZE = 0.01  # m; a labeled length, width or height below this (0, negative, 1e-300) is corrupt input: an error row
+MAX_BOX_SIZE = 200.0  # m; a labeled length, width or height beyond this is corrupt input (the label becomes an error row)
+MAX_BOX_CENTRE = 1.0e4  # m; a box centre coordinate farther than this from the sensor is corrupt input
+MAX_BOX_ANGLE = 1.0e3  # rad; |yaw| beyond this is corrupt input, not an angle (wrapping it loses its digits)
+
+# --- accepted config values (labelaudit/config.py validate_params): key -> (low, high, low open?, high open?) ---
+PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
+    "model.sigma": (1e-4, 10.0, False, False),  # m; LiDAR noise: 0.1 mm … 10 m (1e308 made every object fail, inf made every std the prior's)
+    "model.num_nearest": (1, 6, False, False),  # M: a box has at most 6 faces (the core uses min(M, 2·dim))
+    "model.outlier_prob": (0.0, 1.0, False, True),  # a probability; 1 would make every point an outlier
+    "model.prior_weight": (1e-6, 1e6, False, False),  # w: beyond this the prior is numerically gone or absolute
+    "model.min_points": (0, 2**31 - 1, False, False),  # a point count (int32 in the results)
+    "spatial.cells_per_side": (8, 1024, False, False),  # JIoU grid; 1024² cells per box is already ~1 s
+    "spatial.num_samples": (16, 65536, False, False),  # Sobol samples of φ per box
+    "spatial.support_std": (0.0, 20.0, True, False),  # grid half-width in corner stds
+    "spatial.seed": (0, 2**32 - 1, False, False),  # numpy / scipy seeds are unsigned 32-bit here
+    "crop.margin": (0.0, 20.0, False, False),  # m
+    "crop.ground_cut": (0.0, 20.0, False, False),  # m
+    "crop.fit_margin": (0.0, 20.0, False, False),  # m (also ≥ margin)
+    "prior.center": (1e-6, 100.0, False, False),  # m; prior std of the box centre
+    "prior.length": (1e-6, 100.0, False, False),  # m
+    "prior.width": (1e-6, 100.0, False, False),  # m
+    "prior.height": (1e-6, 100.0, False, False),  # m
+    "prior.yaw": (1e-6, 100.0, False, False),  # rad
+}
 
 # --- classes ---
 DEFAULT_CLASSES = ("Car", "Van", "Truck")  # vehicles: the paper's evaluation classes
@@ -154,4 +184,5 @@ REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's 
 # evaluation, CLI defaults and scheduling. Changing them never blocks `--resume`; every other
 # upper-case name of this module is hashed (a new one is hashed unless it is listed here).
 UNHASHED_PREFIXES = ("SIM_", "VIZ_", "SHOW_", "REPORT_", "EXPORT_", "EVAL_", "DEMO_", "HEURISTIC_", "INFOS_", "DEFAULT_ANCHOR_", "DASK_", "UNHASHED_")
-UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP"})
+UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP",
+                            "PARAM_RANGES", "CROP_GRID_MIN_BOXES", "CROP_GRID_CELL", "CROP_GRID_BATCH"})  # ranges only refuse a config; the grid crop gives Open3D's indices

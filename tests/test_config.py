@@ -62,7 +62,7 @@ def test_unknown_key_is_an_error_naming_file_and_key(tmp_path):
 def test_wrong_type_and_range_are_errors(tmp_path):
     with pytest.raises(ConfigError, match="sigma"):
         load_config(_write(tmp_path, '[model]\nsigma = "big"\n'))
-    with pytest.raises(ConfigError, match="sigma must be > 0"):
+    with pytest.raises(ConfigError, match=r"sigma must be in \[0.0001, 10\], got 0.0"):
         load_config(_write(tmp_path, "[model]\nsigma = 0.0\n"))
     with pytest.raises(ConfigError, match="kind must be"):
         load_config(_write(tmp_path, '[model]\nkind = "2d"\n'))
@@ -70,6 +70,50 @@ def test_wrong_type_and_range_are_errors(tmp_path):
         load_config(_write(tmp_path, '[model]\nmodel = "3d"\n'))
     with pytest.raises(ConfigError, match="missing"):
         load_config(_write(tmp_path, "[prior.Car]\ncenter = 0.2\n"))
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[model]\nsigma = inf\n",  # issue 15: accepted, every std became the prior's
+        "[model]\nsigma = 1e308\n",  # issue 15: every object became status=error with exit 0
+        "[model]\nsigma = nan\n",
+        "[model]\nsigma = 1e-300\n",
+        "[model]\nprior_weight = inf\n",
+        "[model]\nnum_nearest = 100\n",
+        "[model]\noutlier_prob = 1.0\n",
+        "[spatial]\ncells_per_side = 1000000000\n",
+        "[spatial]\nnum_samples = 100000000\n",
+        "[spatial]\nsupport_std = inf\n",
+        "[spatial]\nseed = -1\n",
+        "[crop]\nmargin = 1e300\n",
+        "[crop]\nground_cut = nan\n",
+        "[prior.Car]\ncenter = inf\nlength = 0.4\nwidth = 0.1\nheight = 0.1\nyaw = 0.1\n",
+        "[dataset]\nmin_length = 5.0\nmax_length = 3.0\n",
+        "[dataset]\nmin_length = nan\n",
+        '[dataset]\nmax_length = "long"\n',
+    ],
+)
+def test_values_outside_their_sane_range_are_refused(tmp_path, text):
+    key = text.split("\n")[1].split(" =")[0]
+    with pytest.raises(ConfigError, match=rf"cfg\.toml: .*{key}"):
+        load_config(_write(tmp_path, text))
+
+
+def test_the_built_in_configs_are_within_the_ranges():
+    for fmt in ("kitti", "waymo-v2"):
+        load_config(None, fmt)  # validates
+    assert load_config(None, "waymo-v2").max_length < float("inf")
+
+
+def test_non_utf8_and_folder_configs_name_the_file(tmp_path):
+    # issue 15: a non-UTF-8 --config was a UnicodeDecodeError (exit 3), a folder an IsADirectoryError
+    p = tmp_path / "cfg.toml"
+    p.write_bytes(b"[model]\nsigma = 0.2 # \xff\n")
+    with pytest.raises(ConfigError, match=r"cfg\.toml: config file is not UTF-8 text \(byte 22\)"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="cannot read config file .Is a directory"):
+        load_config(tmp_path)
 
 
 def test_syntax_error_and_missing_file(tmp_path):
