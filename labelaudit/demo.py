@@ -16,6 +16,8 @@ from typing import Any, Callable
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from rich.markup import escape
+
 from labelaudit import constants as C
 from labelaudit.evaluate.output import write_eval_dir
 from labelaudit.evaluate.run import EvalRequest, run_eval
@@ -73,15 +75,15 @@ def run_demo(
     """Simulate ``frames`` frames with injected label errors into ``folder``, audit, rank and gate them,
     evaluate a synthetic detector on them and write the review page.
 
-    ``say`` receives one line per step (Rich markup allowed); ``progress`` is the infer progress sink;
+    ``say`` receives one line per step (Rich markup; paths in it are escaped); ``progress`` is the infer progress sink;
     ``after_infer`` gets the infer run summary before the ranking starts; the HTML review page goes
     to ``report`` (default ``folder/report.html``).
     """
     data, results = folder / "sim-kitti", folder / "results"
-    say(f"[bold]1/6 simulate[/bold] {frames} frames with injected label errors → {data}")
+    say(f"[bold]1/6 simulate[/bold] {frames} frames with injected label errors → {escape(str(data))}")
     simulate_dataset(data, frames=frames, seed=0, noise=DEMO_NOISE, progress=progress is not None,
                      workers=workers or os.cpu_count() or 1, overwrite=True)
-    say(f"[bold]2/6 infer[/bold] {data} → {results}")
+    say(f"[bold]2/6 infer[/bold] {escape(str(data))} → {escape(str(results))}")
     after_infer(infer_dataset(InferRequest(data, results, "kitti", workers=workers, overwrite=True, debug=debug), progress))
     run = DemoRun(data, results)
     opened = open_results(results)
@@ -101,12 +103,12 @@ def run_demo(
     det = simulate_detections(data, DetectorSpec(), seed=0)
     say(
         f"[bold]5/6 eval[/bold] a synthetic detector ({det.detections} detections: localisation noise, misses, false positives) "
-        f"against the labels and their uncertainty — IoU, JIoU and JIoU-ratio AP → {run.eval_dir}"
+        f"against the labels and their uncertainty — IoU, JIoU and JIoU-ratio AP → {escape(str(run.eval_dir))}"
     )
     evaluated = run_eval(EvalRequest(dataset=data, detections=det.folder, results=results, output=run.eval_dir, classes=("Car",), workers=workers, debug=debug))
     write_eval_dir(evaluated, run.eval_dir)
     run.evaluation = evaluated.summary
     run.report = Path(report) if report is not None else folder / "report.html"
-    say(f"[bold]6/6 report[/bold] the HTML review page (plots, the worst labels' pictures, the evaluation) → {run.report}")
+    say(f"[bold]6/6 report[/bold] the HTML review page (plots, the worst labels' pictures, the evaluation) → {escape(str(run.report))}")
     build_report(results, run.report, gate="default", eval_dir=run.eval_dir)
     return run

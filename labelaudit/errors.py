@@ -2,12 +2,19 @@
 
 All of them subclass :class:`LabelAuditError`; the CLI turns any ``LabelAuditError`` into a one-line
 message and exit code 2, so a new error class needs no registration anywhere. Anything else that
-escapes is a bug (exit 3, traceback with ``--debug``). This module only defines classes.
+escapes is a bug (exit 3, traceback with ``--debug``). This module only defines the classes and
+:func:`one_line`, the form every message is shown in.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+
+
+def one_line(message: str) -> str:
+    """``message`` on one line: every run of whitespace (the newlines of an embedded array repr,
+    Click's wrapped text) becomes one space."""
+    return " ".join(str(message).split())
 
 
 class LabelAuditError(Exception):

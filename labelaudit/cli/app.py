@@ -11,19 +11,50 @@ from __future__ import annotations
 
 import sys
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Any, Iterator
 
 import typer
 from rich.console import Console
 from rich.markup import escape
+from typer.core import TyperGroup
 from typer.exceptions import TyperException
 
 from labelaudit import __version__
-from labelaudit.errors import LabelAuditError
+from labelaudit.errors import LabelAuditError, one_line
 
 EXIT_OK, EXIT_GATE_FAILED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
 
+
+# Click's base error class, whether Typer vendors Click (≥ 0.29) or uses the click package.
+_CLICK_EXCEPTION: type[Exception] = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+class OneLineErrors(TyperGroup):
+    """The command group, with Click's usage errors (bad ``--workers``, unknown option, missing
+    argument …) printed as one line ``error: … (see `labelaudit X --help`)`` and exit 2, like every
+    other input error — Typer would draw a multi-line box."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:  # type: ignore[override]
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            code = super().main(*args, standalone_mode=False, **kwargs)
+        except _CLICK_EXCEPTION as exc:
+            ctx = getattr(exc, "ctx", None)
+            if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:  # bare `labelaudit [command]`: its help
+                typer.echo(ctx.get_help(), err=True)
+                sys.exit(EXIT_USAGE)
+            hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+            err().print(f"[red]error:[/red] {escape(one_line(exc.format_message()))}{escape(hint)}", soft_wrap=True)  # type: ignore[attr-defined]
+            sys.exit(getattr(exc, "exit_code", EXIT_USAGE))
+        except typer.Abort:
+            err().print("aborted")
+            sys.exit(EXIT_GATE_FAILED)
+        sys.exit(code if isinstance(code, int) else EXIT_OK)
+
+
 app = typer.Typer(
+    cls=OneLineErrors,
     name="labelaudit",
     help=(
         "Audit 3D LiDAR box labels (KITTI, Waymo) from the point cloud itself: per-label spatial "
@@ -61,7 +92,7 @@ def handle_errors(debug: bool) -> Iterator[None]:
     except LabelAuditError as exc:
         if debug:
             raise
-        err().print(f"[red]error:[/red] {escape(str(exc))}", markup=True, highlight=False, soft_wrap=True)
+        err().print(f"[red]error:[/red] {escape(one_line(str(exc)))}", markup=True, highlight=False, soft_wrap=True)
         raise typer.Exit(EXIT_USAGE) from None
     except KeyboardInterrupt:
         err().print("interrupted; rerun the same command to resume")
@@ -69,7 +100,7 @@ def handle_errors(debug: bool) -> Iterator[None]:
     except Exception as exc:
         if debug:
             raise
-        err().print(f"[red]internal error:[/red] {type(exc).__name__}: {escape(str(exc))} (rerun with --debug for the traceback)", soft_wrap=True)
+        err().print(f"[red]internal error:[/red] {type(exc).__name__}: {escape(one_line(str(exc)))} (rerun with --debug for the traceback)", soft_wrap=True)
         raise typer.Exit(EXIT_INTERNAL) from None
 
 

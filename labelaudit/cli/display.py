@@ -65,8 +65,11 @@ def print_run_summary(console: Console, summary: RunSummary, stats: dict[str, An
         med = "–" if c["median_jiou_gt"] is None else f"{c['median_jiou_gt']:.3f}"
         table.add_row(escape(name), str(c["objects"]), med)
     console.print(table)
-    statuses = ", ".join(f"{k} {v}" for k, v in stats["by_status"].items()) or "none"
+    statuses = ", ".join(f"{escape(str(k))} {v}" for k, v in stats["by_status"].items()) or "none"
     resumed = f" ({summary.chunks_skipped} of {summary.chunks} shards already done)" if summary.chunks_skipped else ""
+    retried = getattr(summary, "chunks_retried", 0)
+    if retried:
+        resumed += f" ({retried} shard{'s' if retried > 1 else ''} of an earlier run re-tried: they had failed frames or objects)"
     console.print(f"objects by status: {statuses}")
     console.print(
         f"frames this run: {summary.frames}{resumed}; failed frames: {summary.failed_frames}; warnings: {summary.warnings}; "
@@ -122,7 +125,7 @@ def print_gate_table(console: Console, report: GateReport) -> None:
         t.add_column(c, justify="right" if c in ("value", "threshold", "objects") else "left", no_wrap=c != "note")
     for r in report.results:
         t.add_row(
-            escape(r.scope), r.rule, format_number(r.value), f"{r.comparison} {format_number(r.threshold)}", str(r.objects),
+            escape(r.scope), escape(r.rule), format_number(r.value), f"{r.comparison} {format_number(r.threshold)}", str(r.objects),
             f"[{colour[r.status]}]{r.status}[/]", escape(r.note),
         )
     console.print(t)

@@ -10,6 +10,7 @@ import typer
 
 from labelaudit import constants as C
 from labelaudit.cli.app import app, err, handle_errors
+from labelaudit.errors import UsageError
 
 
 class DatasetFormat(str, Enum):
@@ -27,7 +28,7 @@ class ModelChoice(str, Enum):
 @app.command()
 def infer(
     dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder) or a Waymo v1 .tfrecord."),
-    output: Path = typer.Option(Path(C.DEFAULT_RESULTS_DIR), "-o", "--output", help="Results folder (Parquet shards + manifest)."),
+    output: str = typer.Option(C.DEFAULT_RESULTS_DIR, "-o", "--output", help="Results folder (Parquet shards + manifest)."),
     dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML (default: the built-in one of the format)."),
     classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
@@ -55,8 +56,10 @@ def infer(
     from labelaudit.infer.run import InferRequest
 
     with handle_errors(debug):
+        if not output.strip():  # Path("") would be the current folder
+            raise UsageError("-o/--output is empty; name the results folder (`-o .` for the current one)")
         request = InferRequest(
-            dataset, output, dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug,
+            dataset, Path(output), dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug,
             config=config, classes=None if classes is None else tuple(classes.split(",")), model=model.value if model else None,
         )
         run_and_report(request, quiet)

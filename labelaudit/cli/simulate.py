@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 
 from labelaudit import constants as C
 from labelaudit.cli.app import app, err, handle_errors
@@ -54,10 +55,13 @@ def simulate(
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--noise-*/--gross-fraction") from None
         simulate_dataset(out, frames=frames, seed=seed, noise=spec, progress=not quiet, workers=workers, overwrite=overwrite)
-        err().print(f"wrote {frames} frames to {out} (next: labelaudit infer {out})")
+        err().print(f"wrote {frames} frames to {escape(str(out))} (next: labelaudit infer {escape(str(out))})", soft_wrap=True)
         if detections:
             from labelaudit.sim.detector import DetectorSpec, simulate_detections
 
             det = simulate_detections(out, DetectorSpec(probabilistic=detections_cov), seed=seed)
             extra = f" and {det.parquet}" if det.parquet else ""
-            err().print(f"wrote {det.detections} synthetic detections to {det.folder}{extra} (next: labelaudit eval {out} {det.parquet or det.folder})")
+            err().print(
+                f"wrote {det.detections} synthetic detections to {escape(str(det.folder))}{escape(extra)} "
+                f"(next: labelaudit eval {escape(str(out))} {escape(str(det.parquet or det.folder))})", soft_wrap=True,
+            )

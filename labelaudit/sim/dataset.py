@@ -37,7 +37,7 @@ from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calib
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, sample_scene
-from labelaudit.errors import OutputExistsError
+from labelaudit.errors import OutputExistsError, UsageError
 from labelaudit.executors import make_executor
 
 __all__ = [
@@ -284,28 +284,37 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     Raises
     ------
     ValueError
-        Bad ``frames``, ``seed``, ``workers`` or ``label_fov``.
+        (a :class:`~labelaudit.errors.UsageError`) Bad ``frames``, ``seed``, ``workers`` or
+        ``label_fov``, or an output folder that cannot be created.
     OutputExistsError
         (a FileExistsError) ``out_dir`` already holds a dataset and ``overwrite`` is false.
     """
     if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}")
+        raise UsageError(f"frames must be >= 1, got {frames}")
     if seed < 0:
-        raise ValueError(f"seed must be >= 0, got {seed}")
+        raise UsageError(f"seed must be >= 0, got {seed}")
     if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+        raise UsageError(f"workers must be >= 1, got {workers}")
     if label_fov not in ("camera", "all"):
-        raise ValueError(f"label_fov must be 'camera' or 'all', got {label_fov!r}")
+        raise UsageError(f"label_fov must be 'camera' or 'all', got {label_fov!r}")
     if label_precision is not None and not (isinstance(label_precision, int) and 0 <= label_precision <= 17):
-        raise ValueError(f"label_precision must be None or an integer 0..17, got {label_precision!r}")
+        raise UsageError(f"label_precision must be None or an integer 0..17, got {label_precision!r}")
     out = Path(out_dir)
-    existing = [out / name for name in _OWNED if (out / name).exists()]
+    try:
+        if out.exists() and not out.is_dir():
+            raise UsageError(f"{out}: exists and is not a folder; choose another output folder")
+        existing = [out / name for name in _OWNED if os.path.lexists(out / name)]
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise UsageError(f"{out}: cannot use this output folder ({exc.strerror or exc})") from None
     if existing:
         if not overwrite:
             raise OutputExistsError(f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite it (--overwrite)")
         for p in existing:
             shutil.rmtree(p) if p.is_dir() else p.unlink()
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a dangling link, a path under a file …
+        raise UsageError(f"{out}: cannot create the output folder ({exc.strerror or exc}); choose another one") from None
 
     start = time.perf_counter()
     opts = {"out_dir": out, "seed": seed, "noise": noise, "lidar": lidar, "scene_spec": scene,
