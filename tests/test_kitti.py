@@ -11,6 +11,7 @@ import pytest
 from labelaudit.datasets import DatasetError, detect_format, open_dataset
 from labelaudit.datasets.kitti import (
     Calibration,
+    LABEL_COLUMNS,
     KittiReader,
     alpha_from_location,
     box_camera_to_lidar,
@@ -266,8 +267,11 @@ def _load_all(reader: KittiReader) -> tuple[dict[str, object], dict[str, Dataset
         (GOOD_LINE + " 0.9 7", "expected 15 columns .* got 17", 2),
         ("Car 0.00 0 -1.57 600 150 700 220 1.5 abc 4.0 1.0 1.5 10.0 0.0", "column 'width': expected a number, got 'abc'", 2),
         ("Car 0.00 0.5 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
-        ("Car 0.00 0 -1.57 600 150 700 220 1.5 0.0 4.0 1.0 1.5 10.0 0.0", "dimensions must be > 0.*width=0", 2),
-        ("Car 0.00 0 -1.57 600 150 700 220 -1.5 1.6 4.0 1.0 1.5 10.0 0.0", "dimensions must be > 0.*height=-1.5", 2),
+        # issue 15: an occlusion an int column cannot hold was an ArrowInvalid that killed the run
+        ("Car 0.00 3000000000 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'.*'3000000000'", 2),
+        ("Car 0.00 1e300 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'.*'1e300'", 2),
+        ("Car 0.00 7 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
+        ("Car 0.00 nan -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
     ],
 )
 def test_bad_label_lines(tmp_path: Path, bad_line: str, pattern: str, line: int) -> None:
@@ -282,11 +286,100 @@ def test_bad_label_lines(tmp_path: Path, bad_line: str, pattern: str, line: int)
     assert re.search(pattern, str(err)), str(err)
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "pattern"),
+    [
+        ("x", "nan", "x = nan .expected a finite number"),  # issue 15: a NaN box killed the run
+        ("z", "nan", "z = nan"),
+        ("rotation_y", "nan", "rotation_y = nan"),
+        ("width", "0.0", r"width = 0 .expected a size in \[0.01, 200\] m"),
+        ("width", "1e-300", "width = 1e-300"),  # the core overflowed (warnings on stderr)
+        ("height", "-1.5", "height = -1.5"),
+        ("length", "nan", "length = nan"),
+        ("length", "1e300", "length = 1e\\+300"),  # the core failed with a two-line eigenvalue message
+        ("x", "inf", "x = inf"),
+        ("y", "-3e7", r"y = -3e\+07 .expected \|value\| ≤ 10000 m"),
+        ("rotation_y", "1e30", "rotation_y = 1e\\+30"),
+    ],
+)
+def test_bad_box_values_make_only_that_object_an_error(tmp_path: Path, field: str, value: str, pattern: str) -> None:
+    tokens = GOOD_LINE.split()
+    tokens[LABEL_COLUMNS.index(field)] = value
+    write_frame(tmp_path, "000001", random_points(), [GOOD_LINE, " ".join(tokens), GOOD_LINE])
+    frame = KittiReader(tmp_path).load_frame("000001")
+    assert frame.num_objects == 3 and list(frame.object_errors) == [1]
+    msg = frame.object_errors[1]
+    assert msg.startswith(f"{tmp_path / 'training/label_2/000001.txt'}:2: "), msg
+    assert re.search(pattern, msg), msg
+    assert frame.source.endswith("label_2/000001.txt")
+
+
+def test_a_calibration_that_throws_boxes_out_of_range_names_the_calib_file(tmp_path: Path) -> None:
+    calib = Calibration(SIMPLE_CALIB.P2, SIMPLE_CALIB.R0_rect, np.c_[AXES, [0.0, 0.0, 1e9]])
+    write_frame(tmp_path, "000001", random_points(), [GOOD_LINE], calib)
+    frame = KittiReader(tmp_path).load_frame("000001")
+    assert "out of range after" in frame.object_errors[0] and "calib/000001.txt" in frame.object_errors[0]
+
+
+def test_bom_and_crlf_label_and_split_files_read_every_row(tmp_path: Path) -> None:
+    # issue 15: a byte-order mark made the first class '\ufeffCar': neither audited nor reported
+    write_frame(tmp_path, "000001", random_points(), [GOOD_LINE, GOOD_LINE.replace("Car", "Van")])
+    label = tmp_path / "training/label_2/000001.txt"
+    label.write_bytes(b"\xef\xbb\xbf" + label.read_bytes().replace(b"\n", b"\r\n"))
+    frame = KittiReader(tmp_path).load_frame("000001")
+    assert frame.class_names == ["Car", "Van"] and frame.extras["label_line"].tolist() == [1, 2]
+    assert frame.warnings == []
+    (tmp_path / "ImageSets").mkdir()
+    (tmp_path / "ImageSets/val.txt").write_bytes(b"\xef\xbb\xbf000001\r\n")
+    assert [r.key for r in KittiReader(tmp_path, split="val").list_units()] == ["000001"]
+
+
+def test_lines_are_numbered_by_newlines_only(tmp_path: Path) -> None:
+    # str.splitlines would also split at the form feed and shift the line numbers
+    write_frame(tmp_path, "000001", random_points(), ["\x0c", GOOD_LINE, GOOD_LINE.replace("1.60", "abc")])
+    with pytest.raises(DatasetError) as info:
+        KittiReader(tmp_path).load_frame("000001")
+    assert info.value.line == 3
+
+
+def test_unprintable_class_names_are_warned_about(tmp_path: Path) -> None:
+    write_frame(tmp_path, "000001", random_points(), [GOOD_LINE, "\u200bCar" + GOOD_LINE[3:]])
+    frame = KittiReader(tmp_path).load_frame("000001")
+    assert len(frame.warnings) == 1 and "line 2" in frame.warnings[0] and "unprintable" in frame.warnings[0]
+
+
+def test_non_utf8_text_files_name_the_file(tmp_path: Path) -> None:
+    # issue 15: a non-UTF-8 ImageSets/val.txt was a UnicodeDecodeError (exit 3)
+    write_frame(tmp_path, "000001", random_points(), [GOOD_LINE])
+    (tmp_path / "ImageSets").mkdir()
+    (tmp_path / "ImageSets/val.txt").write_bytes(b"000001\n\xff\xfe\n")
+    with pytest.raises(DatasetError, match=r"val.txt:2: split list is not UTF-8 text \(byte 0xff at offset 7\)"):
+        KittiReader(tmp_path, split="val").list_units()
+    label = tmp_path / "training/label_2/000001.txt"
+    label.write_bytes(b"\xef\xbb\xbf" + GOOD_LINE.encode() + b" \xe9\n")
+    with pytest.raises(DatasetError, match="000001.txt:1: label file is not UTF-8 text .byte 0xe9"):
+        read_label(label)
+
+
+def test_non_utf8_file_names_are_read_with_a_warning(tmp_path: Path) -> None:
+    import os
+
+    write_frame(tmp_path, "000001", random_points(), [GOOD_LINE])
+    base = os.fsencode(tmp_path / "training")
+    for sub, ext in ((b"label_2", b".txt"), (b"velodyne", b".bin"), (b"calib", b".txt")):
+        os.link(os.path.join(base, sub, b"000001" + ext), os.path.join(base, sub, b"\xff1" + ext))
+    reader = KittiReader(tmp_path)
+    frames = {f.frame_id: f for ref in reader.list_units() for f in reader.load_unit(ref)}
+    odd = frames[os.fsdecode(b"\xff1")]
+    assert odd.num_objects == 1 and "not valid UTF-8" in odd.warnings[0]
+
+
 def test_dontcare_placeholders_are_not_bad_dimensions(tmp_path: Path) -> None:
     dc = "DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10"
     write_frame(tmp_path, "000001", random_points(), [dc, GOOD_LINE, dc])
     frame = KittiReader(tmp_path).load_frame("000001")
     assert frame.class_names == ["Car"] and frame.extras["label_line"].tolist() == [2]
+    assert frame.object_errors == {}
 
 
 def test_bin_size_not_multiple_of_16(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from labelaudit.datasets import DatasetError, detect_format, open_dataset
+from labelaudit.datasets import DatasetError, FrameFailure, detect_format, open_dataset
 from labelaudit.datasets.waymo_v1 import WaymoV1Reader, encode_record, iter_records, masked_crc32c
 from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_waymo_v1
 
@@ -157,12 +157,16 @@ def _write_two(tmp_path: Path, segment) -> tuple[Path, Path]:
 
 
 def _read_all(reader: WaymoV1Reader) -> tuple[dict[str, int], dict[str, str]]:
+    """Frames read per file, and the error (unit-level, or of a failed record) per file."""
     done, errors = {}, {}
     for unit in reader.list_units():
         n = 0
         try:
-            for _ in reader.load_unit(unit):
-                n += 1
+            for frame in reader.load_unit(unit):
+                if isinstance(frame, FrameFailure):
+                    errors[Path(unit.key).name] = str(frame.error)
+                else:
+                    n += 1
         except DatasetError as exc:
             errors[Path(unit.key).name] = str(exc)
         done[Path(unit.key).name] = n
@@ -185,8 +189,19 @@ def test_crc_mismatch_names_file(tmp_path: Path, segment) -> None:
     raw[40] ^= 0xFF  # inside the first payload
     a.write_bytes(bytes(raw))
     done, errors = _read_all(WaymoV1Reader(tmp_path))
-    assert done == {"a.tfrecord": 0, "b.tfrecord": 2}
+    assert done == {"a.tfrecord": 1, "b.tfrecord": 2}  # the framing is intact: record 1 still reads
     assert str(a) in errors["a.tfrecord"] and "CRC mismatch" in errors["a.tfrecord"] and "record 0" in errors["a.tfrecord"]
+
+
+def test_a_forged_length_is_named_before_reading(tmp_path: Path) -> None:
+    # issue 15: a length of 2^60 made the reader ask for exabytes: "MemoryError while reading <file>: "
+    path = tmp_path / "x.tfrecord"
+    good = encode_record(b"hello")
+    length = struct.pack("<Q", 2**60)
+    path.write_bytes(good + length + struct.pack("<I", masked_crc32c(length)) + b"rest")
+    reader = WaymoV1Reader(path)
+    with pytest.raises(DatasetError, match=r"record 1 at byte 21 declares 1152921504606846976 payload bytes .* has 4 bytes left"):
+        list(iter_records(path))
 
 
 def test_length_crc_mismatch(tmp_path: Path) -> None:
@@ -202,9 +217,9 @@ def test_garbage_payload_with_valid_crc(tmp_path: Path) -> None:
     path = tmp_path / "x.tfrecord"
     path.write_bytes(encode_record(b"\xff\xff\xff"))
     reader = WaymoV1Reader(path)
-    with pytest.raises(DatasetError, match="record 0 is not a Waymo Frame") as info:
-        list(reader.load_unit(reader.list_units()[0]))
-    assert str(path) in str(info.value)
+    (failure,) = list(reader.load_unit(reader.list_units()[0]))
+    assert isinstance(failure, FrameFailure) and "record 0 is not a Waymo Frame" in str(failure.error)
+    assert failure.error.path == str(path)
 
 
 def test_no_tfrecords_is_an_error(tmp_path: Path) -> None:

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from labelaudit.datasets.base import DatasetReader, Frame, FrameRef
+from labelaudit.datasets.base import DatasetReader, Frame, FrameFailure, FrameRef
 from labelaudit.errors import DatasetError
 
 FORMATS = ("kitti", "waymo-v2", "waymo-v1")
 
-__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameRef", "detect_format", "open_dataset"]
+__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "detect_format", "open_dataset"]
 
 
 def detect_format(root: str | Path) -> str:

@@ -1,13 +1,21 @@
-"""The common frame type every dataset reader produces, and the reader protocol.
-Types only: no file access here."""
+"""The common frame type every dataset reader produces, the reader protocol and the checks readers share.
+
+Readers turn files into :class:`Frame` s; a frame they cannot read at all is a
+:class:`FrameFailure` (the unit's other frames still come), and a label they can read but not
+use (a NaN or absurd box) goes into :attr:`Frame.object_errors`, so that one object becomes an
+error row and the rest of its frame is audited. Nothing here reads files.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterator, Protocol
+from typing import Iterator, Protocol, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+
+from labelaudit import constants as C
+from labelaudit.errors import DatasetError
 
 
 @dataclass
@@ -25,6 +33,10 @@ class Frame:
     extras : per-object optional columns, each an array of length K (KITTI truncated, occluded,
         difficulty …)
     warnings : non-fatal notes about the input (e.g. "dropped 3 points with NaN coordinates")
+    source : the file the labels were read from (KITTI label file, Waymo segment file); every
+        error about this frame or one of its objects names it
+    object_errors : object index → why the reader cannot use that label (the message names the
+        file, the line or row and the field); those objects become rows with status ``error``
     """
 
     frame_id: str
@@ -35,6 +47,8 @@ class Frame:
     sensor_origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    source: str = ""
+    object_errors: dict[int, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         k = len(self.boxes)
@@ -49,6 +63,17 @@ class Frame:
     @property
     def num_objects(self) -> int:
         return len(self.boxes)
+
+
+@dataclass(frozen=True)
+class FrameFailure:
+    """A frame of a unit that could not be read; the reader goes on with the unit's next frame.
+
+    ``frame_id`` is None when not even the id could be read (e.g. an undecodable record).
+    """
+
+    frame_id: str | None
+    error: DatasetError
 
 
 @dataclass(frozen=True)
@@ -73,6 +98,50 @@ class DatasetReader(Protocol):
         """All units of work, in a stable order."""
         ...
 
-    def load_unit(self, ref: FrameRef) -> Iterator[Frame]:
-        """Frames of one unit; raises :class:`DatasetError` for a bad unit."""
+    def load_unit(self, ref: FrameRef) -> Iterator[Frame | FrameFailure]:
+        """Frames of one unit (a :class:`FrameFailure` for a frame that cannot be read); raises
+        :class:`DatasetError` when the rest of the unit cannot be read."""
         ...
+
+
+# --------------------------------------------------------------------------- checks readers share
+
+BOX_FIELD_KINDS = ("centre", "centre", "centre", "size", "size", "size", "angle")
+"""What each of the 7 box values is, for :func:`box_problems` (cx, cy, cz, l, w, h, yaw)."""
+
+
+def box_problems(values: ArrayLike, names: Sequence[str], kinds: Sequence[str] = BOX_FIELD_KINDS) -> dict[int, str]:
+    """Per-row problems of box values: not finite, or outside the sane limits (a size ≤ 0 included).
+
+    Parameters
+    ----------
+    values : (K, F) the box values of K labels, F fields
+    names : F field names as the file spells them (KITTI ``'x'``, Waymo v2 column names …)
+    kinds : F kinds: ``"centre"`` (|v| ≤ :data:`~labelaudit.constants.MAX_BOX_CENTRE`),
+        ``"size"`` (``MIN_BOX_SIZE`` ≤ v ≤ :data:`~labelaudit.constants.MAX_BOX_SIZE`) or ``"angle"``
+        (|v| ≤ :data:`~labelaudit.constants.MAX_BOX_ANGLE`)
+
+    Returns
+    -------
+    row → message naming every bad field, its value and what was expected (rows without
+    problems are absent); vectorised, the loop runs over bad rows only.
+    """
+    v = np.asarray(values, dtype=np.float64).reshape(-1, len(names))
+    limit = np.array([{"centre": C.MAX_BOX_CENTRE, "size": C.MAX_BOX_SIZE, "angle": C.MAX_BOX_ANGLE}[k] for k in kinds])
+    is_size = np.array([k == "size" for k in kinds])
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(v) | (np.abs(v) > limit) | (is_size & (v < C.MIN_BOX_SIZE))
+    out: dict[int, str] = {}
+    for r in np.flatnonzero(bad.any(axis=1)):
+        parts = []
+        for j in np.flatnonzero(bad[r]):
+            x = v[r, j]
+            if not np.isfinite(x):
+                expected = "a finite number"
+            elif is_size[j]:
+                expected = f"a size in [{C.MIN_BOX_SIZE:g}, {C.MAX_BOX_SIZE:g}] m"
+            else:
+                expected = f"|value| ≤ {limit[j]:g}" + (" rad" if kinds[j] == "angle" else " m")
+            parts.append(f"{names[j]} = {x:g} (expected {expected})")
+        out[int(r)] = "; ".join(parts)
+    return out

@@ -20,6 +20,7 @@ axis as exactly vertical in the LiDAR frame, which is true to ~0.3° on KITTI. T
 
 from __future__ import annotations
 
+import codecs
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -29,9 +30,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
-from labelaudit.datasets.base import Frame, FrameRef
+from labelaudit.datasets.base import Frame, FrameRef, box_problems
 from labelaudit.errors import DatasetError
-from labelaudit.core.geometry import box_corners, normalize_angle
+from labelaudit.core.geometry import BOX_FIELDS, box_corners, normalize_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -110,7 +111,8 @@ class Calibration:
                 raise ValueError(f"calibration {f.name} has non-finite values: {arr.ravel().tolist()}")
             setattr(self, f.name, arr)
         for name, rot in (("R0_rect", self.R0_rect), ("Tr_velo_to_cam", self.Tr_velo_to_cam[:, :3])):
-            det = float(np.linalg.det(rot))
+            with np.errstate(all="ignore"):  # a huge matrix overflows to inf: refused below, not warned about
+                det = float(np.linalg.det(rot))
             # Loose on purpose: KITTI matrices are printed with 7 digits and are not exactly orthonormal.
             if abs(abs(det) - 1.0) > 0.05:
                 raise ValueError(f"calibration {name} rotation part is not a rotation (determinant {det:.4g})")
@@ -133,6 +135,33 @@ class Calibration:
         return np.linalg.inv(self.T_cam_velo)
 
 
+def read_text_lines(path: Path, what: str) -> list[str]:
+    """The lines of a KITTI text file: UTF-8 (a leading byte-order mark is dropped), ``\\n`` or
+    ``\\r\\n`` line ends. Lines are split on ``\\n`` only, so line numbers are those of ``wc -l``
+    and every editor (``str.splitlines`` would also split on form feeds and other separators).
+
+    Raises
+    ------
+    DatasetError
+        The file cannot be read or is not UTF-8 text (the message names the byte offset).
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read {what}: {exc.strerror or exc}") from None
+    bom = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+    try:
+        text = data[bom:].decode("utf-8")
+    except UnicodeDecodeError as exc:
+        at = bom + exc.start
+        line = data.count(b"\n", 0, at) + 1
+        raise DatasetError(path, f"{what} is not UTF-8 text (byte {data[at]:#04x} at offset {at})", line) from None
+    lines = text.split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    return [l[:-1] if l.endswith("\r") else l for l in lines]
+
+
 def read_calib(path: str | Path) -> Calibration:
     """Read a KITTI object calibration file (``key: v1 v2 …`` per line).
 
@@ -145,12 +174,8 @@ def read_calib(path: str | Path) -> Calibration:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(path, f"cannot read calibration file: {exc}") from exc
     values: dict[str, FloatArray] = {}
-    for lineno, raw in enumerate(text.splitlines(), start=1):
+    for lineno, raw in enumerate(read_text_lines(path, "calibration file"), start=1):
         line = raw.strip()
         if not line:
             continue
@@ -220,10 +245,11 @@ def boxes_camera_to_lidar(locations: ArrayLike, dims_hwl: ArrayLike, rotation_y:
     dims = np.asarray(dims_hwl, dtype=float).reshape(-1, 3)
     ry = np.asarray(rotation_y, dtype=float).reshape(-1)
     T = calib.T_velo_cam
-    bottom = loc @ T[:3, :3].T + T[:3, 3]
-    h, w, l = dims[:, 0], dims[:, 1], dims[:, 2]
-    centre = bottom + np.c_[np.zeros_like(h), np.zeros_like(h), h / 2.0]
-    yaw = normalize_angle(-ry - np.pi / 2.0)
+    with np.errstate(invalid="ignore", over="ignore"):  # a NaN/inf label stays NaN/inf; the reader reports it
+        bottom = loc @ T[:3, :3].T + T[:3, 3]
+        h, w, l = dims[:, 0], dims[:, 1], dims[:, 2]
+        centre = bottom + np.c_[np.zeros_like(h), np.zeros_like(h), h / 2.0]
+        yaw = normalize_angle(-ry - np.pi / 2.0)
     return np.c_[centre, l, w, h, np.atleast_1d(yaw)]
 
 
@@ -312,6 +338,8 @@ LABEL_COLUMNS: tuple[str, ...] = (
 )  # fmt: skip
 """Column names of a KITTI label line (15 columns; results files add ``score``)."""
 
+_OCCLUSION_LEVELS = frozenset((-1.0, 0.0, 1.0, 2.0, 3.0))  # 0 visible … 2 largely occluded, 3 unknown, -1 DontCare
+
 
 def _fmt(v: float, precision: int | None) -> str:
     return repr(float(v)) if precision is None else f"{v:.{precision}f}"
@@ -386,38 +414,40 @@ class KittiLabels:
 def read_label(path: str | Path) -> KittiLabels:
     """Parse a KITTI ``label_2`` (15 columns) or result (16 columns, with score) file.
 
-    Blank lines are skipped; an empty file gives zero rows.
+    Blank lines are skipped; an empty file gives zero rows. The file is UTF-8 with ``\\n`` or
+    ``\\r\\n`` line ends; a leading byte-order mark is dropped (:func:`read_text_lines`). Values are
+    parsed, not judged: a NaN or negative size reads as written (the reader makes such a label an
+    error row, :meth:`KittiReader.load_frame`).
 
     Raises
     ------
     DatasetError
-        Missing file, a line with another column count, a non-numeric field (the message names
-        the column) or a non-integer occlusion level.
+        Missing or non-UTF-8 file, a line with another column count, a non-numeric field (the
+        message names the column) or an occlusion level other than -1, 0, 1, 2, 3.
     """
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "label file not found")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(path, f"cannot read label file: {exc}") from exc
     names: list[str] = []
     rows: list[list[float]] = []
     lines: list[int] = []
-    for lineno, raw in enumerate(text.splitlines(), start=1):
+    for lineno, raw in enumerate(read_text_lines(path, "label file"), start=1):
         tokens = raw.split()
         if not tokens:
             continue
         if len(tokens) not in (15, 16):
             raise DatasetError(path, f"expected 15 columns (16 with score), got {len(tokens)}", lineno)
-        nums = []
-        for col, tok in zip(LABEL_COLUMNS[1:], tokens[1:]):
-            try:
-                nums.append(float(tok))
-            except ValueError:
-                raise DatasetError(path, f"column {col!r}: expected a number, got {tok!r}", lineno) from None
-        if not math.isfinite(nums[1]) or nums[1] != int(nums[1]):
-            raise DatasetError(path, f"column 'occluded': expected an integer (0, 1, 2, 3; -1 for DontCare), got {tokens[2]!r}", lineno)
+        try:
+            nums = [float(tok) for tok in tokens[1:]]
+        except ValueError:  # find the column to name it
+            for col, tok in zip(LABEL_COLUMNS[1:], tokens[1:]):
+                try:
+                    float(tok)
+                except ValueError:
+                    raise DatasetError(path, f"column {col!r}: expected a number, got {tok[:40]!r}", lineno) from None
+            raise
+        if nums[1] not in _OCCLUSION_LEVELS:  # also refuses 3e9, 1e300 and NaN: an int column must hold it
+            raise DatasetError(path, f"column 'occluded': expected an integer (0, 1, 2, 3; -1 for DontCare), got {tokens[2][:40]!r}", lineno)
         if len(nums) == 14:
             nums.append(math.nan)
         names.append(tokens[0])
@@ -584,7 +614,13 @@ class KittiReader:
             list_file = self.imagesets_dir / f"{self.split}.txt"
             if not list_file.is_file():
                 raise DatasetError(list_file, f"split list not found (expected ImageSets/{self.split}.txt next to training/)")
-            ids = [t for t in list_file.read_text().split() if t]
+            ids, first = [], {}
+            for lineno, line in enumerate(read_text_lines(list_file, "split list"), start=1):
+                for fid in line.split():
+                    if fid in first:
+                        raise DatasetError(list_file, f"frame {fid!r} is listed twice (lines {first[fid]} and {lineno}); list each frame once", lineno)
+                    first[fid] = lineno
+                    ids.append(fid)
         else:
             ids = sorted(p.stem for p in (self.data_dir / "label_2").glob("*.txt"))
         return [FrameRef(self.format_name, str(self.root), fid) for fid in ids]
@@ -594,7 +630,19 @@ class KittiReader:
         yield self.load_frame(ref.key)
 
     def load_frame(self, frame_id: str) -> Frame:
-        """Read one frame: points and boxes in the LiDAR frame, KITTI extras per object."""
+        """Read one frame: points and boxes in the LiDAR frame, KITTI extras per object.
+
+        A kept label whose box values are not finite, have a size ≤ 0 or are beyond the sane
+        limits (``constants.MAX_BOX_*``) is still in the frame, with its reason in
+        ``frame.object_errors`` (file, line, column, value): it becomes an error row and the rest
+        of the frame is audited.
+
+        Raises
+        ------
+        DatasetError
+            A file that is missing or cannot be parsed (:func:`read_label`, :func:`read_calib`,
+            :func:`read_velodyne`).
+        """
         label_path = self.label_path(frame_id)
         velo_path = self.velodyne_path(frame_id)
         labels = read_label(label_path)
@@ -610,12 +658,6 @@ class KittiReader:
         rows = np.flatnonzero(keep)
 
         dims = labels.dims_hwl[rows]
-        bad = np.flatnonzero(~np.all(dims > 0, axis=1))
-        if len(bad):
-            r = rows[bad[0]]
-            h, w, l = labels.dims_hwl[r]
-            raise DatasetError(label_path, f"box dimensions must be > 0, got height={h:g} width={w:g} length={l:g}", int(labels.line[r]))
-
         warnings: list[str] = []
         points = read_velodyne(velo_path)
         finite = np.all(np.isfinite(points[:, :3]), axis=1)
@@ -625,6 +667,12 @@ class KittiReader:
             warnings.append(f"{velo_path}: dropped {n_bad} of {n_bad + len(points)} points with NaN/inf coordinates")
 
         boxes = boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib)
+        object_errors = _label_problems(labels, rows, boxes, label_path, self.calib_path(frame_id))
+        for name in {labels.class_names[r] for r in rows if not labels.class_names[r].isprintable()}:
+            at = ", ".join(str(labels.line[r]) for r in rows if labels.class_names[r] == name)
+            warnings.append(f"{label_path}: line {at}: class name {name!r} has unprintable characters (a byte-order mark or a control character?)")
+        if not _is_utf8(frame_id):
+            warnings.append(f"{label_path}: the file name is not valid UTF-8; frame_id shows its undecodable bytes as \\xNN")
         extras: dict[str, np.ndarray] = {
             "truncated": labels.truncated[rows],
             "occluded": labels.occluded[rows],
@@ -643,4 +691,30 @@ class KittiReader:
             sensor_origin=np.zeros(3),
             extras=extras,
             warnings=warnings,
+            source=str(label_path),
+            object_errors=object_errors,
         )
+
+
+_LABEL_BOX_FIELDS = ("height", "width", "length", "x", "y", "z", "rotation_y")
+_LABEL_BOX_KINDS = ("size", "size", "size", "centre", "centre", "centre", "angle")
+
+
+def _label_problems(labels: KittiLabels, rows: NDArray[np.int64], boxes: FloatArray, label_path: Path, calib_path: Path) -> dict[int, str]:
+    """Object index → why its label cannot be audited: a label column that is not finite, a size
+    ≤ 0 or beyond the sane limits (named as the file spells it), else a LiDAR-frame box out of
+    range after the calibration."""
+    raw = np.c_[labels.dims_hwl[rows], labels.location[rows], labels.rotation_y[rows]]
+    out = {i: f"{label_path}:{labels.line[rows[i]]}: {msg}" for i, msg in box_problems(raw, _LABEL_BOX_FIELDS, _LABEL_BOX_KINDS).items()}
+    for i, msg in box_problems(boxes, BOX_FIELDS).items():
+        if i not in out:
+            out[i] = f"{label_path}:{labels.line[rows[i]]}: box in the LiDAR frame out of range after {calib_path}: {msg}"
+    return out
+
+
+def _is_utf8(name: str) -> bool:
+    try:
+        name.encode("utf-8")
+        return True
+    except UnicodeEncodeError:  # a surrogate-escaped byte of a non-UTF-8 file name
+        return False

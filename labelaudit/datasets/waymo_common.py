@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from labelaudit.datasets.base import Frame
+from labelaudit.datasets.base import Frame, box_problems
 
 # Waymo label.proto Label.Type; names as the Waymo tools print them without the TYPE_ prefix.
 CLASS_NAMES: dict[int, str] = {0: "Unknown", 1: "Vehicle", 2: "Pedestrian", 3: "Sign", 4: "Cyclist"}
@@ -222,12 +222,19 @@ def frame_points(
             if image is None or image.size == 0:
                 continue
             try:
-                parts.append(range_image_to_points(image, calib, pose, frame_pose))
+                with np.errstate(over="ignore", invalid="ignore"):  # absurd calibrations: non-finite points, dropped below
+                    parts.append(range_image_to_points(image, calib, pose, frame_pose))
             except ValueError as exc:
                 warnings.append(f"{source}: lidar {label}: {exc}; its points are skipped")
     if not parts:
         return np.zeros((0, 4), dtype=np.float32)
-    return np.concatenate(parts, axis=0)
+    points = np.concatenate(parts, axis=0)
+    finite = np.isfinite(points[:, :3]).all(axis=1)
+    if not finite.all():  # a NaN/inf calibration or pose value: those points cannot be placed
+        n_bad = int(len(points) - finite.sum())
+        warnings.append(f"{source}: dropped {n_bad} of {len(points)} points with NaN/inf coordinates (calibration or pose values?)")
+        points = points[finite]
+    return points
 
 
 def sensor_origin(calibrations: dict[int, LidarCalibration]) -> NDArray[np.float64]:
@@ -236,6 +243,38 @@ def sensor_origin(calibrations: dict[int, LidarCalibration]) -> NDArray[np.float
     if top is None:
         return np.zeros(3)
     return np.asarray(top.extrinsic, dtype=np.float64)[:3, 3].copy()
+
+
+# Ranges of the integer extras (they are int32 columns in the results): (low, high) inclusive.
+EXTRA_RANGES: dict[str, tuple[int, int]] = {
+    "num_lidar_points_in_box": (0, 2**31 - 1),
+    "num_top_lidar_points_in_box": (0, 2**31 - 1),
+    "detection_difficulty": (0, 2),  # label.proto DifficultyLevel: 0 UNKNOWN, 1 LEVEL_1, 2 LEVEL_2
+    "tracking_difficulty": (0, 2),
+}
+
+
+def check_extras(extras: dict[str, np.ndarray], field_names: dict[str, str], locations: list[str], warnings: list[str]) -> dict[str, np.ndarray]:
+    """Integer extras with every value outside :data:`EXTRA_RANGES` replaced by NaN (null in the
+    results; such an array becomes float64), one warning per bad value naming where and which field.
+
+    ``locations`` names each label (``"<file> row 12"``), ``field_names`` each extra as the file
+    spells it. NaN already in an array (a null in the file) is left alone without a warning.
+    """
+    out = dict(extras)
+    for key, (lo, hi) in EXTRA_RANGES.items():
+        if key not in extras:
+            continue
+        v = np.asarray(extras[key])
+        with np.errstate(invalid="ignore"):
+            bad = (v < lo) | (v > hi) if v.dtype.kind in "iu" else ~np.isnan(v) & ((v < lo) | (v > hi) | (v != np.round(v)))
+        if bad.any():
+            for i in np.flatnonzero(bad):
+                warnings.append(f"{locations[i]}: {field_names.get(key, key)} = {v[i]} is outside [{lo}, {hi}]; stored as null")
+            fixed = v.astype(np.float64)
+            fixed[bad] = np.nan
+            out[key] = fixed
+    return out
 
 
 def make_frame(
@@ -248,20 +287,39 @@ def make_frame(
     origin: NDArray[np.float64],
     warnings: list[str],
     classes: tuple[str, ...] | None,
+    *,
+    source: str = "",
+    locations: list[str] | None = None,
+    box_fields: tuple[str, ...] = ("center_x", "center_y", "center_z", "length", "width", "height", "heading"),
+    object_errors: dict[int, str] | None = None,
 ) -> Frame:
-    """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None)."""
+    """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None).
+
+    Labels whose box values are not finite, have a size ≤ 0 or are out of range get their reason
+    in ``frame.object_errors`` (:func:`~labelaudit.datasets.base.box_problems`, named by
+    ``locations`` and ``box_fields`` as the file spells them); ``object_errors`` adds reasons the
+    reader found itself (e.g. a null column), keyed by the same label index.
+    """
     names = [class_name(t) for t in types]
     keep = np.ones(len(names), dtype=bool) if classes is None else np.array([n in classes for n in names], dtype=bool)
     idx = np.nonzero(keep)[0]
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    where = locations or [f"{source or frame_id} label {i}" for i in range(len(names))]
+    problems = {i: f"{where[i]}: {m}" for i, m in box_problems(boxes[idx], box_fields).items()}
+    for j, i in enumerate(idx):
+        if object_errors and int(i) in object_errors:
+            problems[j] = object_errors[int(i)]
     return Frame(
         frame_id=frame_id,
         points=points,
-        boxes=np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[idx],
+        boxes=boxes[idx],
         class_names=[names[i] for i in idx],
         object_ids=[object_ids[i] for i in idx],
         sensor_origin=origin,
         extras={k: np.asarray(v)[idx] for k, v in extras.items()},
         warnings=warnings,
+        source=str(source),
+        object_errors=problems,
     )
 
 

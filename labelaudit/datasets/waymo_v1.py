@@ -16,6 +16,7 @@ zlib-compressed ``MatrixFloat`` messages.
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -26,12 +27,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit.datasets import waymo_proto as wp
-from labelaudit.datasets.base import Frame, FrameRef
-from labelaudit.errors import DatasetError
+from labelaudit.datasets.base import Frame, FrameFailure, FrameRef
+from labelaudit.errors import DatasetError, one_line
 from labelaudit.datasets.waymo_common import (
     TOP,
     LidarCalibration,
     LidarData,
+    check_extras,
     frame_points,
     make_frame,
     no_lidar_warning,
@@ -65,13 +67,28 @@ def iter_records(path: str | Path, verify: bool = True) -> Iterator[bytes]:
         On a truncated record or a CRC mismatch; the message names the file, the record index
         and its byte offset. Records before the bad one have already been yielded.
     """
+    for item in _records(path, verify):
+        if isinstance(item, DatasetError):
+            raise item
+        yield item
+
+
+def _records(path: str | Path, verify: bool) -> Iterator[bytes | DatasetError]:
+    """Payloads of a TFRecord file; a record whose payload CRC does not match is yielded as its
+    :class:`DatasetError` (the framing is intact, so the next record still reads). Framing errors
+    (truncation, a length CRC mismatch, a length beyond the end of the file) raise."""
     path = Path(path)
-    with open(path, "rb") as fh:
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise DatasetError(path, f"cannot open the segment file ({exc.strerror or exc})") from None
+    with fh:
         yield from _iter_stream(fh, path, verify)
 
 
-def _iter_stream(fh: BinaryIO, path: Path, verify: bool) -> Iterator[bytes]:
+def _iter_stream(fh: BinaryIO, path: Path, verify: bool) -> Iterator[bytes | DatasetError]:
     index = 0
+    size = os.fstat(fh.fileno()).st_size
     while True:
         offset = fh.tell()
         header = fh.read(_HEADER.size)
@@ -82,6 +99,13 @@ def _iter_stream(fh: BinaryIO, path: Path, verify: bool) -> Iterator[bytes]:
         length, length_crc = _HEADER.unpack(header)
         if verify and masked_crc32c(header[:8]) != length_crc:
             raise DatasetError(path, f"TFRecord length CRC mismatch in record {index} at byte {offset} (corrupt file?)")
+        remaining = size - offset - _HEADER.size
+        if length + _FOOTER.size > remaining:  # before reading: a forged length would ask for exabytes
+            raise DatasetError(
+                path,
+                f"truncated TFRecord: record {index} at byte {offset} declares {length} payload bytes + 4 CRC bytes, "
+                f"but the file has {remaining} bytes left (truncated file or corrupt length)",
+            )
         payload = fh.read(length)
         footer = fh.read(_FOOTER.size)
         if len(payload) < length or len(footer) < _FOOTER.size:
@@ -91,8 +115,9 @@ def _iter_stream(fh: BinaryIO, path: Path, verify: bool) -> Iterator[bytes]:
                 f"file ends after {len(payload) + len(footer)}",
             )
         if verify and masked_crc32c(payload) != _FOOTER.unpack(footer)[0]:
-            raise DatasetError(path, f"TFRecord payload CRC mismatch in record {index} at byte {offset} (corrupt file?)")
-        yield payload
+            yield DatasetError(path, f"TFRecord payload CRC mismatch in record {index} at byte {offset} (corrupt file?)")
+        else:
+            yield payload
         index += 1
 
 
@@ -146,7 +171,22 @@ def decode_frame(
     source : file name for messages
     classes : keep only these class names (all when None)
     index : record index, for messages
+
+    Raises
+    ------
+    DatasetError
+        Naming the file and record, for anything in the record that cannot be decoded.
     """
+    try:
+        return _decode_frame(payload, source, classes, index)
+    except DatasetError:
+        raise
+    except (ValueError, TypeError, OverflowError, IndexError, KeyError, zlib.error, MemoryError) as exc:
+        detail = one_line(f"{type(exc).__name__}: {exc}")
+        raise DatasetError(source, f"record {index} cannot be decoded ({detail})") from None
+
+
+def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] | None, index: int) -> Frame:
     where = f"{source} record {index}"
     try:
         msg = wp.Frame.FromString(payload)
@@ -179,6 +219,7 @@ def decode_frame(
     ).reshape(k, 7)
     types = np.array([l.type for l in labels], dtype=np.int64)
     ids = [l.id or f"{frame_id}:{i}" for i, l in enumerate(labels)]
+    locations = [f"{where} laser_labels[{i}]" for i in range(k)]
     extras = {
         "num_lidar_points_in_box": np.array([l.num_lidar_points_in_box for l in labels], dtype=np.int64),
         "num_top_lidar_points_in_box": np.array([l.num_top_lidar_points_in_box for l in labels], dtype=np.int64),
@@ -194,7 +235,20 @@ def decode_frame(
         points = np.zeros((0, 4), dtype=np.float32)
         if k:
             warnings.append(no_lidar_warning(where, frame_id, k))
-    return make_frame(frame_id, points, boxes, types, ids, extras, sensor_origin(calibrations), warnings, classes)
+    extras = check_extras(extras, _EXTRA_FIELDS, locations, warnings)
+    return make_frame(
+        frame_id, points, boxes, types, ids, extras, sensor_origin(calibrations), warnings, classes,
+        source=str(source), locations=locations, box_fields=_BOX_FIELDS,
+    )
+
+
+_BOX_FIELDS = tuple(f"box.{f}" for f in ("center_x", "center_y", "center_z", "length", "width", "height", "heading"))
+_EXTRA_FIELDS = {
+    "num_lidar_points_in_box": "num_lidar_points_in_box",
+    "num_top_lidar_points_in_box": "num_top_lidar_points_in_box",
+    "detection_difficulty": "detection_difficulty_level",
+    "tracking_difficulty": "tracking_difficulty_level",
+}
 
 
 class WaymoV1Reader:
@@ -234,8 +288,9 @@ class WaymoV1Reader:
                 raise DatasetError(self.root, "no *.tfrecord files found (searched recursively)")
         return [FrameRef(FORMAT, str(self.root), str(p)) for p in files]
 
-    def load_unit(self, ref: FrameRef) -> Iterator[Frame]:
-        """Frames of one segment file, in record order.
+    def load_unit(self, ref: FrameRef) -> Iterator[Frame | FrameFailure]:
+        """Frames of one segment file, in record order; a record that cannot be decoded (or whose
+        payload CRC fails) is a :class:`FrameFailure` and the next record is read.
 
         Raises
         ------
@@ -246,8 +301,23 @@ class WaymoV1Reader:
         if not path.is_file():
             raise DatasetError(path, "segment file not found")
         count = 0
-        for index, payload in enumerate(iter_records(path, self.verify_crc)):
-            yield decode_frame(payload, path, self.classes, index)
+        seen: dict[str, int] = {}  # frame id → record: a frame id must not repeat (rows are keyed by it)
+        for index, payload in enumerate(_records(path, self.verify_crc)):
             count += 1
+            if isinstance(payload, DatasetError):
+                yield FrameFailure(None, payload)
+                continue
+            try:
+                frame = decode_frame(payload, path, self.classes, index)
+            except DatasetError as exc:  # one bad record: the next one still reads
+                yield FrameFailure(None, exc)
+                continue
+            if frame.frame_id in seen:
+                yield FrameFailure(frame.frame_id, DatasetError(
+                    path, f"record {index} repeats frame {frame.frame_id} of record {seen[frame.frame_id]} (same segment name and timestamp); not read twice"
+                ))
+                continue
+            seen[frame.frame_id] = index
+            yield frame
         if count == 0:
             raise DatasetError(path, "empty TFRecord file: no records")

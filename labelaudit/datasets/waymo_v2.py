@@ -19,7 +19,9 @@ row group has been built, so memory stays at a few frames even for a 200-frame s
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -29,12 +31,13 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
-from labelaudit.datasets.base import Frame, FrameRef
-from labelaudit.errors import DatasetError
+from labelaudit.datasets.base import Frame, FrameFailure, FrameRef
+from labelaudit.errors import DatasetError, one_line
 from labelaudit.datasets.waymo_common import (
     TOP,
     LidarCalibration,
     LidarData,
+    check_extras,
     frame_points,
     make_frame,
     no_lidar_warning,
@@ -69,6 +72,7 @@ BOX_EXTRAS = {
     "speed_x": f"{_BOX}.speed.x",
     "speed_y": f"{_BOX}.speed.y",
 }
+_BOX_KEYS = ("cx", "cy", "cz", "length", "width", "height", "heading")
 _LIDAR = "[LiDARComponent]"
 LIDAR_RETURNS = [(f"{_LIDAR}.range_image_return{k}.values", f"{_LIDAR}.range_image_return{k}.shape") for k in (1, 2)]
 _POSE = "[LiDARPoseComponent]"
@@ -79,6 +83,36 @@ CAL_MIN = f"{_CAL}.beam_inclination.min"
 CAL_MAX = f"{_CAL}.beam_inclination.max"
 CAL_VALUES = f"{_CAL}.beam_inclination.values"
 VEHICLE_POSE = "[VehiclePoseComponent].world_from_vehicle.transform"
+
+
+@contextmanager
+def _reading(path: Path) -> Iterator[None]:
+    """Anything but a :class:`DatasetError` raised while reading ``path`` becomes one naming it
+    (a truncated row group, a null key, a column of the wrong type …)."""
+    try:
+        yield
+    except DatasetError:
+        raise
+    except (pa.ArrowException, OSError, ValueError, TypeError, OverflowError, IndexError, KeyError) as exc:
+        detail = one_line(f"{type(exc).__name__}: {exc}")
+        raise DatasetError(path, f"cannot read this component file ({detail[:300]})") from None
+
+
+def _check_numeric(path: Path, schema: pa.Schema, columns: list[str]) -> None:
+    for c in columns:
+        if c in schema.names and not (pa.types.is_integer(schema.field(c).type) or pa.types.is_floating(schema.field(c).type)):
+            raise DatasetError(path, f"column {c}: expected numbers, found {schema.field(c).type}")
+
+
+def _keys(table: pa.Table, column: str, path: Path) -> NDArray[np.int64]:
+    """An integer key column as int64; a null or non-integer key is a :class:`DatasetError` naming the row."""
+    col = table.column(column)
+    if not pa.types.is_integer(col.type):
+        raise DatasetError(path, f"column {column}: expected integers, found {col.type}")
+    if col.null_count:
+        row = int(np.flatnonzero(pc.is_null(col).to_numpy(zero_copy_only=False))[0])
+        raise DatasetError(path, f"column {column} is null in row {row} (a key column must be set in every row)")
+    return col.to_numpy().astype(np.int64)
 
 
 def _check_columns(path: Path, schema: pa.Schema, required: list[str]) -> None:
@@ -128,7 +162,8 @@ class _RowGroupCache:
         self.groups_of: dict[int, list[int]] = defaultdict(list)
         self.pending: dict[int, set[int]] = {}
         for g in range(self.file.num_row_groups):
-            ts = self.file.read_row_group(g, columns=[K_TS]).column(0).to_numpy()
+            with _reading(path):
+                ts = _keys(self.file.read_row_group(g, columns=[K_TS]), K_TS, path)
             uniq = set(int(t) for t in np.unique(ts))
             self.pending[g] = uniq
             for t in uniq:
@@ -146,7 +181,9 @@ class _RowGroupCache:
         parts = []
         for g in self.groups_of.get(ts, []):
             if g not in self.loaded:
-                self.loaded[g] = self.file.read_row_group(g, columns=[K_TS, *self.columns])
+                self.pending[g].discard(ts)  # a row group that fails to read is not retried by every frame
+                with _reading(self.path):
+                    self.loaded[g] = self.file.read_row_group(g, columns=[K_TS, *self.columns])
             t = self.loaded[g]
             parts.append((t, np.flatnonzero(t.column(K_TS).to_numpy() == ts)))
             self.pending[g].discard(ts)
@@ -160,10 +197,10 @@ def _image(table: pa.Table, row: int, values: str, shape: str, path: Path) -> ND
     s = table.column(shape)[row]
     if not v.is_valid or not s.is_valid or len(v) == 0:
         return None
-    dims = [int(d) for d in s.as_py()]
+    dims = [int(d) for d in s.as_py() if d is not None]
     arr = v.values.to_numpy(zero_copy_only=False).astype(np.float32, copy=False)
-    if int(np.prod(dims)) != arr.size:
-        raise DatasetError(path, f"{values}: {arr.size} values do not fill shape {dims}")
+    if len(dims) != 3 or min(dims) < 1 or math.prod(dims) != arr.size:
+        raise DatasetError(path, f"{values}: {arr.size} values do not fill shape {s.as_py()} (expected [H, W, C])")
     return arr.reshape(dims)
 
 
@@ -208,13 +245,19 @@ class WaymoV2Reader:
             raise DatasetError(self.root, "lidar_box/ holds no .parquet files")
         return [FrameRef(FORMAT, str(self.root), str(p)) for p in files]
 
-    def load_unit(self, ref: FrameRef) -> Iterator[Frame]:
+    def load_unit(self, ref: FrameRef) -> Iterator[Frame | FrameFailure]:
         """Frames of one segment, by timestamp.
+
+        A frame whose range images or poses cannot be read is a :class:`FrameFailure` naming the
+        component file (``lidar``, ``lidar_pose`` …), and the next frame is read. Box rows with
+        NaN/null/out-of-range values become ``frame.object_errors`` naming the row and column;
+        rows with a null type are left out with a warning (their class is unknown).
 
         Raises
         ------
         DatasetError
-            When a component file is missing or lacks a needed column (the message names it).
+            When a component file is missing, unreadable, or lacks a needed column, or a key
+            column has nulls (the message names the file).
         """
         box_path = Path(ref.key)
         base, segment = box_path.parent.parent, box_path.stem
@@ -225,50 +268,99 @@ class WaymoV2Reader:
                     p, f"missing Waymo v2 component file for segment {segment} (expected <root>/{c}/<segment>.parquet)"
                 )
 
-        boxes_t = _read(paths["lidar_box"], [K_TS, K_OBJ, *BOX_COLUMNS.values()], list(BOX_EXTRAS.values()))
-        calibrations = self._calibrations(paths["lidar_calibration"])
-        poses = self._vehicle_poses(paths["vehicle_pose"])
+        box_file = paths["lidar_box"]
+        boxes_t = _read(box_file, [K_TS, K_OBJ, *BOX_COLUMNS.values()], list(BOX_EXTRAS.values()))
+        _check_numeric(box_file, boxes_t.schema, [*BOX_COLUMNS.values(), *BOX_EXTRAS.values()])
+        with _reading(paths["lidar_calibration"]):
+            calibrations = self._calibrations(paths["lidar_calibration"])
+        with _reading(paths["vehicle_pose"]):
+            poses = self._vehicle_poses(paths["vehicle_pose"])
         lidar = _RowGroupCache(paths["lidar"], [K_LASER, *(c for pair in LIDAR_RETURNS for c in pair)])
         lidar_pose = _RowGroupCache(paths["lidar_pose"], [K_LASER, *POSE_COLUMNS])
         origin = sensor_origin(calibrations)
 
-        ts_all = boxes_t.column(K_TS).to_numpy()
-        order = np.argsort(ts_all, kind="stable")
-        rows_of: dict[int, list[int]] = defaultdict(list)
-        for i in order:
-            rows_of[int(ts_all[i])].append(int(i))
-        box_arrays = {k: boxes_t.column(c).to_numpy(zero_copy_only=False) for k, c in BOX_COLUMNS.items()}
-        ids = boxes_t.column(K_OBJ).to_pylist()
-        # same dtypes as the v1 reader (int64 counts and levels, float64 speeds), nulls → 0
-        extras_all = {
-            k: np.nan_to_num(boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64)).astype(
-                np.float64 if k.startswith("speed") else np.int64
-            )
-            for k, c in BOX_EXTRAS.items()
-            if c in boxes_t.schema.names
-        }
+        with _reading(box_file):
+            ts_all = _keys(boxes_t, K_TS, box_file)
+            order = np.argsort(ts_all, kind="stable")
+            rows_of: dict[int, list[int]] = defaultdict(list)
+            for i in order:
+                rows_of[int(ts_all[i])].append(int(i))
+            # nulls read as NaN: float64 for every box column, the null rows named below
+            box_arrays = {k: boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64) for k, c in BOX_COLUMNS.items()}
+            type_col = boxes_t.column(BOX_COLUMNS["type"])  # exact integers (a float64 copy rounds beyond 2^53)
+            box_arrays["type"] = pc.fill_null(type_col, 0).to_numpy(zero_copy_only=False).astype(np.int64) if pa.types.is_integer(type_col.type) else box_arrays["type"]
+            box_nulls = {k: pc.is_null(boxes_t.column(c)).to_numpy(zero_copy_only=False) for k, c in BOX_COLUMNS.items()}
+            ids = boxes_t.column(K_OBJ).to_pylist()
+            # same dtypes as the v1 reader (int64 counts and levels, float64 speeds); a null stays NaN (null in the results)
+            extras_all = {}
+            for k, c in BOX_EXTRAS.items():
+                if c in boxes_t.schema.names:
+                    v = boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64)
+                    exact = len(v) == 0 or (not np.isnan(v).any() and np.abs(v).max() < 2**62)
+                    extras_all[k] = v.astype(np.int64) if exact and not k.startswith("speed") else v  # else check_extras names them
 
         for ts in sorted(rows_of):
-            idx = np.asarray(rows_of[ts])
             frame_id = f"{segment}:{ts}"
-            warnings: list[str] = []
-            boxes = np.stack(
-                [box_arrays[k][idx].astype(np.float64) for k in ("cx", "cy", "cz", "length", "width", "height", "heading")], axis=1
+            try:
+                frame = self._frame(ts, frame_id, rows_of[ts], box_arrays, box_nulls, ids, extras_all, calibrations, poses, lidar, lidar_pose, origin, paths)
+            except DatasetError as exc:  # this frame only: the next one still reads
+                yield FrameFailure(frame_id, exc)
+                continue
+            yield frame
+
+    def _frame(
+        self,
+        ts: int,
+        frame_id: str,
+        rows: list[int],
+        box_arrays: dict[str, NDArray[np.float64]],
+        box_nulls: dict[str, NDArray[np.bool_]],
+        ids: list[object],
+        extras_all: dict[str, np.ndarray],
+        calibrations: dict[int, LidarCalibration],
+        poses: dict[int, NDArray[np.float64]],
+        lidar: "_RowGroupCache",
+        lidar_pose: "_RowGroupCache",
+        origin: NDArray[np.float64],
+        paths: dict[str, Path],
+    ) -> Frame:
+        box_file = paths["lidar_box"]
+        warnings: list[str] = []
+        null_type = [r for r in rows if box_nulls["type"][r]]
+        if null_type:
+            warnings.append(
+                f"{box_file}: row(s) {', '.join(map(str, null_type[:10]))}{' …' if len(null_type) > 10 else ''} of frame {frame_id} "
+                f"have a null {BOX_COLUMNS['type']}; left out ({len(null_type)} label(s) of unknown class)"
             )
+            rows = [r for r in rows if not box_nulls["type"][r]]
+        idx = np.asarray(rows, dtype=np.int64)
+        boxes = np.stack([box_arrays[k][idx] for k in _BOX_KEYS], axis=1).reshape(-1, 7)
+        with np.errstate(invalid="ignore"):  # a float type column: values beyond int64 become a (named) odd class
             types = box_arrays["type"][idx].astype(np.int64)
-            frame_pose = poses.get(ts)
-            lidars = self._lidars(lidar.take(ts), lidar_pose.take(ts), paths)
-            if lidars:
-                if frame_pose is None:
-                    warnings.append(f"{paths['vehicle_pose']}: no vehicle pose for frame {frame_id}")
-                points = frame_points(lidars, calibrations, frame_pose, paths["lidar"], warnings)
-            else:
-                points = np.zeros((0, 4), dtype=np.float32)
-                warnings.append(no_lidar_warning(paths["lidar"], frame_id, len(idx)))
-            extras = {k: v[idx] for k, v in extras_all.items()}
-            yield make_frame(
-                frame_id, points, boxes, types, [str(ids[i]) for i in idx], extras, origin, warnings, self.classes
-            )
+        locations = [f"{box_file} row {r}" for r in rows]
+        object_errors = {}
+        for j, r in enumerate(rows):
+            null_cols = [BOX_COLUMNS[k] for k in _BOX_KEYS if box_nulls[k][r]]
+            if null_cols:
+                object_errors[j] = f"{locations[j]}: {', '.join(null_cols)} is null (expected a number)"
+        frame_pose = poses.get(ts)
+        with _reading(paths["lidar_pose"]):
+            pixel_pose = self._pixel_poses(lidar_pose.take(ts), paths["lidar_pose"])
+        with _reading(paths["lidar"]):
+            lidars = self._lidar_images(lidar.take(ts), pixel_pose, paths["lidar"])
+        if lidars:
+            if frame_pose is None:
+                warnings.append(f"{paths['vehicle_pose']}: no vehicle pose for frame {frame_id}")
+            points = frame_points(lidars, calibrations, frame_pose, paths["lidar"], warnings)
+        else:
+            points = np.zeros((0, 4), dtype=np.float32)
+            warnings.append(no_lidar_warning(paths["lidar"], frame_id, len(idx)))
+        extras = check_extras({k: v[idx] for k, v in extras_all.items()}, BOX_EXTRAS, locations, warnings)
+        object_ids = [f"{frame_id}:{j}" if ids[r] is None else str(ids[r]) for j, r in enumerate(rows)]
+        return make_frame(
+            frame_id, points, boxes, types, object_ids, extras, origin, warnings, self.classes,
+            source=str(box_file), locations=locations, box_fields=tuple(BOX_COLUMNS[k] for k in _BOX_KEYS), object_errors=object_errors,
+        )
 
     @staticmethod
     def _calibrations(path: Path) -> dict[int, LidarCalibration]:
@@ -295,25 +387,27 @@ class WaymoV2Reader:
         return {int(ts): mats[i] for i, ts in enumerate(t.column(K_TS).to_numpy())}
 
     @staticmethod
-    def _lidars(
-        rows: list[tuple[pa.Table, NDArray[np.int64]]],
-        pose_rows: list[tuple[pa.Table, NDArray[np.int64]]],
-        paths: dict[str, Path],
-    ) -> list[LidarData]:
+    def _pixel_poses(pose_rows: list[tuple[pa.Table, NDArray[np.int64]]], path: Path) -> dict[int, NDArray[np.float32]]:
         pixel_pose: dict[int, NDArray[np.float32]] = {}
         for table, idx in pose_rows:
             names = table.column(K_LASER)
             for i in idx:
-                img = _image(table, int(i), *POSE_COLUMNS, paths["lidar_pose"])
+                img = _image(table, int(i), *POSE_COLUMNS, path)
                 if img is not None:
                     pixel_pose[int(names[int(i)].as_py())] = img
+        return pixel_pose
+
+    @staticmethod
+    def _lidar_images(
+        rows: list[tuple[pa.Table, NDArray[np.int64]]], pixel_pose: dict[int, NDArray[np.float32]], path: Path
+    ) -> list[LidarData]:
         out = []
         for table, idx in rows:
             names = table.column(K_LASER)
             for i in idx:
                 name = int(names[int(i)].as_py())
                 returns = [
-                    img for vals, shape in LIDAR_RETURNS if (img := _image(table, int(i), vals, shape, paths["lidar"])) is not None
+                    img for vals, shape in LIDAR_RETURNS if (img := _image(table, int(i), vals, shape, path)) is not None
                 ]
                 if returns:
                     # only TOP has per-pixel poses in Waymo; use whatever the file provides

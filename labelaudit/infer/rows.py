@@ -24,12 +24,29 @@ from labelaudit.core.iou import hull_iou
 from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
+from labelaudit.errors import one_line
 from labelaudit.infer.crop import crop_frame_pair
 
 DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
 
 
 # --------------------------------------------------------------------------- layer 1: one frame
+
+
+def check_finite(result: dict[str, Any]) -> None:
+    """Raise ``FloatingPointError`` when the model's JIoU-GT or covariance came out NaN/inf (an
+    overflow on extreme but valid input): the object gets status ``error`` instead of NaN scores."""
+    jiou = result.get("jiou_gt")
+    cov_ok = result.get("cov") is None or bool(np.all(np.isfinite(result["cov"])))
+    if (jiou is not None and not math.isfinite(jiou)) or not cov_ok:
+        raise FloatingPointError(f"non-finite model output (jiou_gt={jiou}, covariance finite: {cov_ok})")
+
+
+def label_where(frame: Frame, i: int) -> str:
+    """Where label ``i`` of ``frame`` was read: ``<label file>:<line>`` (KITTI) or the frame's source file."""
+    lines = frame.extras.get("label_line")
+    source = frame.source or f"frame {frame.frame_id}"
+    return f"{source}:{int(lines[i])}" if lines is not None and frame.source else source
 
 
 def frame_note(frame_id: str | None, unit: str, message: str, level: str = "error", file: str | None = None, line: int | None = None) -> dict[str, Any]:
@@ -66,7 +83,8 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     rows : one dict per audited box, normalised (:func:`labelaudit.results.normalize_row`: every
         column of :data:`labelaudit.results.SCHEMA`, plain Python values, NaN as None); boxes of
         other classes are left out, boxes outside the length range get status ``skipped``, a
-        box whose inference raised gets status ``error`` and the exception in ``message``.
+        box the reader could not use (``frame.object_errors``: NaN, size ≤ 0, out of range) or
+        whose inference raised gets status ``error`` and the reason in ``message`` (one line).
     notes : frame warnings (level ``warning``) as rows of the errors table
     """
     notes = [frame_note(frame.frame_id, frame.frame_id, w, level="warning") for w in frame.warnings]
@@ -90,10 +108,14 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             **_extras_for(frame, i),
         }
         rows[i] = row
+        problem = frame.object_errors.get(i)  # the reader's reason, naming file, line and field
+        if problem is not None:
+            row.update(status="error", message=problem)
+            continue
         try:
             g.validate_box(box)
         except ValueError as exc:
-            row.update(status="error", message=f"invalid box: {exc}")
+            row.update(status="error", message=f"{label_where(frame, i)}: invalid box: {exc}")
             continue
         length = float(box[3])
         if not (cfg.min_length <= length <= cfg.max_length):
@@ -110,12 +132,14 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             row = rows[i]
             points = frame.points[idx]
             try:
-                result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin, fit_points=frame.points[fit_idx])
+                with np.errstate(all="ignore"):  # changes no value: a non-finite result is refused below, not warned about on stderr
+                    result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin, fit_points=frame.points[fit_idx])
+                check_finite(result)
                 # values the schema cannot hold fail here, per object; the row is final after this
                 rows[i] = R.normalize_row({**row, **result})
                 final.add(i)
             except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
-                row.update(status="error", message=f"{type(exc).__name__}: {exc}", num_points=len(idx))
+                row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
 
 
