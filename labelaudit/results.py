@@ -33,7 +33,7 @@ import pyarrow.parquet as pq
 
 from labelaudit import SCHEMA_VERSION, __version__
 from labelaudit.core.geometry import BOX_FIELDS
-from labelaudit.errors import InferError, ResultsError
+from labelaudit.errors import InferError, ResultsError, one_line
 
 MANIFEST_NAME = "manifest.json"
 OBJECTS_DIR = "objects"
@@ -125,6 +125,7 @@ SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=c.nullable) for c in COLUM
 COLUMN_NAMES: tuple[str, ...] = tuple(SCHEMA.names)
 FLOAT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_floating(t))
 INT_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_integer(t))
+REQUIRED_FLOAT_COLUMNS = frozenset(c.name for c in COLUMNS if pa.types.is_floating(c.type) and not c.nullable)
 LIST_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_list(t))
 NUMERIC_COLUMNS = FLOAT_COLUMNS | INT_COLUMNS
 IDENTITY_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS if c.source == "identity")
@@ -171,7 +172,10 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
     """Coerce one result row to plain Python values of the schema's types.
 
     NaN floats become null (NaN means "not applicable" in the core, e.g. std_cz of a BEV model;
-    null is what Parquet consumers expect). Keys outside the schema are dropped; missing keys are null.
+    null is what Parquet consumers expect), except in the label's own non-nullable columns (box,
+    distance), where a NaN read from the label file is kept as written (its row has status
+    ``error``). A NaN in an integer column (an extra the reader could not read) becomes null.
+    Keys outside the schema are dropped; missing keys are null.
     """
     out: dict[str, Any] = {}
     for name in COLUMN_NAMES:
@@ -179,9 +183,9 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
         if value is None:
             out[name] = None
         elif name in FLOAT_COLUMNS:
-            out[name] = _clean_float(value)
+            out[name] = float(value) if name in REQUIRED_FLOAT_COLUMNS else _clean_float(value)
         elif name in INT_COLUMNS:
-            out[name] = int(value)
+            out[name] = None if isinstance(value, float) and value != value else int(value)
         elif name in LIST_COLUMNS:
             out[name] = _clean_list(value)
         else:
@@ -196,8 +200,57 @@ def rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any]
     ``pipeline.process_frame``'s do), so they are not coerced a second time.
     """
     clean = sorted(rows if normalized else (normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"]))
-    table = pa.Table.from_pylist(clean, schema=SCHEMA)
+    try:
+        table = pa.Table.from_pylist(clean, schema=SCHEMA)
+    except (pa.ArrowException, UnicodeError, OverflowError, TypeError, ValueError):
+        # A value the schema cannot hold (a file name that is not UTF-8, an integer beyond int32,
+        # a null in a required column) must not sink the chunk: fix up the rows that hold one.
+        table = pa.Table.from_pylist([storable_row(r) for r in clean], schema=SCHEMA)
     return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
+
+
+def safe_text(text: str) -> str:
+    """``text`` as valid UTF-8: bytes of a non-UTF-8 file name (surrogate escapes) become ``\\xNN``."""
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:  # a lone surrogate that is no escaped byte
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def storable_row(row: Mapping[str, Any]) -> dict[str, Any]:
+    """A normalised row whose every value fits :data:`SCHEMA`.
+
+    Text is made valid UTF-8 (:func:`safe_text`, not an error). A value the schema cannot hold
+    otherwise (an integer beyond int32, a null in a required column) is replaced by null (NaN /
+    empty in a required column), and the row gets status ``error`` with a message naming the
+    column and the value, so nothing is lost silently.
+    """
+    out = {k: safe_text(v) if isinstance(v, str) else v for k, v in row.items()}
+    bad = []
+    for f in SCHEMA:
+        value = out.get(f.name)
+        try:
+            if value is None and not f.nullable:
+                raise ValueError("null in a required column")
+            pa.array([value], type=f.type)
+        except (pa.ArrowException, OverflowError, TypeError, ValueError):
+            bad.append(f"{f.name}={value!r}")
+            if f.nullable:
+                out[f.name] = None
+            elif pa.types.is_floating(f.type):
+                out[f.name] = math.nan
+            else:
+                out[f.name] = -1 if pa.types.is_integer(f.type) else ""
+    if bad:
+        before = f"; {out['message']}" if out.get("message") else ""
+        out["status"] = "error"
+        out["message"] = f"value(s) the results table cannot hold: {', '.join(bad)}{before}"
+    return out
 
 
 def errors_to_table(errors: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None) -> pa.Table:
@@ -209,6 +262,9 @@ def errors_to_table(errors: Iterable[Mapping[str, Any]], metadata: Mapping[str, 
         e["message"] = str(e["message"])
         if e["line"] is not None:
             e["line"] = int(e["line"])
+        for key in ("unit", "frame_id", "file", "message"):  # file names need not be UTF-8
+            if e[key] is not None:
+                e[key] = safe_text(str(e[key]))
     clean.sort(key=lambda e: (e["unit"], e["frame_id"] or "", e["message"]))
     table = pa.Table.from_pylist(clean, schema=ERRORS_SCHEMA)
     return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
@@ -324,9 +380,17 @@ def remove_temp_files(root: str | Path) -> list[Path]:
     for sub in (root, root / OBJECTS_DIR, root / ERRORS_DIR):
         if sub.is_dir():
             for p in sub.glob(f".*{TMP_MARKER}*"):
-                p.unlink(missing_ok=True)
+                _remove(p)
                 removed.append(p)
     return removed
+
+
+def damaged(path: Path, what: str) -> ResultsError:
+    """The error of a damaged results folder: names the path, what is wrong and the fix."""
+    return ResultsError(
+        f"{path}: {what} — the results folder is damaged; rerun `labelaudit infer` with --overwrite to replace it, "
+        "or choose another -o/--output"
+    )
 
 
 def read_manifest(root: str | Path) -> dict[str, Any] | None:
@@ -335,15 +399,24 @@ def read_manifest(root: str | Path) -> dict[str, Any] | None:
     Raises
     ------
     ResultsError
-        The manifest exists but is not valid JSON.
+        The manifest exists but is not a file, not UTF-8, not valid JSON or not a JSON object.
     """
     path = Path(root) / MANIFEST_NAME
-    if not path.is_file():
+    if not os.path.lexists(path):
         return None
+    if not path.is_file():
+        raise damaged(path, "the manifest is not a file")
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ResultsError(f"{path}: unreadable manifest ({exc}); rerun `labelaudit infer --overwrite`") from None
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        raise damaged(path, f"cannot read the manifest ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise damaged(path, f"the manifest is not UTF-8 text (byte offset {exc.start})") from None
+    except json.JSONDecodeError as exc:
+        raise damaged(path, f"the manifest is not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise damaged(path, f"the manifest is JSON {type(data).__name__}, expected an object")
+    return data
 
 
 # --------------------------------------------------------------------------- reading
@@ -390,17 +463,30 @@ class Results:
         if self.root.is_file():
             return ERRORS_SCHEMA.empty_table()
         path = self.root / ERRORS_FILE
-        if path.is_file():
-            return pq.read_table(path)
+        if os.path.lexists(path):
+            return read_error_tables([path])
         parts = sorted((self.root / ERRORS_DIR).glob("*.parquet")) if (self.root / ERRORS_DIR).is_dir() else []
         if parts:
-            return pa.concat_tables([pq.read_table(p) for p in parts]).cast(ERRORS_SCHEMA)
+            return read_error_tables(parts)
         return ERRORS_SCHEMA.empty_table()
 
     def failed_frames(self) -> int:
         """Number of frames (or units) that failed as a whole."""
         errs = self.errors()
         return int(pc.sum(pc.equal(errs["level"], "error")).as_py() or 0) if errs.num_rows else 0
+
+
+def read_error_tables(paths: Sequence[Path]) -> pa.Table:
+    """The errors tables of ``paths`` as one table; a damaged file is a :class:`ResultsError` naming it."""
+    tables = []
+    for p in paths:
+        try:
+            if not p.is_file():
+                raise damaged(p, "not a file")
+            tables.append(pq.read_table(p).cast(ERRORS_SCHEMA))
+        except (pa.ArrowException, OSError, ValueError) as exc:
+            raise damaged(p, f"unreadable errors table ({one_line(str(exc))})") from None
+    return pa.concat_tables(tables) if tables else ERRORS_SCHEMA.empty_table()
 
 
 def open_results(path: str | Path) -> Results:
@@ -412,7 +498,11 @@ def open_results(path: str | Path) -> Results:
         Path missing, no shards, or files that are not Parquet.
     """
     root = Path(path)
-    if not root.exists():
+    try:
+        exists = root.exists()
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise ResultsError(f"{root}: cannot open ({exc.strerror or exc})") from None
+    if not exists:
         raise ResultsError(f"{root}: no such results folder; run `labelaudit infer DATASET -o {root}` first")
     try:
         if root.is_file():
@@ -430,8 +520,8 @@ def open_results(path: str | Path) -> Results:
         schema = pa.unify_schemas([SCHEMA] + [pq.read_schema(f) for f in files]).with_metadata(pq.read_schema(files[0]).metadata)
         dataset = pads.dataset([str(f) for f in files], format="parquet", schema=schema)
         return Results(root, dataset, manifest)
-    except (pa.ArrowInvalid, OSError) as exc:
-        raise ResultsError(f"{root}: unreadable results ({exc}); rerun `labelaudit infer --overwrite`") from None
+    except (pa.ArrowException, OSError) as exc:
+        raise ResultsError(f"{root}: unreadable results ({one_line(str(exc))}); rerun `labelaudit infer --overwrite`") from None
 
 
 # --------------------------------------------------------------------------- writing: lock and resume
@@ -451,35 +541,74 @@ LOCK_NAME = ".labelaudit.lock"
 
 
 def check_output_folder(output: Path) -> None:
-    """Refuse a path that is a file, or a non-empty folder that is not a results folder."""
-    if output.exists() and not output.is_dir():
-        raise InferError(f"{output}: exists and is not a folder; choose another -o/--output")
-    if output.is_dir() and not (output / MANIFEST_NAME).exists() and any(p.name != LOCK_NAME for p in output.iterdir()):
-        raise InferError(
-            f"{output}: folder is not empty and has no {MANIFEST_NAME} (not a labelaudit results folder); "
-            "choose a new or empty -o/--output"
-        )
+    """Refuse an output path ``infer`` cannot use, with a one-line reason (:class:`InferError`).
+
+    Refused: a dangling symbolic link, a file, a path under a file, a name the file system cannot
+    hold (too long …), a non-empty folder that is not a results folder.
+    """
+    try:
+        if output.is_symlink() and not output.exists():
+            raise InferError(f"{output}: is a symbolic link to {os.readlink(output)}, which does not exist; choose another -o/--output")
+        if output.exists() and not output.is_dir():
+            raise InferError(f"{output}: exists and is not a folder; choose another -o/--output")
+        if output.is_dir():
+            if not os.path.lexists(output / MANIFEST_NAME) and any(p.name != LOCK_NAME for p in output.iterdir()):
+                raise InferError(
+                    f"{output}: folder is not empty and has no {MANIFEST_NAME} (not a labelaudit results folder); "
+                    "choose a new or empty -o/--output"
+                )
+            return
+        for parent in output.absolute().parents:  # the first one that exists must be a folder
+            if os.path.lexists(parent):
+                if not parent.is_dir():
+                    raise InferError(f"{output}: {parent} is not a folder; choose another -o/--output")
+                break
+    except OSError as exc:
+        raise InferError(f"{output}: cannot use this results folder ({exc.strerror or exc}); choose another -o/--output") from None
+
+
+def make_output_folder(output: Path) -> None:
+    """Create ``output`` (and its parents); an OS refusal becomes a one-line :class:`InferError`."""
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InferError(f"{output}: cannot create the results folder ({exc.strerror or exc}); choose another -o/--output") from None
 
 
 def _pid_alive(pid: int) -> bool:
+    if pid <= 0:  # 0 and negative numbers address process groups, not a writer
+        return False
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):
         return False
     except PermissionError:  # exists, owned by someone else
         return True
     return True
 
 
+def _remove(path: Path) -> None:
+    """Delete a file, a symbolic link or a folder tree (never through a link)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif os.path.lexists(path):
+        path.unlink()
+
+
 @contextmanager
-def output_lock(output: Path) -> Iterator[None]:
+def output_lock(output: Path, overwrite: bool = False) -> Iterator[None]:
     """Hold ``output/.labelaudit.lock`` for the duration of a run.
 
     A second ``infer`` on the same folder stops with :class:`InferError` instead of interleaving
-    shards; a lock left by a killed run (its pid is gone) is taken over. Same-machine only.
+    shards; a lock left by a killed run (its pid is gone) is taken over. A lock path that is not a
+    file (damage) is a :class:`ResultsError`, or removed with ``overwrite``. Same-machine only.
     """
-    output.mkdir(parents=True, exist_ok=True)
+    make_output_folder(output)
     path = output / LOCK_NAME
+    if os.path.lexists(path) and (path.is_symlink() or not path.is_file()):
+        if not overwrite:
+            raise damaged(path, "the lock is not a file")
+        _remove(path)
     for _ in range(3):
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
@@ -492,6 +621,8 @@ def output_lock(output: Path) -> Iterator[None]:
                 raise InferError(f"{output}: another labelaudit infer (pid {pid}) is writing to this folder; wait for it or choose another -o/--output") from None
             path.unlink(missing_ok=True)  # stale: its writer is gone
             continue
+        except OSError as exc:
+            raise InferError(f"{path}: cannot take the lock ({exc.strerror or exc}); choose another -o/--output") from None
         with os.fdopen(fd, "w") as f:
             f.write(str(os.getpid()))
         break
@@ -503,28 +634,109 @@ def output_lock(output: Path) -> Iterator[None]:
         path.unlink(missing_ok=True)
 
 
+def check_layout(output: Path) -> None:
+    """Refuse a results folder whose parts have the wrong kind (:class:`ResultsError` naming the path).
+
+    ``manifest.json`` (checked by :func:`read_manifest`) and ``errors.parquet`` must be files,
+    ``objects/`` and ``errors/`` folders, and every shard in them a file. A truncated shard is not
+    damage: its chunk is recomputed (:func:`chunk_state`).
+    """
+    for name in (OBJECTS_DIR, ERRORS_DIR):
+        sub = output / name
+        if os.path.lexists(sub):
+            if not sub.is_dir():
+                raise damaged(sub, "expected a folder of Parquet shards, found a file")
+            for part in sub.glob("*.parquet"):
+                if not part.name.startswith(".") and not part.is_file():
+                    raise damaged(part, "a shard that is not a file")
+    if os.path.lexists(output / ERRORS_FILE) and not (output / ERRORS_FILE).is_file():
+        raise damaged(output / ERRORS_FILE, "expected the errors table (a Parquet file), found a folder")
+
+
+def chunk_record(table: pa.Table, errors: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """What a chunk's object shard records about the chunk (key ``chunk`` of its metadata), so a
+    resumed run can tell a clean chunk from one to run again without its errors part."""
+    failed_objects = int(pc.sum(pc.equal(table.column("status"), "error")).as_py() or 0) if table.num_rows else 0
+    return {
+        "notes": len(errors),
+        "failed_frames": sum(1 for e in errors if e.get("level") == "error"),
+        "failed_objects": failed_objects,
+    }
+
+
+def chunk_state(shard: Path, error_part: Path) -> str:
+    """Whether a chunk of an earlier run can be kept: ``"done"``, ``"missing"`` or ``"retry"``.
+
+    ``missing``: no whole object shard (never written, or truncated by a kill). ``retry``: the
+    shard is whole but the chunk had a failed frame or an object with status ``error`` — the
+    input may have been fixed since, so ``--resume`` runs it again and its stale errors go with
+    its old rows — or its errors part is missing, unreadable or of another run (the shard's
+    :func:`chunk_record` says how many rows it must have).
+    """
+    try:
+        footer = pq.read_metadata(shard)
+        meta = json.loads((footer.metadata or {}).get(METADATA_KEY, b"{}"))
+    except Exception:  # truncated, not Parquet, a folder …
+        return "missing"
+    record = meta.get("chunk") if isinstance(meta, dict) else None
+    if not isinstance(record, dict):  # a shard of an older run: look at the rows themselves
+        return _chunk_state_from_rows(shard, error_part)
+    if record.get("failed_frames") or record.get("failed_objects"):
+        return "retry"
+    notes = record.get("notes", 0)
+    if not os.path.lexists(error_part):
+        return "retry" if notes else "done"
+    try:
+        return "done" if notes and pq.read_metadata(error_part).num_rows == notes else "retry"
+    except Exception:
+        return "retry"
+
+
+def _chunk_state_from_rows(shard: Path, error_part: Path) -> str:
+    if os.path.lexists(error_part):
+        try:
+            levels = pq.read_table(error_part, columns=["level"]).column("level")
+        except (pa.ArrowException, OSError, KeyError):
+            return "retry"
+        if pc.any(pc.equal(levels, "error")).as_py():
+            return "retry"
+    try:
+        status = pq.read_table(shard, columns=["status"]).column("status")
+    except (pa.ArrowException, OSError, KeyError):
+        return "retry"
+    return "retry" if pc.any(pc.equal(status, "error")).as_py() else "done"
+
+
 def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -> None:
     """Create, reset (``--overwrite``) or check for resume a results folder.
+
+    With ``overwrite`` the results of the folder (manifest, shards, errors) are deleted whatever
+    state they are in, so a damaged folder can always be replaced.
 
     Raises
     ------
     InferError
         The folder is not a results folder, or holds results of other parameters / another input
         (unless ``overwrite``).
+    ResultsError
+        The folder is damaged (:func:`read_manifest`, :func:`check_layout`), unless ``overwrite``.
     """
     check_output_folder(output)
-    manifest = read_manifest(output) if output.is_dir() else None
-    if manifest is not None and overwrite:
-        for sub in (OBJECTS_DIR, ERRORS_DIR):
-            if (output / sub).is_dir():
-                shutil.rmtree(output / sub)
-        for name in (ERRORS_FILE, MANIFEST_NAME):
-            (output / name).unlink(missing_ok=True)
-    elif manifest is not None:
-        why = resume_mismatch(manifest, metadata)
-        if why is not None:
-            raise InferError(f"{output}: cannot resume: {why}; pass --overwrite to replace these results, or choose another -o/--output")
-    output.mkdir(parents=True, exist_ok=True)
+    if overwrite:
+        for name in (OBJECTS_DIR, ERRORS_DIR, ERRORS_FILE, MANIFEST_NAME):
+            try:
+                _remove(output / name)
+            except OSError as exc:
+                raise InferError(f"{output / name}: cannot remove it for --overwrite ({exc.strerror or exc})") from None
+    else:
+        manifest = read_manifest(output) if output.is_dir() else None
+        if manifest is not None:
+            why = resume_mismatch(manifest, metadata)
+            if why is not None:
+                raise InferError(f"{output}: cannot resume: {why}; pass --overwrite to replace these results, or choose another -o/--output")
+        if output.is_dir():
+            check_layout(output)
+    make_output_folder(output)
     remove_temp_files(output)
 
 

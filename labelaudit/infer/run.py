@@ -14,18 +14,17 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, Sequence
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from labelaudit import constants as C
-from labelaudit.config import RunConfig, hash_inputs, resolve_config
-from labelaudit.datasets import DatasetError, FORMATS, FrameRef, detect_format, open_dataset
+from labelaudit.config import RunConfig, hash_inputs, resolve_config, validate_config
+from labelaudit.datasets import DatasetError, FORMATS, FrameFailure, FrameRef, detect_format, open_dataset
 from labelaudit import results as R
-from labelaudit.errors import InferError, ResultsError, StrictError
+from labelaudit.errors import InferError, ResultsError, StrictError, one_line
 from labelaudit.executors import Executor, make_executor
 from labelaudit.infer.rows import frame_note, process_frame
 
@@ -56,6 +55,7 @@ class ChunkResult:
     frames: int
     objects: int
     seconds: float
+    sources: dict[str, str] = field(default_factory=dict)  # frame id → the file its labels came from
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -77,13 +77,15 @@ def _reader(ref: FrameRef, options: tuple[tuple[str, Any], ...]) -> Any:
 def process_chunk(task: ChunkTask) -> ChunkResult:
     """Load and audit every frame of a chunk of units; never raises for bad input.
 
-    A unit that cannot be read (or a frame whose crop fails) becomes an error row; objects whose
-    inference fails become rows with status ``error``. With ``task.debug`` unexpected exceptions
-    (bugs, not bad input) propagate so their traceback is visible.
+    A unit that cannot be read (or a frame that cannot be read or whose crop fails) becomes an
+    error row naming its file; objects whose inference fails become rows with status ``error``.
+    With ``task.debug`` unexpected exceptions (bugs, not bad input) propagate so their traceback
+    is visible.
     """
     start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
+    sources: dict[str, str] = {}
     frames = 0
     for ref in task.refs:
         try:
@@ -91,26 +93,34 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
             for n, frame in enumerate(reader.load_unit(ref)):
                 if task.max_frames_per_unit is not None and n >= task.max_frames_per_unit:
                     break
+                if isinstance(frame, FrameFailure):  # the reader goes on with the unit's next frame
+                    exc = frame.error
+                    errors.append(frame_note(frame.frame_id, ref.key, one_line(str(exc)), file=exc.path, line=exc.line))
+                    continue
+                source = frame.source or ref.key
                 try:  # a frame that fails (e.g. in the crop) never takes the rest of its unit along
                     frame_rows, notes = process_frame(frame, task.cfg)
                 except Exception as exc:
                     if task.debug:
                         raise
-                    errors.append(frame_note(frame.frame_id, ref.key, f"{type(exc).__name__} in frame {frame.frame_id}: {exc}"))
+                    errors.append(frame_note(frame.frame_id, ref.key, one_line(f"{type(exc).__name__} in frame {frame.frame_id} of {source}: {exc}"), file=source))
                     continue
                 for note in notes:
                     note["unit"] = ref.key
+                    note["file"] = note["file"] or source
+                sources[R.safe_text(frame.frame_id)] = source
                 rows.extend(frame_rows)
                 errors.extend(notes)
                 frames += 1
         except DatasetError as exc:  # the reader gave up on the unit (or on the rest of it)
-            errors.append(frame_note(None, ref.key, str(exc), file=exc.path, line=exc.line))
+            errors.append(frame_note(None, ref.key, one_line(str(exc)), file=exc.path, line=exc.line))
         except Exception as exc:
             if task.debug:
                 raise
-            errors.append(frame_note(None, ref.key, f"{type(exc).__name__} while reading {ref.key}: {exc}"))
+            detail = f": {exc}" if str(exc) else ""
+            errors.append(frame_note(None, ref.key, one_line(f"{type(exc).__name__} while reading {ref.key}{detail}"), file=ref.key))
     table = R.rows_to_table(rows, normalized=True)  # process_frame's rows are normalised
-    return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start)
+    return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start, sources)
 
 
 # --------------------------------------------------------------------------- layer 3: a run
@@ -154,6 +164,7 @@ class RunSummary:
     failed_frames: int
     warnings: int
     wall_seconds: float
+    chunks_retried: int = 0  # shards of an earlier run run again: they had failed frames or objects
 
 
 class Progress(Protocol):
@@ -181,7 +192,11 @@ def resolve_format(dataset: Path, fmt: str) -> str:
     """``auto`` → the detected format; raises :class:`InferError` with the reason."""
     if fmt != "auto" and fmt not in FORMATS:
         raise InferError(f"--dataset-format {fmt!r}: expected auto or one of {', '.join(FORMATS)}")
-    if not dataset.exists():
+    try:
+        exists = dataset.exists()
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise InferError(f"{dataset}: cannot open the dataset ({exc.strerror or exc})") from None
+    if not exists:
         raise InferError(f"{dataset}: dataset path does not exist")
     if fmt == "auto":
         try:
@@ -193,7 +208,8 @@ def resolve_format(dataset: Path, fmt: str) -> str:
 
 def chunk_name(refs: Sequence[FrameRef]) -> str:
     """Shard file name of a chunk: a hash of its unit keys, so a resumed run finds it again."""
-    digest = hashlib.sha256("\n".join(r.key for r in refs).encode()).hexdigest()[:20]
+    # surrogateescape: a key from a non-UTF-8 file name hashes as its bytes
+    digest = hashlib.sha256("\n".join(r.key for r in refs).encode("utf-8", "surrogateescape")).hexdigest()[:20]
     return f"part-{digest}.parquet"
 
 
@@ -231,6 +247,9 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     start = time.perf_counter()
     progress = progress or NoProgress()
     dataset = Path(request.dataset)
+    validate_config(cfg, "the run configuration")
+    if request.split is not None and (not request.split.strip() or any(c in request.split for c in "/\\\0")):
+        raise InferError(f"--split {request.split!r}: expected a split name such as train or val (ImageSets/<split>.txt)")
     fmt = resolve_format(dataset, request.dataset_format)
     if cfg.dataset_format != fmt:
         cfg = cfg.with_overrides(dataset_format=fmt)
@@ -255,7 +274,7 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     )
     output = Path(request.output)
     R.check_output_folder(output)
-    with R.output_lock(output):
+    with R.output_lock(output, request.overwrite):
         return _run_locked(request, cfg, fmt, refs, reader_options, metadata, output, progress, executor, start)
 
 
@@ -276,7 +295,9 @@ def _run_locked(
     chunk_units = request.chunk_units or chunk_size_for(fmt, len(refs))
     chunks = plan_chunks(refs, chunk_units)
     shard_dir, err_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR
-    done = {name for name, _ in chunks if (shard_dir / name).is_file() and R.is_whole_parquet(shard_dir / name)}
+    state = {name: R.chunk_state(shard_dir / name, err_dir / name) for name, _ in chunks}
+    done = {name for name, s in state.items() if s == "done"}
+    retried = sum(1 for s in state.values() if s == "retry")
     R.write_json_atomic({**metadata, "complete": False, "units": len(refs), "chunks": len(chunks)}, output / R.MANIFEST_NAME)
 
     tasks = [
@@ -295,8 +316,10 @@ def _run_locked(
                 R.write_parquet_atomic(R.errors_to_table(result.errors, metadata), err_dir / result.name)
             else:
                 (err_dir / result.name).unlink(missing_ok=True)
-            # The object shard is written last: its presence marks the chunk complete for --resume.
-            R.write_parquet_atomic(R.with_metadata(result.table, metadata), shard_dir / result.name)
+            # The object shard is written last: its presence marks the chunk complete for --resume,
+            # and it records what the chunk's errors part must hold (R.chunk_state).
+            chunk = R.chunk_record(result.table, result.errors)
+            R.write_parquet_atomic(R.with_metadata(result.table, {**metadata, "chunk": chunk}), shard_dir / result.name)
             frames += result.frames
             objects += result.objects
             progress.advance(result)
@@ -312,7 +335,7 @@ def _run_locked(
                 if p.name not in planned:
                     p.unlink()
     error_parts = sorted(err_dir.glob("*.parquet")) if err_dir.is_dir() else []
-    errors = pa.concat_tables([pq.read_table(p) for p in error_parts]).cast(R.ERRORS_SCHEMA) if error_parts else R.ERRORS_SCHEMA.empty_table()
+    errors = R.read_error_tables(error_parts)
     R.write_parquet_atomic(R.with_metadata(errors, metadata), output / R.ERRORS_FILE)
     failed = sum(1 for v in errors.column("level").to_pylist() if v == "error")
     wall = time.perf_counter() - start
@@ -325,20 +348,25 @@ def _run_locked(
         "wall_seconds_last_run": round(wall, 3),
     }
     R.write_json_atomic(manifest, output / R.MANIFEST_NAME)
-    return RunSummary(output, manifest, len(refs), len(chunks), len(done), frames, objects, failed, errors.num_rows - failed, wall)
+    return RunSummary(output, manifest, len(refs), len(chunks), len(done), frames, objects, failed, errors.num_rows - failed, wall, retried)
 
 
 def _raise_if_failed(result: ChunkResult) -> None:
+    """``--strict``: the first failed frame or object of a chunk as a one-line :class:`StrictError` naming its file."""
     failed = result.failed
     if failed:
         e = failed[0]
-        raise StrictError(f"--strict: unit {e['unit']} failed: {e['message']}")
+        where = "" if not e["file"] or str(e["file"]) in e["message"] else f"{e['file']}: "
+        raise StrictError(one_line(f"--strict: unit {e['unit']} failed: {where}{e['message']}"))
     if result.table.num_rows:
         status = result.table.column("status").to_pylist()
         if "error" in status:
             i = status.index("error")
             row = result.table.slice(i, 1).to_pylist()[0]
-            raise StrictError(f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {row['message']}")
+            source = result.sources.get(row["frame_id"], "")
+            line = f" (line {row['label_line']})" if row.get("label_line") is not None else ""
+            where = "" if not source or source in (row["message"] or "") else f"{source}{line}: "
+            raise StrictError(one_line(f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"))
 
 
 def infer_dataset(request: InferRequest, progress: Progress | None = None, executor: Executor | None = None) -> RunSummary:
