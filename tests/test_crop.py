@@ -189,3 +189,32 @@ def test_real_exact_box_counts_against_gt_database(realdata: Path) -> None:
     ours, theirs = np.array(counts).T
     assert np.all(ours <= theirs) and np.all(theirs - ours <= 6)
     assert np.sum(np.abs(ours - theirs) <= 2) >= 8  # 8 of the 10 boxes agree within ±2 points
+
+
+def test_frames_with_many_boxes_crop_through_the_grid_to_identical_indices():
+    """issue 15: a 10,000-line label file took 27 s in the crop (Open3D tests every point against
+    every box, K·N); from CROP_GRID_MIN_BOXES boxes on the crop goes through a BEV grid. Its
+    indices must equal Open3D's exactly, on faces, corners and non-finite points too."""
+    from dataclasses import replace
+
+    from labelaudit import constants as C
+    from labelaudit.core.geometry import box_corners
+    from labelaudit.infer.crop import bev_candidates, crop_frame, crop_frame_pair, selection_boxes
+
+    params = CropParams()
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        k = C.CROP_GRID_MIN_BOXES + 16
+        pts = np.c_[rng.uniform(-60, 60, (20000, 2)), rng.uniform(-2, 2, 20000), rng.uniform(0, 1, 20000)].astype(np.float32)
+        boxes = np.c_[rng.uniform(-50, 50, (k, 2)), rng.uniform(-1, 0.5, k), rng.uniform(0.3, 8, (k, 1)),
+                      rng.uniform(0.3, 3, (k, 1)), rng.uniform(0.05, 3, k), rng.uniform(-4, 4, k)]
+        for margin in (params.margin, params.fit_margin):  # points exactly on the corners of both crops
+            sel = selection_boxes(boxes, margin, params.ground_cut)
+            corners = np.concatenate([box_corners(b, "3d") for b in sel[:30] if b[5] > 0])
+            pts = np.r_[pts, np.c_[corners, np.zeros(len(corners))].astype(np.float32)]
+        pts = np.r_[pts, np.array([[np.nan, 0, 0, 0], [np.inf, 1, 1, 0], [1e38, 1e38, 0, 0], [0, 0, np.nan, 0]], np.float32)]
+        narrow, wide = crop_frame_pair(pts, boxes, params)
+        assert all(np.array_equal(a, b) for a, b in zip(narrow, crop_frame(pts, boxes, params), strict=True))
+        assert all(np.array_equal(a, b) for a, b in zip(wide, crop_frame(pts, boxes, replace(params, margin=params.fit_margin)), strict=True))
+        sel = selection_boxes(boxes, params.fit_margin, params.ground_cut)
+        assert all(np.isin(w, c).all() for w, c in zip(wide, bev_candidates(pts, sel), strict=True))  # a superset
