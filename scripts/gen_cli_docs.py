@@ -35,8 +35,10 @@ Conventions:
 - **Data on stdout, everything else on stderr.** Tables, JSON and CSV go to stdout; progress
   bars, summaries and error messages go to stderr, so pipes stay clean.
 - **Exit codes:** `0` success (gate passed), `1` gate failed, `2` usage, config or input error —
-  a one-line message naming the file and what to do —, `3` internal error (a bug; rerun with
-  `--debug` for the traceback and please report it). No command exits 0 when nothing was evaluated.
+  a one-line message naming the file and what to do, Click's usage errors (a bad option value,
+  an unknown option) included —, `3` internal error (a bug; rerun with `--debug` for the
+  traceback and please report it). No command exits 0 when nothing was evaluated. Every kind of
+  bad input and what it prints: [datasets.md, bad input](datasets.md#bad-input-around-the-dataset-options-config-results-folder).
 - `--debug` on any command shows full tracebacks instead of one-line messages.
 - `labelaudit --version` prints the version.
 

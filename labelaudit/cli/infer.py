@@ -28,7 +28,7 @@ class ModelChoice(str, Enum):
 @app.command()
 def infer(
     dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder) or a Waymo v1 .tfrecord."),
-    output: str = typer.Option(C.DEFAULT_RESULTS_DIR, "-o", "--output", help="Results folder (Parquet shards + manifest)."),
+    output: str = typer.Option(C.DEFAULT_RESULTS_DIR, "-o", "--output", help="Results folder (Parquet shards + manifest); '-o .' for the current folder."),
     dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML (default: the built-in one of the format)."),
     classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
@@ -36,8 +36,8 @@ def infer(
     split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
     limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo)."),
-    resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters, or start over."),
-    strict: bool = typer.Option(False, "--strict", help="Stop at the first frame or object that fails."),
+    resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters (re-trying those with failures), or start over (also replaces a damaged folder)."),
+    strict: bool = typer.Option(False, "--strict", help="Stop at the first frame or object that fails (exit 2, one line naming the file)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and summary."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
