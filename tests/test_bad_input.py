@@ -253,7 +253,7 @@ def test_non_utf8_split_list_and_config_name_the_file(kitti, tmp_path):
     cfg = tmp_path / "model.toml"
     cfg.write_bytes(b"[model]\nsigma = 0.2 # \xe9\n")
     run = _infer(kitti, tmp_path / "out", "--config", cfg, allowed=(2,))
-    assert f"{cfg}: not UTF-8 text" in run.stderr
+    assert f"{cfg}: config file is not UTF-8 text" in run.stderr
 
 
 # --------------------------------------------------------------------------- also found
