@@ -250,6 +250,8 @@ def test_non_utf8_split_list_and_config_name_the_file(kitti, tmp_path):
     (kitti / "ImageSets" / "val.txt").write_bytes(b"000000\n\xff\xfe000001\n")
     run = _infer(kitti, tmp_path / "out", "--split", "val", allowed=(2,))
     assert f"{kitti / 'ImageSets' / 'val.txt'}:2: split list is not UTF-8 text" in run.stderr
+    run = _infer(kitti, tmp_path / "out", "--split", "x" * 300, allowed=(2,))  # fuzz seed 16: exit 3 (File name too long)
+    assert "cannot list the dataset (File name too long)" in run.stderr
     cfg = tmp_path / "model.toml"
     cfg.write_bytes(b"[model]\nsigma = 0.2 # \xe9\n")
     run = _infer(kitti, tmp_path / "out", "--config", cfg, allowed=(2,))

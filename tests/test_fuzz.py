@@ -568,18 +568,19 @@ def mutate_v1_fields(rng: random.Random, case: Case, msgs: list) -> None:
             cal = msg.context.laser_calibrations[rng.randrange(len(msg.context.laser_calibrations))]
             how = rng.choice(["15 values", "nan", "inclinations count", "huge"])
             case.what.append(f"calibration {cal.name}: {how}")
-            if how == "15 values":
+            n_values = len(cal.extrinsic.transform)
+            if how == "15 values" and n_values:
                 del cal.extrinsic.transform[-1]
-            elif how == "nan":
-                cal.extrinsic.transform[rng.randrange(16)] = math.nan
-            elif how == "huge":
+            elif how == "nan" and n_values:
+                cal.extrinsic.transform[rng.randrange(n_values)] = math.nan
+            elif how == "huge" and n_values > 3:
                 cal.extrinsic.transform[3] = 1e300
             else:
                 cal.beam_inclinations.append(0.1)
         elif op == 8:
             how = rng.choice(["nan", "short", "none"])
             case.what.append(f"frame pose: {how}")
-            if how == "nan":
+            if how == "nan" and len(msg.pose.transform):
                 msg.pose.transform[0] = math.nan
             elif how == "short":
                 del msg.pose.transform[5:]
@@ -986,7 +987,7 @@ def _damage_folder(rng: random.Random, case: Case, out: Path) -> None:
             case.what.append("temporary files of a killed run")
             (out / ".manifest.json.tmp-999").write_text("{")
             if (out / "objects").is_dir():
-                (out / "objects" / ".part-x.parquet.tmp-999").mkdir()
+                (out / "objects" / ".part-x.parquet.tmp-999").mkdir(exist_ok=True)
         else:
             case.what.append("a foreign file")
             (out / "notes.txt").write_text("mine")

@@ -261,6 +261,8 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
         raise InferError(str(exc)) from None
     except TypeError as exc:  # a reader without a split option
         raise InferError(f"{dataset}: option not supported by the {fmt} reader ({exc})") from None
+    except OSError as exc:  # e.g. a --split name too long for the file system
+        raise InferError(f"{exc.filename or dataset}: cannot list the dataset ({exc.strerror or exc})") from None
     if request.limit is not None:
         if request.limit < 1:
             raise InferError(f"--limit must be ≥ 1, got {request.limit}")
