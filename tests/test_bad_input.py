@@ -370,3 +370,14 @@ def test_a_label_file_with_thousands_of_boxes_goes_through_the_linear_crop(kitti
     got = H.rows_by_frame(tmp_path / "out")["000000"]
     assert len(got) == 2100 >= C.CROP_GRID_MIN_BOXES
     assert [r["num_points"] for r in got[:3]] == [r["num_points"] for r in got[3:6]]  # same boxes, same crops
+
+
+def test_show_draws_a_frame_whose_label_was_refused(kitti, tmp_path):
+    _set_token(kitti / "training/label_2/000000.txt", 1, 11, "nan")
+    _infer(kitti, tmp_path / "out")
+    run = H.run_cli("show", tmp_path / "out", "000000", "-o", tmp_path / "frame.png")
+    H.check_output(run, allowed=(0,))  # was: ValueError "box has non-finite values" (exit 3)
+    assert (tmp_path / "frame.png").stat().st_size > 0
+    run = H.run_cli("show", tmp_path / "out", "000000", "1", "-o", tmp_path / "object.png")
+    H.check_output(run, allowed=(2,))
+    assert "status error" in run.stderr and "x = nan" in run.stderr

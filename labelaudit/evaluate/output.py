@@ -101,7 +101,8 @@ def write_plots(summary: dict[str, Any], out: Path) -> list[Path]:
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("precision (devkit-interpolated)")
-    axes[0].legend(loc="lower left", fontsize=8)
+    if axes[0].get_legend_handles_labels()[0]:  # no curve (nothing detected): no legend, and no matplotlib warning on stderr
+        axes[0].legend(loc="lower left", fontsize=8)
     fig.suptitle(f"Precision-recall at the usual thresholds ({view})")
     files.append(_save(fig, out / "pr_curves.png"))
     plt.close(fig)

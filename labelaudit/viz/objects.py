@@ -31,7 +31,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core.fit import LabelFit, fit_label
 from labelaudit.core.posterior import LabelPosterior, infer_label
 from labelaudit.core.spatial import BoxDistribution, Grid, jiou_gt, spatial_distribution
-from labelaudit.datasets import DatasetReader, Frame, FrameRef, open_dataset
+from labelaudit.datasets import DatasetReader, Frame, FrameFailure, FrameRef, open_dataset
 from labelaudit.errors import ConfigError, LabelAuditError
 from labelaudit.results import BOX_COLUMNS, MANIFEST_NAME, Results
 
@@ -203,6 +203,10 @@ def load_frame(source: AuditSource, frame_id: str) -> Frame:
         return source._frames[frame_id]
     for ref in _units_for(source, frame_id):
         for frame in source.reader.load_unit(ref):
+            if isinstance(frame, FrameFailure):  # a frame the reader could not read (the next ones still come)
+                if frame.frame_id == frame_id:
+                    raise frame.error
+                continue
             if frame.frame_id == frame_id:
                 if len(source._frames) >= C.VIZ_FRAME_CACHE:
                     source._frames.pop(next(iter(source._frames)))

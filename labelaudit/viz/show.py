@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
+from labelaudit.datasets.base import box_problems
 from labelaudit.core.posterior import corner_unit_coords
 from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit
 
@@ -369,6 +370,11 @@ def render_frame(
     if by not in SCORES:
         raise ValueError(f"by must be one of {', '.join(SCORES)}, got {by!r}")
     boxes = np.array([[r[c] for c in ("cx", "cy", "cz", "length", "width", "height", "yaw")] for r in rows], dtype=float).reshape(-1, 7)
+    refused = box_problems(boxes, g.BOX_FIELDS)
+    drawable = np.array([i not in refused for i in range(len(rows))], dtype=bool)
+    if not drawable.all():  # a label the reader refused (NaN, absurd size): an error row with no box to draw
+        rows = [r for r, ok in zip(rows, drawable) if ok]
+        boxes = boxes[drawable]
     scores = np.array([np.nan if r.get(by) is None or r.get("status") not in AUDITED_STATUSES else float(r[by]) for r in rows], dtype=float)
     indices = np.array([int(r["object_index"]) for r in rows], dtype=np.int64)
     corners = np.array([g.box_corners(b, "bev") for b in boxes]).reshape(-1, 4, 2)
