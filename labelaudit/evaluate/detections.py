@@ -180,10 +180,10 @@ def _as_detections_error(exc: DatasetError) -> DetectionsError:
 
 def _read_kitti_file(path: Path, calib: Any) -> _Rows:
     from labelaudit.datasets.kitti import boxes_camera_to_lidar
-    from labelaudit.evaluate.gt import fast_read_label
+    from labelaudit.datasets.kitti import read_label
 
     try:
-        labels = fast_read_label(path)
+        labels = read_label(path)  # the one KITTI parser: BOM, CRLF, ranges, file:line:column errors
     except DatasetError as exc:
         raise _as_detections_error(exc) from None
     rows = _Rows()

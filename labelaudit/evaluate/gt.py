@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit.datasets import DatasetError, FrameRef, open_dataset
-from labelaudit.datasets.kitti import Calibration, KittiLabels, boxes_camera_to_lidar, kitti_difficulty, read_calib, read_label
+from labelaudit.datasets.kitti import Calibration, boxes_camera_to_lidar, kitti_difficulty, read_calib, read_label
 from labelaudit.datasets.waymo_common import class_name as waymo_class_name
 
 FloatArray = NDArray[np.float64]
@@ -143,46 +143,9 @@ class GroundTruth:
 # --------------------------------------------------------------------------- KITTI
 
 
-def fast_read_label(path: Path) -> KittiLabels:
-    """:func:`~labelaudit.datasets.kitti.read_label`, parsing all numbers of a file in one NumPy call.
-
-    Same result for well-formed files; anything unusual (wrong column count, a bad number, a
-    non-integer occlusion, an unreadable file) is handed to ``read_label`` itself, so errors carry
-    its message naming file, line and column.
-    """
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError):
-        return read_label(path)
-    rows, lines = [], []
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        tokens = raw.split()
-        if tokens:
-            rows.append(tokens)
-            lines.append(lineno)
-    if not rows:
-        return read_label(path)
-    ncol = len(rows[0])
-    if ncol not in (15, 16) or any(len(r) != ncol for r in rows):
-        return read_label(path)
-    try:
-        a = np.array([r[1:] for r in rows], dtype=float)
-    except ValueError:
-        return read_label(path)
-    if not (np.all(np.isfinite(a[:, 1])) and np.all(a[:, 1] == np.trunc(a[:, 1]))):
-        return read_label(path)
-    if ncol == 15:
-        a = np.concatenate([a, np.full((len(a), 1), np.nan)], axis=1)
-    return KittiLabels(
-        class_names=[r[0] for r in rows], truncated=a[:, 0].copy(), occluded=a[:, 1].astype(np.int64), alpha=a[:, 2].copy(),
-        bbox2d=a[:, 3:7].copy(), dims_hwl=a[:, 7:10].copy(), location=a[:, 10:13].copy(), rotation_y=a[:, 13].copy(),
-        score=a[:, 14].copy(), line=np.array(lines, dtype=np.int64),
-    )
-
-
 def kitti_frame(label_path: Path, calib_path: Path, frame_id: str) -> GroundTruthFrame:
     """Labels of one KITTI frame (raises :class:`DatasetError` naming file and line)."""
-    labels = fast_read_label(label_path)
+    labels = read_label(label_path)
     calib = read_calib(calib_path)
     is_dc = np.array([n == "DontCare" for n in labels.class_names], dtype=bool)
     rows = np.flatnonzero(~is_dc)

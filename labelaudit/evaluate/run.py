@@ -17,7 +17,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -26,7 +26,6 @@ from numpy.typing import NDArray
 from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit.config import RunConfig
-from labelaudit.datasets import DatasetError
 from labelaudit.evaluate.ap import PrecisionCurve, precision_curve
 from labelaudit.evaluate.detections import Detections, read_detections
 from labelaudit.evaluate.gt import GroundTruth, load_ground_truth

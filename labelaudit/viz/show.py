@@ -50,6 +50,19 @@ ELLIPSE_COLOUR = "#7CFC00"
 CONTEXT_COLOUR = "#8a8a8a"
 
 
+
+def fit_view(lo: FloatArray, hi: FloatArray, ax_rect: tuple[float, float, float, float], size: tuple[int, int]) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1) around the (2,) corners ``lo``, ``hi`` grown so one metre is as long in x as in y on an
+    axes of ``ax_rect`` (figure fractions) in a figure of ``size`` pixels."""
+    aspect = (ax_rect[3] * size[1]) / (ax_rect[2] * size[0])
+    span_x, span_y = hi[0] - lo[0], hi[1] - lo[1]
+    if span_y / span_x < aspect:
+        span_y = span_x * aspect
+    else:
+        span_x = span_y / aspect
+    mid = 0.5 * (lo + hi)
+    return (float(mid[0] - span_x / 2), float(mid[0] + span_x / 2), float(mid[1] - span_y / 2), float(mid[1] + span_y / 2))
+
 def parse_size(text: str) -> tuple[int, int]:
     """``"640x600"`` or ``"640"`` (square) → (width, height) in pixels.
 
@@ -227,14 +240,7 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     fig = _figure(size)
     ax_rect = ((0.01, 0.01, 0.98, 0.98) if compact else (0.1, 0.13, 0.72, 0.74)) if overlays else (0.0, 0.0, 1.0, 1.0)
     ax = fig.add_axes(ax_rect)
-    aspect = (ax_rect[3] * size[1]) / (ax_rect[2] * size[0])
-    span_x, span_y = hi[0] - lo[0], hi[1] - lo[1]
-    if span_y / span_x < aspect:
-        span_y = span_x * aspect
-    else:
-        span_x = span_y / aspect
-    mid = 0.5 * (lo + hi)
-    view = (float(mid[0] - span_x / 2), float(mid[0] + span_x / 2), float(mid[1] - span_y / 2), float(mid[1] + span_y / 2))
+    view = fit_view(lo, hi, ax_rect, size)
 
     heat_norm = Normalize(0.0, max(1.0, float(density.max())))
     heat_cmap = colormaps[HEAT_CMAP]
@@ -271,6 +277,7 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
 
     # Direction to the sensor: an arrow in the upper-left corner of the axes.
     # Direction to the sensor: an arrow near the upper-left corner (data coordinates keep its angle).
+    span_x, span_y = view[1] - view[0], view[3] - view[2]
     start = np.array([view[0] + 0.16 * span_x, view[3] - 0.16 * span_y])
     tip = start + 0.08 * span_x * sensor_dir
     ax.annotate("", xy=tuple(tip), xytext=tuple(start - 0.08 * span_x * sensor_dir), arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.4}, zorder=8)
@@ -387,14 +394,7 @@ def render_frame(
     fig = _figure(size)
     ax_rect = (0.07, 0.08, 0.8, 0.84)
     ax = fig.add_axes(ax_rect)
-    aspect = (ax_rect[3] * size[1]) / (ax_rect[2] * size[0])
-    span_x, span_y = hi[0] - lo[0], hi[1] - lo[1]
-    if span_y / span_x < aspect:
-        span_y = span_x * aspect
-    else:
-        span_x = span_y / aspect
-    mid = 0.5 * (lo + hi)
-    view = (float(mid[0] - span_x / 2), float(mid[0] + span_x / 2), float(mid[1] - span_y / 2), float(mid[1] + span_y / 2))
+    view = fit_view(lo, hi, ax_rect, size)
 
     ax.set_facecolor("#111111")
     pts = np.asarray(points, dtype=float)
