@@ -22,10 +22,14 @@ from labelaudit.errors import ConfigError
 
 
 CONFIG_DIR = Path(__file__).parent / "configs"
+"""Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
+
+SAMPLE_TABLE = Path(__file__).parent / "data" / "normal_samples.npz"
+"""The stored Sobol normal samples of p_G (read by :mod:`labelaudit.core.spatial`, hashed by
+:func:`constants_digest`; defined here so hashing never loads the core)."""
 
 ALL_CLASSES = "all"
 """Put this alone in ``classes`` to audit every class (``--classes all``)."""
-"""Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
 
 
 @dataclass(frozen=True)
@@ -124,8 +128,6 @@ def constants_digest() -> str:
     a new constant is hashed by default, so forgetting to list one costs a needless re-run, never a
     folder that mixes two models.
     """
-    from labelaudit.core.spatial import SAMPLE_TABLE
-
     values = {name: getattr(C, name) for name in dir(C) if name.isupper() and not is_unhashed(name)}
     blob = json.dumps(values, sort_keys=True, default=repr, separators=(",", ":"))
     h = hashlib.sha256(blob.encode())

@@ -51,6 +51,10 @@ class WorkerCrashed(LabelAuditError, RuntimeError):
     """A worker process died (killed, out of memory, a crash in native code)."""
 
 
+class ClusterError(LabelAuditError, RuntimeError):
+    """A Dask scheduler is unreachable, has no workers, or its workers run another labelaudit."""
+
+
 class OutputExistsError(LabelAuditError, FileExistsError):
     """An output folder already holds what a command would write, and overwriting was not asked for."""
 

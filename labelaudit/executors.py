@@ -1,21 +1,26 @@
-"""Executors: run a pure function over units of work, serially, in a process pool, (later) on Dask.
+"""Executors: run a pure function over units of work, serially, in a process pool, or on a Dask cluster.
 
-The seam is ``run(units, fn) -> iterator of fn(unit)`` in any order, plus ``close()``. ``infer`` and
-``simulate`` use the same implementations. Executors know nothing about labels, rows or files.
+The seam is ``start()`` (optional early start-up: fork server, cluster connection), ``run(units, fn)
+-> iterator of fn(unit)`` in any order, each result exactly once, plus ``close()``. ``infer`` and
+``simulate`` use the same implementations (:func:`make_executor`). Executors know nothing about
+labels, rows or files: the caller writes what comes back. Dask is imported only by
+:class:`DaskExecutor` (``infer --scheduler``).
 """
 
 from __future__ import annotations
 
+import functools
+import logging
 import multiprocessing
+import os
+import re
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-import os
 from contextlib import contextmanager
-from typing import Callable, Iterator, Protocol, Sequence, TypeVar
-
+from typing import Any, Callable, Iterator, Protocol, Sequence, TypeVar
 
 from labelaudit import constants as C
-from labelaudit.errors import WorkerCrashed
+from labelaudit.errors import ClusterError, UsageError, WorkerCrashed
 
 T = TypeVar("T")
 U = TypeVar("U")
@@ -27,6 +32,10 @@ U = TypeVar("U")
 class Executor(Protocol):
     """Runs a pure function over units of work; results may come back in any order."""
 
+    def start(self) -> None:
+        """Begin start-up work early (optional; :func:`run` starts whatever is not running)."""
+        ...
+
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
         ...
 
@@ -37,6 +46,9 @@ class Executor(Protocol):
 
 class SerialExecutor:
     """In-process, one unit after the other (``--workers 1``, tests, debugging)."""
+
+    def start(self) -> None:
+        pass
 
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
         for unit in units:
@@ -69,9 +81,10 @@ class PoolExecutor:
     """A pool of ``workers`` processes.
 
     Workers fork from a ``forkserver`` that has imported the heavy modules once
-    (:data:`~labelaudit.constants.WORKER_PRELOAD`: Open3D, SciPy, the core), so they start warm;
-    the server is single-threaded, so forking it is safe with Open3D/BLAS (forking the main
-    process, which may run Arrow threads, is not).
+    (:data:`~labelaudit.constants.WORKER_PRELOAD`: Open3D, the core, its compiled kernels), so they
+    start warm; the server is single-threaded, so forking it is safe with Open3D/BLAS (forking the
+    main process, which may run Arrow threads, is not). :meth:`start` launches the server at once,
+    so its imports overlap with the main process' own work (listing the dataset, the output folder).
 
     Built on :class:`concurrent.futures.ProcessPoolExecutor`, so a worker that dies raises
     :class:`WorkerCrashed` instead of hanging the run; finished shards are kept for ``--resume``.
@@ -85,13 +98,26 @@ class PoolExecutor:
         self.preload = tuple(preload)  # modules the fork server imports (only the first pool of a process starts it)
         self._pool: ProcessPoolExecutor | None = None
 
-    def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
-        if not units:
-            return
+    def _context(self) -> Any:
         method = self.start_method if self.start_method in multiprocessing.get_all_start_methods() else "spawn"  # Windows
         ctx = multiprocessing.get_context(method)
         if method == "forkserver":
             ctx.set_forkserver_preload(list(self.preload))  # missing modules are skipped
+        return ctx
+
+    def start(self) -> None:
+        """Launch the fork server now (it imports the preload modules while the caller goes on)."""
+        ctx = self._context()
+        if ctx.get_start_method() == "forkserver":
+            from multiprocessing import forkserver
+
+            with _single_threaded_children():
+                forkserver.ensure_running()
+
+    def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
+        if not units:
+            return
+        ctx = self._context()
         with _single_threaded_children():
             self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(units)), mp_context=ctx)
             futures = [self._pool.submit(fn, u) for u in units]
@@ -113,7 +139,236 @@ class PoolExecutor:
             self._pool = None
 
 
-def make_executor(workers: int | None, preload: Sequence[str] = C.WORKER_PRELOAD) -> Executor:
-    """Serial for one worker, else a process pool (``None`` = every core) whose fork server imports ``preload``."""
+# --------------------------------------------------------------------------- Dask
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> dict[str, str]:
+    """What must be equal on the client and every worker for equal rows: the labelaudit version and
+    the digest of its fixed numbers (:func:`labelaudit.config.constants_digest`)."""
+    from labelaudit import __version__
+    from labelaudit.config import constants_digest
+
+    return {"version": __version__, "constants": constants_digest()}
+
+
+def _describe(fp: dict[str, str]) -> str:
+    return f"labelaudit {fp.get('version')} (constants {fp.get('constants')})"
+
+
+def _mismatch_message(where: str, expected: dict[str, str], got: dict[str, str]) -> str:
+    return (
+        f"{where} runs {_describe(got)}, this client {_describe(expected)}; install the same labelaudit on the "
+        "client and every worker (docs/scale.md)"
+    )
+
+
+def _checked_call(unit: Any, *, fn: Callable[[Any], Any], expected: dict[str, str]) -> Any:
+    """A task on a Dask worker: refuse to compute under other code than the client's (a worker
+    that joined after the connect-time check), else ``fn(unit)``."""
+    got = code_fingerprint()
+    if got != expected:
+        raise ClusterError(_mismatch_message(f"Dask worker (pid {os.getpid()})", expected, got))
+    return fn(unit)
+
+
+async def _probe(address: str, timeout: float) -> None:
+    """Connect to a scheduler and ask its identity, within ``timeout`` seconds (raises otherwise)."""
+    import asyncio
+
+    from distributed.core import rpc
+
+    r = rpc(address, timeout=timeout)
+    try:
+        await asyncio.wait_for(r.identity(), timeout)
+    finally:
+        await r.close_rpc()
+
+
+_LOCAL = re.compile(r"^local(?::(\d+))?$")
+
+
+def parse_scheduler(address: str, workers: int | None = None) -> tuple[str | None, int | None]:
+    """``(scheduler address, None)`` for ``tcp://HOST:PORT`` (or another Dask protocol), ``(None, N)``
+    for ``local[:N]`` (a LocalCluster of N worker processes; N = ``workers``, else every core).
+
+    Raises
+    ------
+    UsageError
+        A malformed address, ``local:0``, or ``--workers`` that contradicts it.
+    """
+    address = address.strip()
+    m = _LOCAL.match(address)
+    if m:
+        n = int(m.group(1)) if m.group(1) else workers if workers is not None else (os.cpu_count() or 1)
+        if n < 1:
+            raise UsageError(f"--scheduler {address}: a local cluster needs ≥ 1 worker")
+        if workers is not None and m.group(1) and workers != n:
+            raise UsageError(f"--scheduler {address} and --workers {workers} disagree; give the worker count once")
+        return None, n
+    if workers is not None:
+        raise UsageError(
+            f"--workers {workers} with --scheduler {address}: a cluster's workers are set where they start "
+            "(dask worker … --nworkers N); drop --workers"
+        )
+    if not re.match(r"^([a-z][a-z0-9+]*://)?[^\s:/]+:\d+$", address):
+        raise UsageError(f"--scheduler {address!r}: expected tcp://HOST:PORT (a running Dask scheduler) or local[:N]")
+    return (address if "://" in address else f"tcp://{address}"), None
+
+
+class DaskExecutor:
+    """Units as tasks on a Dask ``distributed`` cluster: an existing one (``tcp://HOST:PORT``) or a
+    LocalCluster of processes started for the run (``local[:N]``).
+
+    - **Connect** (:meth:`start`): an unreachable scheduler raises :class:`ClusterError` naming the
+      address after :data:`~labelaudit.constants.DASK_CONNECT_TIMEOUT` s; then every worker's
+      labelaudit version and constants digest must equal the client's (:func:`code_fingerprint`),
+      else :class:`ClusterError` naming both. Tasks check it again (workers that join later).
+    - **Run**: one task per unit, results (Arrow tables inside the chunk results) streamed back as
+      tasks complete, each yielded exactly once and released on the cluster at once. A worker lost
+      mid-run has its tasks rescheduled by Dask; a task present at more worker deaths than the
+      scheduler's ``allowed-failures`` raises :class:`WorkerCrashed`.
+    - Workers must see the same dataset paths as the client (docs/scale.md); nothing is written
+      by them.
+    """
+
+    def __init__(
+        self, scheduler: str | None = None, local_workers: int | None = None, connect_timeout: float = C.DASK_CONNECT_TIMEOUT,
+        preload: Sequence[str] = C.WORKER_PRELOAD,
+    ):
+        if (scheduler is None) == (local_workers is None):
+            raise ValueError("give exactly one of scheduler (an address) and local_workers (a LocalCluster size)")
+        self.preload = tuple(preload)  # what the LocalCluster's workers import when they start
+        self.scheduler = scheduler
+        self.local_workers = local_workers
+        self.connect_timeout = connect_timeout
+        self._client: Any = None
+        self._cluster: Any = None
+        self._futures: list[Any] = []
+
+    @property
+    def address(self) -> str:
+        return self.scheduler if self.scheduler is not None else f"local:{self.local_workers}"
+
+    def start(self) -> None:
+        """Connect (or start the LocalCluster) and check the workers' labelaudit; idempotent."""
+        if self._client is not None:
+            return
+        try:
+            import distributed
+        except ImportError:
+            raise ClusterError("--scheduler needs Dask: pip install 'dask[distributed]'") from None
+        try:
+            if self.scheduler is None:
+                self._cluster = distributed.LocalCluster(
+                    n_workers=self.local_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                    silence_logs=logging.ERROR, preload=list(self.preload),  # a killed worker is handled, not news
+                )
+                self._client = distributed.Client(self._cluster, set_as_default=False)
+            else:
+                self._connect(distributed)
+            self._check_workers()
+        except BaseException:
+            self.close()
+            raise
+
+    def _connect(self, distributed: Any) -> None:
+        import asyncio
+
+        try:
+            asyncio.run(_probe(self.scheduler, self.connect_timeout))
+        except (Exception, asyncio.TimeoutError) as exc:  # refused, timed out, or not a Dask scheduler
+            reason = str(exc) or type(exc).__name__
+            if isinstance(exc, MemoryError):
+                reason = "the server there does not speak the Dask protocol"
+            raise ClusterError(
+                f"cannot reach the Dask scheduler at {self.scheduler} within {self.connect_timeout:g} s ({reason}); "
+                "start it with `dask scheduler` and check the address, or use --scheduler local"
+            ) from None
+        self._client = distributed.Client(self.scheduler, timeout=self.connect_timeout, set_as_default=False)
+
+    def _check_workers(self) -> None:
+        client = self._client
+        try:
+            client.wait_for_workers(1, timeout=C.DASK_WORKER_WAIT)
+        except Exception:
+            raise ClusterError(f"the Dask scheduler at {self.address} has no workers after {C.DASK_WORKER_WAIT:g} s; start some with `dask worker {self.address}`") from None
+        expected = code_fingerprint()
+        try:
+            found = client.run(code_fingerprint)
+        except Exception as exc:
+            raise ClusterError(
+                f"the Dask workers of {self.address} cannot run labelaudit ({type(exc).__name__}: {exc}); "
+                f"install {_describe(expected)} on every worker (docs/scale.md)"
+            ) from None
+        for worker, got in sorted(found.items()):
+            if got != expected:
+                raise ClusterError(_mismatch_message(f"Dask worker {worker}", expected, got))
+
+    def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
+        if not units:
+            return
+        self.start()
+        from uuid import uuid4
+
+        import distributed
+
+        token = uuid4().hex[:12]
+        keys = [f"labelaudit-{i}-{token}" for i in range(len(units))]
+        index = {k: i for i, k in enumerate(keys)}
+        self._futures = self._client.map(_checked_call, list(units), key=keys, pure=False, fn=fn, expected=code_fingerprint())
+        returned: set[int] = set()
+        try:
+            for future in distributed.as_completed(self._futures, loop=self._client.loop):
+                i = index[future.key]
+                if i in returned:  # never twice, whatever the cluster reports
+                    continue
+                try:
+                    result = future.result()
+                except distributed.KilledWorker:
+                    raise WorkerCrashed(
+                        f"a task was running on each Dask worker that died, too often to retry (out of memory or a native crash; "
+                        "distributed.scheduler.allowed-failures); "
+                        "finished shards are kept — rerun the same command to resume"
+                    ) from None
+                except distributed.client.FutureCancelledError:
+                    raise ClusterError(f"the Dask scheduler at {self.address} cancelled the run (restarted or lost); rerun the same command to resume") from None
+                returned.add(i)
+                future.release()
+                yield result
+            if len(returned) != len(units):
+                raise WorkerCrashed(f"{len(units) - len(returned)} of {len(units)} tasks never came back from {self.address}; rerun the same command to resume")
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        client, cluster, self._client, self._cluster = self._client, self._cluster, None, None
+        futures, self._futures = self._futures, []
+        if client is not None:
+            try:
+                if futures:
+                    client.cancel(futures)
+                client.close()
+            except Exception:  # a scheduler already gone: nothing left to stop
+                pass
+        if cluster is not None:
+            cluster.close()
+
+
+def make_executor(workers: int | None, preload: Sequence[str] = C.WORKER_PRELOAD, scheduler: str | None = None) -> Executor:
+    """The executor of ``--workers N`` / ``--scheduler ADDR``.
+
+    No scheduler: serial for one worker, else a process pool (``None`` = every core) whose fork
+    server imports ``preload``. A scheduler address (``tcp://HOST:PORT``) or ``local[:N]``:
+    :class:`DaskExecutor` (not connected yet; its LocalCluster workers import ``preload``).
+
+    Raises
+    ------
+    UsageError
+        A malformed scheduler address, or ``--workers`` together with a ``tcp://`` scheduler.
+    """
+    if scheduler is not None:
+        address, local = parse_scheduler(scheduler, workers)
+        return DaskExecutor(address, local, preload=preload)
     n = workers if workers is not None else (os.cpu_count() or 1)
     return SerialExecutor() if n <= 1 else PoolExecutor(n, preload=preload)

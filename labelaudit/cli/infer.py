@@ -34,7 +34,11 @@ def infer(
     classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
     model: Optional[ModelChoice] = typer.Option(None, "--model", help="bev (default) or 3d."),
     split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …)."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores); with --scheduler local, the cluster's size."),
+    scheduler: Optional[str] = typer.Option(
+        None, "--scheduler", metavar="ADDR",
+        help="Run on a Dask cluster: tcp://HOST:PORT of a running scheduler, or local[:N] for a local cluster of N processes (docs/scale.md).",
+    ),
     limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo)."),
     resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters (re-trying those with failures), or start over (also replaces a damaged folder)."),
     strict: bool = typer.Option(False, "--strict", help="Stop at the first frame or object that fails (exit 2, one line naming the file)."),
@@ -52,6 +56,8 @@ def infer(
       labelaudit infer /data/kitti --split val --classes Car,Van --workers 8
 
       labelaudit infer /data/waymo_v2/validation --dataset-format waymo-v2 --model 3d -o waymo-results/
+
+      labelaudit infer /shared/waymo_v2/training --scheduler tcp://scheduler:8786 -o /shared/results/
     """
     from labelaudit.infer.run import InferRequest
 
@@ -59,7 +65,7 @@ def infer(
         if not output.strip():  # Path("") would be the current folder
             raise UsageError("-o/--output is empty; name the results folder (`-o .` for the current one)")
         request = InferRequest(
-            dataset, Path(output), dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug,
+            dataset, Path(output), dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug, scheduler=scheduler,
             config=config, classes=None if classes is None else tuple(classes.split(",")), model=model.value if model else None,
         )
         run_and_report(request, quiet)

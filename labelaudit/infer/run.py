@@ -26,7 +26,16 @@ from labelaudit.datasets import DatasetError, FORMATS, FrameFailure, FrameRef, d
 from labelaudit import results as R
 from labelaudit.errors import InferError, ResultsError, StrictError, one_line
 from labelaudit.executors import Executor, make_executor
-from labelaudit.infer.rows import frame_note, process_frame
+
+# labelaudit.infer.rows (the core: Open3D, numba) is imported where a chunk is processed, so the
+# process that only plans, writes and reports (the main process, a Dask client) never loads it.
+
+
+def process_frame(frame: Any, cfg: RunConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """:func:`labelaudit.infer.rows.process_frame` (imported on first use)."""
+    from labelaudit.infer.rows import process_frame as rows_of_frame
+
+    return rows_of_frame(frame, cfg)
 
 
 # --------------------------------------------------------------------------- layer 2: one chunk
@@ -82,6 +91,8 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
     With ``task.debug`` unexpected exceptions (bugs, not bad input) propagate so their traceback
     is visible.
     """
+    from labelaudit.infer.rows import frame_note
+
     start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
@@ -148,6 +159,7 @@ class InferRequest:
     config: Path | None = None  # model config TOML; None: the built-in one of the format
     classes: tuple[str, ...] | None = None  # None: the config's; ("all",): every class
     model: str | None = None  # "bev" / "3d" override of the config's [model] kind
+    scheduler: str | None = None  # Dask scheduler address (tcp://HOST:PORT) or local[:N]; None: the pool of ``workers``
 
 
 @dataclass
@@ -235,7 +247,7 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     request : input, output and run options
     cfg : model configuration (its ``dataset_format`` must be the resolved format)
     progress : progress sink (default: silent)
-    executor : default :func:`make_executor` of ``request.workers``
+    executor : default :func:`make_executor` of ``request.workers`` and ``request.scheduler``
 
     Raises
     ------
@@ -246,7 +258,7 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     """
     start = time.perf_counter()
     progress = progress or NoProgress()
-    dataset = Path(request.dataset)
+    dataset = Path(request.dataset).absolute()  # units name absolute paths: workers of a cluster do not share our cwd
     validate_config(cfg, "the run configuration")
     if request.split is not None and (not request.split.strip() or any(c in request.split for c in "/\\\0")):
         raise InferError(f"--split {request.split!r}: expected a split name such as train or val (ImageSets/<split>.txt)")
@@ -270,6 +282,29 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     if not refs:
         raise InferError(f"{dataset}: no frames found (format {fmt}{', split ' + request.split if request.split else ''})")
 
+    # Start the executor now that the input is known to be good: the pool's fork server imports
+    # the core while this process hashes and prepares the folder; an unreachable cluster fails
+    # before the folder is touched.
+    executor = executor or make_executor(request.workers, scheduler=request.scheduler)
+    try:
+        executor.start()
+        return _run_checked(request, cfg, fmt, dataset, refs, reader_options, progress, executor, start)
+    except BaseException:
+        executor.close()
+        raise
+
+
+def _run_checked(
+    request: InferRequest,
+    cfg: RunConfig,
+    fmt: str,
+    dataset: Path,
+    refs: Sequence[FrameRef],
+    reader_options: tuple[tuple[str, Any], ...],
+    progress: Progress,
+    executor: Executor,
+    start: float,
+) -> RunSummary:
     inputs = hash_inputs(cfg)
     metadata = R.run_metadata(
         inputs["params"], cfg.param_hash(), str(dataset.resolve()), fmt, constants_digest=inputs["constants_digest"], split=request.split, limit=request.limit
@@ -289,7 +324,7 @@ def _run_locked(
     metadata: dict[str, Any],
     output: Path,
     progress: Progress,
-    executor: Executor | None,
+    executor: Executor,
     start: float,
 ) -> RunSummary:
     R.prepare_output(output, metadata, request.overwrite)
@@ -307,7 +342,6 @@ def _run_locked(
         for name, c in chunks
         if name not in done
     ]
-    executor = executor or make_executor(request.workers)
     frames = objects = 0
     progress.start(len(refs), sum(len(c) for name, c in chunks if name in done))
     try:
