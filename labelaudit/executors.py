@@ -59,14 +59,19 @@ class SerialExecutor:
 
 
 _SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+FORK_SERVER_ENV = "LABELAUDIT_FORK_SERVER"
+"""Set (to the parent's pid) while the fork server starts: :mod:`labelaudit.infer.warmup` then makes
+the server skip its interpreter teardown when it exits (a second or more with Open3D loaded, during
+which it still holds the caller's stdout/stderr pipes)."""
 
 
 @contextmanager
 def _single_threaded_children() -> Iterator[None]:
     """Workers inherit 1 BLAS/OpenMP thread each: the pool already uses every core."""
-    saved = {k: os.environ.get(k) for k in _SINGLE_THREAD_ENV}
+    saved = {k: os.environ.get(k) for k in (*_SINGLE_THREAD_ENV, FORK_SERVER_ENV)}
     for k in _SINGLE_THREAD_ENV:
         os.environ.setdefault(k, "1")
+    os.environ[FORK_SERVER_ENV] = str(os.getpid())
     try:
         yield
     finally:

@@ -660,8 +660,10 @@ class KittiReader:
         dims = labels.dims_hwl[rows]
         warnings: list[str] = []
         points = read_velodyne(velo_path)
-        finite = np.all(np.isfinite(points[:, :3]), axis=1)
-        n_bad = int(len(points) - finite.sum())
+        # One pass over the whole contiguous array first (~0.1 ms); the per-row test (~2 ms) only
+        # when something is not finite (possibly just a reflectance, which is kept).
+        finite = None if np.isfinite(points).all() else np.all(np.isfinite(points[:, :3]), axis=1)
+        n_bad = 0 if finite is None else int(len(points) - finite.sum())
         if n_bad:
             points = points[finite]
             warnings.append(f"{velo_path}: dropped {n_bad} of {n_bad + len(points)} points with NaN/inf coordinates")

@@ -8,7 +8,7 @@ The selection region of a box ``(cx, cy, cz, l, w, h, yaw)`` is the box
 - cut from below at ``bottom + ground_cut`` (bottom = cz − h/2), so ground returns under the
   object are dropped; the top stays at cz + h/2.
 
-Boundaries are inclusive. :func:`crop_frame` builds **one** Open3D point cloud per frame and asks
+Boundaries are inclusive. :func:`crop_frame` builds **one** Open3D point vector per frame and asks
 each box's ``OrientedBoundingBox`` for its indices; :func:`points_in_boxes_numpy` is the plain
 NumPy reference. They agree except for points within floating-point rounding of a face.
 
@@ -25,10 +25,12 @@ so the indices are identical whichever way is taken.
 
 from __future__ import annotations
 
+import sys
+import types
 from dataclasses import replace
 
+import numba
 import numpy as np
-import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
@@ -36,6 +38,48 @@ from labelaudit.config import CropParams
 from labelaudit.core.geometry import rotation_z
 
 IndexArray = NDArray[np.int64]
+
+
+def _import_open3d() -> types.ModuleType:
+    """``import open3d`` without its plotting chain.
+
+    ``open3d.visualization`` imports ``draw_plotly``, which imports Plotly and Dash (about half of
+    Open3D's import time, in every worker) although a crop never plots. When Open3D is not loaded
+    yet, that one module is replaced by a stand-in whose three functions load the real module on
+    first call, so ``open3d.visualization.draw_plotly(...)`` still works for whoever wants it.
+    """
+    name = "open3d.visualization.draw_plotly"
+    if "open3d" not in sys.modules and name not in sys.modules:
+        stub = types.ModuleType(name, "Stand-in of labelaudit.infer.crop: the real module loads on first call.")
+
+        def _real() -> types.ModuleType:
+            import importlib.util
+
+            spec = importlib.util.find_spec("open3d.visualization")
+            path = next(iter(spec.submodule_search_locations)) if spec and spec.submodule_search_locations else None
+            real_spec = importlib.util.spec_from_file_location(name, f"{path}/draw_plotly.py")
+            module = importlib.util.module_from_spec(real_spec)  # type: ignore[arg-type]
+            real_spec.loader.exec_module(module)  # type: ignore[union-attr]
+            sys.modules[name] = module
+            return module
+
+        def _lazy(attr: str):  # noqa: ANN202
+            def call(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+                return getattr(_real(), attr)(*args, **kwargs)
+
+            call.__name__ = attr
+            return call
+
+        for attr in ("get_plotly_fig", "draw_plotly", "draw_plotly_server"):
+            setattr(stub, attr, _lazy(attr))
+        sys.modules[name] = stub
+    import open3d
+
+    return open3d
+
+
+o3d = _import_open3d()
+
 
 __all__ = ["bev_candidates", "crop_frame", "crop_frame_pair", "points_in_boxes_numpy", "refine_crop", "selection_boxes"]
 
@@ -105,7 +149,7 @@ def points_in_boxes_numpy(
 def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[IndexArray]:
     """Indices of the points inside each box, with the margin and ground cut of ``params``.
 
-    One Open3D point cloud is built for the frame; every box is an ``OrientedBoundingBox`` queried
+    One Open3D point vector is built for the frame; every box is an ``OrientedBoundingBox`` queried
     against it.
 
     Parameters
@@ -122,8 +166,7 @@ def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[
     if len(b) == 0:
         return []
     sel = selection_boxes(b, params.margin, params.ground_cut)
-    # float32 input converts to float64 exactly, so Open3D sees the same coordinates as the reference.
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(pts[:, :3], dtype=np.float64)))
+    cloud = _open3d_points(pts)
     rotations = rotation_z(sel[:, 6])
     out: list[IndexArray] = []
     for box, R in zip(sel, rotations):
@@ -131,8 +174,33 @@ def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[
             out.append(np.empty(0, dtype=np.int64))
             continue
         obb = o3d.geometry.OrientedBoundingBox(box[:3], R, box[3:6])
-        idx = np.asarray(obb.get_point_indices_within_bounding_box(cloud.points), dtype=np.int64)
+        idx = np.asarray(obb.get_point_indices_within_bounding_box(cloud), dtype=np.int64)
         out.append(np.sort(idx))
+    return out
+
+
+def _open3d_points(pts: NDArray) -> "o3d.utility.Vector3dVector":
+    """x, y, z of ``pts`` (N, ≥3) as the Open3D vector the box queries read.
+
+    float32 converts to float64 exactly, so Open3D sees the same coordinates as the reference. The
+    conversion is one compiled pass (NumPy's strided float32 → float64 cast of an (N, 4) frame takes
+    ~8× longer), and no ``PointCloud`` is built around the vector: its constructor copies every point
+    again, for nothing a bounding-box query needs.
+    """
+    if pts.dtype == np.float32 or pts.dtype == np.float64:
+        xyz = _xyz_float64(pts)
+    else:
+        xyz = np.ascontiguousarray(pts[:, :3], dtype=np.float64)
+    return o3d.utility.Vector3dVector(xyz)
+
+
+@numba.njit(cache=True)
+def _xyz_float64(pts):  # pragma: no cover - compiled
+    out = np.empty((pts.shape[0], 3))
+    for i in range(pts.shape[0]):
+        out[i, 0] = pts[i, 0]
+        out[i, 1] = pts[i, 1]
+        out[i, 2] = pts[i, 2]
     return out
 
 

@@ -1,10 +1,39 @@
-"""Imported by the worker pool's fork server (:data:`~labelaudit.constants.WORKER_PRELOAD`): runs
-one synthetic object through the per-object audit, so the compiled kernels (numba, loaded from
-its on-disk cache on first call, ~0.5 s) and lazy imports are loaded once in the server and every
-forked worker starts warm. Importing it anywhere else only costs that half second.
+"""Imported by the worker pool's fork server and by Dask workers (:data:`~labelaudit.constants.WORKER_PRELOAD`):
+runs one synthetic object through the per-object audit, so the compiled kernels (numba, loaded
+from its on-disk cache on first call, ~0.5 s) and lazy imports are loaded once in the server and
+every forked worker starts warm. Importing it anywhere else only costs that half second.
+
+In the pool's fork server it also makes the server's exit immediate (:func:`fast_exit_in_fork_server`).
 """
 
 from __future__ import annotations
+
+import atexit
+import os
+import sys
+
+
+def fast_exit_in_fork_server() -> bool:
+    """In the fork server of a :class:`~labelaudit.executors.PoolExecutor` (marked by
+    :data:`~labelaudit.executors.FORK_SERVER_ENV` = its parent's pid), skip the interpreter
+    teardown at exit.
+
+    The server exits when its parent does; tearing down Open3D, numba and Arrow then takes a second
+    or more, during which it still holds the parent's stdout/stderr, so a caller that reads them to
+    the end (CI logs, ``subprocess.run(capture_output=True)``) waits for it. The server holds no
+    data and writes no file; its forked workers end with ``os._exit`` anyway.
+    """
+    marker = os.environ.pop("LABELAUDIT_FORK_SERVER", None)
+    if marker != str(os.getppid()) or "multiprocessing.forkserver" not in sys.modules:
+        return False
+
+    def _exit_now() -> None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+
+    atexit.register(_exit_now)  # registered last, so it runs first
+    return True
 
 
 def warm_up(strict: bool = False) -> None:
@@ -34,4 +63,5 @@ def warm_up(strict: bool = False) -> None:
             raise
 
 
+fast_exit_in_fork_server()
 warm_up()
