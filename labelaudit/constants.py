@@ -42,6 +42,7 @@ DEFAULT_GROUND_CUT = 0.1  # points within this height above the box bottom are g
 CROP_GRID_MIN_BOXES = 64  # frames with this many boxes are cropped through a BEV grid (same indices; Open3D per box costs K·N)
 CROP_GRID_CELL = 2.0  # m; BEV grid cell of that crop (a car touches ~10 cells: few extra candidates, few runs)
 CROP_GRID_BATCH = 256  # boxes per vectorised batch of that crop (bounds its temporary arrays)
+CROP_GRID_DENSE_CELLS = 8  # the grid is built by a counting sort when it has at most this many cells per point (8 B each), else by a sort
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
 KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)
@@ -187,4 +188,4 @@ REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's 
 # upper-case name of this module is hashed (a new one is hashed unless it is listed here).
 UNHASHED_PREFIXES = ("SIM_", "VIZ_", "SHOW_", "REPORT_", "EXPORT_", "EVAL_", "DEMO_", "HEURISTIC_", "INFOS_", "DEFAULT_ANCHOR_", "DASK_", "UNHASHED_")
 UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP",
-                            "PARAM_RANGES", "CROP_GRID_MIN_BOXES", "CROP_GRID_CELL", "CROP_GRID_BATCH"})  # ranges only refuse a config; the grid crop gives Open3D's indices
+                            "PARAM_RANGES", "CROP_GRID_MIN_BOXES", "CROP_GRID_CELL", "CROP_GRID_BATCH", "CROP_GRID_DENSE_CELLS"})  # ranges only refuse a config; the grid crop gives Open3D's indices

@@ -282,7 +282,7 @@ class DaskExecutor:
 
         try:
             asyncio.run(_probe(self.scheduler, self.connect_timeout))
-        except (Exception, asyncio.TimeoutError) as exc:  # refused, timed out, or not a Dask scheduler
+        except Exception as exc:  # refused, timed out (TimeoutError), or not a Dask scheduler
             reason = str(exc) or type(exc).__name__
             if isinstance(exc, MemoryError):
                 reason = "the server there does not speak the Dask protocol"
@@ -332,7 +332,7 @@ class DaskExecutor:
                     result = future.result()
                 except distributed.KilledWorker:
                     raise WorkerCrashed(
-                        f"a task was running on each Dask worker that died, too often to retry (out of memory or a native crash; "
+                        "a task was running on each Dask worker that died, too often to retry (out of memory or a native crash; "
                         "distributed.scheduler.allowed-failures); "
                         "finished shards are kept — rerun the same command to resume"
                     ) from None

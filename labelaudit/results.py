@@ -155,17 +155,16 @@ ERRORS_SCHEMA = pa.schema(
 # --------------------------------------------------------------------------- rows → Arrow
 
 
-def _clean_float(value: Any) -> float | None:
-    if value is None:
-        return None
-    v = float(value)
-    return None if math.isnan(v) else v
-
-
 def _clean_list(value: Any) -> list[float | None] | None:
     if value is None:
         return None
-    return [_clean_float(v) for v in np.asarray(value, dtype=float).ravel()]
+    return [None if v != v else v for v in np.asarray(value, dtype=float).ravel().tolist()]  # v != v: NaN
+
+
+_KIND_OF = {  # how normalize_row coerces each column, looked up once per column
+    n: "F" if n in REQUIRED_FLOAT_COLUMNS else "f" if n in FLOAT_COLUMNS else "i" if n in INT_COLUMNS else "l" if n in LIST_COLUMNS else "s"
+    for n in COLUMN_NAMES
+}
 
 
 def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
@@ -178,15 +177,18 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
     Keys outside the schema are dropped; missing keys are null.
     """
     out: dict[str, Any] = {}
-    for name in COLUMN_NAMES:
+    for name, kind in _KIND_OF.items():
         value = row.get(name)
         if value is None:
             out[name] = None
-        elif name in FLOAT_COLUMNS:
-            out[name] = float(value) if name in REQUIRED_FLOAT_COLUMNS else _clean_float(value)
-        elif name in INT_COLUMNS:
+        elif kind == "f":
+            v = float(value)
+            out[name] = None if v != v else v  # NaN → null
+        elif kind == "F":  # the label's own columns: as written, NaN included
+            out[name] = float(value)
+        elif kind == "i":
             out[name] = None if isinstance(value, float) and value != value else int(value)
-        elif name in LIST_COLUMNS:
+        elif kind == "l":
             out[name] = _clean_list(value)
         else:
             out[name] = str(value)

@@ -218,3 +218,69 @@ def test_frames_with_many_boxes_crop_through_the_grid_to_identical_indices():
         assert all(np.array_equal(a, b) for a, b in zip(wide, crop_frame(pts, boxes, replace(params, margin=params.fit_margin)), strict=True))
         sel = selection_boxes(boxes, params.fit_margin, params.ground_cut)
         assert all(np.isin(w, c).all() for w, c in zip(wide, bev_candidates(pts, sel), strict=True))  # a superset
+
+def _open3d_whole_frame(points: np.ndarray, boxes: np.ndarray, params: CropParams) -> list[np.ndarray]:
+    """Open3D asked about every point of the frame (what crop_frame did before its BEV index)."""
+    import open3d as o3d
+
+    from labelaudit.core.geometry import rotation_z
+
+    cloud = o3d.utility.Vector3dVector(np.ascontiguousarray(points[:, :3], dtype=np.float64))
+    sel = selection_boxes(boxes, params.margin, params.ground_cut)
+    out = []
+    for box, R in zip(sel, rotation_z(sel[:, 6])):
+        if box[5] <= 0:
+            out.append(np.empty(0, dtype=np.int64))
+            continue
+        obb = o3d.geometry.OrientedBoundingBox(box[:3], R, box[3:6])
+        out.append(np.sort(np.asarray(obb.get_point_indices_within_bounding_box(cloud), dtype=np.int64)))
+    return out
+
+
+@pytest.mark.parametrize("spread", [10.0, 3000.0])  # 3 km apart: the index grid coarsens its cells
+def test_indexed_crop_equals_open3d_on_the_whole_frame(spread: float) -> None:
+    """The BEV index only chooses which points Open3D is asked about: same indices as asking about all,
+    also for points on the faces, points far outside, non-finite points and empty selections."""
+    rng = np.random.default_rng(int(spread))
+    boxes = np.c_[rng.uniform(-8, 8, (30, 3)), rng.uniform(0.4, 6.0, (30, 3)), rng.uniform(-np.pi, np.pi, 30)]
+    boxes[:3] = [[1.5, -2.25, 0.5, 4.0, 2.0, 1.5, 0.0], [-3.0, 4.5, 0.25, 1.75, 0.75, 2.0, np.pi / 2], [6.0, 6.0, -1.0, 3.5, 1.5, 0.05, 0.0]]
+    boxes[-1, :2] = spread  # one box far from the others
+    params = CropParams(margin=0.125, ground_cut=0.1, fit_margin=0.5)
+    random = rng.uniform(-12, 12, (40_000, 3)).astype(np.float32)
+    far = (boxes[-1, :3] + rng.normal(0, 2.0, (2000, 3))).astype(np.float32)
+    edges = _boundary_points(boxes, params, rng, 300)
+    xyz = np.concatenate([random, far, edges, [[np.nan, 0, 0], [np.inf, 1, 1], [1e30, 0, 0]]]).astype(np.float32)
+    points = np.c_[xyz, np.zeros(len(xyz), np.float32)]
+    for p in (params, CropParams(margin=0.5, ground_cut=0.1)):
+        got, want = crop_frame(points, boxes, p), _open3d_whole_frame(points, boxes, p)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        assert sum(map(len, want)) > 1000 and len(want[2]) == 0 and len(want[-1]) > 10
+
+
+def test_real_indexed_crop_equals_open3d_on_the_whole_frame(realdata: Path) -> None:
+    reader = KittiReader(realdata / "openpcdet-pr653-kitti")
+    for ref in reader.list_units():
+        frame = reader.load_frame(ref.key)
+        for p in (CropParams(), CropParams(margin=0.5, ground_cut=0.1)):
+            for a, b in zip(crop_frame(frame.points, frame.boxes, p), _open3d_whole_frame(frame.points, frame.boxes, p)):
+                np.testing.assert_array_equal(a, b)
+
+
+def test_grid_index_counting_sort_equals_the_numpy_sort(monkeypatch) -> None:
+    """Both ways of building the BEV index give the same keys and point order (NaN points out)."""
+    from labelaudit import constants as C
+    from labelaudit.infer import crop as CR
+
+    rng = np.random.default_rng(11)
+    pts = np.c_[rng.uniform(-30, 30, (20_000, 3)), np.zeros(20_000)].astype(np.float32)
+    pts[:5, 0] = np.nan
+    pts[5:10] = np.round(pts[5:10])  # on cell edges
+    boxes = np.c_[rng.uniform(-20, 20, (12, 3)), rng.uniform(0.4, 6.0, (12, 3)), rng.uniform(-np.pi, np.pi, 12)]
+    sel = selection_boxes(boxes, 0.5, 0.1)
+    dense = CR._BevIndex(pts, sel, C.CROP_GRID_CELL)
+    monkeypatch.setattr(C, "CROP_GRID_DENSE_CELLS", 0)
+    sparse = CR._BevIndex(pts, sel, C.CROP_GRID_CELL)
+    assert np.array_equal(dense.keys, sparse.keys) and np.array_equal(dense.index, sparse.index) and len(dense.index) > 1000
+    for a, b in zip(dense.candidates(slice(None)), sparse.candidates(slice(None))):
+        assert np.array_equal(a, b)

@@ -20,13 +20,14 @@ from numpy.typing import ArrayLike
 
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
+from labelaudit.core import linalg
 from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core.geometry import FloatArray, ModelKind
 from labelaudit.core.posterior import (
     em_sigma,
     estimate_sigma,
     outlier_log_density,
-    prior_cov_extended,
+    prior_cov_extended_cached,
     prior_precision_from,
     register_validated,
     spd_inverse,
@@ -399,11 +400,26 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     benchmark scoring them raised false alarms on correct labels (docs/label-error.md).
     """
     if fit_model == scored:
-        return np.linalg.inv(S)
+        return linalg.inv(S)
     W = np.zeros_like(S)
-    block = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
-    W[block] = np.linalg.inv(S[block])
+    W[_BEV_BLOCK] = linalg.inv(S[_BEV_BLOCK])
     return W
+
+
+_BEV_BLOCK = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
+_TOLERANCE = ClassPrior(**C.LABEL_TOLERANCE)
+_AS_KIND: list[tuple[ModelParams, ModelKind, ModelParams]] = []  # the last params → params of another kind
+
+
+def _params_of_kind(params: ModelParams, kind: ModelKind) -> ModelParams:
+    """``dataclasses.replace(params, kind=kind)``, reused while the same params object comes back
+    (every box of a run: the copy costs more than a BEV box's whole prior)."""
+    last = _AS_KIND[-1] if _AS_KIND else None  # one read: safe with threads
+    if last is not None and last[0] is params and last[1] == kind:
+        return last[2]
+    out = dataclasses.replace(params, kind=kind)
+    _AS_KIND[:] = [(params, kind, out)]
+    return out
 
 
 def fit_label(
@@ -440,16 +456,15 @@ def fit_label(
     # The run's model decides what is scored: a BEV run scores the BEV marginal of the 3D fit.
     scored: ModelKind = "bev" if model == "bev" or params.kind == "bev" else "3d"
     if model != params.kind:
-        params = dataclasses.replace(params, kind=model)
+        params = _params_of_kind(params, model)
     d = g.point_dim(model)
     pts = g.clean_points(arr, d)
     n = pts.shape[0]
     prior = params.prior_for(class_name)
     phi_label = g.phi_of_valid_box(y, model)
-    G = g.dphi_dext(y, model)
-    P0 = prior_precision_from(np.linalg.inv(G), prior, params.prior_weight, model)
-    tol = ClassPrior(**C.LABEL_TOLERANCE)
-    S_tol = G @ prior_cov_extended(tol, model) @ G.T
+    G = g.dphi_dext_valid(y, model)
+    P0 = prior_precision_from(linalg.inv(G), prior, params.prior_weight, model)  # G is invertible for l, w > 0
+    S_tol = G @ prior_cov_extended_cached(_TOLERANCE, model) @ G.T
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         s_hat = estimate_sigma(y, pts, model, num_nearest=params.num_nearest, sigma_init=sigma, outlier_prob=params.outlier_prob)

@@ -29,8 +29,11 @@ def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
         return 0.0
     local = pts - y[:2]
     order = np.lexsort((local[:, 1], local[:, 0]))  # by x, then y
-    corners = g.box_corners(y, "bev") - y[:2]  # counter-clockwise
+    corners = _BEV_CORNER_J @ g.phi_of_valid_box(y, "bev") - y[:2]  # = box_corners(y, "bev") − centre, counter-clockwise
     return float(_hull_iou_kernel(np.ascontiguousarray(local[order]), np.ascontiguousarray(corners)))
+
+
+_BEV_CORNER_J = g.design_matrix(g.BEV_CORNERS_UNIT, "bev")  # (4, 2, 6): the corners are J·φ (geometry.box_corners)
 
 
 @numba.njit(cache=True)
@@ -106,7 +109,7 @@ def _hull_candidates(pts: FloatArray) -> FloatArray:
     if len(pts) < 8:
         return pts
     x, y = pts[:, 0], pts[:, 1]
-    quad = pts[[np.argmin(x), np.argmin(y), np.argmax(x), np.argmax(y)]]  # counter-clockwise
+    quad = pts[[x.argmin(), y.argmin(), x.argmax(), y.argmax()]]  # counter-clockwise
     keep = np.zeros(len(pts), dtype=bool)
     edges = 0
     for (qx, qy), (rx, ry) in zip(quad, np.roll(quad, -1, axis=0)):

@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
+from labelaudit.core import linalg
 from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core.geometry import ModelKind
 
@@ -94,13 +95,18 @@ def linear_gaussian_posterior(
     return cov @ eta, cov, precision
 
 
+_EYE = {n: np.eye(n) for n in (6, 8)}  # read-only identities of the φ sizes
+for _e in _EYE.values():
+    _e.setflags(write=False)
+
+
 def spd_inverse(P: FloatArray) -> FloatArray:
     """Inverse of a symmetric positive definite matrix via Cholesky, symmetrised."""
     try:
-        L = np.linalg.cholesky(P)
+        L = linalg.cholesky(P)
     except np.linalg.LinAlgError:
         raise ValueError(f"posterior precision is not positive definite (eigenvalues {np.linalg.eigvalsh(P)})") from None
-    Linv = np.linalg.solve(L, np.eye(P.shape[0]))  # L is tiny (≤ 8×8): a generic solve is fine
+    Linv = linalg.solve(L, _EYE[P.shape[0]] if P.shape[0] in _EYE else np.eye(P.shape[0]))  # L is tiny (≤ 8×8): a generic solve is fine
     cov = Linv.T @ Linv
     return 0.5 * (cov + cov.T)
 
@@ -134,10 +140,10 @@ def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: fl
         return np.zeros_like(sqdist)
     m = sqdist.shape[1]
     logw = -sqdist / (2.0 * sigma**2)  # -inf for missing candidates
-    top = np.max(logw, axis=1, keepdims=True)
+    top = logw.max(axis=1, keepdims=True)
     top = np.where(np.isfinite(top), top, 0.0)
     e = np.exp(logw - top)
-    norm = np.sum(e, axis=1, keepdims=True)
+    norm = e.sum(axis=1, keepdims=True)
     if outlier_prob > 0:
         # Mixture: (1-p)/M · N(x | v̄, σ²I) per candidate, p · uniform. Compare in log space.
         log_gauss_const = np.log((1.0 - outlier_prob) / m) - 0.5 * d * np.log(2.0 * np.pi * sigma**2)
@@ -182,7 +188,7 @@ def register_validated(y: FloatArray, pts: FloatArray, d: int, num_nearest: int,
         local[:, 2] = pts[:, 2] - y[2]
     m = min(int(num_nearest), 2 * d)
     vstar, sqd = _nearest_faces(local, half, m)
-    log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN))))
+    log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN)))) if outlier_prob > 0 else 0.0  # unused without outliers
     resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
     return Registration(vstar=vstar, sqdist=sqd, resp=resp, points=pts)
 
@@ -200,7 +206,7 @@ def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatAr
     """
     local = np.ascontiguousarray(local, dtype=np.float64)
     half = np.ascontiguousarray(half, dtype=np.float64)
-    return _nearest_faces_kernel(local, half, int(m), 1e-9 * float(np.max(half)))
+    return _nearest_faces_kernel(local, half, int(m), 1e-9 * float(half.max()))
 
 
 @numba.njit(cache=True)
@@ -321,6 +327,14 @@ def _prior_info_extended(prior: ClassPrior, model: ModelKind) -> FloatArray:
     return info
 
 
+@functools.lru_cache(maxsize=64)
+def prior_cov_extended_cached(prior: ClassPrior, model: ModelKind) -> FloatArray:
+    """:func:`prior_cov_extended`, cached per class prior and model (read-only)."""
+    S = prior_cov_extended(prior, model)
+    S.setflags(write=False)
+    return S
+
+
 def prior_covariance(box: ArrayLike, prior: ClassPrior, weight: float, model: ModelKind) -> FloatArray:
     """Σ0 = G · Σ_ỹ / w · Gᵀ with G = ∂φ/∂ỹ at the label (full rank).
 
@@ -367,6 +381,10 @@ def outlier_log_density(y: FloatArray, d: int) -> float:
 
 def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, outlier_prob: float) -> float:
     """Pooled EM for σ over registrations given as (sqdist (N, M), outlier log density)."""
+    if len(regs) == 1 and outlier_prob == 0:
+        sqd = regs[0][0]
+        if len(sqd) and sqd.shape[1] and np.isfinite(sqd[:, 0]).all():
+            return _em_sigma_one(sqd)
     regs = [(sqd, np.where(np.isfinite(sqd), sqd, 0.0), ld) for sqd, ld in regs]
     # Start at the nearest-candidate residual (the small-σ limit): EM then needs few iterations.
     n_pts = sum(len(sqd) for sqd, _, _ in regs)
@@ -403,6 +421,20 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
             break
         sigma = max(new, C.SIGMA_FLOOR)
     return estimate
+
+
+def _em_sigma_one(sqd: FloatArray) -> float:
+    """:func:`em_sigma` of one registration (N ≥ 1 points, nearest candidates finite) without
+    outliers: the same operations on the same arrays as the pooled form, without the pooling
+    (this is the per-object σ̂ of every label)."""
+    n_pts = len(sqd)
+    sqd0 = np.where(np.isfinite(sqd), sqd, 0.0)
+    start = np.sqrt(float(sqd0[:, 0].sum()) / (C.EM_RESIDUAL_DOF * n_pts))
+    sigma = max(float(start), C.SIGMA_FLOOR)
+    estimate = float(start)
+    diff = np.ascontiguousarray((sqd - sqd.min(axis=1, keepdims=True)).T)
+    sq = np.ascontiguousarray(sqd0.T)
+    return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
 
 
 @numba.njit(cache=True)
@@ -512,7 +544,7 @@ def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: 
     u = g.BEV_CORNERS_UNIT * y[3:5]
     o = np.asarray(sensor_origin, dtype=float)
     dist = np.hypot((c * u[:, 0] - s * u[:, 1] + y[0]) - o[0], (s * u[:, 0] + c * u[:, 1] + y[1]) - o[1])  # corners − sensor
-    order = np.argsort(dist, kind="stable")
+    order = dist.argsort(kind="stable")
     return tv[order], order
 
 
@@ -525,9 +557,9 @@ def box_std(box: ArrayLike, cov: ArrayLike, model: ModelKind) -> dict[str, float
 def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
     names = ("cx", "cy", "length", "width", "yaw") if g.point_dim(model) == 2 else g.BOX_FIELDS
     var = np.einsum("ip,pq,iq->i", K, np.asarray(cov, dtype=float), K)
-    out = {name: float("nan") for name in g.BOX_FIELDS}
-    for name, v in zip(names, var):
-        out[name] = float(np.sqrt(max(v, 0.0)))
+    out = dict.fromkeys(g.BOX_FIELDS, float("nan"))
+    for name, v in zip(names, var.tolist()):
+        out[name] = math.sqrt(max(v, 0.0))  # IEEE square roots are exact-rounded: = np.sqrt
     return out
 
 
@@ -601,8 +633,8 @@ def infer_label(
     n = pts.shape[0]
     prior = params.prior_for(class_name)
     phi = g.phi_of_valid_box(y, model)
-    G = g.dphi_dext(y, model)
-    E = np.linalg.inv(G)
+    G = g.dphi_dext_valid(y, model)
+    E = linalg.inv(G)  # G is invertible for l, w > 0
     P0 = prior_precision_from(E, prior, params.prior_weight, model)
 
     sigma_hat = float("nan")
@@ -620,8 +652,10 @@ def infer_label(
     fit_mean = cov @ (P0 @ phi + data_eta / sigma**2)
     tv, order = _corner_tv(y, cov, model, sensor_origin)
     p = phi.size
-    K = np.vstack([E[: p - 2], 0.5 * (E[p - 2] + E[p - 1])])  # as geometry.box_param_jacobian
-    S0 = G @ (prior_cov_extended(prior, model) / params.prior_weight) @ G.T
+    K = np.empty((p - 1, p))  # as geometry.box_param_jacobian
+    K[: p - 2] = E[: p - 2]
+    K[p - 2] = 0.5 * (E[p - 2] + E[p - 1])
+    S0 = G @ (prior_cov_extended_cached(prior, model) / params.prior_weight) @ G.T
     return LabelPosterior(
         model=model,
         box=y,

@@ -8,19 +8,21 @@ The selection region of a box ``(cx, cy, cz, l, w, h, yaw)`` is the box
 - cut from below at ``bottom + ground_cut`` (bottom = cz − h/2), so ground returns under the
   object are dropped; the top stays at cz + h/2.
 
-Boundaries are inclusive. :func:`crop_frame` builds **one** Open3D point vector per frame and asks
-each box's ``OrientedBoundingBox`` for its indices; :func:`points_in_boxes_numpy` is the plain
+Boundaries are inclusive. :func:`crop_frame` asks each box's Open3D ``OrientedBoundingBox`` for
+its indices; :func:`points_in_boxes_numpy` is the plain
 NumPy reference. They agree except for points within floating-point rounding of a face.
 
 :func:`crop_frame_pair` serves the pipeline, which needs two nested crops per box (the model's and
 the wider one of the label-error fit): Open3D crops once with the wide margin and the narrow crop
 is taken from those points by :func:`refine_crop`, which repeats Open3D's arithmetic exactly.
 
-Open3D tests every point of the frame against every box: K boxes cost K·N. A frame with many
-boxes (≥ :data:`~labelaudit.constants.CROP_GRID_MIN_BOXES`, e.g. a 10,000-line label file: 27 s)
-is cropped through a BEV grid instead (:func:`bev_candidates`: each box looks only at the points
-of the cells its footprint touches, O(N log N + K·n)), refined with the same exact arithmetic,
-so the indices are identical whichever way is taken.
+Open3D tests every point it is given against a box, so each box is asked only about the points
+of the BEV grid cells its footprint touches (:class:`_BevIndex`, built once per frame by a
+compiled counting sort): the same indices as asking about the whole frame, at the cost of the
+candidates instead of K·N. A frame with many boxes (≥ :data:`~labelaudit.constants.CROP_GRID_MIN_BOXES`,
+e.g. a 10,000-line label file) skips Open3D altogether: its candidates are tested with Open3D's
+exact arithmetic, vectorised over the boxes (:func:`_crop_pair_by_grid`), so the indices are
+identical whichever way is taken.
 """
 
 from __future__ import annotations
@@ -149,8 +151,11 @@ def points_in_boxes_numpy(
 def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[IndexArray]:
     """Indices of the points inside each box, with the margin and ground cut of ``params``.
 
-    One Open3D point vector is built for the frame; every box is an ``OrientedBoundingBox`` queried
-    against it.
+    Every box is an Open3D ``OrientedBoundingBox`` queried against the frame's points — only
+    against the points of the BEV grid cells its footprint touches (:class:`_BevIndex`, one compiled
+    counting sort per frame): Open3D tests each point on its own, so a superset of the box's points
+    gives the indices a query of the whole frame gives (a test checks), at the cost of the
+    candidates instead of K·N.
 
     Parameters
     ----------
@@ -166,41 +171,47 @@ def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[
     if len(b) == 0:
         return []
     sel = selection_boxes(b, params.margin, params.ground_cut)
-    cloud = _open3d_points(pts)
+    empty = np.empty(0, dtype=np.int64)
+    if len(pts) == 0:
+        return [empty for _ in sel]
     rotations = rotation_z(sel[:, 6])
+    own, idx = _BevIndex(pts, sel, C.CROP_GRID_CELL).candidates(slice(None))
+    starts = np.searchsorted(own, np.arange(len(sel) + 1))  # candidates come grouped by box
     out: list[IndexArray] = []
-    for box, R in zip(sel, rotations):
-        if box[5] <= 0 or len(pts) == 0:
-            out.append(np.empty(0, dtype=np.int64))
+    for k, (box, R) in enumerate(zip(sel, rotations)):
+        cand = idx[starts[k] : starts[k + 1]]
+        if box[5] <= 0 or len(cand) == 0:
+            out.append(empty)
             continue
         obb = o3d.geometry.OrientedBoundingBox(box[:3], R, box[3:6])
-        idx = np.asarray(obb.get_point_indices_within_bounding_box(cloud), dtype=np.int64)
-        out.append(np.sort(idx))
+        hit = np.asarray(obb.get_point_indices_within_bounding_box(_open3d_points(pts, cand)), dtype=np.int64)
+        out.append(np.sort(cand[hit]))
     return out
 
 
-def _open3d_points(pts: NDArray) -> "o3d.utility.Vector3dVector":
-    """x, y, z of ``pts`` (N, ≥3) as the Open3D vector the box queries read.
+def _open3d_points(pts: NDArray, rows: IndexArray) -> "o3d.utility.Vector3dVector":
+    """x, y, z of the points ``pts[rows]`` as the Open3D vector a box query reads.
 
     float32 converts to float64 exactly, so Open3D sees the same coordinates as the reference. The
-    conversion is one compiled pass (NumPy's strided float32 → float64 cast of an (N, 4) frame takes
-    ~8× longer), and no ``PointCloud`` is built around the vector: its constructor copies every point
+    gather and conversion are one compiled pass (NumPy's strided float32 → float64 cast takes ~8×
+    longer), and no ``PointCloud`` is built around the vector: its constructor copies every point
     again, for nothing a bounding-box query needs.
     """
     if pts.dtype == np.float32 or pts.dtype == np.float64:
-        xyz = _xyz_float64(pts)
+        xyz = _xyz_float64(pts, np.ascontiguousarray(rows, dtype=np.int64))
     else:
-        xyz = np.ascontiguousarray(pts[:, :3], dtype=np.float64)
+        xyz = np.ascontiguousarray(pts[rows, :3], dtype=np.float64)
     return o3d.utility.Vector3dVector(xyz)
 
 
 @numba.njit(cache=True)
-def _xyz_float64(pts):  # pragma: no cover - compiled
-    out = np.empty((pts.shape[0], 3))
-    for i in range(pts.shape[0]):
-        out[i, 0] = pts[i, 0]
-        out[i, 1] = pts[i, 1]
-        out[i, 2] = pts[i, 2]
+def _xyz_float64(pts, rows):  # pragma: no cover - compiled
+    out = np.empty((rows.shape[0], 3))
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        out[j, 0] = pts[i, 0]
+        out[j, 1] = pts[i, 1]
+        out[j, 2] = pts[i, 2]
     return out
 
 
@@ -245,16 +256,27 @@ def refine_crop(points: ArrayLike, boxes: ArrayLike, candidates: list[IndexArray
 
 
 class _BevIndex:
-    """The frame's points sorted by BEV grid cell, inside the rectangle that holds every box."""
+    """The frame's points sorted by BEV grid cell, inside the rectangle that holds every box.
+
+    ``keys`` are the sorted cell keys (column · ny + row) and ``index`` the point indices in that
+    order (ascending within a cell). A compiled counting sort (two passes over the frame) builds
+    them when the grid has at most :data:`~labelaudit.constants.CROP_GRID_DENSE_CELLS` cells per
+    point, else a stable NumPy sort of the kept points (boxes spread far apart); both give the
+    same arrays.
+    """
 
     def __init__(self, pts: NDArray, sel: NDArray[np.float64], cell: float):
         self.pts, self.cell = pts, cell
         self.lo, self.hi = _footprints(sel)
         (self.x0, self.y0), (x1, y1) = self.lo.min(axis=0), self.hi.max(axis=0)
+        self.ny = int(np.floor((y1 - self.y0) / cell)) + 1
+        nx = int(np.floor((x1 - self.x0) / cell)) + 1
+        if pts.dtype in (np.float32, np.float64) and nx * self.ny <= C.CROP_GRID_DENSE_CELLS * max(len(pts), 1024):
+            self.keys, self.index = _counting_sort_cells(pts, float(self.x0), float(self.y0), float(x1), float(y1), float(cell), nx, self.ny)
+            return
         xy = pts[:, :2].astype(np.float64)
         with np.errstate(invalid="ignore"):
             keep = np.flatnonzero((xy[:, 0] >= self.x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= self.y0) & (xy[:, 1] <= y1))  # NaN: out
-        self.ny = int(np.floor((y1 - self.y0) / cell)) + 1
         key = self._cells(xy[keep, 0], self.x0) * self.ny + self._cells(xy[keep, 1], self.y0)
         order = np.argsort(key, kind="stable")
         self.keys, self.index = key[order], keep[order]
@@ -276,6 +298,37 @@ class _BevIndex:
         length = np.searchsorted(self.keys, col * self.ny + by[owner, 1], side="right") - start
         pos = np.repeat(start - (np.cumsum(length) - length), length) + np.arange(length.sum())
         return np.repeat(owner, length), self.index[pos]
+
+
+@numba.njit(cache=True)
+def _counting_sort_cells(pts, x0, y0, x1, y1, cell, nx, ny):  # pragma: no cover - compiled
+    """:class:`_BevIndex`'s sorted (keys, index) by a counting sort: the same keep test and cell
+    keys as its NumPy form (float64 x, y; floor((v − origin) / cell)), stable by point index."""
+    n = pts.shape[0]
+    ncell = nx * ny
+    key = np.empty(n, dtype=np.int64)
+    start = np.zeros(ncell + 1, dtype=np.int64)
+    for i in range(n):
+        x = np.float64(pts[i, 0])
+        y = np.float64(pts[i, 1])
+        if x >= x0 and x <= x1 and y >= y0 and y <= y1:  # False for NaN
+            k = np.int64(np.floor((x - x0) / cell)) * ny + np.int64(np.floor((y - y0) / cell))
+            key[i] = k
+            start[k + 1] += 1
+        else:
+            key[i] = -1
+    for c in range(ncell):
+        start[c + 1] += start[c]
+    fill = start[:ncell].copy()
+    keys = np.empty(start[ncell], dtype=np.int64)
+    index = np.empty(start[ncell], dtype=np.int64)
+    for i in range(n):
+        k = key[i]
+        if k >= 0:
+            keys[fill[k]] = k
+            index[fill[k]] = i
+            fill[k] += 1
+    return keys, index
 
 
 def _footprints(sel: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

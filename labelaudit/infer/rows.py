@@ -202,11 +202,11 @@ def audit_object(
         "label_error": float(fit.label_error),
         "sigma_hat": float(post.sigma_hat),
         "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
-        "corner_tv": [float(v) for v in post.corner_tv],
+        "corner_tv": post.corner_tv.tolist(),
     }
     for name in g.BOX_FIELDS:
         row[f"std_{name}"] = float(post.std_box[name])
-    row["cov"] = [float(v) for v in np.asarray(post.cov).ravel()]
+    row["cov"] = np.asarray(post.cov).ravel().tolist()
     row["cov_dim"] = int(post.cov.shape[0])
     row["model"] = post.model
     for name, value in zip(g.BOX_FIELDS, fit.box):
