@@ -46,7 +46,7 @@ def test_parse_scheduler_addresses_and_worker_counts():
         parse_scheduler("local:2", workers=3)
     with pytest.raises(UsageError, match="drop --workers"):
         parse_scheduler("tcp://h:8786", workers=2)
-    assert isinstance(make_executor(None, "local:2"), DaskExecutor) and isinstance(make_executor(2, "local"), DaskExecutor)
+    assert isinstance(make_executor(None, scheduler="local:2"), DaskExecutor) and isinstance(make_executor(2, scheduler="local"), DaskExecutor)
 
 
 def test_run_module_keeps_the_core_out_of_the_main_process():
