@@ -233,3 +233,39 @@ def test_workers_of_another_labelaudit_are_refused_naming_both_versions(cluster,
             run_infer(InferRequest(sim_data, tmp_path / "res", chunk_units=5), cfg, executor=ex)
     finally:
         client.run(_set_worker_version, None)
+
+
+@pytest.mark.slow
+def test_local_cluster_of_the_executor_gives_the_pool_rows(sim_data, pool_rows, tmp_path):
+    """``--scheduler local:2``: the executor starts (and stops) its own LocalCluster, preloaded."""
+    cfg = resolve_config(None, "kitti", ["all"])
+    ex = DaskExecutor(None, 2)
+    run_infer(InferRequest(sim_data, tmp_path / "res", chunk_units=3), cfg, executor=ex)
+    assert ex._client is None and ex._cluster is None  # closed after the run
+    assert _rows(tmp_path / "res") == pool_rows
+
+
+def test_open3d_loads_without_its_plotting_chain_and_still_plots():
+    code = (
+        "import sys, labelaudit.infer.crop as c;"
+        "assert not {'dash', 'plotly'} & set(sys.modules), 'plotting chain loaded';"
+        "import numpy as np, open3d as o3d;"
+        "pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.rand(5, 3)));"
+        "fig = o3d.visualization.get_plotly_fig([pc]);"
+        "assert type(fig).__name__ == 'Figure' and 'plotly' in sys.modules"
+    )
+    done = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
+def test_fork_server_marker_skips_the_teardown_only_in_the_marked_server():
+    """With the marker of its parent and the fork server module loaded, exit skips the teardown
+    (here visible as exit code 0 instead of 3); without the marker nothing changes."""
+    from labelaudit.executors import FORK_SERVER_ENV
+
+    code = "import sys, multiprocessing.forkserver, labelaudit.infer.warmup; sys.exit(3)"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    marked = subprocess.run([sys.executable, "-c", code], env={**env, FORK_SERVER_ENV: str(os.getpid())}, capture_output=True)
+    other = subprocess.run([sys.executable, "-c", code], env={**env, FORK_SERVER_ENV: "1"}, capture_output=True)
+    plain = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True)
+    assert (marked.returncode, other.returncode, plain.returncode) == (0, 3, 3)
