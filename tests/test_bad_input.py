@@ -7,12 +7,10 @@ exit 0 with the damage recorded where it belongs, or exit 2 and one line naming 
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
