@@ -266,7 +266,7 @@ class DaskExecutor:
         try:
             if self.scheduler is None:
                 self._cluster = distributed.LocalCluster(
-                    n_workers=self.local_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                    n_workers=self.local_workers, threads_per_worker=1, processes=True, dashboard_address=":0",  # any free port: never a clash with 8787
                     silence_logs=logging.ERROR, preload=list(self.preload),  # a killed worker is handled, not news
                 )
                 self._client = distributed.Client(self._cluster, set_as_default=False)

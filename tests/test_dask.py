@@ -95,7 +95,7 @@ def cluster():
     from labelaudit import constants as C
 
     with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, preload=list(C.WORKER_PRELOAD)
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", preload=list(C.WORKER_PRELOAD)
     ) as cl, distributed.Client(cl, set_as_default=False) as client:
         client.wait_for_workers(2, timeout=120)
         yield cl, client
