@@ -20,9 +20,18 @@ PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (par
 FIT_MAX_ITERATIONS = 30  # cap on EM iterations of the box fit (suggested box)
 FIT_TOLERANCE = 1e-3  # m; the box fit stops when no entry of φ moves by more than this
 FIT_SWAP_RESIDUAL = 0.5  # try an l/w-swapped start when the fit's RMS point-to-surface residual exceeds this × σ
-FIT_INSIDE_SIGMA_RATIO = 3.0  # box fit: points inside the box count with σ × this (real surfaces lie inside their box)
+FIT_INSIDE_SIGMA_RATIO = 3.0  # box fit: points deep inside the box count with σ × this, for the orientation of their face only (they never pull it in)
 FIT_INSIDE_FREE_DEPTH = 0.05  # m; points less deep than this inside the box count fully (LiDAR noise, ~2σ)
+FIT_OUTLIER_PROB = 0.0  # box fit: prior probability that a point outside the box is an outlier (uniform mixture; 0 = off)
 FIT_MIN_SIZE_FRACTION = 1e-3  # fitted sizes are kept ≥ this fraction of the label's (no collapse)
+FREE_SPACE_CLASSES = ("Car", "Van", "Truck", "Vehicle")  # classes with a solid lower body: their fit uses free-space rays (legs, bikes and Misc are open)
+FREE_SPACE_SLAB = (0.25, 0.4)  # solid lower body of a vehicle: from this height (m) above the local ground to this fraction of the box height
+FREE_SPACE_TOLERANCE = 0.1  # m; τ: a ray counts as free space only where it passes deeper than this inside the box rectangle (rounded corners of real vehicles)
+FREE_SPACE_INSIDE_TOLERANCE = 0.3  # m; τ of rays that end inside the box (on the object): real surfaces lie up to this far inside a right label (bumpers, loose boxes)
+FREE_SPACE_REACH = 1.0  # m; rays are collected for the box grown by this, the furthest the fit may move and still see them
+FREE_SPACE_WEIGHT = 1.0  # √weight of a free-space ray row relative to a point row in the box fit
+FREE_SPACE_SLIT_PROB = 0.1  # prior probability that a ray through a right box's slab is a slit (cab–cargo gap, glass): the fit's ray rows are a robust mixture
+FREE_SPACE_AZIMUTH_BINS = 2048  # azimuth buckets of the frame's points for the ray selection (speed only)
 LABEL_TOLERANCE = {"center": 0.10, "length": 0.20, "width": 0.20, "height": 0.10, "yaw": 0.02}  # offsets of about this std (m, rad) are not errors; sizes wider: the fit barely sees them (docs/label-error.md)
 
 # --- spatial distribution p_G and JIoU (docs/method.md §6–7) ---
@@ -43,6 +52,14 @@ CROP_GRID_MIN_BOXES = 64  # frames with this many boxes are cropped through a BE
 CROP_GRID_CELL = 2.0  # m; BEV grid cell of that crop (a car touches ~10 cells: few extra candidates, few runs)
 CROP_GRID_BATCH = 256  # boxes per vectorised batch of that crop (bounds its temporary arrays)
 CROP_GRID_DENSE_CELLS = 8  # the grid is built by a counting sort when it has at most this many cells per point (8 B each), else by a sort
+GROUND_MARGIN = 1.5  # m; the local ground plane is fitted to points within the box grown by this in BEV
+GROUND_WINDOW = 0.6  # m; … and within this height of the label's bottom (a wrong bottom by up to this still finds the ground)
+GROUND_INLIER = 0.08  # m; a point within this of the plane is ground (LiDAR noise and road roughness)
+GROUND_MIN_POINTS = 15  # fewer ground inliers than this: the fixed cut above the box bottom is used
+GROUND_MAX_SLOPE = 0.10  # steeper planes (rise over run) are not ground (roads stay below ~8 %; car sides, kerbs)
+GROUND_HYPOTHESES = 24  # RANSAC plane hypotheses per box, drawn from a fixed seed (reproducible rows)
+SCENERY_VOXEL = 0.2  # m; BEV cell of the connectivity test for unlabelled surfaces (walls, hedges): a gap wider than two cells separates
+NEIGHBOUR_MARGIN = 0.1  # m; points within this of another label (BEV) and outside the box itself are that label's, not evidence
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
 KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)

@@ -106,6 +106,14 @@ COLUMNS: tuple[Column, ...] = (
     Column("fit_yaw", pa.float64(), True, "rad", "yaw of the suggested box", "model"),
     Column("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)", "model"),
     Column("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)", "model"),
+    # Free space, neighbours and ground (docs/label-error.md); null when audited without the frame around the box.
+    Column("free_rays", pa.int32(), True, "", "LiDAR rays that pass through the label's solid lower body (deeper than the tolerance) and end behind it: empty space inside the label", "model"),
+    Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the label (within the tolerance, above the ground cut)", "model"),
+    Column("fit_free_rays", pa.int32(), True, "", "free_rays of the suggested box", "model"),
+    Column("fit_end_rays", pa.int32(), True, "", "end_rays of the suggested box", "model"),
+    Column("neighbour_points", pa.int32(), True, "", "points of the fit crop dropped because they lie inside another label of the frame", "model"),
+    Column("scenery_points", pa.int32(), True, "", "points of the fit crop dropped because they belong to an unlabelled surface beside the label that runs out of the crop (wall, hedge)", "model"),
+    Column("ground_z", pa.float64(), True, "m", "height of the local ground plane under the box centre; null when too few ground points (fixed cut used)", "model"),
     # KITTI extras (null for other formats)
     Column("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]", "extra"),
     Column("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)", "extra"),

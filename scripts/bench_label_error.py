@@ -252,9 +252,18 @@ def real(args: argparse.Namespace) -> str:
                 versions.append(written)
                 kinds += k
                 ids += [f"{frame.frame_id}:{i}:{c}" for i in keep]
+            # Every version is audited in its own copy of the frame (the frame's other labels
+            # unchanged): the copies of a box must not be each other's neighbours.
+            rows = []
+            for c, written in enumerate(versions):
+                all_boxes = frame.boxes.copy()
+                all_boxes[keep] = written
+                ids_c = list(frame.object_ids)
+                for j, i in enumerate(keep):
+                    ids_c[i] = ids[c * len(keep) + j]
+                rows_c, _ = process_frame(dataclasses.replace(frame, boxes=all_boxes, object_ids=ids_c, extras={}), cfg)
+                rows += rows_c  # vehicles only, in the order of keep
             boxes = np.concatenate(versions)
-            fr = dataclasses.replace(frame, boxes=boxes, class_names=names * (args.real_copies + 1), object_ids=ids, extras={})
-            rows, _ = process_frame(fr, cfg)
             for r, kind, b, tb in zip(rows, kinds, boxes, np.tile(true, (args.real_copies + 1, 1))):
                 for c in ("label_error", "jiou_gt", "hull_iou", "num_points", "distance", "status"):
                     cols[c].append(r.get(c))

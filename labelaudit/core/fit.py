@@ -22,6 +22,7 @@ from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
 from labelaudit.config import ClassPrior, ModelParams
+from labelaudit.core.freespace import FreeSpace, _displacement, _free_rows_kernel, _ray_bounds
 from labelaudit.core.geometry import FloatArray, ModelKind
 from labelaudit.core.posterior import (
     em_sigma,
@@ -145,23 +146,35 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     a = np.empty((2 * d + 2, n))
     b = np.empty(n)
     sqd = np.empty(n)
-    _rows_kernel(np.asarray(y, dtype=float), pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, a, b, sqd)
+    _rows_kernel(np.asarray(y, dtype=float), pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, 0.0, 1.0, a, b, sqd)
     return a.T, b, sqd
 
 
 @numba.njit(cache=True)
-def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no cover - compiled
+def _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, centre_deep=False):  # pragma: no cover - compiled
     """Rows a — transposed, (p, N) — b (N,) and squared distances (N,) of :func:`_plane_rows` for
     points (d, N).
 
     Nearest surface point: a point outside the box projects to its clamped position; a point
     inside to its nearest face (ties: the lower face index — axis first, the − face before the +
     face — as :func:`_nearest_faces` with m = 1). One pass, scalars only.
+
+    ``outlier`` > 0: a point outside the box (or within ``free_depth`` of its surface) is a
+    mixture of the Gaussian (σ = ``sigma``) and a uniform outlier of that prior probability, and
+    its row is weighted by the Gaussian's responsibility (iteratively reweighted).
+
+    ``centre_deep``: the rows of the points deeper than ``free_depth`` inside the box are centred
+    per face (their mean over the deep points registered to the same face is subtracted), i.e. the
+    face gets a free offset for them: a visible surface lies parallel to its face at an unknown
+    depth inside it (a loose label, a bumper, a cabin), so deep points constrain the orientation
+    of the faces and never pull them in. Their squared distance is then reported as 0.
     """
     c, s = math.cos(y[6]), math.sin(y[6])
     h0, h1 = 0.5 * y[3], 0.5 * y[4]
     h2 = 0.5 * y[5] if d == 3 else 0.0
     big = max(y[3], y[4], y[5]) if d == 3 else max(y[3], y[4])
+    face = np.full(pts_t.shape[1], -1, dtype=np.int64)  # face of a deep point: axis·2 + (side > 0)
+    n_deep = 0
     for k in range(pts_t.shape[1]):
         rx, ry = pts_t[0, k] - y[0], pts_t[1, k] - y[1]
         l0 = c * rx + s * ry  # box frame, metres: Rᵀ (x − c)
@@ -176,15 +189,19 @@ def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no
             m2 = min(max(l2, -h2), h2)
             inside = inside and m2 == l2
             strict = strict and abs(l2) < h2
+        f_in = -1
         if inside:  # nearest face: the smallest (x ∓ half)² of each axis' nearer face
             e0, e1 = (h0 - abs(l0)) ** 2, (h1 - abs(l1)) ** 2
             e2 = (h2 - abs(l2)) ** 2 if d == 3 else math.inf
             if e0 <= e1 and e0 <= e2:
                 m0 = h0 if l0 > 0 else -h0
+                f_in = 1 if l0 > 0 else 0
             elif e1 <= e2:
                 m1 = h1 if l1 > 0 else -h1
+                f_in = 3 if l1 > 0 else 2
             else:
                 m2 = h2 if l2 > 0 else -h2
+                f_in = 5 if l2 > 0 else 4
         r0, r1, r2 = l0 - m0, l1 - m1, l2 - m2
         sq = r0 * r0 + r1 * r1 + r2 * r2
         norm = math.sqrt(sq)
@@ -204,7 +221,15 @@ def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no
                 q0 = math.copysign(1.0, v0) if v0 != 0 else 0.0
         n0 = c * q0 - s * q1  # to the world frame (z unchanged)
         n1 = s * q0 + c * q1
-        w = deep_weight if strict and norm > free_depth else 1.0  # √weight = σ / σ_inside
+        if strict and norm > free_depth:
+            w = deep_weight  # √weight = σ / σ_inside
+            face[k] = f_in
+            n_deep += 1
+        elif outlier > 0.0:
+            gk = (1.0 - outlier) * math.exp(-0.5 * sq / (sigma * sigma))
+            w = math.sqrt(gk / (gk + outlier))
+        else:
+            w = 1.0
         # a = J(v*)ᵀ n, written out from geometry.design_matrix
         a[0, k] = w * n0
         a[1, k] = w * n1
@@ -219,6 +244,25 @@ def _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd):  # pragma: no
         a[d + 3, k] = -w * v1 * n0
         b[k] = w * bk
         sqd[k] = sq
+    if centre_deep and n_deep:
+        p = a.shape[0]
+        sa = np.zeros((6, p))
+        sb = np.zeros(6)
+        cnt = np.zeros(6)
+        for k in range(pts_t.shape[1]):
+            f = face[k]
+            if f >= 0:
+                cnt[f] += 1.0
+                sb[f] += b[k]
+                for i in range(p):
+                    sa[f, i] += a[i, k]
+        for k in range(pts_t.shape[1]):
+            f = face[k]
+            if f >= 0:
+                b[k] -= sb[f] / cnt[f]
+                for i in range(p):
+                    a[i, k] -= sa[f, i] / cnt[f]
+                sqd[k] = -1.0  # marks a centred deep point for the callers
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
@@ -253,21 +297,28 @@ def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, phi):  # pragma: no cover - compiled
+def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi):  # pragma: no cover - compiled
     n = pts_t.shape[1]
     a = np.empty((2 * d + 2, n))
     b = np.empty(n)
     sqd = np.empty(n)
-    _rows_kernel(y, pts_t, d, free_depth, deep_weight, a, b, sqd)
+    _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, True)
     ata, atb, rr = _gram_kernel(a, b, phi, True)
-    return ata, atb, rr, sqd.sum()
+    ss = sw = 0.0  # over the points that are not deep inside; weighted: weight² = |the row's normal part|² (a unit vector)
+    for k in range(n):
+        if sqd[k] < 0.0:
+            continue
+        w2 = a[0, k] * a[0, k] + a[1, k] * a[1, k] + (a[2, k] * a[2, k] if d == 3 else 0.0)
+        ss += w2 * sqd[k]
+        sw += w2
+    return ata, atb, rr, ss, sw
 
 
-def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray) -> tuple[FloatArray, FloatArray, float, float]:
-    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)² and Σ ‖x_k − v̄_k‖² of the rows of
+def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray, sigma: float = 1.0) -> tuple[FloatArray, FloatArray, float, float, float]:
+    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
     :func:`_plane_rows` for points (d, N): one compiled call per fit iteration (as NumPy array code
     it took ~40 calls, and a fit runs 5–30 iterations)."""
-    return _normal_eq_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, phi)
+    return _normal_eq_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB, sigma, phi)
 
 
 @numba.njit(cache=True)
@@ -302,17 +353,32 @@ def _solve_spd(M, rhs):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, tol, P0, prior_eta, label, inv_s2, floor, max_iter):  # pragma: no cover - compiled
+def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, outlier, tol, P0, prior_eta, label, inv_s2, floor, max_iter,
+                        ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
     d = 3 if three_d else 2
     p, n = phi.shape[0], pts_t.shape[1]
+    m = ends_t.shape[1]
     a = np.empty((p, n))
     b = np.empty(n)
     sqd = np.empty(n)
+    a_r = np.empty((p, m))
+    b_r = np.empty(m)
+    bounds = np.empty(m)
+    reach = 2.0  # m; rays further outside the label than this are not tracked (the candidates reach 1 m)
+    if m:
+        _ray_bounds(label, ends_t, ox, oy, hz, reach, bounds)
     phi_prev = phi.copy()
     it = 0
     for it in range(1, max_iter + 1):
-        _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, a, b, sqd)
+        _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), a, b, sqd, True)
         ata, atb, _ = _gram_kernel(a, b, phi, False)
+        if m:
+            slack = _displacement(y_cur, label, reach)
+            k = _free_rows_kernel(y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack)
+            if k:
+                ata_r, atb_r, _ = _gram_kernel(a_r[:, :k], b_r[:k], phi, False)
+                ata += ata_r
+                atb += atb_r
         precision = P0 + ata * inv_s2
         new = _solve_spd(0.5 * (precision + precision.T), prior_eta + atb * inv_s2)
         step = np.max(np.abs(new - phi))
@@ -328,6 +394,30 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, tol
     return phi, y_cur, it, False
 
 
+@numba.njit(cache=True)
+def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi):  # pragma: no cover - compiled
+    p, m = phi.shape[0], ends_t.shape[1]
+    a = np.empty((p, m))
+    b = np.empty(m)
+    active = _free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf)
+    ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
+    return ata, atb, rr, active
+
+
+_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0)
+"""Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
+
+
+def _ray_inputs(free_space: FreeSpace | None, sigma: float) -> tuple[FloatArray, float, float, FloatArray, float, float, float, float]:
+    """(ends_t (3, M), sensor x, sensor y, hz (5,) = (sensor height, slab bottom, slab top, object height, σ), τ,
+    τ inside, √weight, slit probability) of the fit's ray rows (:func:`~labelaudit.core.freespace._free_rows_kernel`)."""
+    if free_space is None or free_space.num_rays == 0:
+        return _NO_RAYS
+    ends_t, ox, oy, hz = free_space.kernel_inputs()
+    return (ends_t, ox, oy, np.r_[hz, sigma], float(free_space.tolerance), float(free_space.inside_tolerance),
+            float(C.FREE_SPACE_WEIGHT), float(C.FREE_SPACE_SLIT_PROB))
+
+
 def _fit_iterate(
     y_cur: FloatArray,
     phi: FloatArray,
@@ -338,6 +428,7 @@ def _fit_iterate(
     label: FloatArray,
     inv_s2: float,
     model: ModelKind,
+    rays: tuple = _NO_RAYS,
 ) -> tuple[FloatArray, FloatArray, int, bool]:
     """EM iterations of the box fit on (d, N) points until φ moves by less than ``tol`` (at most
     FIT_MAX_ITERATIONS). Returns (φ, rectangle, iterations, converged).
@@ -345,14 +436,14 @@ def _fit_iterate(
     The iterations only need the mean (a linear solve). When the iteration has entered an exact
     2-cycle (a point flipping between two faces, so that φ repeats bit for bit), it can never
     converge: the state the iteration cap would end on is known, and is returned without running
-    the remaining iterations. The whole loop — point pass, Gram product, the p × p solve and the
-    rectangle of φ — is one compiled call (:func:`_fit_iterate_kernel`): per iteration, the NumPy
-    calls around the point pass cost as much as the pass itself.
+    the remaining iterations. The whole loop — point pass, free-space ray rows, Gram product, the
+    p × p solve and the rectangle of φ — is one compiled call (:func:`_fit_iterate_kernel`): per
+    iteration, the NumPy calls around the point pass cost as much as the pass itself.
     """
     phi, y_cur, it, converged = _fit_iterate_kernel(
         np.asarray(y_cur, dtype=float), np.asarray(phi, dtype=float), pts, model == "3d",
-        C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, float(tol), P0, prior_eta,
-        np.asarray(label, dtype=float), float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS,
+        C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB, float(tol), P0, prior_eta,
+        np.asarray(label, dtype=float), float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, *rays,
     )
     return phi, y_cur, int(it), bool(converged)
 
@@ -365,27 +456,34 @@ def _fit_em(
     label: FloatArray,
     sigma: float,
     params: ModelParams,
-) -> tuple[FloatArray, FloatArray, int, bool, float, FloatArray]:
+    rays: tuple = _NO_RAYS,
+) -> tuple[FloatArray, FloatArray, int, bool, float, FloatArray, float]:
     """Box fit from ``start`` (a rectangle): register each point to its nearest surface point of the
-    current box, take the Gaussian mean of the point-to-surface model with the prior centred on
-    the label, repeat (Gauss–Newton / EM). Returns (φ, Σ, iterations, converged, log posterior,
-    fitted rectangle, RMS distance of the points to its surface).
+    current box, add a row per free-space ray through the box's slab, take the Gaussian mean with
+    the prior centred on the label, repeat (Gauss–Newton / EM). Returns (φ, Σ, iterations,
+    converged, log posterior, fitted rectangle, RMS distance to its surface of the points that
+    count — weighted, so points deep inside the box, which the fit ignores, do not call for the
+    swapped start).
 
-    ``pts`` is (d, N) (transposed). The covariance is formed once, at the fitted box.
+    ``pts`` is (d, N) (transposed). The covariance is formed once, at the fitted box, with the ray
+    rows active there.
     """
     model = params.kind
     phi = g.phi_of_valid_box(start, model)
     prior_eta = P0 @ phi_label
     inv_s2 = 1.0 / sigma**2
-    phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model)
+    phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
     phi_rect = g.phi_of_valid_box(y_cur, model)
-    ata, _, rr, ss = _fit_normal_eq(y_cur, pts, g.point_dim(model), phi_rect)
+    ata, _, rr, ss, sw = _fit_normal_eq(y_cur, pts, g.point_dim(model), phi_rect, sigma)
+    if rays[0].shape[1]:
+        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y_cur, *rays, model == "3d", phi_rect)
+        ata = ata + ata_r
+        rr += rr_r
     precision = P0 + ata * inv_s2
     cov = spd_inverse(0.5 * (precision + precision.T))
     dphi = phi_rect - phi_label
     log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi @ P0 @ dphi)
-    n = pts.shape[1]
-    rms = math.sqrt(ss / n) if n else 0.0  # unweighted distance to the surface
+    rms = math.sqrt(ss / sw) if sw > 0 else 0.0  # distance to the surface of the points that count (deep-inside ones do not)
     return phi, cov, it, converged, log_post, y_cur, rms
 
 
@@ -427,6 +525,7 @@ def fit_label(
     points: ArrayLike | None,
     class_name: str,
     params: ModelParams,
+    free_space: FreeSpace | None = None,
 ) -> LabelFit:
     """The model's suggested box for a label, and scores of how far the label is from it.
 
@@ -472,14 +571,15 @@ def fit_label(
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
     pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_fit_normal_eq)
-    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params), False)
+    rays = _ray_inputs(free_space, sigma)
+    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays), False)
     # A second start with length and width swapped, when the first fit leaves the points far from
     # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by
     # 90° on its own. The start with the higher log posterior wins.
     if n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9 and best[0][6] > C.FIT_SWAP_RESIDUAL * sigma:
         swapped = y.copy()
         swapped[3], swapped[4] = y[4], y[3]
-        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params)
+        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params, rays)
         if alt[4] > best[0][4] + 1e-9:
             best = (alt, True)
     (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best

@@ -16,6 +16,7 @@ import numpy as np
 
 from numpy.typing import ArrayLike
 
+from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
@@ -24,8 +25,9 @@ from labelaudit.core.iou import hull_iou
 from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
+from labelaudit.core.freespace import ray_counts
 from labelaudit.errors import one_line
-from labelaudit.infer.crop import crop_frame_pair
+from labelaudit.infer.evidence import ObjectEvidence, frame_evidence
 
 DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
 
@@ -125,15 +127,17 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
 
     if to_audit:
         boxes = np.ascontiguousarray(frame.boxes[to_audit], dtype=float)
-        # The label-error fit gets a wider crop (a box shifted off its object must still see it);
-        # one Open3D pass gives both crops, the narrow one refined from the wide one exactly.
-        indices, fit_indices = crop_frame_pair(frame.points, boxes, cfg.crop)
-        for i, idx, fit_idx in zip(to_audit, indices, fit_indices):
+        # One Open3D pass gives each box's neighbourhood; the model's crop is refined from it
+        # exactly, the label-error fit's wider crop is cut above the local ground, other labels'
+        # points are dropped, and the rays that may cross the box are collected (infer/evidence.py).
+        evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=_valid_boxes(frame.boxes))
+        for i, ev in zip(to_audit, evidence):
             row = rows[i]
-            points = frame.points[idx]
+            idx = ev.model_idx
             try:
                 with np.errstate(all="ignore"):  # changes no value: a non-finite result is refused below, not warned about on stderr
-                    result = audit_object(frame.boxes[i], points, frame.class_names[i], cfg, origin, fit_points=frame.points[fit_idx])
+                    result = audit_object(frame.boxes[i], frame.points[idx], frame.class_names[i], cfg, origin,
+                                          fit_points=frame.points[ev.fit_idx], evidence=ev.for_object(frame.points))
                 check_finite(result)
                 # values the schema cannot hold fail here, per object; the row is final after this
                 rows[i] = R.normalize_row({**row, **result})
@@ -141,6 +145,13 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
                 row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
+
+
+def _valid_boxes(boxes: np.ndarray) -> np.ndarray:
+    """The labels of a frame that can own points (finite, positive sizes), whatever their class."""
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    ok = np.all(np.isfinite(b), axis=1) & np.all(b[:, 3:6] > 0, axis=1)
+    return b[ok]
 
 
 def audit_object(
@@ -151,6 +162,7 @@ def audit_object(
     sensor_origin: ArrayLike = (0.0, 0.0, 0.0),
     *,
     fit_points: ArrayLike | None = None,
+    evidence: ObjectEvidence | None = None,
 ) -> dict[str, Any]:
     """Audit one labeled box against its LiDAR points.
 
@@ -164,6 +176,10 @@ def audit_object(
     fit_points : optional (M, ≥3) points of a *wider* crop for the label-error fit (a box shifted
         off its object loses, in its own crop, the points that would show it; ≈ 0.5 m margin
         recommended, docs/label-error.md). Default: ``points``.
+    evidence : optional free-space rays, neighbourhood points and diagnostics of the box
+        (:func:`labelaudit.infer.evidence.frame_evidence`); the rays enter the label-error fit and
+        are counted for the label and the suggested box. None: no free-space evidence, the ray
+        columns are null.
 
     Returns
     -------
@@ -177,7 +193,10 @@ def audit_object(
         [0, 1] (higher = more likely wrong), ``fit_cx`` … ``fit_yaw`` the suggested box (3D fit;
         written in the form nearest the label), ``fit_offset_m`` (BEV centre offset, m),
         ``mahalanobis`` (label vs suggested box, in posterior std); baseline ``hull_iou`` (BEV IoU
-        of the box and the convex hull of its points; 0 below 3 points).
+        of the box and the convex hull of its points; 0 below 3 points). Free space (with
+        ``evidence``): ``free_rays`` / ``end_rays`` (rays through the label's solid lower body that
+        end behind it / rays that end on or in it), ``fit_free_rays`` / ``fit_end_rays`` (the same
+        for the suggested box), ``neighbour_points`` and ``ground_z``.
 
     Raises
     ------
@@ -193,7 +212,9 @@ def audit_object(
         status = "few_points"
     else:
         status = "ok"
-    fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model)
+    # rays enter the fit only for vehicles: a pedestrian's or a bike's box is mostly open space
+    fs = None if evidence is None or class_name not in C.FREE_SPACE_CLASSES else evidence.free_space
+    fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
@@ -215,4 +236,15 @@ def audit_object(
         row["fit_cz"] = row["fit_height"] = float("nan")
     row["hull_iou"] = hull_iou(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
+    if evidence is not None:
+        row["free_rays"], row["end_rays"] = ray_counts(y, evidence.free_space, evidence.near_points)
+        row["fit_free_rays"], row["fit_end_rays"] = ray_counts(fit.box, evidence.free_space, evidence.near_points)
+        row["neighbour_points"] = int(evidence.neighbour_points)
+        row["scenery_points"] = int(evidence.scenery_points)
+        row["ground_z"] = float(evidence.ground_z)
+    else:
+        row.update(dict.fromkeys(_EVIDENCE_COLUMNS))
     return row
+
+
+_EVIDENCE_COLUMNS = ("free_rays", "end_rays", "fit_free_rays", "fit_end_rays", "neighbour_points", "scenery_points", "ground_z")

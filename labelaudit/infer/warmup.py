@@ -37,7 +37,7 @@ def fast_exit_in_fork_server() -> bool:
 
 
 def warm_up(strict: bool = False) -> None:
-    """Audit one synthetic box (BEV and 3D: covariance, JIoU-GT, box fit, hull IoU).
+    """Audit a synthetic frame of two boxes (BEV and 3D: crops, ground, rays, covariance, JIoU-GT, box fit, hull IoU).
 
     Never raises unless ``strict`` (tests): a failed warm-up only means workers load lazily.
     """
@@ -46,18 +46,18 @@ def warm_up(strict: bool = False) -> None:
 
         import numpy as np
 
-        from labelaudit.infer.rows import audit_object
         from labelaudit.config import load_config
-        from labelaudit.infer.crop import crop_frame_pair
+        from labelaudit.datasets import Frame
+        from labelaudit.infer.rows import process_frame
 
         box = np.array([15.0, 3.0, 0.75, 4.2, 1.7, 1.5, 0.3])
         rng = np.random.default_rng(0)
-        pts = np.c_[box[:3] + rng.normal(0.0, 1.0, (64, 3)), np.zeros(64)].astype(np.float32)
+        road = np.c_[rng.uniform(5, 25, (256, 2)) - [0, 10], np.full(256, -0.1)]  # ground and rays behind the box
+        pts = np.c_[np.vstack([box[:3] + rng.normal(0.0, 1.0, (64, 3)), road]), np.zeros(320)].astype(np.float32)
         base = load_config(None, "kitti")
-        for model in ("bev", "3d"):
+        for model in ("bev", "3d"):  # crops, ground, rays, neighbours, the fit with rays, counts: every kernel
             cfg = base.with_overrides(model=replace(base.model, kind=model))
-            idx, fit_idx = crop_frame_pair(pts, box[None, :], cfg.crop)
-            audit_object(box, pts[idx[0]], "Car", cfg, fit_points=pts[fit_idx[0]])
+            process_frame(Frame("warm-up", pts, np.stack([box, box + [0, 2.5, 0, 0, 0, 0, 0]]), ["Car", "Car"], ["a", "b"]), cfg)
     except Exception:  # a warm-up must never stop the fork server; workers then load lazily
         if strict:
             raise

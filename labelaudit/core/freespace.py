@@ -1,0 +1,531 @@
+"""Free-space evidence of LiDAR rays (docs/label-error.md, "Free space"): what a box must not contain.
+
+A LiDAR return at ``p`` says the straight line from the sensor to ``p`` was empty before ``p``. A
+vehicle's lower body — the slab from ``FREE_SPACE_SLAB[0]`` above the local ground up to
+``FREE_SPACE_SLAB[1]`` × its height — is solid all over its footprint (no windows, no gap above
+the hood), so a ray whose empty part passes through that slab more than a tolerance τ inside the
+box's rectangle shows that the box covers empty space: it is shifted, turned or too large. A ray
+stopped by an occluder in front of the box never reaches it and says nothing, so an occluded
+correct box pays nothing.
+
+This module owns
+
+- the selection of the rays of a frame that can matter to each box (:func:`ray_candidates`: one
+  compiled pass over the frame's points, bucketed by azimuth, then an exact segment test on the
+  boxes' azimuth windows only);
+- a box's evidence (:class:`FreeSpace`) and its counts (:func:`ray_counts`: rays through the slab
+  that end behind the box, rays that end on or in it);
+- the hinge rows the label-error fit adds per ray (:func:`_free_rows_kernel`, called inside the
+  compiled fit loop of :mod:`labelaudit.core.fit`).
+
+No I/O; the ground plane under a box comes from the caller (:mod:`labelaudit.infer.evidence`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from labelaudit import constants as C
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.int64]
+
+__all__ = ["FreeSpace", "ground_heights", "ray_candidates", "ray_counts", "ray_depths"]
+
+
+@dataclass(frozen=True)
+class FreeSpace:
+    """The rays of a frame that may cross one box, and the ground they are measured from.
+
+    Attributes
+    ----------
+    origin : (3,) sensor position (the start of every ray)
+    ends : (M, 3) returns of the candidate rays (world frame)
+    ground : (4,) local ground plane ``z = g0 + gx (x − x0) + gy (y − y0)`` as (g0, gx, gy, *unused*)
+        with (x0, y0) = ``ref``
+    ref : (2,) the point the plane is written about (the label's BEV centre)
+    slab : (2,) heights above the ground of the solid slab's bottom and top (m)
+    tolerance : τ (m): a ray counts only where it passes deeper than this inside the rectangle
+    inside_tolerance : τ for rays that end inside the rectangle on the object (the box fit; m)
+    object_height : a return this high above the ground (m) or higher is on the object, not the road
+    """
+
+    origin: FloatArray
+    ends: FloatArray
+    ground: FloatArray
+    ref: FloatArray
+    slab: tuple[float, float]
+    tolerance: float
+    inside_tolerance: float = C.FREE_SPACE_INSIDE_TOLERANCE
+    object_height: float = C.DEFAULT_GROUND_CUT
+
+    @property
+    def num_rays(self) -> int:
+        return int(len(self.ends))
+
+    def heights(self) -> tuple[float, FloatArray]:
+        """Height above the ground plane of the sensor and of every return (M,)."""
+        h = ground_heights(np.vstack([self.origin[None, :], self.ends]), self.ground, self.ref)
+        return float(h[0]), h[1:]
+
+    @functools.cached_property
+    def _inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
+        h0, h = self.heights()
+        ends_t = np.ascontiguousarray(np.vstack([self.ends[:, 0], self.ends[:, 1], h]), dtype=float)
+        return ends_t, float(self.origin[0]), float(self.origin[1]), np.array([h0, self.slab[0], self.slab[1], self.object_height])
+
+    def kernel_inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
+        """The kernels' layout: ends_t (3, M) = x, y and height above the ground of the returns;
+        the sensor's x, y; hz = (sensor height above the ground, slab bottom, slab top, object
+        height). Computed once per box (the fit and both counts use it)."""
+        return self._inputs
+
+
+def ground_heights(points: ArrayLike, ground: ArrayLike, ref: ArrayLike) -> FloatArray:
+    """Height of points (N, ≥3) above the plane ``z = g0 + gx (x − x0) + gy (y − y0)`` (vertical, m)."""
+    p = np.asarray(points, dtype=float)
+    g = np.asarray(ground, dtype=float)
+    r = np.asarray(ref, dtype=float)
+    return p[:, 2] - (g[0] + g[1] * (p[:, 0] - r[0]) + g[2] * (p[:, 1] - r[1]))
+
+
+# ----------------------------------------------------------------------------------------------
+# One ray against one rectangle: the deepest point of its empty part inside the slab
+# ----------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True, inline="always")
+def _interval(o, d, lo, hi):  # pragma: no cover - compiled
+    """t-interval where lo ≤ o + t·d ≤ hi (empty: t0 > t1)."""
+    if d == 0.0:
+        if lo <= o <= hi:
+            return -math.inf, math.inf
+        return math.inf, -math.inf
+    a, b = (lo - o) / d, (hi - o) / d
+    return (a, b) if a <= b else (b, a)
+
+
+@numba.njit(cache=True, inline="always")
+def _try(t, t0, t1, ox, oy, dx, dy, hl, hw, best, tb):  # pragma: no cover - compiled
+    """Depth at ray parameter t if t ∈ [t0, t1] and deeper than ``best``: the new (best, t)."""
+    if t < t0 or t > t1:
+        return best, tb
+    dep = min(hl - abs(ox + t * dx), hw - abs(oy + t * dy))
+    return (dep, t) if dep > best else (best, tb)
+
+
+@numba.njit(cache=True)
+def _deepest(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compiled
+    """Deepest point of the segment o → p (box frame; h = height above the ground) inside the prism
+    |x| ≤ hl, |y| ≤ hw, zlo ≤ h ≤ zhi, in the BEV depth min(hl − |x|, hw − |y|).
+
+    Returns (depth, t): depth −inf when the segment misses the prism. The depth is concave along
+    the segment (a minimum of affine functions), so its maximum is at an end of the interval or
+    where two of the four affine pieces cross: at most eight candidates, no allocation.
+    """
+    dx, dy, dh = px - ox, py - oy, ph - oh
+    a0, a1 = _interval(ox, dx, -hl, hl)
+    b0, b1 = _interval(oy, dy, -hw, hw)
+    c0, c1 = _interval(oh, dh, zlo, zhi)
+    t0 = max(0.0, a0, b0, c0)
+    t1 = min(1.0, a1, b1, c1)
+    if not t0 < t1:
+        return -math.inf, 0.0
+    best, tb = _try(t0, t0, t1, ox, oy, dx, dy, hl, hw, -math.inf, t0)
+    best, tb = _try(t1, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    if dx != 0.0:
+        best, tb = _try(-ox / dx, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    if dy != 0.0:
+        best, tb = _try(-oy / dy, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            den = sx * dx - sy * dy  # hl − sx·x(t) = hw − sy·y(t)
+            if den != 0.0:
+                best, tb = _try((hl - hw - sx * ox + sy * oy) / den, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    return best, tb
+
+
+@numba.njit(cache=True)
+def _signed_deepest(ox, oy, oh, px, py, ph, hl, hw, reach, zlo, zhi):  # pragma: no cover - compiled
+    """Largest m(t) = min(hl − |x|, hw − |y|) (negative outside the rectangle) over the part of the
+    segment inside the slab and within the rectangle grown by ``reach``; −inf when it misses that."""
+    dx, dy, dh = px - ox, py - oy, ph - oh
+    a0, a1 = _interval(ox, dx, -hl - reach, hl + reach)
+    b0, b1 = _interval(oy, dy, -hw - reach, hw + reach)
+    c0, c1 = _interval(oh, dh, zlo, zhi)
+    t0 = max(0.0, a0, b0, c0)
+    t1 = min(1.0, a1, b1, c1)
+    if not t0 <= t1:
+        return -math.inf
+    best, tb = _try(t0, t0, t1, ox, oy, dx, dy, hl, hw, -math.inf, t0)
+    best, tb = _try(t1, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    if dx != 0.0:
+        best, tb = _try(-ox / dx, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    if dy != 0.0:
+        best, tb = _try(-oy / dy, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            den = sx * dx - sy * dy
+            if den != 0.0:
+                best, tb = _try((hl - hw - sx * ox + sy * oy) / den, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
+    return best
+
+
+@numba.njit(cache=True)
+def _ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compiled
+    """Per ray, the largest signed depth m of its empty part in the slab of box ``y`` (−inf beyond ``reach``).
+
+    m moves by at most the boundary displacement H of the rectangle (:func:`_displacement`), so a
+    ray with m + H below the smallest tolerance cannot be active for a box within H of ``y``: the
+    fit skips it, exactly.
+    """
+    c, s = math.cos(y[6]), math.sin(y[6])
+    rx, ry = ox - y[0], oy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry
+    hl, hw = 0.5 * y[3], 0.5 * y[4]
+    for k in range(ends_t.shape[1]):
+        qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        out[k] = _signed_deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, reach, hz[1], hz[2])
+
+
+@numba.njit(cache=True)
+def _displacement(y, y0, reach):  # pragma: no cover - compiled
+    """Upper bound on how far any point's m moves between rectangles y0 and y, for points within
+    ``reach`` of y0: centre shift + half the size changes + turn × (distance of such points from the
+    centre); inf when that reaches ``reach`` (the bound no longer holds there)."""
+    dyaw = abs((y[6] - y0[6] + math.pi) % (2.0 * math.pi) - math.pi)
+    r = 0.5 * math.hypot(y0[3], y0[4]) + 1.5 * reach
+    h = math.hypot(y[0] - y0[0], y[1] - y0[1]) + 0.5 * abs(y[3] - y0[3]) + 0.5 * abs(y[4] - y0[4]) + dyaw * r + 1e-9
+    return h if h < reach else math.inf
+
+
+@numba.njit(cache=True)
+def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover - compiled
+    """Deepest free depth (M,) and its ray parameter (M,) of every ray in the slab of box ``y``."""
+    c, s = math.cos(y[6]), math.sin(y[6])
+    rx, ry = ox - y[0], oy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry
+    hl, hw = 0.5 * y[3], 0.5 * y[4]
+    for k in range(ends_t.shape[1]):
+        qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        dep, t = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
+        out_depth[k] = dep
+        out_t[k] = t
+
+
+@numba.njit(cache=True)
+def _free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack):  # pragma: no cover - compiled
+    """Hinge rows of the box fit, one per ray: a (p, M) transposed like the point rows, b (M,).
+
+    A ray whose empty part reaches depth d* > τ inside the slab of the current box ``y`` gives the
+    row "the face nearest its deepest point q lies τ beyond q": ``nᵀ J(v*) φ = nᵀ q + τ`` with n the
+    outward normal of that face and v* the unit coordinates of q's projection on it — the residual
+    is d* − τ. A ray that *ends inside* the rectangle (at least the slab bottom above the ground:
+    on the object, not on the road under it) proves less — real surfaces lie up to a few decimetres
+    inside a correct label (bumpers, rounded corners, loose annotation) — and gets the looser
+    ``tau_in``. The rows of the active rays are written to the first columns of a and b; returns
+    their number. Rays whose bound (:func:`_ray_bounds`) plus ``slack`` stays below the smaller
+    tolerance are not evaluated (``slack`` = inf evaluates all).
+
+    Robust: a ray through the slab of a *right* box is possible — a gap between a truck's cab and
+    its cargo box, open structure, a return through glass — and no box can exclude it (the ray
+    crosses it from side to side). Each ray is therefore a mixture of the Gaussian hinge (σ) and a
+    "slit" of prior probability ``slit``; its row is weighted by the responsibility of the hinge,
+    (1 − slit)·e^(−r²/2σ²) / ((1 − slit)·e^(−r²/2σ²) + slit) with r = d* − τ and σ = ``hz[4]``
+    (iteratively reweighted: as the fit moves, deep rays become shallow and count again).
+    """
+    c, s = math.cos(y[6]), math.sin(y[6])
+    rx, ry = ox - y[0], oy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry
+    hl, hw = 0.5 * y[3], 0.5 * y[4]
+    d = 3 if three_d else 2
+    p = a.shape[0]
+    tmin = min(tau, tau_in)
+    active = 0
+    for k in range(ends_t.shape[1]):
+        if bounds[k] + slack < tmin:
+            continue
+        qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        dep, t = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
+        ends_in = abs(px) <= hl and abs(py) <= hw and ends_t[2, k] >= hz[3]
+        tk = tau_in if ends_in else tau
+        if not dep > tk:
+            continue
+        j = active
+        active += 1
+        r = dep - tk
+        g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
+        wk = weight * math.sqrt(g / (g + slit)) if slit > 0.0 else weight
+        lx, ly = bx + t * (px - bx), by + t * (py - by)  # deepest point, box frame
+        if hl - abs(lx) <= hw - abs(ly):  # the ±length face is nearest
+            q0 = 1.0 if lx >= 0.0 else -1.0
+            q1 = 0.0
+            v0, v1 = 0.5 * q0, ly / y[4]
+        else:
+            q0 = 0.0
+            q1 = 1.0 if ly >= 0.0 else -1.0
+            v0, v1 = lx / y[3], 0.5 * q1
+        n0 = c * q0 - s * q1  # world normal
+        n1 = s * q0 + c * q1
+        wx = y[0] + c * lx - s * ly  # deepest point, world
+        wy = y[1] + s * lx + c * ly
+        for i in range(p):
+            a[i, j] = 0.0
+        a[0, j] = wk * n0
+        a[1, j] = wk * n1
+        a[d, j] = wk * v0 * n0
+        a[d + 1, j] = wk * v0 * n1
+        a[d + 2, j] = wk * v1 * n1
+        a[d + 3, j] = -wk * v1 * n0
+        b[j] = wk * (n0 * wx + n1 * wy + tk)
+    return active
+
+
+def ray_depths(box: ArrayLike, fs: FreeSpace) -> tuple[FloatArray, FloatArray]:
+    """Deepest free depth (M,) of every candidate ray inside the slab of ``box``, and its ray
+    parameter t ∈ [0, 1] (M,) (−inf / 0 for rays that miss the slab).
+
+    The depth is measured in bird's-eye view from the nearest side of the box rectangle; only the
+    empty part of a ray (before its return) counts.
+    """
+    y = np.asarray(box, dtype=float)
+    m = fs.num_rays
+    dep, t = np.empty(m), np.empty(m)
+    if m:
+        ends_t, ox, oy, hz = fs.kernel_inputs()
+        _depths_kernel(y, ends_t, ox, oy, hz, dep, t)
+    return dep, t
+
+
+def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple[int, int]:
+    """(free, end) ray counts of ``box``: rays through its slab deeper than τ that end *behind* it,
+    and rays that end on or in it.
+
+    A return is "on or in" the box when it lies within τ of the box rectangle in bird's-eye view,
+    at least ``fs.object_height`` above the local ground and at most τ above the box top. ``points`` are
+    the returns near the box (a crop containing the box grown by τ); None counts none.
+    """
+    y = np.asarray(box, dtype=float)
+    free = end = 0
+    if fs.num_rays:
+        ends_t, ox, oy, hz = fs.kernel_inputs()
+        free = int(_count_kernel(y, ends_t, ox, oy, hz, fs.tolerance, True, fs.ends[:, 2]))
+    if points is not None and len(points):
+        p = np.asarray(points, dtype=float)
+        h = ground_heights(p, fs.ground, fs.ref)
+        end = int(_count_kernel(y, np.ascontiguousarray(np.vstack([p[:, 0], p[:, 1], h])), 0.0, 0.0, np.r_[0.0, 0.0, 0.0, fs.object_height],
+                                fs.tolerance, False, p[:, 2]))
+    return free, end
+
+
+@numba.njit(cache=True)
+def _count_kernel(y, ends_t, ox, oy, hz, tau, free, z):  # pragma: no cover - compiled
+    """``free``: rays deeper than τ in the slab of ``y`` whose return is not on or in it; else the
+    returns on or in it (within τ of the rectangle, ≥ hz[3] above the ground, ≤ τ over the top)."""
+    c, s = math.cos(y[6]), math.sin(y[6])
+    rx, ry = ox - y[0], oy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry
+    hl, hw, top = 0.5 * y[3], 0.5 * y[4], y[2] + 0.5 * y[5]
+    count = 0
+    for k in range(ends_t.shape[1]):
+        qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        on = abs(px) <= hl + tau and abs(py) <= hw + tau and ends_t[2, k] >= hz[3] and z[k] <= top + tau
+        if not free:
+            count += on
+            continue
+        if on:
+            continue
+        dep, _ = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
+        count += dep > tau
+    return count
+
+
+# ----------------------------------------------------------------------------------------------
+# The frame pass: which rays can reach which box
+# ----------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _pseudo_angle(x, y):  # pragma: no cover - compiled
+    """A monotone stand-in for atan2 in [0, 4) (the "diamond angle"): no transcendental call."""
+    ax, ay = abs(x), abs(y)
+    if ax + ay == 0.0:
+        return 0.0
+    if y >= 0.0:
+        return y / (ax + ay) if x >= 0.0 else 2.0 - y / (ax + ay)
+    return 2.0 - y / (ax + ay) if x < 0.0 else 4.0 + y / (ax + ay)
+
+
+@numba.njit(cache=True)
+def _bucket_kernel(pts, ox, oy, nbins, min_r2):  # pragma: no cover - compiled
+    """Counting sort by azimuth bin (seen from the sensor) of the points at least √min_r2 from it
+    (nearer ones cannot reach any box): order (M,), starts (nbins + 1,)."""
+    n = pts.shape[0]
+    bins = np.empty(n, dtype=np.int64)
+    counts = np.zeros(nbins + 1, dtype=np.int64)
+    scale = nbins / 4.0
+    for k in range(n):
+        x, y = pts[k, 0] - ox, pts[k, 1] - oy
+        if x * x + y * y < min_r2:
+            bins[k] = -1
+            continue
+        q = min(max(int(_pseudo_angle(x, y) * scale), 0), nbins - 1)
+        bins[k] = q
+        counts[q + 1] += 1
+    for q in range(nbins):
+        counts[q + 1] += counts[q]
+    fill = counts[:nbins].copy()
+    order = np.empty(counts[nbins], dtype=np.int64)
+    for k in range(n):
+        q = bins[k]
+        if q >= 0:
+            order[fill[q]] = k
+            fill[q] += 1
+    return order, counts
+
+
+@numba.njit(cache=True, inline="always")
+def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compiled
+    """Whether the segment o → p (box frame, heights above the ground) meets the prism."""
+    a0, a1 = _interval(ox, px - ox, -hl, hl)
+    b0, b1 = _interval(oy, py - oy, -hw, hw)
+    c0, c1 = _interval(oh, ph - oh, zlo, zhi)
+    return max(0.0, a0, b0, c0) < min(1.0, a1, b1, c1)
+
+
+@numba.njit(cache=True)
+def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts):  # pragma: no cover - compiled
+    """For each box, the points of its azimuth bins whose ray from the sensor passes through its
+    reach prism (rectangle grown by ``reach``, slab heights above its ground plane); indices into
+    ``out`` (flat), number per box into ``counts``."""
+    pos = 0
+    for j in range(boxes.shape[0]):
+        y = boxes[j]
+        c, s = math.cos(y[6]), math.sin(y[6])
+        rx, ry = ox - y[0], oy - y[1]
+        bx, by = c * rx + s * ry, -s * rx + c * ry
+        oh = oz - ground[j, 0] - ground[j, 1] * (ox - y[0]) - ground[j, 2] * (oy - y[1])
+        hl, hw = 0.5 * y[3] + reach, 0.5 * y[4] + reach
+        start = pos
+        for r in range(2):
+            q0, q1 = ranges[j, 2 * r], ranges[j, 2 * r + 1]
+            if q0 > q1:
+                continue
+            for i in range(starts[q0], starts[q1 + 1]):
+                k = order[i]
+                ex, ey = pts[k, 0] - ox, pts[k, 1] - oy
+                if ex * ex + ey * ey < near2[j]:  # ends before the grown rectangle
+                    continue
+                qx, qy = pts[k, 0] - y[0], pts[k, 1] - y[1]
+                px, py = c * qx + s * qy, -s * qx + c * qy
+                ph = pts[k, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
+                if _hits(bx, by, oh, px, py, ph, hl, hw, slabs[j, 0], slabs[j, 1]):
+                    out[pos] = k
+                    pos += 1
+        counts[j] = pos - start
+        out[start:pos].sort()
+    return pos
+
+
+def _bin_of_angle(angle: FloatArray, nbins: int) -> NDArray[np.int64]:
+    a = np.mod(angle, 2.0 * np.pi)
+    x, y = np.cos(a), np.sin(a)
+    ax, ay = np.abs(x), np.abs(y)
+    pa = np.where(y >= 0, np.where(x >= 0, y / (ax + ay), 2.0 - y / (ax + ay)), np.where(x < 0, 2.0 - y / (ax + ay), 4.0 + y / (ax + ay)))
+    return np.clip((pa * (nbins / 4.0)).astype(np.int64), 0, nbins - 1)
+
+
+def ray_candidates(
+    points: ArrayLike,
+    origin: ArrayLike,
+    boxes: ArrayLike,
+    ground: ArrayLike,
+    slabs: ArrayLike,
+    reach: float,
+    nbins: int = C.FREE_SPACE_AZIMUTH_BINS,
+) -> list[IndexArray]:
+    """Indices of the points whose ray (sensor → point) passes through each box's reach prism.
+
+    The reach prism of a box is its rectangle grown by ``reach`` on every side, between the heights
+    ``slabs[j]`` above the box's ground plane: every ray the box fit can meet while it moves by up
+    to ``reach``. One compiled pass sorts the frame's points by azimuth bin; each box then tests
+    only the points of the bins its prism spans, exactly (a segment–prism test).
+
+    Parameters
+    ----------
+    points : (N, ≥3) the frame's points
+    origin : (3,) the sensor
+    boxes : (K, 7) boxes
+    ground : (K, ≥3) ground planes (g0, gx, gy) about each box's BEV centre
+    slabs : (K, 2) slab heights above the ground (m)
+    reach : BEV growth of the rectangles (m)
+
+    Returns
+    -------
+    K sorted int64 index arrays into ``points``
+    """
+    pts = np.asarray(points)
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    o = np.asarray(origin, dtype=float).reshape(3)
+    k = len(b)
+    if k == 0:
+        return []
+    if len(pts) == 0:
+        return [np.empty(0, dtype=np.int64) for _ in range(k)]
+    xyz = np.ascontiguousarray(pts[:, :3])
+    ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
+    order, starts = _bucket_kernel(xyz, o[0], o[1], nbins, float(near2.min()))
+    sizes = np.zeros(k, dtype=np.int64)
+    for r in range(2):
+        lo, hi = ranges[:, 2 * r], ranges[:, 2 * r + 1]
+        ok = lo <= hi
+        sizes[ok] += starts[hi[ok] + 1] - starts[lo[ok]]
+    out = np.empty(int(sizes.sum()), dtype=np.int64)
+    counts = np.zeros(k, dtype=np.int64)
+    g = np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3])
+    _select_kernel(xyz, order, starts, ranges, near2, b, g, o[0], o[1], o[2], float(reach), np.ascontiguousarray(slabs, dtype=float), out, counts)
+    offsets = np.concatenate([[0], np.cumsum(counts)])  # the kernel writes the boxes' candidates one after the other
+    return [out[offsets[j]: offsets[j + 1]].copy() for j in range(k)]
+
+
+def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: int) -> tuple[NDArray[np.int64], FloatArray]:
+    """Bin ranges (K, 4): up to two inclusive [lo, hi] bin ranges per box (the second when the
+    azimuth window wraps past 0; all bins when the sensor lies inside the grown rectangle), and the
+    squared BEV distance (K,) from the sensor to each grown rectangle (0 inside)."""
+    k = len(boxes)
+    half = np.stack([boxes[:, 3] / 2 + reach, boxes[:, 4] / 2 + reach], 1)
+    sx = np.array([1, -1, -1, 1])
+    sy = np.array([1, 1, -1, -1])
+    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
+    lx, ly = sx[None] * half[:, :1], sy[None] * half[:, 1:]
+    cx = boxes[:, :1] + c * lx - s * ly - origin[0]
+    cy = boxes[:, 1:2] + s * lx + c * ly - origin[1]
+    centre = np.arctan2(boxes[:, 1] - origin[1], boxes[:, 0] - origin[0])
+    rel = np.angle(np.exp(1j * (np.arctan2(cy, cx) - centre[:, None])))
+    lo_a, hi_a = centre + rel.min(1), centre + rel.max(1)
+    ranges = np.empty((k, 4), dtype=np.int64)
+    ranges[:, 2], ranges[:, 3] = 1, 0  # empty second range
+    # the sensor inside the grown rectangle: every direction
+    ox = c[:, 0] * (origin[0] - boxes[:, 0]) + s[:, 0] * (origin[1] - boxes[:, 1])
+    oy = -s[:, 0] * (origin[0] - boxes[:, 0]) + c[:, 0] * (origin[1] - boxes[:, 1])
+    inside = (np.abs(ox) <= half[:, 0]) & (np.abs(oy) <= half[:, 1])
+    b_lo, b_hi = _bin_of_angle(lo_a, nbins), _bin_of_angle(hi_a, nbins)
+    wraps = b_lo > b_hi
+    ranges[:, 0], ranges[:, 1] = np.where(wraps, 0, b_lo), b_hi
+    ranges[wraps, 2], ranges[wraps, 3] = b_lo[wraps], nbins - 1
+    ranges[inside, 0], ranges[inside, 1] = 0, nbins - 1
+    ranges[inside, 2], ranges[inside, 3] = 1, 0
+    gap_x = np.maximum(np.abs(ox) - half[:, 0], 0.0)
+    gap_y = np.maximum(np.abs(oy) - half[:, 1], 0.0)
+    near2 = (gap_x**2 + gap_y**2) * (1.0 - 1e-9)  # a hair nearer: rounding never drops a ray
+    return ranges, near2

@@ -1,0 +1,459 @@
+"""What the frame around each labelled box says: its crops, local ground, neighbours and rays.
+
+For the boxes of one frame (docs/label-error.md, "Ground, neighbours and free space"):
+
+- **crops.** One Open3D pass selects each box's *neighbourhood* (the box grown in bird's-eye view by
+  the largest margin used below, from ``GROUND_WINDOW`` under its bottom to its top). The model's
+  crop (``[crop] margin`` and the fixed ``ground_cut`` above the box bottom, what the covariance
+  and JIoU-GT see) is refined from it exactly (:func:`labelaudit.infer.crop.refine_crop`); the
+  label-error fit's crop (``[crop] fit_margin``) is cut at ``ground_cut`` above the *local ground*.
+- **ground.** A plane fitted to the neighbourhood's points near the box bottom by RANSAC with a
+  fixed seed and a least-squares refit (:func:`ground_plane`); when too few points support one,
+  the box bottom (the fixed cut). Sloped roads and labels with a wrong bottom then neither feed
+  ground returns into the fit nor cut the vehicle's lower body.
+- **neighbours.** Points inside another label of the frame (grown by ``NEIGHBOUR_MARGIN``) and
+  outside the box itself are that label's evidence: they are dropped from the fit's crop and
+  from the model's crop where its margin reaches them.
+- **unlabelled surfaces.** A wall, hedge or fence beside a vehicle is not its evidence either: the
+  points of a connected surface (BEV cells of ``SCENERY_VOXEL``) that lies wholly outside the label
+  (more than ``NEIGHBOUR_MARGIN`` from it) and runs out of the fit's crop are dropped from the
+  fit's crop (:func:`scenery_mask`). An object's own points always reach into its label unless
+  the label misses it entirely.
+- **rays.** The rays of the frame that can pass through each box's solid lower body
+  (:func:`labelaudit.core.freespace.ray_candidates`), with the ground they are measured from.
+
+Pure functions of arrays: no files, no printing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numba
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from labelaudit import constants as C
+from labelaudit.config import CropParams
+from labelaudit.core.freespace import FreeSpace, ray_candidates
+from labelaudit.core.geometry import rotation_z
+from labelaudit.infer.crop import refine_crop
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.int64]
+
+__all__ = ["BoxEvidence", "ObjectEvidence", "frame_evidence", "ground_plane", "scenery_mask"]
+
+
+@dataclass(frozen=True)
+class ObjectEvidence:
+    """What :func:`labelaudit.infer.rows.audit_object` needs beyond the crops: the rays, the
+    neighbourhood's points (N, ≥3) for the "ends on or in" counts, and two diagnostics."""
+
+    free_space: FreeSpace
+    near_points: NDArray
+    neighbour_points: int = 0
+    ground_z: float = float("nan")
+    scenery_points: int = 0
+
+
+@dataclass(frozen=True)
+class BoxEvidence:
+    """One box's crops and surroundings, as indices into the frame's points.
+
+    Attributes
+    ----------
+    model_idx : the model's crop (``margin``, fixed ground cut), neighbours' points dropped
+    fit_idx : the label-error fit's crop (``fit_margin``, cut above the local ground), neighbours dropped
+    near_idx : the neighbourhood (every point that can end on or in the box or its fit)
+    free_space : the rays that may cross the box, and its local ground
+    ground_z : local ground height under the box centre (m); NaN when the fixed cut was used
+    neighbour_points : points dropped from the fit's crop because they lie in another label
+    scenery_points : points dropped from the fit's crop because they belong to an unlabelled
+        surface outside the label that runs out of the crop
+    """
+
+    model_idx: IndexArray
+    fit_idx: IndexArray
+    near_idx: IndexArray
+    free_space: FreeSpace
+    ground_z: float
+    neighbour_points: int
+    scenery_points: int = 0
+
+    def for_object(self, points: NDArray) -> ObjectEvidence:
+        """The :class:`ObjectEvidence` of this box, given the frame's points."""
+        return ObjectEvidence(self.free_space, points[self.near_idx], self.neighbour_points, self.ground_z, self.scenery_points)
+
+
+def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropParams, others: NDArray | None = None) -> list[BoxEvidence]:
+    """Crops, local ground, neighbours and candidate rays of every box of a frame.
+
+    Parameters
+    ----------
+    points : (N, ≥3) the frame's points
+    boxes : (K, 7) the boxes to audit (valid boxes)
+    origin : (3,) the sensor
+    crop : margins and ground cut
+    others : (J, 7) every label of the frame whose points are not this box's evidence (default:
+        ``boxes``); a box is never its own neighbour (rows equal to it are skipped)
+
+    Returns
+    -------
+    one :class:`BoxEvidence` per box
+    """
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    if len(b) == 0:
+        return []
+    others = b if others is None else np.asarray(others, dtype=float).reshape(-1, 7)
+    tau = C.FREE_SPACE_TOLERANCE
+    wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
+    xyz64 = np.ascontiguousarray(points[:, :3], dtype=np.float64)  # the frame's points, once: Open3D, rays, crops
+    near = _neighbourhoods(xyz64, b, wide, C.GROUND_WINDOW, tau)
+    model = refine_crop(points, b, near, crop)
+    grounds = np.empty((len(b), 3))
+    ground_z = np.full(len(b), np.nan)
+    for j, (box, idx) in enumerate(zip(b, near)):
+        plane = ground_plane(xyz64[idx], box)
+        if plane is None:
+            grounds[j] = (box[2] - box[5] / 2, 0.0, 0.0)
+        else:
+            grounds[j] = plane
+            ground_z[j] = plane[0]
+    slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
+    rays = ray_candidates(xyz64, origin, b, grounds, slabs, C.FREE_SPACE_REACH)
+    out = []
+    o = np.asarray(origin, dtype=float).reshape(3)
+    diag = np.hypot(others[:, 3], others[:, 4]) / 2
+    for j, box in enumerate(b):
+        idx = near[j]
+        xyz = xyz64[idx]
+        reach = np.hypot(box[3], box[4]) / 2 + diag + crop.fit_margin + C.NEIGHBOUR_MARGIN
+        close = (np.hypot(others[:, 0] - box[0], others[:, 1] - box[1]) <= reach) & ~np.all(others == box, axis=1)
+        flags = np.zeros(len(idx), dtype=np.uint8)
+        _box_kernel(xyz, box, grounds[j], np.ascontiguousarray(others[close]), crop.fit_margin, crop.ground_cut,
+                    C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, flags)
+        model_idx = model[j]
+        foreign = (flags & _FOREIGN) != 0
+        if foreign.any() and len(model_idx):
+            model_idx = model_idx[~np.isin(model_idx, idx[foreign], assume_unique=True)]
+        fs = FreeSpace(
+            origin=o, ends=xyz64[rays[j]], ground=np.r_[grounds[j], 0.0], ref=box[:2].copy(),
+            slab=(float(slabs[j, 0]), float(slabs[j, 1])), tolerance=tau, object_height=crop.ground_cut,
+        )
+        out.append(BoxEvidence(model_idx, idx[(flags & _FIT) != 0], idx, fs, float(ground_z[j]),
+                               int(np.count_nonzero(flags & _FIT_FOREIGN)), int(np.count_nonzero(flags & _FIT_SCENERY))))
+    return out
+
+
+_FIT, _FOREIGN, _FIT_FOREIGN, _FIT_SCENERY = 1, 2, 4, 8  # flags of _box_kernel
+
+
+@numba.njit(cache=True)
+def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags):  # pragma: no cover - compiled
+    """One box's pass over its neighbourhood (n, 3): the fit's crop (in the fit margin, ``cut``
+    above the local ground, under the box top), points of other labels (grown by ``nb_margin``)
+    outside the box itself, and unlabelled surfaces (:func:`scenery_mask`); flags (n,) of
+    _FIT / _FOREIGN / _FIT_FOREIGN / _FIT_SCENERY. Compiled: per box a dozen NumPy passes over the
+    neighbourhood cost more than the rest of the frame's evidence."""
+    n = xyz.shape[0]
+    c, s = math.cos(box[6]), math.sin(box[6])
+    hl, hw, top = 0.5 * box[3], 0.5 * box[4], box[2] + 0.5 * box[5]
+    lx = np.empty(n)
+    ly = np.empty(n)
+    above = np.zeros(n, dtype=np.bool_)
+    m = 0
+    for k in range(n):
+        dx, dy = xyz[k, 0] - box[0], xyz[k, 1] - box[1]
+        x, y, z = c * dx + s * dy, -s * dx + c * dy, xyz[k, 2]
+        lx[k], ly[k] = x, y
+        h = z - (plane[0] + plane[1] * dx + plane[2] * dy)
+        above[k] = h >= cut and z <= top
+        in_fit = above[k] and abs(x) <= hl + fit_margin and abs(y) <= hw + fit_margin
+        own = abs(x) <= hl and abs(y) <= hw and abs(z - box[2]) <= 0.5 * box[5]
+        foreign = False
+        if not own:
+            for j in range(others.shape[0]):
+                o = others[j]
+                co, so = math.cos(o[6]), math.sin(o[6])
+                ex, ey = xyz[k, 0] - o[0], xyz[k, 1] - o[1]
+                if abs(co * ex + so * ey) <= 0.5 * o[3] + nb_margin and abs(-so * ex + co * ey) <= 0.5 * o[4] + nb_margin and abs(z - o[2]) <= 0.5 * o[5]:
+                    foreign = True
+                    break
+        f = 0
+        if foreign:
+            f |= 2
+            if in_fit:
+                f |= 4
+        elif in_fit:
+            f |= 1
+        flags[k] = f
+        if above[k]:
+            m += 1
+    # unlabelled surfaces among the points above the ground
+    sel = np.empty(m, dtype=np.int64)
+    q = 0
+    for k in range(n):
+        if above[k]:
+            sel[q] = k
+            q += 1
+    sc = _scenery(lx[sel], ly[sel], hl, hw, fit_margin, nb_margin, cell)
+    for q in range(m):
+        k = sel[q]
+        if sc[q] and (flags[k] & 1):
+            flags[k] = (flags[k] & ~1) | 8
+
+
+@numba.njit(cache=True)
+def _scenery(lx, ly, hl, hw, fit_margin, nb_margin, cell):  # pragma: no cover - compiled
+    """The rule of :func:`scenery_mask` on box-frame BEV coordinates (n,)."""
+    n = lx.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    if n == 0:
+        return out
+    lab = _cell_labels(lx, ly, cell)
+    k = lab.max() + 1
+    touches = np.zeros(k, dtype=np.bool_)
+    for i in range(n):
+        if abs(lx[i]) <= hl + nb_margin and abs(ly[i]) <= hw + nb_margin:
+            touches[lab[i]] = True
+    free = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if not touches[lab[i]]:
+            free[m] = i
+            m += 1
+    if m == 0:
+        return out
+    fx, fy = lx[free[:m]], ly[free[:m]]
+    grp = _cell_labels(fx, fy, 4.0 * cell)
+    escapes = np.zeros(grp.max() + 1, dtype=np.bool_)
+    for i in range(m):
+        if abs(fx[i]) > hl + fit_margin or abs(fy[i]) > hw + fit_margin:
+            escapes[grp[i]] = True
+    for i in range(m):
+        out[free[i]] = escapes[grp[i]]
+    return out
+
+
+@numba.njit(cache=True)
+def _cell_labels(lx, ly, cell):  # pragma: no cover - compiled
+    n = lx.shape[0]
+    ijk = np.zeros((n, 3), dtype=np.int64)
+    for i in range(n):
+        ijk[i, 0] = int(math.floor(lx[i] / cell))
+        ijk[i, 1] = int(math.floor(ly[i] / cell))
+    i0, j0 = ijk[:, 0].min(), ijk[:, 1].min()
+    for i in range(n):
+        ijk[i, 0] -= i0
+        ijk[i, 1] -= j0
+    dims = np.array([ijk[:, 0].max() + 1, ijk[:, 1].max() + 1, 1])
+    return _voxel_components(ijk, dims)
+
+
+def _neighbourhoods(pts: NDArray, boxes: FloatArray, margin: float, below: float, above: float) -> list[IndexArray]:
+    """One Open3D pass over ``pts`` (N, 3) float64: each box grown by ``margin`` in BEV, from
+    ``below`` under its bottom to ``above`` over its top."""
+    region = boxes.copy()
+    region[:, 3] += 2.0 * margin
+    region[:, 4] += 2.0 * margin
+    region[:, 5] += below + above
+    region[:, 2] += (above - below) / 2.0
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    out = []
+    for box, R in zip(region, rotation_z(region[:, 6])):
+        if len(pts) == 0:
+            out.append(np.empty(0, dtype=np.int64))
+            continue
+        obb = o3d.geometry.OrientedBoundingBox(box[:3], R, box[3:6])
+        out.append(np.sort(np.asarray(obb.get_point_indices_within_bounding_box(cloud.points), dtype=np.int64)))
+    return out
+
+
+def _local(xyz: FloatArray, box: FloatArray) -> tuple[FloatArray, FloatArray]:
+    c, s = math.cos(box[6]), math.sin(box[6])
+    dx, dy = xyz[:, 0] - box[0], xyz[:, 1] - box[1]
+    return c * dx + s * dy, -s * dx + c * dy
+
+
+def ground_plane(xyz: FloatArray, box: FloatArray) -> FloatArray | None:
+    """The local ground under a box: (g0, gx, gy) of ``z = g0 + gx (x − cx) + gy (y − cy)``, or None.
+
+    Candidates are the points within ``GROUND_MARGIN`` of the box in BEV but outside its footprint
+    (the vehicle's own lower body is not ground), between ``GROUND_WINDOW`` under its bottom and
+    half that over it. RANSAC: ``GROUND_HYPOTHESES`` planes through three candidates drawn from a
+    fixed table of uniform numbers (so a box always gets the same plane) plus as many level planes
+    through single candidates, slopes above ``GROUND_MAX_SLOPE`` rejected; the plane with the most
+    candidates within ``GROUND_INLIER`` wins and is refitted to its inliers by least squares (the
+    slope only when they span ≥ 1 m both ways, else a level plane at their median), then once more
+    to the points within half that distance (the foot of a wall or a wheel is not ground). None
+    when fewer than ``GROUND_MIN_POINTS`` points support it (the caller falls back to the box
+    bottom).
+
+    Open3D's ``segment_plane`` was measured first: ~3.5 ms per box (more than the rest of the
+    per-object audit) and not reproducible from call to call (its RANSAC draws are not fixed by
+    ``open3d.utility.random.seed``), and rows must be identical run to run. This is one compiled
+    call (:func:`_ground_kernel`), ~0.05 ms.
+    """
+    out = np.empty(3)
+    ok = _ground_kernel(np.ascontiguousarray(xyz, dtype=np.float64), np.asarray(box, dtype=float), _GROUND_DRAWS,
+                        C.GROUND_MARGIN, C.GROUND_WINDOW, C.GROUND_INLIER, C.GROUND_MIN_POINTS, C.GROUND_MAX_SLOPE, out)
+    return out if ok else None
+
+
+_GROUND_DRAWS = np.random.default_rng(0).random((C.GROUND_HYPOTHESES, 4))
+"""Fixed uniform numbers of the RANSAC draws: three points and one level plane per hypothesis."""
+_GROUND_SCORED = 512  # hypotheses are scored on at most this many candidates (a fixed stride)
+
+
+@numba.njit(cache=True)
+def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slope, out):  # pragma: no cover - compiled
+    c, s = math.cos(box[6]), math.sin(box[6])
+    hl, hw = 0.5 * box[3], 0.5 * box[4]
+    bottom = box[2] - 0.5 * box[5]
+    n_all = xyz.shape[0]
+    cand = np.empty((n_all, 3))
+    n = 0
+    for k in range(n_all):
+        dx, dy = xyz[k, 0] - box[0], xyz[k, 1] - box[1]
+        lx, ly = abs(c * dx + s * dy), abs(-s * dx + c * dy)
+        z = xyz[k, 2]
+        if lx > hl + margin or ly > hw + margin or (lx <= hl and ly <= hw) or z < bottom - window or z > bottom + 0.5 * window:
+            continue
+        cand[n, 0], cand[n, 1], cand[n, 2] = dx, dy, z
+        n += 1
+    if n < min_points:
+        return False
+    stride = max(1, n // 512)
+    best_count, bg0, bgx, bgy = -1, 0.0, 0.0, 0.0
+    for h in range(draws.shape[0]):
+        for level in range(2):
+            if level == 0:
+                i0, i1, i2 = int(draws[h, 0] * n), int(draws[h, 1] * n), int(draws[h, 2] * n)
+                ux, uy, uz = cand[i1, 0] - cand[i0, 0], cand[i1, 1] - cand[i0, 1], cand[i1, 2] - cand[i0, 2]
+                vx, vy, vz = cand[i2, 0] - cand[i0, 0], cand[i2, 1] - cand[i0, 1], cand[i2, 2] - cand[i0, 2]
+                nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+                if nz == 0.0:
+                    continue
+                gx, gy = -nx / nz, -ny / nz
+                if math.hypot(gx, gy) > max_slope:
+                    continue
+                g0 = cand[i0, 2] - gx * cand[i0, 0] - gy * cand[i0, 1]
+            else:
+                i0 = int(draws[h, 3] * n)
+                gx = gy = 0.0
+                g0 = cand[i0, 2]
+            count = 0
+            for k in range(0, n, stride):
+                if abs(cand[k, 2] - (g0 + gx * cand[k, 0] + gy * cand[k, 1])) < inlier:
+                    count += 1
+            if count > best_count:
+                best_count, bg0, bgx, bgy = count, g0, gx, gy
+    plane = np.array([bg0, bgx, bgy])
+    for rnd in range(2):
+        thr = inlier if rnd == 0 else 0.5 * inlier
+        # inlier moments for the least-squares plane z = g0 + gx·x + gy·y
+        m = 0
+        sx = sy = sz = sxx = sxy = syy = sxz = syz = 0.0
+        zs = np.empty(n)
+        for k in range(n):
+            x, y, z = cand[k, 0], cand[k, 1], cand[k, 2]
+            if abs(z - (plane[0] + plane[1] * x + plane[2] * y)) < thr:
+                zs[m] = z
+                m += 1
+                sx += x
+                sy += y
+                sz += z
+                sxx += x * x
+                sxy += x * y
+                syy += y * y
+                sxz += x * z
+                syz += y * z
+        if m < min_points:
+            return False
+        mx, my, mz = sx / m, sy / m, sz / m
+        cxx, cxy, cyy = sxx / m - mx * mx, sxy / m - mx * my, syy / m - my * my
+        cxz, cyz = sxz / m - mx * mz, syz / m - my * mz
+        det = cxx * cyy - cxy * cxy
+        tr = cxx + cyy
+        lam_min = 0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0))  # smaller eigenvalue of the xy covariance
+        solved = False
+        if lam_min >= 0.25 and det > 0.0:  # the inliers span ≥ ~1 m both ways: the slope is observable
+            gx = (cyy * cxz - cxy * cyz) / det
+            gy = (cxx * cyz - cxy * cxz) / det
+            if math.hypot(gx, gy) <= max_slope:
+                plane[0], plane[1], plane[2] = mz - gx * mx - gy * my, gx, gy
+                solved = True
+        if not solved:
+            plane[0], plane[1], plane[2] = np.median(zs[:m]), 0.0, 0.0
+    out[0], out[1], out[2] = plane[0], plane[1], plane[2]
+    return True
+
+
+def scenery_mask(xyz: FloatArray, box: FloatArray, fit_margin: float) -> NDArray[np.bool_]:
+    """Points (N, 3) of the neighbourhood (above the ground) that belong to an unlabelled surface.
+
+    The points are grouped into connected components of occupied ``SCENERY_VOXEL`` cells of the
+    bird's-eye view (8 neighbours, in the box frame; the points are those between the local ground
+    cut and the box top, so the ground does not connect everything). A component *touches* the
+    label when one of its points lies within ``NEIGHBOUR_MARGIN`` of it in BEV. The components that
+    do not touch are grouped again with cells four times as large (a wall seen at a grazing angle
+    returns points ~0.7 m apart), and a
+    group is scenery when one of its points lies outside the fit's crop (the label grown by
+    ``fit_margin``): a surface that passes beside the label and runs on beyond the crop. Points of
+    touching components are never scenery, whatever lies near them.
+    """
+    lx, ly = _local(np.asarray(xyz, dtype=float), box)
+    return _scenery(lx, ly, box[3] / 2, box[4] / 2, fit_margin, C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL)
+
+
+@numba.njit(cache=True)
+def _voxel_components(ijk, dims):  # pragma: no cover - compiled
+    """Connected-component label (N,) of every point's voxel (26-connectivity; 8 in a single layer), by flood fill on a
+    dense grid of the points' bounding voxels (a BFS has no NumPy form; scipy.ndimage would be one
+    more import in every worker)."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    grid = np.full(nx * ny * nz, -2, dtype=np.int64)  # −2 empty, −1 occupied, ≥ 0 component
+    flat = np.empty(ijk.shape[0], dtype=np.int64)
+    for k in range(ijk.shape[0]):
+        f = (ijk[k, 0] * ny + ijk[k, 1]) * nz + ijk[k, 2]
+        flat[k] = f
+        grid[f] = -1
+    stack = np.empty(nx * ny * nz, dtype=np.int64)
+    comp = 0
+    for k in range(ijk.shape[0]):
+        if grid[flat[k]] != -1:
+            continue
+        top = 0
+        stack[top] = flat[k]
+        top += 1
+        grid[flat[k]] = comp
+        while top > 0:
+            top -= 1
+            f = stack[top]
+            i, rem = f // (ny * nz), f % (ny * nz)
+            j, l = rem // nz, rem % nz
+            for di in (-1, 0, 1):
+                ii = i + di
+                if ii < 0 or ii >= nx:
+                    continue
+                for dj in (-1, 0, 1):
+                    jj = j + dj
+                    if jj < 0 or jj >= ny:
+                        continue
+                    for dl in (-1, 0, 1):
+                        ll = l + dl
+                        if ll < 0 or ll >= nz:
+                            continue
+                        g = (ii * ny + jj) * nz + ll
+                        if grid[g] == -1:
+                            grid[g] = comp
+                            stack[top] = g
+                            top += 1
+        comp += 1
+    out = np.empty(ijk.shape[0], dtype=np.int64)
+    for k in range(ijk.shape[0]):
+        out[k] = grid[flat[k]]
+    return out
