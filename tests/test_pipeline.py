@@ -25,9 +25,9 @@ from labelaudit.infer.run import chunk_name, InferRequest, plan_chunks, run_infe
 
 
 
-def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None):
+def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None):
     """Stand-in for the core: more points → higher JIoU-GT; raises for a marker class."""
-    assert fit_points is not None and len(fit_points) >= len(points)  # the wider crop of the fit
+    assert fit_points is not None  # the fit's own crop (wider, cut above the local ground, neighbours dropped)
     if class_name == "Boom":
         raise RuntimeError("synthetic failure")
     n = len(points)
@@ -435,9 +435,9 @@ def test_every_column_the_core_returns_has_a_place_in_the_schema():
 def test_the_label_error_fit_gets_the_wider_crop(fake_core, monkeypatch):
     seen = {}
 
-    def recording(box, points, class_name, cfg, sensor_origin, *, fit_points=None):
+    def recording(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None):
         seen[class_name, round(float(box[0]))] = (len(points), len(fit_points))
-        return _fake_audit(box, points, class_name, cfg, sensor_origin, fit_points=fit_points)
+        return _fake_audit(box, points, class_name, cfg, sensor_origin, fit_points=fit_points, evidence=evidence)
 
     monkeypatch.setattr(fake_core, "audit_object", recording)
     frame = _frame()
