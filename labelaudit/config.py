@@ -31,6 +31,17 @@ SAMPLE_TABLE = Path(__file__).parent / "data" / "normal_samples.npz"
 ALL_CLASSES = "all"
 """Put this alone in ``classes`` to audit every class (``--classes all``)."""
 
+PRESETS: dict[str, str] = {"paper": "kitti-paper.toml"}
+"""Built-in presets by name (``--config paper``): the authors' published KITTI setting."""
+
+
+def preset_path(path: str | Path) -> Path:
+    """``path``, or the built-in file of a preset name (:data:`PRESETS`) when no such file exists."""
+    p = Path(path)
+    if not p.exists() and str(path) in PRESETS:
+        return CONFIG_DIR / PRESETS[str(path)]
+    return p
+
 
 @dataclass(frozen=True)
 class ClassPrior:
@@ -198,7 +209,8 @@ def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -
 
     Parameters
     ----------
-    path : TOML file, or None for the built-in config of ``dataset_format``.
+    path : TOML file, a preset name (``"paper"``, :data:`PRESETS`), or None for the built-in
+        config of ``dataset_format``.
     dataset_format : "kitti", "waymo-v2" or "waymo-v1"; chooses the built-in config.
 
     Raises
@@ -209,7 +221,7 @@ def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -
     if path is None:
         name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
         path = CONFIG_DIR / name
-    path = Path(path)
+    path = preset_path(path)
     return config_from_dict(read_toml(path, "config file"), source=str(path), dataset_format=dataset_format)
 
 

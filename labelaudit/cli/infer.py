@@ -30,7 +30,7 @@ def infer(
     dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder) or a Waymo v1 .tfrecord."),
     output: str = typer.Option(C.DEFAULT_RESULTS_DIR, "-o", "--output", help="Results folder (Parquet shards + manifest); '-o .' for the current folder."),
     dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
-    config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML (default: the built-in one of the format)."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML, or 'paper' for the authors' published KITTI setting (default: the built-in one of the format)."),
     classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
     model: Optional[ModelChoice] = typer.Option(None, "--model", help="bev (default) or 3d."),
     split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …)."),
@@ -54,6 +54,8 @@ def infer(
       labelaudit infer /data/kitti -o results/
 
       labelaudit infer /data/kitti --split val --classes Car,Van --workers 8
+
+      labelaudit infer /data/kitti --config paper -o paper-results/
 
       labelaudit infer /data/waymo_v2/validation --dataset-format waymo-v2 --model 3d -o waymo-results/
 
