@@ -44,7 +44,21 @@ from labelaudit.infer.crop import refine_crop
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
 
-__all__ = ["BoxEvidence", "ObjectEvidence", "frame_evidence", "ground_plane", "scenery_mask"]
+__all__ = ["BoxEvidence", "ObjectEvidence", "fit_free_space", "frame_evidence", "ground_plane", "label_boxes", "scenery_mask"]
+
+
+def fit_free_space(class_name: str, free_space: FreeSpace | None) -> FreeSpace | None:
+    """The rays the label-error fit of a ``class_name`` box uses: vehicles' (:data:`~labelaudit.constants.FREE_SPACE_CLASSES`)
+    only — a pedestrian's, a bike's or a Misc box is mostly open space (their rays are only counted)."""
+    return free_space if class_name in C.FREE_SPACE_CLASSES else None
+
+
+def label_boxes(boxes: NDArray) -> FloatArray:
+    """The labels of a frame that can own points (finite, positive sizes), whatever their class:
+    the ``others`` of :func:`frame_evidence`."""
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    ok = np.all(np.isfinite(b), axis=1) & np.all(b[:, 3:6] > 0, axis=1)
+    return b[ok]
 
 
 @dataclass(frozen=True)

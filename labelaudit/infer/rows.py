@@ -16,7 +16,6 @@ import numpy as np
 
 from numpy.typing import ArrayLike
 
-from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
@@ -27,7 +26,7 @@ from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
 from labelaudit.core.freespace import ray_counts
 from labelaudit.errors import one_line
-from labelaudit.infer.evidence import ObjectEvidence, frame_evidence
+from labelaudit.infer.evidence import ObjectEvidence, fit_free_space, frame_evidence, label_boxes
 
 DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
 
@@ -130,7 +129,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # One Open3D pass gives each box's neighbourhood; the model's crop is refined from it
         # exactly, the label-error fit's wider crop is cut above the local ground, other labels'
         # points are dropped, and the rays that may cross the box are collected (infer/evidence.py).
-        evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=_valid_boxes(frame.boxes))
+        evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes))
         for i, ev in zip(to_audit, evidence):
             row = rows[i]
             idx = ev.model_idx
@@ -145,13 +144,6 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
                 row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
-
-
-def _valid_boxes(boxes: np.ndarray) -> np.ndarray:
-    """The labels of a frame that can own points (finite, positive sizes), whatever their class."""
-    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
-    ok = np.all(np.isfinite(b), axis=1) & np.all(b[:, 3:6] > 0, axis=1)
-    return b[ok]
 
 
 def audit_object(
@@ -212,8 +204,7 @@ def audit_object(
         status = "few_points"
     else:
         status = "ok"
-    # rays enter the fit only for vehicles: a pedestrian's or a bike's box is mostly open space
-    fs = None if evidence is None or class_name not in C.FREE_SPACE_CLASSES else evidence.free_space
+    fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
     fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
     row: dict[str, Any] = {
         "status": status,

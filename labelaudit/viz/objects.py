@@ -2,7 +2,7 @@
 
 A results folder's manifest names the dataset, its format and the full run parameters. This
 module reopens that dataset (or the one given by ``--dataset``), reloads a frame, crops the box with
-:func:`labelaudit.infer.crop.crop_frame_pair` and runs :func:`labelaudit.core.posterior.infer_label`,
+:func:`labelaudit.infer.evidence.frame_evidence` and runs :func:`labelaudit.core.posterior.infer_label`,
 :func:`labelaudit.core.fit.fit_label` and :func:`labelaudit.core.spatial.jiou_gt` with the manifest's
 config — the same calls in the same order as :func:`labelaudit.infer.rows.audit_object` — so a
 picture shows the very numbers of its row (:attr:`ObjectAudit.matches_row` checks it). It owns the
@@ -33,6 +33,7 @@ from labelaudit.core.posterior import LabelPosterior, infer_label
 from labelaudit.core.spatial import BoxDistribution, Grid, jiou_gt, spatial_distribution
 from labelaudit.datasets import DatasetReader, Frame, FrameFailure, FrameRef, open_dataset
 from labelaudit.errors import ConfigError, LabelAuditError
+from labelaudit.infer.evidence import fit_free_space, frame_evidence, label_boxes
 from labelaudit.results import BOX_COLUMNS, MANIFEST_NAME, Results
 
 FloatArray = NDArray[np.float64]
@@ -228,7 +229,8 @@ class ObjectAudit:
     class_name : the class (selects the prior)
     sensor_origin : (3,) sensor position
     points : (N, ≥3) the model's crop (``[crop] margin``)
-    fit_points : (M, ≥3) the label-error fit's wider crop (``[crop] fit_margin``), a superset
+    fit_points : (M, ≥3) the label-error fit's wider crop (``[crop] fit_margin``, cut above the
+        local ground, other labels' points and unlabelled surfaces dropped; docs/label-error.md)
     fit_only : (M', ≥3) the fit's points that are not the model's (``fit_points`` minus ``points``)
     context : (K, ≥3) other points around the box for orientation (same ground cut, a wide
         margin), none of them in ``fit_points``
@@ -295,6 +297,7 @@ def audit_view(
     sensor_origin: FloatArray | None = None,
     context: FloatArray | None = None,
     row: Mapping[str, Any] | None = None,
+    free_space: Any = None,
 ) -> ObjectAudit:
     """Run the model of ``infer`` on one box and compute its spatial distribution for the picture.
 
@@ -306,11 +309,12 @@ def audit_view(
     sensor_origin : (3,) sensor position
     context : (K, ≥3) other points to draw for orientation (those also in ``fit_points`` are dropped)
     row : the results row, kept for :meth:`ObjectAudit.mismatches`
+    free_space : the box's rays (:class:`labelaudit.core.freespace.FreeSpace`), as ``infer`` gave them to the fit
     """
     y = g.validate_box(box)
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float).reshape(3)
     post = infer_label(y, points, class_name, cfg.model, origin)
-    fit = fit_label(y, fit_points, class_name, cfg.model)
+    fit = fit_label(y, fit_points, class_name, cfg.model, free_space=fit_free_space(class_name, free_space))
     score = float(jiou_gt(post, cfg.spatial))
     grid, mass = spatial_distribution(BoxDistribution.from_posterior(post), cfg.spatial)
     if mass.ndim == 3:  # 3D model: the picture is the BEV marginal
@@ -349,7 +353,7 @@ def recompute(source: AuditSource, row: Mapping[str, Any], frame: Frame | None =
         The row has no model results (status ``skipped`` / ``error``), or the dataset's frame
         does not hold the row's box.
     """
-    from labelaudit.infer.crop import crop_frame, crop_frame_pair
+    from labelaudit.infer.crop import crop_frame
 
     if row["status"] not in AUDITED_STATUSES:
         why = f" ({row['message']})" if row.get("message") else ""
@@ -357,15 +361,17 @@ def recompute(source: AuditSource, row: Mapping[str, Any], frame: Frame | None =
     frame = frame or load_frame(source, str(row["frame_id"]))
     i = _check_box(frame, row, source.dataset)
     box = frame.boxes[i : i + 1]
-    idx, fit_idx = crop_frame_pair(frame.points, box, source.cfg.crop)
+    # a box's evidence depends on the box, the points and the frame's other labels only: one box suffices
+    (ev,) = frame_evidence(frame.points, box, np.asarray(frame.sensor_origin, dtype=float), source.cfg.crop, others=label_boxes(frame.boxes))
     (ctx_idx,) = crop_frame(frame.points, box, replace(source.cfg.crop, margin=C.SHOW_CONTEXT_MARGIN))
     return audit_view(
         frame.boxes[i],
-        frame.points[idx[0]],
-        frame.points[fit_idx[0]],
+        frame.points[ev.model_idx],
+        frame.points[ev.fit_idx],
         frame.class_names[i],
         source.cfg,
         np.asarray(frame.sensor_origin, dtype=float),
-        context=frame.points[np.setdiff1d(ctx_idx, fit_idx[0], assume_unique=True)],
+        context=frame.points[np.setdiff1d(ctx_idx, ev.fit_idx, assume_unique=True)],
         row=row,
+        free_space=ev.free_space,
     )
