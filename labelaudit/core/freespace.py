@@ -36,7 +36,7 @@ from labelaudit import constants as C
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
 
-__all__ = ["FreeSpace", "ground_heights", "ray_candidates", "ray_counts", "ray_depths"]
+__all__ = ["AzimuthBuckets", "FreeSpace", "azimuth_buckets", "ground_heights", "neighbourhoods", "ray_candidates", "ray_counts", "ray_depths"]
 
 
 @dataclass(frozen=True)
@@ -306,25 +306,30 @@ def ray_depths(box: ArrayLike, fs: FreeSpace) -> tuple[FloatArray, FloatArray]:
     return dep, t
 
 
-def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple[int, int]:
+def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple[int, int] | list[tuple[int, int]]:
     """(free, end) ray counts of ``box``: rays through its slab deeper than τ that end *behind* it,
     and rays that end on or in it.
 
     A return is "on or in" the box when it lies within τ of the box rectangle in bird's-eye view,
     at least ``fs.object_height`` above the local ground and at most τ above the box top. ``points`` are
-    the returns near the box (a crop containing the box grown by τ); None counts none.
+    the returns near the box (a crop containing the box grown by τ); None counts none. ``box`` may
+    be (B, 7) (a label and its suggested box): a list of B pairs, the returns' layout built once.
     """
     y = np.asarray(box, dtype=float)
-    free = end = 0
-    if fs.num_rays:
-        ends_t, ox, oy, hz = fs.kernel_inputs()
-        free = int(_count_kernel(y, ends_t, ox, oy, hz, fs.tolerance, True, fs.ends[:, 2]))
+    many = y.ndim == 2
+    ys = y.reshape(-1, 7)
+    ends_t, ox, oy, hz = fs.kernel_inputs() if fs.num_rays else (None, 0.0, 0.0, None)
+    near = None
     if points is not None and len(points):
         p = np.asarray(points, dtype=float)
-        h = ground_heights(p, fs.ground, fs.ref)
-        end = int(_count_kernel(y, np.ascontiguousarray(np.vstack([p[:, 0], p[:, 1], h])), 0.0, 0.0, np.r_[0.0, 0.0, 0.0, fs.object_height],
-                                fs.tolerance, False, p[:, 2]))
-    return free, end
+        near = (np.ascontiguousarray(np.vstack([p[:, 0], p[:, 1], ground_heights(p, fs.ground, fs.ref)])), np.ascontiguousarray(p[:, 2]))
+        hz_end = np.array([0.0, 0.0, 0.0, fs.object_height])
+    out = []
+    for yb in ys:
+        free = int(_count_kernel(yb, ends_t, ox, oy, hz, fs.tolerance, True, fs.ends[:, 2])) if ends_t is not None else 0
+        end = int(_count_kernel(yb, near[0], 0.0, 0.0, hz_end, fs.tolerance, False, near[1])) if near is not None else 0
+        out.append((free, end))
+    return out if many else out[0]
 
 
 @numba.njit(cache=True)
@@ -367,9 +372,10 @@ def _pseudo_angle(x, y):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _bucket_kernel(pts, ox, oy, nbins, min_r2):  # pragma: no cover - compiled
+def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - compiled
     """Counting sort by azimuth bin (seen from the sensor) of the points at least √min_r2 from it
-    (nearer ones cannot reach any box): order (M,), starts (nbins + 1,)."""
+    (nearer ones cannot reach any box) whose bin some box's window covers (``wanted``, nbins
+    booleans): order (M,), starts (nbins + 1,)."""
     n = pts.shape[0]
     bins = np.empty(n, dtype=np.int64)
     counts = np.zeros(nbins + 1, dtype=np.int64)
@@ -380,6 +386,9 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2):  # pragma: no cover - compiled
             bins[k] = -1
             continue
         q = min(max(int(_pseudo_angle(x, y) * scale), 0), nbins - 1)
+        if not wanted[q]:
+            bins[k] = -1
+            continue
         bins[k] = q
         counts[q + 1] += 1
     for q in range(nbins):
@@ -445,6 +454,55 @@ def _bin_of_angle(angle: FloatArray, nbins: int) -> NDArray[np.int64]:
     return np.clip((pa * (nbins / 4.0)).astype(np.int64), 0, nbins - 1)
 
 
+@dataclass(frozen=True)
+class AzimuthBuckets:
+    """The frame's points sorted by azimuth bin (seen from the sensor), and each box's bin window.
+
+    Attributes
+    ----------
+    xyz : (N, 3) float64 points
+    order : (M,) indices of the bucketed points, bin by bin
+    starts : (nbins + 1,) first position of every bin in ``order``
+    ranges : (K, 4) up to two inclusive bin ranges per box
+    near2 : (K,) squared BEV distance from the sensor to each box's grown rectangle
+    reach : how far the windows reach beyond the boxes (m)
+    """
+
+    xyz: FloatArray
+    order: IndexArray
+    starts: IndexArray
+    ranges: IndexArray
+    near2: FloatArray
+    reach: float
+
+    def window_sizes(self) -> IndexArray:
+        """Points in each box's window (K,)."""
+        sizes = np.zeros(len(self.ranges), dtype=np.int64)
+        for r in range(2):
+            lo, hi = self.ranges[:, 2 * r], self.ranges[:, 2 * r + 1]
+            ok = lo <= hi
+            sizes[ok] += self.starts[hi[ok] + 1] - self.starts[lo[ok]]
+        return sizes
+
+
+def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reach: float, nbins: int = C.FREE_SPACE_AZIMUTH_BINS) -> AzimuthBuckets:
+    """One compiled pass over the frame: the points that can matter to the boxes (not nearer than
+    every box, in some box's azimuth window), sorted into ``nbins`` azimuth bins (a counting sort on
+    a pseudo-angle), and every box's window: its rectangle grown by ``reach`` seen from the sensor."""
+    xyz = np.ascontiguousarray(np.asarray(points)[:, :3], dtype=np.float64)
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    o = np.asarray(origin, dtype=float).reshape(3)
+    ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
+    wanted = np.zeros(nbins + 1, dtype=np.int64)  # difference array of the boxes' bin ranges
+    for r in range(2):
+        ok = ranges[:, 2 * r] <= ranges[:, 2 * r + 1]
+        np.add.at(wanted, ranges[ok, 2 * r], 1)
+        np.add.at(wanted, ranges[ok, 2 * r + 1] + 1, -1)
+    min_r2 = float(near2.min()) if len(b) else 0.0
+    order, starts = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
+    return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach))
+
+
 def ray_candidates(
     points: ArrayLike,
     origin: ArrayLike,
@@ -453,13 +511,15 @@ def ray_candidates(
     slabs: ArrayLike,
     reach: float,
     nbins: int = C.FREE_SPACE_AZIMUTH_BINS,
+    buckets: AzimuthBuckets | None = None,
 ) -> list[IndexArray]:
     """Indices of the points whose ray (sensor → point) passes through each box's reach prism.
 
     The reach prism of a box is its rectangle grown by ``reach`` on every side, between the heights
     ``slabs[j]`` above the box's ground plane: every ray the box fit can meet while it moves by up
-    to ``reach``. One compiled pass sorts the frame's points by azimuth bin; each box then tests
-    only the points of the bins its prism spans, exactly (a segment–prism test).
+    to ``reach``. The points are bucketed by azimuth (:func:`azimuth_buckets`, or ``buckets`` made
+    with at least this reach); each box then tests only the points of its window, exactly (a
+    segment–prism test).
 
     Parameters
     ----------
@@ -474,28 +534,64 @@ def ray_candidates(
     -------
     K sorted int64 index arrays into ``points``
     """
-    pts = np.asarray(points)
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     k = len(b)
     if k == 0:
         return []
-    if len(pts) == 0:
+    if len(points) == 0:
         return [np.empty(0, dtype=np.int64) for _ in range(k)]
-    xyz = np.ascontiguousarray(pts[:, :3])
-    ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
-    order, starts = _bucket_kernel(xyz, o[0], o[1], nbins, float(near2.min()))
-    sizes = np.zeros(k, dtype=np.int64)
-    for r in range(2):
-        lo, hi = ranges[:, 2 * r], ranges[:, 2 * r + 1]
-        ok = lo <= hi
-        sizes[ok] += starts[hi[ok] + 1] - starts[lo[ok]]
-    out = np.empty(int(sizes.sum()), dtype=np.int64)
+    if buckets is None or buckets.reach < reach:
+        buckets = azimuth_buckets(points, o, b, reach, nbins)
+    bk = buckets
+    out = np.empty(int(bk.window_sizes().sum()), dtype=np.int64)
     counts = np.zeros(k, dtype=np.int64)
     g = np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3])
-    _select_kernel(xyz, order, starts, ranges, near2, b, g, o[0], o[1], o[2], float(reach), np.ascontiguousarray(slabs, dtype=float), out, counts)
+    _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges, bk.near2, b, g, o[0], o[1], o[2], float(reach), np.ascontiguousarray(slabs, dtype=float), out, counts)
     offsets = np.concatenate([[0], np.cumsum(counts)])  # the kernel writes the boxes' candidates one after the other
     return [out[offsets[j]: offsets[j + 1]].copy() for j in range(k)]
+
+
+def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> list[IndexArray]:
+    """Indices (sorted) of the points in each box grown by ``margin`` in BEV, from ``below`` under its
+    bottom to ``above`` over its top, taken from the boxes' azimuth windows (``buckets`` must reach
+    at least ``margin``): one compiled pass over the windows instead of a test of every point of
+    the frame per box."""
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    if buckets.reach < margin:
+        raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
+    out = np.empty(int(buckets.window_sizes().sum()), dtype=np.int64)
+    counts = np.zeros(len(b), dtype=np.int64)
+    _region_kernel(buckets.xyz, buckets.order, buckets.starts, buckets.ranges, b, float(margin), float(below), float(above), out, counts)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    return [out[offsets[j]: offsets[j + 1]].copy() for j in range(len(b))]
+
+
+@numba.njit(cache=True)
+def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out, counts):  # pragma: no cover - compiled
+    pos = 0
+    for j in range(boxes.shape[0]):
+        y = boxes[j]
+        c, s = math.cos(y[6]), math.sin(y[6])
+        hl, hw = 0.5 * y[3] + margin, 0.5 * y[4] + margin
+        zlo, zhi = y[2] - 0.5 * y[5] - below, y[2] + 0.5 * y[5] + above
+        start = pos
+        for r in range(2):
+            q0, q1 = ranges[j, 2 * r], ranges[j, 2 * r + 1]
+            if q0 > q1:
+                continue
+            for i in range(starts[q0], starts[q1 + 1]):
+                k = order[i]
+                z = pts[k, 2]
+                if z < zlo or z > zhi:
+                    continue
+                qx, qy = pts[k, 0] - y[0], pts[k, 1] - y[1]
+                if abs(c * qx + s * qy) <= hl and abs(-s * qx + c * qy) <= hw:
+                    out[pos] = k
+                    pos += 1
+        counts[j] = pos - start
+        out[start:pos].sort()
+    return pos
 
 
 def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: int) -> tuple[NDArray[np.int64], FloatArray]:

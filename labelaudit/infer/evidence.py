@@ -2,11 +2,14 @@
 
 For the boxes of one frame (docs/label-error.md, "Ground, neighbours and free space"):
 
-- **crops.** One Open3D pass selects each box's *neighbourhood* (the box grown in bird's-eye view by
-  the largest margin used below, from ``GROUND_WINDOW`` under its bottom to its top). The model's
-  crop (``[crop] margin`` and the fixed ``ground_cut`` above the box bottom, what the covariance
-  and JIoU-GT see) is refined from it exactly (:func:`labelaudit.infer.crop.refine_crop`); the
-  label-error fit's crop (``[crop] fit_margin``) is cut at ``ground_cut`` above the *local ground*.
+- **crops.** One compiled pass sorts the frame's points by azimuth
+  (:func:`labelaudit.core.freespace.azimuth_buckets`); each box's *neighbourhood* (the box grown in
+  bird's-eye view by the largest margin used below, from ``GROUND_WINDOW`` under its bottom to τ
+  over its top) is taken from its azimuth window. The model's crop (``[crop] margin`` and the fixed
+  ``ground_cut`` above the box bottom, what the covariance and JIoU-GT see) is refined from it with
+  Open3D's own arithmetic (:func:`labelaudit.infer.crop.refine_crop`: the indices of Open3D's
+  ``OrientedBoundingBox`` selection, bit for bit); the label-error fit's crop (``[crop]
+  fit_margin``) is cut at ``ground_cut`` above the *local ground*.
 - **ground.** A plane fitted to the neighbourhood's points near the box bottom by RANSAC with a
   fixed seed and a least-squares refit (:func:`ground_plane`); when too few points support one,
   the box bottom (the fixed cut). Sloped roads and labels with a wrong bottom then neither feed
@@ -28,17 +31,15 @@ Pure functions of arrays: no files, no printing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numba
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
 from labelaudit.config import CropParams
-from labelaudit.core.freespace import FreeSpace, ray_candidates
-from labelaudit.core.geometry import rotation_z
+from labelaudit.core.freespace import FreeSpace, azimuth_buckets, neighbourhoods, ray_candidates
 from labelaudit.infer.crop import refine_crop
 
 FloatArray = NDArray[np.float64]
@@ -124,8 +125,10 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     others = b if others is None else np.asarray(others, dtype=float).reshape(-1, 7)
     tau = C.FREE_SPACE_TOLERANCE
     wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
-    xyz64 = np.ascontiguousarray(points[:, :3], dtype=np.float64)  # the frame's points, once: Open3D, rays, crops
-    near = _neighbourhoods(xyz64, b, wide, C.GROUND_WINDOW, tau)
+    # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
+    buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
+    xyz64 = buckets.xyz
+    near = neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
     model = refine_crop(points, b, near, crop)
     grounds = np.empty((len(b), 3))
     ground_z = np.full(len(b), np.nan)
@@ -137,24 +140,26 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             grounds[j] = plane
             ground_z[j] = plane[0]
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
-    rays = ray_candidates(xyz64, origin, b, grounds, slabs, C.FREE_SPACE_REACH)
+    rays = ray_candidates(xyz64, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
     out = []
     o = np.asarray(origin, dtype=float).reshape(3)
-    diag = np.hypot(others[:, 3], others[:, 4]) / 2
+    # the other labels each box's fit margin can reach (a label is never its own neighbour), all at once
+    reach = np.hypot(b[:, 3], b[:, 4])[:, None] / 2 + np.hypot(others[:, 3], others[:, 4])[None, :] / 2 + crop.fit_margin + C.NEIGHBOUR_MARGIN
+    close_all = np.hypot(b[:, None, 0] - others[None, :, 0], b[:, None, 1] - others[None, :, 1]) <= reach
+    close_all &= ~np.all(b[:, None, :] == others[None, :, :], axis=2)
+    planes = np.c_[grounds, np.zeros(len(b))]
     for j, box in enumerate(b):
         idx = near[j]
         xyz = xyz64[idx]
-        reach = np.hypot(box[3], box[4]) / 2 + diag + crop.fit_margin + C.NEIGHBOUR_MARGIN
-        close = (np.hypot(others[:, 0] - box[0], others[:, 1] - box[1]) <= reach) & ~np.all(others == box, axis=1)
         flags = np.zeros(len(idx), dtype=np.uint8)
-        _box_kernel(xyz, box, grounds[j], np.ascontiguousarray(others[close]), crop.fit_margin, crop.ground_cut,
+        _box_kernel(xyz, box, grounds[j], others[close_all[j]], crop.fit_margin, crop.ground_cut,
                     C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, flags)
         model_idx = model[j]
         foreign = (flags & _FOREIGN) != 0
         if foreign.any() and len(model_idx):
             model_idx = model_idx[~np.isin(model_idx, idx[foreign], assume_unique=True)]
         fs = FreeSpace(
-            origin=o, ends=xyz64[rays[j]], ground=np.r_[grounds[j], 0.0], ref=box[:2].copy(),
+            origin=o, ends=xyz64[rays[j]], ground=planes[j], ref=box[:2].copy(),
             slab=(float(slabs[j, 0]), float(slabs[j, 1])), tolerance=tau, object_height=crop.ground_cut,
         )
         out.append(BoxEvidence(model_idx, idx[(flags & _FIT) != 0], idx, fs, float(ground_z[j]),
@@ -265,25 +270,6 @@ def _cell_labels(lx, ly, cell):  # pragma: no cover - compiled
         ijk[i, 1] -= j0
     dims = np.array([ijk[:, 0].max() + 1, ijk[:, 1].max() + 1, 1])
     return _voxel_components(ijk, dims)
-
-
-def _neighbourhoods(pts: NDArray, boxes: FloatArray, margin: float, below: float, above: float) -> list[IndexArray]:
-    """One Open3D pass over ``pts`` (N, 3) float64: each box grown by ``margin`` in BEV, from
-    ``below`` under its bottom to ``above`` over its top."""
-    region = boxes.copy()
-    region[:, 3] += 2.0 * margin
-    region[:, 4] += 2.0 * margin
-    region[:, 5] += below + above
-    region[:, 2] += (above - below) / 2.0
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    out = []
-    for box, R in zip(region, rotation_z(region[:, 6])):
-        if len(pts) == 0:
-            out.append(np.empty(0, dtype=np.int64))
-            continue
-        obb = o3d.geometry.OrientedBoundingBox(box[:3], R, box[3:6])
-        out.append(np.sort(np.asarray(obb.get_point_indices_within_bounding_box(cloud.points), dtype=np.int64)))
-    return out
 
 
 def _local(xyz: FloatArray, box: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -228,8 +228,8 @@ def audit_object(
     row["hull_iou"] = hull_iou(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
     if evidence is not None:
-        row["free_rays"], row["end_rays"] = ray_counts(y, evidence.free_space, evidence.near_points)
-        row["fit_free_rays"], row["fit_end_rays"] = ray_counts(fit.box, evidence.free_space, evidence.near_points)
+        (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
+            np.stack([y, fit.box]), evidence.free_space, evidence.near_points)
         row["neighbour_points"] = int(evidence.neighbour_points)
         row["scenery_points"] = int(evidence.scenery_points)
         row["ground_z"] = float(evidence.ground_z)
