@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from labelaudit import constants as C
-from labelaudit.config import CropParams, load_config
+from labelaudit.config import load_config
 from labelaudit.core import freespace as F
 from labelaudit.core.fit import fit_label
 from labelaudit.datasets import Frame

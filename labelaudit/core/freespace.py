@@ -67,7 +67,7 @@ class FreeSpace:
 
     @property
     def num_rays(self) -> int:
-        return int(len(self.ends))
+        return len(self.ends)
 
     def heights(self) -> tuple[float, FloatArray]:
         """Height above the ground plane of the sensor and of every return (M,)."""

@@ -39,7 +39,12 @@ from numpy.typing import NDArray
 
 from labelaudit import constants as C
 from labelaudit.config import CropParams
-from labelaudit.core.freespace import FreeSpace, azimuth_buckets, neighbourhoods, ray_candidates
+from labelaudit.core.freespace import (
+    FreeSpace,
+    azimuth_buckets,
+    neighbourhoods,
+    ray_candidates,
+)
 from labelaudit.infer.crop import refine_crop
 
 FloatArray = NDArray[np.float64]
