@@ -544,12 +544,18 @@ def ray_candidates(
     if buckets is None or buckets.reach < reach:
         buckets = azimuth_buckets(points, o, b, reach, nbins)
     bk = buckets
-    out = np.empty(int(bk.window_sizes().sum()), dtype=np.int64)
-    counts = np.zeros(k, dtype=np.int64)
     g = np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3])
-    _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges, bk.near2, b, g, o[0], o[1], o[2], float(reach), np.ascontiguousarray(slabs, dtype=float), out, counts)
-    offsets = np.concatenate([[0], np.cumsum(counts)])  # the kernel writes the boxes' candidates one after the other
-    return [out[offsets[j]: offsets[j + 1]].copy() for j in range(k)]
+    sl = np.ascontiguousarray(slabs, dtype=float)
+    sizes = bk.window_sizes()
+    result: list[IndexArray] = []
+    for j0 in range(0, k, _BATCH):  # batches bound the buffer in frames of thousands of boxes
+        j1 = min(k, j0 + _BATCH)
+        out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
+        counts = np.zeros(j1 - j0, dtype=np.int64)
+        _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
+        offsets = np.concatenate([[0], np.cumsum(counts)])  # the kernel writes the boxes' candidates one after the other
+        result += [out[offsets[j]: offsets[j + 1]].copy() for j in range(j1 - j0)]
+    return result
 
 
 def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> list[IndexArray]:
@@ -560,11 +566,19 @@ def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, bel
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     if buckets.reach < margin:
         raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
-    out = np.empty(int(buckets.window_sizes().sum()), dtype=np.int64)
-    counts = np.zeros(len(b), dtype=np.int64)
-    _region_kernel(buckets.xyz, buckets.order, buckets.starts, buckets.ranges, b, float(margin), float(below), float(above), out, counts)
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    return [out[offsets[j]: offsets[j + 1]].copy() for j in range(len(b))]
+    sizes = buckets.window_sizes()
+    result: list[IndexArray] = []
+    for j0 in range(0, len(b), _BATCH):
+        j1 = min(len(b), j0 + _BATCH)
+        out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
+        counts = np.zeros(j1 - j0, dtype=np.int64)
+        _region_kernel(buckets.xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
+        offsets = np.concatenate([[0], np.cumsum(counts)])
+        result += [out[offsets[j]: offsets[j + 1]].copy() for j in range(j1 - j0)]
+    return result
+
+
+_BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (frames of thousands of boxes)
 
 
 @numba.njit(cache=True)

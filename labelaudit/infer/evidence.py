@@ -128,6 +128,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     if len(b) == 0:
         return []
     others = b if others is None else np.asarray(others, dtype=float).reshape(-1, 7)
+    others = np.unique(others, axis=0)  # a copy of a label adds nothing to "inside another label" (label files with repeated lines)
     tau = C.FREE_SPACE_TOLERANCE
     wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
     # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
@@ -148,16 +149,18 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     rays = ray_candidates(xyz64, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
     out = []
     o = np.asarray(origin, dtype=float).reshape(3)
-    # the other labels each box's fit margin can reach (a label is never its own neighbour), all at once
-    reach = np.hypot(b[:, 3], b[:, 4])[:, None] / 2 + np.hypot(others[:, 3], others[:, 4])[None, :] / 2 + crop.fit_margin + C.NEIGHBOUR_MARGIN
-    close_all = np.hypot(b[:, None, 0] - others[None, :, 0], b[:, None, 1] - others[None, :, 1]) <= reach
-    close_all &= ~np.all(b[:, None, :] == others[None, :, :], axis=2)
     planes = np.c_[grounds, np.zeros(len(b))]
+    close_all = np.zeros((0, len(others)), dtype=bool)
     for j, box in enumerate(b):
+        if j % _BATCH == 0:  # the other labels the fit margins of the next boxes can reach (never the box itself)
+            bb = b[j : j + _BATCH]
+            reach = np.hypot(bb[:, 3], bb[:, 4])[:, None] / 2 + np.hypot(others[:, 3], others[:, 4])[None, :] / 2 + crop.fit_margin + C.NEIGHBOUR_MARGIN
+            close_all = np.hypot(bb[:, None, 0] - others[None, :, 0], bb[:, None, 1] - others[None, :, 1]) <= reach
+            close_all &= ~np.all(bb[:, None, :] == others[None, :, :], axis=2)
         idx = near[j]
         xyz = xyz64[idx]
         flags = np.zeros(len(idx), dtype=np.uint8)
-        _box_kernel(xyz, box, grounds[j], others[close_all[j]], crop.fit_margin, crop.ground_cut,
+        _box_kernel(xyz, box, grounds[j], others[close_all[j % _BATCH]], crop.fit_margin, crop.ground_cut,
                     C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, flags)
         model_idx = model[j]
         foreign = (flags & _FOREIGN) != 0
@@ -173,6 +176,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
 
 
 _FIT, _FOREIGN, _FIT_FOREIGN, _FIT_SCENERY = 1, 2, 4, 8  # flags of _box_kernel
+_BATCH = 256  # boxes per batch of the neighbour search (bounds its (batch, labels) arrays in frames of thousands of boxes)
 
 
 @numba.njit(cache=True)

@@ -129,7 +129,8 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # One Open3D pass gives each box's neighbourhood; the model's crop is refined from it
         # exactly, the label-error fit's wider crop is cut above the local ground, other labels'
         # points are dropped, and the rays that may cross the box are collected (infer/evidence.py).
-        evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes))
+        with np.errstate(all="ignore"):  # extreme but valid boxes (1e38 m) overflow the geometry harmlessly: their objects get their own status
+            evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes))
         for i, ev in zip(to_audit, evidence):
             row = rows[i]
             idx = ev.model_idx
