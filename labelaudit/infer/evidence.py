@@ -6,9 +6,10 @@ For the boxes of one frame (docs/label-error.md, "Ground, neighbours and free sp
   (:func:`labelaudit.core.freespace.azimuth_buckets`); each box's *neighbourhood* (the box grown in
   bird's-eye view by the largest margin used below, from ``GROUND_WINDOW`` under its bottom to τ
   over its top) is taken from its azimuth window. The model's crop (``[crop] margin`` and the fixed
-  ``ground_cut`` above the box bottom, what the covariance and JIoU-GT see) is refined from it with
-  Open3D's own arithmetic (:func:`labelaudit.infer.crop.refine_crop`: the indices of Open3D's
-  ``OrientedBoundingBox`` selection, bit for bit); the label-error fit's crop (``[crop]
+  ``ground_cut`` above the box bottom, what the covariance and JIoU-GT see) is taken from it with
+  Open3D's own arithmetic (:func:`_open3d_inside`, the operations of
+  :func:`labelaudit.infer.crop.refine_crop`: the indices of Open3D's ``OrientedBoundingBox``
+  selection, bit for bit); the label-error fit's crop (``[crop]
   fit_margin``) is cut at ``ground_cut`` above the *local ground*.
 - **ground.** A plane fitted to the neighbourhood's points near the box bottom by RANSAC with a
   fixed seed and a least-squares refit (:func:`ground_plane`); when too few points support one,
@@ -45,7 +46,8 @@ from labelaudit.core.freespace import (
     neighbourhoods,
     ray_candidates,
 )
-from labelaudit.infer.crop import refine_crop
+from labelaudit.core.geometry import rotation_z
+from labelaudit.infer.crop import selection_boxes
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
@@ -135,7 +137,8 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
     xyz64 = buckets.xyz
     near = neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
-    model = refine_crop(points, b, near, crop)
+    sel = selection_boxes(b, crop.margin, crop.ground_cut)  # the model's crop regions, as Open3D sees them
+    rotations = rotation_z(sel[:, 6])
     grounds = np.empty((len(b), 3))
     ground_z = np.full(len(b), np.nan)
     for j, (box, idx) in enumerate(zip(b, near)):
@@ -162,7 +165,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
         flags = np.zeros(len(idx), dtype=np.uint8)
         _box_kernel(xyz, box, grounds[j], others[close_all[j % _BATCH]], crop.fit_margin, crop.ground_cut,
                     C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, flags)
-        model_idx = model[j]
+        model_idx = idx[_open3d_inside(xyz, sel[j], rotations[j])] if sel[j, 5] > 0 else idx[:0]
         foreign = (flags & _FOREIGN) != 0
         if foreign.any() and len(model_idx):
             model_idx = model_idx[~np.isin(model_idx, idx[foreign], assume_unique=True)]
@@ -176,6 +179,26 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
 
 
 _FIT, _FOREIGN, _FIT_FOREIGN, _FIT_SCENERY = 1, 2, 4, 8  # flags of _box_kernel
+
+
+@numba.njit(cache=True)
+def _open3d_inside(xyz, sel, R):  # pragma: no cover - compiled
+    """Open3D's ``OrientedBoundingBox`` test of points (n, 3) float64 against the selection box
+    ``sel`` (7,) with rotation ``R`` (3, 3): ``|(p − c)·R[:, a]| ≤ extent_a / 2``, the dot summed
+    left to right — the float64 operations of :func:`labelaudit.infer.crop.refine_crop` in the same
+    order (no fast-math), so the same indices as Open3D (tested), in one pass."""
+    n = xyz.shape[0]
+    out = np.empty(n, dtype=np.bool_)
+    for k in range(n):
+        d0, d1, d2 = xyz[k, 0] - sel[0], xyz[k, 1] - sel[1], xyz[k, 2] - sel[2]
+        ok = True
+        for a in range(3):
+            proj = d0 * R[0, a] + d1 * R[1, a] + d2 * R[2, a]
+            if not abs(proj) <= sel[3 + a] / 2.0:
+                ok = False
+                break
+        out[k] = ok
+    return out
 _BATCH = 256  # boxes per batch of the neighbour search (bounds its (batch, labels) arrays in frames of thousands of boxes)
 
 
