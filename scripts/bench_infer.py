@@ -148,7 +148,8 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
     clock = time.process_time
     acc: dict[str, float] = defaultdict(float)
     originals = {}
-    for name, stage in (("crop_frame_pair", "crop"), ("infer_label", "infer_label"), ("jiou_gt", "jiou_gt"), ("fit_label", "fit_label"), ("hull_iou", "hull_iou")):
+    crop_name = "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"  # crops, ground, neighbours, rays (issue 14)
+    for name, stage in ((crop_name, "crop"), ("infer_label", "infer_label"), ("jiou_gt", "jiou_gt"), ("fit_label", "fit_label"), ("hull_iou", "hull_iou")):
         f = originals[name] = getattr(rows_mod, name)
 
         def timed(*a, _f=f, _stage=stage, **k):

@@ -460,7 +460,7 @@ class AzimuthBuckets:
 
     Attributes
     ----------
-    xyz : (N, 3) float64 points
+    xyz : (N, 3) the frame's points (a float32 or float64 view; the kernels compute in float64)
     order : (M,) indices of the bucketed points, bin by bin
     starts : (nbins + 1,) first position of every bin in ``order``
     ranges : (K, 4) up to two inclusive bin ranges per box
@@ -489,7 +489,8 @@ def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reac
     """One compiled pass over the frame: the points that can matter to the boxes (not nearer than
     every box, in some box's azimuth window), sorted into ``nbins`` azimuth bins (a counting sort on
     a pseudo-angle), and every box's window: its rectangle grown by ``reach`` seen from the sensor."""
-    xyz = np.ascontiguousarray(np.asarray(points)[:, :3], dtype=np.float64)
+    pts = np.asarray(points)
+    xyz = pts[:, :3] if pts.dtype in (np.float32, np.float64) else pts[:, :3].astype(np.float64)  # no copy of the frame: the kernels read float32 exactly
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     ranges, near2 = _azimuth_ranges(b, o, reach, nbins)

@@ -135,21 +135,22 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
     # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
     buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
-    xyz64 = buckets.xyz
+    xyz3 = buckets.xyz  # a view of the frame's points; gathers are converted to float64 (exactly)
     near = neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
     sel = selection_boxes(b, crop.margin, crop.ground_cut)  # the model's crop regions, as Open3D sees them
     rotations = rotation_z(sel[:, 6])
     grounds = np.empty((len(b), 3))
     ground_z = np.full(len(b), np.nan)
-    for j, (box, idx) in enumerate(zip(b, near)):
-        plane = ground_plane(xyz64[idx], box)
+    near_xyz = [xyz3[idx].astype(np.float64) for idx in near]  # each neighbourhood's points, gathered once
+    for j, box in enumerate(b):
+        plane = ground_plane(near_xyz[j], box)
         if plane is None:
             grounds[j] = (box[2] - box[5] / 2, 0.0, 0.0)
         else:
             grounds[j] = plane
             ground_z[j] = plane[0]
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
-    rays = ray_candidates(xyz64, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
+    rays = ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
     out = []
     o = np.asarray(origin, dtype=float).reshape(3)
     planes = np.c_[grounds, np.zeros(len(b))]
@@ -161,7 +162,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             close_all = np.hypot(bb[:, None, 0] - others[None, :, 0], bb[:, None, 1] - others[None, :, 1]) <= reach
             close_all &= ~np.all(bb[:, None, :] == others[None, :, :], axis=2)
         idx = near[j]
-        xyz = xyz64[idx]
+        xyz = near_xyz[j]
         flags = np.zeros(len(idx), dtype=np.uint8)
         _box_kernel(xyz, box, grounds[j], others[close_all[j % _BATCH]], crop.fit_margin, crop.ground_cut,
                     C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, flags)
@@ -170,7 +171,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
         if foreign.any() and len(model_idx):
             model_idx = model_idx[~np.isin(model_idx, idx[foreign], assume_unique=True)]
         fs = FreeSpace(
-            origin=o, ends=xyz64[rays[j]], ground=planes[j], ref=box[:2].copy(),
+            origin=o, ends=xyz3[rays[j]].astype(np.float64), ground=planes[j], ref=box[:2].copy(),
             slab=(float(slabs[j, 0]), float(slabs[j, 1])), tolerance=tau, object_height=crop.ground_cut,
         )
         out.append(BoxEvidence(model_idx, idx[(flags & _FIT) != 0], idx, fs, float(ground_z[j]),
