@@ -61,19 +61,40 @@ def infer(
 
       labelaudit infer /shared/waymo_v2/training --scheduler tcp://scheduler:8786 -o /shared/results/
     """
-    from labelaudit.infer.run import InferRequest
-
     with handle_errors(debug):
         if not output.strip():  # Path("") would be the current folder
             raise UsageError("-o/--output is empty; name the results folder (`-o .` for the current one)")
+        executor = start_pool_early(workers, scheduler)
+        from labelaudit.infer.run import InferRequest
+
         request = InferRequest(
             dataset, Path(output), dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug, scheduler=scheduler,
             config=config, classes=None if classes is None else tuple(classes.split(",")), model=model.value if model else None,
         )
-        run_and_report(request, quiet)
+        run_and_report(request, quiet, executor)
 
 
-def run_and_report(request: object, quiet: bool) -> None:
+def start_pool_early(workers: int | None, scheduler: str | None) -> object | None:
+    """The worker pool of ``--workers``, its fork server already starting (None: serial, Dask or a bad count).
+
+    Started before anything else, so the server's imports and warm-up (the core and its compiled
+    kernels, about a second) overlap with this process' own (Arrow, the dataset listing, the
+    output folder). A run that then stops on bad input only leaves an idle server, which exits with
+    this process. Dask is left to :func:`~labelaudit.infer.run.run_infer`: a cluster is contacted
+    only once the input is known to be good.
+    """
+    from labelaudit.executors import PoolExecutor, make_executor
+
+    if scheduler is not None or (workers is not None and workers < 1):
+        return None  # run_infer reports a bad count
+    executor = make_executor(workers)
+    if not isinstance(executor, PoolExecutor):
+        return None
+    executor.start()
+    return executor
+
+
+def run_and_report(request: object, quiet: bool, executor: object | None = None) -> None:
     """Run ``infer`` for a request with the progress bar and the end-of-run summary on stderr (also used by ``demo``)."""
     from labelaudit.cli.display import RichProgress, print_run_summary
     from labelaudit.infer.run import NoProgress, infer_dataset
@@ -81,6 +102,6 @@ def run_and_report(request: object, quiet: bool) -> None:
     from labelaudit.summary import summarize
 
     console = err()
-    summary = infer_dataset(request, NoProgress() if quiet else RichProgress(console))  # type: ignore[arg-type]
+    summary = infer_dataset(request, NoProgress() if quiet else RichProgress(console), executor)  # type: ignore[arg-type]
     if not quiet:
         print_run_summary(console, summary, summarize(open_results(summary.output)))

@@ -27,6 +27,7 @@ identical whichever way is taken.
 
 from __future__ import annotations
 
+import functools
 import sys
 import types
 from dataclasses import replace
@@ -80,7 +81,16 @@ def _import_open3d() -> types.ModuleType:
     return open3d
 
 
-o3d = _import_open3d()
+@functools.lru_cache(maxsize=1)
+def open3d() -> types.ModuleType:
+    """Open3D, imported on first use (:func:`_import_open3d`).
+
+    The pipeline's crops (:mod:`labelaudit.infer.evidence`) repeat Open3D's selection arithmetic in
+    a compiled pass and never call Open3D, so a worker that only audits does not pay its import
+    (~0.5 s and ~100 MiB per process); :func:`crop_frame`, ``show`` and the tests that compare the
+    two selections load it here.
+    """
+    return _import_open3d()
 
 
 __all__ = ["bev_candidates", "crop_frame", "crop_frame_pair", "points_in_boxes_numpy", "refine_crop", "selection_boxes"]
@@ -174,6 +184,7 @@ def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[
     empty = np.empty(0, dtype=np.int64)
     if len(pts) == 0:
         return [empty for _ in sel]
+    o3d = open3d()
     rotations = rotation_z(sel[:, 6])
     own, idx = _BevIndex(pts, sel, C.CROP_GRID_CELL).candidates(slice(None))
     starts = np.searchsorted(own, np.arange(len(sel) + 1))  # candidates come grouped by box
@@ -189,7 +200,7 @@ def crop_frame(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> list[
     return out
 
 
-def _open3d_points(pts: NDArray, rows: IndexArray) -> "o3d.utility.Vector3dVector":
+def _open3d_points(pts: NDArray, rows: IndexArray) -> "types.ModuleType":
     """x, y, z of the points ``pts[rows]`` as the Open3D vector a box query reads.
 
     float32 converts to float64 exactly, so Open3D sees the same coordinates as the reference. The
@@ -201,7 +212,7 @@ def _open3d_points(pts: NDArray, rows: IndexArray) -> "o3d.utility.Vector3dVecto
         xyz = _xyz_float64(pts, np.ascontiguousarray(rows, dtype=np.int64))
     else:
         xyz = np.ascontiguousarray(pts[rows, :3], dtype=np.float64)
-    return o3d.utility.Vector3dVector(xyz)
+    return open3d().utility.Vector3dVector(xyz)
 
 
 @numba.njit(cache=True)
