@@ -80,13 +80,18 @@ def start_pool_early(workers: int | None, scheduler: str | None) -> object | Non
     Started before anything else, so the server's imports and warm-up (the core and its compiled
     kernels, about a second) overlap with this process' own (Arrow, the dataset listing, the
     output folder). A run that then stops on bad input only leaves an idle server, which exits with
-    this process. Dask is left to :func:`~labelaudit.infer.run.run_infer`: a cluster is contacted
+    this process. With ``--scheduler local[:N]`` the same server is started for the LocalCluster's
+    workers; a cluster itself is left to :func:`~labelaudit.infer.run.run_infer`, which contacts it
     only once the input is known to be good.
     """
-    from labelaudit.executors import PoolExecutor, make_executor
+    from labelaudit.executors import PoolExecutor, local_cluster_preload, make_executor, start_fork_server
 
-    if scheduler is not None or (workers is not None and workers < 1):
+    if workers is not None and workers < 1:
         return None  # run_infer reports a bad count
+    if scheduler is not None:
+        if scheduler.strip().startswith("local"):
+            start_fork_server(local_cluster_preload())  # the LocalCluster's workers fork from it
+        return None
     executor = make_executor(workers)
     if not isinstance(executor, PoolExecutor):
         return None
