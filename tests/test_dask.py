@@ -245,6 +245,20 @@ def test_local_cluster_of_the_executor_gives_the_pool_rows(sim_data, pool_rows, 
     assert _rows(tmp_path / "res") == pool_rows
 
 
+def test_local_cluster_workers_fork_from_the_preloaded_fork_server():
+    """``local:N`` workers are children of the fork server, not fresh interpreters started by the
+    nanny (which runs in this process): they start with the core already imported."""
+    ex = DaskExecutor(None, 2)
+    ex.start()
+    try:
+        parents = ex._client.run(os.getppid)
+        loaded = ex._client.run(lambda: "labelaudit.core.posterior" in sys.modules and "multiprocessing.forkserver" in sys.modules)
+    finally:
+        ex.close()
+    assert len(parents) == 2 and os.getpid() not in parents.values()
+    assert all(loaded.values())
+
+
 def test_open3d_loads_on_first_use_without_its_plotting_chain_and_still_plots():
     code = (
         "import sys, labelaudit.infer.crop as c;"
