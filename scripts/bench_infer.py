@@ -143,7 +143,7 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
     from labelaudit.datasets import open_dataset
     from labelaudit.infer import rows as rows_mod
     from labelaudit.config import resolve_config
-    from labelaudit.infer.run import _reader, chunk_size_for
+    from labelaudit.infer.run import chunk_size_for
 
     clock = time.process_time
     acc: dict[str, float] = defaultdict(float)
@@ -162,7 +162,8 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
         setattr(rows_mod, name, timed)
     try:
         cfg = resolve_config(None, fmt, classes, model)
-        refs = open_dataset(data, fmt).list_units()
+        reader = open_dataset(data, fmt)
+        refs = reader.list_units()
         warm, sample = (refs[:2], refs[2 : 2 + frames]) if len(refs) > 2 else (refs, refs)  # a Waymo segment: twice
         per_chunk = chunk_size_for(fmt, len(refs))
         for phase in (warm, sample):
@@ -173,7 +174,7 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
                 chunk_rows: list = []
                 for ref in phase[c : c + per_chunk]:
                     t = clock()
-                    loaded = list(_reader(ref, ()).load_unit(ref))
+                    loaded = list(reader.load_unit(ref))
                     acc["read"] += clock() - t
                     for frame in loaded:
                         t = clock()
@@ -218,11 +219,12 @@ def lean_floor(data: Path, refs: list, cfg: object) -> tuple[float, int, int]:
     from labelaudit.core.geometry import rotation_z
     from labelaudit.infer.crop import selection_boxes
     from labelaudit.infer.rows import wants_class
-    from labelaudit.infer.run import _reader
+    from labelaudit.datasets import open_dataset
 
+    reader = open_dataset(data, "kitti")
     jobs = []
     for ref in refs:
-        for frame in _reader(ref, ()).load_unit(ref):
+        for frame in reader.load_unit(ref):
             sel = selection_boxes(frame.boxes[[i for i, c in enumerate(frame.class_names) if wants_class(cfg, c)]], cfg.crop.margin, cfg.crop.ground_cut)  # type: ignore[attr-defined]
             jobs.append((data / "training" / "velodyne" / f"{frame.frame_id}.bin", sel))
     boxes = 0
