@@ -245,6 +245,28 @@ def test_local_cluster_of_the_executor_gives_the_pool_rows(sim_data, pool_rows, 
     assert _rows(tmp_path / "res") == pool_rows
 
 
+class _Threads:
+    """Chunks on several threads of this process, as a Dask worker started with ``--nthreads 4`` runs them."""
+
+    def start(self) -> None:
+        pass
+
+    def run(self, units, fn):
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(4) as pool:
+            yield from pool.map(fn, units)
+
+    def close(self) -> None:
+        pass
+
+
+def test_chunks_on_several_threads_of_one_worker_give_the_pool_rows(sim_data, pool_rows, tmp_path):
+    cfg = resolve_config(None, "kitti", ["all"])
+    run_infer(InferRequest(sim_data, tmp_path / "res", chunk_units=1), cfg, executor=_Threads())
+    assert _rows(tmp_path / "res") == pool_rows
+
+
 def test_local_cluster_workers_fork_from_the_preloaded_fork_server():
     """``local:N`` workers are children of the fork server, not fresh interpreters started by the
     nanny (which runs in this process): they start with the core already imported."""

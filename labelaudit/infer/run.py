@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -72,15 +73,16 @@ class ChunkResult:
         return [e for e in self.errors if e["level"] == "error"]
 
 
-_READERS: dict[tuple[Any, ...], Any] = {}
+_READERS = threading.local()  # per thread: a Dask worker may run several tasks at once (--nthreads > 1), and readers keep open files
 
 
 def _reader(ref: FrameRef, options: tuple[tuple[str, Any], ...]) -> Any:
-    """One reader per process and dataset: opening a reader lists folders, so reuse it."""
+    """One reader per thread and dataset: opening a reader lists folders, so reuse it."""
     key = (ref.dataset_format, ref.root, options)
-    if key not in _READERS:
-        _READERS[key] = open_dataset(ref.root, ref.dataset_format, **dict(options))
-    return _READERS[key]
+    readers = _READERS.__dict__.setdefault("by_key", {})
+    if key not in readers:
+        readers[key] = open_dataset(ref.root, ref.dataset_format, **dict(options))
+    return readers[key]
 
 
 def process_chunk(task: ChunkTask) -> ChunkResult:
