@@ -383,7 +383,7 @@ def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tm
         def load_unit(self, ref):
             yield from frames
 
-    monkeypatch.setitem(P._READERS, ("fake", "/r", ()), Reader())
+    monkeypatch.setattr(P, "open_dataset", lambda root, fmt, **options: Reader())
     real = P.process_frame
 
     def flaky(frame, cfg):
