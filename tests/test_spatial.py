@@ -371,3 +371,64 @@ def test_compiled_raster_equals_the_bincount_form():
         want = (np.cumsum(steps.reshape(e.ny, e.nx + 1), axis=-1) + direct.reshape(e.ny, e.nx + 1))[:, : e.nx] * e.dy
         got = sp._raster_bev(s, xe, ye)
         assert got.shape == want.shape and np.array_equal(got, want) and got.sum() > 0.5
+
+
+def _sample_stats_numpy(phis: np.ndarray, d: int):
+    """The NumPy form of spatial._sample_kernel (S > 1), kept as the bit-exact reference."""
+    o = d - 2
+    centre = phis[:, :d]
+    A = np.empty((len(phis), 2, 2))
+    A[:, 0, 0], A[:, 1, 0] = phis[:, 2 + o], phis[:, 3 + o]
+    A[:, 0, 1], A[:, 1, 1] = -phis[:, 5 + o], phis[:, 4 + o]
+    size = np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
+    zint = None
+    if d == 3:
+        hh = 0.5 * np.abs(phis[:, 7])
+        zint = np.stack([centre[:, 2] - hh, centre[:, 2] + hh], axis=1)
+        size = size * 2.0 * hh
+    S = len(A)
+    ok = size > 1e-12 * max(float(size.max()), 1e-300)
+    weights = np.where(ok, 1.0 / np.where(ok, size, 1.0), 0.0) / np.count_nonzero(ok)
+    pts = np.matmul(A, sp._FACE_POINTS_UNIT) + centre[:, :2, None]
+    mean = pts.mean(axis=0)
+    dev = (pts - mean).reshape(S, 16)
+    var = (np.einsum("ij,ij->j", dev, dev) / S).reshape(2, 8).T
+    along_x = abs(A[:, 0, 0].sum()) >= abs(A[:, 1, 0].sum())
+    x_mid, y_mid = (var[4:6], var[6:8]) if along_x else (var[6:8], var[4:6])
+    blur = np.zeros(d)
+    blur[0] = np.sqrt(min(float(var[:4, 0].min()), float(x_mid[:, 0].min())))
+    blur[1] = np.sqrt(min(float(var[:4, 1].min()), float(y_mid[:, 1].min())))
+    z_mean = z_std = None
+    if zint is not None:
+        z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
+        blur[2] = float(z_std.min())
+    return centre[:, :2], A, zint, weights, mean[:, :4].T, float(np.sqrt(var[:4].sum(axis=1).max())), blur, z_mean, z_std
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_compiled_sample_statistics_equal_the_numpy_form(model):
+    """The one-pass sample kernel gives the NumPy form's sample boxes and boundary statistics bit for
+    bit: φ samples of boxes of all sizes and spreads, rotated, with degenerate samples mixed in."""
+    rng = np.random.default_rng(11)
+    d, p = g.point_dim(model), g.phi_dim(model)
+    for trial in range(60):
+        box = np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 12, 3), rng.uniform(-4, 4)])
+        S = int(rng.choice([2, 16, 128, 300]))
+        L = rng.normal(size=(p, p)) * 10.0 ** rng.uniform(-4, 0.5)
+        phis = g.box_to_phi(box, model) + rng.normal(size=(S, p)) @ L
+        if trial % 5 == 0:
+            phis[rng.integers(0, S, 1 + S // 4), 2 + (d - 2)] = 0.0  # zero-length samples: dropped
+            phis[:, 3 + (d - 2)] *= phis[:, 2 + (d - 2)] != 0
+        centres, A, zint, _, weights, corner_mean, corner_std, blur, z_mean, z_std = sp._sample_kernel(phis, d)
+        want = _sample_stats_numpy(phis, d)
+        got = (centres, A, zint if d == 3 else None, weights, corner_mean, corner_std, blur, z_mean if d == 3 else None, z_std if d == 3 else None)
+        for name, a, b in zip(("centres", "A", "z", "weights", "corner_mean", "corner_std", "blur", "z_mean", "z_std"), got, want):
+            assert (a is None and b is None) or np.array_equal(np.asarray(a), np.asarray(b)), (trial, name)
+
+
+def test_compiled_pairwise_sum_is_numpys_sum():
+    """_pairwise_sum reproduces ndarray.sum bit for bit (pairwise blocks), contiguous or strided."""
+    rng = np.random.default_rng(5)
+    for n in [*range(0, 300), 1000, 1023, 1024, 1700, 8191, 8192, 8193, 50001]:
+        x = rng.normal(size=(n, 2)) * 10.0 ** rng.uniform(-6, 6, size=(n, 2))
+        assert sp._pairwise_sum(x[:, 0]) == x[:, 0].sum() and sp._pairwise_sum(x.ravel()) == x.sum(), n

@@ -202,12 +202,6 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
                 T[_IDX_3D_PLANAR] = T6
             z = normal_samples(phi.size, params.num_samples, params.seed)
             phis = phi + z @ _sqrt_psd(T @ dist.cov @ T.T)
-        o = d - 2
-        centre = phis[:, :d]
-        A = np.empty((len(phis), 2, 2))
-        A[:, 0, 0], A[:, 1, 0] = phis[:, 2 + o], phis[:, 3 + o]  # length edge (l cos, l sin)
-        A[:, 0, 1], A[:, 1, 1] = -phis[:, 5 + o], phis[:, 4 + o]  # width edge (−w sin, w cos)
-        height = phis[:, 7] if d == 3 else None
     else:
         k = dist.cov.shape[0]
         T = np.eye(k)
@@ -217,46 +211,182 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
         ys = mean + z @ _sqrt_psd(T @ dist.cov @ T.T)
         if k == 5:
             ys = np.c_[ys[:, 0:2], np.full(len(ys), yl[2]), ys[:, 2:4], np.full(len(ys), yl[5]), ys[:, 4]]
+        # The same φ layout: centre, length edge (l cos, l sin), width edge (w cos, w sin) [, height].
         c, sn = np.cos(ys[:, 6]), np.sin(ys[:, 6])
-        A = np.empty((len(ys), 2, 2))
-        A[:, 0, 0], A[:, 1, 0] = ys[:, 3] * c, ys[:, 3] * sn
-        A[:, 0, 1], A[:, 1, 1] = -ys[:, 4] * sn, ys[:, 4] * c
-        centre = ys[:, :d]
-        height = ys[:, 5] if d == 3 else None
-    size = np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
-    zint = None
-    if height is not None:
-        hh = 0.5 * np.abs(height)
-        zint = np.stack([centre[:, 2] - hh, centre[:, 2] + hh], axis=1)
-        size = size * 2.0 * hh
-    S = len(A)
-    if S == 1:
+        edges = np.stack([ys[:, 3] * c, ys[:, 3] * sn, ys[:, 4] * c, ys[:, 4] * sn], axis=1)
+        phis = np.concatenate([ys[:, :d], edges, ys[:, 5:6]] if d == 3 else [ys[:, :d], edges], axis=1)
+    centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std = _sample_kernel(np.ascontiguousarray(phis, dtype=np.float64), d)
+    if d == 2:
+        zint = z_mean = z_std = None
+    if len(A) == 1:
         weights = 1.0 / size if size[0] > 0 else np.zeros(1)
         a0, a1 = 0.5 * A[0, :, 0], 0.5 * A[0, :, 1]
-        corners = centre[0, :2] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1])
-        return _Samples(centre[:, :2], A, zint, weights, corners, 0.0, np.zeros(d), None if zint is None else zint[0], None if zint is None else np.zeros(2))
-    ok = size > 1e-12 * max(float(size.max()), 1e-300)  # degenerate samples carry no area: drop
-    weights = np.where(ok, 1.0 / np.where(ok, size, 1.0), 0.0) / np.count_nonzero(ok)
+        corners = centres[0] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1])
+        return _Samples(centres, A, zint, weights, corners, 0.0, np.zeros(d), None if zint is None else zint[0], None if zint is None else np.zeros(2))
+    return _Samples(centres, A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _sample_kernel(phis, d):  # pragma: no cover - compiled
+    """Sample boxes from φ samples (S, p) and the statistics of their boundary, in one pass.
+
+    Returns centres (S, 2), axes A (S, 2, 2), z-intervals (S, 2) (zeros in BEV), sizes (S,), and for
+    S > 1 the weights, corner_mean (4, 2), corner_std, blur (d,), z_mean, z_std (2,) of
+    :class:`_Samples`. Element by element the float64 operations of the NumPy form it replaced, in
+    the same order (sums over samples run sequentially as NumPy's reductions along axis 0 do; the
+    two edge sums that pick the blur axes are pairwise like ``ndarray.sum``), so the results are
+    bit-identical (tests/test_spatial.py keeps the NumPy form).
+    """
+    S = phis.shape[0]
+    o = d - 2
+    centres = np.empty((S, 2))
+    A = np.empty((S, 2, 2))
+    zint = np.zeros((S, 2))
+    size = np.empty(S)
+    top = -np.inf
+    for k in range(S):
+        centres[k, 0], centres[k, 1] = phis[k, 0], phis[k, 1]
+        A[k, 0, 0], A[k, 1, 0] = phis[k, 2 + o], phis[k, 3 + o]  # length edge (l cos, l sin)
+        A[k, 0, 1], A[k, 1, 1] = -phis[k, 5 + o], phis[k, 4 + o]  # width edge (−w sin, w cos)
+        v = abs(A[k, 0, 0] * A[k, 1, 1] - A[k, 0, 1] * A[k, 1, 0])
+        if d == 3:
+            hh = 0.5 * abs(phis[k, 7])
+            zint[k, 0] = phis[k, 2] - hh
+            zint[k, 1] = phis[k, 2] + hh
+            v = v * 2.0 * hh
+        size[k] = v
+        top = _nan_max(top, v)
+    weights = np.zeros(S)
+    corner_mean = np.zeros((4, 2))
+    blur = np.zeros(d)
+    z_mean = np.zeros(2)
+    z_std = np.zeros(2)
+    if S == 1:
+        return centres, A, zint, size, weights, corner_mean, 0.0, blur, z_mean, z_std
+    # Degenerate samples carry no area: drop them.
+    floor = 1e-12 * (top if top != top or top > 1e-300 else 1e-300)
+    n_ok = 0
+    for k in range(S):
+        if size[k] > floor:
+            n_ok += 1
+    for k in range(S):
+        weights[k] = (1.0 / size[k] if size[k] > floor else 0.0) / n_ok
     # Corners in box_corners' BEV order ((+,+), (−,+), (−,−), (+,−) in unit coordinates), then the
-    # midpoints of the ±length and ±width faces.
-    pts = np.matmul(A, _FACE_POINTS_UNIT) + centre[:, :2, None]  # (S, 2, 8)
-    mean = pts.mean(axis=0)  # (2, 8)
-    dev = (pts - mean).reshape(S, 16)
-    var = (np.einsum("ij,ij->j", dev, dev) / S).reshape(2, 8).T  # (8, 2)
-    corner_mean = mean[:, :4].T
-    corner_std = float(np.sqrt(var[:4].sum(axis=1).max()))
+    # midpoints of the ±length and ±width faces: (S, 2, 8), their mean and variance over samples.
+    pts = np.empty((S, 2, 8))
+    mean = np.zeros((2, 8))
+    for k in range(S):
+        for i in range(2):
+            for j in range(8):
+                pts[k, i, j] = (A[k, i, 0] * _FACE_POINTS_UNIT[0, j] + A[k, i, 1] * _FACE_POINTS_UNIT[1, j]) + centres[k, i]
+                mean[i, j] += pts[k, i, j]
+    for i in range(2):
+        for j in range(8):
+            mean[i, j] /= S
+    var = np.zeros((8, 2))
+    for k in range(S):
+        for i in range(2):
+            for j in range(8):
+                dev = pts[k, i, j] - mean[i, j]
+                var[j, i] += dev * dev
+    for j in range(8):
+        for i in range(2):
+            var[j, i] /= S
+    top = -np.inf
+    for c in range(4):
+        corner_mean[c, 0], corner_mean[c, 1] = mean[0, c], mean[1, c]
+        top = _nan_max(top, var[c, 0] + var[c, 1])
+    corner_std = math.sqrt(top)
     # Blur across axis x: the faces most normal to x are the ±length faces when the length edge
     # points along x (corners and those faces' midpoints); likewise y.
-    along_x = abs(A[:, 0, 0].sum()) >= abs(A[:, 1, 0].sum())
-    x_mid, y_mid = (var[4:6], var[6:8]) if along_x else (var[6:8], var[4:6])
-    blur = np.zeros(d)
-    blur[0] = np.sqrt(min(float(var[:4, 0].min()), float(x_mid[:, 0].min())))
-    blur[1] = np.sqrt(min(float(var[:4, 1].min()), float(y_mid[:, 1].min())))
-    z_mean = z_std = None
-    if zint is not None:
-        z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
-        blur[2] = float(z_std.min())
-    return _Samples(centre[:, :2], A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
+    along_x = abs(_pairwise_sum(A[:, 0, 0])) >= abs(_pairwise_sum(A[:, 1, 0]))
+    x_mid, y_mid = (4, 6) if along_x else (6, 4)
+    for a, mid in ((0, x_mid), (1, y_mid)):
+        lo = np.inf
+        for c in range(4):
+            lo = _nan_min(lo, var[c, a])
+        lo_mid = _nan_min(var[mid, a], var[mid + 1, a])
+        blur[a] = math.sqrt(lo_mid if lo_mid < lo else lo)  # Python's min(lo, lo_mid)
+    if d == 3:
+        for k in range(S):
+            z_mean[0] += zint[k, 0]
+            z_mean[1] += zint[k, 1]
+        z_mean[0] /= S
+        z_mean[1] /= S
+        for k in range(S):
+            for i in range(2):
+                dev = zint[k, i] - z_mean[i]
+                z_std[i] += dev * dev
+        for i in range(2):
+            z_std[i] = math.sqrt(z_std[i] / S)
+        blur[2] = _nan_min(z_std[0], z_std[1])
+    return centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std
+
+
+@numba.njit(cache=True)
+def _pairwise_leaf(a, lo, n):  # pragma: no cover - compiled
+    """NumPy's sum of a block of n ≤ 128 elements: 8 accumulators (sequential below 8 elements)."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@numba.njit(cache=True)
+def _pairwise_sum(a):  # pragma: no cover - compiled
+    """``a.sum()`` of a 1-D float64 array with NumPy's order of operations (0 + pairwise sum:
+    halves rounded to multiples of 8 until a block has ≤ 128 elements), so compiled code can
+    reproduce a NumPy total bit for bit (tests/test_spatial.py checks it). The split tree is
+    walked with an explicit stack: numba's cache does not load recursive functions reliably."""
+    seg_lo = np.empty(64, dtype=np.int64)
+    seg_n = np.empty(64, dtype=np.int64)
+    left = np.empty(64)
+    right_pending = np.zeros(64, dtype=np.bool_)  # the left half of this segment is summed
+    top = 0
+    seg_lo[0], seg_n[0] = 0, a.size
+    while True:
+        n = seg_n[top]
+        if n > 128:  # split: visit the left half first
+            n2 = n // 2
+            n2 -= n2 % 8
+            right_pending[top] = False
+            top += 1
+            seg_lo[top], seg_n[top] = seg_lo[top - 1], n2
+            continue
+        v = _pairwise_leaf(a, seg_lo[top], n)
+        while top > 0:  # hand the sum up the tree
+            top -= 1
+            if not right_pending[top]:
+                left[top] = v
+                right_pending[top] = True
+                n2 = seg_n[top] // 2
+                n2 -= n2 % 8
+                top += 1
+                seg_lo[top], seg_n[top] = seg_lo[top - 1] + n2, seg_n[top - 1] - n2
+                break
+            v = left[top] + v
+        else:
+            return 0.0 + v
 
 
 # ----------------------------------------------------------------------------------------------
