@@ -588,18 +588,36 @@ def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no 
     return i_lo, i_hi, f_lo, f_hi, valid
 
 
-def _overlap(lo: float, hi: float, edges: FloatArray) -> FloatArray:
-    """Length of [lo, hi] inside each cell of ``edges``."""
-    return np.clip(np.minimum(hi, edges[1:]) - np.maximum(lo, edges[:-1]), 0.0, None)
-
-
-def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray | None:
-    """Exact separable area per cell for a single axis-aligned box (the label in its own frame), else None."""
+def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray, weight: float = 1.0) -> FloatArray | None:
+    """Exact separable area per cell (times ``weight``) for a single axis-aligned box (the label in
+    its own frame), else None."""
     A = s.axes
     if len(A) != 1 or A[0, 0, 1] != 0.0 or A[0, 1, 0] != 0.0:
         return None
     (cx, cy), hx, hy = s.centres[0], 0.5 * abs(A[0, 0, 0]), 0.5 * abs(A[0, 1, 1])
-    return np.outer(_overlap(cy - hy, cy + hy, ye), _overlap(cx - hx, cx + hx, xe))
+    return _aligned_kernel(float(cx), float(cy), float(hx), float(hy), xe, ye, float(weight))
+
+
+@numba.njit(cache=True)
+def _overlap_kernel(lo, hi, edges):  # pragma: no cover - compiled
+    """Length of [lo, hi] inside each cell of ``edges``: clip(min(hi, right) − max(lo, left), 0)."""
+    n = edges.size - 1
+    out = np.empty(n)
+    for j in range(n):
+        out[j] = _nan_max(_nan_min(hi, edges[j + 1]) - _nan_max(lo, edges[j]), 0.0)
+    return out
+
+
+@numba.njit(cache=True)
+def _aligned_kernel(cx, cy, hx, hy, xe, ye, weight):  # pragma: no cover - compiled
+    """outer(overlap along y, overlap along x) · weight, (ny, nx)."""
+    ox = _overlap_kernel(cx - hx, cx + hx, xe)
+    oy = _overlap_kernel(cy - hy, cy + hy, ye)
+    out = np.empty((oy.size, ox.size))
+    for i in range(oy.size):
+        for j in range(ox.size):
+            out[i, j] = oy[i] * ox[j] * weight
+    return out
 
 
 def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
@@ -608,11 +626,22 @@ def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
     Per interval, coverage(j) = dx·[k_lo ≤ j < k_hi] + f_hi·[j = k_hi] − f_lo·[j = k_lo]: the first
     term goes into a difference array (cumulative sum along x), the others directly.
     """
-    aligned = _aligned_single(s, xe, ye)
+    aligned = _aligned_single(s, xe, ye, s.weights[0])
     if aligned is not None:
-        return aligned * s.weights[0]
-    e = _events(s, xe, ye)
-    return _raster_bev_kernel(e.i_lo, e.i_hi, e.f_lo, e.f_hi, np.ascontiguousarray(s.weights, dtype=np.float64), float(e.dx), float(e.dy), e.ny, e.nx)
+        return aligned
+    nx, ny = len(xe) - 1, len(ye) - 1
+    return _raster_bev_events_kernel(
+        np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
+        np.ascontiguousarray(s.weights, dtype=np.float64), float(xe[0]), float(xe[-1]), float(ye[0]),
+        float(xe[1] - xe[0]), float(ye[1] - ye[0]), nx, ny, C.SUBROWS_PER_CELL,
+    )
+
+
+@numba.njit(cache=True)
+def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
+    """:func:`_events` then :func:`_raster_bev_kernel` in one call (as ``_raster_bev`` did in two)."""
+    i_lo, i_hi, f_lo, f_hi, _ = _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub)
+    return _raster_bev_kernel(i_lo, i_hi, f_lo, f_hi, weights, dx, dy / nsub, ny, nx)
 
 
 @numba.njit(cache=True)
@@ -677,9 +706,24 @@ def _z_coverage(s: _Samples, ze: FloatArray) -> FloatArray:
 
 
 def _clean(mass: FloatArray) -> FloatArray:
-    tiny = 1e-12 * float(mass.max()) if mass.size else 0.0
-    mass[mass <= tiny] = 0.0  # round-off of the cumulative sums
+    """``mass`` with the cells ≤ 1e-12 × its maximum set to 0 (round-off of the cumulative sums), in place."""
+    mass = np.ascontiguousarray(mass)  # the rasters are: a copy would not be cleaned in place
+    _clean_kernel(mass.reshape(-1))
     return mass
+
+
+@numba.njit(cache=True)
+def _clean_kernel(flat):  # pragma: no cover - compiled
+    """The NumPy form ``tiny = 1e-12 · max; mass[mass <= tiny] = 0`` (a NaN maximum cleans nothing)."""
+    if flat.size == 0:
+        return
+    top = flat[0]
+    for i in range(1, flat.size):
+        top = _nan_max(top, flat[i])
+    tiny = 1e-12 * top
+    for i in range(flat.size):
+        if flat[i] <= tiny:
+            flat[i] = 0.0
 
 
 def _pair_masses(sa: _Samples, sb: _Samples, grid: Grid) -> tuple[FloatArray, FloatArray, FloatArray | None]:
@@ -737,26 +781,76 @@ def jaccard(
     where q = 0: such cells only ever enter through their total (they are in every p-suffix);
     likewise ``q_outside`` for q where p = 0 (in every q-prefix).
     """
-    p = np.asarray(p, dtype=float).ravel()
-    q = np.asarray(q, dtype=float).ravel()
-    c = np.ones_like(p) if counts is None else np.asarray(counts, dtype=float).ravel()
+    p = np.ascontiguousarray(p, dtype=np.float64).ravel()
+    q = np.ascontiguousarray(q, dtype=np.float64).ravel()
+    c = np.ones_like(p) if counts is None else np.ascontiguousarray(counts, dtype=np.float64).ravel()
     if p.shape != q.shape or c.shape != p.shape:
         raise ValueError(f"p, q (and counts) must have the same number of cells, got {p.size}, {q.size}, {c.size}")
-    if (p < 0).any() or (q < 0).any():
-        raise ValueError("p and q must be non-negative")
-    both = (p > 0) & (q > 0)
-    if not both.any():
-        return 0.0
     # Cells with q = 0 (r = ∞) are in every p-suffix, cells with p = 0 (r = 0) in every q-prefix:
     # only the cells where both are positive need sorting.
-    p_only = float((c * p)[q == 0].sum()) + float(p_outside)
-    q_only = float((c * q)[p == 0].sum()) + float(q_outside)
-    pb, qb, cb = p[both], q[both], c[both]
-    order = (pb / qb).argsort()
-    ps, qs, cs = pb[order], qb[order], cb[order]
-    suffix_p = np.cumsum((cs * ps)[::-1])[::-1] + p_only
-    prefix_q = np.cumsum(cs * qs) - cs * qs + q_only
-    return float((cs / (suffix_p / ps + prefix_q / qs)).sum())
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, float(p_outside), float(q_outside))
+    if negative:
+        raise ValueError("p and q must be non-negative")
+    if not pb.size:
+        return 0.0
+    return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
+    """The cells of :func:`jaccard` where both masses are positive (p, q, counts, r = p/q), and the
+    totals p_only = Σ_{q=0} c·p + p_outside, q_only = Σ_{p=0} c·q + q_outside, summed in NumPy's
+    (pairwise) order over the same arrays as the NumPy form; the flag says a mass is negative."""
+    n = p.size
+    negative = False
+    for i in range(n):
+        if p[i] < 0 or q[i] < 0:
+            negative = True
+    pb = np.empty(n)
+    qb = np.empty(n)
+    cb = np.empty(n)
+    ratio = np.empty(n)
+    p_rest = np.empty(n)
+    q_rest = np.empty(n)
+    nb = n_p = n_q = 0
+    for i in range(n):
+        if q[i] == 0:
+            p_rest[n_p] = c[i] * p[i]
+            n_p += 1
+        if p[i] == 0:
+            q_rest[n_q] = c[i] * q[i]
+            n_q += 1
+        if p[i] > 0 and q[i] > 0:
+            pb[nb], qb[nb], cb[nb], ratio[nb] = p[i], q[i], c[i], p[i] / q[i]
+            nb += 1
+    p_only = _pairwise_sum(p_rest[:n_p]) + p_outside
+    q_only = _pairwise_sum(q_rest[:n_q]) + q_outside
+    return negative, pb[:nb], qb[:nb], cb[:nb], ratio[:nb], p_only, q_only
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _jaccard_sum(pb, qb, cb, order, p_only, q_only):  # pragma: no cover - compiled
+    """Σ_i c_i / (P_suffix/p_i + Q_prefix/q_i) over the cells sorted by r (``order``): the running
+    sums sequential like ``np.cumsum``, the total pairwise like ``ndarray.sum``."""
+    n = order.size
+    cp = np.empty(n)  # c·p and c·q in sorted order
+    cq = np.empty(n)
+    for j in range(n):
+        i = order[j]
+        cp[j] = cb[i] * pb[i]
+        cq[j] = cb[i] * qb[i]
+    suffix = np.empty(n)
+    run = 0.0
+    for j in range(n - 1, -1, -1):
+        run = cp[j] if j == n - 1 else run + cp[j]
+        suffix[j] = run
+    terms = np.empty(n)
+    run = 0.0
+    for j in range(n):
+        run = cq[j] if j == 0 else run + cq[j]
+        i = order[j]
+        terms[j] = cb[i] / ((suffix[j] + p_only) / pb[i] + ((run - cq[j]) + q_only) / qb[i])
+    return _pairwise_sum(terms)
 
 
 def spatial_distribution(
