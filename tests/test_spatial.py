@@ -426,13 +426,6 @@ def test_compiled_sample_statistics_equal_the_numpy_form(model):
             assert (a is None and b is None) or np.array_equal(np.asarray(a), np.asarray(b)), (trial, name)
 
 
-def test_compiled_pairwise_sum_is_numpys_sum():
-    """_pairwise_sum reproduces ndarray.sum bit for bit (pairwise blocks), contiguous or strided."""
-    rng = np.random.default_rng(5)
-    for n in [*range(0, 300), 1000, 1023, 1024, 1700, 8191, 8192, 8193, 50001]:
-        x = rng.normal(size=(n, 2)) * 10.0 ** rng.uniform(-6, 6, size=(n, 2))
-        assert sp._pairwise_sum(x[:, 0]) == x[:, 0].sum() and sp._pairwise_sum(x.ravel()) == x.sum(), n
-
 
 def _jaccard_numpy(p, q, c, p_outside=0.0, q_outside=0.0):
     """The NumPy form of jaccard's sums, kept as the bit-exact reference of its compiled kernels."""

@@ -299,7 +299,7 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
     corner_std = math.sqrt(top)
     # Blur across axis x: the faces most normal to x are the ±length faces when the length edge
     # points along x (corners and those faces' midpoints); likewise y.
-    along_x = abs(_pairwise_sum(A[:, 0, 0])) >= abs(_pairwise_sum(A[:, 1, 0]))
+    along_x = abs(linalg.pairwise_sum(A[:, 0, 0])) >= abs(linalg.pairwise_sum(A[:, 1, 0]))
     x_mid, y_mid = (4, 6) if along_x else (6, 4)
     for a, mid in ((0, x_mid), (1, y_mid)):
         lo = np.inf
@@ -321,72 +321,6 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
             z_std[i] = math.sqrt(z_std[i] / S)
         blur[2] = _nan_min(z_std[0], z_std[1])
     return centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std
-
-
-@numba.njit(cache=True)
-def _pairwise_leaf(a, lo, n):  # pragma: no cover - compiled
-    """NumPy's sum of a block of n ≤ 128 elements: 8 accumulators (sequential below 8 elements)."""
-    if n < 8:
-        res = 0.0
-        for i in range(lo, lo + n):
-            res += a[i]
-        return res
-    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-    i = 8
-    while i < n - n % 8:
-        j = lo + i
-        r0 += a[j]
-        r1 += a[j + 1]
-        r2 += a[j + 2]
-        r3 += a[j + 3]
-        r4 += a[j + 4]
-        r5 += a[j + 5]
-        r6 += a[j + 6]
-        r7 += a[j + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[lo + i]
-        i += 1
-    return res
-
-
-@numba.njit(cache=True)
-def _pairwise_sum(a):  # pragma: no cover - compiled
-    """``a.sum()`` of a 1-D float64 array with NumPy's order of operations (0 + pairwise sum:
-    halves rounded to multiples of 8 until a block has ≤ 128 elements), so compiled code can
-    reproduce a NumPy total bit for bit (tests/test_spatial.py checks it). The split tree is
-    walked with an explicit stack: numba's cache does not load recursive functions reliably."""
-    seg_lo = np.empty(64, dtype=np.int64)
-    seg_n = np.empty(64, dtype=np.int64)
-    left = np.empty(64)
-    right_pending = np.zeros(64, dtype=np.bool_)  # the left half of this segment is summed
-    top = 0
-    seg_lo[0], seg_n[0] = 0, a.size
-    while True:
-        n = seg_n[top]
-        if n > 128:  # split: visit the left half first
-            n2 = n // 2
-            n2 -= n2 % 8
-            right_pending[top] = False
-            top += 1
-            seg_lo[top], seg_n[top] = seg_lo[top - 1], n2
-            continue
-        v = _pairwise_leaf(a, seg_lo[top], n)
-        while top > 0:  # hand the sum up the tree
-            top -= 1
-            if not right_pending[top]:
-                left[top] = v
-                right_pending[top] = True
-                n2 = seg_n[top] // 2
-                n2 -= n2 % 8
-                top += 1
-                seg_lo[top], seg_n[top] = seg_lo[top - 1] + n2, seg_n[top - 1] - n2
-                break
-            v = left[top] + v
-        else:
-            return 0.0 + v
 
 
 # ----------------------------------------------------------------------------------------------
@@ -823,8 +757,8 @@ def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compile
         if p[i] > 0 and q[i] > 0:
             pb[nb], qb[nb], cb[nb], ratio[nb] = p[i], q[i], c[i], p[i] / q[i]
             nb += 1
-    p_only = _pairwise_sum(p_rest[:n_p]) + p_outside
-    q_only = _pairwise_sum(q_rest[:n_q]) + q_outside
+    p_only = linalg.pairwise_sum(p_rest[:n_p]) + p_outside
+    q_only = linalg.pairwise_sum(q_rest[:n_q]) + q_outside
     return negative, pb[:nb], qb[:nb], cb[:nb], ratio[:nb], p_only, q_only
 
 
@@ -850,7 +784,7 @@ def _jaccard_sum(pb, qb, cb, order, p_only, q_only):  # pragma: no cover - compi
         run = cq[j] if j == 0 else run + cq[j]
         i = order[j]
         terms[j] = cb[i] / ((suffix[j] + p_only) / pb[i] + ((run - cq[j]) + q_only) / qb[i])
-    return _pairwise_sum(terms)
+    return linalg.pairwise_sum(terms)
 
 
 def spatial_distribution(
