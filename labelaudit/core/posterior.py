@@ -138,18 +138,60 @@ def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: fl
     """r_km ∝ exp(−d²/2σ²) over the M candidates, plus an optional uniform outlier component."""
     if sqdist.size == 0:
         return np.zeros_like(sqdist)
+    if not outlier_prob > 0:
+        # Without outliers: the exponents and the row normalisation compiled, the exp NumPy's.
+        return _normalise_rows(np.exp(_resp_exponents(sqdist, 2.0 * sigma**2)))
     m = sqdist.shape[1]
     logw = -sqdist / (2.0 * sigma**2)  # -inf for missing candidates
     top = logw.max(axis=1, keepdims=True)
     top = np.where(np.isfinite(top), top, 0.0)
     e = np.exp(logw - top)
     norm = e.sum(axis=1, keepdims=True)
-    if outlier_prob > 0:
-        # Mixture: (1-p)/M · N(x | v̄, σ²I) per candidate, p · uniform. Compare in log space.
-        log_gauss_const = np.log((1.0 - outlier_prob) / m) - 0.5 * d * np.log(2.0 * np.pi * sigma**2)
-        log_out = np.log(outlier_prob) + outlier_log_density - log_gauss_const
-        norm = norm + np.exp(np.minimum(log_out - top, 700.0))
+    # Mixture: (1-p)/M · N(x | v̄, σ²I) per candidate, p · uniform. Compare in log space.
+    log_gauss_const = np.log((1.0 - outlier_prob) / m) - 0.5 * d * np.log(2.0 * np.pi * sigma**2)
+    log_out = np.log(outlier_prob) + outlier_log_density - log_gauss_const
+    norm = norm + np.exp(np.minimum(log_out - top, 700.0))
     return e / norm
+
+
+@numba.njit(cache=True)
+def _resp_exponents(sqdist, two_var):  # pragma: no cover - compiled
+    """logw − max_m logw per point with logw = −d²/(2σ²) (a row without a finite maximum keeps
+    logw): the NumPy form's element operations, so ``np.exp`` of it is the same array."""
+    n, m = sqdist.shape
+    out = np.empty((n, m))
+    for k in range(n):
+        top = -np.inf
+        for j in range(m):
+            out[k, j] = -sqdist[k, j] / two_var
+            top = _nan_max(top, out[k, j])
+        if not math.isfinite(top):
+            top = 0.0
+        for j in range(m):
+            out[k, j] = out[k, j] - top
+    return out
+
+
+@numba.njit(cache=True)
+def _normalise_rows(e):  # pragma: no cover - compiled
+    """e / e.sum(axis=1, keepdims=True); a row has M ≤ 6 < 8 entries, which NumPy sums sequentially."""
+    n, m = e.shape
+    out = np.empty((n, m))
+    for k in range(n):
+        norm = 0.0
+        for j in range(m):
+            norm += e[k, j]
+        for j in range(m):
+            out[k, j] = e[k, j] / norm
+    return out
+
+
+@numba.njit(cache=True)
+def _nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
+    """np.maximum of two floats (NaN propagates)."""
+    if a != a or b != b:
+        return a + b
+    return a if a >= b else b
 
 
 def register(
@@ -180,14 +222,8 @@ def register_validated(y: FloatArray, pts: FloatArray, d: int, num_nearest: int,
     """:func:`register` for a validated box and clean (N, d) points."""
     half = 0.5 * y[3 : 3 + d]
     c, s = np.cos(y[6]), np.sin(y[6])
-    rel = pts[:, :2] - y[:2]
-    local = np.empty_like(pts)  # box frame, metres: Rᵀ (x − c)
-    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
-    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
-    if d == 3:
-        local[:, 2] = pts[:, 2] - y[2]
     m = min(int(num_nearest), 2 * d)
-    vstar, sqd = _nearest_faces(local, half, m)
+    vstar, sqd = _register_kernel(pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, 1e-9 * float(half.max()))
     log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN)))) if outlier_prob > 0 else 0.0  # unused without outliers
     resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
     return Registration(vstar=vstar, sqdist=sqd, resp=resp, points=pts)
@@ -207,6 +243,21 @@ def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatAr
     local = np.ascontiguousarray(local, dtype=np.float64)
     half = np.ascontiguousarray(half, dtype=np.float64)
     return _nearest_faces_kernel(local, half, int(m), 1e-9 * float(half.max()))
+
+
+@numba.njit(cache=True)
+def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol):  # pragma: no cover - compiled
+    """The points (N, d) in the box frame, Rᵀ (x − c) (the NumPy form's element operations), then
+    :func:`_nearest_faces_kernel`."""
+    n, d = pts.shape
+    local = np.empty((n, d))
+    for k in range(n):
+        r0, r1 = pts[k, 0] - cx, pts[k, 1] - cy
+        local[k, 0] = c * r0 + s * r1
+        local[k, 1] = -s * r0 + c * r1
+        if d == 3:
+            local[k, 2] = pts[k, 2] - cz
+    return _nearest_faces_kernel(local, half, m, tol)
 
 
 @numba.njit(cache=True)
@@ -281,15 +332,32 @@ def registration_information(reg: Registration, model: ModelKind) -> tuple[Float
     """
     B, BB = _BASIS[model]
     n, m, d = reg.vstar.shape
-    vt = np.empty((n, m, d + 1))
-    vt[..., 0] = 1.0
-    vt[..., 1:] = reg.vstar
-    rv = vt * reg.resp[..., None]
-    rv2 = rv.reshape(n * m, d + 1)
-    moments = rv2.T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
-    cross = rv.sum(axis=1).T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
+    vt, rv, rv_sum = _weighted_unit_coords(reg.vstar, reg.resp)
+    moments = rv.reshape(n * m, d + 1).T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
+    cross = rv_sum.T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
     p = B.shape[-1]
     return (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), cross.reshape(-1) @ B.reshape(-1, p)
+
+
+@numba.njit(cache=True)
+def _weighted_unit_coords(vstar, resp):  # pragma: no cover - compiled
+    """ṽ = (1, v*) (N, M, d+1), r·ṽ and its sum over the M candidates (N, d+1); M ≤ 6 < 8, so the
+    sum is sequential as NumPy's ``sum(axis=1)``."""
+    n, m, d = vstar.shape
+    vt = np.empty((n, m, d + 1))
+    rv = np.empty((n, m, d + 1))
+    rv_sum = np.zeros((n, d + 1))
+    for k in range(n):
+        for j in range(m):
+            r = resp[k, j]
+            vt[k, j, 0] = 1.0
+            rv[k, j, 0] = r  # 1 · r
+            for a in range(d):
+                vt[k, j, a + 1] = vstar[k, j, a]
+                rv[k, j, a + 1] = vstar[k, j, a] * r
+            for a in range(d + 1):
+                rv_sum[k, a] += rv[k, j, a]
+    return vt, rv, rv_sum
 
 
 # ----------------------------------------------------------------------------------------------
@@ -427,14 +495,29 @@ def _em_sigma_one(sqd: FloatArray) -> float:
     """:func:`em_sigma` of one registration (N ≥ 1 points, nearest candidates finite) without
     outliers: the same operations on the same arrays as the pooled form, without the pooling
     (this is the per-object σ̂ of every label)."""
-    n_pts = len(sqd)
-    sqd0 = np.where(np.isfinite(sqd), sqd, 0.0)
-    start = np.sqrt(float(sqd0[:, 0].sum()) / (C.EM_RESIDUAL_DOF * n_pts))
-    sigma = max(float(start), C.SIGMA_FLOOR)
-    estimate = float(start)
-    diff = np.ascontiguousarray((sqd - sqd.min(axis=1, keepdims=True)).T)
-    sq = np.ascontiguousarray(sqd0.T)
-    return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+    return float(_em_one_kernel(sqd, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+
+
+@numba.njit(cache=True)
+def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compiled
+    """The set-up of :func:`_em_fast_kernel` for one registration (N, M), compiled: squared
+    distances with missing candidates as 0, differences to each point's nearest candidate, as
+    rows (M, N); the start √(Σ nearest d² / (dof·N)) summed in NumPy's pairwise order."""
+    n, m = sqd.shape
+    diff = np.empty((m, n))
+    sq = np.empty((m, n))
+    for k in range(n):
+        lo = np.inf
+        for j in range(m):
+            v = sqd[k, j]
+            lo = lo + v if v != v or lo != lo else min(lo, v)  # np.min: NaN propagates
+        for j in range(m):
+            v = sqd[k, j]
+            sq[j, k] = v if math.isfinite(v) else 0.0
+            diff[j, k] = v - lo
+    start = math.sqrt(linalg.pairwise_sum(sq[0]) / (dof * n))
+    sigma = floor if floor > start else start  # Python's max(start, floor)
+    return _em_fast_kernel(diff, sq, sigma, start, floor, tol, max_iter, dof)
 
 
 @numba.njit(cache=True)
@@ -445,12 +528,14 @@ def _em_fast_kernel(diff, sq, sigma, estimate, floor, tol, max_iter, dof):  # pr
     den = dof * n
     for _ in range(max_iter):
         scale = -0.5 / sigma**2
+        exact_one = math.isfinite(scale)  # then exp(0 · scale) = 1
         num = 0.0
         for k in range(n):
             se = 0.0
             s = 0.0
             for j in range(m):
-                e = math.exp(diff[j, k] * scale)  # missing candidates (inf) give 0
+                # exp(0) = 1 exactly (the nearest candidate); missing candidates (inf) give 0
+                e = 1.0 if diff[j, k] == 0.0 and exact_one else math.exp(diff[j, k] * scale)
                 se += e
                 s += e * sq[j, k]
             num += s / se
