@@ -139,7 +139,7 @@ def _sqrt_psd(cov: FloatArray) -> FloatArray:
     rotations, so equal covariances always give equal samples (also when singular).
     """
     lam, V = linalg.eigh(cov)
-    return (V * np.sqrt(np.clip(lam, 0.0, None))) @ V.T
+    return (V * np.sqrt(np.maximum(lam, 0.0))) @ V.T  # = np.clip(lam, 0.0, None)
 
 
 @dataclass(frozen=True)
@@ -483,43 +483,55 @@ def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no 
     valid = np.empty((S, R), dtype=np.bool_)
     sub = dy / nsub
     inv_dx = 1.0 / dx
-    h = np.empty(2)
-    m = np.empty(2)
     for k in range(S):
-        a00, a01, a10, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 0], A[k, 1, 1]
-        det = a00 * a11 - a01 * a10
-        bxs = (a11, -a10)
-        bys = (-a01, a00)
-        for i in range(2):
-            bx, by = bxs[i], bys[i]
-            scale = _nan_max(abs(bx), abs(by))
-            if abs(bx) <= 1e-12 * scale:
-                h[i] = np.inf
-                m[i] = 0.0
-            else:
-                h[i] = 0.5 * abs(det) / abs(bx)
-                m[i] = by / bx
-        half_y = 0.5 * (abs(a10) + abs(a11))
+        det, h0, h1, m0, m1, half_y = _sample_slabs(A, k)
         cx, cy = centres[k, 0], centres[k, 1]
         for r in range(R):
-            t = (y0 + (r + 0.5) * sub) - cy
-            mt0, mt1 = m[0] * t, m[1] * t
-            lo = cx + _nan_max(-h[0] - mt0, -h[1] - mt1)
-            hi = cx + _nan_min(h[0] - mt0, h[1] - mt1)
-            lo = _nan_min(_nan_max(lo, x0), x1)
-            hi = _nan_min(_nan_max(hi, x0), x1)
-            ok = (abs(t) < half_y) and (det != 0) and (hi > lo)
-            if not ok:
-                hi = lo
-            k_lo = min(np.int64((lo - x0) * inv_dx), nx)
-            k_hi = min(np.int64((hi - x0) * inv_dx), nx)
+            k_lo, k_hi, lo_off, hi_off, ok = _row_interval((y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx)
             base = (r // nsub) * (nx + 1)
             i_lo[k, r] = base + k_lo
             i_hi[k, r] = base + k_hi
-            f_lo[k, r] = lo - (x0 + k_lo * dx)
-            f_hi[k, r] = hi - (x0 + k_hi * dx)
+            f_lo[k, r] = lo_off
+            f_hi[k, r] = hi_off
             valid[k, r] = ok
     return i_lo, i_hi, f_lo, f_hi, valid
+
+
+@numba.njit(cache=True)
+def _sample_slabs(A, k):  # pragma: no cover - compiled
+    """det A, the slab half-widths h_i and slopes m_i along x, and the y half-extent of sample k."""
+    a00, a01, a10, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 0], A[k, 1, 1]
+    det = a00 * a11 - a01 * a10
+    h0 = h1 = m0 = m1 = 0.0
+    for i in range(2):
+        bx, by = (a11, -a01) if i == 0 else (-a10, a00)
+        scale = _nan_max(abs(bx), abs(by))
+        if abs(bx) <= 1e-12 * scale:
+            h, m = np.inf, 0.0
+        else:
+            h, m = 0.5 * abs(det) / abs(bx), by / bx
+        if i == 0:
+            h0, m0 = h, m
+        else:
+            h1, m1 = h, m
+    return det, h0, h1, m0, m1, 0.5 * (abs(a10) + abs(a11))
+
+
+@numba.njit(cache=True)
+def _row_interval(t, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx):  # pragma: no cover - compiled
+    """The x-interval of one sample on the row line y = c_y + t: start and end cells (k_lo, k_hi),
+    offsets into them, and whether it is non-empty."""
+    mt0, mt1 = m0 * t, m1 * t
+    lo = cx + _nan_max(-h0 - mt0, -h1 - mt1)
+    hi = cx + _nan_min(h0 - mt0, h1 - mt1)
+    lo = _nan_min(_nan_max(lo, x0), x1)
+    hi = _nan_min(_nan_max(hi, x0), x1)
+    ok = (abs(t) < half_y) and (det != 0) and (hi > lo)
+    if not ok:
+        hi = lo
+    k_lo = min(np.int64((lo - x0) * inv_dx), nx)
+    k_hi = min(np.int64((hi - x0) * inv_dx), nx)
+    return k_lo, k_hi, lo - (x0 + k_lo * dx), hi - (x0 + k_hi * dx), ok
 
 
 def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray, weight: float = 1.0) -> FloatArray | None:
@@ -573,9 +585,29 @@ def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
 
 @numba.njit(cache=True)
 def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
-    """:func:`_events` then :func:`_raster_bev_kernel` in one call (as ``_raster_bev`` did in two)."""
-    i_lo, i_hi, f_lo, f_hi, _ = _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub)
-    return _raster_bev_kernel(i_lo, i_hi, f_lo, f_hi, weights, dx, dy / nsub, ny, nx)
+    """:func:`_events_kernel` and :func:`_raster_bev_kernel` in one pass: each interval is added to
+    the difference arrays as it is found (the same sums in the same order, no (S, R) event arrays)."""
+    nb = ny * (nx + 1)
+    lo_dx = np.zeros(nb)
+    hi_dx = np.zeros(nb)
+    hi_f = np.zeros(nb)
+    lo_f = np.zeros(nb)
+    R = ny * nsub
+    sub = dy / nsub
+    inv_dx = 1.0 / dx
+    for k in range(A.shape[0]):
+        det, h0, h1, m0, m1, half_y = _sample_slabs(A, k)
+        cx, cy = centres[k, 0], centres[k, 1]
+        w = weights[k]
+        wdx = w * dx
+        for r in range(R):
+            k_lo, k_hi, lo_off, hi_off, _ = _row_interval((y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx)
+            base = (r if nsub == 1 else r // nsub) * (nx + 1)
+            lo_dx[base + k_lo] += wdx
+            hi_dx[base + k_hi] += wdx
+            hi_f[base + k_hi] += w * hi_off
+            lo_f[base + k_lo] += w * lo_off
+    return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy / nsub, ny, nx)
 
 
 @numba.njit(cache=True)
@@ -597,6 +629,12 @@ def _raster_bev_kernel(i_lo, i_hi, f_lo, f_hi, weights, dx, dy, ny, nx):  # prag
             hi_dx[i_hi[k, r]] += wdx
             hi_f[i_hi[k, r]] += w * f_hi[k, r]
             lo_f[i_lo[k, r]] += w * f_lo[k, r]
+    return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx)
+
+
+@numba.njit(cache=True)
+def _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx):  # pragma: no cover - compiled
+    """The raster (ny, nx) from the per-bin sums: differences, a running sum along each row, times dy."""
     out = np.empty((ny, nx))
     for row in range(ny):
         base = row * (nx + 1)
