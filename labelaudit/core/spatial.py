@@ -650,13 +650,20 @@ def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> F
     """Σ_s B_s(x, y) · zw[s, j]: BEV raster of each sample times a per-sample column weight, (ny, nx, ncols).
 
     The per-sample rasters are never formed densely: the interval events make a sparse
-    (bins × samples) matrix, multiplied by ``zw`` (S × ncols), then summed along x per row.
+    (bins × samples) matrix, multiplied by ``zw`` (S × ncols), then summed along x per row. With
+    one sub-row per cell that product is one compiled pass (:func:`_raster_3d_kernel`).
     """
-    from scipy.sparse import coo_matrix
-
     aligned = _aligned_single(s, xe, ye)
     if aligned is not None:
         return aligned[:, :, None] * zw[0]
+    if C.SUBROWS_PER_CELL == 1:
+        return _raster_3d_kernel(
+            np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
+            np.ascontiguousarray(zw, dtype=np.float64), float(xe[0]), float(xe[-1]), float(ye[0]),
+            float(xe[1] - xe[0]), float(ye[1] - ye[0]), len(xe) - 1, len(ye) - 1,
+        )
+    from scipy.sparse import coo_matrix
+
     e = _events(s, xe, ye)
     nb = e.ny * (e.nx + 1)
     S = e.i_lo.shape[0]
@@ -670,6 +677,44 @@ def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> F
     out = np.asarray(M @ zw).reshape(2, e.ny, e.nx + 1, zw.shape[1])
     cov = np.cumsum(out[0], axis=1) + out[1]
     return cov[:, : e.nx] * e.dy
+
+
+@numba.njit(cache=True)
+def _raster_3d_kernel(A, centres, zw, x0, x1, y0, dx, dy, nx, ny):  # pragma: no cover - compiled
+    """The sparse product of :func:`_raster_3d` for one sub-row per cell, with SciPy's arithmetic:
+    CSR rows (bins) hold their samples in ascending order, the entries of one (bin, sample) merged
+    by a sum (an interval inside one cell: dx − dx and f_hi − f_lo; two terms, so their order does
+    not matter), each row of ``M @ zw`` summed from 0 in that order; then the running sum along x."""
+    i_lo, i_hi, f_lo, f_hi, valid = _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, 1)
+    S, R = i_lo.shape
+    ncol = zw.shape[1]
+    nb = ny * (nx + 1)
+    acc = np.zeros((2 * nb, ncol))  # rows: the dx steps per bin, then the offsets per bin
+    for k in range(S):  # ascending samples: each bin's entries arrive in CSR order
+        for r in range(R):
+            if not valid[k, r]:
+                continue
+            lo, hi = i_lo[k, r], i_hi[k, r]
+            if lo == hi:
+                step, off = dx + (-dx), f_hi[k, r] + (-f_lo[k, r])
+                for c in range(ncol):
+                    acc[lo, c] += step * zw[k, c]
+                    acc[nb + lo, c] += off * zw[k, c]
+            else:
+                for c in range(ncol):
+                    acc[lo, c] += dx * zw[k, c]
+                    acc[hi, c] += -dx * zw[k, c]
+                    acc[nb + hi, c] += f_hi[k, r] * zw[k, c]
+                    acc[nb + lo, c] += -f_lo[k, r] * zw[k, c]
+    out = np.empty((ny, nx, ncol))
+    for row in range(ny):
+        base = row * (nx + 1)
+        for c in range(ncol):
+            run = 0.0
+            for j in range(nx):
+                run = acc[base, c] if j == 0 else run + acc[base + j, c]
+                out[row, j, c] = (run + acc[nb + base + j, c]) * dy
+    return out
 
 
 def _z_coverage(s: _Samples, ze: FloatArray) -> FloatArray:
