@@ -451,8 +451,10 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
     """Pooled EM for σ over registrations given as (sqdist (N, M), outlier log density)."""
     if len(regs) == 1 and outlier_prob == 0:
         sqd = regs[0][0]
-        if len(sqd) and sqd.shape[1] and np.isfinite(sqd[:, 0]).all():
-            return _em_sigma_one(sqd)
+        if len(sqd) and sqd.shape[1]:
+            one = _em_sigma_one(sqd)
+            if one is not None:
+                return one
     regs = [(sqd, np.where(np.isfinite(sqd), sqd, 0.0), ld) for sqd, ld in regs]
     # Start at the nearest-candidate residual (the small-σ limit): EM then needs few iterations.
     n_pts = sum(len(sqd) for sqd, _, _ in regs)
@@ -491,19 +493,24 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
     return estimate
 
 
-def _em_sigma_one(sqd: FloatArray) -> float:
-    """:func:`em_sigma` of one registration (N ≥ 1 points, nearest candidates finite) without
-    outliers: the same operations on the same arrays as the pooled form, without the pooling
-    (this is the per-object σ̂ of every label)."""
-    return float(_em_one_kernel(sqd, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+def _em_sigma_one(sqd: FloatArray) -> float | None:
+    """:func:`em_sigma` of one registration (N ≥ 1 points) without outliers: the same operations
+    on the same arrays as the pooled form, without the pooling (this is the per-object σ̂ of every
+    label); None when a nearest candidate is not finite (the pooled form handles that)."""
+    ok, estimate = _em_one_kernel(sqd, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF))
+    return float(estimate) if ok else None
 
 
 @numba.njit(cache=True)
 def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compiled
-    """The set-up of :func:`_em_fast_kernel` for one registration (N, M), compiled: squared
+    """The set-up of :func:`_em_fast_kernel` for one registration (N, M) whose nearest candidates
+    are finite (else (False, NaN)), compiled: squared
     distances with missing candidates as 0, differences to each point's nearest candidate, as
     rows (M, N); the start √(Σ nearest d² / (dof·N)) summed in NumPy's pairwise order."""
     n, m = sqd.shape
+    for k in range(n):
+        if not math.isfinite(sqd[k, 0]):
+            return False, math.nan
     diff = np.empty((m, n))
     sq = np.empty((m, n))
     for k in range(n):
@@ -517,7 +524,7 @@ def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compil
             diff[j, k] = v - lo
     start = math.sqrt(linalg.pairwise_sum(sq[0]) / (dof * n))
     sigma = floor if floor > start else start  # Python's max(start, floor)
-    return _em_fast_kernel(diff, sq, sigma, start, floor, tol, max_iter, dof)
+    return True, _em_fast_kernel(diff, sq, sigma, start, floor, tol, max_iter, dof)
 
 
 @numba.njit(cache=True)
@@ -620,16 +627,22 @@ def corner_total_variance(
 
 
 _CORNER_J = {m: g.design_matrix(corner_unit_coords(m), m) for m in ("bev", "3d")}  # (4, d, p), box-independent
+_CORNERS_UNIT = [tuple(u) for u in g.BEV_CORNERS_UNIT.tolist()]
 
 
 def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
     J = _CORNER_J[model]
     tv = np.einsum("cdp,pq,cdq->c", J, cov, J)
     c, s = math.cos(y[6]), math.sin(y[6])
-    u = g.BEV_CORNERS_UNIT * y[3:5]
     o = np.asarray(sensor_origin, dtype=float)
-    dist = np.hypot((c * u[:, 0] - s * u[:, 1] + y[0]) - o[0], (s * u[:, 0] + c * u[:, 1] + y[1]) - o[1])  # corners − sensor
-    order = dist.argsort(kind="stable")
+    # Corners − sensor in Python floats: the same IEEE operations as on (4,) arrays, without the calls.
+    x0, y0, ox, oy = float(y[0]), float(y[1]), float(o[0]), float(o[1])
+    dx, dy = [], []
+    for ux, uy in _CORNERS_UNIT:
+        ux, uy = ux * float(y[3]), uy * float(y[4])
+        dx.append((c * ux - s * uy + x0) - ox)
+        dy.append((s * ux + c * uy + y0) - oy)
+    order = np.hypot(dx, dy).argsort(kind="stable")
     return tv[order], order
 
 
@@ -726,7 +739,8 @@ def infer_label(
     sigma = float(params.sigma)
     reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
     if n >= 2:
-        sigma_hat = em_sigma([(reg.sqdist, outlier_log_density(y, d))], d, sigma, params.outlier_prob)
+        log_density = outlier_log_density(y, d) if params.outlier_prob > 0 else 0.0  # only read with outliers
+        sigma_hat = em_sigma([(reg.sqdist, log_density)], d, sigma, params.outlier_prob)
         if params.estimate_sigma and n >= max(params.min_points, 2) and np.isfinite(sigma_hat):
             sigma = max(sigma_hat, C.SIGMA_FLOOR)
             reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
