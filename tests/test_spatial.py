@@ -509,3 +509,28 @@ def test_compiled_3d_raster_equals_the_sparse_form():
         zw = s.weights[:, None] * rng.uniform(0, 1, (len(s.weights), int(rng.integers(1, 6))))
         got = sp._raster_3d(s, xe, ye, zw)
         assert np.array_equal(got, _raster_3d_sparse(s, xe, ye, zw)), trial
+
+
+def test_axis_edges_in_python_floats_equal_the_numpy_scalar_form():
+    """_axis_edges computes in Python floats what it computed on NumPy scalars, bit for bit (also
+    when the cell cap applies)."""
+    import math
+
+    def numpy_form(half, lo, hi, cell):
+        n_box = max(1, int(round(2 * half / cell)))
+        step = 2 * half / n_box
+        n_lo = max(0, math.ceil((-half - lo) / step - 1e-9))
+        n_hi = max(0, math.ceil((hi - half) / step - 1e-9))
+        total = n_lo + n_box + n_hi
+        if total > C.MAX_CELLS_PER_AXIS:
+            lo, hi = min(lo, -half), max(hi, half)
+            return np.linspace(lo, hi, C.MAX_CELLS_PER_AXIS + 1)
+        return -half - n_lo * step + step * np.arange(total + 1)
+
+    rng = np.random.default_rng(9)
+    for _ in range(500):
+        half = np.float64(rng.uniform(0.05, 10))
+        lo, hi = np.float64(-half - rng.exponential(half)), np.float64(half + rng.exponential(half))
+        cell = np.float64(2 * half / rng.uniform(1, 400))
+        got, want = sp._axis_edges(half, lo, hi, cell), numpy_form(half, lo, hi, cell)
+        assert got.shape == want.shape and np.array_equal(got, want)
