@@ -788,3 +788,18 @@ def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
         want = ((moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), (rv.sum(axis=1).T @ pts).reshape(-1) @ B.reshape(-1, p))
         got = M.registration_information(reg, model)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), trial
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_compiled_quadratic_forms_equal_einsum(model):
+    """The per-parameter variances and corner total variances are einsum's sums bit for bit."""
+    rng = np.random.default_rng(17)
+    p = g.phi_dim(model)
+    J = M._CORNER_J[model]
+    for _ in range(300):
+        L = rng.normal(size=(p, p)) * 10.0 ** rng.uniform(-4, 1)
+        cov = L @ L.T
+        cov = 0.5 * (cov + cov.T)
+        K, _ = g.box_param_jacobian(np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 10, 3), rng.uniform(-4, 4)]), model)
+        assert np.array_equal(M._quad_forms(K, cov), np.einsum("ip,pq,iq->i", K, cov, K))
+        assert np.array_equal(M._corner_quad_forms(J, cov), np.einsum("cdp,pq,cdq->c", J, cov, J))

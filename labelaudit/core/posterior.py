@@ -631,8 +631,7 @@ _CORNERS_UNIT = [tuple(u) for u in g.BEV_CORNERS_UNIT.tolist()]
 
 
 def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
-    J = _CORNER_J[model]
-    tv = np.einsum("cdp,pq,cdq->c", J, cov, J)
+    tv = _corner_quad_forms(_CORNER_J[model], cov)  # = np.einsum("cdp,pq,cdq->c", J, cov, J)
     c, s = math.cos(y[6]), math.sin(y[6])
     o = np.asarray(sensor_origin, dtype=float)
     # Corners − sensor in Python floats: the same IEEE operations as on (4,) arrays, without the calls.
@@ -654,10 +653,41 @@ def box_std(box: ArrayLike, cov: ArrayLike, model: ModelKind) -> dict[str, float
 
 def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
     names = ("cx", "cy", "length", "width", "yaw") if g.point_dim(model) == 2 else g.BOX_FIELDS
-    var = np.einsum("ip,pq,iq->i", K, np.asarray(cov, dtype=float), K)
+    var = _quad_forms(K, np.asarray(cov, dtype=float))  # = np.einsum("ip,pq,iq->i", K, cov, K)
     out = dict.fromkeys(g.BOX_FIELDS, float("nan"))
     for name, v in zip(names, var.tolist()):
         out[name] = math.sqrt(max(v, 0.0))  # IEEE square roots are exact-rounded: = np.sqrt
+    return out
+
+
+@numba.njit(cache=True)
+def _quad_forms(K, cov):  # pragma: no cover - compiled
+    """K_i Σ K_iᵀ per row i, summed as ``np.einsum("ip,pq,iq->i", K, cov, K)`` does: the products
+    (K_ip·Σ_pq)·K_iq added one by one from 0, p outer, q inner (tests/test_model.py checks the bits)."""
+    n, p = K.shape
+    out = np.empty(n)
+    for i in range(n):
+        acc = 0.0
+        for a in range(p):
+            for b in range(p):
+                acc += K[i, a] * cov[a, b] * K[i, b]
+        out[i] = acc
+    return out
+
+
+@numba.njit(cache=True)
+def _corner_quad_forms(J, cov):  # pragma: no cover - compiled
+    """trace(J_c Σ J_cᵀ) per corner c in the order of ``np.einsum("cdp,pq,cdq->c", J, cov, J)``:
+    (J_cdp·Σ_pq)·J_cdq added one by one from 0 over d, p, q (tests/test_model.py checks the bits)."""
+    nc, nd, p = J.shape
+    out = np.empty(nc)
+    for c in range(nc):
+        acc = 0.0
+        for d in range(nd):
+            for a in range(p):
+                for b in range(p):
+                    acc += J[c, d, a] * cov[a, b] * J[c, d, b]
+        out[c] = acc
     return out
 
 
