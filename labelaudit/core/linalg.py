@@ -6,7 +6,8 @@ calls). These functions call the same NumPy gufuncs (``numpy.linalg._umath_linal
 signature) directly, so their results are bit-identical to ``np.linalg`` (a test checks); they
 fall back to ``np.linalg`` when that module is not there. Errors stay errors: a matrix that is not
 positive definite or is singular raises, as in ``np.linalg``. It also holds :func:`pairwise_sum`,
-NumPy's summation order for compiled kernels that must reproduce a NumPy total. No I/O.
+NumPy's summation order, and :func:`nan_max` / :func:`nan_min` (``np.maximum`` / ``np.minimum`` of two
+floats), for compiled kernels that must reproduce NumPy's results. No I/O.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ except ImportError:  # pragma: no cover - another NumPy layout: use the public A
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["cholesky", "eigh", "inv", "pairwise_sum", "solve"]
+__all__ = ["cholesky", "eigh", "inv", "nan_max", "nan_min", "pairwise_sum", "solve"]
 
 
 def inv(a: FloatArray) -> FloatArray:
@@ -138,3 +139,19 @@ def pairwise_sum(a):  # pragma: no cover - compiled
             v = left[top] + v
         else:
             return 0.0 + v
+
+
+@numba.njit(cache=True)
+def nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
+    """np.maximum of two floats (NaN propagates)."""
+    if a != a or b != b:
+        return a + b
+    return a if a >= b else b
+
+
+@numba.njit(cache=True)
+def nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
+    """np.minimum of two floats (NaN propagates)."""
+    if a != a or b != b:
+        return a + b
+    return a if a <= b else b

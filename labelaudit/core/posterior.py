@@ -164,7 +164,7 @@ def _resp_exponents(sqdist, two_var):  # pragma: no cover - compiled
         top = -np.inf
         for j in range(m):
             out[k, j] = -sqdist[k, j] / two_var
-            top = _nan_max(top, out[k, j])
+            top = linalg.nan_max(top, out[k, j])
         if not math.isfinite(top):
             top = 0.0
         for j in range(m):
@@ -184,14 +184,6 @@ def _normalise_rows(e):  # pragma: no cover - compiled
         for j in range(m):
             out[k, j] = e[k, j] / norm
     return out
-
-
-@numba.njit(cache=True)
-def _nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
-    """np.maximum of two floats (NaN propagates)."""
-    if a != a or b != b:
-        return a + b
-    return a if a >= b else b
 
 
 def register(
@@ -517,7 +509,7 @@ def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compil
         lo = np.inf
         for j in range(m):
             v = sqd[k, j]
-            lo = lo + v if v != v or lo != lo else min(lo, v)  # np.min: NaN propagates
+            lo = linalg.nan_min(lo, v)  # np.min: NaN propagates
         for j in range(m):
             v = sqd[k, j]
             sq[j, k] = v if math.isfinite(v) else 0.0

@@ -255,7 +255,7 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
             zint[k, 1] = phis[k, 2] + hh
             v = v * 2.0 * hh
         size[k] = v
-        top = _nan_max(top, v)
+        top = linalg.nan_max(top, v)
     weights = np.zeros(S)
     corner_mean = np.zeros((4, 2))
     blur = np.zeros(d)
@@ -295,7 +295,7 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
     top = -np.inf
     for c in range(4):
         corner_mean[c, 0], corner_mean[c, 1] = mean[0, c], mean[1, c]
-        top = _nan_max(top, var[c, 0] + var[c, 1])
+        top = linalg.nan_max(top, var[c, 0] + var[c, 1])
     corner_std = math.sqrt(top)
     # Blur across axis x: the faces most normal to x are the ±length faces when the length edge
     # points along x (corners and those faces' midpoints); likewise y.
@@ -304,8 +304,8 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
     for a, mid in ((0, x_mid), (1, y_mid)):
         lo = np.inf
         for c in range(4):
-            lo = _nan_min(lo, var[c, a])
-        lo_mid = _nan_min(var[mid, a], var[mid + 1, a])
+            lo = linalg.nan_min(lo, var[c, a])
+        lo_mid = linalg.nan_min(var[mid, a], var[mid + 1, a])
         blur[a] = math.sqrt(lo_mid if lo_mid < lo else lo)  # Python's min(lo, lo_mid)
     if d == 3:
         for k in range(S):
@@ -319,7 +319,7 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
                 z_std[i] += dev * dev
         for i in range(2):
             z_std[i] = math.sqrt(z_std[i] / S)
-        blur[2] = _nan_min(z_std[0], z_std[1])
+        blur[2] = linalg.nan_min(z_std[0], z_std[1])
     return centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std
 
 
@@ -450,22 +450,6 @@ def _events(s: _Samples, xe: FloatArray, ye: FloatArray) -> _Events:
 
 
 @numba.njit(cache=True)
-def _nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
-    """np.maximum of two floats (NaN propagates)."""
-    if a != a or b != b:
-        return a + b
-    return a if a >= b else b
-
-
-@numba.njit(cache=True)
-def _nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
-    """np.minimum of two floats (NaN propagates)."""
-    if a != a or b != b:
-        return a + b
-    return a if a <= b else b
-
-
-@numba.njit(cache=True)
 def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
     """Per (sample, sub-row): the x-interval of the sample box on the row's centre line.
 
@@ -506,7 +490,7 @@ def _sample_slabs(A, k):  # pragma: no cover - compiled
     h0 = h1 = m0 = m1 = 0.0
     for i in range(2):
         bx, by = (a11, -a01) if i == 0 else (-a10, a00)
-        scale = _nan_max(abs(bx), abs(by))
+        scale = linalg.nan_max(abs(bx), abs(by))
         if abs(bx) <= 1e-12 * scale:
             h, m = np.inf, 0.0
         else:
@@ -523,10 +507,10 @@ def _row_interval(t, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx):  
     """The x-interval of one sample on the row line y = c_y + t: start and end cells (k_lo, k_hi),
     offsets into them, and whether it is non-empty."""
     mt0, mt1 = m0 * t, m1 * t
-    lo = cx + _nan_max(-h0 - mt0, -h1 - mt1)
-    hi = cx + _nan_min(h0 - mt0, h1 - mt1)
-    lo = _nan_min(_nan_max(lo, x0), x1)
-    hi = _nan_min(_nan_max(hi, x0), x1)
+    lo = cx + linalg.nan_max(-h0 - mt0, -h1 - mt1)
+    hi = cx + linalg.nan_min(h0 - mt0, h1 - mt1)
+    lo = linalg.nan_min(linalg.nan_max(lo, x0), x1)
+    hi = linalg.nan_min(linalg.nan_max(hi, x0), x1)
     ok = (abs(t) < half_y) and (det != 0) and (hi > lo)
     if not ok:
         hi = lo
@@ -551,7 +535,7 @@ def _overlap_kernel(lo, hi, edges):  # pragma: no cover - compiled
     n = edges.size - 1
     out = np.empty(n)
     for j in range(n):
-        out[j] = _nan_max(_nan_min(hi, edges[j + 1]) - _nan_max(lo, edges[j]), 0.0)
+        out[j] = linalg.nan_max(linalg.nan_min(hi, edges[j + 1]) - linalg.nan_max(lo, edges[j]), 0.0)
     return out
 
 
@@ -737,7 +721,7 @@ def _clean_kernel(flat):  # pragma: no cover - compiled
         return
     top = flat[0]
     for i in range(1, flat.size):
-        top = _nan_max(top, flat[i])
+        top = linalg.nan_max(top, flat[i])
     tiny = 1e-12 * top
     for i in range(flat.size):
         if flat[i] <= tiny:
