@@ -735,11 +735,13 @@ def _registration_numpy(y, pts, d, m, sigma):
     return vstar, sqd, e / e.sum(axis=1, keepdims=True)
 
 
-def _em_numpy(sqd):
-    """The per-object σ̂ EM in its NumPy/Python form: every candidate through exp (math.exp, as the kernel)."""
+def _em_numpy(*sqds):
+    """The σ̂ EM (pooled over registrations) in its NumPy/Python form: every candidate through exp
+    (math.exp, as the kernel)."""
+    sqd = np.concatenate(sqds)
     n = len(sqd)
     sqd0 = np.where(np.isfinite(sqd), sqd, 0.0)
-    start = np.sqrt(float(sqd0[:, 0].sum()) / (1.0 * n))
+    start = np.sqrt(sum(float(np.where(np.isfinite(s), s, 0.0)[:, 0].sum()) for s in sqds) / (1.0 * n))
     sigma, estimate = max(float(start), 0.01), float(start)
     diff, sq = (sqd - sqd.min(axis=1, keepdims=True)).T, sqd0.T
     for _ in range(50):
@@ -778,6 +780,8 @@ def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
         assert np.array_equal(reg.vstar, vstar) and np.array_equal(reg.sqdist, sqd) and np.array_equal(reg.resp, resp), trial
         if trial < 8:
             assert M.em_sigma([(sqd, 0.0)], d, sigma, 0.0) == _em_numpy(sqd), trial
+            h = len(sqd) // 2  # pooled over two registrations
+            assert M.em_sigma([(sqd[:h], 0.0), (sqd[h:], 0.0)], d, sigma, 0.0) == _em_numpy(sqd[:h], sqd[h:]), trial
         n = len(pts)
         vt = np.empty((n, m, d + 1))
         vt[..., 0] = 1.0

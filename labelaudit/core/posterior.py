@@ -464,10 +464,9 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
     )
     if fast:
         # Without outliers the responsibilities of a point sum to 1 and only exp(−(d² − min d²)/2σ²)
-        # changes with σ: the candidate differences, as rows (M, N), go to one compiled loop.
-        diff = np.concatenate([(sqd - np.min(sqd, axis=1, keepdims=True)).T for sqd, _, _ in regs], axis=1)
-        sq = np.concatenate([sqd0.T for _, sqd0, _ in regs], axis=1)
-        return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+        # changes with σ: the squared distances of all points go to one compiled loop.
+        sqd_all = np.ascontiguousarray(np.concatenate([sqd for sqd, _, _ in regs], axis=0), dtype=np.float64)
+        return float(_em_fast_kernel(sqd_all, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
     for _ in range(C.EM_MAX_ITERATIONS):
         num = den = 0.0
         for sqd, sqd0, log_density in regs:
@@ -495,35 +494,30 @@ def _em_sigma_one(sqd: FloatArray) -> float | None:
 
 @numba.njit(cache=True)
 def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compiled
-    """The set-up of :func:`_em_fast_kernel` for one registration (N, M) whose nearest candidates
-    are finite (else (False, NaN)), compiled: squared
-    distances with missing candidates as 0, differences to each point's nearest candidate, as
-    rows (M, N); the start √(Σ nearest d² / (dof·N)) summed in NumPy's pairwise order."""
-    n, m = sqd.shape
+    """The start of :func:`_em_fast_kernel` for one registration (N, M) whose nearest candidates
+    are finite (else (False, NaN)): √(Σ nearest d² / (dof·N)), summed in NumPy's pairwise order."""
+    n = sqd.shape[0]
     for k in range(n):
         if not math.isfinite(sqd[k, 0]):
             return False, math.nan
-    diff = np.empty((m, n))
-    sq = np.empty((m, n))
-    for k in range(n):
-        lo = np.inf
-        for j in range(m):
-            v = sqd[k, j]
-            lo = linalg.nan_min(lo, v)  # np.min: NaN propagates
-        for j in range(m):
-            v = sqd[k, j]
-            sq[j, k] = v if math.isfinite(v) else 0.0
-            diff[j, k] = v - lo
-    start = math.sqrt(linalg.pairwise_sum(sq[0]) / (dof * n))
+    start = math.sqrt(linalg.pairwise_sum(sqd[:, 0]) / (dof * n))
     sigma = floor if floor > start else start  # Python's max(start, floor)
-    return True, _em_fast_kernel(diff, sq, sigma, start, floor, tol, max_iter, dof)
+    return True, _em_fast_kernel(sqd, sigma, start, floor, tol, max_iter, dof)
 
 
 @numba.njit(cache=True)
-def _em_fast_kernel(diff, sq, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
-    """The EM of :func:`em_sigma` without outliers: candidate differences d² − min d² and squared
-    distances as rows (M, N); per point the responsibility-weighted d² over its candidates."""
-    m, n = diff.shape
+def _em_fast_kernel(sqd, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
+    """The EM of :func:`em_sigma` without outliers over squared distances (N, M): per point the
+    responsibility-weighted d² over its candidates, the weights exp(−(d² − min d²)/2σ²) (missing
+    candidates, d² = inf, weigh 0 and count as 0). The same operations, point by point, as the
+    NumPy set-up it replaced (differences and finite distances formed first)."""
+    n, m = sqd.shape
+    lo = np.empty(n)  # np.min per point (NaN propagates)
+    for k in range(n):
+        v = np.inf
+        for j in range(m):
+            v = linalg.nan_min(v, sqd[k, j])
+        lo[k] = v
     den = dof * n
     for _ in range(max_iter):
         scale = -0.5 / sigma**2
@@ -533,10 +527,12 @@ def _em_fast_kernel(diff, sq, sigma, estimate, floor, tol, max_iter, dof):  # pr
             se = 0.0
             s = 0.0
             for j in range(m):
+                v = sqd[k, j]
+                diff = v - lo[k]
                 # exp(0) = 1 exactly (the nearest candidate); missing candidates (inf) give 0
-                e = 1.0 if diff[j, k] == 0.0 and exact_one else math.exp(diff[j, k] * scale)
+                e = 1.0 if diff == 0.0 and exact_one else math.exp(diff * scale)
                 se += e
-                s += e * sq[j, k]
+                s += e * (v if math.isfinite(v) else 0.0)
             num += s / se
         if den <= 0:
             return math.nan
