@@ -139,8 +139,10 @@ def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: fl
     if sqdist.size == 0:
         return np.zeros_like(sqdist)
     if not outlier_prob > 0:
-        # Without outliers: the exponents and the row normalisation compiled, the exp NumPy's.
-        return _normalise_rows(np.exp(_resp_exponents(sqdist, 2.0 * sigma**2)))
+        # Without outliers: the exponents and the row normalisation compiled, the exp NumPy's
+        # (in place: the same values without two more (N, M) arrays).
+        x = _resp_exponents(sqdist, 2.0 * sigma**2)
+        return _normalise_rows(np.exp(x, out=x))
     m = sqdist.shape[1]
     logw = -sqdist / (2.0 * sigma**2)  # -inf for missing candidates
     top = logw.max(axis=1, keepdims=True)
@@ -174,16 +176,16 @@ def _resp_exponents(sqdist, two_var):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def _normalise_rows(e):  # pragma: no cover - compiled
-    """e / e.sum(axis=1, keepdims=True); a row has M ≤ 6 < 8 entries, which NumPy sums sequentially."""
+    """e / e.sum(axis=1, keepdims=True), in place; a row has M ≤ 6 < 8 entries, which NumPy sums
+    sequentially."""
     n, m = e.shape
-    out = np.empty((n, m))
     for k in range(n):
         norm = 0.0
         for j in range(m):
             norm += e[k, j]
         for j in range(m):
-            out[k, j] = e[k, j] / norm
-    return out
+            e[k, j] = e[k, j] / norm
+    return e
 
 
 def register(
