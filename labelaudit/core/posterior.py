@@ -217,9 +217,13 @@ def register_validated(y: FloatArray, pts: FloatArray, d: int, num_nearest: int,
     half = 0.5 * y[3 : 3 + d]
     c, s = np.cos(y[6]), np.sin(y[6])
     m = min(int(num_nearest), 2 * d)
-    vstar, sqd = _register_kernel(pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, 1e-9 * float(half.max()))
-    log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN)))) if outlier_prob > 0 else 0.0  # unused without outliers
-    resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
+    tol = 1e-9 * max(half.tolist())
+    vstar, sqd, x = _register_kernel(pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, tol, 2.0 * sigma**2)
+    if not outlier_prob > 0:  # _responsibilities without outliers, from the kernel's exponents
+        resp = _normalise_rows(np.exp(x, out=x)) if sqd.size else np.zeros_like(sqd)
+    else:
+        log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN))))
+        resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
     return Registration(vstar=vstar, sqdist=sqd, resp=resp, points=pts)
 
 
@@ -240,9 +244,9 @@ def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatAr
 
 
 @numba.njit(cache=True)
-def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol):  # pragma: no cover - compiled
+def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol, two_var):  # pragma: no cover - compiled
     """The points (N, d) in the box frame, Rᵀ (x − c) (the NumPy form's element operations), then
-    :func:`_nearest_faces_kernel`."""
+    :func:`_nearest_faces_kernel` and the responsibility exponents (:func:`_resp_exponents`)."""
     n, d = pts.shape
     local = np.empty((n, d))
     for k in range(n):
@@ -251,7 +255,8 @@ def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol):  # pragma: no cover -
         local[k, 1] = -s * r0 + c * r1
         if d == 3:
             local[k, 2] = pts[k, 2] - cz
-    return _nearest_faces_kernel(local, half, m, tol)
+    vstar, sqd = _nearest_faces_kernel(local, half, m, tol)
+    return vstar, sqd, _resp_exponents(sqd, two_var)
 
 
 @numba.njit(cache=True)
