@@ -7,7 +7,9 @@ signature) directly, so their results are bit-identical to ``np.linalg`` (a test
 fall back to ``np.linalg`` when that module is not there. Errors stay errors: a matrix that is not
 positive definite or is singular raises, as in ``np.linalg``. It also holds :func:`pairwise_sum`,
 NumPy's summation order, and :func:`nan_max` / :func:`nan_min` (``np.maximum`` / ``np.minimum`` of two
-floats), for compiled kernels that must reproduce NumPy's results. No I/O.
+floats), for compiled kernels that must reproduce NumPy's results (numba's cache does not see a
+change here from the kernels of other modules that inline them: clear their ``__pycache__/*.nb*``
+after editing these). No I/O.
 """
 
 from __future__ import annotations
