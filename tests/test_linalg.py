@@ -31,3 +31,11 @@ def test_errors_stay_errors() -> None:
         linalg.solve(singular, np.eye(3))
     with pytest.raises(np.linalg.LinAlgError):
         linalg.cholesky(-np.eye(4))
+
+
+def test_compiled_pairwise_sum_is_numpys_sum():
+    """pairwise_sum reproduces ndarray.sum bit for bit (pairwise blocks), contiguous or strided."""
+    rng = np.random.default_rng(5)
+    for n in [*range(0, 300), 1000, 1023, 1024, 1700, 8191, 8192, 8193, 50001]:
+        x = rng.normal(size=(n, 2)) * 10.0 ** rng.uniform(-6, 6, size=(n, 2))
+        assert linalg.pairwise_sum(x[:, 0]) == x[:, 0].sum() and linalg.pairwise_sum(x.ravel()) == x.sum(), n

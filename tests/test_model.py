@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
 
+from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import fit as LF
 from labelaudit.core import iou as IOU
@@ -708,3 +710,100 @@ def test_fit_rectangle_of_phi_equals_geometry(model):
         assert np.allclose(rect, ref, rtol=1e-12, atol=1e-12)
     tiny = g.box_to_phi(np.r_[label[:3], 1e-9, 1e-9, 1e-9, 0.2], model)  # collapsed sizes are floored
     assert np.allclose(LF._rect_from_phi(tiny, model == "3d", label, 1e-3)[3:5], 1e-3 * label[3:5])
+
+
+# ---------------------------------------------------------------------------------------------
+# compiled kernels against the NumPy forms they replaced (bit for bit)
+# ---------------------------------------------------------------------------------------------
+
+
+def _registration_numpy(y, pts, d, m, sigma):
+    """register_validated without outliers in its NumPy form (local frame, responsibilities)."""
+    half = 0.5 * y[3 : 3 + d]
+    c, s = np.cos(y[6]), np.sin(y[6])
+    rel = pts[:, :2] - y[:2]
+    local = np.empty_like(pts)
+    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
+    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
+    if d == 3:
+        local[:, 2] = pts[:, 2] - y[2]
+    vstar, sqd = M._nearest_faces(local, half, m)
+    logw = -sqd / (2.0 * sigma**2)
+    top = logw.max(axis=1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    e = np.exp(logw - top)
+    return vstar, sqd, e / e.sum(axis=1, keepdims=True)
+
+
+def _em_numpy(*sqds):
+    """The σ̂ EM (pooled over registrations) in its NumPy/Python form: every candidate through exp
+    (math.exp, as the kernel)."""
+    sqd = np.concatenate(sqds)
+    n = len(sqd)
+    sqd0 = np.where(np.isfinite(sqd), sqd, 0.0)
+    start = np.sqrt(sum(float(np.where(np.isfinite(s), s, 0.0)[:, 0].sum()) for s in sqds) / (1.0 * n))
+    sigma, estimate = max(float(start), 0.01), float(start)
+    diff, sq = (sqd - sqd.min(axis=1, keepdims=True)).T, sqd0.T
+    for _ in range(50):
+        scale = -0.5 / sigma**2
+        num = 0.0
+        for k in range(n):
+            e = [math.exp(float(v) * scale) for v in diff[:, k]]
+            se = s = 0.0
+            for j in range(len(e)):
+                se += e[j]
+                s += e[j] * float(sq[j, k])
+            num += s / se
+        new = float(np.sqrt(num / n))
+        converged = np.isfinite(estimate) and abs(new - estimate) <= 1e-3 * max(estimate, 0.01)
+        estimate = new
+        if converged or num == 0.0:
+            break
+        sigma = max(new, 0.01)
+    return estimate
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
+    """register_validated, the per-object EM and registration_information give their NumPy forms'
+    arrays bit for bit (points around, on and inside rotated boxes; 1 to 3 candidates)."""
+    assert (C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, C.EM_RESIDUAL_DOF) == (0.01, 1e-3, 50, 1.0)  # as _em_numpy
+    rng = np.random.default_rng(21)
+    d = g.point_dim(model)
+    B, BB = M._BASIS[model]
+    for trial in range(24):
+        y = np.array([*rng.normal(0, 30, 3), *rng.uniform(0.5, 10, 3), rng.uniform(-4, 4)])
+        pts = face_points(y, ["-x", "-y", "+x", "+z"], int(rng.integers(2, 300)), 10 ** rng.uniform(-3, -0.5), seed=trial)[:, :d].copy()
+        m, sigma = int(rng.integers(1, 4)), float(rng.uniform(0.02, 0.5))
+        reg = M.register_validated(y, pts, d, m, sigma, 0.0)
+        vstar, sqd, resp = _registration_numpy(y, pts, d, m, sigma)
+        assert np.array_equal(reg.vstar, vstar) and np.array_equal(reg.sqdist, sqd) and np.array_equal(reg.resp, resp), trial
+        if trial < 8:
+            assert M.em_sigma([(sqd, 0.0)], d, sigma, 0.0) == _em_numpy(sqd), trial
+            h = len(sqd) // 2  # pooled over two registrations
+            assert M.em_sigma([(sqd[:h], 0.0), (sqd[h:], 0.0)], d, sigma, 0.0) == _em_numpy(sqd[:h], sqd[h:]), trial
+        n = len(pts)
+        vt = np.empty((n, m, d + 1))
+        vt[..., 0] = 1.0
+        vt[..., 1:] = vstar
+        rv = vt * resp[..., None]
+        moments = rv.reshape(n * m, d + 1).T @ vt.reshape(n * m, d + 1)
+        p = B.shape[-1]
+        want = ((moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), (rv.sum(axis=1).T @ pts).reshape(-1) @ B.reshape(-1, p))
+        got = M.registration_information(reg, model)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), trial
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_compiled_quadratic_forms_equal_einsum(model):
+    """The per-parameter variances and corner total variances are einsum's sums bit for bit."""
+    rng = np.random.default_rng(17)
+    p = g.phi_dim(model)
+    J = M._CORNER_J[model]
+    for _ in range(300):
+        L = rng.normal(size=(p, p)) * 10.0 ** rng.uniform(-4, 1)
+        cov = L @ L.T
+        cov = 0.5 * (cov + cov.T)
+        K, _ = g.box_param_jacobian(np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 10, 3), rng.uniform(-4, 4)]), model)
+        assert np.array_equal(M._quad_forms(K, cov), np.einsum("ip,pq,iq->i", K, cov, K))
+        assert np.array_equal(M._corner_quad_forms(J, cov), np.einsum("cdp,pq,cdq->c", J, cov, J))

@@ -371,3 +371,166 @@ def test_compiled_raster_equals_the_bincount_form():
         want = (np.cumsum(steps.reshape(e.ny, e.nx + 1), axis=-1) + direct.reshape(e.ny, e.nx + 1))[:, : e.nx] * e.dy
         got = sp._raster_bev(s, xe, ye)
         assert got.shape == want.shape and np.array_equal(got, want) and got.sum() > 0.5
+
+
+def _sample_stats_numpy(phis: np.ndarray, d: int):
+    """The NumPy form of spatial._sample_kernel (S > 1), kept as the bit-exact reference."""
+    o = d - 2
+    centre = phis[:, :d]
+    A = np.empty((len(phis), 2, 2))
+    A[:, 0, 0], A[:, 1, 0] = phis[:, 2 + o], phis[:, 3 + o]
+    A[:, 0, 1], A[:, 1, 1] = -phis[:, 5 + o], phis[:, 4 + o]
+    size = np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
+    zint = None
+    if d == 3:
+        hh = 0.5 * np.abs(phis[:, 7])
+        zint = np.stack([centre[:, 2] - hh, centre[:, 2] + hh], axis=1)
+        size = size * 2.0 * hh
+    S = len(A)
+    ok = size > 1e-12 * max(float(size.max()), 1e-300)
+    weights = np.where(ok, 1.0 / np.where(ok, size, 1.0), 0.0) / np.count_nonzero(ok)
+    pts = np.matmul(A, sp._FACE_POINTS_UNIT) + centre[:, :2, None]
+    mean = pts.mean(axis=0)
+    dev = (pts - mean).reshape(S, 16)
+    var = (np.einsum("ij,ij->j", dev, dev) / S).reshape(2, 8).T
+    along_x = abs(A[:, 0, 0].sum()) >= abs(A[:, 1, 0].sum())
+    x_mid, y_mid = (var[4:6], var[6:8]) if along_x else (var[6:8], var[4:6])
+    blur = np.zeros(d)
+    blur[0] = np.sqrt(min(float(var[:4, 0].min()), float(x_mid[:, 0].min())))
+    blur[1] = np.sqrt(min(float(var[:4, 1].min()), float(y_mid[:, 1].min())))
+    z_mean = z_std = None
+    if zint is not None:
+        z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
+        blur[2] = float(z_std.min())
+    return centre[:, :2], A, zint, weights, mean[:, :4].T, float(np.sqrt(var[:4].sum(axis=1).max())), blur, z_mean, z_std
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_compiled_sample_statistics_equal_the_numpy_form(model):
+    """The one-pass sample kernel gives the NumPy form's sample boxes and boundary statistics bit for
+    bit: φ samples of boxes of all sizes and spreads, rotated, with degenerate samples mixed in."""
+    rng = np.random.default_rng(11)
+    d, p = g.point_dim(model), g.phi_dim(model)
+    for trial in range(60):
+        box = np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 12, 3), rng.uniform(-4, 4)])
+        S = int(rng.choice([2, 16, 128, 300]))
+        L = rng.normal(size=(p, p)) * 10.0 ** rng.uniform(-4, 0.5)
+        phis = g.box_to_phi(box, model) + rng.normal(size=(S, p)) @ L
+        if trial % 5 == 0:
+            phis[rng.integers(0, S, 1 + S // 4), 2 + (d - 2)] = 0.0  # zero-length samples: dropped
+            phis[:, 3 + (d - 2)] *= phis[:, 2 + (d - 2)] != 0
+        centres, A, zint, _, weights, corner_mean, corner_std, blur, z_mean, z_std = sp._sample_kernel(phis, d)
+        want = _sample_stats_numpy(phis, d)
+        got = (centres, A, zint if d == 3 else None, weights, corner_mean, corner_std, blur, z_mean if d == 3 else None, z_std if d == 3 else None)
+        for name, a, b in zip(("centres", "A", "z", "weights", "corner_mean", "corner_std", "blur", "z_mean", "z_std"), got, want):
+            assert (a is None and b is None) or np.array_equal(np.asarray(a), np.asarray(b)), (trial, name)
+
+
+
+def _jaccard_numpy(p, q, c, p_outside=0.0, q_outside=0.0):
+    """The NumPy form of jaccard's sums, kept as the bit-exact reference of its compiled kernels."""
+    both = (p > 0) & (q > 0)
+    if not both.any():
+        return 0.0
+    p_only = float((c * p)[q == 0].sum()) + float(p_outside)
+    q_only = float((c * q)[p == 0].sum()) + float(q_outside)
+    pb, qb, cb = p[both], q[both], c[both]
+    order = (pb / qb).argsort()
+    ps, qs, cs = pb[order], qb[order], cb[order]
+    suffix_p = np.cumsum((cs * ps)[::-1])[::-1] + p_only
+    prefix_q = np.cumsum(cs * qs) - cs * qs + q_only
+    return float((cs / (suffix_p / ps + prefix_q / qs)).sum())
+
+
+def test_compiled_jaccard_equals_the_numpy_form():
+    """jaccard's compiled split and sums give the NumPy form's value bit for bit: sparse supports,
+    tied ratios, merged cells (counts) and mass outside the listed cells."""
+    rng = np.random.default_rng(8)
+    for trial in range(80):
+        n = int(rng.integers(1, 5000))
+        p = rng.exponential(size=n) * (rng.random(n) < rng.uniform(0.2, 1.0))
+        q = rng.exponential(size=n) * (rng.random(n) < rng.uniform(0.2, 1.0))
+        if trial % 3 == 0:  # many equal cells, as the interior of a raster
+            p[rng.random(n) < 0.5] = 0.25
+            q[rng.random(n) < 0.5] = 0.5
+        c = np.ones(n) if trial % 2 else rng.integers(1, 9, n).astype(float)
+        po, qo = (0.0, 0.0) if trial % 4 else tuple(rng.uniform(0, 3, 2))
+        assert sp.jaccard(p, q, c, po, qo) == _jaccard_numpy(p, q, c, po, qo), trial
+
+
+def test_compiled_aligned_raster_and_clean_equal_the_numpy_form():
+    """The single aligned box's separable raster and the round-off cleaning equal their NumPy forms."""
+    rng = np.random.default_rng(4)
+
+    def overlap(lo, hi, edges):
+        return np.clip(np.minimum(hi, edges[1:]) - np.maximum(lo, edges[:-1]), 0.0, None)
+
+    for _ in range(30):
+        xe, ye = np.sort(rng.normal(0, 3, int(rng.integers(2, 90)))), np.sort(rng.normal(0, 2, int(rng.integers(2, 60))))
+        cx, cy, hx, hy, w = rng.normal(0, 1), rng.normal(0, 1), rng.uniform(0.1, 3), rng.uniform(0.1, 2), rng.uniform(0.1, 5)
+        want = np.outer(overlap(cy - hy, cy + hy, ye), overlap(cx - hx, cx + hx, xe)) * w
+        assert np.array_equal(sp._aligned_kernel(cx, cy, hx, hy, xe, ye, w), want)
+        mass = want * (1.0 + rng.normal(0, 1e-11, want.shape)) - 1e-13 * want.max() * rng.random(want.shape)
+        ref = mass.copy()
+        ref[ref <= 1e-12 * float(ref.max())] = 0.0
+        assert np.array_equal(sp._clean(mass), ref)
+
+
+def _raster_3d_sparse(s, xe, ye, zw):
+    """spatial._raster_3d's SciPy sparse form, kept as the bit-exact reference of its kernel."""
+    from scipy.sparse import coo_matrix
+
+    e = sp._events(s, xe, ye)
+    nb = e.ny * (e.nx + 1)
+    S = e.i_lo.shape[0]
+    sidx = np.broadcast_to(np.arange(S)[:, None], e.i_lo.shape)[e.valid]
+    i_lo, i_hi = e.i_lo[e.valid], e.i_hi[e.valid]
+    rows = np.concatenate([i_lo, i_hi, i_hi + nb, i_lo + nb])
+    n = len(i_lo)
+    vals = np.concatenate([np.full(n, e.dx), np.full(n, -e.dx), e.f_hi[e.valid], -e.f_lo[e.valid]])
+    M = coo_matrix((vals, (rows, np.concatenate([sidx] * 4))), shape=(2 * nb, S)).tocsr()
+    out = np.asarray(M @ zw).reshape(2, e.ny, e.nx + 1, zw.shape[1])
+    return ((np.cumsum(out[0], axis=1) + out[1])[:, : e.nx] * e.dy)
+
+
+def test_compiled_3d_raster_equals_the_sparse_form():
+    """The 3D raster kernel gives SciPy's sparse product bit for bit: rotated, blurred and thin
+    boxes (intervals inside one cell), one or many z columns."""
+    assert C.SUBROWS_PER_CELL == 1  # the kernel's case
+    rng = np.random.default_rng(12)
+    for trial in range(30):
+        box = np.array([*rng.normal(0, 2, 3), rng.uniform(0.3, 8), rng.uniform(0.05, 3), rng.uniform(0.5, 3), rng.uniform(-4, 4)])
+        ref = np.array([*box[:3], *box[3:6], box[6] + rng.normal(0, 0.3)])
+        L = rng.normal(size=(8, 8)) * 10.0 ** rng.uniform(-3, -0.5)
+        s = sp._sample_boxes(sp.BoxDistribution(box, "3d", L @ L.T), ref, SpatialParams(num_samples=int(rng.choice([16, 128]))))
+        n = int(rng.integers(4, 90))
+        xe = np.linspace(-0.6 * box[3] - 0.3, 0.6 * box[3] + 0.3, n + 1)
+        ye = np.linspace(-0.6 * box[4] - 0.3, 0.6 * box[4] + 0.3, int(rng.integers(2, 60)) + 1)
+        zw = s.weights[:, None] * rng.uniform(0, 1, (len(s.weights), int(rng.integers(1, 6))))
+        got = sp._raster_3d(s, xe, ye, zw)
+        assert np.array_equal(got, _raster_3d_sparse(s, xe, ye, zw)), trial
+
+
+def test_axis_edges_in_python_floats_equal_the_numpy_scalar_form():
+    """_axis_edges computes in Python floats what it computed on NumPy scalars, bit for bit (also
+    when the cell cap applies)."""
+    import math
+
+    def numpy_form(half, lo, hi, cell):
+        n_box = max(1, int(round(2 * half / cell)))
+        step = 2 * half / n_box
+        n_lo = max(0, math.ceil((-half - lo) / step - 1e-9))
+        n_hi = max(0, math.ceil((hi - half) / step - 1e-9))
+        total = n_lo + n_box + n_hi
+        if total > C.MAX_CELLS_PER_AXIS:
+            lo, hi = min(lo, -half), max(hi, half)
+            return np.linspace(lo, hi, C.MAX_CELLS_PER_AXIS + 1)
+        return -half - n_lo * step + step * np.arange(total + 1)
+
+    rng = np.random.default_rng(9)
+    for _ in range(500):
+        half = np.float64(rng.uniform(0.05, 10))
+        lo, hi = np.float64(-half - rng.exponential(half)), np.float64(half + rng.exponential(half))
+        cell = np.float64(2 * half / rng.uniform(1, 400))
+        got, want = sp._axis_edges(half, lo, hi, cell), numpy_form(half, lo, hi, cell)
+        assert got.shape == want.shape and np.array_equal(got, want)

@@ -5,11 +5,16 @@ wrapping, which on a 6×6 matrix cost several times the arithmetic (a box runs a
 calls). These functions call the same NumPy gufuncs (``numpy.linalg._umath_linalg``, float64
 signature) directly, so their results are bit-identical to ``np.linalg`` (a test checks); they
 fall back to ``np.linalg`` when that module is not there. Errors stay errors: a matrix that is not
-positive definite or is singular raises, as in ``np.linalg``. No I/O.
+positive definite or is singular raises, as in ``np.linalg``. It also holds :func:`pairwise_sum`,
+NumPy's summation order, and :func:`nan_max` / :func:`nan_min` (``np.maximum`` / ``np.minimum`` of two
+floats), for compiled kernels that must reproduce NumPy's results (numba's cache does not see a
+change here from the kernels of other modules that inline them: clear their ``__pycache__/*.nb*``
+after editing these). No I/O.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -20,7 +25,7 @@ except ImportError:  # pragma: no cover - another NumPy layout: use the public A
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["cholesky", "eigh", "inv", "solve"]
+__all__ = ["cholesky", "eigh", "inv", "nan_max", "nan_min", "pairwise_sum", "solve"]
 
 
 def inv(a: FloatArray) -> FloatArray:
@@ -68,3 +73,87 @@ def eigh(a: FloatArray) -> tuple[FloatArray, FloatArray]:
     if w.size and w[0] != w[0]:
         return np.linalg.eigh(a)
     return w, v
+
+
+@numba.njit(cache=True)
+def _pairwise_block(a, lo, n):  # pragma: no cover - compiled
+    """NumPy's sum of a block of n ≤ 128 elements: 8 accumulators (sequential below 8 elements)."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@numba.njit(cache=True)
+def pairwise_sum(a):  # pragma: no cover - compiled
+    """``a.sum()`` of a 1-D float64 array with NumPy's order of operations (0 + pairwise sum:
+    halves rounded to multiples of 8 until a block has ≤ 128 elements), so compiled code can
+    reproduce a NumPy total bit for bit (tests/test_linalg.py checks it). The split tree is
+    walked with an explicit stack: numba's cache does not load recursive functions reliably."""
+    if a.size <= 128:
+        return 0.0 + _pairwise_block(a, 0, a.size)
+    seg_lo = np.empty(64, dtype=np.int64)
+    seg_n = np.empty(64, dtype=np.int64)
+    left = np.empty(64)
+    right_pending = np.zeros(64, dtype=np.bool_)  # the left half of this segment is summed
+    top = 0
+    seg_lo[0], seg_n[0] = 0, a.size
+    while True:
+        n = seg_n[top]
+        if n > 128:  # split: visit the left half first
+            n2 = n // 2
+            n2 -= n2 % 8
+            right_pending[top] = False
+            top += 1
+            seg_lo[top], seg_n[top] = seg_lo[top - 1], n2
+            continue
+        v = _pairwise_block(a, seg_lo[top], n)
+        while top > 0:  # hand the sum up the tree
+            top -= 1
+            if not right_pending[top]:
+                left[top] = v
+                right_pending[top] = True
+                n2 = seg_n[top] // 2
+                n2 -= n2 % 8
+                top += 1
+                seg_lo[top], seg_n[top] = seg_lo[top - 1] + n2, seg_n[top - 1] - n2
+                break
+            v = left[top] + v
+        else:
+            return 0.0 + v
+
+
+@numba.njit(cache=True)
+def nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
+    """np.maximum of two floats (NaN propagates)."""
+    if a != a or b != b:
+        return a + b
+    return a if a >= b else b
+
+
+@numba.njit(cache=True)
+def nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
+    """np.minimum of two floats (NaN propagates)."""
+    if a != a or b != b:
+        return a + b
+    return a if a <= b else b

@@ -138,18 +138,54 @@ def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: fl
     """r_km ∝ exp(−d²/2σ²) over the M candidates, plus an optional uniform outlier component."""
     if sqdist.size == 0:
         return np.zeros_like(sqdist)
+    if not outlier_prob > 0:
+        # Without outliers: the exponents and the row normalisation compiled, the exp NumPy's
+        # (in place: the same values without two more (N, M) arrays).
+        x = _resp_exponents(sqdist, 2.0 * sigma**2)
+        return _normalise_rows(np.exp(x, out=x))
     m = sqdist.shape[1]
     logw = -sqdist / (2.0 * sigma**2)  # -inf for missing candidates
     top = logw.max(axis=1, keepdims=True)
     top = np.where(np.isfinite(top), top, 0.0)
     e = np.exp(logw - top)
     norm = e.sum(axis=1, keepdims=True)
-    if outlier_prob > 0:
-        # Mixture: (1-p)/M · N(x | v̄, σ²I) per candidate, p · uniform. Compare in log space.
-        log_gauss_const = np.log((1.0 - outlier_prob) / m) - 0.5 * d * np.log(2.0 * np.pi * sigma**2)
-        log_out = np.log(outlier_prob) + outlier_log_density - log_gauss_const
-        norm = norm + np.exp(np.minimum(log_out - top, 700.0))
+    # Mixture: (1-p)/M · N(x | v̄, σ²I) per candidate, p · uniform. Compare in log space.
+    log_gauss_const = np.log((1.0 - outlier_prob) / m) - 0.5 * d * np.log(2.0 * np.pi * sigma**2)
+    log_out = np.log(outlier_prob) + outlier_log_density - log_gauss_const
+    norm = norm + np.exp(np.minimum(log_out - top, 700.0))
     return e / norm
+
+
+@numba.njit(cache=True)
+def _resp_exponents(sqdist, two_var):  # pragma: no cover - compiled
+    """logw − max_m logw per point with logw = −d²/(2σ²) (a row without a finite maximum keeps
+    logw): the NumPy form's element operations, so ``np.exp`` of it is the same array."""
+    n, m = sqdist.shape
+    out = np.empty((n, m))
+    for k in range(n):
+        top = -np.inf
+        for j in range(m):
+            out[k, j] = -sqdist[k, j] / two_var
+            top = linalg.nan_max(top, out[k, j])
+        if not math.isfinite(top):
+            top = 0.0
+        for j in range(m):
+            out[k, j] = out[k, j] - top
+    return out
+
+
+@numba.njit(cache=True)
+def _normalise_rows(e):  # pragma: no cover - compiled
+    """e / e.sum(axis=1, keepdims=True), in place; a row has M ≤ 6 < 8 entries, which NumPy sums
+    sequentially."""
+    n, m = e.shape
+    for k in range(n):
+        norm = 0.0
+        for j in range(m):
+            norm += e[k, j]
+        for j in range(m):
+            e[k, j] = e[k, j] / norm
+    return e
 
 
 def register(
@@ -180,16 +216,14 @@ def register_validated(y: FloatArray, pts: FloatArray, d: int, num_nearest: int,
     """:func:`register` for a validated box and clean (N, d) points."""
     half = 0.5 * y[3 : 3 + d]
     c, s = np.cos(y[6]), np.sin(y[6])
-    rel = pts[:, :2] - y[:2]
-    local = np.empty_like(pts)  # box frame, metres: Rᵀ (x − c)
-    local[:, 0] = c * rel[:, 0] + s * rel[:, 1]
-    local[:, 1] = -s * rel[:, 0] + c * rel[:, 1]
-    if d == 3:
-        local[:, 2] = pts[:, 2] - y[2]
     m = min(int(num_nearest), 2 * d)
-    vstar, sqd = _nearest_faces(local, half, m)
-    log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN)))) if outlier_prob > 0 else 0.0  # unused without outliers
-    resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
+    tol = 1e-9 * max(half.tolist())
+    vstar, sqd, x = _register_kernel(pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, tol, 2.0 * sigma**2)
+    if not outlier_prob > 0:  # _responsibilities without outliers, from the kernel's exponents
+        resp = _normalise_rows(np.exp(x, out=x)) if sqd.size else np.zeros_like(sqd)
+    else:
+        log_density = -float(np.sum(np.log(2.0 * (half + C.OUTLIER_REGION_MARGIN))))
+        resp = _responsibilities(sqd, sigma, d, outlier_prob, log_density)
     return Registration(vstar=vstar, sqdist=sqd, resp=resp, points=pts)
 
 
@@ -207,6 +241,22 @@ def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatAr
     local = np.ascontiguousarray(local, dtype=np.float64)
     half = np.ascontiguousarray(half, dtype=np.float64)
     return _nearest_faces_kernel(local, half, int(m), 1e-9 * float(half.max()))
+
+
+@numba.njit(cache=True)
+def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol, two_var):  # pragma: no cover - compiled
+    """The points (N, d) in the box frame, Rᵀ (x − c) (the NumPy form's element operations), then
+    :func:`_nearest_faces_kernel` and the responsibility exponents (:func:`_resp_exponents`)."""
+    n, d = pts.shape
+    local = np.empty((n, d))
+    for k in range(n):
+        r0, r1 = pts[k, 0] - cx, pts[k, 1] - cy
+        local[k, 0] = c * r0 + s * r1
+        local[k, 1] = -s * r0 + c * r1
+        if d == 3:
+            local[k, 2] = pts[k, 2] - cz
+    vstar, sqd = _nearest_faces_kernel(local, half, m, tol)
+    return vstar, sqd, _resp_exponents(sqd, two_var)
 
 
 @numba.njit(cache=True)
@@ -281,15 +331,32 @@ def registration_information(reg: Registration, model: ModelKind) -> tuple[Float
     """
     B, BB = _BASIS[model]
     n, m, d = reg.vstar.shape
-    vt = np.empty((n, m, d + 1))
-    vt[..., 0] = 1.0
-    vt[..., 1:] = reg.vstar
-    rv = vt * reg.resp[..., None]
-    rv2 = rv.reshape(n * m, d + 1)
-    moments = rv2.T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
-    cross = rv.sum(axis=1).T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
+    vt, rv, rv_sum = _weighted_unit_coords(reg.vstar, reg.resp)
+    moments = rv.reshape(n * m, d + 1).T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
+    cross = rv_sum.T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
     p = B.shape[-1]
     return (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), cross.reshape(-1) @ B.reshape(-1, p)
+
+
+@numba.njit(cache=True)
+def _weighted_unit_coords(vstar, resp):  # pragma: no cover - compiled
+    """ṽ = (1, v*) (N, M, d+1), r·ṽ and its sum over the M candidates (N, d+1); M ≤ 6 < 8, so the
+    sum is sequential as NumPy's ``sum(axis=1)``."""
+    n, m, d = vstar.shape
+    vt = np.empty((n, m, d + 1))
+    rv = np.empty((n, m, d + 1))
+    rv_sum = np.zeros((n, d + 1))
+    for k in range(n):
+        for j in range(m):
+            r = resp[k, j]
+            vt[k, j, 0] = 1.0
+            rv[k, j, 0] = r  # 1 · r
+            for a in range(d):
+                vt[k, j, a + 1] = vstar[k, j, a]
+                rv[k, j, a + 1] = vstar[k, j, a] * r
+            for a in range(d + 1):
+                rv_sum[k, a] += rv[k, j, a]
+    return vt, rv, rv_sum
 
 
 # ----------------------------------------------------------------------------------------------
@@ -383,8 +450,10 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
     """Pooled EM for σ over registrations given as (sqdist (N, M), outlier log density)."""
     if len(regs) == 1 and outlier_prob == 0:
         sqd = regs[0][0]
-        if len(sqd) and sqd.shape[1] and np.isfinite(sqd[:, 0]).all():
-            return _em_sigma_one(sqd)
+        if len(sqd) and sqd.shape[1]:
+            one = _em_sigma_one(sqd)
+            if one is not None:
+                return one
     regs = [(sqd, np.where(np.isfinite(sqd), sqd, 0.0), ld) for sqd, ld in regs]
     # Start at the nearest-candidate residual (the small-σ limit): EM then needs few iterations.
     n_pts = sum(len(sqd) for sqd, _, _ in regs)
@@ -402,10 +471,9 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
     )
     if fast:
         # Without outliers the responsibilities of a point sum to 1 and only exp(−(d² − min d²)/2σ²)
-        # changes with σ: the candidate differences, as rows (M, N), go to one compiled loop.
-        diff = np.concatenate([(sqd - np.min(sqd, axis=1, keepdims=True)).T for sqd, _, _ in regs], axis=1)
-        sq = np.concatenate([sqd0.T for _, sqd0, _ in regs], axis=1)
-        return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+        # changes with σ: the squared distances of all points go to one compiled loop.
+        sqd_all = np.ascontiguousarray(np.concatenate([sqd for sqd, _, _ in regs], axis=0), dtype=np.float64)
+        return float(_em_fast_kernel(sqd_all, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
     for _ in range(C.EM_MAX_ITERATIONS):
         num = den = 0.0
         for sqd, sqd0, log_density in regs:
@@ -423,36 +491,55 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
     return estimate
 
 
-def _em_sigma_one(sqd: FloatArray) -> float:
-    """:func:`em_sigma` of one registration (N ≥ 1 points, nearest candidates finite) without
-    outliers: the same operations on the same arrays as the pooled form, without the pooling
-    (this is the per-object σ̂ of every label)."""
-    n_pts = len(sqd)
-    sqd0 = np.where(np.isfinite(sqd), sqd, 0.0)
-    start = np.sqrt(float(sqd0[:, 0].sum()) / (C.EM_RESIDUAL_DOF * n_pts))
-    sigma = max(float(start), C.SIGMA_FLOOR)
-    estimate = float(start)
-    diff = np.ascontiguousarray((sqd - sqd.min(axis=1, keepdims=True)).T)
-    sq = np.ascontiguousarray(sqd0.T)
-    return float(_em_fast_kernel(diff, sq, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+def _em_sigma_one(sqd: FloatArray) -> float | None:
+    """:func:`em_sigma` of one registration (N ≥ 1 points) without outliers: the same operations
+    on the same arrays as the pooled form, without the pooling (this is the per-object σ̂ of every
+    label); None when a nearest candidate is not finite (the pooled form handles that)."""
+    ok, estimate = _em_one_kernel(sqd, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF))
+    return float(estimate) if ok else None
 
 
 @numba.njit(cache=True)
-def _em_fast_kernel(diff, sq, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
-    """The EM of :func:`em_sigma` without outliers: candidate differences d² − min d² and squared
-    distances as rows (M, N); per point the responsibility-weighted d² over its candidates."""
-    m, n = diff.shape
+def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compiled
+    """The start of :func:`_em_fast_kernel` for one registration (N, M) whose nearest candidates
+    are finite (else (False, NaN)): √(Σ nearest d² / (dof·N)), summed in NumPy's pairwise order."""
+    n = sqd.shape[0]
+    for k in range(n):
+        if not math.isfinite(sqd[k, 0]):
+            return False, math.nan
+    start = math.sqrt(linalg.pairwise_sum(sqd[:, 0]) / (dof * n))
+    sigma = floor if floor > start else start  # Python's max(start, floor)
+    return True, _em_fast_kernel(sqd, sigma, start, floor, tol, max_iter, dof)
+
+
+@numba.njit(cache=True)
+def _em_fast_kernel(sqd, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
+    """The EM of :func:`em_sigma` without outliers over squared distances (N, M): per point the
+    responsibility-weighted d² over its candidates, the weights exp(−(d² − min d²)/2σ²) (missing
+    candidates, d² = inf, weigh 0 and count as 0). The same operations, point by point, as the
+    NumPy set-up it replaced (differences and finite distances formed first)."""
+    n, m = sqd.shape
+    lo = np.empty(n)  # np.min per point (NaN propagates)
+    for k in range(n):
+        v = np.inf
+        for j in range(m):
+            v = linalg.nan_min(v, sqd[k, j])
+        lo[k] = v
     den = dof * n
     for _ in range(max_iter):
         scale = -0.5 / sigma**2
+        exact_one = math.isfinite(scale)  # then exp(0 · scale) = 1
         num = 0.0
         for k in range(n):
             se = 0.0
             s = 0.0
             for j in range(m):
-                e = math.exp(diff[j, k] * scale)  # missing candidates (inf) give 0
+                v = sqd[k, j]
+                diff = v - lo[k]
+                # exp(0) = 1 exactly (the nearest candidate); missing candidates (inf) give 0
+                e = 1.0 if diff == 0.0 and exact_one else math.exp(diff * scale)
                 se += e
-                s += e * sq[j, k]
+                s += e * (v if math.isfinite(v) else 0.0)
             num += s / se
         if den <= 0:
             return math.nan
@@ -535,16 +622,21 @@ def corner_total_variance(
 
 
 _CORNER_J = {m: g.design_matrix(corner_unit_coords(m), m) for m in ("bev", "3d")}  # (4, d, p), box-independent
+_CORNERS_UNIT = [tuple(u) for u in g.BEV_CORNERS_UNIT.tolist()]
 
 
 def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
-    J = _CORNER_J[model]
-    tv = np.einsum("cdp,pq,cdq->c", J, cov, J)
+    tv = _corner_quad_forms(_CORNER_J[model], cov)  # = np.einsum("cdp,pq,cdq->c", J, cov, J)
     c, s = math.cos(y[6]), math.sin(y[6])
-    u = g.BEV_CORNERS_UNIT * y[3:5]
     o = np.asarray(sensor_origin, dtype=float)
-    dist = np.hypot((c * u[:, 0] - s * u[:, 1] + y[0]) - o[0], (s * u[:, 0] + c * u[:, 1] + y[1]) - o[1])  # corners − sensor
-    order = dist.argsort(kind="stable")
+    # Corners − sensor in Python floats: the same IEEE operations as on (4,) arrays, without the calls.
+    x0, y0, ox, oy = float(y[0]), float(y[1]), float(o[0]), float(o[1])
+    dx, dy = [], []
+    for ux, uy in _CORNERS_UNIT:
+        ux, uy = ux * float(y[3]), uy * float(y[4])
+        dx.append((c * ux - s * uy + x0) - ox)
+        dy.append((s * ux + c * uy + y0) - oy)
+    order = np.hypot(dx, dy).argsort(kind="stable")
     return tv[order], order
 
 
@@ -556,10 +648,41 @@ def box_std(box: ArrayLike, cov: ArrayLike, model: ModelKind) -> dict[str, float
 
 def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
     names = ("cx", "cy", "length", "width", "yaw") if g.point_dim(model) == 2 else g.BOX_FIELDS
-    var = np.einsum("ip,pq,iq->i", K, np.asarray(cov, dtype=float), K)
+    var = _quad_forms(K, np.asarray(cov, dtype=float))  # = np.einsum("ip,pq,iq->i", K, cov, K)
     out = dict.fromkeys(g.BOX_FIELDS, float("nan"))
     for name, v in zip(names, var.tolist()):
         out[name] = math.sqrt(max(v, 0.0))  # IEEE square roots are exact-rounded: = np.sqrt
+    return out
+
+
+@numba.njit(cache=True)
+def _quad_forms(K, cov):  # pragma: no cover - compiled
+    """K_i Σ K_iᵀ per row i, summed as ``np.einsum("ip,pq,iq->i", K, cov, K)`` does: the products
+    (K_ip·Σ_pq)·K_iq added one by one from 0, p outer, q inner (tests/test_model.py checks the bits)."""
+    n, p = K.shape
+    out = np.empty(n)
+    for i in range(n):
+        acc = 0.0
+        for a in range(p):
+            for b in range(p):
+                acc += K[i, a] * cov[a, b] * K[i, b]
+        out[i] = acc
+    return out
+
+
+@numba.njit(cache=True)
+def _corner_quad_forms(J, cov):  # pragma: no cover - compiled
+    """trace(J_c Σ J_cᵀ) per corner c in the order of ``np.einsum("cdp,pq,cdq->c", J, cov, J)``:
+    (J_cdp·Σ_pq)·J_cdq added one by one from 0 over d, p, q (tests/test_model.py checks the bits)."""
+    nc, nd, p = J.shape
+    out = np.empty(nc)
+    for c in range(nc):
+        acc = 0.0
+        for d in range(nd):
+            for a in range(p):
+                for b in range(p):
+                    acc += J[c, d, a] * cov[a, b] * J[c, d, b]
+        out[c] = acc
     return out
 
 
@@ -641,7 +764,8 @@ def infer_label(
     sigma = float(params.sigma)
     reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
     if n >= 2:
-        sigma_hat = em_sigma([(reg.sqdist, outlier_log_density(y, d))], d, sigma, params.outlier_prob)
+        log_density = outlier_log_density(y, d) if params.outlier_prob > 0 else 0.0  # only read with outliers
+        sigma_hat = em_sigma([(reg.sqdist, log_density)], d, sigma, params.outlier_prob)
         if params.estimate_sigma and n >= max(params.min_points, 2) and np.isfinite(sigma_hat):
             sigma = max(sigma_hat, C.SIGMA_FLOOR)
             reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)

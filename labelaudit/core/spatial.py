@@ -139,7 +139,7 @@ def _sqrt_psd(cov: FloatArray) -> FloatArray:
     rotations, so equal covariances always give equal samples (also when singular).
     """
     lam, V = linalg.eigh(cov)
-    return (V * np.sqrt(np.clip(lam, 0.0, None))) @ V.T
+    return (V * np.sqrt(np.maximum(lam, 0.0))) @ V.T  # = np.clip(lam, 0.0, None)
 
 
 @dataclass(frozen=True)
@@ -202,12 +202,6 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
                 T[_IDX_3D_PLANAR] = T6
             z = normal_samples(phi.size, params.num_samples, params.seed)
             phis = phi + z @ _sqrt_psd(T @ dist.cov @ T.T)
-        o = d - 2
-        centre = phis[:, :d]
-        A = np.empty((len(phis), 2, 2))
-        A[:, 0, 0], A[:, 1, 0] = phis[:, 2 + o], phis[:, 3 + o]  # length edge (l cos, l sin)
-        A[:, 0, 1], A[:, 1, 1] = -phis[:, 5 + o], phis[:, 4 + o]  # width edge (−w sin, w cos)
-        height = phis[:, 7] if d == 3 else None
     else:
         k = dist.cov.shape[0]
         T = np.eye(k)
@@ -217,46 +211,116 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
         ys = mean + z @ _sqrt_psd(T @ dist.cov @ T.T)
         if k == 5:
             ys = np.c_[ys[:, 0:2], np.full(len(ys), yl[2]), ys[:, 2:4], np.full(len(ys), yl[5]), ys[:, 4]]
+        # The same φ layout: centre, length edge (l cos, l sin), width edge (w cos, w sin) [, height].
         c, sn = np.cos(ys[:, 6]), np.sin(ys[:, 6])
-        A = np.empty((len(ys), 2, 2))
-        A[:, 0, 0], A[:, 1, 0] = ys[:, 3] * c, ys[:, 3] * sn
-        A[:, 0, 1], A[:, 1, 1] = -ys[:, 4] * sn, ys[:, 4] * c
-        centre = ys[:, :d]
-        height = ys[:, 5] if d == 3 else None
-    size = np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
-    zint = None
-    if height is not None:
-        hh = 0.5 * np.abs(height)
-        zint = np.stack([centre[:, 2] - hh, centre[:, 2] + hh], axis=1)
-        size = size * 2.0 * hh
-    S = len(A)
-    if S == 1:
+        edges = np.stack([ys[:, 3] * c, ys[:, 3] * sn, ys[:, 4] * c, ys[:, 4] * sn], axis=1)
+        phis = np.concatenate([ys[:, :d], edges, ys[:, 5:6]] if d == 3 else [ys[:, :d], edges], axis=1)
+    centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std = _sample_kernel(np.ascontiguousarray(phis, dtype=np.float64), d)
+    if d == 2:
+        zint = z_mean = z_std = None
+    if len(A) == 1:
         weights = 1.0 / size if size[0] > 0 else np.zeros(1)
         a0, a1 = 0.5 * A[0, :, 0], 0.5 * A[0, :, 1]
-        corners = centre[0, :2] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1])
-        return _Samples(centre[:, :2], A, zint, weights, corners, 0.0, np.zeros(d), None if zint is None else zint[0], None if zint is None else np.zeros(2))
-    ok = size > 1e-12 * max(float(size.max()), 1e-300)  # degenerate samples carry no area: drop
-    weights = np.where(ok, 1.0 / np.where(ok, size, 1.0), 0.0) / np.count_nonzero(ok)
+        corners = centres[0] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1])
+        return _Samples(centres, A, zint, weights, corners, 0.0, np.zeros(d), None if zint is None else zint[0], None if zint is None else np.zeros(2))
+    return _Samples(centres, A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _sample_kernel(phis, d):  # pragma: no cover - compiled
+    """Sample boxes from φ samples (S, p) and the statistics of their boundary, in one pass.
+
+    Returns centres (S, 2), axes A (S, 2, 2), z-intervals (S, 2) (zeros in BEV), sizes (S,), and for
+    S > 1 the weights, corner_mean (4, 2), corner_std, blur (d,), z_mean, z_std (2,) of
+    :class:`_Samples`. Element by element the float64 operations of the NumPy form it replaced, in
+    the same order (sums over samples run sequentially as NumPy's reductions along axis 0 do; the
+    two edge sums that pick the blur axes are pairwise like ``ndarray.sum``), so the results are
+    bit-identical (tests/test_spatial.py keeps the NumPy form).
+    """
+    S = phis.shape[0]
+    o = d - 2
+    centres = np.empty((S, 2))
+    A = np.empty((S, 2, 2))
+    zint = np.zeros((S, 2))
+    size = np.empty(S)
+    top = -np.inf
+    for k in range(S):
+        centres[k, 0], centres[k, 1] = phis[k, 0], phis[k, 1]
+        A[k, 0, 0], A[k, 1, 0] = phis[k, 2 + o], phis[k, 3 + o]  # length edge (l cos, l sin)
+        A[k, 0, 1], A[k, 1, 1] = -phis[k, 5 + o], phis[k, 4 + o]  # width edge (−w sin, w cos)
+        v = abs(A[k, 0, 0] * A[k, 1, 1] - A[k, 0, 1] * A[k, 1, 0])
+        if d == 3:
+            hh = 0.5 * abs(phis[k, 7])
+            zint[k, 0] = phis[k, 2] - hh
+            zint[k, 1] = phis[k, 2] + hh
+            v = v * 2.0 * hh
+        size[k] = v
+        top = linalg.nan_max(top, v)
+    weights = np.zeros(S)
+    corner_mean = np.zeros((4, 2))
+    blur = np.zeros(d)
+    z_mean = np.zeros(2)
+    z_std = np.zeros(2)
+    if S == 1:
+        return centres, A, zint, size, weights, corner_mean, 0.0, blur, z_mean, z_std
+    # Degenerate samples carry no area: drop them.
+    floor = 1e-12 * (top if top != top or top > 1e-300 else 1e-300)
+    n_ok = 0
+    for k in range(S):
+        if size[k] > floor:
+            n_ok += 1
+    for k in range(S):
+        weights[k] = (1.0 / size[k] if size[k] > floor else 0.0) / n_ok
     # Corners in box_corners' BEV order ((+,+), (−,+), (−,−), (+,−) in unit coordinates), then the
-    # midpoints of the ±length and ±width faces.
-    pts = np.matmul(A, _FACE_POINTS_UNIT) + centre[:, :2, None]  # (S, 2, 8)
-    mean = pts.mean(axis=0)  # (2, 8)
-    dev = (pts - mean).reshape(S, 16)
-    var = (np.einsum("ij,ij->j", dev, dev) / S).reshape(2, 8).T  # (8, 2)
-    corner_mean = mean[:, :4].T
-    corner_std = float(np.sqrt(var[:4].sum(axis=1).max()))
+    # midpoints of the ±length and ±width faces: (S, 2, 8), their mean and variance over samples.
+    pts = np.empty((S, 2, 8))
+    mean = np.zeros((2, 8))
+    for k in range(S):
+        for i in range(2):
+            for j in range(8):
+                pts[k, i, j] = (A[k, i, 0] * _FACE_POINTS_UNIT[0, j] + A[k, i, 1] * _FACE_POINTS_UNIT[1, j]) + centres[k, i]
+                mean[i, j] += pts[k, i, j]
+    for i in range(2):
+        for j in range(8):
+            mean[i, j] /= S
+    var = np.zeros((8, 2))
+    for k in range(S):
+        for i in range(2):
+            for j in range(8):
+                dev = pts[k, i, j] - mean[i, j]
+                var[j, i] += dev * dev
+    for j in range(8):
+        for i in range(2):
+            var[j, i] /= S
+    top = -np.inf
+    for c in range(4):
+        corner_mean[c, 0], corner_mean[c, 1] = mean[0, c], mean[1, c]
+        top = linalg.nan_max(top, var[c, 0] + var[c, 1])
+    corner_std = math.sqrt(top)
     # Blur across axis x: the faces most normal to x are the ±length faces when the length edge
     # points along x (corners and those faces' midpoints); likewise y.
-    along_x = abs(A[:, 0, 0].sum()) >= abs(A[:, 1, 0].sum())
-    x_mid, y_mid = (var[4:6], var[6:8]) if along_x else (var[6:8], var[4:6])
-    blur = np.zeros(d)
-    blur[0] = np.sqrt(min(float(var[:4, 0].min()), float(x_mid[:, 0].min())))
-    blur[1] = np.sqrt(min(float(var[:4, 1].min()), float(y_mid[:, 1].min())))
-    z_mean = z_std = None
-    if zint is not None:
-        z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
-        blur[2] = float(z_std.min())
-    return _Samples(centre[:, :2], A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
+    along_x = abs(linalg.pairwise_sum(A[:, 0, 0])) >= abs(linalg.pairwise_sum(A[:, 1, 0]))
+    x_mid, y_mid = (4, 6) if along_x else (6, 4)
+    for a, mid in ((0, x_mid), (1, y_mid)):
+        lo = np.inf
+        for c in range(4):
+            lo = linalg.nan_min(lo, var[c, a])
+        lo_mid = linalg.nan_min(var[mid, a], var[mid + 1, a])
+        blur[a] = math.sqrt(lo_mid if lo_mid < lo else lo)  # Python's min(lo, lo_mid)
+    if d == 3:
+        for k in range(S):
+            z_mean[0] += zint[k, 0]
+            z_mean[1] += zint[k, 1]
+        z_mean[0] /= S
+        z_mean[1] /= S
+        for k in range(S):
+            for i in range(2):
+                dev = zint[k, i] - z_mean[i]
+                z_std[i] += dev * dev
+        for i in range(2):
+            z_std[i] = math.sqrt(z_std[i] / S)
+        blur[2] = linalg.nan_min(z_std[0], z_std[1])
+    return centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std
 
 
 # ----------------------------------------------------------------------------------------------
@@ -296,6 +360,7 @@ class Grid:
 
 def _axis_edges(half: float, lo: float, hi: float, cell: float) -> FloatArray:
     """Edges with the reference box's faces (±half) on cell boundaries, covering [lo, hi]."""
+    half, lo, hi, cell = float(half), float(lo), float(hi), float(cell)  # Python floats: the same IEEE arithmetic, faster
     n_box = max(1, int(round(2 * half / cell)))
     step = 2 * half / n_box
     n_lo = max(0, math.ceil((-half - lo) / step - 1e-9))
@@ -385,22 +450,6 @@ def _events(s: _Samples, xe: FloatArray, ye: FloatArray) -> _Events:
 
 
 @numba.njit(cache=True)
-def _nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
-    """np.maximum of two floats (NaN propagates)."""
-    if a != a or b != b:
-        return a + b
-    return a if a >= b else b
-
-
-@numba.njit(cache=True)
-def _nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
-    """np.minimum of two floats (NaN propagates)."""
-    if a != a or b != b:
-        return a + b
-    return a if a <= b else b
-
-
-@numba.njit(cache=True)
 def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
     """Per (sample, sub-row): the x-interval of the sample box on the row's centre line.
 
@@ -419,57 +468,87 @@ def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no 
     valid = np.empty((S, R), dtype=np.bool_)
     sub = dy / nsub
     inv_dx = 1.0 / dx
-    h = np.empty(2)
-    m = np.empty(2)
     for k in range(S):
-        a00, a01, a10, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 0], A[k, 1, 1]
-        det = a00 * a11 - a01 * a10
-        bxs = (a11, -a10)
-        bys = (-a01, a00)
-        for i in range(2):
-            bx, by = bxs[i], bys[i]
-            scale = _nan_max(abs(bx), abs(by))
-            if abs(bx) <= 1e-12 * scale:
-                h[i] = np.inf
-                m[i] = 0.0
-            else:
-                h[i] = 0.5 * abs(det) / abs(bx)
-                m[i] = by / bx
-        half_y = 0.5 * (abs(a10) + abs(a11))
+        det, h0, h1, m0, m1, half_y = _sample_slabs(A, k)
         cx, cy = centres[k, 0], centres[k, 1]
         for r in range(R):
-            t = (y0 + (r + 0.5) * sub) - cy
-            mt0, mt1 = m[0] * t, m[1] * t
-            lo = cx + _nan_max(-h[0] - mt0, -h[1] - mt1)
-            hi = cx + _nan_min(h[0] - mt0, h[1] - mt1)
-            lo = _nan_min(_nan_max(lo, x0), x1)
-            hi = _nan_min(_nan_max(hi, x0), x1)
-            ok = (abs(t) < half_y) and (det != 0) and (hi > lo)
-            if not ok:
-                hi = lo
-            k_lo = min(np.int64((lo - x0) * inv_dx), nx)
-            k_hi = min(np.int64((hi - x0) * inv_dx), nx)
+            k_lo, k_hi, lo_off, hi_off, ok = _row_interval((y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx)
             base = (r // nsub) * (nx + 1)
             i_lo[k, r] = base + k_lo
             i_hi[k, r] = base + k_hi
-            f_lo[k, r] = lo - (x0 + k_lo * dx)
-            f_hi[k, r] = hi - (x0 + k_hi * dx)
+            f_lo[k, r] = lo_off
+            f_hi[k, r] = hi_off
             valid[k, r] = ok
     return i_lo, i_hi, f_lo, f_hi, valid
 
 
-def _overlap(lo: float, hi: float, edges: FloatArray) -> FloatArray:
-    """Length of [lo, hi] inside each cell of ``edges``."""
-    return np.clip(np.minimum(hi, edges[1:]) - np.maximum(lo, edges[:-1]), 0.0, None)
+@numba.njit(cache=True)
+def _sample_slabs(A, k):  # pragma: no cover - compiled
+    """det A, the slab half-widths h_i and slopes m_i along x, and the y half-extent of sample k."""
+    a00, a01, a10, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 0], A[k, 1, 1]
+    det = a00 * a11 - a01 * a10
+    h0 = h1 = m0 = m1 = 0.0
+    for i in range(2):
+        bx, by = (a11, -a01) if i == 0 else (-a10, a00)
+        scale = linalg.nan_max(abs(bx), abs(by))
+        if abs(bx) <= 1e-12 * scale:
+            h, m = np.inf, 0.0
+        else:
+            h, m = 0.5 * abs(det) / abs(bx), by / bx
+        if i == 0:
+            h0, m0 = h, m
+        else:
+            h1, m1 = h, m
+    return det, h0, h1, m0, m1, 0.5 * (abs(a10) + abs(a11))
 
 
-def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray | None:
-    """Exact separable area per cell for a single axis-aligned box (the label in its own frame), else None."""
+@numba.njit(cache=True)
+def _row_interval(t, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx):  # pragma: no cover - compiled
+    """The x-interval of one sample on the row line y = c_y + t: start and end cells (k_lo, k_hi),
+    offsets into them, and whether it is non-empty."""
+    mt0, mt1 = m0 * t, m1 * t
+    lo = cx + linalg.nan_max(-h0 - mt0, -h1 - mt1)
+    hi = cx + linalg.nan_min(h0 - mt0, h1 - mt1)
+    lo = linalg.nan_min(linalg.nan_max(lo, x0), x1)
+    hi = linalg.nan_min(linalg.nan_max(hi, x0), x1)
+    ok = (abs(t) < half_y) and (det != 0) and (hi > lo)
+    if not ok:
+        hi = lo
+    k_lo = min(np.int64((lo - x0) * inv_dx), nx)
+    k_hi = min(np.int64((hi - x0) * inv_dx), nx)
+    return k_lo, k_hi, lo - (x0 + k_lo * dx), hi - (x0 + k_hi * dx), ok
+
+
+def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray, weight: float = 1.0) -> FloatArray | None:
+    """Exact separable area per cell (times ``weight``) for a single axis-aligned box (the label in
+    its own frame), else None."""
     A = s.axes
     if len(A) != 1 or A[0, 0, 1] != 0.0 or A[0, 1, 0] != 0.0:
         return None
     (cx, cy), hx, hy = s.centres[0], 0.5 * abs(A[0, 0, 0]), 0.5 * abs(A[0, 1, 1])
-    return np.outer(_overlap(cy - hy, cy + hy, ye), _overlap(cx - hx, cx + hx, xe))
+    return _aligned_kernel(float(cx), float(cy), float(hx), float(hy), xe, ye, float(weight))
+
+
+@numba.njit(cache=True)
+def _overlap_kernel(lo, hi, edges):  # pragma: no cover - compiled
+    """Length of [lo, hi] inside each cell of ``edges``: clip(min(hi, right) − max(lo, left), 0)."""
+    n = edges.size - 1
+    out = np.empty(n)
+    for j in range(n):
+        out[j] = linalg.nan_max(linalg.nan_min(hi, edges[j + 1]) - linalg.nan_max(lo, edges[j]), 0.0)
+    return out
+
+
+@numba.njit(cache=True)
+def _aligned_kernel(cx, cy, hx, hy, xe, ye, weight):  # pragma: no cover - compiled
+    """outer(overlap along y, overlap along x) · weight, (ny, nx)."""
+    ox = _overlap_kernel(cx - hx, cx + hx, xe)
+    oy = _overlap_kernel(cy - hy, cy + hy, ye)
+    out = np.empty((oy.size, ox.size))
+    for i in range(oy.size):
+        for j in range(ox.size):
+            out[i, j] = oy[i] * ox[j] * weight
+    return out
 
 
 def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
@@ -478,11 +557,42 @@ def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
     Per interval, coverage(j) = dx·[k_lo ≤ j < k_hi] + f_hi·[j = k_hi] − f_lo·[j = k_lo]: the first
     term goes into a difference array (cumulative sum along x), the others directly.
     """
-    aligned = _aligned_single(s, xe, ye)
+    aligned = _aligned_single(s, xe, ye, s.weights[0])
     if aligned is not None:
-        return aligned * s.weights[0]
-    e = _events(s, xe, ye)
-    return _raster_bev_kernel(e.i_lo, e.i_hi, e.f_lo, e.f_hi, np.ascontiguousarray(s.weights, dtype=np.float64), float(e.dx), float(e.dy), e.ny, e.nx)
+        return aligned
+    nx, ny = len(xe) - 1, len(ye) - 1
+    return _raster_bev_events_kernel(
+        np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
+        np.ascontiguousarray(s.weights, dtype=np.float64), float(xe[0]), float(xe[-1]), float(ye[0]),
+        float(xe[1] - xe[0]), float(ye[1] - ye[0]), nx, ny, C.SUBROWS_PER_CELL,
+    )
+
+
+@numba.njit(cache=True)
+def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
+    """:func:`_events_kernel` and :func:`_raster_bev_kernel` in one pass: each interval is added to
+    the difference arrays as it is found (the same sums in the same order, no (S, R) event arrays)."""
+    nb = ny * (nx + 1)
+    lo_dx = np.zeros(nb)
+    hi_dx = np.zeros(nb)
+    hi_f = np.zeros(nb)
+    lo_f = np.zeros(nb)
+    R = ny * nsub
+    sub = dy / nsub
+    inv_dx = 1.0 / dx
+    for k in range(A.shape[0]):
+        det, h0, h1, m0, m1, half_y = _sample_slabs(A, k)
+        cx, cy = centres[k, 0], centres[k, 1]
+        w = weights[k]
+        wdx = w * dx
+        for r in range(R):
+            k_lo, k_hi, lo_off, hi_off, _ = _row_interval((y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx)
+            base = (r if nsub == 1 else r // nsub) * (nx + 1)
+            lo_dx[base + k_lo] += wdx
+            hi_dx[base + k_hi] += wdx
+            hi_f[base + k_hi] += w * hi_off
+            lo_f[base + k_lo] += w * lo_off
+    return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy / nsub, ny, nx)
 
 
 @numba.njit(cache=True)
@@ -504,6 +614,12 @@ def _raster_bev_kernel(i_lo, i_hi, f_lo, f_hi, weights, dx, dy, ny, nx):  # prag
             hi_dx[i_hi[k, r]] += wdx
             hi_f[i_hi[k, r]] += w * f_hi[k, r]
             lo_f[i_lo[k, r]] += w * f_lo[k, r]
+    return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx)
+
+
+@numba.njit(cache=True)
+def _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx):  # pragma: no cover - compiled
+    """The raster (ny, nx) from the per-bin sums: differences, a running sum along each row, times dy."""
     out = np.empty((ny, nx))
     for row in range(ny):
         base = row * (nx + 1)
@@ -519,13 +635,20 @@ def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> F
     """Σ_s B_s(x, y) · zw[s, j]: BEV raster of each sample times a per-sample column weight, (ny, nx, ncols).
 
     The per-sample rasters are never formed densely: the interval events make a sparse
-    (bins × samples) matrix, multiplied by ``zw`` (S × ncols), then summed along x per row.
+    (bins × samples) matrix, multiplied by ``zw`` (S × ncols), then summed along x per row. With
+    one sub-row per cell that product is one compiled pass (:func:`_raster_3d_kernel`).
     """
-    from scipy.sparse import coo_matrix
-
     aligned = _aligned_single(s, xe, ye)
     if aligned is not None:
         return aligned[:, :, None] * zw[0]
+    if C.SUBROWS_PER_CELL == 1:
+        return _raster_3d_kernel(
+            np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
+            np.ascontiguousarray(zw, dtype=np.float64), float(xe[0]), float(xe[-1]), float(ye[0]),
+            float(xe[1] - xe[0]), float(ye[1] - ye[0]), len(xe) - 1, len(ye) - 1,
+        )
+    from scipy.sparse import coo_matrix
+
     e = _events(s, xe, ye)
     nb = e.ny * (e.nx + 1)
     S = e.i_lo.shape[0]
@@ -541,15 +664,68 @@ def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> F
     return cov[:, : e.nx] * e.dy
 
 
+@numba.njit(cache=True)
+def _raster_3d_kernel(A, centres, zw, x0, x1, y0, dx, dy, nx, ny):  # pragma: no cover - compiled
+    """The sparse product of :func:`_raster_3d` for one sub-row per cell, with SciPy's arithmetic:
+    CSR rows (bins) hold their samples in ascending order, the entries of one (bin, sample) merged
+    by a sum (an interval inside one cell: dx − dx and f_hi − f_lo; two terms, so their order does
+    not matter), each row of ``M @ zw`` summed from 0 in that order; then the running sum along x."""
+    i_lo, i_hi, f_lo, f_hi, valid = _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, 1)
+    S, R = i_lo.shape
+    ncol = zw.shape[1]
+    nb = ny * (nx + 1)
+    acc = np.zeros((2 * nb, ncol))  # rows: the dx steps per bin, then the offsets per bin
+    for k in range(S):  # ascending samples: each bin's entries arrive in CSR order
+        for r in range(R):
+            if not valid[k, r]:
+                continue
+            lo, hi = i_lo[k, r], i_hi[k, r]
+            if lo == hi:
+                step, off = dx + (-dx), f_hi[k, r] + (-f_lo[k, r])
+                for c in range(ncol):
+                    acc[lo, c] += step * zw[k, c]
+                    acc[nb + lo, c] += off * zw[k, c]
+            else:
+                for c in range(ncol):
+                    acc[lo, c] += dx * zw[k, c]
+                    acc[hi, c] += -dx * zw[k, c]
+                    acc[nb + hi, c] += f_hi[k, r] * zw[k, c]
+                    acc[nb + lo, c] += -f_lo[k, r] * zw[k, c]
+    out = np.empty((ny, nx, ncol))
+    for row in range(ny):
+        base = row * (nx + 1)
+        for c in range(ncol):
+            run = 0.0
+            for j in range(nx):
+                run = acc[base, c] if j == 0 else run + acc[base + j, c]
+                out[row, j, c] = (run + acc[nb + base + j, c]) * dy
+    return out
+
+
 def _z_coverage(s: _Samples, ze: FloatArray) -> FloatArray:
     """Length of each sample's z-interval inside each z cell, (S, nz)."""
     return np.clip(np.minimum(s.z[:, 1:2], ze[None, 1:]) - np.maximum(s.z[:, 0:1], ze[None, :-1]), 0.0, None)
 
 
 def _clean(mass: FloatArray) -> FloatArray:
-    tiny = 1e-12 * float(mass.max()) if mass.size else 0.0
-    mass[mass <= tiny] = 0.0  # round-off of the cumulative sums
+    """``mass`` with the cells ≤ 1e-12 × its maximum set to 0 (round-off of the cumulative sums), in place."""
+    mass = np.ascontiguousarray(mass)  # the rasters are: a copy would not be cleaned in place
+    _clean_kernel(mass.reshape(-1))
     return mass
+
+
+@numba.njit(cache=True)
+def _clean_kernel(flat):  # pragma: no cover - compiled
+    """The NumPy form ``tiny = 1e-12 · max; mass[mass <= tiny] = 0`` (a NaN maximum cleans nothing)."""
+    if flat.size == 0:
+        return
+    top = flat[0]
+    for i in range(1, flat.size):
+        top = linalg.nan_max(top, flat[i])
+    tiny = 1e-12 * top
+    for i in range(flat.size):
+        if flat[i] <= tiny:
+            flat[i] = 0.0
 
 
 def _pair_masses(sa: _Samples, sb: _Samples, grid: Grid) -> tuple[FloatArray, FloatArray, FloatArray | None]:
@@ -607,26 +783,76 @@ def jaccard(
     where q = 0: such cells only ever enter through their total (they are in every p-suffix);
     likewise ``q_outside`` for q where p = 0 (in every q-prefix).
     """
-    p = np.asarray(p, dtype=float).ravel()
-    q = np.asarray(q, dtype=float).ravel()
-    c = np.ones_like(p) if counts is None else np.asarray(counts, dtype=float).ravel()
+    p = np.ascontiguousarray(p, dtype=np.float64).ravel()
+    q = np.ascontiguousarray(q, dtype=np.float64).ravel()
+    c = np.ones_like(p) if counts is None else np.ascontiguousarray(counts, dtype=np.float64).ravel()
     if p.shape != q.shape or c.shape != p.shape:
         raise ValueError(f"p, q (and counts) must have the same number of cells, got {p.size}, {q.size}, {c.size}")
-    if (p < 0).any() or (q < 0).any():
-        raise ValueError("p and q must be non-negative")
-    both = (p > 0) & (q > 0)
-    if not both.any():
-        return 0.0
     # Cells with q = 0 (r = ∞) are in every p-suffix, cells with p = 0 (r = 0) in every q-prefix:
     # only the cells where both are positive need sorting.
-    p_only = float((c * p)[q == 0].sum()) + float(p_outside)
-    q_only = float((c * q)[p == 0].sum()) + float(q_outside)
-    pb, qb, cb = p[both], q[both], c[both]
-    order = (pb / qb).argsort()
-    ps, qs, cs = pb[order], qb[order], cb[order]
-    suffix_p = np.cumsum((cs * ps)[::-1])[::-1] + p_only
-    prefix_q = np.cumsum(cs * qs) - cs * qs + q_only
-    return float((cs / (suffix_p / ps + prefix_q / qs)).sum())
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, float(p_outside), float(q_outside))
+    if negative:
+        raise ValueError("p and q must be non-negative")
+    if not pb.size:
+        return 0.0
+    return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
+    """The cells of :func:`jaccard` where both masses are positive (p, q, counts, r = p/q), and the
+    totals p_only = Σ_{q=0} c·p + p_outside, q_only = Σ_{p=0} c·q + q_outside, summed in NumPy's
+    (pairwise) order over the same arrays as the NumPy form; the flag says a mass is negative."""
+    n = p.size
+    negative = False
+    for i in range(n):
+        if p[i] < 0 or q[i] < 0:
+            negative = True
+    pb = np.empty(n)
+    qb = np.empty(n)
+    cb = np.empty(n)
+    ratio = np.empty(n)
+    p_rest = np.empty(n)
+    q_rest = np.empty(n)
+    nb = n_p = n_q = 0
+    for i in range(n):
+        if q[i] == 0:
+            p_rest[n_p] = c[i] * p[i]
+            n_p += 1
+        if p[i] == 0:
+            q_rest[n_q] = c[i] * q[i]
+            n_q += 1
+        if p[i] > 0 and q[i] > 0:
+            pb[nb], qb[nb], cb[nb], ratio[nb] = p[i], q[i], c[i], p[i] / q[i]
+            nb += 1
+    p_only = linalg.pairwise_sum(p_rest[:n_p]) + p_outside
+    q_only = linalg.pairwise_sum(q_rest[:n_q]) + q_outside
+    return negative, pb[:nb], qb[:nb], cb[:nb], ratio[:nb], p_only, q_only
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _jaccard_sum(pb, qb, cb, order, p_only, q_only):  # pragma: no cover - compiled
+    """Σ_i c_i / (P_suffix/p_i + Q_prefix/q_i) over the cells sorted by r (``order``): the running
+    sums sequential like ``np.cumsum``, the total pairwise like ``ndarray.sum``."""
+    n = order.size
+    cp = np.empty(n)  # c·p and c·q in sorted order
+    cq = np.empty(n)
+    for j in range(n):
+        i = order[j]
+        cp[j] = cb[i] * pb[i]
+        cq[j] = cb[i] * qb[i]
+    suffix = np.empty(n)
+    run = 0.0
+    for j in range(n - 1, -1, -1):
+        run = cp[j] if j == n - 1 else run + cp[j]
+        suffix[j] = run
+    terms = np.empty(n)
+    run = 0.0
+    for j in range(n):
+        run = cq[j] if j == 0 else run + cq[j]
+        i = order[j]
+        terms[j] = cb[i] / ((suffix[j] + p_only) / pb[i] + ((run - cq[j]) + q_only) / qb[i])
+    return linalg.pairwise_sum(terms)
 
 
 def spatial_distribution(
