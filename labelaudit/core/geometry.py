@@ -367,15 +367,17 @@ def clean_points(points: ArrayLike | None, d: int) -> FloatArray:
     (None or empty → (0, d)); raises ValueError for another shape."""
     if points is None:
         return np.zeros((0, d))
-    pts = np.asarray(points, dtype=float)
+    pts = np.asarray(points)
+    if pts.dtype.kind != "f":
+        pts = np.asarray(points, dtype=float)
     if pts.size == 0:
         return np.zeros((0, d))
     if pts.ndim != 2 or pts.shape[1] < d:
         raise ValueError(f"points must be an (N, ≥{d}) array, got shape {pts.shape}")
-    pts = pts[:, :d]
+    pts = pts[:, :d]  # float32 crops are converted after the cut (exactly): d columns, not all of them
     if np.isfinite(pts).all():  # the usual case: one test, a contiguous copy (as the masked copy below)
-        return pts.copy()
-    return pts[np.all(np.isfinite(pts), axis=1)]  # non-finite returns cannot be registered
+        return pts.astype(np.float64, order="C")
+    return pts[np.all(np.isfinite(pts), axis=1)].astype(np.float64, order="C")  # non-finite returns cannot be registered
 
 
 def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:

@@ -20,7 +20,7 @@ from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label
-from labelaudit.core.iou import hull_iou
+from labelaudit.core.iou import hull_iou_valid
 from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
@@ -226,7 +226,7 @@ def audit_object(
         row[f"fit_{name}"] = float(value)
     if fit.model == "bev":  # points without z: the fit does not touch cz and height
         row["fit_cz"] = row["fit_height"] = float("nan")
-    row["hull_iou"] = hull_iou(y, points)
+    row["hull_iou"] = hull_iou_valid(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
     if evidence is not None:
         (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
