@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
-from labelaudit.core.fit import fit_label
+from labelaudit.core.fit import fit_label_valid
 from labelaudit.core.iou import hull_iou_valid
 from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt
@@ -206,7 +206,7 @@ def audit_object(
     else:
         status = "ok"
     fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
-    fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
+    fit = fit_label_valid(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
