@@ -76,8 +76,8 @@ class FreeSpace:
 
     @functools.cached_property
     def _inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
-        h0, h = self.heights()
-        ends_t = np.ascontiguousarray(np.vstack([self.ends[:, 0], self.ends[:, 1], h]), dtype=float)
+        ends_t, _ = height_layout(self.ends, self.ground, self.ref)  # the rows of heights(), in one compiled pass
+        h0 = float(ground_heights(self.origin[None, :], self.ground, self.ref)[0])
         return ends_t, float(self.origin[0]), float(self.origin[1]), np.array([h0, self.slab[0], self.slab[1], self.object_height])
 
     def kernel_inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
@@ -93,6 +93,34 @@ def ground_heights(points: ArrayLike, ground: ArrayLike, ref: ArrayLike) -> Floa
     g = np.asarray(ground, dtype=float)
     r = np.asarray(ref, dtype=float)
     return p[:, 2] - (g[0] + g[1] * (p[:, 0] - r[0]) + g[2] * (p[:, 1] - r[1]))
+
+
+def height_layout(points: NDArray, ground: ArrayLike, ref: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """The kernels' layout of points (N, ≥3), float32 or float64: (3, N) rows x, y and
+    :func:`ground_heights`, and z (N,), all float64 — the same operations, one compiled pass, no
+    float64 copy of the rows."""
+    g = np.asarray(ground, dtype=float)
+    r = np.asarray(ref, dtype=float)
+    p = np.asarray(points)
+    if p.dtype.kind != "f":
+        p = p.astype(np.float64)
+    return _height_layout_kernel(p, float(g[0]), float(g[1]), float(g[2]), float(r[0]), float(r[1]))
+
+
+@numba.njit(cache=True)
+def _height_layout_kernel(p, g0, gx, gy, x0, y0):  # pragma: no cover - compiled
+    """x, y, height above the plane (3, N) and z (N,) of points (N, ≥3): the float64 operations of
+    :func:`ground_heights` in its order (no fast-math)."""
+    n = p.shape[0]
+    out = np.empty((3, n))
+    z = np.empty(n)
+    for k in range(n):
+        x, y, zk = np.float64(p[k, 0]), np.float64(p[k, 1]), np.float64(p[k, 2])
+        out[0, k] = x
+        out[1, k] = y
+        out[2, k] = zk - (g0 + gx * (x - x0) + gy * (y - y0))
+        z[k] = zk
+    return out, z
 
 
 # ----------------------------------------------------------------------------------------------
@@ -321,8 +349,7 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
     ends_t, ox, oy, hz = fs.kernel_inputs() if fs.num_rays else (None, 0.0, 0.0, None)
     near = None
     if points is not None and len(points):
-        p = np.asarray(points, dtype=float)
-        near = (np.ascontiguousarray(np.vstack([p[:, 0], p[:, 1], ground_heights(p, fs.ground, fs.ref)])), np.ascontiguousarray(p[:, 2]))
+        near = height_layout(points, fs.ground, fs.ref)
         hz_end = np.array([0.0, 0.0, 0.0, fs.object_height])
     out = []
     for yb in ys:
@@ -535,13 +562,19 @@ def ray_candidates(
     -------
     K sorted int64 index arrays into ``points``
     """
+    return [idx.copy() for idx in _ray_candidates(points, origin, boxes, ground, slabs, reach, nbins, buckets)[0]]
+
+
+def _ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, ground: ArrayLike, slabs: ArrayLike, reach: float,
+                    nbins: int = C.FREE_SPACE_AZIMUTH_BINS, buckets: AzimuthBuckets | None = None) -> tuple[list[IndexArray], list[FloatArray]]:
+    """:func:`ray_candidates` (as views of one buffer) and the returns' xyz (M_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     k = len(b)
     if k == 0:
-        return []
+        return [], []
     if len(points) == 0:
-        return [np.empty(0, dtype=np.int64) for _ in range(k)]
+        return [np.empty(0, dtype=np.int64) for _ in range(k)], [np.empty((0, 3)) for _ in range(k)]
     if buckets is None or buckets.reach < reach:
         buckets = azimuth_buckets(points, o, b, reach, nbins)
     bk = buckets
@@ -549,14 +582,33 @@ def ray_candidates(
     sl = np.ascontiguousarray(slabs, dtype=float)
     sizes = bk.window_sizes()
     result: list[IndexArray] = []
+    ends: list[FloatArray] = []
     for j0 in range(0, k, _BATCH):  # batches bound the buffer in frames of thousands of boxes
         j1 = min(k, j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
-        offsets = np.concatenate([[0], np.cumsum(counts)])  # the kernel writes the boxes' candidates one after the other
-        result += [out[offsets[j]: offsets[j + 1]].copy() for j in range(j1 - j0)]
-    return result
+        pos = _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
+        _split(out, _gather_xyz(bk.xyz, out[:pos]), counts, result, ends)  # the kernel writes the boxes' candidates one after the other
+    return result, ends
+
+
+def _split(idx: IndexArray, xyz: FloatArray, counts: IndexArray, out_idx: list[IndexArray], out_xyz: list[FloatArray]) -> None:
+    """Append each box's part of the kernels' flat output (its ``counts[j]`` entries, one box after the other)."""
+    pos = 0
+    for c in counts.tolist():
+        out_idx.append(idx[pos: pos + c])
+        out_xyz.append(xyz[pos: pos + c])
+        pos += c
+
+
+@numba.njit(cache=True)
+def _gather_xyz(pts, idx):  # pragma: no cover - compiled
+    """``pts[idx, :3].astype(np.float64)`` (n, 3) in one pass."""
+    out = np.empty((idx.shape[0], 3))
+    for i in range(idx.shape[0]):
+        k = idx[i]
+        out[i, 0], out[i, 1], out[i, 2] = np.float64(pts[k, 0]), np.float64(pts[k, 1]), np.float64(pts[k, 2])
+    return out
 
 
 def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> list[IndexArray]:
@@ -564,19 +616,24 @@ def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, bel
     bottom to ``above`` over its top, taken from the boxes' azimuth windows (``buckets`` must reach
     at least ``margin``): one compiled pass over the windows instead of a test of every point of
     the frame per box."""
+    return [idx.copy() for idx in _neighbourhoods(buckets, boxes, margin, below, above)[0]]
+
+
+def _neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> tuple[list[IndexArray], list[FloatArray]]:
+    """:func:`neighbourhoods` (as views of one buffer) and the points' xyz (n_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     if buckets.reach < margin:
         raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
     sizes = buckets.window_sizes()
     result: list[IndexArray] = []
+    xyz: list[FloatArray] = []
     for j0 in range(0, len(b), _BATCH):
         j1 = min(len(b), j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        _region_kernel(buckets.xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
-        offsets = np.concatenate([[0], np.cumsum(counts)])
-        result += [out[offsets[j]: offsets[j + 1]].copy() for j in range(j1 - j0)]
-    return result
+        pos = _region_kernel(buckets.xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
+        _split(out, _gather_xyz(buckets.xyz, out[:pos]), counts, result, xyz)
+    return result, xyz
 
 
 _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (frames of thousands of boxes)
