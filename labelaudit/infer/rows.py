@@ -38,7 +38,13 @@ def check_finite(result: dict[str, Any]) -> None:
     """Raise ``FloatingPointError`` when the model's JIoU-GT or covariance came out NaN/inf (an
     overflow on extreme but valid input): the object gets status ``error`` instead of NaN scores."""
     jiou = result.get("jiou_gt")
-    cov_ok = result.get("cov") is None or bool(np.all(np.isfinite(result["cov"])))
+    cov = result.get("cov")
+    if cov is None:
+        cov_ok = True
+    elif type(cov) is list and all(type(v) is float for v in cov):  # audit_object's flat list: no NumPy round trip
+        cov_ok = all(map(math.isfinite, cov))
+    else:
+        cov_ok = bool(np.all(np.isfinite(cov)))
     if (jiou is not None and not math.isfinite(jiou)) or not cov_ok:
         raise FloatingPointError(f"non-finite model output (jiou_gt={jiou}, covariance finite: {cov_ok})")
 
@@ -217,20 +223,21 @@ def audit_object(
         "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
         "corner_tv": post.corner_tv.tolist(),
     }
-    for name in g.BOX_FIELDS:
-        row[f"std_{name}"] = float(post.std_box[name])
+    std = post.std_box
+    for name, column in zip(g.BOX_FIELDS, _STD_COLUMNS):
+        row[column] = float(std[name])
     row["cov"] = np.asarray(post.cov).ravel().tolist()
     row["cov_dim"] = int(post.cov.shape[0])
     row["model"] = post.model
-    for name, value in zip(g.BOX_FIELDS, fit.box):
-        row[f"fit_{name}"] = float(value)
+    for name, value in zip(_FIT_COLUMNS, fit.box.tolist()):
+        row[name] = value
     if fit.model == "bev":  # points without z: the fit does not touch cz and height
         row["fit_cz"] = row["fit_height"] = float("nan")
     row["hull_iou"] = hull_iou_valid(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
     if evidence is not None:
         (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
-            np.stack([y, fit.box]), evidence.free_space, evidence.near_points)
+            np.array((y, fit.box)), evidence.free_space, evidence.near_points)
         row["neighbour_points"] = int(evidence.neighbour_points)
         row["scenery_points"] = int(evidence.scenery_points)
         row["ground_z"] = float(evidence.ground_z)
@@ -239,4 +246,6 @@ def audit_object(
     return row
 
 
+_FIT_COLUMNS = tuple(f"fit_{name}" for name in g.BOX_FIELDS)
+_STD_COLUMNS = tuple(f"std_{name}" for name in g.BOX_FIELDS)
 _EVIDENCE_COLUMNS = ("free_rays", "end_rays", "fit_free_rays", "fit_end_rays", "neighbour_points", "scenery_points", "ground_z")
