@@ -77,7 +77,8 @@ class FreeSpace:
     @functools.cached_property
     def _inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
         ends_t, _ = height_layout(self.ends, self.ground, self.ref)  # the rows of heights(), in one compiled pass
-        h0 = float(ground_heights(self.origin[None, :], self.ground, self.ref)[0])
+        (ox, oy, oz), (g0, gx, gy), (x0, y0) = (np.asarray(v, dtype=float)[:k].tolist() for v, k in ((self.origin, 3), (self.ground, 3), (self.ref, 2)))
+        h0 = oz - (g0 + gx * (ox - x0) + gy * (oy - y0))  # ground_heights of the sensor, in Python floats (the same IEEE operations)
         return ends_t, float(self.origin[0]), float(self.origin[1]), np.array([h0, self.slab[0], self.slab[1], self.object_height])
 
     def kernel_inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
@@ -402,7 +403,8 @@ def _pseudo_angle(x, y):  # pragma: no cover - compiled
 def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - compiled
     """Counting sort by azimuth bin (seen from the sensor) of the points at least √min_r2 from it
     (nearer ones cannot reach any box) whose bin some box's window covers (``wanted``, nbins
-    booleans): order (M,), starts (nbins + 1,)."""
+    booleans): order (M,), starts (nbins + 1,) and the bucketed points' xyz in that order (M, 3),
+    same dtype (the later passes then read the windows sequentially)."""
     n = pts.shape[0]
     bins = np.empty(n, dtype=np.int64)
     counts = np.zeros(nbins + 1, dtype=np.int64)
@@ -422,12 +424,15 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - co
         counts[q + 1] += counts[q]
     fill = counts[:nbins].copy()
     order = np.empty(counts[nbins], dtype=np.int64)
+    sxyz = np.empty((counts[nbins], 3), dtype=pts.dtype)
     for k in range(n):
         q = bins[k]
         if q >= 0:
-            order[fill[q]] = k
+            i = fill[q]
+            order[i] = k
+            sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
             fill[q] += 1
-    return order, counts
+    return order, counts, sxyz
 
 
 @numba.njit(cache=True, inline="always")
@@ -443,7 +448,8 @@ def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compi
 def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts):  # pragma: no cover - compiled
     """For each box, the points of its azimuth bins whose ray from the sensor passes through its
     reach prism (rectangle grown by ``reach``, slab heights above its ground plane); indices into
-    ``out`` (flat), number per box into ``counts``."""
+    ``out`` (flat), number per box into ``counts``. ``pts`` are the bucketed points in bucket order
+    (``AzimuthBuckets.sorted_xyz``), ``order`` their indices."""
     pos = 0
     for j in range(boxes.shape[0]):
         y = boxes[j]
@@ -459,12 +465,12 @@ def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz,
                 continue
             for i in range(starts[q0], starts[q1 + 1]):
                 k = order[i]
-                ex, ey = pts[k, 0] - ox, pts[k, 1] - oy
+                ex, ey = pts[i, 0] - ox, pts[i, 1] - oy
                 if ex * ex + ey * ey < near2[j]:  # ends before the grown rectangle
                     continue
-                qx, qy = pts[k, 0] - y[0], pts[k, 1] - y[1]
+                qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
                 px, py = c * qx + s * qy, -s * qx + c * qy
-                ph = pts[k, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
+                ph = pts[i, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
                 if _hits(bx, by, oh, px, py, ph, hl, hw, slabs[j, 0], slabs[j, 1]):
                     out[pos] = k
                     pos += 1
@@ -493,6 +499,7 @@ class AzimuthBuckets:
     ranges : (K, 4) up to two inclusive bin ranges per box
     near2 : (K,) squared BEV distance from the sensor to each box's grown rectangle
     reach : how far the windows reach beyond the boxes (m)
+    sorted_xyz : (M, 3) ``xyz[order]``, same dtype
     """
 
     xyz: FloatArray
@@ -501,6 +508,7 @@ class AzimuthBuckets:
     ranges: IndexArray
     near2: FloatArray
     reach: float
+    sorted_xyz: FloatArray
 
     def window_sizes(self) -> IndexArray:
         """Points in each box's window (K,)."""
@@ -527,8 +535,8 @@ def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reac
         np.add.at(wanted, ranges[ok, 2 * r], 1)
         np.add.at(wanted, ranges[ok, 2 * r + 1] + 1, -1)
     min_r2 = float(near2.min()) if len(b) else 0.0
-    order, starts = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
-    return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach))
+    order, starts, sorted_xyz = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
+    return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
 
 
 def ray_candidates(
@@ -587,7 +595,7 @@ def _ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, grou
         j1 = min(k, j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        pos = _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
+        pos = _select_kernel(bk.sorted_xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
         _split(out, _gather_xyz(bk.xyz, out[:pos]), counts, result, ends)  # the kernel writes the boxes' candidates one after the other
     return result, ends
 
@@ -631,7 +639,7 @@ def _neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, be
         j1 = min(len(b), j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        pos = _region_kernel(buckets.xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
+        pos = _region_kernel(buckets.sorted_xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
         _split(out, _gather_xyz(buckets.xyz, out[:pos]), counts, result, xyz)
     return result, xyz
 
@@ -654,10 +662,10 @@ def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out,
                 continue
             for i in range(starts[q0], starts[q1 + 1]):
                 k = order[i]
-                z = pts[k, 2]
+                z = pts[i, 2]
                 if z < zlo or z > zhi:
                     continue
-                qx, qy = pts[k, 0] - y[0], pts[k, 1] - y[1]
+                qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
                 if abs(c * qx + s * qy) <= hl and abs(-s * qx + c * qy) <= hw:
                     out[pos] = k
                     pos += 1
