@@ -664,6 +664,28 @@ def test_hull_iou_valid_equals_hull_iou():
             assert IOU.hull_iou_valid(g.validate_box(CAR), arr) == IOU.hull_iou(CAR, None if arr is None else np.asarray(arr, dtype=float).tolist())  # a list takes the NumPy path
 
 
+def test_closest_form_phi_equals_argmin_over_equivalent_boxes():
+    """The written-out closest form is the np.argmin over :func:`_equivalent_boxes` of the φ
+    distance, bit for bit (form and φ), ties and NaN costs included."""
+    rng = np.random.default_rng(9)
+    for model in ("bev", "3d"):
+        p = g.phi_dim(model)
+        for trial in range(200):
+            y = CAR + np.r_[rng.normal(0, 0.3, 3), rng.uniform(-0.5, 0.5, 3), rng.uniform(-4, 4)]
+            ref_box = CAR + np.r_[rng.normal(0, 0.3, 6), rng.uniform(-4, 4)]
+            A = rng.normal(size=(p, p))
+            W = np.eye(p) if trial % 5 == 0 else A @ A.T
+            if trial % 17 == 0:
+                W = np.full((p, p), np.nan)
+            phi_ref = g.phi_of_valid_box(ref_box, model)
+            forms = LF._equivalent_boxes(y)
+            cost = [float((f := g.phi_of_valid_box(b, model) - phi_ref) @ W @ f) for b in forms]
+            want = forms[int(np.argmin(cost))]
+            form, phi = LF._closest_form_phi(y, phi_ref, W, model)
+            assert form.tobytes() == want.tobytes()
+            assert phi.tobytes() == g.phi_of_valid_box(want, model).tobytes()
+
+
 def test_closed_form_chi2_cdf_equals_scipy():
     from scipy.stats import chi2
 

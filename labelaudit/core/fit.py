@@ -104,17 +104,36 @@ def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: Mode
 
 
 def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray]:
-    """:func:`_closest_form` and its φ (the first of the least costs, or of the NaN ones, as ``np.argmin``)."""
+    """:func:`_closest_form` and its φ (the first of the least costs, or of the NaN ones, as ``np.argmin``).
+
+    The forms and their φ are those of :func:`_equivalent_boxes` and
+    :func:`~labelaudit.core.geometry.phi_of_valid_box`, written out: one cos/sin call for the four
+    yaws (NumPy's, element by element as for a scalar) and Python-float products.
+    """
+    v = y.tolist()
+    yaws = [float(g.normalize_angle(v[6] + k * np.pi / 2)) for k in range(4)]
+    cos4, sin4 = np.cos(yaws).tolist(), np.sin(yaws).tolist()
+    cx, cy, cz, length, width, height = v[:6]
     best = None
-    for b in _equivalent_boxes(y):
-        phi = g.phi_of_valid_box(b, model)
+    for k in range(4):
+        lk, wk = (width, length) if k % 2 else (length, width)
+        c, s = cos4[k], sin4[k]
+        if model == "bev":
+            phi = np.array([cx, cy, lk * c, lk * s, wk * c, wk * s])
+        else:
+            phi = np.array([cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height])
         f = phi - phi_ref
         cost = float(f @ W @ f)
         if best is None or cost < best[0] or (cost != cost and best[0] == best[0]):
-            best = (cost, b, phi)
+            best = (cost, k, phi)
         if cost != cost:
             break  # np.argmin stops at the first NaN
-    return best[1], best[2]
+    _, k, phi = best
+    form = y.copy()
+    if k % 2:
+        form[3], form[4] = v[4], v[3]
+    form[6] = yaws[k]
+    return form, phi
 
 
 @numba.njit(cache=True)
