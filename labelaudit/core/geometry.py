@@ -78,9 +78,11 @@ def rotation_z(yaw: ArrayLike) -> FloatArray:
     """
     yaw = np.asarray(yaw, dtype=float)
     c, s = np.cos(yaw), np.sin(yaw)
-    zeros, ones = np.zeros_like(yaw), np.ones_like(yaw)
-    rows = [np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)]
-    return np.stack(rows, -2)
+    R = np.zeros(yaw.shape + (3, 3))
+    R[..., 0, 0], R[..., 0, 1] = c, -s
+    R[..., 1, 0], R[..., 1, 1] = s, c
+    R[..., 2, 2] = 1.0
+    return R
 
 
 def rotation_2d(yaw: ArrayLike) -> FloatArray:

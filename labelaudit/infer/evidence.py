@@ -154,7 +154,8 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     _, ray_ends = _ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
     out = []
     o = np.asarray(origin, dtype=float).reshape(3)
-    planes = np.c_[grounds, np.zeros(len(b))]
+    planes = np.zeros((len(b), 4))  # (g0, gx, gy, unused)
+    planes[:, :3] = grounds
     slab_list = slabs.tolist()
     ground_list = ground_z.tolist()
     close_all = np.zeros((0, len(others)), dtype=bool)
