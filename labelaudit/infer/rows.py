@@ -60,12 +60,13 @@ def frame_note(frame_id: str | None, unit: str, message: str, level: str = "erro
     return {"unit": unit, "frame_id": frame_id, "file": file, "line": line, "level": level, "message": message}
 
 
-def _extras_for(frame: Frame, i: int) -> dict[str, Any]:
+def _extras_for(frame: Frame, i: int, present: list[tuple[str, Any]] | None = None) -> dict[str, Any]:
+    """The extra columns of label ``i``; ``present``: the frame's (name, values) of :data:`~labelaudit.results.EXTRA_COLUMNS`, looked up once per frame."""
     out: dict[str, Any] = {}
-    for name in R.EXTRA_COLUMNS:
-        if name not in frame.extras:
-            continue
-        value = frame.extras[name][i]
+    if present is None:
+        present = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
+    for name, values in present:
+        value = values[i]
         if name == "difficulty" and not isinstance(value, str):
             value = DIFFICULTY_NAMES.get(int(value), "unknown")
         out[name] = value
@@ -100,6 +101,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     rows: dict[int, dict[str, Any]] = {}
     final: set[int] = set()  # indices whose row is already normalised
     to_audit: list[int] = []
+    extras = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
     for i in selected:
         box = frame.boxes[i]
         row: dict[str, Any] = {
@@ -108,11 +110,11 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             "object_index": i,
             "object_id": frame.object_ids[i],
             "class_name": frame.class_names[i],
-            **dict(zip(R.BOX_COLUMNS, (float(v) for v in box))),
+            **dict(zip(R.BOX_COLUMNS, np.asarray(box, dtype=float).tolist())),
             "distance": float(math.hypot(box[0] - origin[0], box[1] - origin[1])),
             "model": cfg.model.kind,
             "sigma": cfg.model.sigma,
-            **_extras_for(frame, i),
+            **_extras_for(frame, i, extras),
         }
         rows[i] = row
         problem = frame.object_errors.get(i)  # the reader's reason, naming file, line and field
@@ -135,21 +137,22 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # One Open3D pass gives each box's neighbourhood; the model's crop is refined from it
         # exactly, the label-error fit's wider crop is cut above the local ground, other labels'
         # points are dropped, and the rays that may cross the box are collected (infer/evidence.py).
-        with np.errstate(all="ignore"):  # extreme but valid boxes (1e38 m) overflow the geometry harmlessly: their objects get their own status
+        # errstate: extreme but valid boxes (1e38 m) overflow the geometry harmlessly, and it changes
+        # no value: a non-finite result is refused per object (check_finite), not warned about on stderr
+        with np.errstate(all="ignore"):
             evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes))
-        for i, ev in zip(to_audit, evidence):
-            row = rows[i]
-            idx = ev.model_idx
-            try:
-                with np.errstate(all="ignore"):  # changes no value: a non-finite result is refused below, not warned about on stderr
+            for i, ev in zip(to_audit, evidence):
+                row = rows[i]
+                idx = ev.model_idx
+                try:
                     result = audit_object(frame.boxes[i], frame.points[idx], frame.class_names[i], cfg, origin,
                                           fit_points=frame.points[ev.fit_idx], evidence=ev.for_object(frame.points))
-                check_finite(result)
-                # values the schema cannot hold fail here, per object; the row is final after this
-                rows[i] = R.normalize_row({**row, **result})
-                final.add(i)
-            except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
-                row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
+                    check_finite(result)
+                    # values the schema cannot hold fail here, per object; the row is final after this
+                    rows[i] = R.normalize_row({**row, **result})
+                    final.add(i)
+                except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
+                    row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
 
 
