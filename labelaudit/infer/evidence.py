@@ -249,6 +249,10 @@ def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags
     lx = np.empty(n)
     ly = np.empty(n)
     above = np.zeros(n, dtype=np.bool_)
+    # cos/sin of each other label, computed on first use (the same scalar calls, once per label, not per point)
+    o_cos = np.empty(others.shape[0])
+    o_sin = np.empty(others.shape[0])
+    o_have = np.zeros(others.shape[0], dtype=np.bool_)
     m = 0
     for k in range(n):
         dx, dy = xyz[k, 0] - box[0], xyz[k, 1] - box[1]
@@ -262,7 +266,10 @@ def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags
         if not own:
             for j in range(others.shape[0]):
                 o = others[j]
-                co, so = math.cos(o[6]), math.sin(o[6])
+                if not o_have[j]:
+                    o_cos[j], o_sin[j] = math.cos(o[6]), math.sin(o[6])
+                    o_have[j] = True
+                co, so = o_cos[j], o_sin[j]
                 ex, ey = xyz[k, 0] - o[0], xyz[k, 1] - o[1]
                 if abs(co * ex + so * ey) <= 0.5 * o[3] + nb_margin and abs(-so * ex + co * ey) <= 0.5 * o[4] + nb_margin and abs(z - o[2]) <= 0.5 * o[5]:
                     foreign = True
@@ -393,6 +400,10 @@ def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slop
     if n < min_points:
         return False
     stride = max(1, n // 512)
+    ns = (n + stride - 1) // stride  # the scored candidates, copied contiguous so the count loops vectorise (integer counts: exact)
+    sx, sy, sz = np.empty(ns), np.empty(ns), np.empty(ns)
+    for t in range(ns):
+        sx[t], sy[t], sz[t] = cand[t * stride, 0], cand[t * stride, 1], cand[t * stride, 2]
     best_count, bg0, bgx, bgy = -1, 0.0, 0.0, 0.0
     for h in range(draws.shape[0]):
         for level in range(2):
@@ -412,8 +423,8 @@ def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slop
                 gx = gy = 0.0
                 g0 = cand[i0, 2]
             count = 0
-            for k in range(0, n, stride):
-                if abs(cand[k, 2] - (g0 + gx * cand[k, 0] + gy * cand[k, 1])) < inlier:
+            for t in range(ns):
+                if abs(sz[t] - (g0 + gx * sx[t] + gy * sy[t])) < inlier:
                     count += 1
             if count > best_count:
                 best_count, bg0, bgx, bgy = count, g0, gx, gy
