@@ -495,6 +495,7 @@ def _fit_em(
     params: ModelParams,
     rays: tuple = _NO_RAYS,
     prior_eta: FloatArray | None = None,
+    phi_start: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, int, bool, float, FloatArray, float]:
     """Box fit from ``start`` (a rectangle): register each point to its nearest surface point of the
     current box, add a row per free-space ray through the box's slab, take the Gaussian mean with
@@ -504,11 +505,11 @@ def _fit_em(
     swapped start).
 
     ``pts`` is (d, N) (transposed). The covariance is formed once, at the fitted box, with the ray
-    rows active there. ``prior_eta`` = P0 φ_label when the caller has it (a fit runs up to two
-    starts).
+    rows active there. ``prior_eta`` = P0 φ_label and ``phi_start`` = φ(start) when the caller has
+    them (a fit runs up to two starts; the first is the label).
     """
     model = params.kind
-    phi = g.phi_of_valid_box(start, model)
+    phi = g.phi_of_valid_box(start, model) if phi_start is None else phi_start
     if prior_eta is None:
         prior_eta = P0 @ phi_label
     inv_s2 = 1.0 / sigma**2
@@ -540,11 +541,15 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     if fit_model == scored:
         return linalg.inv(S)
     W = np.zeros_like(S)
-    W[_BEV_BLOCK] = linalg.inv(S[_BEV_BLOCK])
+    if S.flags.c_contiguous:  # the fit's matrices: flat take/put, the same entries as the ix_ indexing below
+        W.ravel()[_BEV_BLOCK_FLAT] = linalg.inv(S.take(_BEV_BLOCK_FLAT).reshape(len(g.BEV_OF_3D), -1)).ravel()
+    else:
+        W[_BEV_BLOCK] = linalg.inv(S[_BEV_BLOCK])
     return W
 
 
 _BEV_BLOCK = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
+_BEV_BLOCK_FLAT = (g.BEV_OF_3D[:, None] * 8 + g.BEV_OF_3D[None, :]).ravel()  # _BEV_BLOCK as flat indices into a C-ordered (8, 8)
 _TOLERANCE = ClassPrior(**C.LABEL_TOLERANCE)
 _AS_KIND: list[tuple[ModelParams, ModelKind, ModelParams]] = []  # the last params → params of another kind
 
@@ -628,7 +633,7 @@ def fit_label_valid(
     pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_fit_normal_eq)
     rays = _ray_inputs(free_space, sigma)
     prior_eta = P0 @ phi_label
-    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta), False)
+    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
     # A second start with length and width swapped, when the first fit leaves the points far from
     # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by
     # 90° on its own. The start with the higher log posterior wins.

@@ -233,20 +233,26 @@ def dphi_dext_valid(y: FloatArray, model: ModelKind) -> FloatArray:
     c, s = float(np.cos(y[6])), float(np.sin(y[6]))
     length, width = float(y[3]), float(y[4])
     d, p = _check_model(model)
+    G = np.zeros(p * p)
+    # the entries of the centre, l, w (then h for 3D), a and b columns (_DPHI_DEXT_ENTRIES), at once
+    G[_DPHI_DEXT_ENTRIES[d]] = (1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c) if d == 2 else (
+        1.0, 1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c, 1.0)
+    return G.reshape(p, p)
+
+
+def _dphi_dext_entries(d: int) -> NDArray[np.int64]:
+    """Flat indices into the p × p ∂φ/∂ỹ of its non-zero entries, in the order :func:`dphi_dext_valid` writes them."""
+    p = 2 * d + 2
     o = d - 2
-    G = np.zeros((p, p))
-    for i in range(d):
-        G[i, i] = 1.0
-    # columns: l, w (then h for 3D), a, b
-    il, iw = d, d + 1
-    ia, ib = p - 2, p - 1
-    G[2 + o, il], G[3 + o, il] = c, s
-    G[4 + o, iw], G[5 + o, iw] = c, s
-    G[2 + o, ia], G[3 + o, ia] = -length * s, length * c
-    G[4 + o, ib], G[5 + o, ib] = -width * s, width * c
+    il, iw, ia, ib = d, d + 1, p - 2, p - 1
+    cells = [(i, i) for i in range(d)]
+    cells += [(2 + o, il), (3 + o, il), (4 + o, iw), (5 + o, iw), (2 + o, ia), (3 + o, ia), (4 + o, ib), (5 + o, ib)]
     if d == 3:
-        G[7, 5] = 1.0
-    return G
+        cells.append((7, 5))
+    return np.array([i * p + j for i, j in cells])
+
+
+_DPHI_DEXT_ENTRIES = {2: _dphi_dext_entries(2), 3: _dphi_dext_entries(3)}
 
 
 def dext_dphi(box: ArrayLike, model: ModelKind) -> FloatArray:
