@@ -103,8 +103,8 @@ def height_layout(points: NDArray, ground: ArrayLike, ref: ArrayLike) -> tuple[F
     g = np.asarray(ground, dtype=float)
     r = np.asarray(ref, dtype=float)
     p = np.asarray(points)
-    if p.dtype.kind != "f":
-        p = p.astype(np.float64)
+    if p.dtype != np.float32 and p.dtype != np.float64:  # the kernel reads native float32/float64 as they are
+        p = np.asarray(p, dtype=np.float64)
     return _height_layout_kernel(p, float(g[0]), float(g[1]), float(g[2]), float(r[0]), float(r[1]))
 
 

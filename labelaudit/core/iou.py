@@ -30,13 +30,13 @@ def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
 def hull_iou_valid(y: FloatArray, points: ArrayLike | None) -> float:
     """:func:`hull_iou` of a box (7,) float64 known to be valid (after :func:`~labelaudit.core.geometry.validate_box`).
 
-    Float points (N, ≥2) are read as they are (float32 included, converted exactly): the finite rows,
+    float32/float64 points (N, ≥2) are read as they are (converted exactly): the finite rows,
     the hull candidates (:func:`_hull_candidates`) and their order by x, then y, relative to the
     box centre come from one compiled pass (:func:`_sorted_candidates_kernel`) instead of a float64
     copy of the crop and a dozen NumPy passes.
     """
     arr = None if points is None else np.asarray(points)
-    if arr is None or arr.dtype.kind != "f" or arr.ndim != 2 or arr.shape[1] < 2 or arr.size == 0:
+    if arr is None or arr.dtype not in _KERNEL_DTYPES or arr.ndim != 2 or arr.shape[1] < 2 or arr.size == 0:
         pts = _hull_candidates(g.clean_points(points, 2))  # other input: the reference path (and its errors)
         if len(pts) < 3:
             return 0.0
@@ -50,6 +50,7 @@ def hull_iou_valid(y: FloatArray, points: ArrayLike | None) -> float:
     return float(_hull_iou_kernel(local, np.ascontiguousarray(corners)))
 
 
+_KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))  # native floats: what the compiled pass reads as is
 _BEV_CORNER_J = g.design_matrix(g.BEV_CORNERS_UNIT, "bev")  # (4, 2, 6): the corners are J·φ (geometry.box_corners)
 
 
