@@ -348,7 +348,7 @@ def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray, si
     """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
     :func:`_plane_rows` for points (d, N): one compiled call per fit iteration (as NumPy array code
     it took ~40 calls, and a fit runs 5–30 iterations)."""
-    return _normal_eq_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB, sigma, phi)
+    return _normal_eq_kernel(y, pts_t, d, *_FIT_POINT_CONSTANTS, sigma, phi)
 
 
 @numba.njit(cache=True)
@@ -515,7 +515,7 @@ def _fit_em(
     inv_s2 = 1.0 / sigma**2
     phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
     phi_rect = g.phi_of_valid_box(y_cur, model)
-    ata, _, rr, ss, sw = _normal_eq_kernel(y_cur, pts, g.point_dim(model), *_FIT_POINT_CONSTANTS, sigma, phi_rect)
+    ata, _, rr, ss, sw = _fit_normal_eq(y_cur, pts, g.point_dim(model), phi_rect, sigma)
     if rays[0].shape[1]:
         ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y_cur, *rays, model == "3d", phi_rect)
         ata = ata + ata_r
