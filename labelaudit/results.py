@@ -166,6 +166,8 @@ ERRORS_SCHEMA = pa.schema(
 def _clean_list(value: Any) -> list[float | None] | None:
     if value is None:
         return None
+    if type(value) is list and all(type(v) is float for v in value):  # the model's lists: no round trip through NumPy
+        return [None if v != v else v for v in value]
     return [None if v != v else v for v in np.asarray(value, dtype=float).ravel().tolist()]  # v != v: NaN
 
 
@@ -173,6 +175,7 @@ _KIND_OF = {  # how normalize_row coerces each column, looked up once per column
     n: "F" if n in REQUIRED_FLOAT_COLUMNS else "f" if n in FLOAT_COLUMNS else "i" if n in INT_COLUMNS else "l" if n in LIST_COLUMNS else "s"
     for n in COLUMN_NAMES
 }
+_KIND_OF_ITEMS = tuple(_KIND_OF.items())
 
 
 def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
@@ -185,8 +188,9 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
     Keys outside the schema are dropped; missing keys are null.
     """
     out: dict[str, Any] = {}
-    for name, kind in _KIND_OF.items():
-        value = row.get(name)
+    get = row.get
+    for name, kind in _KIND_OF_ITEMS:
+        value = get(name)
         if value is None:
             out[name] = None
         elif kind == "f":

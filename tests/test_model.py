@@ -635,6 +635,59 @@ def test_hull_candidates_keep_every_hull_vertex():
         assert ConvexHull(kept).volume == pytest.approx(ConvexHull(pts).volume, rel=1e-12)
 
 
+def test_sorted_hull_candidates_kernel_equals_numpy_form():
+    """The compiled candidates pass (finite rows, Akl–Toussaint filter, order by x then y relative
+    to the centre) gives the NumPy form's array bit for bit, float32 input, ties and ±0 included."""
+    rng = np.random.default_rng(7)
+    centre = (1.0, 2.0)
+    for n in (0, 1, 3, 7, 8, 9, 40, 300):
+        for variant in range(5):
+            pts = rng.normal(size=(n, 4)) * 2.0 + [1.0, 2.0, 0.0, 0.0]
+            if variant == 1:
+                pts = np.round(pts, 1)  # many ties in x and in (x, y)
+            elif variant == 2 and n > 2:
+                pts[rng.integers(0, n, 2), rng.integers(0, 2, 2)] = np.nan
+            elif variant == 3 and n:
+                pts[:, 0] = 1.0  # on a line: local x = 0 for all
+            elif variant == 4 and n:
+                pts[::2, 0] = 1.0  # half the points share local x = 0 (runs of equal x)
+            for arr in (pts, pts.astype(np.float32)):
+                local = IOU._hull_candidates(g.clean_points(arr, 2)) - centre
+                ref = local[np.lexsort((local[:, 1], local[:, 0]))]
+                got = IOU._sorted_candidates_kernel(arr, *centre)
+                assert got.shape == ref.shape and got.tobytes() == ref.tobytes()
+
+
+def test_hull_iou_valid_equals_hull_iou():
+    rng = np.random.default_rng(8)
+    for n in (0, 2, 5, 60):
+        pts = g.unit_to_world(rng.uniform(-0.6, 0.6, (n, 2)), CAR, "bev") if n else np.zeros((0, 2))
+        for arr in (pts, pts.astype(np.float32), None, pts.tolist()):
+            assert IOU.hull_iou_valid(g.validate_box(CAR), arr) == IOU.hull_iou(CAR, None if arr is None else np.asarray(arr, dtype=float).tolist())  # a list takes the NumPy path
+
+
+def test_closest_form_phi_equals_argmin_over_equivalent_boxes():
+    """The written-out closest form is the np.argmin over :func:`_equivalent_boxes` of the φ
+    distance, bit for bit (form and φ), ties and NaN costs included."""
+    rng = np.random.default_rng(9)
+    for model in ("bev", "3d"):
+        p = g.phi_dim(model)
+        for trial in range(200):
+            y = CAR + np.r_[rng.normal(0, 0.3, 3), rng.uniform(-0.5, 0.5, 3), rng.uniform(-4, 4)]
+            ref_box = CAR + np.r_[rng.normal(0, 0.3, 6), rng.uniform(-4, 4)]
+            A = rng.normal(size=(p, p))
+            W = np.eye(p) if trial % 5 == 0 else A @ A.T
+            if trial % 17 == 0:
+                W = np.full((p, p), np.nan)
+            phi_ref = g.phi_of_valid_box(ref_box, model)
+            forms = LF._equivalent_boxes(y)
+            cost = [float((f := g.phi_of_valid_box(b, model) - phi_ref) @ W @ f) for b in forms]
+            want = forms[int(np.argmin(cost))]
+            form, phi = LF._closest_form_phi(y, phi_ref, W, model)
+            assert form.tobytes() == want.tobytes()
+            assert phi.tobytes() == g.phi_of_valid_box(want, model).tobytes()
+
+
 def test_closed_form_chi2_cdf_equals_scipy():
     from scipy.stats import chi2
 

@@ -26,7 +26,6 @@ from labelaudit.core.freespace import FreeSpace, _displacement, _free_rows_kerne
 from labelaudit.core.geometry import FloatArray, ModelKind
 from labelaudit.core.posterior import (
     em_sigma,
-    estimate_sigma,
     outlier_log_density,
     prior_cov_extended_cached,
     prior_precision_from,
@@ -101,9 +100,40 @@ def _equivalent_boxes(y: FloatArray) -> list[FloatArray]:
 
 def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind) -> FloatArray:
     """Of the equivalent forms of rectangle ``y``, the one whose φ is nearest ``phi_ref`` in metric W."""
-    forms = _equivalent_boxes(y)
-    cost = [float((f := g.phi_of_valid_box(b, model) - phi_ref) @ W @ f) for b in forms]
-    return forms[int(np.argmin(cost))]
+    return _closest_form_phi(y, phi_ref, W, model)[0]
+
+
+def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray]:
+    """:func:`_closest_form` and its φ (the first of the least costs, or of the NaN ones, as ``np.argmin``).
+
+    The forms and their φ are those of :func:`_equivalent_boxes` and
+    :func:`~labelaudit.core.geometry.phi_of_valid_box`, written out: one cos/sin call for the four
+    yaws (NumPy's, element by element as for a scalar) and Python-float products.
+    """
+    v = y.tolist()
+    yaws = [float(g.normalize_angle(v[6] + k * np.pi / 2)) for k in range(4)]
+    cos4, sin4 = np.cos(yaws).tolist(), np.sin(yaws).tolist()
+    cx, cy, cz, length, width, height = v[:6]
+    best = None
+    for k in range(4):
+        lk, wk = (width, length) if k % 2 else (length, width)
+        c, s = cos4[k], sin4[k]
+        if model == "bev":
+            phi = np.array([cx, cy, lk * c, lk * s, wk * c, wk * s])
+        else:
+            phi = np.array([cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height])
+        f = phi - phi_ref
+        cost = float(f @ W @ f)
+        if best is None or cost < best[0] or (cost != cost and best[0] == best[0]):
+            best = (cost, k, phi)
+        if cost != cost:
+            break  # np.argmin stops at the first NaN
+    _, k, phi = best
+    form = y.copy()
+    if k % 2:
+        form[3], form[4] = v[4], v[3]
+    form[6] = yaws[k]
+    return form, phi
 
 
 @numba.njit(cache=True)
@@ -318,7 +348,7 @@ def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray, si
     """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
     :func:`_plane_rows` for points (d, N): one compiled call per fit iteration (as NumPy array code
     it took ~40 calls, and a fit runs 5–30 iterations)."""
-    return _normal_eq_kernel(y, pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB, sigma, phi)
+    return _normal_eq_kernel(y, pts_t, d, *_FIT_POINT_CONSTANTS, sigma, phi)
 
 
 @numba.njit(cache=True)
@@ -414,7 +444,10 @@ def _ray_inputs(free_space: FreeSpace | None, sigma: float) -> tuple[FloatArray,
     if free_space is None or free_space.num_rays == 0:
         return _NO_RAYS
     ends_t, ox, oy, hz = free_space.kernel_inputs()
-    return (ends_t, ox, oy, np.r_[hz, sigma], float(free_space.tolerance), float(free_space.inside_tolerance),
+    hz5 = np.empty(5)
+    hz5[:4] = hz
+    hz5[4] = sigma
+    return (ends_t, ox, oy, hz5, float(free_space.tolerance), float(free_space.inside_tolerance),
             float(C.FREE_SPACE_WEIGHT), float(C.FREE_SPACE_SLIT_PROB))
 
 
@@ -431,7 +464,8 @@ def _fit_iterate(
     rays: tuple = _NO_RAYS,
 ) -> tuple[FloatArray, FloatArray, int, bool]:
     """EM iterations of the box fit on (d, N) points until φ moves by less than ``tol`` (at most
-    FIT_MAX_ITERATIONS). Returns (φ, rectangle, iterations, converged).
+    FIT_MAX_ITERATIONS). Returns (φ, rectangle, iterations, converged). The arrays are float64
+    (``y_cur``, ``label`` (7,), ``phi``, ``prior_eta`` (p,), ``P0`` (p, p)).
 
     The iterations only need the mean (a linear solve). When the iteration has entered an exact
     2-cycle (a point flipping between two faces, so that φ repeats bit for bit), it can never
@@ -441,11 +475,14 @@ def _fit_iterate(
     iteration, the NumPy calls around the point pass cost as much as the pass itself.
     """
     phi, y_cur, it, converged = _fit_iterate_kernel(
-        np.asarray(y_cur, dtype=float), np.asarray(phi, dtype=float), pts, model == "3d",
-        C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB, float(tol), P0, prior_eta,
-        np.asarray(label, dtype=float), float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, *rays,
+        y_cur, phi, pts, model == "3d", *_FIT_POINT_CONSTANTS, float(tol), P0, prior_eta,
+        label, float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, *rays,
     )
     return phi, y_cur, int(it), bool(converged)
+
+
+_FIT_POINT_CONSTANTS = (C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB)
+"""(free depth, deep-point √weight, outlier probability) of the fit's point rows (:func:`_rows_kernel`)."""
 
 
 def _fit_em(
@@ -457,6 +494,8 @@ def _fit_em(
     sigma: float,
     params: ModelParams,
     rays: tuple = _NO_RAYS,
+    prior_eta: FloatArray | None = None,
+    phi_start: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, int, bool, float, FloatArray, float]:
     """Box fit from ``start`` (a rectangle): register each point to its nearest surface point of the
     current box, add a row per free-space ray through the box's slab, take the Gaussian mean with
@@ -466,11 +505,13 @@ def _fit_em(
     swapped start).
 
     ``pts`` is (d, N) (transposed). The covariance is formed once, at the fitted box, with the ray
-    rows active there.
+    rows active there. ``prior_eta`` = P0 φ_label and ``phi_start`` = φ(start) when the caller has
+    them (a fit runs up to two starts; the first is the label).
     """
     model = params.kind
-    phi = g.phi_of_valid_box(start, model)
-    prior_eta = P0 @ phi_label
+    phi = g.phi_of_valid_box(start, model) if phi_start is None else phi_start
+    if prior_eta is None:
+        prior_eta = P0 @ phi_label
     inv_s2 = 1.0 / sigma**2
     phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
     phi_rect = g.phi_of_valid_box(y_cur, model)
@@ -500,11 +541,15 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     if fit_model == scored:
         return linalg.inv(S)
     W = np.zeros_like(S)
-    W[_BEV_BLOCK] = linalg.inv(S[_BEV_BLOCK])
+    if S.flags.c_contiguous:  # the fit's matrices: flat take/put, the same entries as the ix_ indexing below
+        W.ravel()[_BEV_BLOCK_FLAT] = linalg.inv(S.take(_BEV_BLOCK_FLAT).reshape(len(g.BEV_OF_3D), -1)).ravel()
+    else:
+        W[_BEV_BLOCK] = linalg.inv(S[_BEV_BLOCK])
     return W
 
 
 _BEV_BLOCK = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
+_BEV_BLOCK_FLAT = (g.BEV_OF_3D[:, None] * 8 + g.BEV_OF_3D[None, :]).ravel()  # _BEV_BLOCK as flat indices into a C-ordered (8, 8)
 _TOLERANCE = ClassPrior(**C.LABEL_TOLERANCE)
 _AS_KIND: list[tuple[ModelParams, ModelKind, ModelParams]] = []  # the last params → params of another kind
 
@@ -547,17 +592,30 @@ def fit_label(
     points put the box clearly elsewhere. Rough reading: 0.5 ≈ two tolerances off in one parameter
     (≈ 20 cm), 0.9 ≈ three, 0.99 ≈ four.
     """
-    y = g.validate_box(box)
+    return fit_label_valid(g.validate_box(box), points, class_name, params, free_space)
+
+
+def fit_label_valid(
+    y: FloatArray,
+    points: ArrayLike | None,
+    class_name: str,
+    params: ModelParams,
+    free_space: FreeSpace | None = None,
+) -> LabelFit:
+    """:func:`fit_label` of a box (7,) float64 known to be valid (after
+    :func:`~labelaudit.core.geometry.validate_box`): the pipeline validates each label once."""
     # The fit is 3D whenever the points have a z: in BEV, roof and hood points lie *inside* the
     # rectangle and would pull its edges inwards; in 3D they register to the top face.
-    arr = None if points is None else np.asarray(points, dtype=float)
+    arr = None if points is None else np.asarray(points)
+    if arr is not None and arr.dtype.kind != "f":
+        arr = np.asarray(points, dtype=float)
     model: ModelKind = "3d" if arr is not None and arr.ndim == 2 and arr.shape[1] >= 3 else "bev"
     # The run's model decides what is scored: a BEV run scores the BEV marginal of the 3D fit.
     scored: ModelKind = "bev" if model == "bev" or params.kind == "bev" else "3d"
     if model != params.kind:
         params = _params_of_kind(params, model)
-    d = g.point_dim(model)
-    pts = g.clean_points(arr, d)
+    d = 3 if model == "3d" else 2
+    pts = g.clean_points(arr, d)  # float crops: the d columns converted, not the whole rows
     n = pts.shape[0]
     prior = params.prior_for(class_name)
     phi_label = g.phi_of_valid_box(y, model)
@@ -566,46 +624,49 @@ def fit_label(
     S_tol = G @ prior_cov_extended_cached(_TOLERANCE, model) @ G.T
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
-        s_hat = estimate_sigma(y, pts, model, num_nearest=params.num_nearest, sigma_init=sigma, outlier_prob=params.outlier_prob)
+        # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM
+        reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
+        s_hat = em_sigma([(reg.sqdist, outlier_log_density(y, d))], d, sigma, params.outlier_prob)
         if np.isfinite(s_hat):
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
     pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_fit_normal_eq)
     rays = _ray_inputs(free_space, sigma)
-    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays), False)
+    prior_eta = P0 @ phi_label
+    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
     # A second start with length and width swapped, when the first fit leaves the points far from
     # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by
     # 90° on its own. The start with the higher log posterior wins.
     if n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9 and best[0][6] > C.FIT_SWAP_RESIDUAL * sigma:
         swapped = y.copy()
         swapped[3], swapped[4] = y[4], y[3]
-        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params, rays)
+        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params, rays, prior_eta)
         if alt[4] > best[0][4] + 1e-9:
             best = (alt, True)
     (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best
 
     W = _scored_metric(cov + S_tol, model, scored)
-    y_fit = _closest_form(y_rect, phi_label, W, model)
-    phi_rect = g.phi_of_valid_box(y_fit, model)
+    y_fit, phi_rect = _closest_form_phi(y_rect, phi_label, W, model)
     delta = phi_label - phi_rect
     d2_tol = float(delta @ W @ delta)
     d2 = float(delta @ _scored_metric(cov, model, scored) @ delta)
     k = 5 if scored == "bev" else 7
 
-    offsets = {name: float(y_fit[i] - y[i]) for i, name in enumerate(g.BOX_FIELDS)}
+    offsets = dict(zip(g.BOX_FIELDS, (y_fit - y).tolist()))
     offsets["yaw"] = float(g.normalize_angle(y_fit[6] - y[6]))
     y_fit[6] = y[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
     if d == 2:
         offsets["cz"] = offsets["height"] = float("nan")
+    dc = y_fit[:d] - y[:d]
     return LabelFit(
         model=model,
         box=y_fit,
         phi=phi_rect,
         cov=cov,
         offsets=offsets,
-        offset_m=float(np.linalg.norm(y_fit[:d] - y[:d])),
-        mahalanobis=float(np.sqrt(max(d2, 0.0))),
-        tolerance_distance=float(np.sqrt(max(d2_tol, 0.0))),
+        offset_m=math.sqrt(dc.dot(dc)),  # = np.linalg.norm(dc)
+        mahalanobis=math.sqrt(max(d2, 0.0)),
+        tolerance_distance=math.sqrt(max(d2_tol, 0.0)),
         label_error=_chi2_cdf(max(d2_tol, 0.0), k),
         iterations=iterations,
         converged=converged,

@@ -76,8 +76,9 @@ class FreeSpace:
 
     @functools.cached_property
     def _inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
-        h0, h = self.heights()
-        ends_t = np.ascontiguousarray(np.vstack([self.ends[:, 0], self.ends[:, 1], h]), dtype=float)
+        ends_t, _ = height_layout(self.ends, self.ground, self.ref)  # the rows of heights(), in one compiled pass
+        (ox, oy, oz), (g0, gx, gy), (x0, y0) = (np.asarray(v, dtype=float)[:k].tolist() for v, k in ((self.origin, 3), (self.ground, 3), (self.ref, 2)))
+        h0 = oz - (g0 + gx * (ox - x0) + gy * (oy - y0))  # ground_heights of the sensor, in Python floats (the same IEEE operations)
         return ends_t, float(self.origin[0]), float(self.origin[1]), np.array([h0, self.slab[0], self.slab[1], self.object_height])
 
     def kernel_inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
@@ -93,6 +94,34 @@ def ground_heights(points: ArrayLike, ground: ArrayLike, ref: ArrayLike) -> Floa
     g = np.asarray(ground, dtype=float)
     r = np.asarray(ref, dtype=float)
     return p[:, 2] - (g[0] + g[1] * (p[:, 0] - r[0]) + g[2] * (p[:, 1] - r[1]))
+
+
+def height_layout(points: NDArray, ground: ArrayLike, ref: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """The kernels' layout of points (N, ≥3), float32 or float64: (3, N) rows x, y and
+    :func:`ground_heights`, and z (N,), all float64 — the same operations, one compiled pass, no
+    float64 copy of the rows."""
+    g = np.asarray(ground, dtype=float)
+    r = np.asarray(ref, dtype=float)
+    p = np.asarray(points)
+    if p.dtype != np.float32 and p.dtype != np.float64:  # the kernel reads native float32/float64 as they are
+        p = np.asarray(p, dtype=np.float64)
+    return _height_layout_kernel(p, float(g[0]), float(g[1]), float(g[2]), float(r[0]), float(r[1]))
+
+
+@numba.njit(cache=True)
+def _height_layout_kernel(p, g0, gx, gy, x0, y0):  # pragma: no cover - compiled
+    """x, y, height above the plane (3, N) and z (N,) of points (N, ≥3): the float64 operations of
+    :func:`ground_heights` in its order (no fast-math)."""
+    n = p.shape[0]
+    out = np.empty((3, n))
+    z = np.empty(n)
+    for k in range(n):
+        x, y, zk = np.float64(p[k, 0]), np.float64(p[k, 1]), np.float64(p[k, 2])
+        out[0, k] = x
+        out[1, k] = y
+        out[2, k] = zk - (g0 + gx * (x - x0) + gy * (y - y0))
+        z[k] = zk
+    return out, z
 
 
 # ----------------------------------------------------------------------------------------------
@@ -321,8 +350,7 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
     ends_t, ox, oy, hz = fs.kernel_inputs() if fs.num_rays else (None, 0.0, 0.0, None)
     near = None
     if points is not None and len(points):
-        p = np.asarray(points, dtype=float)
-        near = (np.ascontiguousarray(np.vstack([p[:, 0], p[:, 1], ground_heights(p, fs.ground, fs.ref)])), np.ascontiguousarray(p[:, 2]))
+        near = height_layout(points, fs.ground, fs.ref)
         hz_end = np.array([0.0, 0.0, 0.0, fs.object_height])
     out = []
     for yb in ys:
@@ -375,7 +403,8 @@ def _pseudo_angle(x, y):  # pragma: no cover - compiled
 def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - compiled
     """Counting sort by azimuth bin (seen from the sensor) of the points at least √min_r2 from it
     (nearer ones cannot reach any box) whose bin some box's window covers (``wanted``, nbins
-    booleans): order (M,), starts (nbins + 1,)."""
+    booleans): order (M,), starts (nbins + 1,) and the bucketed points' xyz in that order (M, 3),
+    same dtype (the later passes then read the windows sequentially)."""
     n = pts.shape[0]
     bins = np.empty(n, dtype=np.int64)
     counts = np.zeros(nbins + 1, dtype=np.int64)
@@ -395,12 +424,15 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - co
         counts[q + 1] += counts[q]
     fill = counts[:nbins].copy()
     order = np.empty(counts[nbins], dtype=np.int64)
+    sxyz = np.empty((counts[nbins], 3), dtype=pts.dtype)
     for k in range(n):
         q = bins[k]
         if q >= 0:
-            order[fill[q]] = k
+            i = fill[q]
+            order[i] = k
+            sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
             fill[q] += 1
-    return order, counts
+    return order, counts, sxyz
 
 
 @numba.njit(cache=True, inline="always")
@@ -416,7 +448,9 @@ def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compi
 def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts):  # pragma: no cover - compiled
     """For each box, the points of its azimuth bins whose ray from the sensor passes through its
     reach prism (rectangle grown by ``reach``, slab heights above its ground plane); indices into
-    ``out`` (flat), number per box into ``counts``."""
+    ``out`` (flat, in window order: the caller sorts each box's part), number per box into
+    ``counts``. ``pts`` are the bucketed points in bucket order (``AzimuthBuckets.sorted_xyz``),
+    ``order`` their indices."""
     pos = 0
     for j in range(boxes.shape[0]):
         y = boxes[j]
@@ -432,17 +466,16 @@ def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz,
                 continue
             for i in range(starts[q0], starts[q1 + 1]):
                 k = order[i]
-                ex, ey = pts[k, 0] - ox, pts[k, 1] - oy
+                ex, ey = pts[i, 0] - ox, pts[i, 1] - oy
                 if ex * ex + ey * ey < near2[j]:  # ends before the grown rectangle
                     continue
-                qx, qy = pts[k, 0] - y[0], pts[k, 1] - y[1]
+                qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
                 px, py = c * qx + s * qy, -s * qx + c * qy
-                ph = pts[k, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
+                ph = pts[i, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
                 if _hits(bx, by, oh, px, py, ph, hl, hw, slabs[j, 0], slabs[j, 1]):
                     out[pos] = k
                     pos += 1
         counts[j] = pos - start
-        out[start:pos].sort()
     return pos
 
 
@@ -466,6 +499,7 @@ class AzimuthBuckets:
     ranges : (K, 4) up to two inclusive bin ranges per box
     near2 : (K,) squared BEV distance from the sensor to each box's grown rectangle
     reach : how far the windows reach beyond the boxes (m)
+    sorted_xyz : (M, 3) ``xyz[order]``, same dtype
     """
 
     xyz: FloatArray
@@ -474,6 +508,7 @@ class AzimuthBuckets:
     ranges: IndexArray
     near2: FloatArray
     reach: float
+    sorted_xyz: FloatArray
 
     def window_sizes(self) -> IndexArray:
         """Points in each box's window (K,)."""
@@ -500,8 +535,8 @@ def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reac
         np.add.at(wanted, ranges[ok, 2 * r], 1)
         np.add.at(wanted, ranges[ok, 2 * r + 1] + 1, -1)
     min_r2 = float(near2.min()) if len(b) else 0.0
-    order, starts = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
-    return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach))
+    order, starts, sorted_xyz = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
+    return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
 
 
 def ray_candidates(
@@ -535,13 +570,19 @@ def ray_candidates(
     -------
     K sorted int64 index arrays into ``points``
     """
+    return [idx.copy() for idx in _ray_candidates(points, origin, boxes, ground, slabs, reach, nbins, buckets)[0]]
+
+
+def _ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, ground: ArrayLike, slabs: ArrayLike, reach: float,
+                    nbins: int = C.FREE_SPACE_AZIMUTH_BINS, buckets: AzimuthBuckets | None = None) -> tuple[list[IndexArray], list[FloatArray]]:
+    """:func:`ray_candidates` (as views of one buffer) and the returns' xyz (M_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     k = len(b)
     if k == 0:
-        return []
+        return [], []
     if len(points) == 0:
-        return [np.empty(0, dtype=np.int64) for _ in range(k)]
+        return [np.empty(0, dtype=np.int64) for _ in range(k)], [np.empty((0, 3)) for _ in range(k)]
     if buckets is None or buckets.reach < reach:
         buckets = azimuth_buckets(points, o, b, reach, nbins)
     bk = buckets
@@ -549,14 +590,43 @@ def ray_candidates(
     sl = np.ascontiguousarray(slabs, dtype=float)
     sizes = bk.window_sizes()
     result: list[IndexArray] = []
+    ends: list[FloatArray] = []
     for j0 in range(0, k, _BATCH):  # batches bound the buffer in frames of thousands of boxes
         j1 = min(k, j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        _select_kernel(bk.xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
-        offsets = np.concatenate([[0], np.cumsum(counts)])  # the kernel writes the boxes' candidates one after the other
-        result += [out[offsets[j]: offsets[j + 1]].copy() for j in range(j1 - j0)]
-    return result
+        pos = _select_kernel(bk.sorted_xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
+        _split(bk.xyz, out[:pos], counts, result, ends)  # the kernel writes the boxes' candidates one after the other
+    return result, ends
+
+
+def _split(pts: NDArray, idx: IndexArray, counts: IndexArray, out_idx: list[IndexArray], out_xyz: list[FloatArray]) -> None:
+    """Append each box's part of the kernels' flat output (its ``counts[j]`` entries, one box after
+    the other), sorted, and its points ``pts[part, :3]`` as float64. The sort is NumPy's (SIMD), not
+    numba's, which is several times slower on these sizes."""
+    pos = 0
+    parts = []
+    for c in counts.tolist():
+        part = idx[pos: pos + c]
+        part.sort()
+        parts.append(part)
+        pos += c
+    xyz = _gather_xyz(pts, idx[:pos])
+    pos = 0
+    for part in parts:
+        out_idx.append(part)
+        out_xyz.append(xyz[pos: pos + len(part)])
+        pos += len(part)
+
+
+@numba.njit(cache=True)
+def _gather_xyz(pts, idx):  # pragma: no cover - compiled
+    """``pts[idx, :3].astype(np.float64)`` (n, 3) in one pass."""
+    out = np.empty((idx.shape[0], 3))
+    for i in range(idx.shape[0]):
+        k = idx[i]
+        out[i, 0], out[i, 1], out[i, 2] = np.float64(pts[k, 0]), np.float64(pts[k, 1]), np.float64(pts[k, 2])
+    return out
 
 
 def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> list[IndexArray]:
@@ -564,19 +634,24 @@ def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, bel
     bottom to ``above`` over its top, taken from the boxes' azimuth windows (``buckets`` must reach
     at least ``margin``): one compiled pass over the windows instead of a test of every point of
     the frame per box."""
+    return [idx.copy() for idx in _neighbourhoods(buckets, boxes, margin, below, above)[0]]
+
+
+def _neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> tuple[list[IndexArray], list[FloatArray]]:
+    """:func:`neighbourhoods` (as views of one buffer) and the points' xyz (n_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     if buckets.reach < margin:
         raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
     sizes = buckets.window_sizes()
     result: list[IndexArray] = []
+    xyz: list[FloatArray] = []
     for j0 in range(0, len(b), _BATCH):
         j1 = min(len(b), j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        _region_kernel(buckets.xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
-        offsets = np.concatenate([[0], np.cumsum(counts)])
-        result += [out[offsets[j]: offsets[j + 1]].copy() for j in range(j1 - j0)]
-    return result
+        pos = _region_kernel(buckets.sorted_xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
+        _split(buckets.xyz, out[:pos], counts, result, xyz)
+    return result, xyz
 
 
 _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (frames of thousands of boxes)
@@ -584,6 +659,9 @@ _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (f
 
 @numba.njit(cache=True)
 def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out, counts):  # pragma: no cover - compiled
+    """For each box, the points of its azimuth window (``pts`` in bucket order, ``order`` their
+    indices) inside the grown box of :func:`neighbourhoods`: indices into ``out`` (flat, in window
+    order: the caller sorts each box's part), number per box into ``counts``."""
     pos = 0
     for j in range(boxes.shape[0]):
         y = boxes[j]
@@ -597,15 +675,14 @@ def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out,
                 continue
             for i in range(starts[q0], starts[q1 + 1]):
                 k = order[i]
-                z = pts[k, 2]
+                z = pts[i, 2]
                 if z < zlo or z > zhi:
                     continue
-                qx, qy = pts[k, 0] - y[0], pts[k, 1] - y[1]
+                qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
                 if abs(c * qx + s * qy) <= hl and abs(-s * qx + c * qy) <= hw:
                     out[pos] = k
                     pos += 1
         counts[j] = pos - start
-        out[start:pos].sort()
     return pos
 
 

@@ -78,9 +78,11 @@ def rotation_z(yaw: ArrayLike) -> FloatArray:
     """
     yaw = np.asarray(yaw, dtype=float)
     c, s = np.cos(yaw), np.sin(yaw)
-    zeros, ones = np.zeros_like(yaw), np.ones_like(yaw)
-    rows = [np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)]
-    return np.stack(rows, -2)
+    R = np.zeros(yaw.shape + (3, 3))
+    R[..., 0, 0], R[..., 0, 1] = c, -s
+    R[..., 1, 0], R[..., 1, 1] = s, c
+    R[..., 2, 2] = 1.0
+    return R
 
 
 def rotation_2d(yaw: ArrayLike) -> FloatArray:
@@ -228,23 +230,29 @@ def dphi_dext(box: ArrayLike, model: ModelKind) -> FloatArray:
 
 def dphi_dext_valid(y: FloatArray, model: ModelKind) -> FloatArray:
     """:func:`dphi_dext` of a box (7,) float64 known to be valid (after :func:`validate_box`)."""
-    cx, cy, cz, length, width, height, yaw = y
-    c, s = np.cos(yaw), np.sin(yaw)
+    c, s = float(np.cos(y[6])), float(np.sin(y[6]))
+    length, width = float(y[3]), float(y[4])
     d, p = _check_model(model)
+    G = np.zeros(p * p)
+    # the entries of the centre, l, w (then h for 3D), a and b columns (_DPHI_DEXT_ENTRIES), at once
+    G[_DPHI_DEXT_ENTRIES[d]] = (1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c) if d == 2 else (
+        1.0, 1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c, 1.0)
+    return G.reshape(p, p)
+
+
+def _dphi_dext_entries(d: int) -> NDArray[np.int64]:
+    """Flat indices into the p × p ∂φ/∂ỹ of its non-zero entries, in the order :func:`dphi_dext_valid` writes them."""
+    p = 2 * d + 2
     o = d - 2
-    G = np.zeros((p, p))
-    for i in range(d):
-        G[i, i] = 1.0
-    # columns: l, w (then h for 3D), a, b
-    il, iw = d, d + 1
-    ia, ib = p - 2, p - 1
-    G[2 + o, il], G[3 + o, il] = c, s
-    G[4 + o, iw], G[5 + o, iw] = c, s
-    G[2 + o, ia], G[3 + o, ia] = -length * s, length * c
-    G[4 + o, ib], G[5 + o, ib] = -width * s, width * c
+    il, iw, ia, ib = d, d + 1, p - 2, p - 1
+    cells = [(i, i) for i in range(d)]
+    cells += [(2 + o, il), (3 + o, il), (4 + o, iw), (5 + o, iw), (2 + o, ia), (3 + o, ia), (4 + o, ib), (5 + o, ib)]
     if d == 3:
-        G[7, 5] = 1.0
-    return G
+        cells.append((7, 5))
+    return np.array([i * p + j for i, j in cells])
+
+
+_DPHI_DEXT_ENTRIES = {2: _dphi_dext_entries(2), 3: _dphi_dext_entries(3)}
 
 
 def dext_dphi(box: ArrayLike, model: ModelKind) -> FloatArray:
@@ -367,23 +375,29 @@ def clean_points(points: ArrayLike | None, d: int) -> FloatArray:
     (None or empty → (0, d)); raises ValueError for another shape."""
     if points is None:
         return np.zeros((0, d))
-    pts = np.asarray(points, dtype=float)
+    pts = np.asarray(points)
+    if pts.dtype.kind != "f":
+        pts = np.asarray(points, dtype=float)
     if pts.size == 0:
         return np.zeros((0, d))
     if pts.ndim != 2 or pts.shape[1] < d:
         raise ValueError(f"points must be an (N, ≥{d}) array, got shape {pts.shape}")
-    pts = pts[:, :d]
+    if pts.dtype == np.float32 or pts.dtype == np.float64:  # the pipeline's crops: one compiled pass (numba, imported here)
+        from labelaudit.core.pointops import finite_rows_f64
+
+        return finite_rows_f64(pts, d)
+    pts = pts[:, :d]  # other float types are converted after the cut (exactly): d columns, not all of them
     if np.isfinite(pts).all():  # the usual case: one test, a contiguous copy (as the masked copy below)
-        return pts.copy()
-    return pts[np.all(np.isfinite(pts), axis=1)]  # non-finite returns cannot be registered
+        return pts.astype(np.float64, order="C")
+    return pts[np.all(np.isfinite(pts), axis=1)].astype(np.float64, order="C")  # non-finite returns cannot be registered
 
 
 def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:
     """:func:`box_to_phi` of a box (7,) float64 known to be valid (labels
     after ``validate_box``, the fit's own rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost
     more than φ itself at a dozen calls per fit."""
-    cx, cy, cz, length, width, height, yaw = y
-    c, s = np.cos(yaw), np.sin(yaw)
+    c, s = float(np.cos(y[6])), float(np.sin(y[6]))  # NumPy's cos/sin (not math's: NumPy may use SIMD kernels)
+    cx, cy, cz, length, width, height, _ = y.tolist()  # Python floats: the same IEEE products, at a fraction of the cost
     if model == "bev":
         return np.array([cx, cy, length * c, length * s, width * c, width * s])
     return np.array([cx, cy, cz, length * c, length * s, width * c, width * s, height])

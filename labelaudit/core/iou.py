@@ -8,6 +8,7 @@ deterministic boxes. No I/O.
 
 from __future__ import annotations
 
+import math
 
 import numba
 import numpy as np
@@ -23,16 +24,33 @@ def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
     chain), its clipping by the box (Sutherland–Hodgman) and the areas (shoelace) are one compiled
     call, :func:`_hull_iou_kernel`; coordinates are taken relative to the box centre.
     """
-    y = g.validate_box(box)
-    pts = _hull_candidates(g.clean_points(points, 2))
-    if len(pts) < 3:
-        return 0.0
-    local = pts - y[:2]
-    order = np.lexsort((local[:, 1], local[:, 0]))  # by x, then y
+    return hull_iou_valid(g.validate_box(box), points)
+
+
+def hull_iou_valid(y: FloatArray, points: ArrayLike | None) -> float:
+    """:func:`hull_iou` of a box (7,) float64 known to be valid (after :func:`~labelaudit.core.geometry.validate_box`).
+
+    float32/float64 points (N, ≥2) are read as they are (converted exactly): the finite rows,
+    the hull candidates (:func:`_hull_candidates`) and their order by x, then y, relative to the
+    box centre come from one compiled pass (:func:`_sorted_candidates_kernel`) instead of a float64
+    copy of the crop and a dozen NumPy passes.
+    """
+    arr = None if points is None else np.asarray(points)
+    if arr is None or arr.dtype not in _KERNEL_DTYPES or arr.ndim != 2 or arr.shape[1] < 2 or arr.size == 0:
+        pts = _hull_candidates(g.clean_points(points, 2))  # other input: the reference path (and its errors)
+        if len(pts) < 3:
+            return 0.0
+        local = pts - y[:2]
+        local = np.ascontiguousarray(local[np.lexsort((local[:, 1], local[:, 0]))])  # by x, then y
+    else:
+        local = _sorted_candidates_kernel(arr, float(y[0]), float(y[1]))
+        if len(local) < 3:
+            return 0.0
     corners = _BEV_CORNER_J @ g.phi_of_valid_box(y, "bev") - y[:2]  # = box_corners(y, "bev") − centre, counter-clockwise
-    return float(_hull_iou_kernel(np.ascontiguousarray(local[order]), np.ascontiguousarray(corners)))
+    return float(_hull_iou_kernel(local, np.ascontiguousarray(corners)))
 
 
+_KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))  # native floats: what the compiled pass reads as is
 _BEV_CORNER_J = g.design_matrix(g.BEV_CORNERS_UNIT, "bev")  # (4, 2, 6): the corners are J·φ (geometry.box_corners)
 
 
@@ -119,6 +137,75 @@ def _hull_candidates(pts: FloatArray) -> FloatArray:
         edges += 1
         keep |= ex * (y - qy) - ey * (x - qx) <= 0.0  # not strictly left of this edge (on it: kept)
     return pts[keep] if edges else pts
+
+
+@numba.njit(cache=True)
+def _sorted_candidates_kernel(pts, cx, cy):  # pragma: no cover - compiled
+    """The hull candidates of :func:`_hull_candidates` among the finite rows of ``pts`` (N, ≥2)
+    (x, y of :func:`~labelaudit.core.geometry.clean_points`), relative to (cx, cy) and sorted by x,
+    then y (M, 2) float64: the same float64 operations as the NumPy form, element by element (no
+    fast-math). Equal keys are equal points, so the order is unique whatever the sort."""
+    n = pts.shape[0]
+    xs = np.empty(n)
+    ys = np.empty(n)
+    m = 0
+    for k in range(n):
+        x, y = np.float64(pts[k, 0]), np.float64(pts[k, 1])
+        if math.isfinite(x) and math.isfinite(y):
+            xs[m], ys[m] = x, y
+            m += 1
+    keep = np.ones(m, dtype=np.bool_)
+    if m >= 8:
+        ext = np.zeros(4, dtype=np.int64)  # argmin x, argmin y, argmax x, argmax y (first occurrence): counter-clockwise
+        for k in range(1, m):
+            if xs[k] < xs[ext[0]]:
+                ext[0] = k
+            if ys[k] < ys[ext[1]]:
+                ext[1] = k
+            if xs[k] > xs[ext[2]]:
+                ext[2] = k
+            if ys[k] > ys[ext[3]]:
+                ext[3] = k
+        keep[:] = False
+        edges = 0
+        for e in range(4):
+            qx, qy = xs[ext[e]], ys[ext[e]]
+            rx, ry = xs[ext[(e + 1) % 4]], ys[ext[(e + 1) % 4]]
+            ex, ey = rx - qx, ry - qy
+            if ex == 0.0 and ey == 0.0:
+                continue
+            edges += 1
+            for k in range(m):
+                if not keep[k] and ex * (ys[k] - qy) - ey * (xs[k] - qx) <= 0.0:
+                    keep[k] = True
+        if edges == 0:
+            keep[:] = True
+    q = 0
+    lx = np.empty(m)
+    ly = np.empty(m)
+    for k in range(m):
+        if keep[k]:
+            lx[q], ly[q] = xs[k] - cx, ys[k] - cy
+            q += 1
+    lx, ly = lx[:q], ly[:q]
+    order = np.argsort(lx, kind="mergesort")
+    out = np.empty((q, 2))
+    for i in range(q):
+        out[i, 0], out[i, 1] = lx[order[i]], ly[order[i]]
+    i = 0
+    while i < q:  # runs of equal x: by y, stable (insertion sort; runs are short) — np.lexsort's order, ±0 included
+        j = i + 1
+        while j < q and out[j, 0] == out[i, 0]:
+            j += 1
+        for a in range(i + 1, j):
+            vx, vy = out[a, 0], out[a, 1]
+            b = a - 1
+            while b >= i and out[b, 1] > vy:
+                out[b + 1, 0], out[b + 1, 1] = out[b, 0], out[b, 1]
+                b -= 1
+            out[b + 1, 0], out[b + 1, 1] = vx, vy
+        i = j
+    return out
 
 
 def bev_iou_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:

@@ -42,9 +42,9 @@ from labelaudit import constants as C
 from labelaudit.config import CropParams
 from labelaudit.core.freespace import (
     FreeSpace,
+    _neighbourhoods,
+    _ray_candidates,
     azimuth_buckets,
-    neighbourhoods,
-    ray_candidates,
 )
 from labelaudit.core.geometry import rotation_z
 from labelaudit.infer.crop import selection_boxes
@@ -130,18 +130,19 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     if len(b) == 0:
         return []
     others = b if others is None else np.asarray(others, dtype=float).reshape(-1, 7)
-    others = np.unique(others, axis=0)  # a copy of a label adds nothing to "inside another label" (label files with repeated lines)
+    # a copy of a label adds nothing to "inside another label" (label files with repeated lines);
+    # which copy is kept, and in which order, changes no flag (a point is foreign when any label holds it)
+    others = np.array(list(dict.fromkeys(map(tuple, others.tolist()))), dtype=float).reshape(-1, 7)
     tau = C.FREE_SPACE_TOLERANCE
     wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
     # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
     buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
-    xyz3 = buckets.xyz  # a view of the frame's points; gathers are converted to float64 (exactly)
-    near = neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
+    # each neighbourhood's indices and its points as float64 (converted exactly), gathered once
+    near, near_xyz = _neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
     sel = selection_boxes(b, crop.margin, crop.ground_cut)  # the model's crop regions, as Open3D sees them
     rotations = rotation_z(sel[:, 6])
     grounds = np.empty((len(b), 3))
     ground_z = np.full(len(b), np.nan)
-    near_xyz = [xyz3[idx].astype(np.float64) for idx in near]  # each neighbourhood's points, gathered once
     for j, box in enumerate(b):
         plane = ground_plane(near_xyz[j], box)
         if plane is None:
@@ -150,10 +151,13 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             grounds[j] = plane
             ground_z[j] = plane[0]
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
-    rays = ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
+    _, ray_ends = _ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
     out = []
     o = np.asarray(origin, dtype=float).reshape(3)
-    planes = np.c_[grounds, np.zeros(len(b))]
+    planes = np.zeros((len(b), 4))  # (g0, gx, gy, unused)
+    planes[:, :3] = grounds
+    slab_list = slabs.tolist()
+    ground_list = ground_z.tolist()
     close_all = np.zeros((0, len(others)), dtype=bool)
     for j, box in enumerate(b):
         if j % _BATCH == 0:  # the other labels the fit margins of the next boxes can reach (never the box itself)
@@ -162,21 +166,50 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             close_all = np.hypot(bb[:, None, 0] - others[None, :, 0], bb[:, None, 1] - others[None, :, 1]) <= reach
             close_all &= ~np.all(bb[:, None, :] == others[None, :, :], axis=2)
         idx = near[j]
-        xyz = near_xyz[j]
-        flags = np.zeros(len(idx), dtype=np.uint8)
-        _box_kernel(xyz, box, grounds[j], others[close_all[j % _BATCH]], crop.fit_margin, crop.ground_cut,
-                    C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, flags)
-        model_idx = idx[_open3d_inside(xyz, sel[j], rotations[j])] if sel[j, 5] > 0 else idx[:0]
-        foreign = (flags & _FOREIGN) != 0
-        if foreign.any() and len(model_idx):
-            model_idx = model_idx[~np.isin(model_idx, idx[foreign], assume_unique=True)]
+        model_idx, fit_idx, n_foreign, n_scenery = _box_crops(
+            near_xyz[j], idx, box, grounds[j], others[close_all[j % _BATCH]], crop.fit_margin, crop.ground_cut,
+            C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, sel[j], rotations[j], sel[j, 5] > 0)
         fs = FreeSpace(
-            origin=o, ends=xyz3[rays[j]].astype(np.float64), ground=planes[j], ref=box[:2].copy(),
-            slab=(float(slabs[j, 0]), float(slabs[j, 1])), tolerance=tau, object_height=crop.ground_cut,
+            origin=o, ends=ray_ends[j], ground=planes[j], ref=box[:2].copy(),
+            slab=(slab_list[j][0], slab_list[j][1]), tolerance=tau, object_height=crop.ground_cut,
         )
-        out.append(BoxEvidence(model_idx, idx[(flags & _FIT) != 0], idx, fs, float(ground_z[j]),
-                               int(np.count_nonzero(flags & _FIT_FOREIGN)), int(np.count_nonzero(flags & _FIT_SCENERY))))
+        out.append(BoxEvidence(model_idx, fit_idx, idx, fs, ground_list[j], int(n_foreign), int(n_scenery)))
     return out
+
+
+@numba.njit(cache=True)
+def _box_crops(xyz, idx, box, plane, others, fit_margin, cut, nb_margin, cell, sel, R, with_model):  # pragma: no cover - compiled
+    """One box's crops from its neighbourhood (n, 3) and indices ``idx`` (n,): the model's crop
+    (:func:`_open3d_inside` of the selection box ``sel``, rotation ``R``; none unless ``with_model``)
+    without other labels' points, the fit's crop (:func:`_box_kernel`), and the number of points
+    dropped from the fit's crop as another label's and as unlabelled surfaces."""
+    n = xyz.shape[0]
+    flags = np.zeros(n, dtype=np.uint8)
+    _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags)
+    inside = _open3d_inside(xyz, sel, R) if with_model else np.zeros(n, dtype=np.bool_)
+    n_model = n_fit = n_foreign = n_scenery = 0
+    for k in range(n):
+        f = flags[k]
+        if inside[k] and not (f & 2):
+            n_model += 1
+        if f & 1:
+            n_fit += 1
+        if f & 4:
+            n_foreign += 1
+        if f & 8:
+            n_scenery += 1
+    model_idx = np.empty(n_model, dtype=np.int64)
+    fit_idx = np.empty(n_fit, dtype=np.int64)
+    a = c = 0
+    for k in range(n):
+        f = flags[k]
+        if inside[k] and not (f & 2):
+            model_idx[a] = idx[k]
+            a += 1
+        if f & 1:
+            fit_idx[c] = idx[k]
+            c += 1
+    return model_idx, fit_idx, n_foreign, n_scenery
 
 
 _FIT, _FOREIGN, _FIT_FOREIGN, _FIT_SCENERY = 1, 2, 4, 8  # flags of _box_kernel
@@ -216,6 +249,10 @@ def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags
     lx = np.empty(n)
     ly = np.empty(n)
     above = np.zeros(n, dtype=np.bool_)
+    # cos/sin of each other label, computed on first use (the same scalar calls, once per label, not per point)
+    o_cos = np.empty(others.shape[0])
+    o_sin = np.empty(others.shape[0])
+    o_have = np.zeros(others.shape[0], dtype=np.bool_)
     m = 0
     for k in range(n):
         dx, dy = xyz[k, 0] - box[0], xyz[k, 1] - box[1]
@@ -229,7 +266,10 @@ def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags
         if not own:
             for j in range(others.shape[0]):
                 o = others[j]
-                co, so = math.cos(o[6]), math.sin(o[6])
+                if not o_have[j]:
+                    o_cos[j], o_sin[j] = math.cos(o[6]), math.sin(o[6])
+                    o_have[j] = True
+                co, so = o_cos[j], o_sin[j]
                 ex, ey = xyz[k, 0] - o[0], xyz[k, 1] - o[1]
                 if abs(co * ex + so * ey) <= 0.5 * o[3] + nb_margin and abs(-so * ex + co * ey) <= 0.5 * o[4] + nb_margin and abs(z - o[2]) <= 0.5 * o[5]:
                     foreign = True
@@ -360,6 +400,10 @@ def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slop
     if n < min_points:
         return False
     stride = max(1, n // 512)
+    ns = (n + stride - 1) // stride  # the scored candidates, copied contiguous so the count loops vectorise (integer counts: exact)
+    sx, sy, sz = np.empty(ns), np.empty(ns), np.empty(ns)
+    for t in range(ns):
+        sx[t], sy[t], sz[t] = cand[t * stride, 0], cand[t * stride, 1], cand[t * stride, 2]
     best_count, bg0, bgx, bgy = -1, 0.0, 0.0, 0.0
     for h in range(draws.shape[0]):
         for level in range(2):
@@ -379,8 +423,8 @@ def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slop
                 gx = gy = 0.0
                 g0 = cand[i0, 2]
             count = 0
-            for k in range(0, n, stride):
-                if abs(cand[k, 2] - (g0 + gx * cand[k, 0] + gy * cand[k, 1])) < inlier:
+            for t in range(ns):
+                if abs(sz[t] - (g0 + gx * sx[t] + gy * sy[t])) < inlier:
                     count += 1
             if count > best_count:
                 best_count, bg0, bgx, bgy = count, g0, gx, gy

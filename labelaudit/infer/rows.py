@@ -19,8 +19,8 @@ from numpy.typing import ArrayLike
 from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
-from labelaudit.core.fit import fit_label
-from labelaudit.core.iou import hull_iou
+from labelaudit.core.fit import fit_label_valid
+from labelaudit.core.iou import hull_iou_valid
 from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
@@ -38,7 +38,13 @@ def check_finite(result: dict[str, Any]) -> None:
     """Raise ``FloatingPointError`` when the model's JIoU-GT or covariance came out NaN/inf (an
     overflow on extreme but valid input): the object gets status ``error`` instead of NaN scores."""
     jiou = result.get("jiou_gt")
-    cov_ok = result.get("cov") is None or bool(np.all(np.isfinite(result["cov"])))
+    cov = result.get("cov")
+    if cov is None:
+        cov_ok = True
+    elif type(cov) is list and all(type(v) is float for v in cov):  # audit_object's flat list: no NumPy round trip
+        cov_ok = all(map(math.isfinite, cov))
+    else:
+        cov_ok = bool(np.all(np.isfinite(cov)))
     if (jiou is not None and not math.isfinite(jiou)) or not cov_ok:
         raise FloatingPointError(f"non-finite model output (jiou_gt={jiou}, covariance finite: {cov_ok})")
 
@@ -54,12 +60,13 @@ def frame_note(frame_id: str | None, unit: str, message: str, level: str = "erro
     return {"unit": unit, "frame_id": frame_id, "file": file, "line": line, "level": level, "message": message}
 
 
-def _extras_for(frame: Frame, i: int) -> dict[str, Any]:
+def _extras_for(frame: Frame, i: int, present: list[tuple[str, Any]] | None = None) -> dict[str, Any]:
+    """The extra columns of label ``i``; ``present``: the frame's (name, values) of :data:`~labelaudit.results.EXTRA_COLUMNS`, looked up once per frame."""
     out: dict[str, Any] = {}
-    for name in R.EXTRA_COLUMNS:
-        if name not in frame.extras:
-            continue
-        value = frame.extras[name][i]
+    if present is None:
+        present = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
+    for name, values in present:
+        value = values[i]
         if name == "difficulty" and not isinstance(value, str):
             value = DIFFICULTY_NAMES.get(int(value), "unknown")
         out[name] = value
@@ -94,6 +101,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     rows: dict[int, dict[str, Any]] = {}
     final: set[int] = set()  # indices whose row is already normalised
     to_audit: list[int] = []
+    extras = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
     for i in selected:
         box = frame.boxes[i]
         row: dict[str, Any] = {
@@ -102,11 +110,11 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             "object_index": i,
             "object_id": frame.object_ids[i],
             "class_name": frame.class_names[i],
-            **dict(zip(R.BOX_COLUMNS, (float(v) for v in box))),
+            **dict(zip(R.BOX_COLUMNS, np.asarray(box, dtype=float).tolist())),
             "distance": float(math.hypot(box[0] - origin[0], box[1] - origin[1])),
             "model": cfg.model.kind,
             "sigma": cfg.model.sigma,
-            **_extras_for(frame, i),
+            **_extras_for(frame, i, extras),
         }
         rows[i] = row
         problem = frame.object_errors.get(i)  # the reader's reason, naming file, line and field
@@ -129,21 +137,22 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # One Open3D pass gives each box's neighbourhood; the model's crop is refined from it
         # exactly, the label-error fit's wider crop is cut above the local ground, other labels'
         # points are dropped, and the rays that may cross the box are collected (infer/evidence.py).
-        with np.errstate(all="ignore"):  # extreme but valid boxes (1e38 m) overflow the geometry harmlessly: their objects get their own status
+        # errstate: extreme but valid boxes (1e38 m) overflow the geometry harmlessly, and it changes
+        # no value: a non-finite result is refused per object (check_finite), not warned about on stderr
+        with np.errstate(all="ignore"):
             evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes))
-        for i, ev in zip(to_audit, evidence):
-            row = rows[i]
-            idx = ev.model_idx
-            try:
-                with np.errstate(all="ignore"):  # changes no value: a non-finite result is refused below, not warned about on stderr
+            for i, ev in zip(to_audit, evidence):
+                row = rows[i]
+                idx = ev.model_idx
+                try:
                     result = audit_object(frame.boxes[i], frame.points[idx], frame.class_names[i], cfg, origin,
                                           fit_points=frame.points[ev.fit_idx], evidence=ev.for_object(frame.points))
-                check_finite(result)
-                # values the schema cannot hold fail here, per object; the row is final after this
-                rows[i] = R.normalize_row({**row, **result})
-                final.add(i)
-            except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
-                row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
+                    check_finite(result)
+                    # values the schema cannot hold fail here, per object; the row is final after this
+                    rows[i] = R.normalize_row({**row, **result})
+                    final.add(i)
+                except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
+                    row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
 
 
@@ -206,7 +215,7 @@ def audit_object(
     else:
         status = "ok"
     fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
-    fit = fit_label(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
+    fit = fit_label_valid(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
@@ -217,20 +226,21 @@ def audit_object(
         "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
         "corner_tv": post.corner_tv.tolist(),
     }
-    for name in g.BOX_FIELDS:
-        row[f"std_{name}"] = float(post.std_box[name])
+    std = post.std_box
+    for name, column in zip(g.BOX_FIELDS, _STD_COLUMNS):
+        row[column] = float(std[name])
     row["cov"] = np.asarray(post.cov).ravel().tolist()
     row["cov_dim"] = int(post.cov.shape[0])
     row["model"] = post.model
-    for name, value in zip(g.BOX_FIELDS, fit.box):
-        row[f"fit_{name}"] = float(value)
+    for name, value in zip(_FIT_COLUMNS, fit.box.tolist()):
+        row[name] = value
     if fit.model == "bev":  # points without z: the fit does not touch cz and height
         row["fit_cz"] = row["fit_height"] = float("nan")
-    row["hull_iou"] = hull_iou(y, points)
+    row["hull_iou"] = hull_iou_valid(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
     if evidence is not None:
         (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
-            np.stack([y, fit.box]), evidence.free_space, evidence.near_points)
+            np.array((y, fit.box)), evidence.free_space, evidence.near_points)
         row["neighbour_points"] = int(evidence.neighbour_points)
         row["scenery_points"] = int(evidence.scenery_points)
         row["ground_z"] = float(evidence.ground_z)
@@ -239,4 +249,6 @@ def audit_object(
     return row
 
 
+_FIT_COLUMNS = tuple(f"fit_{name}" for name in g.BOX_FIELDS)
+_STD_COLUMNS = tuple(f"std_{name}" for name in g.BOX_FIELDS)
 _EVIDENCE_COLUMNS = ("free_rays", "end_rays", "fit_free_rays", "fit_end_rays", "neighbour_points", "scenery_points", "ground_z")

@@ -1,0 +1,35 @@
+"""Compiled per-point passes behind :mod:`labelaudit.core.geometry` (numba), kept apart so that
+importing the geometry (the CLI does) never imports numba. No I/O, no model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True)
+def finite_rows_f64(pts, d):  # pragma: no cover - compiled
+    """The rows of ``pts`` (N, ≥d), float32 or float64, whose first ``d`` values are finite, as a
+    float64 (M, d) C-contiguous copy (converted exactly): :func:`~labelaudit.core.geometry.clean_points`
+    in two passes over the crop instead of NumPy's strided test, cut and cast."""
+    n = pts.shape[0]
+    keep = np.empty(n, dtype=np.bool_)
+    m = 0
+    for k in range(n):
+        ok = True
+        for j in range(d):
+            if not math.isfinite(pts[k, j]):
+                ok = False
+        keep[k] = ok
+        m += ok
+    out = np.empty((m, d))
+    q = 0
+    for k in range(n):
+        if keep[k]:
+            for j in range(d):
+                out[q, j] = pts[k, j]
+            q += 1
+    return out
