@@ -155,6 +155,8 @@ SIM_DET_VAN_AS_CAR = 0.3  # synthetic detector: probability that a Van is report
 DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`
 CHUNK_UNITS = {"kitti": 16, "waymo-v2": 1, "waymo-v1": 1}  # most units per shard: 16 KITTI frames, 1 Waymo segment (~200 frames)
 TARGET_CHUNKS = 32  # small runs are cut into about this many chunks (≥ 1 unit each) so workers stay balanced
+MALLOC_MMAP_THRESHOLD = 32 * 2**20  # bytes (glibc's documented maximum on 64-bit); blocks below this come from the reused heap, not a fresh mmap each (per-box arrays of a few MB paid page faults on every box)
+MALLOC_TRIM_THRESHOLD = 64 * 2**20  # bytes; glibc: free heap kept for the next box up to this much, instead of returned to the system after each
 POOL_START_METHOD = "forkserver"  # workers fork from a clean, single-threaded server (not from the busy main process)
 WORKER_PRELOAD = ("labelaudit.infer.run", "labelaudit.infer.crop", "labelaudit.infer.rows", "labelaudit.infer.warmup")  # imported once in the fork server (and by each Dask worker at start): the core, its compiled kernels (Open3D only loads where a crop asks it)
 DASK_CONNECT_TIMEOUT = 10.0  # s; an unreachable --scheduler is reported after this long (exit 2)
@@ -204,5 +206,5 @@ REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's 
 # evaluation, CLI defaults and scheduling. Changing them never blocks `--resume`; every other
 # upper-case name of this module is hashed (a new one is hashed unless it is listed here).
 UNHASHED_PREFIXES = ("SIM_", "VIZ_", "SHOW_", "REPORT_", "EXPORT_", "EVAL_", "DEMO_", "HEURISTIC_", "INFOS_", "DEFAULT_ANCHOR_", "DASK_", "UNHASHED_")
-UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP",
+UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP",
                             "PARAM_RANGES", "CROP_GRID_MIN_BOXES", "CROP_GRID_CELL", "CROP_GRID_BATCH", "CROP_GRID_DENSE_CELLS"})  # ranges only refuse a config; the grid crop gives Open3D's indices

@@ -307,3 +307,12 @@ def test_fork_server_marker_skips_the_teardown_only_in_the_marked_server():
     other = subprocess.run([sys.executable, "-c", code], env={**env, FORK_SERVER_ENV: "1"}, capture_output=True)
     plain = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True)
     assert (marked.returncode, other.returncode, plain.returncode) == (0, 3, 3)
+
+
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_allocator_tuning_takes_on_glibc():
+    """Workers keep freed blocks for the next box (constants.MALLOC_*): glibc accepts both settings."""
+    from labelaudit.executors import tune_allocator
+
+    tune_allocator.cache_clear()
+    assert tune_allocator() is True

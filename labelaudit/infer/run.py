@@ -93,8 +93,10 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
     With ``task.debug`` unexpected exceptions (bugs, not bad input) propagate so their traceback
     is visible.
     """
+    from labelaudit.executors import tune_allocator
     from labelaudit.infer.rows import frame_note
 
+    tune_allocator()
     start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []

@@ -47,6 +47,9 @@ def warm_up(strict: bool = False) -> None:
         import numpy as np
 
         from labelaudit.config import load_config
+        from labelaudit.executors import tune_allocator
+
+        tune_allocator()  # the forked workers inherit it
         from labelaudit.datasets import Frame
         from labelaudit.infer.rows import process_frame
 
