@@ -860,3 +860,78 @@ def test_compiled_quadratic_forms_equal_einsum(model):
         K, _ = g.box_param_jacobian(np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 10, 3), rng.uniform(-4, 4)]), model)
         assert np.array_equal(M._quad_forms(K, cov), np.einsum("ip,pq,iq->i", K, cov, K))
         assert np.array_equal(M._corner_quad_forms(J, cov), np.einsum("cdp,pq,cdq->c", J, cov, J))
+
+
+def _same_posterior(a, b) -> bool:
+    """Every field of two LabelPosteriors equal bit for bit (NaN equal to NaN)."""
+    for f in dataclasses.fields(a):
+        u, v = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(u, dict):
+            if list(u) != list(v) or not np.array_equal(list(u.values()), list(v.values()), equal_nan=True):
+                return False
+        elif isinstance(u, np.ndarray):
+            if u.dtype != v.dtype or u.shape != v.shape or not np.array_equal(u, v, equal_nan=u.dtype.kind == "f"):
+                return False
+        elif not (u == v or (u != u and v != v)):
+            return False
+    return True
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_infer_label_valid_equals_infer_label(model):
+    """The pipeline's entry (validated box, clean points, shared prior terms) gives the public
+    function's posterior bit for bit, with or without the terms; terms of another kind are refused."""
+    rng = np.random.default_rng(5)
+    params = ModelParams(kind=model)
+    d = g.point_dim(model)
+    for trial in range(20):
+        box = np.array([*rng.normal(0, 20, 3), *rng.uniform(0.5, 6, 3), rng.uniform(-4, 4)])
+        pts = face_points(box, ["-x", "-y", "+z"], int(rng.integers(0, 60)), 0.05)
+        pts = np.c_[pts, rng.uniform(0, 1, len(pts))].astype(np.float32 if trial % 2 else np.float64)  # (N, 4) crops
+        origin = rng.normal(0, 2, 3)
+        want = M.infer_label(box, pts, "Car", params, origin)
+        y = g.validate_box(box)
+        clean = g.clean_points(pts, d)
+        terms = M.box_prior_terms(y, params.prior_for("Car"), params.prior_weight, model)
+        assert _same_posterior(M.infer_label_valid(y, clean, "Car", params, origin), want), trial
+        assert _same_posterior(M.infer_label_valid(y, clean, "Car", params, origin, prior_terms=terms), want), trial
+    other = M.box_prior_terms(y, params.prior_for("Car"), params.prior_weight, "3d" if model == "bev" else "bev")
+    with pytest.raises(ValueError, match="do not match"):
+        M.infer_label_valid(y, clean, "Car", params, prior_terms=other)
+    with pytest.raises(ValueError, match="do not match"):
+        M.infer_label_valid(y, clean, "Pedestrian", params, prior_terms=terms)  # another class prior
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_box_prior_terms_equal_each_functions_own_set_up(model):
+    """The shared terms are bit for bit the φ, G, G⁻¹, P0 and P0 φ that infer_label and fit_label
+    computed on their own, and P0 is the public prior precision."""
+    rng = np.random.default_rng(11)
+    params = ModelParams(kind=model)
+    prior = params.prior_for("Car")
+    for _ in range(50):
+        y = g.validate_box(np.array([*rng.normal(0, 30, 3), *rng.uniform(0.2, 12, 3), rng.uniform(-7, 7)]))
+        t = M.box_prior_terms(y, prior, params.prior_weight, model)
+        G = g.dphi_dext_valid(y, model)
+        E = np.linalg.inv(G)
+        P0 = M.prior_precision_from(E, prior, params.prior_weight, model)
+        assert np.array_equal(t.phi, g.box_to_phi(y, model)) and np.array_equal(t.G, G) and np.array_equal(t.Ginv, E)
+        assert np.array_equal(t.P0, P0) and np.array_equal(t.P0, M.prior_precision(y, prior, params.prior_weight, model))
+        assert np.array_equal(t.eta0, P0 @ t.phi)
+        assert t.matches(model, prior, params.prior_weight) and not t.matches(model, prior, 2 * params.prior_weight)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_fit_label_with_shared_terms_equals_its_own(model):
+    """fit_label_valid with a run's prior terms is the fit without them; a BEV run's terms (the fit
+    is 3D) and terms of points without z are not used."""
+    params = ModelParams(kind=model)
+    y = g.validate_box(_shifted(CAR, cx=0.2, yaw=0.05))
+    terms = M.box_prior_terms(y, params.prior_for("Car"), params.prior_weight, model)
+    for pts in (face_points(CAR, ["-x", "-y"], 80, 0.03), face_points(CAR, ["-x", "-y"], 80, 0.03)[:, :2], None):
+        want = LF.fit_label(y, pts, "Car", params)
+        got = LF.fit_label_valid(y, pts, "Car", params, prior_terms=terms)
+        for f in ("box", "phi", "cov"):
+            assert np.array_equal(getattr(got, f), getattr(want, f)), f
+        assert (got.model, got.label_error, got.mahalanobis, got.iterations) == (want.model, want.label_error, want.mahalanobis, want.iterations)
+        assert np.array_equal(list(got.offsets.values()), list(want.offsets.values()), equal_nan=True)

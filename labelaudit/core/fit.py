@@ -25,10 +25,11 @@ from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core.freespace import FreeSpace, _displacement, _free_rows_kernel, _ray_bounds
 from labelaudit.core.geometry import FloatArray, ModelKind
 from labelaudit.core.posterior import (
+    BoxPriorTerms,
+    box_prior_terms,
     em_sigma,
     outlier_log_density,
     prior_cov_extended_cached,
-    prior_precision_from,
     register_validated,
     spd_inverse,
 )
@@ -601,9 +602,16 @@ def fit_label_valid(
     class_name: str,
     params: ModelParams,
     free_space: FreeSpace | None = None,
+    *,
+    prior_terms: BoxPriorTerms | None = None,
 ) -> LabelFit:
     """:func:`fit_label` of a box (7,) float64 known to be valid (after
-    :func:`~labelaudit.core.geometry.validate_box`): the pipeline validates each label once."""
+    :func:`~labelaudit.core.geometry.validate_box`): the pipeline validates each label once.
+
+    ``prior_terms``: the label's :class:`~labelaudit.core.posterior.BoxPriorTerms` of the fit's
+    model (3D when the points have z) when the caller has them, e.g. from a 3D run's posterior
+    (:func:`~labelaudit.core.posterior.infer_label_valid`); terms of another model, prior or
+    weight (a BEV run's) are not used, and None: computed here."""
     # The fit is 3D whenever the points have a z: in BEV, roof and hood points lie *inside* the
     # rectangle and would pull its edges inwards; in 3D they register to the top face.
     arr = None if points is None else np.asarray(points)
@@ -618,10 +626,11 @@ def fit_label_valid(
     pts = g.clean_points(arr, d)  # float crops: the d columns converted, not the whole rows
     n = pts.shape[0]
     prior = params.prior_for(class_name)
-    phi_label = g.phi_of_valid_box(y, model)
-    G = g.dphi_dext_valid(y, model)
-    P0 = prior_precision_from(linalg.inv(G), prior, params.prior_weight, model)  # G is invertible for l, w > 0
-    S_tol = G @ prior_cov_extended_cached(_TOLERANCE, model) @ G.T
+    terms = prior_terms
+    if terms is None or not terms.matches(model, prior, params.prior_weight):  # e.g. a BEV run's, or points without z
+        terms = box_prior_terms(y, prior, params.prior_weight, model)
+    phi_label, P0 = terms.phi, terms.P0
+    S_tol = terms.G @ prior_cov_extended_cached(_TOLERANCE, model) @ terms.G.T
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM
@@ -632,7 +641,7 @@ def fit_label_valid(
 
     pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_fit_normal_eq)
     rays = _ray_inputs(free_space, sigma)
-    prior_eta = P0 @ phi_label
+    prior_eta = terms.eta0  # P0 φ_label
     best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
     # A second start with length and width swapped, when the first fit leaves the points far from
     # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by

@@ -727,6 +727,70 @@ class LabelPosterior:
     fit_mean: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
+@dataclass(frozen=True)
+class BoxPriorTerms:
+    """The label-box set-up shared by :func:`infer_label_valid` and
+    :func:`labelaudit.core.fit.fit_label_valid`: φ of the label, the Jacobian G = ∂φ/∂ỹ, its
+    inverse E = ∂ỹ/∂φ and the prior precision P0 = Eᵀ · w Σ_ỹ⁻¹ · E (docs/method.md §4).
+
+    Computed once per object by :func:`box_prior_terms`; a consumer checks ``model``, ``prior``
+    and ``weight`` against its own (a BEV run's posterior and the always-3D fit do not share one).
+
+    Attributes
+    ----------
+    model : "bev" or "3d"
+    prior : the class prior the precision is of
+    weight : prior weight w (multiplies the precision)
+    phi : (p,) φ of the label
+    G : (p, p) ∂φ/∂ỹ at the label
+    Ginv : (p, p) its inverse E
+    P0 : (p, p) prior precision Σ0⁻¹ (symmetrised)
+    eta0 : (p,) P0 φ, the prior's information vector centred on the label
+    """
+
+    model: ModelKind
+    prior: ClassPrior
+    weight: float
+    phi: FloatArray
+    G: FloatArray
+    Ginv: FloatArray
+    P0: FloatArray
+    eta0: FloatArray
+
+    def matches(self, model: ModelKind, prior: ClassPrior, weight: float) -> bool:
+        """Whether these terms are those of ``model``, ``prior`` and ``weight``."""
+        return self.model == model and self.weight == weight and (self.prior is prior or self.prior == prior)
+
+
+def box_prior_terms(y: FloatArray, prior: ClassPrior, weight: float, model: ModelKind) -> BoxPriorTerms:
+    """:class:`BoxPriorTerms` of a box (7,) float64 known to be valid (after
+    :func:`~labelaudit.core.geometry.validate_box`).
+
+    Examples
+    --------
+    >>> from labelaudit.config import ModelParams
+    >>> params = ModelParams(kind="3d")
+    >>> y = g.validate_box([10.0, 2.0, -1.0, 4.0, 1.8, 1.5, 0.3])
+    >>> box_prior_terms(y, params.prior_for("Car"), params.prior_weight, "3d").P0.shape
+    (8, 8)
+    """
+    phi = g.phi_of_valid_box(y, model)
+    G = g.dphi_dext_valid(y, model)
+    E = linalg.inv(G)  # G is invertible for l, w > 0
+    P0 = prior_precision_from(E, prior, weight, model)
+    return BoxPriorTerms(model=model, prior=prior, weight=weight, phi=phi, G=G, Ginv=E, P0=P0, eta0=P0 @ phi)
+
+
+def checked_prior_terms(terms: BoxPriorTerms | None, y: FloatArray, prior: ClassPrior, weight: float, model: ModelKind) -> BoxPriorTerms:
+    """``terms`` when given (raising ValueError when they are of another model, prior or weight),
+    else :func:`box_prior_terms` of the box."""
+    if terms is None:
+        return box_prior_terms(y, prior, weight, model)
+    if not terms.matches(model, prior, weight):
+        raise ValueError(f"prior terms of model {terms.model!r} (weight {terms.weight:g}) do not match model {model!r} (weight {weight:g}) and this class prior")
+    return terms
+
+
 def infer_label(
     box: ArrayLike,
     points: ArrayLike | None,
@@ -748,17 +812,37 @@ def infer_label(
     ------
     ValueError
         Invalid box (non-positive size, non-finite values) or malformed points.
+
+    See Also
+    --------
+    infer_label_valid : the same for a validated box and clean points (the pipeline's call).
     """
     y = g.validate_box(box)
+    return infer_label_valid(y, g.clean_points(points, g.point_dim(params.kind)), class_name, params, sensor_origin)
+
+
+def infer_label_valid(
+    y: FloatArray,
+    pts: FloatArray,
+    class_name: str,
+    params: ModelParams,
+    sensor_origin: ArrayLike = (0.0, 0.0, 0.0),
+    *,
+    prior_terms: BoxPriorTerms | None = None,
+) -> LabelPosterior:
+    """:func:`infer_label` of a box (7,) float64 known to be valid (after
+    :func:`~labelaudit.core.geometry.validate_box`) and clean points (N, d) float64, d = 2 (BEV)
+    or 3 (after :func:`~labelaudit.core.geometry.clean_points`): the pipeline validates once.
+
+    ``prior_terms``: the box's :class:`BoxPriorTerms` of ``params.kind`` when the caller has them
+    (shared with the label-error fit); default: computed here.
+    """
     model = params.kind
     d = g.point_dim(model)
-    pts = g.clean_points(points, d)
     n = pts.shape[0]
     prior = params.prior_for(class_name)
-    phi = g.phi_of_valid_box(y, model)
-    G = g.dphi_dext_valid(y, model)
-    E = linalg.inv(G)  # G is invertible for l, w > 0
-    P0 = prior_precision_from(E, prior, params.prior_weight, model)
+    terms = checked_prior_terms(prior_terms, y, prior, params.prior_weight, model)
+    phi, G, E, P0 = terms.phi, terms.G, terms.Ginv, terms.P0
 
     sigma_hat = float("nan")
     sigma = float(params.sigma)
@@ -773,7 +857,7 @@ def infer_label(
     data_precision, data_eta = registration_information(reg, model)
     precision = P0 + data_precision / sigma**2
     cov = spd_inverse(0.5 * (precision + precision.T))
-    fit_mean = cov @ (P0 @ phi + data_eta / sigma**2)
+    fit_mean = cov @ (terms.eta0 + data_eta / sigma**2)
     tv, order = _corner_tv(y, cov, model, sensor_origin)
     p = phi.size
     K = np.empty((p - 1, p))  # as geometry.box_param_jacobian

@@ -21,7 +21,7 @@ from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
 from labelaudit.core.iou import hull_iou_valid
-from labelaudit.core.posterior import infer_label
+from labelaudit.core.posterior import box_prior_terms, infer_label_valid
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
 from labelaudit.core.freespace import ray_counts
@@ -206,7 +206,11 @@ def audit_object(
         Invalid box (non-positive size, non-finite values) or malformed points.
     """
     y = g.validate_box(box)
-    post = infer_label(y, points, class_name, cfg.model, sensor_origin)
+    params = cfg.model
+    # Validated once here: the posterior takes the clean points, and a 3D run's posterior and the
+    # label-error fit (3D) share the label's φ, Jacobians and prior precision (a BEV run's are not used).
+    terms = box_prior_terms(y, params.prior_for(class_name), params.prior_weight, params.kind)
+    post = infer_label_valid(y, g.clean_points(points, g.point_dim(params.kind)), class_name, params, sensor_origin, prior_terms=terms)
     n = post.num_points
     if n == 0:
         status = "no_points"
@@ -215,7 +219,7 @@ def audit_object(
     else:
         status = "ok"
     fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
-    fit = fit_label_valid(y, points if fit_points is None else fit_points, class_name, cfg.model, free_space=fs)
+    fit = fit_label_valid(y, points if fit_points is None else fit_points, class_name, params, free_space=fs, prior_terms=terms)
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
