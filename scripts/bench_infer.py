@@ -149,7 +149,10 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
     acc: dict[str, float] = defaultdict(float)
     originals = {}
     crop_name = "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"  # crops, ground, neighbours, rays (issue 14)
-    for name, stage in ((crop_name, "crop"), ("infer_label", "infer_label"), ("jiou_gt", "jiou_gt"), ("fit_label", "fit_label"), ("hull_iou", "hull_iou")):
+    def called(name: str) -> str:  # the pipeline calls the *_valid forms on a box it validated once
+        return f"{name}_valid" if hasattr(rows_mod, f"{name}_valid") else name
+
+    for name, stage in ((crop_name, "crop"), (called("infer_label"), "infer_label"), ("jiou_gt", "jiou_gt"), (called("fit_label"), "fit_label"), (called("hull_iou"), "hull_iou")):
         f = originals[name] = getattr(rows_mod, name)
 
         def timed(*a, _f=f, _stage=stage, **k):
