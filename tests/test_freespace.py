@@ -97,6 +97,25 @@ def test_correct_box_with_points_on_two_faces_gets_no_free_rays_and_a_shift_does
     assert _counts(points, _moved(car.box, length=0.8)[None])[0][0] == 0
 
 
+def test_points_that_end_no_ray_from_the_origin_give_no_free_space():
+    """A second return (behind the surface of the first) or a point of another lidar is no empty ray
+    from the sensor: counted as one, it crosses a correct box. ``ray_mask`` leaves them out."""
+    car = _car(12.0, 5.0, yaw=0.6)
+    first = _points(Scene(objects=[car]))
+    on_car = first[(np.abs(first[:, 0] - 12.0) < 3) & (np.abs(first[:, 1] - 5.0) < 3) & (first[:, 2] > GROUND + 0.3)]
+    behind = on_car.copy()
+    behind[:, :3] *= 1.0 + 2.5 / np.linalg.norm(on_car[:, :3], axis=1, keepdims=True)  # 2.5 m further along the same ray
+    points = np.vstack([first, behind]).astype(np.float32)
+    box = car.box[None]
+    ev = frame_evidence(points, box, np.zeros(3), CFG.crop)[0]
+    assert F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] > 20  # taken for rays, the second returns cross the car
+    mask = np.r_[np.ones(len(first), bool), np.zeros(len(behind), bool)]
+    ev = frame_evidence(points, box, np.zeros(3), CFG.crop, ray_mask=mask)[0]
+    assert F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] == 0
+    assert len(ev.fit_idx) > len(frame_evidence(first, box, np.zeros(3), CFG.crop)[0].fit_idx)  # the points themselves still count
+    assert process_frame(Frame("f", points, box, ["Car"], ["f:0"], ray_mask=mask), CFG)[0][0]["free_rays"] == 0
+
+
 def test_free_space_raises_label_error_of_a_shifted_box_only():
     car = _car(15.0, -4.0, yaw=-0.3)
     points = _points(Scene(objects=[car]))

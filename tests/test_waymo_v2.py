@@ -199,9 +199,25 @@ def test_rolling_shutter_correction_matters(segment) -> None:
     sf = segment.frames[1]
     lidars = [LidarData(n, lid.returns, None) for n, lid in sf.lidars.items()]
     warnings: list[str] = []
-    pts = frame_points(lidars, segment.calibrations, sf.pose, "sim", warnings)
+    pts, _ = frame_points(lidars, segment.calibrations, sf.pose, "sim", warnings)
     d, _ = cKDTree(sf.points[:, :3]).query(pts[:, :3])
     assert d.max() > 0.1
+
+
+def test_only_the_top_lidars_first_returns_are_rays(tmp_path: Path, segment) -> None:
+    """Free-space rays start at the TOP lidar (the frame's sensor_origin): its first returns are rays,
+    the other lidars' points and every second return are not (docs/label-error.md)."""
+    sf = segment.frames[0]
+    lidars = [LidarData(n, lid.returns, lid.pixel_pose) for n, lid in sf.lidars.items()]
+    pts, rays = frame_points(lidars, segment.calibrations, sf.pose, "sim", [])
+    top_first = np.asarray(sf.lidars[1].returns[0])
+    assert rays.shape == (len(pts),) and rays.dtype == bool
+    assert rays.sum() == int((top_first[..., 0] > 0).sum()) > 0
+    assert 0 < rays.sum() < len(pts)  # second returns and the short-range lidars are there, and no rays
+    write_waymo_v2(segment, tmp_path)
+    reader = WaymoV2Reader(tmp_path)
+    f = next(iter(reader.load_unit(reader.list_units()[0])))
+    assert f.ray_mask is not None and f.ray_mask.shape == (len(f.points),) and f.ray_mask.sum() == rays.sum()
 
 
 def test_split_folder_layout_and_class_filter(tmp_path: Path, segment) -> None:

@@ -37,6 +37,9 @@ class Frame:
         error about this frame or one of its objects names it
     object_errors : object index → why the reader cannot use that label (the message names the
         file, the line or row and the field); those objects become rows with status ``error``
+    ray_mask : (N,) bool — the points that end a ray from ``sensor_origin`` whose path up to the
+        point is empty (free-space evidence); None = every point (KITTI: one lidar, one return).
+        Waymo: the TOP lidar's first returns only
     """
 
     frame_id: str
@@ -49,6 +52,7 @@ class Frame:
     warnings: list[str] = field(default_factory=list)
     source: str = ""
     object_errors: dict[int, str] = field(default_factory=dict)
+    ray_mask: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         k = len(self.boxes)

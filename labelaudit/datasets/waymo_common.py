@@ -201,13 +201,18 @@ def frame_points(
     frame_pose: NDArray[np.floating] | None,
     source: str | Path,
     warnings: list[str],
-) -> NDArray[np.float32]:
-    """Concatenate the points of all lidars and returns of a frame, (N, 4) float32.
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Concatenate the points of all lidars and returns of a frame: (N, 4) float32 points and an
+    (N,) bool mask of the TOP lidar's first returns.
 
-    Problems that lose part of the cloud (no calibration for a lidar, TOP pose without frame
-    pose) are appended to ``warnings`` and the affected lidar is skipped or left uncorrected.
+    Only those are rays from :func:`sensor_origin` whose path up to the point is empty: the four
+    short-range lidars sit elsewhere on the vehicle, and a second return lies behind a surface that
+    already returned the first (free-space evidence, docs/label-error.md). Problems that lose part
+    of the cloud (no calibration for a lidar, TOP pose without frame pose) are appended to
+    ``warnings`` and the affected lidar is skipped or left uncorrected.
     """
     parts: list[NDArray[np.float32]] = []
+    rays: list[NDArray[np.bool_]] = []
     for lidar in sorted(lidars, key=lambda d: d.name):
         calib = calibrations.get(lidar.name)
         label = LASER_NAMES.get(lidar.name, str(lidar.name))
@@ -218,7 +223,7 @@ def frame_points(
         if pose is not None and frame_pose is None:
             warnings.append(f"{source}: lidar {label} has per-pixel poses but the frame has no pose; not motion-corrected")
             pose = None
-        for image in lidar.returns:
+        for r, image in enumerate(lidar.returns):
             if image is None or image.size == 0:
                 continue
             try:
@@ -226,15 +231,18 @@ def frame_points(
                     parts.append(range_image_to_points(image, calib, pose, frame_pose))
             except ValueError as exc:
                 warnings.append(f"{source}: lidar {label}: {exc}; its points are skipped")
+                continue
+            rays.append(np.full(len(parts[-1]), lidar.name == TOP and r == 0))
     if not parts:
-        return np.zeros((0, 4), dtype=np.float32)
+        return np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool)
     points = np.concatenate(parts, axis=0)
+    ray_mask = np.concatenate(rays)
     finite = np.isfinite(points[:, :3]).all(axis=1)
     if not finite.all():  # a NaN/inf calibration or pose value: those points cannot be placed
         n_bad = int(len(points) - finite.sum())
         warnings.append(f"{source}: dropped {n_bad} of {len(points)} points with NaN/inf coordinates (calibration or pose values?)")
-        points = points[finite]
-    return points
+        points, ray_mask = points[finite], ray_mask[finite]
+    return points, ray_mask
 
 
 def sensor_origin(calibrations: dict[int, LidarCalibration]) -> NDArray[np.float64]:
@@ -292,6 +300,7 @@ def make_frame(
     locations: list[str] | None = None,
     box_fields: tuple[str, ...] = ("center_x", "center_y", "center_z", "length", "width", "height", "heading"),
     object_errors: dict[int, str] | None = None,
+    ray_mask: NDArray[np.bool_] | None = None,
 ) -> Frame:
     """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None).
 
@@ -320,6 +329,7 @@ def make_frame(
         warnings=warnings,
         source=str(source),
         object_errors=problems,
+        ray_mask=ray_mask,
     )
 
 

@@ -230,15 +230,15 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
     }
 
     if lidars:
-        points = frame_points(lidars, calibrations, frame_pose, where, warnings)
+        points, ray_mask = frame_points(lidars, calibrations, frame_pose, where, warnings)
     else:
-        points = np.zeros((0, 4), dtype=np.float32)
+        points, ray_mask = np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool)
         if k:
             warnings.append(no_lidar_warning(where, frame_id, k))
     extras = check_extras(extras, _EXTRA_FIELDS, locations, warnings)
     return make_frame(
         frame_id, points, boxes, types, ids, extras, sensor_origin(calibrations), warnings, classes,
-        source=str(source), locations=locations, box_fields=_BOX_FIELDS,
+        source=str(source), locations=locations, box_fields=_BOX_FIELDS, ray_mask=ray_mask,
     )
 
 

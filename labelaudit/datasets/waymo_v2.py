@@ -351,15 +351,16 @@ class WaymoV2Reader:
         if lidars:
             if frame_pose is None:
                 warnings.append(f"{paths['vehicle_pose']}: no vehicle pose for frame {frame_id}")
-            points = frame_points(lidars, calibrations, frame_pose, paths["lidar"], warnings)
+            points, ray_mask = frame_points(lidars, calibrations, frame_pose, paths["lidar"], warnings)
         else:
-            points = np.zeros((0, 4), dtype=np.float32)
+            points, ray_mask = np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool)
             warnings.append(no_lidar_warning(paths["lidar"], frame_id, len(idx)))
         extras = check_extras({k: v[idx] for k, v in extras_all.items()}, BOX_EXTRAS, locations, warnings)
         object_ids = [f"{frame_id}:{j}" if ids[r] is None else str(ids[r]) for j, r in enumerate(rows)]
         return make_frame(
             frame_id, points, boxes, types, object_ids, extras, origin, warnings, self.classes,
             source=str(box_file), locations=locations, box_fields=tuple(BOX_COLUMNS[k] for k in _BOX_KEYS), object_errors=object_errors,
+            ray_mask=ray_mask,
         )
 
     @staticmethod

@@ -110,7 +110,8 @@ class BoxEvidence:
         return ObjectEvidence(self.free_space, points[self.near_idx], self.neighbour_points, self.ground_z, self.scenery_points)
 
 
-def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropParams, others: NDArray | None = None) -> list[BoxEvidence]:
+def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropParams, others: NDArray | None = None,
+                   ray_mask: NDArray | None = None) -> list[BoxEvidence]:
     """Crops, local ground, neighbours and candidate rays of every box of a frame.
 
     Parameters
@@ -121,6 +122,9 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     crop : margins and ground cut
     others : (J, 7) every label of the frame whose points are not this box's evidence (default:
         ``boxes``); a box is never its own neighbour (rows equal to it are skipped)
+    ray_mask : (N,) bool, the points that end an empty ray from ``origin``
+        (:attr:`~labelaudit.datasets.Frame.ray_mask`); None = all. Only they count as rays; every
+        point is still in the crops
 
     Returns
     -------
@@ -151,7 +155,10 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             grounds[j] = plane
             ground_z[j] = plane[0]
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
-    _, ray_ends = _ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
+    ray_idx, ray_ends = _ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
+    if ray_mask is not None:  # e.g. Waymo: other lidars and second returns are no rays from the origin
+        mask = np.asarray(ray_mask, dtype=bool)
+        ray_ends = [ends[mask[idx]] for idx, ends in zip(ray_idx, ray_ends)]
     out = []
     o = np.asarray(origin, dtype=float).reshape(3)
     planes = np.zeros((len(b), 4))  # (g0, gx, gy, unused)

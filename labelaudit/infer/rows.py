@@ -140,7 +140,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # errstate: extreme but valid boxes (1e38 m) overflow the geometry harmlessly, and it changes
         # no value: a non-finite result is refused per object (check_finite), not warned about on stderr
         with np.errstate(all="ignore"):
-            evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes))
+            evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask)
             for i, ev in zip(to_audit, evidence):
                 row = rows[i]
                 idx = ev.model_idx

@@ -362,7 +362,8 @@ def recompute(source: AuditSource, row: Mapping[str, Any], frame: Frame | None =
     i = _check_box(frame, row, source.dataset)
     box = frame.boxes[i : i + 1]
     # a box's evidence depends on the box, the points and the frame's other labels only: one box suffices
-    (ev,) = frame_evidence(frame.points, box, np.asarray(frame.sensor_origin, dtype=float), source.cfg.crop, others=label_boxes(frame.boxes))
+    (ev,) = frame_evidence(frame.points, box, np.asarray(frame.sensor_origin, dtype=float), source.cfg.crop, others=label_boxes(frame.boxes),
+                           ray_mask=frame.ray_mask)
     (ctx_idx,) = crop_frame(frame.points, box, replace(source.cfg.crop, margin=C.SHOW_CONTEXT_MARGIN))
     return audit_view(
         frame.boxes[i],
