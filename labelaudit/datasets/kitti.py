@@ -186,7 +186,7 @@ def read_calib(path: str | Path) -> Calibration:
         Missing file, a line without ``key:``, a non-numeric value, a wrong number of values or a
         missing required key (P2, R0_rect, Tr_velo_to_cam); the message names the key and line.
     """
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
         raise DatasetError(path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)")
     values: dict[str, FloatArray] = {}
@@ -443,7 +443,7 @@ def read_label(path: str | Path) -> KittiLabels:
         Missing or non-UTF-8 file, a line with another column count, a non-numeric field (the
         message names the column) or an occlusion level other than -1, 0, 1, 2, 3.
     """
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
         raise DatasetError(path, "label file not found")
     names: list[str] = []
@@ -527,7 +527,7 @@ def read_velodyne(path: str | Path) -> NDArray[np.float32]:
     DatasetError
         Missing file, or a size that is not a multiple of 16 bytes.
     """
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
         raise DatasetError(path, "point cloud file not found")
     size = path.stat().st_size
@@ -543,7 +543,7 @@ def write_velodyne(path: str | Path, points: ArrayLike) -> None:
         raise ValueError(f"points must be (N, 3) or (N, 4), got shape {pts.shape}")
     if pts.shape[1] == 3:
         pts = np.c_[pts, np.zeros(len(pts))]
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.ascontiguousarray(pts, dtype="<f4").tofile(path)
 
@@ -612,13 +612,13 @@ class KittiReader:
     # -- paths ------------------------------------------------------------------------------
 
     def label_path(self, frame_id: str) -> Path:
-        return self.data_dir / "label_2" / f"{frame_id}.txt"
+        return self.data_dir.joinpath("label_2", f"{frame_id}.txt")
 
     def velodyne_path(self, frame_id: str) -> Path:
-        return self.data_dir / self.velodyne_dir / f"{frame_id}.bin"
+        return self.data_dir.joinpath(self.velodyne_dir, f"{frame_id}.bin")
 
     def calib_path(self, frame_id: str) -> Path:
-        return self.data_dir / "calib" / f"{frame_id}.txt"
+        return self.data_dir.joinpath("calib", f"{frame_id}.txt")
 
     # -- protocol ---------------------------------------------------------------------------
 
@@ -666,7 +666,8 @@ class KittiReader:
         labels = read_label(label_path)
         if not velo_path.is_file():
             raise DatasetError(velo_path, f"point cloud not found for label file {label_path}")
-        calib = read_calib(self.calib_path(frame_id))
+        calib_path = self.calib_path(frame_id)
+        calib = read_calib(calib_path)
 
         not_dontcare = np.array([n != "DontCare" for n in labels.class_names], dtype=bool)
         index = np.cumsum(not_dontcare) - 1  # position among the non-DontCare rows
@@ -687,7 +688,7 @@ class KittiReader:
             warnings.append(f"{velo_path}: dropped {n_bad} of {n_bad + len(points)} points with NaN/inf coordinates")
 
         boxes = boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib)
-        object_errors = _label_problems(labels, rows, boxes, label_path, self.calib_path(frame_id))
+        object_errors = _label_problems(labels, rows, boxes, label_path, calib_path)
         for name in {labels.class_names[r] for r in rows if not labels.class_names[r].isprintable()}:
             at = ", ".join(str(labels.line[r]) for r in rows if labels.class_names[r] == name)
             warnings.append(f"{label_path}: line {at}: class name {name!r} has unprintable characters (a byte-order mark or a control character?)")
