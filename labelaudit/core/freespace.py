@@ -348,6 +348,14 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
     many = y.ndim == 2
     ys = y.reshape(-1, 7)
     ends_t, ox, oy, hz = fs.kernel_inputs() if fs.num_rays else (None, 0.0, 0.0, None)
+    p = None if points is None else np.asarray(points)
+    if ends_t is not None and p is not None and len(p) and p.dtype in (np.float32, np.float64):  # the usual case: one compiled call
+        g, r = fs.ground, fs.ref
+        counts = np.empty((len(ys), 2), dtype=np.int64)
+        _counts_kernel(ys, ends_t, ox, oy, hz, fs.tolerance, fs.ends[:, 2], p, float(g[0]), float(g[1]), float(g[2]),
+                       float(r[0]), float(r[1]), float(fs.object_height), counts)
+        out = [(int(f), int(e)) for f, e in counts.tolist()]
+        return out if many else out[0]
     near = None
     if points is not None and len(points):
         near = height_layout(points, fs.ground, fs.ref)
@@ -358,6 +366,18 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
         end = int(_count_kernel(yb, near[0], 0.0, 0.0, hz_end, fs.tolerance, False, near[1])) if near is not None else 0
         out.append((free, end))
     return out if many else out[0]
+
+
+@numba.njit(cache=True)
+def _counts_kernel(ys, ends_t, ox, oy, hz, tau, ends_z, p, g0, gx, gy, x0, y0, object_height, out):  # pragma: no cover - compiled
+    """:func:`ray_counts` of the boxes ``ys`` (B, 7) into ``out`` (B, 2) in one call: the returns'
+    layout (:func:`height_layout` of ``p``), then the free and the end count of every box."""
+    near_t, near_z = _height_layout_kernel(p, g0, gx, gy, x0, y0)
+    hz_end = np.zeros(4)
+    hz_end[3] = object_height
+    for j in range(ys.shape[0]):
+        out[j, 0] = _count_kernel(ys[j], ends_t, ox, oy, hz, tau, True, ends_z)
+        out[j, 1] = _count_kernel(ys[j], near_t, 0.0, 0.0, hz_end, tau, False, near_z)
 
 
 @numba.njit(cache=True)
