@@ -502,8 +502,8 @@ def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz,
 def _bin_of_angle(angle: FloatArray, nbins: int) -> NDArray[np.int64]:
     a = np.mod(angle, 2.0 * np.pi)
     x, y = np.cos(a), np.sin(a)
-    ax, ay = np.abs(x), np.abs(y)
-    pa = np.where(y >= 0, np.where(x >= 0, y / (ax + ay), 2.0 - y / (ax + ay)), np.where(x < 0, 2.0 - y / (ax + ay), 4.0 + y / (ax + ay)))
+    t = y / (np.abs(x) + np.abs(y))
+    pa = np.where(x < 0, 2.0 - t, np.where(y >= 0, t, 4.0 + t))  # _pseudo_angle's quadrants
     return np.clip((pa * (nbins / 4.0)).astype(np.int64), 0, nbins - 1)
 
 
@@ -549,11 +549,9 @@ def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reac
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
-    wanted = np.zeros(nbins + 1, dtype=np.int64)  # difference array of the boxes' bin ranges
-    for r in range(2):
-        ok = ranges[:, 2 * r] <= ranges[:, 2 * r + 1]
-        np.add.at(wanted, ranges[ok, 2 * r], 1)
-        np.add.at(wanted, ranges[ok, 2 * r + 1] + 1, -1)
+    lo, hi = ranges[:, 0::2].ravel(), ranges[:, 1::2].ravel()
+    ok = lo <= hi
+    wanted = np.bincount(lo[ok], minlength=nbins + 1) - np.bincount(hi[ok] + 1, minlength=nbins + 1)  # difference array of the boxes' bin ranges
     min_r2 = float(near2.min()) if len(b) else 0.0
     order, starts, sorted_xyz = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
     return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
@@ -711,11 +709,9 @@ def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: 
     azimuth window wraps past 0; all bins when the sensor lies inside the grown rectangle), and the
     squared BEV distance (K,) from the sensor to each grown rectangle (0 inside)."""
     k = len(boxes)
-    half = np.stack([boxes[:, 3] / 2 + reach, boxes[:, 4] / 2 + reach], 1)
-    sx = np.array([1, -1, -1, 1])
-    sy = np.array([1, 1, -1, -1])
+    half = boxes[:, 3:5] / 2 + reach
     c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
-    lx, ly = sx[None] * half[:, :1], sy[None] * half[:, 1:]
+    lx, ly = _CORNER_SX * half[:, :1], _CORNER_SY * half[:, 1:]
     cx = boxes[:, :1] + c * lx - s * ly - origin[0]
     cy = boxes[:, 1:2] + s * lx + c * ly - origin[1]
     centre = np.arctan2(boxes[:, 1] - origin[1], boxes[:, 0] - origin[0])
@@ -727,7 +723,8 @@ def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: 
     ox = c[:, 0] * (origin[0] - boxes[:, 0]) + s[:, 0] * (origin[1] - boxes[:, 1])
     oy = -s[:, 0] * (origin[0] - boxes[:, 0]) + c[:, 0] * (origin[1] - boxes[:, 1])
     inside = (np.abs(ox) <= half[:, 0]) & (np.abs(oy) <= half[:, 1])
-    b_lo, b_hi = _bin_of_angle(lo_a, nbins), _bin_of_angle(hi_a, nbins)
+    bins = _bin_of_angle(np.concatenate([lo_a, hi_a]), nbins)
+    b_lo, b_hi = bins[:k], bins[k:]
     wraps = b_lo > b_hi
     ranges[:, 0], ranges[:, 1] = np.where(wraps, 0, b_lo), b_hi
     ranges[wraps, 2], ranges[wraps, 3] = b_lo[wraps], nbins - 1
@@ -737,3 +734,7 @@ def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: 
     gap_y = np.maximum(np.abs(oy) - half[:, 1], 0.0)
     near2 = (gap_x**2 + gap_y**2) * (1.0 - 1e-9)  # a hair nearer: rounding never drops a ray
     return ranges, near2
+
+
+_CORNER_SX = np.array([[1.0, -1.0, -1.0, 1.0]])  # the rectangle's corners (1, 4): signs of the half length …
+_CORNER_SY = np.array([[1.0, 1.0, -1.0, -1.0]])  # … and of the half width
