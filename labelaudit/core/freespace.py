@@ -426,32 +426,32 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - co
     booleans): order (M,), starts (nbins + 1,) and the bucketed points' xyz in that order (M, 3),
     same dtype (the later passes then read the windows sequentially)."""
     n = pts.shape[0]
-    bins = np.empty(n, dtype=np.int64)
+    kept = np.empty(n, dtype=np.int64)  # the bucketed points and their bins, in point order (a sixth of a frame)
+    kept_bin = np.empty(n, dtype=np.int32)
     counts = np.zeros(nbins + 1, dtype=np.int64)
     scale = nbins / 4.0
+    m = 0
     for k in range(n):
         x, y = pts[k, 0] - ox, pts[k, 1] - oy
         if x * x + y * y < min_r2:
-            bins[k] = -1
             continue
         q = min(max(int(_pseudo_angle(x, y) * scale), 0), nbins - 1)
         if not wanted[q]:
-            bins[k] = -1
             continue
-        bins[k] = q
+        kept[m], kept_bin[m] = k, q
+        m += 1
         counts[q + 1] += 1
     for q in range(nbins):
         counts[q + 1] += counts[q]
     fill = counts[:nbins].copy()
-    order = np.empty(counts[nbins], dtype=np.int64)
-    sxyz = np.empty((counts[nbins], 3), dtype=pts.dtype)
-    for k in range(n):
-        q = bins[k]
-        if q >= 0:
-            i = fill[q]
-            order[i] = k
-            sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
-            fill[q] += 1
+    order = np.empty(m, dtype=np.int64)
+    sxyz = np.empty((m, 3), dtype=pts.dtype)
+    for j in range(m):  # stable: the points of a bin stay in point order
+        k, q = kept[j], kept_bin[j]
+        i = fill[q]
+        order[i] = k
+        sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
+        fill[q] += 1
     return order, counts, sxyz
 
 
