@@ -163,11 +163,14 @@ ERRORS_SCHEMA = pa.schema(
 # --------------------------------------------------------------------------- rows → Arrow
 
 
+_FLOAT_TYPE = frozenset((float,))
+
+
 def _clean_list(value: Any) -> list[float | None] | None:
     if value is None:
         return None
-    if type(value) is list and all(type(v) is float for v in value):  # the model's lists: no round trip through NumPy
-        return [None if v != v else v for v in value]
+    if type(value) is list and set(map(type, value)) <= _FLOAT_TYPE:  # the model's lists: no round trip through NumPy
+        return [None if v != v else v for v in value] if any(map(math.isnan, value)) else value.copy()
     return [None if v != v else v for v in np.asarray(value, dtype=float).ravel().tolist()]  # v != v: NaN
 
 

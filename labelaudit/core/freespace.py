@@ -348,6 +348,14 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
     many = y.ndim == 2
     ys = y.reshape(-1, 7)
     ends_t, ox, oy, hz = fs.kernel_inputs() if fs.num_rays else (None, 0.0, 0.0, None)
+    p = None if points is None else np.asarray(points)
+    if ends_t is not None and p is not None and len(p) and p.dtype in (np.float32, np.float64):  # the usual case: one compiled call
+        g, r = fs.ground, fs.ref
+        counts = np.empty((len(ys), 2), dtype=np.int64)
+        _counts_kernel(ys, ends_t, ox, oy, hz, fs.tolerance, fs.ends[:, 2], p, float(g[0]), float(g[1]), float(g[2]),
+                       float(r[0]), float(r[1]), float(fs.object_height), counts)
+        out = [(int(f), int(e)) for f, e in counts.tolist()]
+        return out if many else out[0]
     near = None
     if points is not None and len(points):
         near = height_layout(points, fs.ground, fs.ref)
@@ -358,6 +366,18 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
         end = int(_count_kernel(yb, near[0], 0.0, 0.0, hz_end, fs.tolerance, False, near[1])) if near is not None else 0
         out.append((free, end))
     return out if many else out[0]
+
+
+@numba.njit(cache=True)
+def _counts_kernel(ys, ends_t, ox, oy, hz, tau, ends_z, p, g0, gx, gy, x0, y0, object_height, out):  # pragma: no cover - compiled
+    """:func:`ray_counts` of the boxes ``ys`` (B, 7) into ``out`` (B, 2) in one call: the returns'
+    layout (:func:`height_layout` of ``p``), then the free and the end count of every box."""
+    near_t, near_z = _height_layout_kernel(p, g0, gx, gy, x0, y0)
+    hz_end = np.zeros(4)
+    hz_end[3] = object_height
+    for j in range(ys.shape[0]):
+        out[j, 0] = _count_kernel(ys[j], ends_t, ox, oy, hz, tau, True, ends_z)
+        out[j, 1] = _count_kernel(ys[j], near_t, 0.0, 0.0, hz_end, tau, False, near_z)
 
 
 @numba.njit(cache=True)
@@ -406,32 +426,32 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - co
     booleans): order (M,), starts (nbins + 1,) and the bucketed points' xyz in that order (M, 3),
     same dtype (the later passes then read the windows sequentially)."""
     n = pts.shape[0]
-    bins = np.empty(n, dtype=np.int64)
+    kept = np.empty(n, dtype=np.int64)  # the bucketed points and their bins, in point order (a sixth of a frame)
+    kept_bin = np.empty(n, dtype=np.int32)
     counts = np.zeros(nbins + 1, dtype=np.int64)
     scale = nbins / 4.0
+    m = 0
     for k in range(n):
         x, y = pts[k, 0] - ox, pts[k, 1] - oy
         if x * x + y * y < min_r2:
-            bins[k] = -1
             continue
         q = min(max(int(_pseudo_angle(x, y) * scale), 0), nbins - 1)
         if not wanted[q]:
-            bins[k] = -1
             continue
-        bins[k] = q
+        kept[m], kept_bin[m] = k, q
+        m += 1
         counts[q + 1] += 1
     for q in range(nbins):
         counts[q + 1] += counts[q]
     fill = counts[:nbins].copy()
-    order = np.empty(counts[nbins], dtype=np.int64)
-    sxyz = np.empty((counts[nbins], 3), dtype=pts.dtype)
-    for k in range(n):
-        q = bins[k]
-        if q >= 0:
-            i = fill[q]
-            order[i] = k
-            sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
-            fill[q] += 1
+    order = np.empty(m, dtype=np.int64)
+    sxyz = np.empty((m, 3), dtype=pts.dtype)
+    for j in range(m):  # stable: the points of a bin stay in point order
+        k, q = kept[j], kept_bin[j]
+        i = fill[q]
+        order[i] = k
+        sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
+        fill[q] += 1
     return order, counts, sxyz
 
 
@@ -482,8 +502,8 @@ def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz,
 def _bin_of_angle(angle: FloatArray, nbins: int) -> NDArray[np.int64]:
     a = np.mod(angle, 2.0 * np.pi)
     x, y = np.cos(a), np.sin(a)
-    ax, ay = np.abs(x), np.abs(y)
-    pa = np.where(y >= 0, np.where(x >= 0, y / (ax + ay), 2.0 - y / (ax + ay)), np.where(x < 0, 2.0 - y / (ax + ay), 4.0 + y / (ax + ay)))
+    t = y / (np.abs(x) + np.abs(y))
+    pa = np.where(x < 0, 2.0 - t, np.where(y >= 0, t, 4.0 + t))  # _pseudo_angle's quadrants
     return np.clip((pa * (nbins / 4.0)).astype(np.int64), 0, nbins - 1)
 
 
@@ -529,11 +549,9 @@ def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reac
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
-    wanted = np.zeros(nbins + 1, dtype=np.int64)  # difference array of the boxes' bin ranges
-    for r in range(2):
-        ok = ranges[:, 2 * r] <= ranges[:, 2 * r + 1]
-        np.add.at(wanted, ranges[ok, 2 * r], 1)
-        np.add.at(wanted, ranges[ok, 2 * r + 1] + 1, -1)
+    lo, hi = ranges[:, 0::2].ravel(), ranges[:, 1::2].ravel()
+    ok = lo <= hi
+    wanted = np.bincount(lo[ok], minlength=nbins + 1) - np.bincount(hi[ok] + 1, minlength=nbins + 1)  # difference array of the boxes' bin ranges
     min_r2 = float(near2.min()) if len(b) else 0.0
     order, starts, sorted_xyz = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
     return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
@@ -691,11 +709,9 @@ def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: 
     azimuth window wraps past 0; all bins when the sensor lies inside the grown rectangle), and the
     squared BEV distance (K,) from the sensor to each grown rectangle (0 inside)."""
     k = len(boxes)
-    half = np.stack([boxes[:, 3] / 2 + reach, boxes[:, 4] / 2 + reach], 1)
-    sx = np.array([1, -1, -1, 1])
-    sy = np.array([1, 1, -1, -1])
+    half = boxes[:, 3:5] / 2 + reach
     c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
-    lx, ly = sx[None] * half[:, :1], sy[None] * half[:, 1:]
+    lx, ly = _CORNER_SX * half[:, :1], _CORNER_SY * half[:, 1:]
     cx = boxes[:, :1] + c * lx - s * ly - origin[0]
     cy = boxes[:, 1:2] + s * lx + c * ly - origin[1]
     centre = np.arctan2(boxes[:, 1] - origin[1], boxes[:, 0] - origin[0])
@@ -707,7 +723,8 @@ def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: 
     ox = c[:, 0] * (origin[0] - boxes[:, 0]) + s[:, 0] * (origin[1] - boxes[:, 1])
     oy = -s[:, 0] * (origin[0] - boxes[:, 0]) + c[:, 0] * (origin[1] - boxes[:, 1])
     inside = (np.abs(ox) <= half[:, 0]) & (np.abs(oy) <= half[:, 1])
-    b_lo, b_hi = _bin_of_angle(lo_a, nbins), _bin_of_angle(hi_a, nbins)
+    bins = _bin_of_angle(np.concatenate([lo_a, hi_a]), nbins)
+    b_lo, b_hi = bins[:k], bins[k:]
     wraps = b_lo > b_hi
     ranges[:, 0], ranges[:, 1] = np.where(wraps, 0, b_lo), b_hi
     ranges[wraps, 2], ranges[wraps, 3] = b_lo[wraps], nbins - 1
@@ -717,3 +734,7 @@ def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: 
     gap_y = np.maximum(np.abs(oy) - half[:, 1], 0.0)
     near2 = (gap_x**2 + gap_y**2) * (1.0 - 1e-9)  # a hair nearer: rounding never drops a ray
     return ranges, near2
+
+
+_CORNER_SX = np.array([[1.0, -1.0, -1.0, 1.0]])  # the rectangle's corners (1, 4): signs of the half length …
+_CORNER_SY = np.array([[1.0, 1.0, -1.0, -1.0]])  # … and of the half width

@@ -8,6 +8,7 @@ error row and the rest of its frame is audited. Nothing here reads files.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Iterator, Protocol, Sequence
 
@@ -114,6 +115,15 @@ BOX_FIELD_KINDS = ("centre", "centre", "centre", "size", "size", "size", "angle"
 """What each of the 7 box values is, for :func:`box_problems` (cx, cy, cz, l, w, h, yaw)."""
 
 
+@functools.lru_cache(maxsize=16)
+def _field_limits(kinds: tuple[str, ...]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The limit (F,) of every field kind and which are sizes (F,): built once per kinds tuple (read only)."""
+    limit = np.array([{"centre": C.MAX_BOX_CENTRE, "size": C.MAX_BOX_SIZE, "angle": C.MAX_BOX_ANGLE}[k] for k in kinds])
+    is_size = np.array([k == "size" for k in kinds])
+    limit.flags.writeable = is_size.flags.writeable = False
+    return limit, is_size
+
+
 def box_problems(values: ArrayLike, names: Sequence[str], kinds: Sequence[str] = BOX_FIELD_KINDS) -> dict[int, str]:
     """Per-row problems of box values: not finite, or outside the sane limits (a size ≤ 0 included).
 
@@ -131,10 +141,9 @@ def box_problems(values: ArrayLike, names: Sequence[str], kinds: Sequence[str] =
     problems are absent); vectorised, the loop runs over bad rows only.
     """
     v = np.asarray(values, dtype=np.float64).reshape(-1, len(names))
-    limit = np.array([{"centre": C.MAX_BOX_CENTRE, "size": C.MAX_BOX_SIZE, "angle": C.MAX_BOX_ANGLE}[k] for k in kinds])
-    is_size = np.array([k == "size" for k in kinds])
+    limit, is_size = _field_limits(tuple(kinds))
     with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(v) | (np.abs(v) > limit) | (is_size & (v < C.MIN_BOX_SIZE))
+        bad = ~(np.abs(v) <= limit) | (is_size & (v < C.MIN_BOX_SIZE))  # not ≤: NaN and ±inf are bad too
     out: dict[int, str] = {}
     for r in np.flatnonzero(bad.any(axis=1)):
         parts = []

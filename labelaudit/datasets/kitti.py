@@ -96,20 +96,32 @@ class Calibration:
     Tr_imu_to_velo: FloatArray | None = None
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
+        for name in _CALIB_FIELDS:
+            value = getattr(self, name)
             if value is None:
-                if f.name in _CALIB_REQUIRED:
-                    raise ValueError(f"calibration {f.name} is required")
+                if name in _CALIB_REQUIRED:
+                    raise ValueError(f"calibration {name} is required")
                 continue
             arr = np.array(value, dtype=float)
-            shape = _CALIB_SHAPES[f.name]
+            shape = _CALIB_SHAPES[name]
             if arr.size != shape[0] * shape[1]:
-                raise ValueError(f"calibration {f.name} must have {shape[0]}×{shape[1]} values, got shape {arr.shape}")
+                raise ValueError(f"calibration {name} must have {shape[0]}×{shape[1]} values, got shape {arr.shape}")
             arr = arr.reshape(shape)
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"calibration {f.name} has non-finite values: {arr.ravel().tolist()}")
-            setattr(self, f.name, arr)
+            if not np.isfinite(arr).all():
+                raise ValueError(f"calibration {name} has non-finite values: {arr.ravel().tolist()}")
+            setattr(self, name, arr)
+        self._check_rotations()
+
+    @classmethod
+    def _from_checked(cls, values: dict[str, FloatArray]) -> Calibration:
+        """A calibration of matrices :func:`read_calib` has already checked (float64, their shapes,
+        finite): only the rotation test of ``__post_init__`` is left to run."""
+        calib = object.__new__(cls)
+        calib.__dict__.update(dict.fromkeys(_CALIB_FIELDS), **values)
+        calib._check_rotations()
+        return calib
+
+    def _check_rotations(self) -> None:
         for name, rot in (("R0_rect", self.R0_rect), ("Tr_velo_to_cam", self.Tr_velo_to_cam[:, :3])):
             with np.errstate(all="ignore"):  # a huge matrix overflows to inf: refused below, not warned about
                 det = float(np.linalg.det(rot))
@@ -133,6 +145,9 @@ class Calibration:
         A general inverse, not the rigid one: the printed KITTI matrices are only nearly orthonormal.
         """
         return np.linalg.inv(self.T_cam_velo)
+
+
+_CALIB_FIELDS = tuple(f.name for f in fields(Calibration))  # looked up once: dataclasses.fields() is slow per call
 
 
 def read_text_lines(path: Path, what: str) -> list[str]:
@@ -171,7 +186,7 @@ def read_calib(path: str | Path) -> Calibration:
         Missing file, a line without ``key:``, a non-numeric value, a wrong number of values or a
         missing required key (P2, R0_rect, Tr_velo_to_cam); the message names the key and line.
     """
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
         raise DatasetError(path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)")
     values: dict[str, FloatArray] = {}
@@ -186,20 +201,20 @@ def read_calib(path: str | Path) -> Calibration:
         if key not in _CALIB_SHAPES:
             continue  # other keys (e.g. from raw-data calib files) are not needed
         try:
-            nums = np.array([float(t) for t in rest.split()], dtype=float)
+            nums = [float(t) for t in rest.split()]
         except ValueError:
             raise DatasetError(path, f"calibration {key}: expected numbers, got {rest.strip()[:80]!r}", lineno) from None
         shape = _CALIB_SHAPES[key]
-        if nums.size != shape[0] * shape[1]:
-            raise DatasetError(path, f"calibration {key}: expected {shape[0] * shape[1]} numbers ({shape[0]}×{shape[1]}), got {nums.size}", lineno)
-        if not np.all(np.isfinite(nums)):
+        if len(nums) != shape[0] * shape[1]:
+            raise DatasetError(path, f"calibration {key}: expected {shape[0] * shape[1]} numbers ({shape[0]}×{shape[1]}), got {len(nums)}", lineno)
+        if not all(map(math.isfinite, nums)):  # on the Python floats: no NumPy call per line
             raise DatasetError(path, f"calibration {key}: non-finite values", lineno)
-        values[key] = nums.reshape(shape)
+        values[key] = np.array(nums, dtype=float).reshape(shape)
     missing = [k for k in _CALIB_REQUIRED if k not in values]
     if missing:
         raise DatasetError(path, f"calibration is missing key(s) {', '.join(missing)} (required: {', '.join(_CALIB_REQUIRED)})")
     try:
-        return Calibration(**values)
+        return Calibration._from_checked(values)
     except ValueError as exc:
         raise DatasetError(path, str(exc)) from None
 
@@ -245,12 +260,15 @@ def boxes_camera_to_lidar(locations: ArrayLike, dims_hwl: ArrayLike, rotation_y:
     dims = np.asarray(dims_hwl, dtype=float).reshape(-1, 3)
     ry = np.asarray(rotation_y, dtype=float).reshape(-1)
     T = calib.T_velo_cam
+    out = np.empty((len(loc), 7))  # filled column by column: np.c_ costs more than the arithmetic
     with np.errstate(invalid="ignore", over="ignore"):  # a NaN/inf label stays NaN/inf; the reader reports it
         bottom = loc @ T[:3, :3].T + T[:3, 3]
-        h, w, l = dims[:, 0], dims[:, 1], dims[:, 2]
-        centre = bottom + np.c_[np.zeros_like(h), np.zeros_like(h), h / 2.0]
-        yaw = normalize_angle(-ry - np.pi / 2.0)
-    return np.c_[centre, l, w, h, np.atleast_1d(yaw)]
+        h = dims[:, 0]
+        out[:, :2] = bottom[:, :2] + 0.0  # + 0.0 as the lift adds to x, y (−0.0 becomes 0.0)
+        out[:, 2] = bottom[:, 2] + h / 2.0
+        out[:, 3], out[:, 4], out[:, 5] = dims[:, 2], dims[:, 1], h
+        out[:, 6] = normalize_angle(-ry - np.pi / 2.0)
+    return out
 
 
 def box_camera_to_lidar(location: ArrayLike, dims_hwl: ArrayLike, rotation_y: float, calib: Calibration) -> FloatArray:
@@ -425,7 +443,7 @@ def read_label(path: str | Path) -> KittiLabels:
         Missing or non-UTF-8 file, a line with another column count, a non-numeric field (the
         message names the column) or an occlusion level other than -1, 0, 1, 2, 3.
     """
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
         raise DatasetError(path, "label file not found")
     names: list[str] = []
@@ -509,7 +527,7 @@ def read_velodyne(path: str | Path) -> NDArray[np.float32]:
     DatasetError
         Missing file, or a size that is not a multiple of 16 bytes.
     """
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
         raise DatasetError(path, "point cloud file not found")
     size = path.stat().st_size
@@ -525,7 +543,7 @@ def write_velodyne(path: str | Path, points: ArrayLike) -> None:
         raise ValueError(f"points must be (N, 3) or (N, 4), got shape {pts.shape}")
     if pts.shape[1] == 3:
         pts = np.c_[pts, np.zeros(len(pts))]
-    path = Path(path)
+    path = path if isinstance(path, Path) else Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.ascontiguousarray(pts, dtype="<f4").tofile(path)
 
@@ -594,13 +612,13 @@ class KittiReader:
     # -- paths ------------------------------------------------------------------------------
 
     def label_path(self, frame_id: str) -> Path:
-        return self.data_dir / "label_2" / f"{frame_id}.txt"
+        return self.data_dir.joinpath("label_2", f"{frame_id}.txt")
 
     def velodyne_path(self, frame_id: str) -> Path:
-        return self.data_dir / self.velodyne_dir / f"{frame_id}.bin"
+        return self.data_dir.joinpath(self.velodyne_dir, f"{frame_id}.bin")
 
     def calib_path(self, frame_id: str) -> Path:
-        return self.data_dir / "calib" / f"{frame_id}.txt"
+        return self.data_dir.joinpath("calib", f"{frame_id}.txt")
 
     # -- protocol ---------------------------------------------------------------------------
 
@@ -648,7 +666,8 @@ class KittiReader:
         labels = read_label(label_path)
         if not velo_path.is_file():
             raise DatasetError(velo_path, f"point cloud not found for label file {label_path}")
-        calib = read_calib(self.calib_path(frame_id))
+        calib_path = self.calib_path(frame_id)
+        calib = read_calib(calib_path)
 
         not_dontcare = np.array([n != "DontCare" for n in labels.class_names], dtype=bool)
         index = np.cumsum(not_dontcare) - 1  # position among the non-DontCare rows
@@ -669,7 +688,7 @@ class KittiReader:
             warnings.append(f"{velo_path}: dropped {n_bad} of {n_bad + len(points)} points with NaN/inf coordinates")
 
         boxes = boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib)
-        object_errors = _label_problems(labels, rows, boxes, label_path, self.calib_path(frame_id))
+        object_errors = _label_problems(labels, rows, boxes, label_path, calib_path)
         for name in {labels.class_names[r] for r in rows if not labels.class_names[r].isprintable()}:
             at = ", ".join(str(labels.line[r]) for r in rows if labels.class_names[r] == name)
             warnings.append(f"{label_path}: line {at}: class name {name!r} has unprintable characters (a byte-order mark or a control character?)")
@@ -706,7 +725,7 @@ def _label_problems(labels: KittiLabels, rows: NDArray[np.int64], boxes: FloatAr
     """Object index → why its label cannot be audited: a label column that is not finite, a size
     ≤ 0 or beyond the sane limits (named as the file spells it), else a LiDAR-frame box out of
     range after the calibration."""
-    raw = np.c_[labels.dims_hwl[rows], labels.location[rows], labels.rotation_y[rows]]
+    raw = np.concatenate([labels.dims_hwl[rows], labels.location[rows], labels.rotation_y[rows, None]], axis=1)
     out = {i: f"{label_path}:{labels.line[rows[i]]}: {msg}" for i, msg in box_problems(raw, _LABEL_BOX_FIELDS, _LABEL_BOX_KINDS).items()}
     for i, msg in box_problems(boxes, BOX_FIELDS).items():
         if i not in out:

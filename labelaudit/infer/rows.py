@@ -29,6 +29,7 @@ from labelaudit.errors import one_line
 from labelaudit.infer.evidence import ObjectEvidence, fit_free_space, frame_evidence, label_boxes
 
 DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
+_FLOAT_TYPE = frozenset((float,))
 
 
 # --------------------------------------------------------------------------- layer 1: one frame
@@ -41,7 +42,7 @@ def check_finite(result: dict[str, Any]) -> None:
     cov = result.get("cov")
     if cov is None:
         cov_ok = True
-    elif type(cov) is list and all(type(v) is float for v in cov):  # audit_object's flat list: no NumPy round trip
+    elif type(cov) is list and set(map(type, cov)) <= _FLOAT_TYPE:  # audit_object's flat list: no NumPy round trip
         cov_ok = all(map(math.isfinite, cov))
     else:
         cov_ok = bool(np.all(np.isfinite(cov)))
