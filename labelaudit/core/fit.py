@@ -169,7 +169,7 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     one) is used. Unlike the full J rows, the position *along* the face then carries no information,
     so a face can slide while the box is fitted (no anchoring to the current box, no pull of the
     second-nearest face at corners). Computed by the compiled :func:`_rows_kernel`, which the fit
-    calls through :func:`_fit_normal_eq`.
+    calls through :func:`_normal_eq_kernel`.
     """
     d = g.point_dim(model)
     pts_t = np.ascontiguousarray(np.asarray(pts, dtype=float)[:, :d].T)
@@ -329,6 +329,8 @@ def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi):  # pragma: no cover - compiled
+    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
+    :func:`_plane_rows` for points (d, N), deep points centred per face."""
     n = pts_t.shape[1]
     a = np.empty((2 * d + 2, n))
     b = np.empty(n)
@@ -343,13 +345,6 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
         ss += w2 * sqd[k]
         sw += w2
     return ata, atb, rr, ss, sw
-
-
-def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray, sigma: float = 1.0) -> tuple[FloatArray, FloatArray, float, float, float]:
-    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
-    :func:`_plane_rows` for points (d, N): one compiled call per fit iteration (as NumPy array code
-    it took ~40 calls, and a fit runs 5–30 iterations)."""
-    return _normal_eq_kernel(y, pts_t, d, *_FIT_POINT_CONSTANTS, sigma, phi)
 
 
 @numba.njit(cache=True)
@@ -435,6 +430,27 @@ def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, 
     return ata, atb, rr, active
 
 
+@numba.njit(cache=True)
+def _fit_precision_kernel(y, pts_t, three_d, free_depth, deep_weight, outlier, sigma, phi, P0, inv_s2,
+                          ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
+    """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
+    + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
+    Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
+    operations in NumPy's order (no fast-math)."""
+    ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
+    if ends_t.shape[1]:
+        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi)
+        ata = ata + ata_r
+        rr += rr_r
+    p = ata.shape[0]
+    prec = P0 + ata * inv_s2
+    out = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            out[i, j] = 0.5 * (prec[i, j] + prec[j, i])
+    return out, rr, ss, sw
+
+
 _NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0)
 """Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
 
@@ -516,13 +532,8 @@ def _fit_em(
     inv_s2 = 1.0 / sigma**2
     phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
     phi_rect = g.phi_of_valid_box(y_cur, model)
-    ata, _, rr, ss, sw = _fit_normal_eq(y_cur, pts, g.point_dim(model), phi_rect, sigma)
-    if rays[0].shape[1]:
-        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y_cur, *rays, model == "3d", phi_rect)
-        ata = ata + ata_r
-        rr += rr_r
-    precision = P0 + ata * inv_s2
-    cov = spd_inverse(0.5 * (precision + precision.T))
+    precision, rr, ss, sw = _fit_precision_kernel(y_cur, pts, model == "3d", *_FIT_POINT_CONSTANTS, sigma, phi_rect, P0, inv_s2, *rays)
+    cov = spd_inverse(precision)
     dphi = phi_rect - phi_label
     log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi @ P0 @ dphi)
     rms = math.sqrt(ss / sw) if sw > 0 else 0.0  # distance to the surface of the points that count (deep-inside ones do not)
@@ -639,7 +650,7 @@ def fit_label_valid(
         if np.isfinite(s_hat):
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
-    pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_fit_normal_eq)
+    pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_normal_eq_kernel)
     rays = _ray_inputs(free_space, sigma)
     prior_eta = terms.eta0  # P0 φ_label
     best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
