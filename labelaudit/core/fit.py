@@ -554,7 +554,7 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     """
     if fit_model == scored:
         return linalg.inv(S)
-    W = np.zeros_like(S)
+    W = np.zeros(S.shape)
     if S.flags.c_contiguous:  # the fit's matrices: flat take/put, the same entries as the ix_ indexing below
         W.ravel()[_BEV_BLOCK_FLAT] = linalg.inv(S.take(_BEV_BLOCK_FLAT).reshape(len(g.BEV_OF_3D), -1)).ravel()
     else:
@@ -674,9 +674,10 @@ def fit_label_valid(
     d2 = float(delta.dot(_scored_metric(cov, model, scored)).dot(delta))
     k = 5 if scored == "bev" else 7
 
-    offsets = dict(zip(g.BOX_FIELDS, (y_fit - y).tolist()))
-    offsets["yaw"] = float(g.normalize_angle(y_fit[6] - y[6]))
-    y_fit[6] = y[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
+    fit_v, label_v = y_fit.tolist(), y.tolist()  # Python floats: the same IEEE differences as y_fit − y
+    offsets = dict(zip(g.BOX_FIELDS, [a - b for a, b in zip(fit_v, label_v)]))
+    offsets["yaw"] = (fit_v[6] - label_v[6] + math.pi) % (2.0 * math.pi) - math.pi  # g.normalize_angle of a float
+    y_fit[6] = label_v[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
     if d == 2:
         offsets["cz"] = offsets["height"] = float("nan")
     dc = y_fit[:d] - y[:d]
