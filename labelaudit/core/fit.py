@@ -116,13 +116,17 @@ def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: 
     v = y.tolist()
     cx, cy, cz, length, width, height, yaw = v
     yaws = [(yaw + k * np.pi / 2 + math.pi) % (2.0 * math.pi) - math.pi for k in range(4)]  # g.normalize_angle of a float
-    cos4, sin4 = np.cos(yaws).tolist(), np.sin(yaws).tolist()
-    rows = []
+    yaw4 = np.array(yaws)
+    cos4, sin4 = np.cos(yaw4).tolist(), np.sin(yaw4).tolist()
+    flat: list[float] = []  # the four φ, row after row (a flat list converts faster than nested ones)
     for k in range(4):
         lk, wk = (width, length) if k % 2 else (length, width)
         c, s = cos4[k], sin4[k]
-        rows.append([cx, cy, lk * c, lk * s, wk * c, wk * s] if model == "bev" else [cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height])
-    phis = np.array(rows)
+        if model == "bev":
+            flat += (cx, cy, lk * c, lk * s, wk * c, wk * s)
+        else:
+            flat += (cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height)
+    phis = np.array(flat).reshape(4, -1)
     fs = phis - phi_ref
     best_cost, best_k = 0.0, -1
     for k in range(4):
@@ -675,12 +679,13 @@ def fit_label_valid(
     k = 5 if scored == "bev" else 7
 
     fit_v, label_v = y_fit.tolist(), y.tolist()  # Python floats: the same IEEE differences as y_fit − y
-    offsets = dict(zip(g.BOX_FIELDS, [a - b for a, b in zip(fit_v, label_v)]))
+    diffs = [a - b for a, b in zip(fit_v, label_v)]
+    offsets = dict(zip(g.BOX_FIELDS, diffs))
     offsets["yaw"] = (fit_v[6] - label_v[6] + math.pi) % (2.0 * math.pi) - math.pi  # g.normalize_angle of a float
     y_fit[6] = label_v[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
     if d == 2:
         offsets["cz"] = offsets["height"] = float("nan")
-    dc = y_fit[:d] - y[:d]
+    dc = np.array(diffs[:d])  # = y_fit[:d] − y[:d] (the yaw line above leaves the centre alone)
     return LabelFit(
         model=model,
         box=y_fit,
