@@ -935,3 +935,32 @@ def test_fit_label_with_shared_terms_equals_its_own(model):
             assert np.array_equal(getattr(got, f), getattr(want, f)), f
         assert (got.model, got.label_error, got.mahalanobis, got.iterations) == (want.model, want.label_error, want.mahalanobis, want.iterations)
         assert np.array_equal(list(got.offsets.values()), list(want.offsets.values()), equal_nan=True)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_fit_precision_kernel_equals_the_numpy_composition(model):
+    """The one-call precision at the fitted box is, bit for bit, the NumPy composition of the point
+    rows' and ray rows' normal equations: P0 + (AᵀA + A_rᵀA_r)/σ², symmetrised (and the residual sums)."""
+    from labelaudit.core.freespace import FreeSpace
+
+    rng = np.random.default_rng(21)
+    three_d = model == "3d"
+    d = 3 if three_d else 2
+    y = CAR + np.r_[rng.normal(0, 0.2, 3), 0.0, 0.0, 0.0, 0.1]
+    pts = face_points(CAR, ["-x", "-y", "+z"], 40, noise=0.03, seed=21)
+    pts_t = np.ascontiguousarray(np.asarray(pts, dtype=float)[:, :d].T)
+    ends = np.c_[rng.uniform(12, 22, 300), rng.uniform(2, 9, 300), rng.uniform(0.3, 0.5, 300)]  # returns low behind and in the box
+    fs = FreeSpace(np.array([0.0, 0.0, 1.7]), ends, np.array([0.0, 0.0, 0.0, 0.0]), CAR[:2].copy(), (0.25, 0.6), 0.1)
+    terms = M.box_prior_terms(g.validate_box(CAR), ModelParams().prior_for("Car"), 1.0, model)
+    phi, sigma = g.phi_of_valid_box(y, model), 0.05
+    for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma)):
+        got, rr, ss, sw = LF._fit_precision_kernel(y, pts_t, three_d, *LF._FIT_POINT_CONSTANTS, sigma, phi, terms.P0, 1.0 / sigma**2, *rays)
+        ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._FIT_POINT_CONSTANTS, sigma, phi)
+        if rays[0].shape[1]:
+            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays, three_d, phi)
+            assert active > 0  # the rays do add rows
+            ata = ata + ata_r
+            rr_want += rr_r
+        precision = terms.P0 + ata * (1.0 / sigma**2)
+        assert got.tobytes() == (0.5 * (precision + precision.T)).tobytes()
+        assert (rr, ss, sw) == (rr_want, ss_want, sw_want)

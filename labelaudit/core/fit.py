@@ -109,32 +109,38 @@ def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: 
 
     The forms and their φ are those of :func:`_equivalent_boxes` and
     :func:`~labelaudit.core.geometry.phi_of_valid_box`, written out: one cos/sin call for the four
-    yaws (NumPy's, element by element as for a scalar) and Python-float products.
+    yaws (NumPy's, element by element as for a scalar), Python-float products, one array of the
+    four φ, and each cost ``fᵀ W f`` as the same two BLAS products as ``f @ W @ f`` (``ndarray.dot``:
+    the same gemv and dot, without the matmul ufunc's overhead).
     """
     v = y.tolist()
-    yaws = [float(g.normalize_angle(v[6] + k * np.pi / 2)) for k in range(4)]
-    cos4, sin4 = np.cos(yaws).tolist(), np.sin(yaws).tolist()
-    cx, cy, cz, length, width, height = v[:6]
-    best = None
+    cx, cy, cz, length, width, height, yaw = v
+    yaws = [(yaw + k * np.pi / 2 + math.pi) % (2.0 * math.pi) - math.pi for k in range(4)]  # g.normalize_angle of a float
+    yaw4 = np.array(yaws)
+    cos4, sin4 = np.cos(yaw4).tolist(), np.sin(yaw4).tolist()
+    flat: list[float] = []  # the four φ, row after row (a flat list converts faster than nested ones)
     for k in range(4):
         lk, wk = (width, length) if k % 2 else (length, width)
         c, s = cos4[k], sin4[k]
         if model == "bev":
-            phi = np.array([cx, cy, lk * c, lk * s, wk * c, wk * s])
+            flat += (cx, cy, lk * c, lk * s, wk * c, wk * s)
         else:
-            phi = np.array([cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height])
-        f = phi - phi_ref
-        cost = float(f @ W @ f)
-        if best is None or cost < best[0] or (cost != cost and best[0] == best[0]):
-            best = (cost, k, phi)
+            flat += (cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height)
+    phis = np.array(flat).reshape(4, -1)
+    fs = phis - phi_ref
+    best_cost, best_k = 0.0, -1
+    for k in range(4):
+        f = fs[k]
+        cost = float(f.dot(W).dot(f))
+        if best_k < 0 or cost < best_cost or (cost != cost and best_cost == best_cost):
+            best_cost, best_k = cost, k
         if cost != cost:
             break  # np.argmin stops at the first NaN
-    _, k, phi = best
     form = y.copy()
-    if k % 2:
-        form[3], form[4] = v[4], v[3]
-    form[6] = yaws[k]
-    return form, phi
+    if best_k % 2:
+        form[3], form[4] = width, length
+    form[6] = yaws[best_k]
+    return form, phis[best_k]
 
 
 @numba.njit(cache=True)
@@ -169,7 +175,7 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     one) is used. Unlike the full J rows, the position *along* the face then carries no information,
     so a face can slide while the box is fitted (no anchoring to the current box, no pull of the
     second-nearest face at corners). Computed by the compiled :func:`_rows_kernel`, which the fit
-    calls through :func:`_fit_normal_eq`.
+    calls through :func:`_normal_eq_kernel`.
     """
     d = g.point_dim(model)
     pts_t = np.ascontiguousarray(np.asarray(pts, dtype=float)[:, :d].T)
@@ -329,6 +335,8 @@ def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi):  # pragma: no cover - compiled
+    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
+    :func:`_plane_rows` for points (d, N), deep points centred per face."""
     n = pts_t.shape[1]
     a = np.empty((2 * d + 2, n))
     b = np.empty(n)
@@ -343,13 +351,6 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
         ss += w2 * sqd[k]
         sw += w2
     return ata, atb, rr, ss, sw
-
-
-def _fit_normal_eq(y: FloatArray, pts_t: FloatArray, d: int, phi: FloatArray, sigma: float = 1.0) -> tuple[FloatArray, FloatArray, float, float, float]:
-    """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
-    :func:`_plane_rows` for points (d, N): one compiled call per fit iteration (as NumPy array code
-    it took ~40 calls, and a fit runs 5–30 iterations)."""
-    return _normal_eq_kernel(y, pts_t, d, *_FIT_POINT_CONSTANTS, sigma, phi)
 
 
 @numba.njit(cache=True)
@@ -435,6 +436,27 @@ def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, 
     return ata, atb, rr, active
 
 
+@numba.njit(cache=True)
+def _fit_precision_kernel(y, pts_t, three_d, free_depth, deep_weight, outlier, sigma, phi, P0, inv_s2,
+                          ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
+    """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
+    + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
+    Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
+    operations in NumPy's order (no fast-math)."""
+    ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
+    if ends_t.shape[1]:
+        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi)
+        ata = ata + ata_r
+        rr += rr_r
+    p = ata.shape[0]
+    prec = P0 + ata * inv_s2
+    out = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            out[i, j] = 0.5 * (prec[i, j] + prec[j, i])
+    return out, rr, ss, sw
+
+
 _NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0)
 """Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
 
@@ -516,15 +538,10 @@ def _fit_em(
     inv_s2 = 1.0 / sigma**2
     phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
     phi_rect = g.phi_of_valid_box(y_cur, model)
-    ata, _, rr, ss, sw = _fit_normal_eq(y_cur, pts, g.point_dim(model), phi_rect, sigma)
-    if rays[0].shape[1]:
-        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y_cur, *rays, model == "3d", phi_rect)
-        ata = ata + ata_r
-        rr += rr_r
-    precision = P0 + ata * inv_s2
-    cov = spd_inverse(0.5 * (precision + precision.T))
+    precision, rr, ss, sw = _fit_precision_kernel(y_cur, pts, model == "3d", *_FIT_POINT_CONSTANTS, sigma, phi_rect, P0, inv_s2, *rays)
+    cov = spd_inverse(precision)
     dphi = phi_rect - phi_label
-    log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi @ P0 @ dphi)
+    log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi.dot(P0).dot(dphi))
     rms = math.sqrt(ss / sw) if sw > 0 else 0.0  # distance to the surface of the points that count (deep-inside ones do not)
     return phi, cov, it, converged, log_post, y_cur, rms
 
@@ -541,7 +558,7 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     """
     if fit_model == scored:
         return linalg.inv(S)
-    W = np.zeros_like(S)
+    W = np.zeros(S.shape)
     if S.flags.c_contiguous:  # the fit's matrices: flat take/put, the same entries as the ix_ indexing below
         W.ravel()[_BEV_BLOCK_FLAT] = linalg.inv(S.take(_BEV_BLOCK_FLAT).reshape(len(g.BEV_OF_3D), -1)).ravel()
     else:
@@ -630,7 +647,7 @@ def fit_label_valid(
     if terms is None or not terms.matches(model, prior, params.prior_weight):  # e.g. a BEV run's, or points without z
         terms = box_prior_terms(y, prior, params.prior_weight, model)
     phi_label, P0 = terms.phi, terms.P0
-    S_tol = terms.G @ prior_cov_extended_cached(_TOLERANCE, model) @ terms.G.T
+    S_tol = terms.G.dot(prior_cov_extended_cached(_TOLERANCE, model)).dot(terms.G.T)  # ndarray.dot: the BLAS products of @, less overhead
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM
@@ -639,7 +656,7 @@ def fit_label_valid(
         if np.isfinite(s_hat):
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
-    pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_fit_normal_eq)
+    pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_normal_eq_kernel)
     rays = _ray_inputs(free_space, sigma)
     prior_eta = terms.eta0  # P0 φ_label
     best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
@@ -657,16 +674,18 @@ def fit_label_valid(
     W = _scored_metric(cov + S_tol, model, scored)
     y_fit, phi_rect = _closest_form_phi(y_rect, phi_label, W, model)
     delta = phi_label - phi_rect
-    d2_tol = float(delta @ W @ delta)
-    d2 = float(delta @ _scored_metric(cov, model, scored) @ delta)
+    d2_tol = float(delta.dot(W).dot(delta))
+    d2 = float(delta.dot(_scored_metric(cov, model, scored)).dot(delta))
     k = 5 if scored == "bev" else 7
 
-    offsets = dict(zip(g.BOX_FIELDS, (y_fit - y).tolist()))
-    offsets["yaw"] = float(g.normalize_angle(y_fit[6] - y[6]))
-    y_fit[6] = y[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
+    fit_v, label_v = y_fit.tolist(), y.tolist()  # Python floats: the same IEEE differences as y_fit − y
+    diffs = [a - b for a, b in zip(fit_v, label_v)]
+    offsets = dict(zip(g.BOX_FIELDS, diffs))
+    offsets["yaw"] = (fit_v[6] - label_v[6] + math.pi) % (2.0 * math.pi) - math.pi  # g.normalize_angle of a float
+    y_fit[6] = label_v[6] + offsets["yaw"]  # same branch as the label's yaw, so fit_yaw − yaw is the offset
     if d == 2:
         offsets["cz"] = offsets["height"] = float("nan")
-    dc = y_fit[:d] - y[:d]
+    dc = np.array(diffs[:d])  # = y_fit[:d] − y[:d] (the yaw line above leaves the centre alone)
     return LabelFit(
         model=model,
         box=y_fit,
