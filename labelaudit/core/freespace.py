@@ -166,6 +166,14 @@ def _deepest(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - co
     t1 = min(1.0, a1, b1, c1)
     if not t0 < t1:
         return -math.inf, 0.0
+    return _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw)
+
+
+@numba.njit(cache=True)
+def _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw):  # pragma: no cover - compiled
+    """(max, t) of m(t) = min(hl − |x(t)|, hw − |y(t)|) over t0 ≤ t ≤ t1 of the segment o + t·d:
+    m is concave (a minimum of affine pieces), so the maximum is at an end or where two pieces
+    cross — at most eight candidates."""
     best, tb = _try(t0, t0, t1, ox, oy, dx, dy, hl, hw, -math.inf, t0)
     best, tb = _try(t1, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
     if dx != 0.0:
@@ -192,18 +200,7 @@ def _signed_deepest(ox, oy, oh, px, py, ph, hl, hw, reach, zlo, zhi):  # pragma:
     t1 = min(1.0, a1, b1, c1)
     if not t0 <= t1:
         return -math.inf
-    best, tb = _try(t0, t0, t1, ox, oy, dx, dy, hl, hw, -math.inf, t0)
-    best, tb = _try(t1, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
-    if dx != 0.0:
-        best, tb = _try(-ox / dx, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
-    if dy != 0.0:
-        best, tb = _try(-oy / dy, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
-    for sx in (-1.0, 1.0):
-        for sy in (-1.0, 1.0):
-            den = sx * dx - sy * dy
-            if den != 0.0:
-                best, tb = _try((hl - hw - sx * ox + sy * oy) / den, t0, t1, ox, oy, dx, dy, hl, hw, best, tb)
-    return best
+    return _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw)[0]
 
 
 @numba.njit(cache=True)
