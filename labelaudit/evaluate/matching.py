@@ -336,18 +336,23 @@ def _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign,
 
 
 @numba.njit(cache=True)
+def _frame_buffers(det_off):  # pragma: no cover - compiled
+    """The per-frame work arrays of :func:`_match_frame` (assigned, matched, DontCare hit), sized for
+    the frame with the most detections and reused frame after frame."""
+    maxd = 0
+    for f in range(det_off.shape[0] - 1):
+        maxd = max(maxd, det_off[f + 1] - det_off[f])
+    return np.zeros(maxd, dtype=np.bool_), np.zeros(maxd, dtype=np.int64), np.zeros(maxd, dtype=np.bool_)
+
+
+@numba.njit(cache=True)
 def _second_pass(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresholds):  # pragma: no cover - compiled
     nt = thresholds.shape[0]
     nf = gt_off.shape[0] - 1
     tp = np.zeros(nt, dtype=np.int64)
     fp = np.zeros(nt, dtype=np.int64)
     fn = np.zeros(nt, dtype=np.int64)
-    maxd = 0
-    for f in range(nf):
-        maxd = max(maxd, det_off[f + 1] - det_off[f])
-    assigned = np.zeros(maxd, dtype=np.bool_)
-    matched = np.zeros(maxd, dtype=np.int64)
-    dc_hit = np.zeros(maxd, dtype=np.bool_)
+    assigned, matched, dc_hit = _frame_buffers(det_off)
     for f in range(nf):
         if gt_off[f + 1] == gt_off[f] and det_off[f + 1] == det_off[f]:
             continue
@@ -365,12 +370,7 @@ def _assign(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign
     nd_all = det_ign.shape[0]
     outcome = np.full(nd_all, 4, dtype=np.int8)
     matched_all = np.full(nd_all, -1, dtype=np.int64)
-    maxd = 0
-    for f in range(nf):
-        maxd = max(maxd, det_off[f + 1] - det_off[f])
-    assigned = np.zeros(maxd, dtype=np.bool_)
-    matched = np.zeros(maxd, dtype=np.int64)
-    dc_hit = np.zeros(maxd, dtype=np.bool_)
+    assigned, matched, dc_hit = _frame_buffers(det_off)
     for f in range(nf):
         _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh, assigned, matched, dc_hit)
         d0 = det_off[f]
