@@ -55,7 +55,8 @@ def tune_allocator() -> bool:
     freed once per box; with glibc's defaults each such block is a fresh ``mmap`` whose pages fault
     in again on every box. Blocks below :data:`~labelaudit.constants.MALLOC_MMAP_THRESHOLD` come
     from the heap instead, and up to :data:`~labelaudit.constants.MALLOC_TRIM_THRESHOLD` of free
-    heap is kept (0.6–1.1 ms per frame; a worker's memory may stay that much higher). Results are
+    heap is kept (minor page faults 220 → 4 per frame, ~0.5–1 ms; a worker's memory may stay that much
+    higher). Results are
     unchanged: only where memory comes from. Called once per process, where chunks are processed.
     """
     import ctypes
@@ -86,8 +87,8 @@ class SerialExecutor:
 _SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 FORK_SERVER_ENV = "LABELAUDIT_FORK_SERVER"
 """Set (to the parent's pid) while the fork server starts: :mod:`labelaudit.infer.warmup` then makes
-the server skip its interpreter teardown when it exits (a second or more with Open3D loaded, during
-which it still holds the caller's stdout/stderr pipes)."""
+the server skip its interpreter teardown when it exits (up to a second with numba and Arrow loaded,
+during which it still holds the caller's stdout/stderr pipes)."""
 
 
 @contextmanager
@@ -130,8 +131,8 @@ class PoolExecutor:
     """A pool of ``workers`` processes.
 
     Workers fork from a ``forkserver`` that has imported the heavy modules once
-    (:data:`~labelaudit.constants.WORKER_PRELOAD`: Open3D, the core, its compiled kernels), so they
-    start warm; the server is single-threaded, so forking it is safe with Open3D/BLAS (forking the
+    (:data:`~labelaudit.constants.WORKER_PRELOAD`: the core and its compiled kernels), so they
+    start warm; the server is single-threaded, so forking it is safe with numba/BLAS (forking the
     main process, which may run Arrow threads, is not). :meth:`start` launches the server at once,
     so its imports overlap with the main process' own work (listing the dataset, the output folder).
 
@@ -156,8 +157,8 @@ class PoolExecutor:
 
     def start(self) -> None:
         """Launch the fork server now (it imports the preload modules while the caller goes on)."""
-        if self._context().get_start_method() == "forkserver":
-            start_fork_server(self.preload)
+        if self.start_method == "forkserver":
+            start_fork_server(self.preload)  # no-op where there is no fork server (Windows: spawn)
 
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
         if not units:

@@ -28,7 +28,7 @@ from labelaudit import results as R
 from labelaudit.errors import InferError, ResultsError, StrictError, one_line
 from labelaudit.executors import Executor, make_executor
 
-# labelaudit.infer.rows (the core: Open3D, numba) is imported where a chunk is processed, so the
+# labelaudit.infer.rows (the core: numba kernels) is imported where a chunk is processed, so the
 # process that only plans, writes and reports (the main process, a Dask client) never loads it.
 
 

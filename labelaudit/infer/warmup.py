@@ -18,8 +18,8 @@ def fast_exit_in_fork_server() -> bool:
     :data:`~labelaudit.executors.FORK_SERVER_ENV` = its parent's pid), skip the interpreter
     teardown at exit.
 
-    The server exits when its parent does; tearing down Open3D, numba and Arrow then takes a second
-    or more, during which it still holds the parent's stdout/stderr, so a caller that reads them to
+    The server exits when its parent does; tearing down numba and Arrow then takes up to a
+    second, during which it still holds the parent's stdout/stderr, so a caller that reads them to
     the end (CI logs, ``subprocess.run(capture_output=True)``) waits for it. The server holds no
     data and writes no file; its forked workers end with ``os._exit`` anyway.
     """
