@@ -84,12 +84,16 @@ def start_pool_early(workers: int | None, scheduler: str | None) -> object | Non
     workers; a cluster itself is left to :func:`~labelaudit.infer.run.run_infer`, which contacts it
     only once the input is known to be good.
     """
-    from labelaudit.executors import PoolExecutor, local_cluster_preload, make_executor, start_fork_server
+    from labelaudit.executors import PoolExecutor, local_cluster_preload, make_executor, parse_scheduler, start_fork_server
 
     if workers is not None and workers < 1:
         return None  # run_infer reports a bad count
     if scheduler is not None:
-        if scheduler.strip().startswith("local"):
+        try:
+            _, local_workers = parse_scheduler(scheduler, workers)
+        except UsageError:
+            return None  # run_infer reports it, after the input checks as before
+        if local_workers is not None:
             start_fork_server(local_cluster_preload())  # the LocalCluster's workers fork from it
         return None
     executor = make_executor(workers)
