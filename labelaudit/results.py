@@ -107,8 +107,8 @@ COLUMNS: tuple[Column, ...] = (
     Column("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)", "model"),
     Column("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)", "model"),
     # Free space, neighbours and ground (docs/label-error.md); null when audited without the frame around the box.
-    Column("free_rays", pa.int32(), True, "", "LiDAR rays that pass through the label's solid lower body (deeper than the tolerance) and end behind it: empty space inside the label", "model"),
-    Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the label (within the tolerance, above the ground cut)", "model"),
+    Column("free_rays", pa.int32(), True, "", "LiDAR rays that pass through the label's solid lower body (deeper than the tolerance) and end behind it: empty space inside the label (Waymo: rays of the TOP lidar's first returns only)", "model"),
+    Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the label (within the tolerance, above the ground cut) (Waymo: TOP first returns only)", "model"),
     Column("fit_free_rays", pa.int32(), True, "", "free_rays of the suggested box", "model"),
     Column("fit_end_rays", pa.int32(), True, "", "end_rays of the suggested box", "model"),
     Column("neighbour_points", pa.int32(), True, "", "points of the fit crop dropped because they lie inside another label of the frame", "model"),
