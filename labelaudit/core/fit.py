@@ -14,7 +14,6 @@ import functools
 import math
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -33,6 +32,7 @@ from labelaudit.core.posterior import (
     register_validated,
     spd_inverse,
 )
+from labelaudit.kernels import kernel
 
 # ----------------------------------------------------------------------------------------------
 # Label error: the model's suggested box and how far the label is from it (docs/label-error.md)
@@ -143,7 +143,7 @@ def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: 
     return form, phis[best_k]
 
 
-@numba.njit(cache=True)
+@kernel
 def _rect_from_phi(phi, three_d, label, floor):  # pragma: no cover - compiled
     """Rectangle (7,) of a φ (mean axis direction); sizes kept ≥ ``floor`` × the label's.
 
@@ -187,7 +187,7 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     return a.T, b, sqd
 
 
-@numba.njit(cache=True)
+@kernel
 def _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, centre_deep=False):  # pragma: no cover - compiled
     """Rows a — transposed, (p, N) — b (N,) and squared distances (N,) of :func:`_plane_rows` for
     points (d, N).
@@ -302,7 +302,7 @@ def _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd
                 sqd[k] = -1.0  # marks a centred deep point for the callers
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@kernel(fastmath={"reassoc", "contract"})
 def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
     """a aᵀ (p, p), a b (p,) and ‖aᵀφ − b‖² (0 unless ``with_residual``: the fit's iterations do
     not need it) for rows a (p, N): dot products of contiguous rows.
@@ -333,7 +333,7 @@ def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
     return ata, atb, rr
 
 
-@numba.njit(cache=True)
+@kernel
 def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi):  # pragma: no cover - compiled
     """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
     :func:`_plane_rows` for points (d, N), deep points centred per face."""
@@ -353,7 +353,7 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
     return ata, atb, rr, ss, sw
 
 
-@numba.njit(cache=True)
+@kernel
 def _solve_spd(M, rhs):  # pragma: no cover - compiled
     """x with M x = rhs for a small symmetric positive definite M (p, p): Cholesky, two
     triangular substitutions (scalars only; a LAPACK call from here would need scipy)."""
@@ -384,7 +384,7 @@ def _solve_spd(M, rhs):  # pragma: no cover - compiled
     return x
 
 
-@numba.njit(cache=True)
+@kernel
 def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, outlier, tol, P0, prior_eta, label, inv_s2, floor, max_iter,
                         ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
     d = 3 if three_d else 2
@@ -426,7 +426,7 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, out
     return phi, y_cur, it, False
 
 
-@numba.njit(cache=True)
+@kernel
 def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi):  # pragma: no cover - compiled
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
@@ -436,7 +436,7 @@ def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, 
     return ata, atb, rr, active
 
 
-@numba.njit(cache=True)
+@kernel
 def _fit_precision_kernel(y, pts_t, three_d, free_depth, deep_weight, outlier, sigma, phi, P0, inv_s2,
                           ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
     """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows

@@ -27,11 +27,11 @@ import functools
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
+from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
@@ -108,7 +108,7 @@ def height_layout(points: NDArray, ground: ArrayLike, ref: ArrayLike) -> tuple[F
     return _height_layout_kernel(p, float(g[0]), float(g[1]), float(g[2]), float(r[0]), float(r[1]))
 
 
-@numba.njit(cache=True)
+@kernel
 def _height_layout_kernel(p, g0, gx, gy, x0, y0):  # pragma: no cover - compiled
     """x, y, height above the plane (3, N) and z (N,) of points (N, ≥3): the float64 operations of
     :func:`ground_heights` in its order (no fast-math)."""
@@ -129,7 +129,7 @@ def _height_layout_kernel(p, g0, gx, gy, x0, y0):  # pragma: no cover - compiled
 # ----------------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, inline="always")
+@kernel(inline="always")
 def _interval(o, d, lo, hi):  # pragma: no cover - compiled
     """t-interval where lo ≤ o + t·d ≤ hi (empty: t0 > t1)."""
     if d == 0.0:
@@ -140,7 +140,7 @@ def _interval(o, d, lo, hi):  # pragma: no cover - compiled
     return (a, b) if a <= b else (b, a)
 
 
-@numba.njit(cache=True, inline="always")
+@kernel(inline="always")
 def _try(t, t0, t1, ox, oy, dx, dy, hl, hw, best, tb):  # pragma: no cover - compiled
     """Depth at ray parameter t if t ∈ [t0, t1] and deeper than ``best``: the new (best, t)."""
     if t < t0 or t > t1:
@@ -149,7 +149,7 @@ def _try(t, t0, t1, ox, oy, dx, dy, hl, hw, best, tb):  # pragma: no cover - com
     return (dep, t) if dep > best else (best, tb)
 
 
-@numba.njit(cache=True)
+@kernel
 def _deepest(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compiled
     """Deepest point of the segment o → p (box frame; h = height above the ground) inside the prism
     |x| ≤ hl, |y| ≤ hw, zlo ≤ h ≤ zhi, in the BEV depth min(hl − |x|, hw − |y|).
@@ -169,7 +169,7 @@ def _deepest(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - co
     return _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw)
 
 
-@numba.njit(cache=True)
+@kernel
 def _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw):  # pragma: no cover - compiled
     """(max, t) of m(t) = min(hl − |x(t)|, hw − |y(t)|) over t0 ≤ t ≤ t1 of the segment o + t·d:
     m is concave (a minimum of affine pieces), so the maximum is at an end or where two pieces
@@ -188,7 +188,7 @@ def _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw):  # pragma: no cover - comp
     return best, tb
 
 
-@numba.njit(cache=True)
+@kernel
 def _signed_deepest(ox, oy, oh, px, py, ph, hl, hw, reach, zlo, zhi):  # pragma: no cover - compiled
     """Largest m(t) = min(hl − |x|, hw − |y|) (negative outside the rectangle) over the part of the
     segment inside the slab and within the rectangle grown by ``reach``; −inf when it misses that."""
@@ -203,7 +203,7 @@ def _signed_deepest(ox, oy, oh, px, py, ph, hl, hw, reach, zlo, zhi):  # pragma:
     return _deepest_between(t0, t1, ox, oy, dx, dy, hl, hw)[0]
 
 
-@numba.njit(cache=True)
+@kernel
 def _ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compiled
     """Per ray, the largest signed depth m of its empty part in the slab of box ``y`` (−inf beyond ``reach``).
 
@@ -221,7 +221,7 @@ def _ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compil
         out[k] = _signed_deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, reach, hz[1], hz[2])
 
 
-@numba.njit(cache=True)
+@kernel
 def _displacement(y, y0, reach):  # pragma: no cover - compiled
     """Upper bound on how far any point's m moves between rectangles y0 and y, for points within
     ``reach`` of y0: centre shift + half the size changes + turn × (distance of such points from the
@@ -232,7 +232,7 @@ def _displacement(y, y0, reach):  # pragma: no cover - compiled
     return h if h < reach else math.inf
 
 
-@numba.njit(cache=True)
+@kernel
 def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover - compiled
     """Deepest free depth (M,) and its ray parameter (M,) of every ray in the slab of box ``y``."""
     c, s = math.cos(y[6]), math.sin(y[6])
@@ -247,7 +247,7 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
         out_t[k] = t
 
 
-@numba.njit(cache=True)
+@kernel
 def _free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack):  # pragma: no cover - compiled
     """Hinge rows of the box fit, one per ray: a (p, M) transposed like the point rows, b (M,).
 
@@ -365,7 +365,7 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
     return out if many else out[0]
 
 
-@numba.njit(cache=True)
+@kernel
 def _counts_kernel(ys, ends_t, ox, oy, hz, tau, ends_z, p, g0, gx, gy, x0, y0, object_height, out):  # pragma: no cover - compiled
     """:func:`ray_counts` of the boxes ``ys`` (B, 7) into ``out`` (B, 2) in one call: the returns'
     layout (:func:`height_layout` of ``p``), then the free and the end count of every box."""
@@ -377,7 +377,7 @@ def _counts_kernel(ys, ends_t, ox, oy, hz, tau, ends_z, p, g0, gx, gy, x0, y0, o
         out[j, 1] = _count_kernel(ys[j], near_t, 0.0, 0.0, hz_end, tau, False, near_z)
 
 
-@numba.njit(cache=True)
+@kernel
 def _count_kernel(y, ends_t, ox, oy, hz, tau, free, z):  # pragma: no cover - compiled
     """``free``: rays deeper than τ in the slab of ``y`` whose return is not on or in it; else the
     returns on or in it (within τ of the rectangle, ≥ hz[3] above the ground, ≤ τ over the top)."""
@@ -405,7 +405,7 @@ def _count_kernel(y, ends_t, ox, oy, hz, tau, free, z):  # pragma: no cover - co
 # ----------------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True)
+@kernel
 def _pseudo_angle(x, y):  # pragma: no cover - compiled
     """A monotone stand-in for atan2 in [0, 4) (the "diamond angle"): no transcendental call."""
     ax, ay = abs(x), abs(y)
@@ -416,7 +416,7 @@ def _pseudo_angle(x, y):  # pragma: no cover - compiled
     return 2.0 - y / (ax + ay) if x < 0.0 else 4.0 + y / (ax + ay)
 
 
-@numba.njit(cache=True)
+@kernel
 def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - compiled
     """Counting sort by azimuth bin (seen from the sensor) of the points at least √min_r2 from it
     (nearer ones cannot reach any box) whose bin some box's window covers (``wanted``, nbins
@@ -452,7 +452,7 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - co
     return order, counts, sxyz
 
 
-@numba.njit(cache=True, inline="always")
+@kernel(inline="always")
 def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compiled
     """Whether the segment o → p (box frame, heights above the ground) meets the prism."""
     a0, a1 = _interval(ox, px - ox, -hl, hl)
@@ -461,7 +461,7 @@ def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compi
     return max(0.0, a0, b0, c0) < min(1.0, a1, b1, c1)
 
 
-@numba.njit(cache=True)
+@kernel
 def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts):  # pragma: no cover - compiled
     """For each box, the points of its azimuth bins whose ray from the sensor passes through its
     reach prism (rectangle grown by ``reach``, slab heights above its ground plane); indices into
@@ -634,7 +634,7 @@ def _split(pts: NDArray, idx: IndexArray, counts: IndexArray, out_idx: list[Inde
         pos += len(part)
 
 
-@numba.njit(cache=True)
+@kernel
 def _gather_xyz(pts, idx):  # pragma: no cover - compiled
     """``pts[idx, :3].astype(np.float64)`` (n, 3) in one pass."""
     out = np.empty((idx.shape[0], 3))
@@ -672,7 +672,7 @@ def _neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, be
 _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (frames of thousands of boxes)
 
 
-@numba.njit(cache=True)
+@kernel
 def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out, counts):  # pragma: no cover - compiled
     """For each box, the points of its azimuth window (``pts`` in bucket order, ``order`` their
     indices) inside the grown box of :func:`neighbourhoods`: indices into ``out`` (flat, in window

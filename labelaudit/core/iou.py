@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
 from labelaudit.core import geometry as g
 from labelaudit.core.geometry import FloatArray
+from labelaudit.kernels import kernel
 
 def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
     """BEV IoU between a box and the convex hull of its points (a baseline label-quality score).
@@ -54,13 +54,13 @@ _KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))  # native floats: 
 _BEV_CORNER_J = g.design_matrix(g.BEV_CORNERS_UNIT, "bev")  # (4, 2, 6): the corners are J·φ (geometry.box_corners)
 
 
-@numba.njit(cache=True)
+@kernel
 def _cross(o0, o1, a0, a1, b0, b1):  # pragma: no cover - compiled
     """z of (a − o) × (b − o): > 0 when o → a → b turns left."""
     return (a0 - o0) * (b1 - o1) - (a1 - o1) * (b0 - o0)
 
 
-@numba.njit(cache=True)
+@kernel
 def _shoelace(poly, m):  # pragma: no cover - compiled
     s = 0.0
     for i in range(m):
@@ -69,7 +69,7 @@ def _shoelace(poly, m):  # pragma: no cover - compiled
     return 0.5 * s
 
 
-@numba.njit(cache=True)
+@kernel
 def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
     """IoU of the convex hull of ``pts`` (N, 2), sorted by x then y, and the convex polygon
     ``corners`` (4, 2), counter-clockwise; 0.0 when the hull has no area."""
@@ -139,7 +139,7 @@ def _hull_candidates(pts: FloatArray) -> FloatArray:
     return pts[keep] if edges else pts
 
 
-@numba.njit(cache=True)
+@kernel
 def _sorted_candidates_kernel(pts, cx, cy):  # pragma: no cover - compiled
     """The hull candidates of :func:`_hull_candidates` among the finite rows of ``pts`` (N, ≥2)
     (x, y of :func:`~labelaudit.core.geometry.clean_points`), relative to (cx, cy) and sorted by x,

@@ -14,9 +14,10 @@ after editing these). No I/O.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from labelaudit.kernels import kernel
 
 try:  # the gufuncs behind np.linalg (present in NumPy 1.x and 2.x)
     from numpy.linalg import _umath_linalg as _UL
@@ -75,7 +76,7 @@ def eigh(a: FloatArray) -> tuple[FloatArray, FloatArray]:
     return w, v
 
 
-@numba.njit(cache=True)
+@kernel
 def _pairwise_block(a, lo, n):  # pragma: no cover - compiled
     """NumPy's sum of a block of n ≤ 128 elements: 8 accumulators (sequential below 8 elements)."""
     if n < 8:
@@ -104,7 +105,7 @@ def _pairwise_block(a, lo, n):  # pragma: no cover - compiled
     return res
 
 
-@numba.njit(cache=True)
+@kernel
 def pairwise_sum(a):  # pragma: no cover - compiled
     """``a.sum()`` of a 1-D float64 array with NumPy's order of operations (0 + pairwise sum:
     halves rounded to multiples of 8 until a block has ≤ 128 elements), so compiled code can
@@ -143,7 +144,7 @@ def pairwise_sum(a):  # pragma: no cover - compiled
             return 0.0 + v
 
 
-@numba.njit(cache=True)
+@kernel
 def nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
     """np.maximum of two floats (NaN propagates)."""
     if a != a or b != b:
@@ -151,7 +152,7 @@ def nan_max(a: float, b: float) -> float:  # pragma: no cover - compiled
     return a if a >= b else b
 
 
-@numba.njit(cache=True)
+@kernel
 def nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
     """np.minimum of two floats (NaN propagates)."""
     if a != a or b != b:

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from labelaudit.kernels import kernel
 
-@numba.njit(cache=True)
+
+@kernel
 def finite_rows_f64(pts, d):  # pragma: no cover - compiled
     """The rows of ``pts`` (N, ≥d), float32 or float64, whose first ``d`` values are finite, as a
     float64 (M, d) C-contiguous copy (converted exactly): :func:`~labelaudit.core.geometry.clean_points`

@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -28,6 +27,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core import linalg
 from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core.geometry import ModelKind
+from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -156,7 +156,7 @@ def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: fl
     return e / norm
 
 
-@numba.njit(cache=True)
+@kernel
 def _resp_exponents(sqdist, two_var):  # pragma: no cover - compiled
     """logw − max_m logw per point with logw = −d²/(2σ²) (a row without a finite maximum keeps
     logw): the NumPy form's element operations, so ``np.exp`` of it is the same array."""
@@ -174,7 +174,7 @@ def _resp_exponents(sqdist, two_var):  # pragma: no cover - compiled
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _normalise_rows(e):  # pragma: no cover - compiled
     """e / e.sum(axis=1, keepdims=True), in place; a row has M ≤ 6 < 8 entries, which NumPy sums
     sequentially."""
@@ -243,7 +243,7 @@ def _nearest_faces(local: FloatArray, half: FloatArray, m: int) -> tuple[FloatAr
     return _nearest_faces_kernel(local, half, int(m), 1e-9 * float(half.max()))
 
 
-@numba.njit(cache=True)
+@kernel
 def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol, two_var):  # pragma: no cover - compiled
     """The points (N, d) in the box frame, Rᵀ (x − c) (the NumPy form's element operations), then
     :func:`_nearest_faces_kernel` and the responsibility exponents (:func:`_resp_exponents`)."""
@@ -259,7 +259,7 @@ def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol, two_var):  # pragma: n
     return vstar, sqd, _resp_exponents(sqd, two_var)
 
 
-@numba.njit(cache=True)
+@kernel
 def _nearest_faces_kernel(local, half, m, tol):  # pragma: no cover - compiled
     n, d = local.shape
     f = 2 * d
@@ -338,7 +338,7 @@ def registration_information(reg: Registration, model: ModelKind) -> tuple[Float
     return (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), cross.reshape(-1) @ B.reshape(-1, p)
 
 
-@numba.njit(cache=True)
+@kernel
 def _weighted_unit_coords(vstar, resp):  # pragma: no cover - compiled
     """ṽ = (1, v*) (N, M, d+1), r·ṽ and its sum over the M candidates (N, d+1); M ≤ 6 < 8, so the
     sum is sequential as NumPy's ``sum(axis=1)``."""
@@ -499,7 +499,7 @@ def _em_sigma_one(sqd: FloatArray) -> float | None:
     return float(estimate) if ok else None
 
 
-@numba.njit(cache=True)
+@kernel
 def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compiled
     """The start of :func:`_em_fast_kernel` for one registration (N, M) whose nearest candidates
     are finite (else (False, NaN)): √(Σ nearest d² / (dof·N)), summed in NumPy's pairwise order."""
@@ -512,7 +512,7 @@ def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compil
     return True, _em_fast_kernel(sqd, sigma, start, floor, tol, max_iter, dof)
 
 
-@numba.njit(cache=True)
+@kernel
 def _em_fast_kernel(sqd, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
     """The EM of :func:`em_sigma` without outliers over squared distances (N, M): per point the
     responsibility-weighted d² over its candidates, the weights exp(−(d² − min d²)/2σ²) (missing
@@ -655,7 +655,7 @@ def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, fl
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _quad_forms(K, cov):  # pragma: no cover - compiled
     """K_i Σ K_iᵀ per row i, summed as ``np.einsum("ip,pq,iq->i", K, cov, K)`` does: the products
     (K_ip·Σ_pq)·K_iq added one by one from 0, p outer, q inner (tests/test_model.py checks the bits)."""
@@ -670,7 +670,7 @@ def _quad_forms(K, cov):  # pragma: no cover - compiled
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _corner_quad_forms(J, cov):  # pragma: no cover - compiled
     """trace(J_c Σ J_cᵀ) per corner c in the order of ``np.einsum("cdp,pq,cdq->c", J, cov, J)``:
     (J_cdp·Σ_pq)·J_cdq added one by one from 0 over d, p, q (tests/test_model.py checks the bits)."""

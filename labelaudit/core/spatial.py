@@ -28,7 +28,6 @@ import warnings
 from dataclasses import dataclass
 from typing import Literal
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -37,6 +36,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core import linalg
 from labelaudit.config import SAMPLE_TABLE as _SAMPLE_TABLE, SpatialParams
 from labelaudit.core.geometry import ModelKind
+from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -226,7 +226,7 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
     return _Samples(centres, A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _sample_kernel(phis, d):  # pragma: no cover - compiled
     """Sample boxes from φ samples (S, p) and the statistics of their boundary, in one pass.
 
@@ -449,7 +449,7 @@ def _events(s: _Samples, xe: FloatArray, ye: FloatArray) -> _Events:
     return _Events(i_lo, i_hi, f_lo, f_hi, valid, ny, nx, dx, dy / nsub)
 
 
-@numba.njit(cache=True)
+@kernel
 def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
     """Per (sample, sub-row): the x-interval of the sample box on the row's centre line.
 
@@ -482,7 +482,7 @@ def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no 
     return i_lo, i_hi, f_lo, f_hi, valid
 
 
-@numba.njit(cache=True)
+@kernel
 def _sample_slabs(A, k):  # pragma: no cover - compiled
     """det A, the slab half-widths h_i and slopes m_i along x, and the y half-extent of sample k."""
     a00, a01, a10, a11 = A[k, 0, 0], A[k, 0, 1], A[k, 1, 0], A[k, 1, 1]
@@ -502,7 +502,7 @@ def _sample_slabs(A, k):  # pragma: no cover - compiled
     return det, h0, h1, m0, m1, 0.5 * (abs(a10) + abs(a11))
 
 
-@numba.njit(cache=True)
+@kernel
 def _row_interval(t, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx):  # pragma: no cover - compiled
     """The x-interval of one sample on the row line y = c_y + t: start and end cells (k_lo, k_hi),
     offsets into them, and whether it is non-empty."""
@@ -529,7 +529,7 @@ def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray, weight: float =
     return _aligned_kernel(float(cx), float(cy), float(hx), float(hy), xe, ye, float(weight))
 
 
-@numba.njit(cache=True)
+@kernel
 def _overlap_kernel(lo, hi, edges):  # pragma: no cover - compiled
     """Length of [lo, hi] inside each cell of ``edges``: clip(min(hi, right) − max(lo, left), 0)."""
     n = edges.size - 1
@@ -539,7 +539,7 @@ def _overlap_kernel(lo, hi, edges):  # pragma: no cover - compiled
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _aligned_kernel(cx, cy, hx, hy, xe, ye, weight):  # pragma: no cover - compiled
     """outer(overlap along y, overlap along x) · weight, (ny, nx)."""
     ox = _overlap_kernel(cx - hx, cx + hx, xe)
@@ -568,7 +568,7 @@ def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
     )
 
 
-@numba.njit(cache=True)
+@kernel
 def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
     """:func:`_events_kernel` and :func:`_raster_bev_kernel` in one pass: each interval is added to
     the difference arrays as it is found (the same sums in the same order, no (S, R) event arrays)."""
@@ -595,7 +595,7 @@ def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, n
     return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy / nsub, ny, nx)
 
 
-@numba.njit(cache=True)
+@kernel
 def _raster_bev_kernel(i_lo, i_hi, f_lo, f_hi, weights, dx, dy, ny, nx):  # pragma: no cover - compiled
     """The difference-array raster of :func:`_raster_bev` in one pass: the same sums in the same
     order as the NumPy form it replaced (four weighted ``bincount`` s over the (S, R) events in C
@@ -617,7 +617,7 @@ def _raster_bev_kernel(i_lo, i_hi, f_lo, f_hi, weights, dx, dy, ny, nx):  # prag
     return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx)
 
 
-@numba.njit(cache=True)
+@kernel
 def _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx):  # pragma: no cover - compiled
     """The raster (ny, nx) from the per-bin sums: differences, a running sum along each row, times dy."""
     out = np.empty((ny, nx))
@@ -664,7 +664,7 @@ def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> F
     return cov[:, : e.nx] * e.dy
 
 
-@numba.njit(cache=True)
+@kernel
 def _raster_3d_kernel(A, centres, zw, x0, x1, y0, dx, dy, nx, ny):  # pragma: no cover - compiled
     """The sparse product of :func:`_raster_3d` for one sub-row per cell, with SciPy's arithmetic:
     CSR rows (bins) hold their samples in ascending order, the entries of one (bin, sample) merged
@@ -714,7 +714,7 @@ def _clean(mass: FloatArray) -> FloatArray:
     return mass
 
 
-@numba.njit(cache=True)
+@kernel
 def _clean_kernel(flat):  # pragma: no cover - compiled
     """The NumPy form ``tiny = 1e-12 · max; mass[mass <= tiny] = 0`` (a NaN maximum cleans nothing)."""
     if flat.size == 0:
@@ -798,7 +798,7 @@ def jaccard(
     return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only))
 
 
-@numba.njit(cache=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
     """The cells of :func:`jaccard` where both masses are positive (p, q, counts, r = p/q), and the
     totals p_only = Σ_{q=0} c·p + p_outside, q_only = Σ_{p=0} c·q + q_outside, summed in NumPy's
@@ -830,7 +830,7 @@ def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compile
     return negative, pb[:nb], qb[:nb], cb[:nb], ratio[:nb], p_only, q_only
 
 
-@numba.njit(cache=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _jaccard_sum(pb, qb, cb, order, p_only, q_only):  # pragma: no cover - compiled
     """Σ_i c_i / (P_suffix/p_i + Q_prefix/q_i) over the cells sorted by r (``order``): the running
     sums sequential like ``np.cumsum``, the total pairwise like ``ndarray.sum``."""

@@ -27,7 +27,6 @@ import os
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -35,6 +34,7 @@ from labelaudit import constants as C
 from labelaudit.core import spatial as S
 from labelaudit.config import SpatialParams
 from labelaudit.evaluate.overlap import _clip_area, bev_corners
+from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -71,7 +71,7 @@ def _dist(box: FloatArray, model: str, cov: FloatArray | None, cov_on: str) -> S
     return S.BoxDistribution(box, model, cov, cov_on)  # type: ignore[arg-type]
 
 
-@numba.njit(cache=True)
+@kernel
 def _chord(quad, y):  # pragma: no cover - compiled
     """x-interval (lo, hi) of a convex quadrilateral on the line at height y (lo > hi when it misses)."""
     lo, hi = np.inf, -np.inf
@@ -86,7 +86,7 @@ def _chord(quad, y):  # pragma: no cover - compiled
     return lo, hi
 
 
-@numba.njit(cache=True)
+@kernel
 def _cell_areas(quad, xe, ye):  # pragma: no cover - compiled
     """Exact area of a convex counter-clockwise quadrilateral (4, 2) inside every cell, (ny, nx).
 
@@ -126,7 +126,7 @@ def _cell_areas(quad, xe, ye):  # pragma: no cover - compiled
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _jiou_uniform_bev_kernel(A, centres, weights, xe, ye, quad, box_area, q_total, nsub):  # pragma: no cover - compiled
     """BEV JIoU of a uniform box (quad, area) and label samples rasterised on the window (xe, ye).
 

@@ -32,11 +32,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
+from labelaudit.kernels import kernel
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -217,7 +217,7 @@ class Cell:
         return cls(sub, pairs.astype(np.int64), gt_rows, det_rows, np.asarray(gt_ign)[gt_rows], np.asarray(det_ign)[det_rows])
 
 
-@numba.njit(cache=True)
+@kernel
 def _first_pass(gt_off, det_off, ov_off, ov, gt_ign, det_ign, score, min_ov):  # pragma: no cover - compiled
     nf = gt_off.shape[0] - 1
     v = np.empty(gt_ign.shape[0])
@@ -255,7 +255,7 @@ def _first_pass(gt_off, det_off, ov_off, ov, gt_ign, det_ign, score, min_ov):  #
     return v[:nv], n_gt
 
 
-@numba.njit(cache=True)
+@kernel
 def _thresholds(v_desc, n_gt, n_points):  # pragma: no cover - compiled
     out = np.empty(v_desc.shape[0])
     m = 0
@@ -272,7 +272,7 @@ def _thresholds(v_desc, n_gt, n_points):  # pragma: no cover - compiled
     return out[:m]
 
 
-@numba.njit(cache=True)
+@kernel
 def _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh, assigned, matched, dc_hit):  # pragma: no cover - compiled
     """Pass 2 on frame f at one score threshold; fills assigned/matched/dc_hit (length D_f); returns tp, fp, fn."""
     g0, g1, d0, d1 = gt_off[f], gt_off[f + 1], det_off[f], det_off[f + 1]
@@ -335,7 +335,7 @@ def _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign,
     return tp, fp - nstuff, fn
 
 
-@numba.njit(cache=True)
+@kernel
 def _frame_buffers(det_off):  # pragma: no cover - compiled
     """The per-frame work arrays of :func:`_match_frame` (assigned, matched, DontCare hit), sized for
     the frame with the most detections and reused frame after frame."""
@@ -345,7 +345,7 @@ def _frame_buffers(det_off):  # pragma: no cover - compiled
     return np.zeros(maxd, dtype=np.bool_), np.zeros(maxd, dtype=np.int64), np.zeros(maxd, dtype=np.bool_)
 
 
-@numba.njit(cache=True)
+@kernel
 def _second_pass(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresholds):  # pragma: no cover - compiled
     nt = thresholds.shape[0]
     nf = gt_off.shape[0] - 1
@@ -364,7 +364,7 @@ def _second_pass(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, de
     return tp, fp, fn
 
 
-@numba.njit(cache=True)
+@kernel
 def _assign(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh):  # pragma: no cover - compiled
     nf = gt_off.shape[0] - 1
     nd_all = det_ign.shape[0]

@@ -10,9 +10,10 @@ frame; it knows nothing about classes, scores or files.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -42,7 +43,7 @@ def box_areas(boxes: ArrayLike, view: str) -> FloatArray:
     return area * b[:, 5] if view == "3d" else area
 
 
-@numba.njit(cache=True)
+@kernel
 def _clip_area(P, Q):  # pragma: no cover - compiled
     """Area of the intersection of two convex counter-clockwise quadrilaterals P, Q (4, 2)."""
     # The intersection of two convex quadrilaterals has at most 8 vertices.
@@ -90,7 +91,7 @@ def _clip_area(P, Q):  # pragma: no cover - compiled
     return max(0.5 * area, 0.0)
 
 
-@numba.njit(cache=True)
+@kernel
 def _pairs_kernel(ca, cb, centre_a, centre_b, radius_a, radius_b, za, zb, ia, ib, three_d):  # pragma: no cover - compiled
     n = ia.shape[0]
     inter = np.zeros(n)

@@ -32,13 +32,13 @@ import sys
 import types
 from dataclasses import replace
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
 from labelaudit.config import CropParams
 from labelaudit.core.geometry import rotation_z
+from labelaudit.kernels import kernel
 
 IndexArray = NDArray[np.int64]
 
@@ -215,7 +215,7 @@ def _open3d_points(pts: NDArray, rows: IndexArray) -> "types.ModuleType":
     return open3d().utility.Vector3dVector(xyz)
 
 
-@numba.njit(cache=True)
+@kernel
 def _xyz_float64(pts, rows):  # pragma: no cover - compiled
     out = np.empty((rows.shape[0], 3))
     for j in range(rows.shape[0]):
@@ -311,7 +311,7 @@ class _BevIndex:
         return np.repeat(owner, length), self.index[pos]
 
 
-@numba.njit(cache=True)
+@kernel
 def _counting_sort_cells(pts, x0, y0, x1, y1, cell, nx, ny):  # pragma: no cover - compiled
     """:class:`_BevIndex`'s sorted (keys, index) by a counting sort: the same keep test and cell
     keys as its NumPy form (float64 x, y; floor((v − origin) / cell)), stable by point index."""

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -48,6 +47,7 @@ from labelaudit.core.freespace import (
 )
 from labelaudit.core.geometry import rotation_z
 from labelaudit.infer.crop import selection_boxes
+from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
@@ -184,7 +184,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _box_crops(xyz, idx, box, plane, others, fit_margin, cut, nb_margin, cell, sel, R, with_model):  # pragma: no cover - compiled
     """One box's crops from its neighbourhood (n, 3) and indices ``idx`` (n,): the model's crop
     (:func:`_open3d_inside` of the selection box ``sel``, rotation ``R``; none unless ``with_model``)
@@ -222,7 +222,7 @@ def _box_crops(xyz, idx, box, plane, others, fit_margin, cut, nb_margin, cell, s
 _FIT, _FOREIGN, _FIT_FOREIGN, _FIT_SCENERY = 1, 2, 4, 8  # flags of _box_kernel
 
 
-@numba.njit(cache=True)
+@kernel
 def _open3d_inside(xyz, sel, R):  # pragma: no cover - compiled
     """Open3D's ``OrientedBoundingBox`` test of points (n, 3) float64 against the selection box
     ``sel`` (7,) with rotation ``R`` (3, 3): ``|(p − c)·R[:, a]| ≤ extent_a / 2``, the dot summed
@@ -243,7 +243,7 @@ def _open3d_inside(xyz, sel, R):  # pragma: no cover - compiled
 _BATCH = 256  # boxes per batch of the neighbour search (bounds its (batch, labels) arrays in frames of thousands of boxes)
 
 
-@numba.njit(cache=True)
+@kernel
 def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags):  # pragma: no cover - compiled
     """One box's pass over its neighbourhood (n, 3): the fit's crop (in the fit margin, ``cut``
     above the local ground, under the box top), points of other labels (grown by ``nb_margin``)
@@ -305,7 +305,7 @@ def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags
             flags[k] = (flags[k] & ~1) | 8
 
 
-@numba.njit(cache=True)
+@kernel
 def _scenery(lx, ly, hl, hw, fit_margin, nb_margin, cell):  # pragma: no cover - compiled
     """The rule of :func:`scenery_mask` on box-frame BEV coordinates (n,)."""
     n = lx.shape[0]
@@ -337,7 +337,7 @@ def _scenery(lx, ly, hl, hw, fit_margin, nb_margin, cell):  # pragma: no cover -
     return out
 
 
-@numba.njit(cache=True)
+@kernel
 def _cell_labels(lx, ly, cell):  # pragma: no cover - compiled
     n = lx.shape[0]
     ijk = np.zeros((n, 3), dtype=np.int64)
@@ -388,7 +388,7 @@ _GROUND_DRAWS = np.random.default_rng(0).random((C.GROUND_HYPOTHESES, 4))
 _GROUND_SCORED = 512  # hypotheses are scored on at most this many candidates (a fixed stride)
 
 
-@numba.njit(cache=True)
+@kernel
 def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slope, out):  # pragma: no cover - compiled
     c, s = math.cos(box[6]), math.sin(box[6])
     hl, hw = 0.5 * box[3], 0.5 * box[4]
@@ -493,7 +493,7 @@ def scenery_mask(xyz: FloatArray, box: FloatArray, fit_margin: float) -> NDArray
     return _scenery(lx, ly, box[3] / 2, box[4] / 2, fit_margin, C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL)
 
 
-@numba.njit(cache=True)
+@kernel
 def _voxel_components(ijk, dims):  # pragma: no cover - compiled
     """Connected-component label (N,) of every point's voxel (26-connectivity; 8 in a single layer), by flood fill on a
     dense grid of the points' bounding voxels (a BFS has no NumPy form; scipy.ndimage would be one

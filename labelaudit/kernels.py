@@ -1,0 +1,402 @@
+"""The package's compiled loops (:func:`kernel`), run ahead-of-time compiled or by numba's JIT.
+
+Every compiled loop of labelaudit is a plain Python function decorated with :func:`kernel`. It runs
+one of two ways, with the same results bit for bit (a test compares them):
+
+- **ahead of time**: ``python -m labelaudit.kernels build`` (run by ``scripts/dev.sh``) compiles every
+  kernel, at the argument types the pipeline passes, into one extension module beside this file
+  (numba's ``pycc``; it needs a C compiler). A process then loads all of them in about a millisecond,
+  without importing numba or LLVM: that is most of a worker's start-up otherwise (numba's set-up,
+  a ``scipy.linalg`` import it always makes, and loading ~30 cached kernels: about 1 s).
+- **just in time**: ``numba.njit(cache=True)``, compiled on first use and cached on disk. This is the
+  path when the module was not built, was built from other sources (any change to a file holding
+  kernels), for another interpreter, NumPy or CPU, or when ``LABELAUDIT_KERNELS=jit``. A call whose
+  argument types the build did not see also takes it, for that kernel alone.
+
+The ahead-of-time module is compiled for this machine's CPU (as numba's JIT is), so it is not
+copied to other machines: its fingerprint names the CPU, and elsewhere the JIT path is taken.
+
+``python -m labelaudit.kernels`` prints which path a process takes and why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+import os
+import platform
+import sys
+import sysconfig
+import tempfile
+import types as pytypes
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["kernel", "kernel_mode", "build"]
+
+MODE_ENV = "LABELAUDIT_KERNELS"  # "jit": never load the ahead-of-time module; "aot": fail loudly when it cannot be used
+AOT_NAME = "_kernels_aot"  # the extension module's name (a sibling of this file)
+_PACKAGE_DIR = Path(__file__).resolve().parent
+_TABLE = _PACKAGE_DIR / f"{AOT_NAME}.json"  # what the module holds: fingerprint, kernel → exported functions
+
+_REGISTRY: dict[str, Kernel | Any] = {}  # "module.qualname" → the decorated kernel (Kernel, or a numba dispatcher on the JIT path)
+_STATE: dict[str, Any] = {}  # the chosen path, loaded once per process: mode, reason, module, table
+
+
+# --- which path ------------------------------------------------------------------------------------
+
+def _cpu_identity() -> str:
+    """The CPU the ahead-of-time code may use (model and instruction-set flags; Linux)."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            lines = [line for line in (f.readline() for _ in range(64)) if line.startswith(("model name", "flags"))]
+    except OSError:
+        lines = []
+    return platform.machine() + "|" + "|".join(sorted(set(lines)))
+
+
+def fingerprint(sources: list[str]) -> str:
+    """What an ahead-of-time module must have been built from: the kernel sources (paths relative to
+    the package), the interpreter's extension ABI, NumPy's version and the CPU."""
+    h = hashlib.sha256()
+    for rel in sorted(sources):
+        h.update(rel.encode())
+        try:
+            h.update((_PACKAGE_DIR / rel).read_bytes())
+        except OSError:
+            h.update(b"<missing>")
+    h.update(str(sysconfig.get_config_var("EXT_SUFFIX")).encode())
+    h.update(np.__version__.encode())
+    h.update(_cpu_identity().encode())
+    return h.hexdigest()
+
+
+def _choose() -> dict[str, Any]:
+    if _STATE:
+        return _STATE
+    want = os.environ.get(MODE_ENV, "").strip().lower()
+    state: dict[str, Any] = {"mode": "jit", "module": None, "table": {}}
+    if want == "jit":
+        state["reason"] = f"{MODE_ENV}=jit"
+    else:
+        try:
+            table = json.loads(_TABLE.read_text(encoding="utf-8"))
+            if table.get("fingerprint") != fingerprint(table.get("sources", [])):
+                state["reason"] = f"{_TABLE.name} was built from other sources, NumPy or CPU (run: python -m labelaudit.kernels build)"
+            else:
+                state.update(mode="aot", module=importlib.import_module(f"labelaudit.{AOT_NAME}"),
+                             table=table["kernels"], reason=f"built {table.get('built', '?')}")
+        except FileNotFoundError:
+            state["reason"] = "not built (run: python -m labelaudit.kernels build)"
+        except (OSError, ValueError, KeyError, ImportError) as exc:
+            state["reason"] = f"cannot load the ahead-of-time module: {exc}"
+        if want == "aot" and state["mode"] != "aot":
+            raise ImportError(f"{MODE_ENV}=aot, but {state['reason']}")
+    _STATE.update(state)
+    return _STATE
+
+
+def kernel_mode() -> tuple[str, str]:
+    """``("aot" | "jit", why)`` for this process."""
+    s = _choose()
+    return s["mode"], s["reason"]
+
+
+# --- the decorator ---------------------------------------------------------------------------------
+
+def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
+    """Compile ``fn`` (a numba nopython function); ``options`` are numba's (``fastmath``,
+    ``error_model``, ``inline``). Use as ``@kernel`` or ``@kernel(error_model="numpy")``.
+
+    On the JIT path it returns ``numba.njit(cache=True, **options)(fn)``; on the ahead-of-time path a
+    function that calls the compiled function matching its arguments' types (:class:`Kernel`).
+    """
+    if fn is None:
+        return lambda f: kernel(f, **options)
+    name = f"{fn.__module__}.{fn.__qualname__}"
+    state = _choose()
+    if state["mode"] == "aot":
+        k: Any = Kernel(fn, options, state["module"], state["table"].get(name, []))
+        _REGISTRY[name] = k
+        return k.dispatch
+    import numba  # only on this path
+
+    _REGISTRY[name] = numba.njit(cache=True, **options)(fn)
+    return _REGISTRY[name]
+
+
+_SCALAR_KEYS: dict[type, str] = {float: "float64", int: "int64", bool: "bool", np.float64: "float64", np.float32: "float32",
+                                 np.int64: "int64", np.int32: "int32", np.bool_: "bool", np.uint8: "uint8", np.intp: "int64"}
+
+
+def _arg_key(a: Any) -> Any:
+    """The key of one argument's numba type (what numba's dispatcher would type it as); None when
+    it is not one the ahead-of-time module can take."""
+    t = type(a)
+    if t is np.ndarray:
+        f = a.flags
+        return ("A", a.dtype.str, a.ndim, "C" if f.c_contiguous else ("F" if f.f_contiguous else "A"), f.writeable, f.aligned)
+    key = _SCALAR_KEYS.get(t)
+    if key is not None:
+        return key
+    if t is tuple:
+        return ("T", *(_arg_key(x) for x in a))
+    return None
+
+
+def _freeze(key: Any) -> Any:
+    """A JSON list key back to the tuple :func:`_arg_key` makes."""
+    return tuple(_freeze(x) for x in key) if isinstance(key, list) else key
+
+
+def _test_of(i: int, key: Any, env: dict[str, Any], tag: str) -> str | None:
+    """A Python expression true when argument ``a{i}`` has the numba type of ``key`` (None: no
+    quick test for it, the keyed lookup decides); the names it puts in ``env`` end in ``tag``
+    (one per signature)."""
+    v, d, f, s = f"a{i}", f"_d{i}_{tag}", f"_f{i}", f"_s{i}_{tag}"
+    if isinstance(key, tuple) and key[0] == "A":
+        _, dtype, ndim, layout, mutable, aligned = key
+        env[d] = np.dtype(dtype)
+        flags = f"({f} := {v}.flags)"
+        contiguity = {"C": f"{flags}.c_contiguous", "F": f"not {flags}.c_contiguous and {f}.f_contiguous",
+                      "A": f"not {flags}.c_contiguous and not {f}.f_contiguous"}[layout]
+        return (f"type({v}) is _ndarray and {v}.dtype is {d} and {v}.ndim == {ndim} and {contiguity}"
+                f" and {'' if mutable else 'not '}{f}.writeable and {'' if aligned else 'not '}{f}.aligned")
+    if isinstance(key, str):
+        env[s] = frozenset(t for t, k in _SCALAR_KEYS.items() if k == key)
+        return f"type({v}) in {s}"
+    return None
+
+
+class Kernel:
+    """A kernel on the ahead-of-time path.
+
+    :attr:`dispatch` (what ``@kernel`` returns) tests the arguments against each compiled
+    signature in a few attribute reads (a generated function: numba's own dispatcher is C, and a
+    generic Python key costs about 1 µs per argument), calls the match, and otherwise looks the
+    arguments' types up by key; types the build did not see compile the kernel with numba's JIT.
+    """
+
+    def __init__(self, fn: Callable[..., Any], options: dict[str, Any], module: Any, exports: list[list[Any]]) -> None:
+        self.py_func = fn
+        self.options = options
+        self.name = f"{fn.__module__}.{fn.__qualname__}"
+        self._exports = [(getattr(module, symbol), _freeze(key)) for symbol, key in exports]
+        self._by_key = {key: f for f, key in self._exports}
+        self._jit: Any = None
+        self.dispatch = self._make_dispatch()
+
+    def _make_dispatch(self) -> Callable[..., Any]:
+        fn = self.py_func
+        nargs = fn.__code__.co_argcount
+        args = ", ".join(f"a{i}" for i in range(nargs))
+        defaults = fn.__defaults__ or ()
+        env: dict[str, Any] = {"_ndarray": np.ndarray, "_slow": self.call_by_key}
+        params = [f"a{i}" if i < nargs - len(defaults) else f"a{i}=_default{i}" for i in range(nargs)]
+        env.update({f"_default{nargs - len(defaults) + j}": v for j, v in enumerate(defaults)})
+        lines = [f"def {fn.__name__}({', '.join(params)}):"]
+        for j, (f, key) in enumerate(self._exports):
+            tests = [_test_of(i, k, env, str(j)) for i, k in enumerate(key)]
+            if len(key) != nargs or any(t is None for t in tests):
+                continue
+            env[f"_k{j}"] = f
+            lines.append(f"    if {' and '.join(tests) or 'True'}:\n        return _k{j}({args})")
+        lines.append(f"    return _slow({args})")
+        exec("\n".join(lines), env)  # noqa: S102 - a template over the build's own table
+        dispatch = env[fn.__name__]
+        dispatch.__qualname__, dispatch.__module__, dispatch.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
+        dispatch.__wrapped__ = fn
+        dispatch.py_func = fn
+        dispatch.kernel = self
+        return dispatch
+
+    def call_by_key(self, *args: Any) -> Any:
+        """The compiled function for these arguments' types, or numba's JIT."""
+        f = self._by_key.get(tuple(map(_arg_key, args)))
+        if f is None:
+            return self.jit()(*args)
+        return f(*args)
+
+    def jit(self) -> Any:
+        """This kernel as a numba dispatcher (compiled, or loaded from numba's cache, on first call).
+        The kernels it calls are swapped for their dispatchers, so numba can compile the calls."""
+        if self._jit is None:
+            import numba
+
+            fn = self.py_func
+            scope: dict[str, Any] = {}
+            copy = pytypes.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
+            copy.__qualname__, copy.__module__, copy.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
+            self._jit = numba.njit(cache=True, **self.options)(copy)
+            scope.update({k: (v.kernel.jit() if isinstance(getattr(v, "kernel", None), Kernel) else v) for k, v in fn.__globals__.items()})
+        return self._jit
+
+    def __repr__(self) -> str:
+        return f"<kernel {self.name} ({len(self._exports)} compiled signatures)>"
+
+
+# --- the ahead-of-time build -----------------------------------------------------------------------
+
+KERNEL_MODULES = ("labelaudit.core.linalg", "labelaudit.core.pointops", "labelaudit.core.iou", "labelaudit.core.spatial",
+                  "labelaudit.core.posterior", "labelaudit.core.fit", "labelaudit.core.freespace", "labelaudit.infer.evidence",
+                  "labelaudit.infer.crop", "labelaudit.evaluate.jiou", "labelaudit.evaluate.overlap", "labelaudit.evaluate.matching")
+
+
+def _type_key(t: Any) -> Any:
+    """:func:`_arg_key` of a numba type; None when the build cannot export it."""
+    from numba.core import types
+    from numba.np import numpy_support
+
+    if isinstance(t, types.Array):
+        return ["A", np.dtype(numpy_support.as_dtype(t.dtype)).str, t.ndim, t.layout, t.mutable, t.aligned]
+    if isinstance(t, (types.Float, types.Integer, types.Boolean)):
+        return str(t)
+    if isinstance(t, types.BaseTuple):
+        keys = [_type_key(x) for x in t]
+        return None if any(k is None for k in keys) else ["T", *keys]
+    return None
+
+
+def _workload() -> None:
+    """Run what the commands run, in this process, so every kernel is compiled at the types it is
+    called with: ``infer`` (KITTI and Waymo, BEV and 3D, rays), ``eval`` (BEV and 3D overlaps,
+    JIoU, matching) on a small simulated dataset with detections, and the crops of ``show``."""
+    import contextlib
+    import io
+
+    from labelaudit.cli import app
+    from labelaudit.config import load_config, resolve_config
+    from labelaudit.datasets import Frame
+    from labelaudit.evaluate.warmup import warm_up as eval_warm_up
+    from labelaudit.infer.crop import crop_frame
+    from labelaudit.infer.rows import process_frame
+    from labelaudit.infer.warmup import warm_up
+    from labelaudit.sim.dataset import simulate_frame
+
+    warm_up(strict=True)
+    eval_warm_up(strict=True)
+    sim = simulate_frame(0, seed=0)
+    boxes, names = sim.written_boxes, list(sim.scene.class_names)
+    for fmt, classes in (("kitti", ("Car", "Van", "Truck", "Pedestrian", "Cyclist")), ("waymo", ("Vehicle", "Pedestrian", "Cyclist"))):
+        for model in ("bev", "3d"):
+            cfg = resolve_config(None, fmt, classes, model)
+            mask = np.arange(len(sim.points)) % 2 == 0 if fmt == "waymo" else None  # Waymo: only some points end rays
+            as_read = [n if fmt == "kitti" or n in classes else "Vehicle" for n in names]
+            frame = Frame("build", sim.points, boxes, as_read, [str(i) for i in range(len(boxes))], ray_mask=mask)
+            process_frame(frame, cfg)
+    crop_frame(sim.points, boxes, load_config(None, "kitti").crop)
+    with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp, contextlib.redirect_stdout(io.StringIO()):
+        data = f"{tmp}/sim"
+        for argv in (["simulate", data, "--frames", "3", "--seed", "1", "--detections", "-q"],
+                     ["eval", data, f"{data}/detections", "--workers", "1", "-q"],
+                     ["eval", data, f"{data}/detections", "--workers", "1", "--metric", "3d", "-q"]):
+            app(argv, standalone_mode=False)
+
+
+def _with_contiguous_variants(signatures: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
+    """The recorded signatures, each also with its strided ('A') array arguments C-contiguous (in
+    every combination, up to three such arguments): a column slice of a 1-row array is contiguous,
+    so a call sometimes passes one. Each variant is compiled as numba's JIT would compile it."""
+    from itertools import combinations
+
+    from numba.core import types
+
+    out: list[tuple[Any, ...]] = []
+    for sig in signatures:
+        strided = [i for i, t in enumerate(sig) if isinstance(t, types.Array) and t.layout == "A"][:3]
+        for r in range(len(strided) + 1):
+            for picked in combinations(strided, r):
+                variant = tuple(t.copy(layout="C") if i in picked else t for i, t in enumerate(sig))
+                if variant not in out:
+                    out.append(variant)
+    return out
+
+
+def _caller(disp: Any, nargs: int) -> Callable[..., Any]:
+    """``lambda a0, …: disp(a0, …)``: what pycc exports, so that ``disp`` is compiled with its own
+    options (pycc compiles an exported function with default ones: no ``fastmath``, ``error_model``)."""
+    args = ", ".join(f"a{i}" for i in range(nargs))
+    scope: dict[str, Any] = {"_kernel": disp}
+    exec(f"def call({args}):\n    return _kernel({args})\n", scope)  # noqa: S102 - a fixed template
+    return scope["call"]
+
+
+def build(verbose: bool = False) -> Path:
+    """Compile every kernel ahead of time into ``labelaudit/_kernels_aot*.so`` (and its table).
+
+    Runs in a process on the JIT path (``python -m labelaudit.kernels build`` sets it); takes about
+    half a minute. Returns the path of the table.
+    """
+    if _choose()["mode"] != "jit":
+        raise RuntimeError(f"build on the JIT path: run it as {MODE_ENV}=jit python -m labelaudit.kernels build")
+    import shutil
+
+    from numba.pycc import CC
+
+    for m in KERNEL_MODULES:
+        importlib.import_module(m)
+    _workload()
+    cc = CC(AOT_NAME, source_module=__name__)
+    cc.target_cpu = "host"  # as numba's JIT: the same instructions, so the same results
+    table: dict[str, list[list[Any]]] = {}
+    n = 0
+    for name, disp in sorted(_REGISTRY.items()):
+        if disp.targetoptions.get("inline") == "always":
+            continue
+        for sig in _with_contiguous_variants(disp.signatures):
+            keys = [_type_key(t) for t in sig]
+            if any(k is None for k in keys):
+                continue
+            disp.compile(sig)  # (a variant's first compile; the others are there)
+            symbol = f"k{n}_{disp.py_func.__name__}"
+            cc.export(symbol, disp.overloads[sig].signature)(_caller(disp, len(sig)))
+            table.setdefault(name, []).append([symbol, keys])
+            n += 1
+    sources = sorted({str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in KERNEL_MODULES} | {"kernels.py"})
+    with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp:
+        cc.output_dir = tmp
+        cc.verbose = verbose
+        cc.compile()
+        built = Path(tmp) / cc.output_file
+        staged = _PACKAGE_DIR / f".{cc.output_file}.tmp"
+        shutil.copyfile(built, staged)
+        os.chmod(staged, 0o755)
+        os.replace(staged, _PACKAGE_DIR / cc.output_file)  # atomic: a running process keeps its mapped copy
+    from datetime import datetime, timezone
+
+    doc = {"fingerprint": fingerprint(sources), "sources": sources, "built": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+           "numba": __import__("numba").__version__, "functions": n, "kernels": table}
+    staged_table = _TABLE.with_suffix(".json.tmp")
+    staged_table.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    os.replace(staged_table, _TABLE)
+    return _TABLE
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m labelaudit.kernels [status|build]``."""
+    args = sys.argv[1:] if argv is None else argv
+    cmd = args[0] if args else "status"
+    if cmd == "build":
+        os.environ[MODE_ENV] = "jit"
+        if _STATE.get("mode", "jit") != "jit":
+            raise SystemExit("build: this process already loaded the ahead-of-time kernels")
+        path = build(verbose="-v" in args)
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        print(f"built {doc['functions']} compiled functions of {len(doc['kernels'])} kernels: {path.with_suffix('')}*.so", file=sys.stderr)
+        return 0
+    if cmd == "status":
+        mode, why = kernel_mode()
+        print(f"{mode}: {why}")
+        return 0
+    print("usage: python -m labelaudit.kernels [status|build [-v]]", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":  # run as labelaudit.kernels, not __main__: the kernels register there
+    from labelaudit.kernels import main as _main
+
+    raise SystemExit(_main())

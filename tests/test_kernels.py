@@ -1,0 +1,179 @@
+"""The compiled kernels (labelaudit/kernels.py): ahead-of-time and JIT give the same rows, bit for
+bit; the ahead-of-time dispatch calls the signature numba would pick, and anything else goes to
+numba's JIT; a stale or missing build is never used."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+import textwrap
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labelaudit import kernels as K
+
+REPO = Path(__file__).resolve().parents[1]
+AOT = K.kernel_mode()[0] == "aot"
+needs_aot = pytest.mark.skipif(not AOT, reason=f"ahead-of-time kernels not in use: {K.kernel_mode()[1]}")
+
+
+def _samples() -> list[object]:
+    base = np.arange(24, dtype=np.float64).reshape(4, 6)
+    ro = base.copy()
+    ro.flags.writeable = False
+    return [base, base.astype(np.float32), base.T, base[:, ::2], base[:, 2], base[:1, 2], base[0], ro, base.astype(np.int64),
+            base > 3, np.zeros((2, 3, 4)), np.zeros(0), 1.5, 3, True, np.float64(2.0), np.float32(2.0), np.int64(4), np.int32(4),
+            (1.0, 2.0), (base, 2)]
+
+
+def test_the_argument_key_is_the_type_numba_gives():
+    numba = pytest.importorskip("numba")
+    for value in _samples():
+        assert K._arg_key(value) == K._freeze(K._type_key(numba.typeof(value))), value
+
+
+def _scale(a, s):  # pragma: no cover - compiled
+    out = np.empty_like(a)
+    for i in range(a.shape[0]):
+        out[i] = a[i] * s
+    return out
+
+
+def _scale_by_two(a, s=2.0):  # pragma: no cover - compiled
+    return a * s
+
+
+def _fake_kernel(signatures: list[tuple[object, ...]], fn=_scale) -> K.Kernel:
+    """A Kernel whose 'compiled' functions are Python functions that say which signature was picked."""
+    numba = pytest.importorskip("numba")
+    module = types.SimpleNamespace()
+    exports = []
+    for j, sample in enumerate(signatures):
+        setattr(module, f"k{j}", lambda a, s, _j=j: ("compiled", _j, s))
+        exports.append([f"k{j}", [K._type_key(numba.typeof(x)) for x in sample]])
+    return K.Kernel(fn, {}, module, json.loads(json.dumps(exports)))
+
+
+def test_the_dispatch_calls_the_signature_numba_would_pick_and_jit_for_the_rest():
+    f8 = np.arange(5.0)
+    f4 = f8.astype(np.float32)
+    strided = np.arange(10.0)[::2]
+    k = _fake_kernel([(f8, 1.0), (f4, 1.0), (strided, 1.0)])
+    assert k.dispatch(f8, 2.0) == ("compiled", 0, 2.0)
+    assert k.dispatch(f4, np.float64(2.0)) == ("compiled", 1, 2.0)  # a float32 array never takes the float64 code
+    assert k.dispatch(strided, 2.0) == ("compiled", 2, 2.0)
+    assert k.dispatch(f8[:1], 2.0) == ("compiled", 0, 2.0)  # contiguous, whatever it was cut from
+    ro = f8.copy()
+    ro.flags.writeable = False
+    for a, s in ((ro, 2.0), (f8, 2), (f8.astype(np.int64), 2.0), (np.arange(6.0).reshape(2, 3), 2.0)):  # not compiled: numba's JIT
+        got = k.dispatch(a, s)
+        np.testing.assert_array_equal(got, _scale(np.asarray(a), s))
+        assert got.dtype == np.asarray(a).dtype
+    assert k._jit is not None
+
+
+def test_the_keyed_lookup_finds_what_the_quick_tests_cannot():
+    k = _fake_kernel([((1.0, 2.0), 1.0)])  # a tuple argument has no quick test
+    assert k.dispatch((3.0, 4.0), 2.0) == ("compiled", 0, 2.0)
+
+
+def test_a_default_argument_is_passed_as_numba_would():
+    k = _fake_kernel([(np.arange(3.0), 1.0)], fn=_scale_by_two)
+    assert k.dispatch(np.arange(3.0)) == ("compiled", 0, 2.0)
+    assert k.dispatch(np.arange(3.0), 5.0) == ("compiled", 0, 5.0)
+
+
+def test_a_missing_or_stale_build_is_not_used(tmp_path, monkeypatch):
+    saved = dict(K._STATE)
+    try:
+        monkeypatch.setattr(K, "_TABLE", tmp_path / "none.json")
+        K._STATE.clear()
+        monkeypatch.setenv(K.MODE_ENV, "")
+        assert K.kernel_mode() == ("jit", "not built (run: python -m labelaudit.kernels build)")
+        K._STATE.clear()
+        monkeypatch.setenv(K.MODE_ENV, "aot")
+        with pytest.raises(ImportError, match="not built"):
+            K.kernel_mode()
+        stale = tmp_path / "stale.json"
+        stale.write_text(json.dumps({"fingerprint": "0" * 64, "sources": ["kernels.py"], "kernels": {}}))
+        monkeypatch.setattr(K, "_TABLE", stale)
+        K._STATE.clear()
+        monkeypatch.setenv(K.MODE_ENV, "")
+        mode, why = K.kernel_mode()
+        assert mode == "jit" and "built from other sources" in why
+        K._STATE.clear()
+        monkeypatch.setenv(K.MODE_ENV, "jit")
+        assert K.kernel_mode() == ("jit", f"{K.MODE_ENV}=jit")
+    finally:
+        K._STATE.clear()
+        K._STATE.update(saved)
+
+
+def test_the_fingerprint_follows_every_source_byte(tmp_path, monkeypatch):
+    monkeypatch.setattr(K, "_PACKAGE_DIR", tmp_path)
+    (tmp_path / "a.py").write_text("x = 1\n")
+    (tmp_path / "b.py").write_text("y = 2\n")
+    before = K.fingerprint(["a.py", "b.py"])
+    assert K.fingerprint(["b.py", "a.py"]) == before
+    (tmp_path / "b.py").write_text("y = 3\n")
+    assert K.fingerprint(["a.py", "b.py"]) != before
+
+
+_ROWS = textwrap.dedent("""
+    import pickle, sys
+    import numpy as np
+    from labelaudit.config import resolve_config
+    from labelaudit.datasets import Frame
+    from labelaudit.infer.rows import process_frame
+    from labelaudit.kernels import kernel_mode
+    from labelaudit.sim.dataset import simulate_frame
+
+    out = {"mode": kernel_mode()[0]}
+    for index in (0, 1):
+        sim = simulate_frame(index, seed=7)
+        ids = [str(i) for i in range(len(sim.written_boxes))]
+        for fmt, classes in (("kitti", ("Car", "Van", "Truck", "Pedestrian", "Cyclist")), ("waymo", ("Vehicle", "Pedestrian", "Cyclist"))):
+            mask = np.arange(len(sim.points)) % 3 != 0 if fmt == "waymo" else None
+            names = [n if fmt == "kitti" or n in classes else "Vehicle" for n in sim.scene.class_names]
+            for model in ("bev", "3d"):
+                cfg = resolve_config(None, fmt, classes, model)
+                frame = Frame(f"{index}", sim.points, sim.written_boxes, names, ids, ray_mask=mask)
+                out[(index, fmt, model)] = process_frame(frame, cfg)
+    sys.stdout.buffer.write(pickle.dumps(out))
+""")
+
+
+def _rows(mode: str) -> dict:
+    env = {**os.environ, K.MODE_ENV: mode}
+    done = subprocess.run([sys.executable, "-c", _ROWS], capture_output=True, env=env, cwd=REPO, timeout=600, check=True)
+    return pickle.loads(done.stdout)
+
+
+@needs_aot
+def test_ahead_of_time_and_jit_rows_are_bit_identical():
+    aot, jit = _rows("aot"), _rows("jit")
+    assert (aot.pop("mode"), jit.pop("mode")) == ("aot", "jit")
+    assert aot.keys() == jit.keys()
+    for key in aot:
+        assert pickle.dumps(aot[key]) == pickle.dumps(jit[key]), key  # every value, NaNs included, bit for bit
+        assert any(r["status"] == "ok" for r in aot[key][0])
+
+
+@needs_aot
+def test_a_worker_on_the_ahead_of_time_path_never_imports_numba():
+    code = ("import sys; from labelaudit.constants import WORKER_PRELOAD; import importlib; "
+            "[importlib.import_module(m) for m in WORKER_PRELOAD]; "
+            "print(sorted(m for m in ('numba', 'llvmlite', 'scipy.linalg') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120, check=True)
+    assert done.stdout.strip() == "[]"
+
+
+def test_the_status_command_names_the_path():
+    done = subprocess.run([sys.executable, "-m", "labelaudit.kernels", "status"], capture_output=True, text=True, cwd=REPO, timeout=120, check=True)
+    assert done.stdout.split(":")[0] in ("aot", "jit")
