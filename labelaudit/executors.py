@@ -127,6 +127,21 @@ def start_fork_server(preload: Sequence[str]) -> bool:
     return True
 
 
+def fork_server_preload(workers: int | None, scheduler: str | None = None) -> tuple[str, ...] | None:
+    """What the fork server of ``--workers`` / ``--scheduler`` imports, or None where the run has none
+    (one worker: serial; a ``tcp://`` cluster; a bad value, which the run itself reports)."""
+    if workers is not None and workers < 1:
+        return None
+    if scheduler is not None:
+        try:
+            _, local_workers = parse_scheduler(scheduler, workers)
+        except UsageError:
+            return None
+        return local_cluster_preload() if local_workers is not None else None
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    return tuple(C.WORKER_PRELOAD) if n > 1 else None
+
+
 class PoolExecutor:
     """A pool of ``workers`` processes.
 

@@ -230,3 +230,29 @@ def test_rank_notes_incomplete_results(tmp_path):
     partial = make_results(tmp_path / "partial", [[make_row("000001", 0)]], complete=False)
     r = invoke("rank", partial, "--format", "json")
     assert r.exit_code == 0 and len(json.loads(r.stdout)) == 1 and "incomplete" in r.stderr
+
+
+def test_the_console_script_starts_infers_fork_server_only_when_a_pool_will_run():
+    import os
+    import subprocess
+    import sys
+
+    from labelaudit import __main__ as launch
+    from labelaudit.executors import fork_server_preload, local_cluster_preload
+    from labelaudit import constants as C
+
+    assert fork_server_preload(2) == tuple(C.WORKER_PRELOAD)
+    assert fork_server_preload(None) == (tuple(C.WORKER_PRELOAD) if (os.cpu_count() or 1) > 1 else None)
+    assert fork_server_preload(1) is None and fork_server_preload(0) is None  # serial; a bad count is the command's to report
+    assert fork_server_preload(None, "local:2") == local_cluster_preload()
+    assert fork_server_preload(None, "tcp://h:8786") is None and fork_server_preload(3, "tcp://h:8786") is None  # a usage error, reported later
+    for argv in (["labelaudit", "rank", "r/"], ["labelaudit", "infer", "d", "--workers", "1"], ["labelaudit", "infer", "d", "--workers=x"],
+                 ["labelaudit", "infer", "d", "--workers", "2", "--help"], ["labelaudit", "infer", "d", "--scheduler", "tcp://h:1"], ["labelaudit"]):
+        assert launch.start_infer_fork_server(argv) is False, argv
+    assert launch.start_infer_fork_server(["labelaudit", "infer", "d", "--workers=2", "-o", "out"]) is True  # the pool's own preload
+    done = subprocess.run([sys.executable, "-m", "labelaudit", "--help"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "infer" in done.stdout
+    from importlib.metadata import entry_points
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "labelaudit"]
+    assert script.value == "labelaudit.__main__:main"

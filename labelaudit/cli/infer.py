@@ -84,21 +84,16 @@ def start_pool_early(workers: int | None, scheduler: str | None) -> object | Non
     workers; a cluster itself is left to :func:`~labelaudit.infer.run.run_infer`, which contacts it
     only once the input is known to be good.
     """
-    from labelaudit.executors import PoolExecutor, local_cluster_preload, make_executor, parse_scheduler, start_fork_server
+    from labelaudit.executors import PoolExecutor, fork_server_preload, make_executor, start_fork_server
 
-    if workers is not None and workers < 1:
-        return None  # run_infer reports a bad count
+    preload = fork_server_preload(workers, scheduler)
+    if preload is None:
+        return None  # serial, a tcp:// cluster, or a bad value that run_infer reports after the input checks
     if scheduler is not None:
-        try:
-            _, local_workers = parse_scheduler(scheduler, workers)
-        except UsageError:
-            return None  # run_infer reports it, after the input checks as before
-        if local_workers is not None:
-            start_fork_server(local_cluster_preload())  # the LocalCluster's workers fork from it
+        start_fork_server(preload)  # the LocalCluster's workers fork from it; the cluster starts in run_infer
         return None
     executor = make_executor(workers)
-    if not isinstance(executor, PoolExecutor):
-        return None
+    assert isinstance(executor, PoolExecutor)
     executor.start()
     return executor
 
