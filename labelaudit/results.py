@@ -23,17 +23,17 @@ import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
-import pyarrow.dataset as pads
-import pyarrow.parquet as pq
 
 from labelaudit import SCHEMA_VERSION, __version__
 from labelaudit.core.geometry import BOX_FIELDS
 from labelaudit.errors import InferError, ResultsError, one_line
+
+if TYPE_CHECKING:
+    import pyarrow.dataset as pads
 
 MANIFEST_NAME = "manifest.json"
 OBJECTS_DIR = "objects"
@@ -354,6 +354,7 @@ def with_metadata(table: pa.Table, metadata: Mapping[str, Any]) -> pa.Table:
 
 def shard_metadata(path: str | Path) -> dict[str, Any]:
     """The labelaudit metadata of one Parquet file (empty dict when absent)."""
+    import pyarrow.parquet as pq
     meta = pq.read_schema(path).metadata or {}
     raw = meta.get(METADATA_KEY)
     return json.loads(raw) if raw else {}
@@ -368,6 +369,7 @@ def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
 
     A killed writer leaves at most a dot-file that readers ignore and the next run removes.
     """
+    import pyarrow.parquet as pq
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_name(path)
@@ -489,12 +491,14 @@ class Results:
 
     def failed_frames(self) -> int:
         """Number of frames (or units) that failed as a whole."""
+        import pyarrow.compute as pc
         errs = self.errors()
         return int(pc.sum(pc.equal(errs["level"], "error")).as_py() or 0) if errs.num_rows else 0
 
 
 def read_error_tables(paths: Sequence[Path]) -> pa.Table:
     """The errors tables of ``paths`` as one table; a damaged file is a :class:`ResultsError` naming it."""
+    import pyarrow.parquet as pq
     tables = []
     for p in paths:
         try:
@@ -514,6 +518,8 @@ def open_results(path: str | Path) -> Results:
     ResultsError
         Path missing, no shards, or files that are not Parquet.
     """
+    import pyarrow.dataset as pads
+    import pyarrow.parquet as pq
     root = Path(path)
     try:
         exists = root.exists()
@@ -546,6 +552,7 @@ def open_results(path: str | Path) -> Results:
 
 def is_whole_parquet(path: Path) -> bool:
     """Whether ``path`` is a complete Parquet file (its footer reads)."""
+    import pyarrow.parquet as pq
     try:
         pq.read_metadata(path)
         return True
@@ -673,6 +680,7 @@ def check_layout(output: Path) -> None:
 def chunk_record(table: pa.Table, errors: Sequence[Mapping[str, Any]]) -> dict[str, int]:
     """What a chunk's object shard records about the chunk (key ``chunk`` of its metadata), so a
     resumed run can tell a clean chunk from one to run again without its errors part."""
+    import pyarrow.compute as pc
     failed_objects = int(pc.sum(pc.equal(table.column("status"), "error")).as_py() or 0) if table.num_rows else 0
     return {
         "notes": len(errors),
@@ -690,6 +698,7 @@ def chunk_state(shard: Path, error_part: Path) -> str:
     its old rows — or its errors part is missing, unreadable or of another run (the shard's
     :func:`chunk_record` says how many rows it must have).
     """
+    import pyarrow.parquet as pq
     try:
         footer = pq.read_metadata(shard)
         meta = json.loads((footer.metadata or {}).get(METADATA_KEY, b"{}"))
@@ -710,6 +719,8 @@ def chunk_state(shard: Path, error_part: Path) -> str:
 
 
 def _chunk_state_from_rows(shard: Path, error_part: Path) -> str:
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
     if os.path.lexists(error_part):
         try:
             levels = pq.read_table(error_part, columns=["level"]).column("level")
