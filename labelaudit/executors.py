@@ -60,12 +60,10 @@ def tune_allocator() -> bool:
     unchanged: only where memory comes from. Called once per process, where chunks are processed.
     """
     import ctypes
-    import ctypes.util
 
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without mallopt)
+        mallopt = ctypes.CDLL(None).mallopt  # the process' own symbols: libc's, without find_library's `ldconfig -p`
+    except (OSError, AttributeError, TypeError):  # not glibc (macOS, Windows, musl without mallopt)
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, C.MALLOC_MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, C.MALLOC_TRIM_THRESHOLD))
 

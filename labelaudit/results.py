@@ -680,8 +680,7 @@ def check_layout(output: Path) -> None:
 def chunk_record(table: pa.Table, errors: Sequence[Mapping[str, Any]]) -> dict[str, int]:
     """What a chunk's object shard records about the chunk (key ``chunk`` of its metadata), so a
     resumed run can tell a clean chunk from one to run again without its errors part."""
-    import pyarrow.compute as pc
-    failed_objects = int(pc.sum(pc.equal(table.column("status"), "error")).as_py() or 0) if table.num_rows else 0
+    failed_objects = table.column("status").to_pylist().count("error")  # (not pyarrow.compute: its import is 0.1 s of a short run)
     return {
         "notes": len(errors),
         "failed_frames": sum(1 for e in errors if e.get("level") == "error"),

@@ -97,7 +97,7 @@ def run_tree(cmd: list[str], env: dict[str, str]) -> tuple[float, float, float]:
 
 
 def cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "labelaudit.cli", "infer", *args]
+    return [sys.executable, "-m", "labelaudit", "infer", *args]  # what the console script runs (it starts the fork server first)
 
 
 def simulate(out: Path, frames: int, seed: int) -> Path:

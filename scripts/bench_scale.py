@@ -107,7 +107,7 @@ def cli_run(data: Path, out: Path, env: dict[str, str], *opts: str) -> tuple[flo
     """``labelaudit infer`` as a subprocess: (wall s incl. start-up, CPU s of its process tree,
     start-up s until the first shard was written, span s from the first to the last shard)."""
     t0 = time.time()
-    wall, _, cpu = run_tree([sys.executable, "-m", "labelaudit.cli", "infer", str(data), "-o", str(out), "--overwrite", "-q", *opts], env)
+    wall, _, cpu = run_tree([sys.executable, "-m", "labelaudit", "infer", str(data), "-o", str(out), "--overwrite", "-q", *opts], env)
     stamps = sorted(p.stat().st_mtime for p in (out / "objects").glob("*.parquet"))
     return wall, cpu, stamps[0] - t0, stamps[-1] - stamps[0]
 
