@@ -164,7 +164,7 @@ def _test_of(i: int, key: Any, env: dict[str, Any], tag: str) -> str | None:
         flags = f"({f} := {v}.flags)"
         contiguity = {"C": f"{flags}.c_contiguous", "F": f"not {flags}.c_contiguous and {f}.f_contiguous",
                       "A": f"not {flags}.c_contiguous and not {f}.f_contiguous"}[layout]
-        return (f"type({v}) is _ndarray and {v}.dtype is {d} and {v}.ndim == {ndim} and {contiguity}"
+        return (f"type({v}) is _ndarray and ({v}.dtype is {d} or {v}.dtype == {d}) and {v}.ndim == {ndim} and {contiguity}"
                 f" and {'' if mutable else 'not '}{f}.writeable and {'' if aligned else 'not '}{f}.aligned")
     if isinstance(key, str):
         env[s] = frozenset(t for t, k in _SCALAR_KEYS.items() if k == key)

@@ -78,6 +78,21 @@ def test_the_dispatch_calls_the_signature_numba_would_pick_and_jit_for_the_rest(
     assert k._jit is not None
 
 
+class _QuickOnly(K.Kernel):
+    def call_by_key(self, *args):
+        raise AssertionError("took the keyed lookup")
+
+
+def test_the_quick_tests_take_equal_dtypes_that_are_other_objects():
+    numba = pytest.importorskip("numba")
+    module = types.SimpleNamespace(k0=lambda a, s: ("compiled", 0, s))
+    k = _QuickOnly(_scale, {}, module, [["k0", [K._type_key(numba.typeof(np.zeros(2))), "float64"]]])
+    other = pickle.loads(pickle.dumps(np.dtype("<f8")))  # equal to float64, another object (arrays read from files have such)
+    assert other is not np.dtype("<f8")
+    assert k.dispatch(np.zeros(4, dtype=other), 1.0) == ("compiled", 0, 1.0)
+    assert k.dispatch(np.zeros(4), np.float64(1.0)) == ("compiled", 0, 1.0)
+
+
 def test_the_keyed_lookup_finds_what_the_quick_tests_cannot():
     k = _fake_kernel([((1.0, 2.0), 1.0)])  # a tuple argument has no quick test
     assert k.dispatch((3.0, 4.0), 2.0) == ("compiled", 0, 2.0)
