@@ -289,7 +289,8 @@ def _workload() -> None:
             frame = Frame("build", sim.points, boxes, as_read, [str(i) for i in range(len(boxes))], ray_mask=mask)
             process_frame(frame, cfg)
     crop_frame(sim.points, boxes, load_config(None, "kitti").crop)
-    with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp, contextlib.redirect_stdout(io.StringIO()):
+    quiet = contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO())  # the commands' own reports
+    with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp, quiet[0], quiet[1]:
         data = f"{tmp}/sim"
         for argv in (["simulate", data, "--frames", "3", "--seed", "1", "--detections", "-q"],
                      ["eval", data, f"{data}/detections", "--workers", "1", "-q"],

@@ -64,7 +64,7 @@ class MemorySampler:
             return "resource tracker"
         if "spawn_main" in cmd:  # LocalCluster: the nannies live in the client, each spawns its worker
             return "dask worker"
-        if "labelaudit.cli" in cmd:
+        if "-m labelaudit" in cmd:
             return "main (client)"
         return "other"
 
@@ -72,7 +72,10 @@ class MemorySampler:
         out = []
         for child in self.me.children():
             if child.pid not in self.before:  # not this script's own helpers (e.g. its fork server)
-                out += [child, *child.children(recursive=True)]
+                try:
+                    out += [child, *child.children(recursive=True)]
+                except (self.psutil.NoSuchProcess, self.psutil.ZombieProcess):  # exited while listed
+                    continue
         return out
 
     def _run(self) -> None:
