@@ -159,6 +159,7 @@ MALLOC_MMAP_THRESHOLD = 32 * 2**20  # bytes (glibc's documented maximum on 64-bi
 MALLOC_TRIM_THRESHOLD = 64 * 2**20  # bytes; glibc: free heap kept for the next box up to this much, instead of returned to the system after each
 POOL_START_METHOD = "forkserver"  # workers fork from a clean, single-threaded server (not from the busy main process)
 WORKER_PRELOAD = ("labelaudit.infer.run", "labelaudit.infer.crop", "labelaudit.infer.rows", "labelaudit.infer.warmup")  # imported once in the fork server (and by each Dask worker at start): the core, its compiled kernels (Open3D only loads where a crop asks it)
+DASK_LOCAL_CONFIG = {"distributed.worker.profile.enabled": False}  # a LocalCluster's workers run without Dask's statistical profiler (a stack sample of the task thread every 10 ms: 5–10 % of a `local:2` run here)
 DASK_CONNECT_TIMEOUT = 10.0  # s; an unreachable --scheduler is reported after this long (exit 2)
 DASK_WORKER_WAIT = 60.0  # s; a scheduler without workers is reported after this long (a cluster that is still scaling up gets this much)
 DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)

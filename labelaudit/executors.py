@@ -335,7 +335,7 @@ class DaskExecutor:
         import dask
 
         method = "forkserver" if start_fork_server(local_cluster_preload(self.preload)) else "spawn"
-        with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+        with dask.config.set({"distributed.worker.multiprocessing-method": method, **C.DASK_LOCAL_CONFIG}):
             return distributed.LocalCluster(
                 n_workers=self.local_workers, threads_per_worker=1, processes=True, dashboard_address=":0",  # any free port: never a clash with 8787
                 silence_logs=logging.ERROR, preload=list(self.preload),  # a killed worker is handled, not news

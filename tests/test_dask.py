@@ -275,10 +275,12 @@ def test_local_cluster_workers_fork_from_the_preloaded_fork_server():
     try:
         parents = ex._client.run(os.getppid)
         loaded = ex._client.run(lambda: "labelaudit.core.posterior" in sys.modules and "multiprocessing.forkserver" in sys.modules)
+        profiling = ex._client.run(lambda: __import__("dask").config.get("distributed.worker.profile.enabled"))
     finally:
         ex.close()
     assert len(parents) == 2 and os.getpid() not in parents.values()
     assert all(loaded.values())
+    assert set(profiling.values()) == {False}  # constants.DASK_LOCAL_CONFIG reached the workers
 
 
 def test_open3d_loads_on_first_use_without_its_plotting_chain_and_still_plots():
