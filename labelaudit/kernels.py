@@ -88,8 +88,10 @@ def _choose() -> dict[str, Any]:
             if table.get("fingerprint") != fingerprint(table.get("sources", [])):
                 state["reason"] = f"{_TABLE.name} was built from other sources, NumPy or CPU (run: python -m labelaudit.kernels build)"
             else:
-                state.update(mode="aot", module=importlib.import_module(f"labelaudit.{AOT_NAME}"),
-                             table=table["kernels"], reason=f"built {table.get('built', '?')}")
+                module = importlib.import_module(f"labelaudit.{AOT_NAME}")
+                if not hasattr(module, f"build_{table['token']}"):  # the table and the module of two builds
+                    raise ImportError(f"{_TABLE.name} does not describe the module beside it (rebuild: python -m labelaudit.kernels build)")
+                state.update(mode="aot", module=module, table=table["kernels"], reason=f"built {table.get('built', '?')}")
         except FileNotFoundError:
             state["reason"] = "not built (run: python -m labelaudit.kernels build)"
         except (OSError, ValueError, KeyError, ImportError) as exc:
@@ -326,6 +328,10 @@ def _caller(disp: Any, nargs: int) -> Callable[..., Any]:
     return scope["call"]
 
 
+def _build_marker() -> int:  # pragma: no cover - compiled; exported as build_<token>
+    return 0
+
+
 def build(verbose: bool = False) -> Path:
     """Compile every kernel ahead of time into ``labelaudit/_kernels_aot*.so`` (and its table).
 
@@ -343,6 +349,8 @@ def build(verbose: bool = False) -> Path:
     _workload()
     cc = CC(AOT_NAME, source_module=__name__)
     cc.target_cpu = "host"  # as numba's JIT: the same instructions, so the same results
+    token = os.urandom(8).hex()  # names this build in the module and in its table
+    cc.export(f"build_{token}", "i8()")(_build_marker)
     table: dict[str, list[list[Any]]] = {}
     n = 0
     for name, disp in sorted(_REGISTRY.items()):
@@ -369,7 +377,7 @@ def build(verbose: bool = False) -> Path:
         os.replace(staged, _PACKAGE_DIR / cc.output_file)  # atomic: a running process keeps its mapped copy
     from datetime import datetime, timezone
 
-    doc = {"fingerprint": fingerprint(sources), "sources": sources, "built": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    doc = {"fingerprint": fingerprint(sources), "token": token, "sources": sources, "built": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "numba": __import__("numba").__version__, "functions": n, "kernels": table}
     staged_table = _TABLE.with_suffix(".json.tmp")
     staged_table.write_text(json.dumps(doc, indent=1), encoding="utf-8")

@@ -122,6 +122,14 @@ def test_a_missing_or_stale_build_is_not_used(tmp_path, monkeypatch):
         monkeypatch.setenv(K.MODE_ENV, "")
         mode, why = K.kernel_mode()
         assert mode == "jit" and "built from other sources" in why
+        if AOT:  # a table of another build beside the module (e.g. a build that was interrupted between its two files)
+            other = tmp_path / "other.json"
+            doc = json.loads(Path(saved["module"].__file__).with_name(f"{K.AOT_NAME}.json").read_text())
+            other.write_text(json.dumps({**doc, "token": "0" * 16}))
+            monkeypatch.setattr(K, "_TABLE", other)
+            K._STATE.clear()
+            mode, why = K.kernel_mode()
+            assert mode == "jit" and "does not describe the module" in why
         K._STATE.clear()
         monkeypatch.setenv(K.MODE_ENV, "jit")
         assert K.kernel_mode() == ("jit", f"{K.MODE_ENV}=jit")
