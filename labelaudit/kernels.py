@@ -243,11 +243,6 @@ class Kernel:
 
 # --- the ahead-of-time build -----------------------------------------------------------------------
 
-KERNEL_MODULES = ("labelaudit.core.linalg", "labelaudit.core.pointops", "labelaudit.core.iou", "labelaudit.core.spatial",
-                  "labelaudit.core.posterior", "labelaudit.core.fit", "labelaudit.core.freespace", "labelaudit.infer.evidence",
-                  "labelaudit.infer.crop", "labelaudit.evaluate.jiou", "labelaudit.evaluate.overlap", "labelaudit.evaluate.matching")
-
-
 def _type_key(t: Any) -> Any:
     """:func:`_arg_key` of a numba type; None when the build cannot export it."""
     from numba.core import types
@@ -344,9 +339,7 @@ def build(verbose: bool = False) -> Path:
 
     from numba.pycc import CC
 
-    for m in KERNEL_MODULES:
-        importlib.import_module(m)
-    _workload()
+    _workload()  # imports every module with a kernel the commands run
     cc = CC(AOT_NAME, source_module=__name__)
     cc.target_cpu = "host"  # as numba's JIT: the same instructions, so the same results
     token = os.urandom(8).hex()  # names this build in the module and in its table
@@ -365,7 +358,9 @@ def build(verbose: bool = False) -> Path:
             cc.export(symbol, disp.overloads[sig].signature)(_caller(disp, len(sig)))
             table.setdefault(name, []).append([symbol, keys])
             n += 1
-    sources = sorted({str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in KERNEL_MODULES} | {"kernels.py"})
+    # every module that holds a kernel (an exported one, or one compiled into it), so editing any of them retires the build
+    modules = {disp.py_func.__module__ for disp in _REGISTRY.values()}
+    sources = sorted({str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in modules} | {"kernels.py"})
     with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp:
         cc.output_dir = tmp
         cc.verbose = verbose
