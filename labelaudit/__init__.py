@@ -57,6 +57,7 @@ _EXPORTS: dict[str, str] = {
     "Results": "labelaudit.results",
     "open_results": "labelaudit.results",
     "read_results": "labelaudit.results",
+    "read_missing": "labelaudit.results",
     "RankQuery": "labelaudit.rank",
     "rank_results": "labelaudit.rank",
     "summarize": "labelaudit.summary",

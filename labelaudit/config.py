@@ -99,6 +99,18 @@ class CropParams:
 
 
 @dataclass(frozen=True)
+class MissingParams:
+    """The search for objects without a label (``missing/``, docs/missing.md)."""
+
+    enabled: bool = True  # --no-missing: False
+    max_range: float = C.MISSING_MAX_RANGE  # m; candidates farther than this (BEV) from the sensor are not looked for (the dataset's labelled range)
+    min_points: int = C.MISSING_MIN_POINTS  # a cluster with fewer points above the ground is no candidate
+    detections: str | None = None  # --detections: absolute path of a detector's output (the formats `eval` reads)
+    detections_format: str = "auto"  # auto, kitti, waymo or parquet
+    detection_min_score: float = C.MISSING_DETECTION_MIN_SCORE  # detections below this confidence are not candidates
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """Everything that determines the rows of a run; its hash guards ``--resume``."""
 
@@ -109,6 +121,7 @@ class RunConfig:
     model: ModelParams = field(default_factory=ModelParams)
     spatial: SpatialParams = field(default_factory=SpatialParams)
     crop: CropParams = field(default_factory=CropParams)
+    missing: MissingParams = field(default_factory=MissingParams)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dictionary of every parameter."""
@@ -241,7 +254,7 @@ def read_toml(path: Path, what: str) -> dict[str, Any]:
 
 def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", dataset_format: str = "kitti") -> RunConfig:
     """Build a :class:`RunConfig` from a parsed TOML mapping (see :func:`load_config`)."""
-    check_keys(data, {"dataset", "model", "prior", "spatial", "crop"}, "top level", source)
+    check_keys(data, {"dataset", "model", "prior", "spatial", "crop", "missing"}, "top level", source)
     ds = dict(data.get("dataset", {}))
     check_keys(ds, {"classes", "min_length", "max_length"}, "dataset", source)
     classes = ds.get("classes", list(C.DEFAULT_CLASSES))
@@ -261,6 +274,8 @@ def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", datas
     model = ModelParams(priors=priors, **model_kw)
     spatial = SpatialParams(**_build(SpatialParams, data.get("spatial", {}), "spatial", source))
     crop = CropParams(**_build(CropParams, data.get("crop", {}), "crop", source))
+    # the detections are a run option (--detections), not a model setting
+    missing = MissingParams(**_build(MissingParams, data.get("missing", {}), "missing", source, skip={"detections", "detections_format"}))
     lengths = {k: _typed(ds[k], float, f"[dataset] {k}", source) for k in ("min_length", "max_length") if k in ds}
     cfg = RunConfig(
         dataset_format=dataset_format,
@@ -270,6 +285,7 @@ def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", datas
         model=model,
         spatial=spatial,
         crop=crop,
+        missing=missing,
     )
     validate_config(cfg, source)
     return cfg
@@ -283,10 +299,10 @@ def validate_config(cfg: RunConfig, source: str = "<config>") -> None:
         raise ConfigError(f"{source}: [dataset] min_length must be finite and ≥ 0 and max_length > min_length, got {lo} and {hi}")
     if not cfg.classes or not all(isinstance(c, str) and c for c in cfg.classes):
         raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {list(cfg.classes)!r}")
-    validate_params(cfg.model, cfg.spatial, cfg.crop, source)
+    validate_params(cfg.model, cfg.spatial, cfg.crop, source, cfg.missing)
 
 
-def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams, source: str = "<config>") -> None:
+def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams, source: str = "<config>", missing: MissingParams | None = None) -> None:
     """Check every number against its sane range (:data:`~labelaudit.constants.PARAM_RANGES`).
 
     NaN, ±inf and values like ``sigma = 1e308`` (every object would fail, or every std would be
@@ -297,6 +313,7 @@ def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams
         *((f"spatial.{f.name}", f"[spatial] {f.name}", getattr(spatial, f.name)) for f in fields(SpatialParams)),
         *((f"crop.{f.name}", f"[crop] {f.name}", getattr(crop, f.name)) for f in fields(CropParams)),
         *((f"prior.{f.name}", f"[prior.{name}] {f.name}", getattr(prior, f.name)) for name, prior in model.priors.items() for f in fields(ClassPrior)),
+        *((f"missing.{name}", f"[missing] {name}", getattr(missing, name)) for name in ("max_range", "min_points", "detection_min_score") if missing is not None),
     ]
     for key, label, value in values:
         lo, hi, lo_open, hi_open = C.PARAM_RANGES[key]
@@ -305,6 +322,8 @@ def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams
         if not ok:
             accepted = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
             raise ConfigError(f"{source}: {label} must be in {accepted}, got {value!r}")
+    if missing is not None and missing.detections_format not in ("auto", "kitti", "waymo", "parquet"):
+        raise ConfigError(f"{source}: detections format must be auto, kitti, waymo or parquet, got {missing.detections_format!r}")
     if crop.fit_margin < crop.margin:
         raise ConfigError(f"{source}: [crop] fit_margin must be ≥ margin ({crop.margin}), got {crop.fit_margin}")
 
@@ -351,9 +370,10 @@ def config_from_params(params: Mapping[str, Any], *, source: str = "<params>") -
         model = dict(top.get("model", {}))
         priors = {name: ClassPrior(**dict(p)) for name, p in dict(model.pop("priors", {})).items()} or default_priors()
         check_keys(model, {f.name for f in fields(ModelParams)}, "params.model", source)
-        spatial, crop = dict(top.get("spatial", {})), dict(top.get("crop", {}))
+        spatial, crop, missing = dict(top.get("spatial", {})), dict(top.get("crop", {})), dict(top.get("missing", {}))
         check_keys(spatial, {f.name for f in fields(SpatialParams)}, "params.spatial", source)
         check_keys(crop, {f.name for f in fields(CropParams)}, "params.crop", source)
+        check_keys(missing, {f.name for f in fields(MissingParams)}, "params.missing", source)
         max_length = top.get("max_length")
         return RunConfig(
             dataset_format=str(top.get("dataset_format", "kitti")),
@@ -363,6 +383,7 @@ def config_from_params(params: Mapping[str, Any], *, source: str = "<params>") -
             model=ModelParams(priors=priors, **model),
             spatial=SpatialParams(**spatial),
             crop=CropParams(**crop),
+            missing=MissingParams(**missing),
         )
     except ConfigError:
         raise

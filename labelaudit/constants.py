@@ -61,6 +61,11 @@ GROUND_HYPOTHESES = 24  # RANSAC plane hypotheses per box, drawn from a fixed se
 SCENERY_VOXEL = 0.2  # m; BEV cell of the connectivity test for unlabelled surfaces (walls, hedges): a gap wider than two cells separates
 NEIGHBOUR_MARGIN = 0.1  # m; points within this of another label (BEV) and outside the box itself are that label's, not evidence
 
+# --- missing labels: the search for unlabelled objects (labelaudit/infer/missing.py, docs/missing.md) ---
+MISSING_MAX_RANGE = 70.0  # m; default labelled range (KITTI labels to ~70 m; configs override per dataset)
+MISSING_MIN_POINTS = 10  # a cluster with fewer non-ground points is not a candidate
+MISSING_DETECTION_MIN_SCORE = 0.5  # detections below this confidence are not candidates (--detections)
+
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
 KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)
 KITTI_MAX_OCCLUSION = (0, 1, 2)  # Easy/Moderate/Hard: largest allowed occlusion level (3 = unknown)
@@ -103,6 +108,9 @@ PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
     "prior.width": (1e-6, 100.0, False, False),  # m
     "prior.height": (1e-6, 100.0, False, False),  # m
     "prior.yaw": (1e-6, 100.0, False, False),  # rad
+    "missing.max_range": (1.0, 1000.0, False, False),  # m; the labelled range of a dataset
+    "missing.min_points": (3, 2**31 - 1, False, False),  # a box needs 3 points
+    "missing.detection_min_score": (-1e9, 1e9, False, False),  # detector confidences are any finite number (logits too)
 }
 
 # --- classes ---

@@ -6,6 +6,7 @@ A results folder looks like this::
     labelaudit-results/
       manifest.json            run parameters, their hash, tool/schema version, input, completeness
       objects/part-<h>.parquet one shard per chunk of units (h = hash of the chunk's unit keys)
+      missing/part-<h>.parquet candidate objects without a label found in that chunk (when the search ran)
       errors/part-<h>.parquet  frame-level errors of that chunk (only when there were any)
       errors.parquet           all frame-level errors of the run, gathered at the end (may be empty)
 
@@ -37,6 +38,7 @@ if TYPE_CHECKING:
 
 MANIFEST_NAME = "manifest.json"
 OBJECTS_DIR = "objects"
+MISSING_DIR = "missing"
 ERRORS_DIR = "errors"
 ERRORS_FILE = "errors.parquet"
 METADATA_KEY = b"labelaudit"
@@ -160,6 +162,51 @@ ERRORS_SCHEMA = pa.schema(
 """Arrow schema of ``errors.parquet``: one row per failed frame (or per warning about a frame)."""
 
 
+MISSING_SOURCES = ("points", "detections", "both")
+"""Where a missing-label candidate comes from: the point-cloud search, a detector's output, or both."""
+
+# The single definition of the missing-label table (``missing/``): one row per candidate object
+# that no label explains. The first 14 columns are the contract other commands read; the rest are
+# the evidence behind ``score``. docs/results-schema.md documents the same list (a test checks it).
+MISSING_COLUMNS: tuple[Column, ...] = (
+    Column("frame_id", pa.string(), False, "", "frame id, as in the objects table", "identity"),
+    Column("candidate_index", pa.int32(), False, "", "position of the candidate among the frame's candidates (0-based, nearest to the sensor first)", "identity"),
+    Column("class_name", pa.string(), False, "", "the audited class the candidate most resembles (by size; the detector's class for detections)", "identity"),
+    Column("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre), as in the objects table", "box"),
+    Column("cy", pa.float64(), False, "m", "box centre y", "box"),
+    Column("cz", pa.float64(), False, "m", "box centre z", "box"),
+    Column("length", pa.float64(), False, "m", "box length (along the heading)", "box"),
+    Column("width", pa.float64(), False, "m", "box width", "box"),
+    Column("height", pa.float64(), False, "m", "box height", "box"),
+    Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
+    Column("num_points", pa.int32(), False, "", "LiDAR points of the candidate (above the ground)", "model"),
+    Column("distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre", "box"),
+    Column("score", pa.float64(), False, "", "how likely an object of the audited classes is here without a label, in [0, 1] (higher = more likely)", "model"),
+    Column("source", pa.string(), False, "", "points | detections | both", "model"),
+    # evidence
+    Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2 or waymo-v1", "identity"),
+    Column("points_score", pa.float64(), True, "", "score of the point-cloud evidence alone (product of the four factors below); null for a detection no cluster supports", "model"),
+    Column("size_score", pa.float64(), True, "", "how well the box size matches the class size prior, in [0, 1]", "model"),
+    Column("shape_score", pa.float64(), True, "", "how much of the points lie on one or two vertical faces (planar side / L-shape) of the box, in [0, 1]", "model"),
+    Column("density_score", pa.float64(), True, "", "points against what a car at this range returns, in [0, 1]", "model"),
+    Column("free_space_score", pa.float64(), True, "", "1 − share of the rays into the box's lower body that pass through it (a real car stops them), in [0, 1]", "model"),
+    Column("free_rays", pa.int32(), True, "", "LiDAR rays that pass through the candidate's lower body and end behind it", "model"),
+    Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the candidate", "model"),
+    Column("ground_z", pa.float64(), True, "m", "height of the ground under the candidate", "model"),
+    Column("nearest_label_m", pa.float64(), True, "m", "BEV distance from the candidate's centre to the nearest label of the frame (any class); null when the frame has none", "model"),
+    Column("max_label_iou", pa.float64(), False, "", "largest BEV IoU between the candidate and any label of the frame (DontCare regions with a 3D box included)", "model"),
+    Column("detection_score", pa.float64(), True, "", "the detector's confidence (source detections / both); null for points-only candidates", "model"),
+    Column("detection_class", pa.string(), True, "", "the detector's class (source detections / both)", "model"),
+    Column("detection_source", pa.string(), True, "", "file and line (or row) of the detection", "model"),
+)
+
+MISSING_SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=c.nullable) for c in MISSING_COLUMNS])
+"""Arrow schema of the missing-label table (one row per candidate object without a label)."""
+
+MISSING_COLUMN_NAMES: tuple[str, ...] = tuple(MISSING_SCHEMA.names)
+MISSING_KEY_COLUMNS = ("frame_id", "candidate_index")
+"""The key of a candidate row."""
+
 # --------------------------------------------------------------------------- rows → Arrow
 
 
@@ -268,6 +315,31 @@ def storable_row(row: Mapping[str, Any]) -> dict[str, Any]:
         out["status"] = "error"
         out["message"] = f"value(s) the results table cannot hold: {', '.join(bad)}{before}"
     return out
+
+
+def missing_rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None) -> pa.Table:
+    """Build the missing-label table from row dicts, sorted by (frame_id, candidate_index).
+
+    NaN in a nullable float column becomes null; keys outside :data:`MISSING_SCHEMA` are dropped.
+    """
+    clean = []
+    for row in rows:
+        out: dict[str, Any] = {}
+        for f in MISSING_SCHEMA:
+            value = row.get(f.name)
+            if value is not None and pa.types.is_floating(f.type):
+                value = float(value)
+                if value != value and f.nullable:
+                    value = None
+            elif value is not None and pa.types.is_integer(f.type):
+                value = int(value)
+            elif value is not None:
+                value = safe_text(str(value))
+            out[f.name] = value
+        clean.append(out)
+    clean.sort(key=lambda r: (r["frame_id"], r["candidate_index"]))
+    table = pa.Table.from_pylist(clean, schema=MISSING_SCHEMA)
+    return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
 
 
 def errors_to_table(errors: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None) -> pa.Table:
@@ -396,7 +468,7 @@ def remove_temp_files(root: str | Path) -> list[Path]:
     """Delete temporary files a killed run may have left in a results folder; returns what was removed."""
     root = Path(root)
     removed = []
-    for sub in (root, root / OBJECTS_DIR, root / ERRORS_DIR):
+    for sub in (root, root / OBJECTS_DIR, root / ERRORS_DIR, root / MISSING_DIR):
         if sub.is_dir():
             for p in sub.glob(f".*{TMP_MARKER}*"):
                 _remove(p)
@@ -489,6 +561,10 @@ class Results:
             return read_error_tables(parts)
         return ERRORS_SCHEMA.empty_table()
 
+    def missing(self) -> pa.Table:
+        """The missing-label candidates (:func:`read_missing`; empty when the search did not run)."""
+        return read_missing(self.root)
+
     def failed_frames(self) -> int:
         """Number of frames (or units) that failed as a whole."""
         import pyarrow.compute as pc
@@ -508,6 +584,56 @@ def read_error_tables(paths: Sequence[Path]) -> pa.Table:
         except (pa.ArrowException, OSError, ValueError) as exc:
             raise damaged(p, f"unreadable errors table ({one_line(str(exc))})") from None
     return pa.concat_tables(tables) if tables else ERRORS_SCHEMA.empty_table()
+
+
+def read_missing(results_dir: str | Path) -> pa.Table:
+    """The missing-label table of a results folder: one row per candidate object without a label.
+
+    Columns are those of :data:`MISSING_SCHEMA` (in that order; a column an older shard lacks
+    comes back as nulls), rows sorted by (``frame_id``, ``candidate_index``). A folder without
+    ``missing/`` (the search was off, ``--no-missing``, or results of an older build) or a single
+    Parquet file of objects gives an empty table with the schema.
+
+    Raises
+    ------
+    ResultsError
+        The path does not exist, or a shard of ``missing/`` is not a readable Parquet file.
+
+    Examples
+    --------
+    >>> table = read_missing("results/")  # doctest: +SKIP
+    >>> table.filter(pc.greater_equal(table["score"], 0.5))  # doctest: +SKIP
+    """
+    import pyarrow.parquet as pq
+    root = Path(results_dir)
+    try:
+        exists = root.exists()
+    except OSError as exc:
+        raise ResultsError(f"{root}: cannot open ({exc.strerror or exc})") from None
+    if not exists:
+        raise ResultsError(f"{root}: no such results folder; run `labelaudit infer DATASET -o {root}` first")
+    folder = root / MISSING_DIR
+    if root.is_file() or not folder.is_dir():
+        return MISSING_SCHEMA.empty_table()
+    tables = []
+    for part in sorted(p for p in folder.glob("*.parquet") if not p.name.startswith((".", "_"))):
+        try:
+            if not part.is_file():
+                raise damaged(part, "a shard that is not a file")
+            t = pq.read_table(part)
+        except (pa.ArrowException, OSError) as exc:
+            raise damaged(part, f"unreadable missing-label shard ({one_line(str(exc))})") from None
+        cols = []
+        for f in MISSING_SCHEMA:
+            if f.name in t.column_names:
+                cols.append(t.column(f.name).cast(f.type))
+            else:
+                cols.append(pa.nulls(t.num_rows, f.type))
+        tables.append(pa.Table.from_arrays(cols, schema=MISSING_SCHEMA))
+    if not tables:
+        return MISSING_SCHEMA.empty_table()
+    table = pa.concat_tables(tables)
+    return table.sort_by([(k, "ascending") for k in MISSING_KEY_COLUMNS])
 
 
 def open_results(path: str | Path) -> Results:
@@ -662,10 +788,10 @@ def check_layout(output: Path) -> None:
     """Refuse a results folder whose parts have the wrong kind (:class:`ResultsError` naming the path).
 
     ``manifest.json`` (checked by :func:`read_manifest`) and ``errors.parquet`` must be files,
-    ``objects/`` and ``errors/`` folders, and every shard in them a file. A truncated shard is not
+    ``objects/``, ``errors/`` and ``missing/`` folders, and every shard in them a file. A truncated shard is not
     damage: its chunk is recomputed (:func:`chunk_state`).
     """
-    for name in (OBJECTS_DIR, ERRORS_DIR):
+    for name in (OBJECTS_DIR, ERRORS_DIR, MISSING_DIR):
         sub = output / name
         if os.path.lexists(sub):
             if not sub.is_dir():
@@ -688,16 +814,20 @@ def chunk_record(table: pa.Table, errors: Sequence[Mapping[str, Any]]) -> dict[s
     }
 
 
-def chunk_state(shard: Path, error_part: Path) -> str:
+def chunk_state(shard: Path, error_part: Path, missing_part: Path | None = None) -> str:
     """Whether a chunk of an earlier run can be kept: ``"done"``, ``"missing"`` or ``"retry"``.
 
     ``missing``: no whole object shard (never written, or truncated by a kill). ``retry``: the
     shard is whole but the chunk had a failed frame or an object with status ``error`` — the
     input may have been fixed since, so ``--resume`` runs it again and its stale errors go with
     its old rows — or its errors part is missing, unreadable or of another run (the shard's
-    :func:`chunk_record` says how many rows it must have).
+    :func:`chunk_record` says how many rows it must have). ``missing_part``: the chunk's
+    missing-label shard when the run searches for unlabelled objects; not a whole Parquet file:
+    ``missing`` (the shard is written before the object shard, so this only follows damage).
     """
     import pyarrow.parquet as pq
+    if missing_part is not None and not is_whole_parquet(missing_part):
+        return "missing"
     try:
         footer = pq.read_metadata(shard)
         meta = json.loads((footer.metadata or {}).get(METADATA_KEY, b"{}"))
@@ -750,7 +880,7 @@ def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -
     """
     check_output_folder(output)
     if overwrite:
-        for name in (OBJECTS_DIR, ERRORS_DIR, ERRORS_FILE, MANIFEST_NAME):
+        for name in (OBJECTS_DIR, ERRORS_DIR, MISSING_DIR, ERRORS_FILE, MANIFEST_NAME):
             try:
                 _remove(output / name)
             except OSError as exc:

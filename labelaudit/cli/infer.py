@@ -41,6 +41,8 @@ def infer(
     ),
     limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo)."),
     resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters (re-trying those with failures), or start over (also replaces a damaged folder)."),
+    missing: bool = typer.Option(True, "--missing/--no-missing", help="Search the point clouds for objects of the audited classes that have no label (RESULTS/missing/, docs/missing.md); --no-missing skips it."),
+    detections: Optional[Path] = typer.Option(None, "--detections", metavar="PATH", help="A detector's output (KITTI result files, Waymo Objects .bin or labelaudit Parquet, as `eval` reads): confident detections no label overlaps become missing-label candidates too."),
     strict: bool = typer.Option(False, "--strict", help="Stop at the first frame or object that fails (exit 2, one line naming the file)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and summary."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
@@ -57,6 +59,10 @@ def infer(
 
       labelaudit infer /data/kitti --config paper -o paper-results/
 
+      labelaudit infer /data/kitti --detections pointgnn/data -o results/
+
+      labelaudit infer /data/kitti --no-missing -o results/
+
       labelaudit infer /data/waymo_v2/validation --dataset-format waymo-v2 --model 3d -o waymo-results/
 
       labelaudit infer /shared/waymo_v2/training --scheduler tcp://scheduler:8786 -o /shared/results/
@@ -70,6 +76,7 @@ def infer(
         request = InferRequest(
             dataset, Path(output), dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug, scheduler=scheduler,
             config=config, classes=None if classes is None else tuple(classes.split(",")), model=model.value if model else None,
+            missing=missing, detections=detections,
         )
         run_and_report(request, quiet, executor)
 

@@ -17,7 +17,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from typing import Any, Mapping, Protocol, Sequence
 
 import pyarrow as pa
 
@@ -30,6 +30,13 @@ from labelaudit.executors import Executor, make_executor
 
 # labelaudit.infer.rows (the core: numba kernels) is imported where a chunk is processed, so the
 # process that only plans, writes and reports (the main process, a Dask client) never loads it.
+
+
+def missing_of_frame(frame: Any, cfg: RunConfig, detections: Any = None) -> list[dict[str, Any]]:
+    """:func:`labelaudit.infer.missing.find_missing` (imported on first use)."""
+    from labelaudit.infer.missing import find_missing
+
+    return find_missing(frame, cfg, detections)
 
 
 def process_frame(frame: Any, cfg: RunConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -52,6 +59,7 @@ class ChunkTask:
     reader_options: tuple[tuple[str, Any], ...] = ()
     max_frames_per_unit: int | None = None
     debug: bool = False
+    detections: Mapping[str, Any] = field(default_factory=dict)  # frame id → the frame's detections (--detections)
 
 
 @dataclass
@@ -66,6 +74,7 @@ class ChunkResult:
     objects: int
     seconds: float
     sources: dict[str, str] = field(default_factory=dict)  # frame id → the file its labels came from
+    missing: pa.Table | None = None  # missing-label candidates of the chunk (None: the search is off)
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -99,8 +108,10 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
     tune_allocator()
     start = time.perf_counter()
     rows: list[dict[str, Any]] = []
+    candidates: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
     sources: dict[str, str] = {}
+    search = task.cfg.missing.enabled
     frames = 0
     for ref in task.refs:
         try:
@@ -127,6 +138,14 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
                 rows.extend(frame_rows)
                 errors.extend(notes)
                 frames += 1
+                if search:  # after the frame's rows: a failing search never costs the frame its objects
+                    try:
+                        candidates.extend(missing_of_frame(frame, task.cfg, task.detections.get(frame.frame_id)))
+                    except Exception as exc:
+                        if task.debug:
+                            raise
+                        errors.append(frame_note(frame.frame_id, ref.key, one_line(
+                            f"missing-label search failed in frame {frame.frame_id} of {source}: {type(exc).__name__}: {exc} (its objects are kept)"), file=source))
         except DatasetError as exc:  # the reader gave up on the unit (or on the rest of it)
             errors.append(frame_note(None, ref.key, one_line(str(exc)), file=exc.path, line=exc.line))
         except Exception as exc:
@@ -135,7 +154,8 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
             detail = f": {exc}" if str(exc) else ""
             errors.append(frame_note(None, ref.key, one_line(f"{type(exc).__name__} while reading {ref.key}{detail}"), file=ref.key))
     table = R.rows_to_table(rows, normalized=True)  # process_frame's rows are normalised
-    return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start, sources)
+    missing = R.missing_rows_to_table(candidates) if search else None
+    return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start, sources, missing)
 
 
 # --------------------------------------------------------------------------- layer 3: a run
@@ -164,6 +184,8 @@ class InferRequest:
     classes: tuple[str, ...] | None = None  # None: the config's; ("all",): every class
     model: str | None = None  # "bev" / "3d" override of the config's [model] kind
     scheduler: str | None = None  # Dask scheduler address (tcp://HOST:PORT) or local[:N]; None: the pool of ``workers``
+    missing: bool = True  # search for objects without a label (missing/); False: --no-missing
+    detections: Path | None = None  # a detector's output (the formats `eval` reads): its unlabelled detections are candidates too
 
 
 @dataclass
@@ -335,8 +357,9 @@ def _run_locked(
 
     chunk_units = request.chunk_units or chunk_size_for(fmt, len(refs))
     chunks = plan_chunks(refs, chunk_units)
-    shard_dir, err_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR
-    state = {name: R.chunk_state(shard_dir / name, err_dir / name) for name, _ in chunks}
+    shard_dir, err_dir, missing_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR, output / R.MISSING_DIR
+    search = cfg.missing.enabled
+    state = {name: R.chunk_state(shard_dir / name, err_dir / name, missing_dir / name if search else None) for name, _ in chunks}
     done = {name for name, s in state.items() if s == "done"}
     retried = sum(1 for s in state.values() if s == "retry")
     R.write_json_atomic({**metadata, "complete": False, "units": len(refs), "chunks": len(chunks)}, output / R.MANIFEST_NAME)
@@ -356,6 +379,8 @@ def _run_locked(
                 R.write_parquet_atomic(R.errors_to_table(result.errors, metadata), err_dir / result.name)
             else:
                 (err_dir / result.name).unlink(missing_ok=True)
+            if result.missing is not None:  # an empty shard too: it says the chunk was searched
+                R.write_parquet_atomic(R.with_metadata(result.missing, metadata), missing_dir / result.name)
             # The object shard is written last: its presence marks the chunk complete for --resume,
             # and it records what the chunk's errors part must hold (R.chunk_state).
             chunk = R.chunk_record(result.table, result.errors)
@@ -369,10 +394,10 @@ def _run_locked(
 
     # Shards of an earlier plan (e.g. another --limit) would mix into the results: remove them.
     planned = {name for name, _ in chunks}
-    for d in (shard_dir, err_dir):
+    for d, keep in ((shard_dir, planned), (err_dir, planned), (missing_dir, planned if search else set())):
         if d.is_dir():
             for p in d.glob("*.parquet"):
-                if p.name not in planned:
+                if p.name not in keep:
                     p.unlink()
     error_parts = sorted(err_dir.glob("*.parquet")) if err_dir.is_dir() else []
     errors = R.read_error_tables(error_parts)
@@ -409,6 +434,20 @@ def _raise_if_failed(result: ChunkResult) -> None:
             raise StrictError(one_line(f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"))
 
 
+def with_missing_options(cfg: RunConfig, request: InferRequest) -> RunConfig:
+    """``cfg`` with the missing-label options of ``request`` (``--no-missing``, ``--detections``)."""
+    if request.detections is not None:
+        if not request.missing:
+            raise InferError("--detections and --no-missing exclude each other: the detections are used by the missing-label search")
+        path = Path(request.detections)
+        if not path.exists():
+            raise InferError(f"{path}: --detections path does not exist")
+        return cfg.with_overrides(missing=replace(cfg.missing, detections=str(path.absolute())))
+    if not request.missing:
+        return cfg.with_overrides(missing=replace(cfg.missing, enabled=False))
+    return cfg
+
+
 def infer_dataset(request: InferRequest, progress: Progress | None = None, executor: Executor | None = None) -> RunSummary:
     """``labelaudit infer``: resolve the format and config of ``request``, run, check something was audited.
 
@@ -423,6 +462,7 @@ def infer_dataset(request: InferRequest, progress: Progress | None = None, execu
         raise InferError(f"--workers must be ≥ 1, got {request.workers}")
     fmt = resolve_format(Path(request.dataset), request.dataset_format)
     cfg = resolve_config(request.config, fmt, request.classes, request.model)
+    cfg = with_missing_options(cfg, request)
     summary = run_infer(replace(request, dataset_format=fmt), cfg, progress, executor)
     if R.open_results(summary.output).dataset.count_rows() == 0:
         raise ResultsError(
