@@ -2,7 +2,7 @@
 It owns the run parameters, their validation and their hash; it computes nothing and reads no dataset.
 
 Every tunable has a default in :mod:`labelaudit.constants`; a TOML file overrides them per dataset
-(``configs/kitti.toml``, ``configs/waymo.toml``). Unknown keys are an error, so a typo never
+(``configs/kitti.toml``, ``configs/waymo.toml``, ``configs/av2.toml``). Unknown keys are an error, so a typo never
 silently falls back to a default.
 """
 
@@ -217,6 +217,15 @@ def _build(cls: type, section: Mapping[str, Any], where: str, source: str, skip:
     return kw
 
 
+BUILTIN_CONFIGS: dict[str, str] = {"kitti": "kitti.toml", "waymo-v2": "waymo.toml", "waymo-v1": "waymo.toml", "av2": "av2.toml"}
+"""The built-in config file (in :data:`CONFIG_DIR`) of each dataset format."""
+
+
+def builtin_config_name(dataset_format: str) -> str:
+    """File name of the built-in config of a dataset format (KITTI's for an unknown format)."""
+    return BUILTIN_CONFIGS.get(dataset_format, "kitti.toml")
+
+
 def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -> RunConfig:
     """Load a run configuration.
 
@@ -224,7 +233,8 @@ def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -
     ----------
     path : TOML file, a preset name (``"paper"``, :data:`PRESETS`), or None for the built-in
         config of ``dataset_format``.
-    dataset_format : "kitti", "waymo-v2" or "waymo-v1"; chooses the built-in config.
+    dataset_format : "kitti", "waymo-v2", "waymo-v1" or "av2"; chooses the built-in config
+        (:func:`builtin_config_name`).
 
     Raises
     ------
@@ -232,8 +242,7 @@ def load_config(path: str | Path | None = None, dataset_format: str = "kitti") -
         Unreadable file, TOML syntax error (with line), unknown key or wrong type.
     """
     if path is None:
-        name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
-        path = CONFIG_DIR / name
+        path = CONFIG_DIR / builtin_config_name(dataset_format)
     path = preset_path(path)
     return config_from_dict(read_toml(path, "config file"), source=str(path), dataset_format=dataset_format)
 
@@ -337,7 +346,7 @@ def resolve_config(config_path: Path | None, dataset_format: str, classes: Seque
         Unreadable file, unknown key, bad value.
     """
     if config_path is None:
-        name = "waymo.toml" if dataset_format.startswith("waymo") else "kitti.toml"
+        name = builtin_config_name(dataset_format)
         cfg = load_config(None, dataset_format) if (CONFIG_DIR / name).is_file() else RunConfig(dataset_format=dataset_format)
     else:
         cfg = load_config(config_path, dataset_format)

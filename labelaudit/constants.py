@@ -24,7 +24,10 @@ FIT_INSIDE_SIGMA_RATIO = 3.0  # box fit: points deep inside the box count with �
 FIT_INSIDE_FREE_DEPTH = 0.05  # m; points less deep than this inside the box count fully (LiDAR noise, ~2σ)
 FIT_OUTLIER_PROB = 0.0  # box fit: prior probability that a point outside the box is an outlier (uniform mixture; 0 = off)
 FIT_MIN_SIZE_FRACTION = 1e-3  # fitted sizes are kept ≥ this fraction of the label's (no collapse)
-FREE_SPACE_CLASSES = ("Car", "Van", "Truck", "Vehicle")  # classes with a solid lower body: their fit uses free-space rays (legs, bikes and Misc are open)
+FREE_SPACE_CLASSES = (
+    "Car", "Van", "Truck", "Vehicle",
+    "REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "ARTICULATED_BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB",
+)  # classes with a solid lower body (KITTI, Waymo, Argoverse 2 names): their fit uses free-space rays (legs, bikes, trailers and Misc are open)
 FREE_SPACE_SLAB = (0.25, 0.4)  # solid lower body of a vehicle: from this height (m) above the local ground to this fraction of the box height
 FREE_SPACE_TOLERANCE = 0.1  # m; τ: a ray counts as free space only where it passes deeper than this inside the box rectangle (rounded corners of real vehicles)
 FREE_SPACE_INSIDE_TOLERANCE = 0.3  # m; τ of rays that end inside the box (on the object): real surfaces lie up to this far inside a right label (bumpers, loose boxes)
@@ -88,6 +91,11 @@ MIN_BOX_SIZE = 0.01  # m; a labeled length, width or height below this (0, negat
 MAX_BOX_SIZE = 200.0  # m; a labeled length, width or height beyond this is corrupt input (the label becomes an error row)
 MAX_BOX_CENTRE = 1.0e4  # m; a box centre coordinate farther than this from the sensor is corrupt input
 MAX_BOX_ANGLE = 1.0e3  # rad; |yaw| beyond this is corrupt input, not an angle (wrapping it loses its digits)
+
+# --- Argoverse 2 (labelaudit/datasets/av2.py, docs/datasets.md) ---
+AV2_LIDAR_MOUNTS = {"up_lidar": (1.35018, 0.0, 1.64042), "down_lidar": (1.34676, 0.00457, 1.52550)}  # m; ego-frame lidar positions of the AV2 rig, used when a log has no calibration/ (the sensor origin is their midpoint)
+AV2_QUATERNION_TOLERANCE = 1e-3  # a cuboid or pose quaternion whose norm differs from 1 by more than this is corrupt input, not a rounding
+AV2_MAX_TILT = 0.01  # rad; a cuboid whose up axis leans more than this (roll/pitch) is audited upright with its heading, with a warning
 
 # --- accepted config values (labelaudit/config.py validate_params): key -> (low, high, low open?, high open?) ---
 PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
@@ -161,7 +169,7 @@ SIM_DET_VAN_AS_CAR = 0.3  # synthetic detector: probability that a Van is report
 
 # --- product loop: infer / results (labelaudit.infer) ---
 DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`
-CHUNK_UNITS = {"kitti": 16, "waymo-v2": 1, "waymo-v1": 1}  # most units per shard: 16 KITTI frames, 1 Waymo segment (~200 frames)
+CHUNK_UNITS = {"kitti": 16, "waymo-v2": 1, "waymo-v1": 1, "av2": 1}  # most units per shard: 16 KITTI frames, 1 Waymo segment (~200 frames), 1 Argoverse 2 log (~150 frames)
 TARGET_CHUNKS = 32  # small runs are cut into about this many chunks (≥ 1 unit each) so workers stay balanced
 MALLOC_MMAP_THRESHOLD = 32 * 2**20  # bytes (glibc's documented maximum on 64-bit); blocks below this come from the reused heap, not a fresh mmap each (per-box arrays of a few MB paid page faults on every box)
 MALLOC_TRIM_THRESHOLD = 64 * 2**20  # bytes; glibc: free heap kept for the next box up to this much, instead of returned to the system after each

@@ -66,10 +66,10 @@ class Column(NamedTuple):
 # The single definition of the results table. docs/results-schema.md documents the same list;
 # tests/test_results.py checks they agree.
 COLUMNS: tuple[Column, ...] = (
-    Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2 or waymo-v1", "identity"),
-    Column("frame_id", pa.string(), False, "", "frame id (KITTI '000123', Waymo '<segment>:<timestamp>')", "identity"),
+    Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2, waymo-v1 or av2", "identity"),
+    Column("frame_id", pa.string(), False, "", "frame id (KITTI '000123', Waymo '<segment>:<timestamp>', Argoverse 2 '<log_id>:<timestamp_ns>')", "identity"),
     Column("object_index", pa.int32(), False, "", "position of the box among the frame's labels (0-based, DontCare excluded)", "identity"),
-    Column("object_id", pa.string(), False, "", "Waymo laser_object_id, else '<frame_id>:<object_index>'", "identity"),
+    Column("object_id", pa.string(), False, "", "Waymo laser_object_id, Argoverse 2 track_uuid, else '<frame_id>:<object_index>'", "identity"),
     Column("class_name", pa.string(), False, "", "class as written by the dataset", "identity"),
     Column("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre)", "box"),
     Column("cy", pa.float64(), False, "m", "box centre y", "box"),
@@ -122,7 +122,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("difficulty", pa.string(), True, "", "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown", "extra"),
     Column("label_line", pa.int32(), True, "", "1-based line of the box in its KITTI label file", "extra"),
     # Waymo extras (null for KITTI)
-    Column("num_lidar_points_in_box", pa.int32(), True, "", "Waymo's own point count of the box (all lidars), to compare with num_points", "extra"),
+    Column("num_lidar_points_in_box", pa.int32(), True, "", "the dataset's own point count of the box (Waymo num_lidar_points_in_box, Argoverse 2 num_interior_pts; all lidars), to compare with num_points", "extra"),
     Column("detection_difficulty", pa.int32(), True, "", "Waymo detection difficulty level (0 unknown, 1 LEVEL_1, 2 LEVEL_2)", "extra"),
     Column("tracking_difficulty", pa.int32(), True, "", "Waymo tracking difficulty level", "extra"),
     Column("speed_x", pa.float64(), True, "m/s", "Waymo object speed along x (vehicle frame)", "extra"),
@@ -151,7 +151,7 @@ EXTRA_COLUMNS = KITTI_EXTRA_COLUMNS + WAYMO_EXTRA_COLUMNS
 
 ERRORS_SCHEMA = pa.schema(
     [
-        pa.field("unit", pa.string(), nullable=False),  # unit key (KITTI frame id, Waymo segment file)
+        pa.field("unit", pa.string(), nullable=False),  # unit key (KITTI frame id, Waymo segment file, Argoverse 2 log folder)
         pa.field("frame_id", pa.string()),  # null when the unit failed before a frame was read
         pa.field("file", pa.string()),  # offending file, when known
         pa.field("line", pa.int64()),  # 1-based line in a text file, when known

@@ -1,4 +1,4 @@
-"""Built-in configs (configs/kitti.toml, configs/waymo.toml) and the loader's error messages."""
+"""Built-in configs (configs/kitti.toml, configs/waymo.toml, configs/av2.toml) and the loader's error messages."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from labelaudit.config import CONFIG_DIR, ConfigError, RunConfig, load_config
 
 KITTI = CONFIG_DIR / "kitti.toml"
 WAYMO = CONFIG_DIR / "waymo.toml"
+AV2 = CONFIG_DIR / "av2.toml"
 
 
 def test_kitti_config():
@@ -36,7 +37,23 @@ def test_waymo_config(fmt):
     assert "Vehicle" in cfg.model.priors
 
 
-@pytest.mark.parametrize("path", [KITTI, WAYMO])
+def test_av2_config():
+    cfg = load_config(None, "av2")
+    assert cfg.dataset_format == "av2"
+    assert cfg.classes == ("REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB")
+    assert cfg.model.sigma == 0.3
+    assert (cfg.min_length, cfg.max_length) == (0.0, float("inf"))
+    car = cfg.model.prior_for("REGULAR_VEHICLE")
+    assert (car.center, car.length, car.width, car.height, car.yaw) == (0.25, 0.44, 0.10, 0.10, 0.1745)
+    for name in cfg.classes:
+        assert name in cfg.model.priors
+        assert cfg.model.prior_for(name).length >= car.length  # no audited class is surer than a car
+    from labelaudit import constants as C
+
+    assert set(cfg.classes) <= set(C.FREE_SPACE_CLASSES)  # every audited AV2 class has a solid lower body
+
+
+@pytest.mark.parametrize("path", [KITTI, WAYMO, AV2])
 def test_every_setting_is_documented(path):
     lines = path.read_text().splitlines()
     for i, line in enumerate(lines):

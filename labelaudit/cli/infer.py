@@ -18,6 +18,7 @@ class DatasetFormat(str, Enum):
     kitti = "kitti"
     waymo_v2 = "waymo-v2"
     waymo_v1 = "waymo-v1"
+    av2 = "av2"
 
 
 class ModelChoice(str, Enum):
@@ -27,19 +28,19 @@ class ModelChoice(str, Enum):
 
 @app.command()
 def infer(
-    dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder) or a Waymo v1 .tfrecord."),
+    dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder, Argoverse 2 root, split or log folder) or a Waymo v1 .tfrecord."),
     output: str = typer.Option(C.DEFAULT_RESULTS_DIR, "-o", "--output", help="Results folder (Parquet shards + manifest); '-o .' for the current folder."),
     dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML, or 'paper' for the authors' published KITTI setting (default: the built-in one of the format)."),
     classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
     model: Optional[ModelChoice] = typer.Option(None, "--model", help="bev (default) or 3d."),
-    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …)."),
+    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …); Waymo v2 and Argoverse 2: the split folder under DATASET."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores); with --scheduler local, the cluster's size."),
     scheduler: Optional[str] = typer.Option(
         None, "--scheduler", metavar="ADDR",
         help="Run on a Dask cluster: tcp://HOST:PORT of a running scheduler, or local[:N] for a local cluster of N processes (docs/scale.md).",
     ),
-    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo)."),
+    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."),
     resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters (re-trying those with failures), or start over (also replaces a damaged folder)."),
     missing: bool = typer.Option(True, "--missing/--no-missing", help="Search the point clouds for objects of the audited classes that have no label (RESULTS/missing/, docs/missing.md); --no-missing skips it."),
     detections: Optional[Path] = typer.Option(None, "--detections", metavar="PATH", help="A detector's output (KITTI result files, Waymo Objects .bin or labelaudit Parquet, as `eval` reads): confident detections no label overlaps become missing-label candidates too."),
@@ -64,6 +65,8 @@ def infer(
       labelaudit infer /data/kitti --no-missing -o results/
 
       labelaudit infer /data/waymo_v2/validation --dataset-format waymo-v2 --model 3d -o waymo-results/
+
+      labelaudit infer /data/av2/sensor --split val -o av2-results/
 
       labelaudit infer /shared/waymo_v2/training --scheduler tcp://scheduler:8786 -o /shared/results/
     """

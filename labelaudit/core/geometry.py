@@ -362,6 +362,53 @@ def invert_transform(T_dst_src: ArrayLike) -> FloatArray:
     return out
 
 
+def quaternion_to_matrix(q: ArrayLike) -> FloatArray:
+    """Rotation matrices of quaternions given as (w, x, y, z) (Hamilton convention, as Argoverse 2 writes them).
+
+    Parameters
+    ----------
+    q : (..., 4) quaternions; they are normalised here, so only their direction matters
+
+    Returns
+    -------
+    (..., 3, 3) rotations; NaN where a quaternion has zero or non-finite norm
+    """
+    q = np.asarray(q, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - w * z)
+    R[..., 0, 2] = 2 * (x * z + w * y)
+    R[..., 1, 0] = 2 * (x * y + w * z)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - w * x)
+    R[..., 2, 0] = 2 * (x * z - w * y)
+    R[..., 2, 1] = 2 * (y * z + w * x)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def quaternion_yaw(q: ArrayLike) -> FloatArray:
+    """Heading about +z of quaternions (w, x, y, z): the direction of the rotated x axis in the xy plane.
+
+    For a rotation about z alone (a cuboid label) this is the rotation angle; with roll or pitch
+    it is still the direction the box's length axis points to, seen from above. (..., 4) → (...,)
+    in [-π, π]; the norm of ``q`` does not matter.
+    """
+    q = np.asarray(q, dtype=float)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.arctan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
+
+
+def yaw_quaternion(yaw: ArrayLike) -> FloatArray:
+    """(..., 4) unit quaternions (w, x, y, z) of rotations by ``yaw`` about +z (the inverse of :func:`quaternion_yaw`)."""
+    half = 0.5 * np.asarray(yaw, dtype=float)
+    zero = np.zeros_like(half)
+    return np.stack([np.cos(half), zero, zero, np.sin(half)], axis=-1)
+
+
 def make_transform(R: ArrayLike, t: ArrayLike) -> FloatArray:
     """4×4 homogeneous transform from a 3×3 rotation and a translation."""
     T = np.eye(4)

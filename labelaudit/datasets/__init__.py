@@ -1,4 +1,4 @@
-"""Dataset readers (KITTI, Waymo v2 Parquet, Waymo v1 TFRecord) behind one entry point.
+"""Dataset readers (KITTI, Waymo v2 Parquet, Waymo v1 TFRecord, Argoverse 2 Feather) behind one entry point.
 Readers turn files into :class:`Frame` s (LiDAR frame, one box type) and raise :class:`~labelaudit.errors.DatasetError` naming file and line; they never audit or write."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 from labelaudit.datasets.base import DatasetReader, Frame, FrameFailure, FrameRef
 from labelaudit.errors import DatasetError
 
-FORMATS = ("kitti", "waymo-v2", "waymo-v1")
+FORMATS = ("kitti", "waymo-v2", "waymo-v1", "av2")
 
 __all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "detect_format", "open_dataset"]
 
@@ -33,12 +33,17 @@ def detect_format(root: str | Path) -> str:
             return "kitti"
     if (root / "lidar_box").is_dir() or any(root.glob("*/lidar_box")):
         return "waymo-v2"
+    from labelaudit.datasets.av2 import find_logs
+
+    if find_logs(root):
+        return "av2"
     if next(root.rglob("*.tfrecord*"), None) is not None:
         return "waymo-v1"
     raise DatasetError(
         root,
         "cannot tell the format: expected KITTI (velodyne/ or training/velodyne/), "
-        "Waymo v2 (lidar_box/ …) or Waymo v1 (*.tfrecord); pass --format",
+        "Waymo v2 (lidar_box/ …), Argoverse 2 (<log_id>/annotations.feather or <log_id>/sensors/lidar/) "
+        "or Waymo v1 (*.tfrecord); pass --dataset-format",
     )
 
 
@@ -48,8 +53,8 @@ def open_dataset(root: str | Path, fmt: str = "auto", **options: object) -> Data
     Parameters
     ----------
     root : dataset folder (or a .tfrecord file for Waymo v1)
-    fmt : "auto", "kitti", "waymo-v2" or "waymo-v1"
-    options : reader options (KITTI: ``split``, ``classes``)
+    fmt : "auto", "kitti", "waymo-v2", "waymo-v1" or "av2"
+    options : reader options (KITTI: ``split``, ``classes``; Waymo v2 and Argoverse 2: ``split``, ``classes``)
     """
     if fmt == "auto":
         fmt = detect_format(root)
@@ -65,4 +70,8 @@ def open_dataset(root: str | Path, fmt: str = "auto", **options: object) -> Data
         from labelaudit.datasets.waymo_v1 import WaymoV1Reader
 
         return WaymoV1Reader(root, **options)  # type: ignore[arg-type]
+    if fmt == "av2":
+        from labelaudit.datasets.av2 import Av2Reader
+
+        return Av2Reader(root, **options)  # type: ignore[arg-type]
     raise ValueError(f"unknown format {fmt!r}; expected auto or one of {', '.join(FORMATS)}")

@@ -25,11 +25,12 @@ class Frame:
 
     Attributes
     ----------
-    frame_id : unique within the dataset (KITTI "000123", Waymo "<segment>:<timestamp>")
+    frame_id : unique within the dataset (KITTI "000123", Waymo "<segment>:<timestamp>", Argoverse 2
+        "<log_id>:<timestamp_ns>")
     points : (N, 4) float32 — x, y, z, intensity
     boxes : (K, 7) float64 — cx, cy, cz, length, width, height, yaw (geometric centre, yaw about +z)
     class_names : K class names as written by the dataset ("Car", "Vehicle" …)
-    object_ids : K ids (Waymo laser_object_id; else "<frame_id>:<index>")
+    object_ids : K ids (Waymo laser_object_id, Argoverse 2 track_uuid; else "<frame_id>:<index>")
     sensor_origin : (3,) position of the LiDAR in this frame (for distances and corner order)
     extras : per-object optional columns, each an array of length K (KITTI truncated, occluded,
         difficulty …)
@@ -40,7 +41,10 @@ class Frame:
         file, the line or row and the field); those objects become rows with status ``error``
     ray_mask : (N,) bool — the points that end a ray from ``sensor_origin`` whose path up to the
         point is empty (free-space evidence); None = every point (KITTI: one lidar, one return).
-        Waymo: the TOP lidar's first returns only
+        Waymo: the TOP lidar's first returns only; Argoverse 2: every point (both lidars)
+    pose : (4, 4) float64 vehicle → world transform at the frame's timestamp (Waymo frame pose,
+        Argoverse 2 ``city_SE3_egovehicle``), for putting the boxes of a sequence in one frame;
+        None when the dataset has none (KITTI object) or the frame's pose is missing
     """
 
     frame_id: str
@@ -54,6 +58,7 @@ class Frame:
     source: str = ""
     object_errors: dict[int, str] = field(default_factory=dict)
     ray_mask: NDArray[np.bool_] | None = None
+    pose: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         k = len(self.boxes)
@@ -64,6 +69,8 @@ class Frame:
         for name, values in self.extras.items():
             if len(values) != k:
                 raise ValueError(f"frame {self.frame_id}: extra column {name!r} has {len(values)} values for {k} boxes")
+        if self.pose is not None and np.shape(self.pose) != (4, 4):
+            raise ValueError(f"frame {self.frame_id}: pose must be a 4×4 transform, got shape {np.shape(self.pose)}")
 
     @property
     def num_objects(self) -> int:

@@ -301,6 +301,7 @@ def make_frame(
     box_fields: tuple[str, ...] = ("center_x", "center_y", "center_z", "length", "width", "height", "heading"),
     object_errors: dict[int, str] | None = None,
     ray_mask: NDArray[np.bool_] | None = None,
+    pose: NDArray[np.floating] | None = None,
 ) -> Frame:
     """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None).
 
@@ -330,6 +331,7 @@ def make_frame(
         source=str(source),
         object_errors=problems,
         ray_mask=ray_mask,
+        pose=None if pose is None else np.asarray(pose, dtype=np.float64),
     )
 
 

@@ -238,7 +238,7 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
     extras = check_extras(extras, _EXTRA_FIELDS, locations, warnings)
     return make_frame(
         frame_id, points, boxes, types, ids, extras, sensor_origin(calibrations), warnings, classes,
-        source=str(source), locations=locations, box_fields=_BOX_FIELDS, ray_mask=ray_mask,
+        source=str(source), locations=locations, box_fields=_BOX_FIELDS, ray_mask=ray_mask, pose=frame_pose,
     )
 
 
