@@ -76,11 +76,15 @@ KITTI_MAX_TRUNCATION = (0.15, 0.30, 0.50)  # Easy/Moderate/Hard: largest allowed
 
 # --- detector evaluation (labelaudit/evaluate, docs/eval.md) ---
 EVAL_RECALL_POINTS = 41  # devkit N_SAMPLE_PTS: recall samples 0, 1/40, …, 1 (R40 averages the last 40, R11 every 4th)
-EVAL_MIN_OVERLAP = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5, "Vehicle": 0.7}  # the usual threshold per class: devkit MIN_OVERLAP (KITTI), Waymo's 3D-detection thresholds
+EVAL_MIN_OVERLAP = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5, "Vehicle": 0.7, "REGULAR_VEHICLE": 0.7}  # the usual threshold per class: devkit MIN_OVERLAP (KITTI), Waymo's 3D-detection thresholds (their vehicle value for AV2's cars)
 EVAL_DEFAULT_MIN_OVERLAP = 0.5  # usual threshold of a class not listed above
 EVAL_MAP_THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9)  # mAP over localisation thresholds 0.5:0.05:0.9 (the paper's Table II)
 EVAL_NEIGHBOUR_CLASSES = {"Car": ("Van",), "Pedestrian": ("Person_sitting",)}  # devkit: GT of these classes is ignored (neither TP nor FN) when evaluating the key
-EVAL_CLASSES = {"kitti": ("Car", "Pedestrian", "Cyclist"), "waymo": ("Vehicle", "Pedestrian", "Cyclist")}  # evaluated by default (those detected at least once, like the devkit)
+EVAL_CLASSES = {
+    "kitti": ("Car", "Pedestrian", "Cyclist"),
+    "waymo": ("Vehicle", "Pedestrian", "Cyclist"),
+    "av2": ("REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "BOX_TRUCK", "TRUCK", "PEDESTRIAN", "BICYCLIST", "MOTORCYCLIST"),
+}  # evaluated by default (those detected at least once, like the devkit)
 EVAL_DISTANCE_BINS = (20.0, 40.0)  # m; mean overlaps per GT distance bin 0–20, 20–40, ≥ 40 m (the paper's Figs. 10–11)
 EVAL_ASSOCIATION_MIN_IOU = 0.1  # a detection "localises" a GT (per-detection table, mean overlaps) when the devkit matching pairs them at IoU above this
 EVAL_WAYMO_LEVEL2_MAX_POINTS = 5  # Waymo: GT boxes with at most this many LiDAR points are LEVEL_2 whatever their label says

@@ -28,6 +28,7 @@ class DatasetFormat(str, Enum):
     kitti = "kitti"
     waymo_v2 = "waymo-v2"
     waymo_v1 = "waymo-v1"
+    av2 = "av2"
 
 
 class View(str, Enum):
@@ -40,6 +41,7 @@ class DetFormat(str, Enum):
     kitti = "kitti"
     waymo = "waymo"
     parquet = "parquet"
+    av2 = "av2"
 
 
 class EvalOutput(str, Enum):
@@ -159,19 +161,19 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
 
 @app.command("eval")
 def eval_command(
-    dataset: Path = typer.Argument(..., help="Labelled dataset as `infer` reads it (KITTI root, Waymo v2 folder, Waymo v1 .tfrecord)."),
-    detections: Path = typer.Argument(..., help="Detections: KITTI result folder (<frame>.txt), Waymo Objects .bin, or labelaudit Parquet."),
+    dataset: Path = typer.Argument(..., help="Labelled dataset as `infer` reads it (KITTI root, Waymo v2 folder, Waymo v1 .tfrecord, Argoverse 2 folder)."),
+    detections: Path = typer.Argument(..., help="Detections: KITTI result folder (<frame>.txt), Waymo Objects .bin, Argoverse 2 .feather, or labelaudit Parquet."),
     results: Optional[Path] = typer.Option(None, "--results", help="`infer` results folder with the labels' covariances (default: infer them now)."),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="EVAL_DIR: summary.json, detections.parquet, PNG plots."),
-    classes: Optional[list[str]] = typer.Option(None, "--classes", help="Classes to evaluate (comma-separate or repeat; default: Car, Pedestrian, Cyclist — Waymo Vehicle, … — those detected at least once)."),
+    classes: Optional[list[str]] = typer.Option(None, "--classes", help="Classes to evaluate (comma-separate or repeat; default: Car, Pedestrian, Cyclist — Waymo Vehicle, …; AV2 REGULAR_VEHICLE, … — those detected at least once)."),
     view: View = typer.Option(View.bev, "--metric", help="Overlap in bird's-eye view (bev) or 3D; the label covariances must come from the same model."),
     out_format: EvalOutput = typer.Option(EvalOutput.table, "--format", help="table (Rich) or json (the summary document, one flat record per AP cell)."),
     interp: Interp = typer.Option(Interp.r40, "--interp", help="AP interpolation shown in the table (JSON always has both)."),
     dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
     detections_format: DetFormat = typer.Option(DetFormat.auto, "--detections-format", help="Detections format; auto detects it."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML (as for infer; default: the built-in one of the format)."),
-    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (val, …) / Waymo split folder."),
-    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo)."),
+    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (val, …) / Waymo or Argoverse 2 split folder."),
+    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for JIoU and label inference (default: all cores)."),
     lenient: bool = typer.Option(False, "--lenient", help="Leave out (and report) frames with an unreadable label or detection, instead of stopping."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress messages."),
@@ -188,6 +190,8 @@ def eval_command(
       labelaudit eval sim/ sim/detections --results sim-results/ --format json | jq '.map[] | select(.metric=="jiou")'
 
       labelaudit eval /data/waymo_v2/validation preds.bin --metric 3d --classes Vehicle -o eval-waymo/
+
+      labelaudit eval /data/av2/sensor detections.feather --split val -o eval-av2/
     """
     from labelaudit.evaluate.output import write_eval_dir
     from labelaudit.evaluate.run import EvalRequest, nothing_evaluated, run_eval

@@ -1,4 +1,4 @@
-"""Detector outputs for ``labelaudit eval``: three input formats, one in-memory form, the Parquet schema.
+"""Detector outputs for ``labelaudit eval``: four input formats, one in-memory form, the Parquet schema.
 
 Formats (docs/eval.md has the full table):
 
@@ -11,6 +11,10 @@ Formats (docs/eval.md has the full table):
   more ``.bin`` files of serialized ``Objects``; each ``Object`` names its frame by context name and
   timestamp; boxes in the vehicle frame. Decoded with labelaudit's own message classes
   (:mod:`labelaudit.datasets.waymo_proto`), no TensorFlow.
+* **Argoverse 2** — a ``.feather`` file (or a folder of them) in the layout AV2's detection
+  evaluation reads: the cuboid columns of ``annotations.feather`` (``tx_m … height_m``, ``qw …
+  qz``, ``category``, ``timestamp_ns``) plus ``log_id`` and ``score``; boxes in the egovehicle frame,
+  the yaw from the quaternion as for the labels.
 * **labelaudit Parquet** (:data:`DETECTIONS_SCHEMA`) — one row per detection, boxes in the dataset's
   LiDAR/vehicle frame; optionally a covariance on φ (``cov``, as in the results) or per-parameter
   standard deviations (``std_cx`` …) for probabilistic detectors.
@@ -43,11 +47,12 @@ __all__ = [
     "Detections",
     "detect_detections_format",
     "read_detections",
+    "write_av2_detections",
     "write_parquet_detections",
     "write_waymo_objects",
 ]
 
-DETECTION_FORMATS = ("kitti", "waymo", "parquet")
+DETECTION_FORMATS = ("kitti", "waymo", "parquet", "av2")
 
 BOX_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw")
 STD_COLUMNS = tuple(f"std_{c}" for c in BOX_COLUMNS)
@@ -95,7 +100,7 @@ class Detections:
     cov_on : "phi" (on φ) or "box" (on the box parameters; BEV (5, 5) over cx, cy, l, w, yaw, 3D 7×7)
     has_cov : (N,) bool
     source : N strings "file:line" (or "file:row n", "file:object n") for messages
-    format : "kitti", "waymo" or "parquet"
+    format : "kitti", "waymo", "parquet" or "av2"
     frames_without_file : frames of the dataset with no detections file (KITTI) / no rows (others)
     unknown_frames : frame id → number of detections for frames that are not in the dataset
     errors : per-frame problems recorded in lenient mode (rows of the errors table)
@@ -153,14 +158,19 @@ def detect_detections_format(path: str | Path) -> str:
     if not p.exists():
         raise DetectionsError(p, "detections path does not exist")
     if p.is_file():
-        return "parquet" if p.suffix == ".parquet" else "waymo"
+        return {".parquet": "parquet", ".feather": "av2"}.get(p.suffix, "waymo")
     if any(p.glob("*.txt")) or (p / "data").is_dir():
         return "kitti"
     if any(p.glob("*.parquet")):
         return "parquet"
     if any(p.glob("*.bin")):
         return "waymo"
-    raise DetectionsError(p, "cannot tell the detections format: expected KITTI result files (<frame>.txt, or data/<frame>.txt), Parquet (*.parquet) or Waymo Objects (*.bin); pass --detections-format")
+    if any(p.glob("*.feather")):
+        return "av2"
+    raise DetectionsError(
+        p, "cannot tell the detections format: expected KITTI result files (<frame>.txt, or data/<frame>.txt), Parquet (*.parquet), "
+        "Waymo Objects (*.bin) or Argoverse 2 (*.feather); pass --detections-format",
+    )
 
 
 # --------------------------------------------------------------------------- KITTI
@@ -333,6 +343,128 @@ def _write_bytes_atomic(path: Path, data: bytes) -> Path:
     return path
 
 
+# --------------------------------------------------------------------------- Argoverse 2
+
+AV2_LOG = "log_id"
+AV2_SCORE = "score"
+
+
+def _av2_columns() -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(required columns, numeric columns) of AV2 detections."""
+    from labelaudit.datasets import av2
+
+    numeric = (*av2.CENTRE, *av2.SIZE, *av2.QUATERNION, AV2_SCORE)
+    return (AV2_LOG, av2.TIMESTAMP, av2.CATEGORY, *numeric), numeric
+
+
+def _read_av2(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
+    from labelaudit import constants as C
+    from labelaudit.core.geometry import quaternion_yaw
+    from labelaudit.datasets import av2
+
+    files = [path] if path.is_file() else sorted(p for p in path.glob("*.feather") if p.is_file() and not p.name.startswith("."))
+    if not files:
+        raise DetectionsError(path, "no .feather files found")
+    required, numeric = _av2_columns()
+    index = gt.index()
+    out: dict[str, _Rows] = {}
+    unknown: dict[str, int] = {}
+    errors: list[dict[str, Any]] = []
+    bad_frames: set[str] = set()
+    for f in files:
+        try:
+            t = av2.read_feather(f, required, numeric=numeric)
+        except DatasetError as exc:
+            raise _as_detections_error(exc) from None
+        logs, cats, stamps = (t.column(c).to_pylist() for c in (AV2_LOG, av2.CATEGORY, av2.TIMESTAMP))
+        v = np.stack([t.column(c).to_numpy(zero_copy_only=False).astype(float) for c in numeric], axis=1).reshape(-1, len(numeric))
+        q = v[:, 6:10]
+        with np.errstate(invalid="ignore", over="ignore"):
+            bad = ~np.isfinite(v).all(axis=1) | (v[:, 3:6] <= 0).any(axis=1) | ~(np.abs(np.linalg.norm(q, axis=1) - 1.0) <= C.AV2_QUATERNION_TOLERANCE)
+        yaw = quaternion_yaw(q)
+        for r in range(t.num_rows):
+            where = f"row {r}"
+            fid = f"{logs[r]}:{stamps[r]}" if logs[r] is not None and isinstance(stamps[r], int) else None
+            try:
+                if fid is None:
+                    raise DetectionsError(f, f"{where}: field {AV2_LOG!r} or {av2.TIMESTAMP!r}: missing (expected a log id and integer nanoseconds)")
+                if fid not in index:
+                    unknown[fid] = unknown.get(fid, 0) + 1
+                    continue
+                if fid in bad_frames:
+                    continue
+                if bad[r]:
+                    raise DetectionsError(f, f"{where}: {_av2_problem(v[r], numeric)}")
+                if not cats[r]:
+                    raise DetectionsError(f, f"{where}: field {av2.CATEGORY!r}: missing")
+            except DetectionsError as exc:
+                if strict:
+                    raise
+                errors.append(_error(fid if fid in index else None, exc))
+                if fid in index:
+                    bad_frames.add(fid)
+                    out.pop(fid, None)
+                continue
+            rows = out.setdefault(fid, _Rows())
+            rows.boxes.append(np.array([*v[r, :6], yaw[r]]))
+            rows.names.append(str(cats[r]))
+            rows.scores.append(float(v[r, 10]))
+            rows.height.append(math.nan)
+            rows.cov.append(None)
+            rows.source.append(f"{f}:{where}")
+    missing = [fid for fid in index if fid not in out and fid not in bad_frames]
+    return out, missing, unknown, errors
+
+
+def _av2_problem(values: FloatArray, names: Sequence[str]) -> str:
+    """What is wrong with one AV2 detection row (values in the order of ``names``)."""
+    for n, x in zip(names, values):
+        if not math.isfinite(x):
+            return f"field {n!r}: expected a finite number, got {x!r}"
+    for n, x in zip(names[3:6], values[3:6]):
+        if x <= 0:
+            return f"field {n!r}: expected a box size > 0, got {x:g}"
+    return f"fields qw, qx, qy, qz = ({', '.join(f'{x:g}' for x in values[6:10])}): expected a unit quaternion"
+
+
+def write_av2_detections(path: str | Path, frame_ids: Sequence[str], boxes: FloatArray, categories: Sequence[str], scores: Sequence[float]) -> Path:
+    """Write detections as one Argoverse 2 ``.feather`` file (atomically).
+
+    Parameters
+    ----------
+    frame_ids : N "<log_id>:<timestamp_ns>" ids
+    boxes : (N, 7) egovehicle-frame boxes (the yaw becomes qw, qz)
+    categories : N AV2 categories
+    scores : N scores
+    """
+    import os
+
+    import pyarrow.feather as feather
+
+    from labelaudit.core.geometry import yaw_quaternion
+    from labelaudit.datasets import av2
+
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    q = yaw_quaternion(b[:, 6]).reshape(-1, 4)
+    parts = [str(fid).rpartition(":") for fid in frame_ids]
+    cols: dict[str, Any] = {
+        AV2_LOG: pa.array([p[0] for p in parts], pa.string()),
+        av2.TIMESTAMP: pa.array([int(p[2]) for p in parts], pa.int64()),
+        av2.CATEGORY: pa.array(list(categories), pa.string()),
+    }
+    for j, c in enumerate((*av2.CENTRE, *av2.SIZE)):
+        cols[c] = pa.array(b[:, j])
+    for j, c in enumerate(av2.QUATERNION):
+        cols[c] = pa.array(q[:, j])
+    cols[AV2_SCORE] = pa.array(np.asarray(scores, dtype=float))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    feather.write_feather(pa.table(cols), tmp, compression="uncompressed")
+    os.replace(tmp, path)
+    return path
+
+
 # --------------------------------------------------------------------------- Parquet
 
 
@@ -444,7 +576,7 @@ def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, str
     ----------
     path : detections file or folder
     gt : the ground truth (frame ids; KITTI calibrations)
-    fmt : "auto", "kitti", "waymo" or "parquet"
+    fmt : "auto", "kitti", "waymo", "parquet" or "av2"
     strict : raise at the first bad value; otherwise the frame's detections are dropped, the frame
         recorded in ``errors`` (and excluded from the evaluation by the caller)
     view : "bev" or "3d" — the dimension a Parquet ``cov`` must have
@@ -467,6 +599,8 @@ def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, str
         rows, missing, unknown, errors = _read_kitti(path, gt, strict)
     elif fmt == "waymo":
         rows, missing, unknown, errors = _read_waymo(path, gt, strict)
+    elif fmt == "av2":
+        rows, missing, unknown, errors = _read_av2(path, gt, strict)
     else:
         rows, missing, unknown, errors = _read_parquet(path, gt, strict, view)
     return _assemble(rows, gt, fmt, missing, unknown, errors)

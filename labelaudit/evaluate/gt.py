@@ -11,6 +11,9 @@ numbering as the readers of :mod:`labelaudit.datasets` (``object_index`` here eq
   carry a real 3D box (KITTI's carry placeholders, −1 sizes at −1000 m, see docs/eval.md).
 * Waymo v1: the ``laser_labels`` of each ``Frame`` record (range images are not decoded).
 * Waymo v2: the ``lidar_box`` component only.
+* Argoverse 2: ``annotations.feather`` (and the sweep file names, so that frames without labels
+  are frames here too); every box is one difficulty level, boxes with ``num_interior_pts = 0``
+  are ignored like Waymo's empty boxes (AV2's own evaluation drops them).
 
 It never reads detections or results.
 """
@@ -47,8 +50,8 @@ class GroundTruthFrame:
     height : (K,) 2D box height in pixels (NaN when the format has none)
     occluded : (K,) KITTI occlusion level (−1 unknown)
     truncated : (K,) KITTI truncation (NaN unknown)
-    difficulty : (K,) KITTI devkit difficulty 0/1/2 (−1 none), or Waymo level 1/2
-    num_points : (K,) the dataset's own LiDAR point count per box (Waymo; −1 unknown)
+    difficulty : (K,) KITTI devkit difficulty 0/1/2 (−1 none), Waymo level 1/2, Argoverse 2: 1
+    num_points : (K,) the dataset's own LiDAR point count per box (Waymo, Argoverse 2; −1 unknown)
     dontcare : (M, 7) DontCare regions with a real 3D box
     dontcare_rows : DontCare rows in the file (with or without a 3D box)
     calib : KITTI calibration (None for Waymo)
@@ -257,6 +260,50 @@ def _waymo_v2_frames(box_path: Path) -> Iterator[GroundTruthFrame]:
         yield _waymo_frame(f"{segment}:{ts}", boxes, cols["type"][idx].astype(np.int64), level[idx], points[idx], origin, str(box_path))
 
 
+# --------------------------------------------------------------------------- Argoverse 2
+
+
+def _av2_frames(log_dir: Path) -> Iterator[GroundTruthFrame]:
+    """The frames of one AV2 log as the reader numbers them: every annotated or swept timestamp,
+    cuboids in file order, rows with a null category left out."""
+    from labelaudit.datasets import av2
+
+    ann = log_dir / av2.ANNOTATIONS
+    cub = av2.read_cuboids(ann) if ann.is_file() else None
+    origin, _ = av2.lidar_origin(log_dir)
+    sweeps = {int(p.stem) for p in (log_dir / av2.SWEEP_DIR).glob("*.feather") if p.stem.isdigit()}
+    rows_of: dict[int, list[int]] = defaultdict(list)
+    if cub is not None:
+        for r in np.argsort(cub.timestamps, kind="stable"):
+            if cub.categories[r] is not None:
+                rows_of[int(cub.timestamps[r])].append(int(r))
+        if cub.problems:  # eval needs every box: a label the audit marks as an error stops this log here
+            message = next(iter(cub.problems.values()))  # "<file> row R: …"
+            raise DatasetError(ann, message[len(str(ann)):].lstrip() if message.startswith(str(ann)) else message)
+    for ts in sorted(set(rows_of) | sweeps):
+        idx = np.asarray(rows_of.get(ts, []), dtype=np.int64)
+        k = len(idx)
+        num = np.full(k, -1, dtype=np.int64)
+        if cub is not None and cub.num_points is not None and k:
+            num = np.nan_to_num(np.asarray(cub.num_points, dtype=float)[idx], nan=-1).astype(np.int64)
+        yield GroundTruthFrame(
+            frame_id=f"{log_dir.name}:{ts}",
+            boxes=cub.boxes[idx] if k else np.zeros((0, 7)),
+            class_names=[str(cub.categories[r]) for r in idx] if k else [],
+            object_index=np.arange(k, dtype=np.int64),
+            height=np.full(k, np.nan),
+            occluded=np.full(k, -1, dtype=np.int64),
+            truncated=np.full(k, np.nan),
+            difficulty=np.ones(k, dtype=np.int8),
+            num_points=num,
+            dontcare=np.zeros((0, 7)),
+            dontcare_rows=0,
+            calib=None,
+            sensor_origin=np.asarray(origin, dtype=float),
+            source=str(ann),
+        )
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -267,6 +314,8 @@ def _frames_of(fmt: str, reader: Any, ref: FrameRef) -> Iterator[GroundTruthFram
         yield from _waymo_v1_frames(Path(ref.key), getattr(reader, "verify_crc", True))
     elif fmt == "waymo-v2":
         yield from _waymo_v2_frames(Path(ref.key))
+    elif fmt == "av2":
+        yield from _av2_frames(Path(ref.key))
     else:
         raise ValueError(f"unknown dataset format {fmt!r}")
 
@@ -303,9 +352,9 @@ def load_ground_truth(
     Parameters
     ----------
     dataset : dataset folder (or a Waymo v1 .tfrecord file)
-    fmt : "kitti", "waymo-v2" or "waymo-v1" (already resolved)
-    split : KITTI ImageSets split, Waymo split folder
-    limit : only the first N units (KITTI frames, Waymo segments), like ``infer --limit``
+    fmt : "kitti", "waymo-v2", "waymo-v1" or "av2" (already resolved)
+    split : KITTI ImageSets split, Waymo / Argoverse 2 split folder
+    limit : only the first N units (KITTI frames, Waymo segments, AV2 logs), like ``infer --limit``
     strict : raise at the first unreadable unit; otherwise record it in ``errors`` and go on
 
     Raises

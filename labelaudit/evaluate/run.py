@@ -51,13 +51,16 @@ FloatArray = NDArray[np.float64]
 __all__ = ["DIFFICULTIES", "METRICS", "EvalRequest", "EvalResult", "evaluate", "run_eval", "usual_threshold"]
 
 METRICS = ("iou", "jiou", "jiou_ratio")
-DIFFICULTIES = {"kitti": ("easy", "moderate", "hard"), "waymo": ("level_1", "level_2")}
-HEADLINE_DIFFICULTY = {"kitti": "moderate", "waymo": "level_2"}
+DIFFICULTIES = {"kitti": ("easy", "moderate", "hard"), "waymo": ("level_1", "level_2"), "av2": ("all",)}
+HEADLINE_DIFFICULTY = {"kitti": "moderate", "waymo": "level_2", "av2": "all"}
 SUMMARY_VERSION = "1"
 
 
 def family(dataset_format: str) -> str:
-    """"kitti" or "waymo" (both Waymo versions share classes and difficulty levels)."""
+    """"kitti", "waymo" (both Waymo versions share classes and difficulty levels) or "av2" (one
+    level: every box with a LiDAR point counts, like Waymo's LEVEL_2 without the level labels)."""
+    if dataset_format == "av2":
+        return "av2"
     return "waymo" if dataset_format.startswith("waymo") else "kitti"
 
 
@@ -97,8 +100,8 @@ class EvalRequest:
     detections : detections file or folder
     results : an ``infer`` results folder with the labels' covariances (None: infer them)
     output : EVAL_DIR (None: nothing written; inferred labels then go to a temporary folder)
-    dataset_format : "auto", "kitti", "waymo-v2", "waymo-v1"
-    detections_format : "auto", "kitti", "waymo", "parquet"
+    dataset_format : "auto", "kitti", "waymo-v2", "waymo-v1", "av2"
+    detections_format : "auto", "kitti", "waymo", "parquet", "av2"
     classes : classes to evaluate (None: the format's classes that are detected at least once)
     view : "bev" or "3d"
     config : model config TOML (None: the built-in one of the format)
@@ -583,7 +586,7 @@ def _detections_table(gt: GroundTruth, dets: Detections, labels: LabelSet, overl
     cols["source"] = pa.array(dets.source, pa.string())
     cols["matched_object_index"] = pa.array(np.where(has, gt.object_index[mg] if len(gt.object_index) else 0, 0), pa.int32(), mask=~has)
     cols["matched_class"] = pa.array([gt.class_names[g] if h else None for g, h in zip(mg, has)], pa.string())
-    diff_names = {-1: "none", 0: "easy", 1: "moderate", 2: "hard"} if gt.dataset_format == "kitti" else {1: "level_1", 2: "level_2"}
+    diff_names = {"kitti": {-1: "none", 0: "easy", 1: "moderate", 2: "hard"}, "av2": {1: "all"}}.get(family(gt.dataset_format), {1: "level_1", 2: "level_2"})
     cols["matched_difficulty"] = pa.array([diff_names.get(int(gt.difficulty[g]), "none") if h else None for g, h in zip(mg, has)], pa.string())
     cols["matched_distance"] = masked(gt.distance[mg] if len(gt.distance) else np.zeros(n))
     for name in ("iou", "jiou", "jiou_ratio"):
