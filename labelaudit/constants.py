@@ -197,6 +197,8 @@ DEFAULT_ANCHOR_SIZES: dict[str, dict[str, tuple[float, float, float]]] = {
     # OpenPCDet's waymo_models/second.yaml anchors.
     "waymo": {"Vehicle": (4.7, 2.1, 1.7), "Pedestrian": (0.91, 0.86, 1.73), "Cyclist": (1.78, 0.84, 1.78)},
 }
+EXPORT_GLENET_MISSING = -1.0  # GLENet value of an object without label variances (its own converter writes -1 for classes its CVAE did not see)
+EXPORT_GLENET_MIN_VARIANCE = 1e-10  # floor of an exported GLENet variance: its loss takes log(v + 1e-10), so a value is never below that offset
 INFOS_DIMENSION_TOLERANCE = 1e-3  # m; an infos object whose l/w/h differ from the result row's by more is a mismatch
 INFOS_PICKLE_PROTOCOL = 4  # pickle protocol of written infos copies: loads on every Python 3 that OpenPCDet/mmdet3d support
 

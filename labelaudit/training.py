@@ -28,6 +28,7 @@ FloatArray = NDArray[np.float64]
 __all__ = [
     "BOX_PARAMS",
     "ENCODINGS",
+    "GLENET_TARGETS",
     "Encoding",
     "VarianceSource",
     "available_params",
@@ -38,6 +39,7 @@ __all__ = [
     "fixed_target_covariance",
     "gaussian_nll",
     "get_encoding",
+    "glenet_variances",
     "heuristic_box_covariance",
     "hull_iou_scale",
     "kld_loss",
@@ -363,6 +365,43 @@ def target_std(cov: ArrayLike) -> FloatArray:
     """Per-target std, the square root of the diagonal: (N, T, T) → (N, T) (NaN stays NaN)."""
     d = np.diagonal(np.asarray(cov, dtype=float), axis1=1, axis2=2)
     return np.sqrt(np.clip(d, 0.0, None))
+
+
+GLENET_TARGETS: tuple[str, ...] = ("xt", "yt", "zt", "dxt", "dyt", "dzt", "sin_rt")
+"""The seven label variances GLENet's training reads, in its order: OpenPCDet's ResidualCoder
+deltas with the heading residual as the sine of the difference (GLENet's loss compares headings
+by ``sin(a − b)``)."""
+
+
+def glenet_variances(boxes: ArrayLike, cov_box: ArrayLike, anchor_sizes: ArrayLike) -> FloatArray:
+    """Variances of GLENet's seven targets (:data:`GLENET_TARGETS`) from the covariance of y.
+
+    With the anchor of the object's class (l_a, w_a, h_a), d = √(l_a² + w_a²) and the label as
+    the mean (docs/training.md)::
+
+        Var(xt) = Σ_xx / d²      Var(yt) = Σ_yy / d²      Var(zt) = Σ_zz / h_a²
+        Var(dxt) = Σ_ll / l²     Var(dyt) = Σ_ww / w²     Var(dzt) = Σ_hh / h²
+        Var(sin Δθ) = ½ (1 − exp(−2 Σ_θθ))
+
+    x, y, z on the LiDAR axes. The first six are the delta method's (first order, the
+    :func:`propagate` of the ``residual`` encoding); the last is exact for a Gaussian Δθ with mean
+    0 (E sin Δθ = 0, E sin² Δθ = (1 − E cos 2Δθ)/2), equal to Σ_θθ to first order and never above
+    ½, as a sample variance of sines.
+
+    Parameters
+    ----------
+    boxes : (N, 7) the labels
+    cov_box : (N, 7, 7) covariance of y, every parameter present
+    anchor_sizes : (N, 3) or (3,) anchor l, w, h
+
+    Returns
+    -------
+    var : (N, 7)
+    """
+    cov = propagate(boxes, cov_box, "residual", anchor_sizes=anchor_sizes)
+    var = np.diagonal(cov, axis1=1, axis2=2).copy()
+    var[:, 6] = -0.5 * np.expm1(-2.0 * var[:, 6])
+    return var
 
 
 # ----------------------------------------------------------------------------------------------

@@ -4,8 +4,9 @@ Synthesises a results folder of N objects (default 30,000: 3,000 KITTI-like fram
 objects, shards of 16 frames written by the results writer like a real run, random small SPD
 posterior covariances) and an OpenPCDet-style ``kitti_infos_train.pkl`` of the same frames (each
 with 2 DontCare and 1 unaudited Pedestrian more), then times :func:`labelaudit.export.export_results`
-end to end (read the results, propagate, write) for the Parquet output in every encoding and for
-the OpenPCDet and mmdet3d infos copies. Prints the median wall and CPU time of a few repetitions
+end to end (read the results, propagate, write) for the Parquet output in every encoding, for
+the OpenPCDet and mmdet3d infos copies, and for GLENet's infos + gt-database infos (``--format
+glenet``; the gt-database file has one entry per Car and Pedestrian, as OpenPCDet writes it). Prints the median wall and CPU time of a few repetitions
 (the machine may be shared: CPU time is the steadier figure).
 
     python scripts/bench_export.py [--objects 30000] [--repeat 3] [--model bev|3d]
@@ -27,7 +28,7 @@ from labelaudit import results as R
 from labelaudit.export import export_results
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from infos_factory import mmdet3d_kitti_infos, openpcdet_kitti_infos  # noqa: E402
+from infos_factory import mmdet3d_kitti_infos, openpcdet_dbinfos, openpcdet_kitti_infos  # noqa: E402
 
 PER_FRAME = 10
 
@@ -88,17 +89,22 @@ def main() -> None:
         tmp = Path(tmp)
         t0 = time.perf_counter()
         frames = synthesise(tmp / "res", args.objects, args.model)
-        (tmp / "kitti_infos_train.pkl").write_bytes(pickle.dumps(openpcdet_kitti_infos(frames)))
+        kitti_infos = openpcdet_kitti_infos(frames)
+        (tmp / "kitti_infos_train.pkl").write_bytes(pickle.dumps(kitti_infos))
+        (tmp / "kitti_dbinfos_train.pkl").write_bytes(pickle.dumps(openpcdet_dbinfos(kitti_infos)))
         (tmp / "mmdet3d_infos_train.pkl").write_bytes(pickle.dumps(mmdet3d_kitti_infos(frames)))
         print(f"synthesised {args.objects} objects in {len(frames)} frames ({args.model} model) in {time.perf_counter() - t0:.1f} s (not timed)")
         cases = [("parquet", enc, "model") for enc in ("box", "log-size", "pixor", "residual")]
         cases += [("parquet", "log-size", "num_points"), ("openpcdet", "residual", "model"), ("mmdet3d", "log-size", "model")]
+        cases += [("glenet", None, "model")]
         print(f"{'format':<10} {'encoding':<9} {'source':<11} {'objects':>8} {'wall s':>7} {'cpu s':>6} {'objects/s (wall)':>17}")
         for fmt, enc, src in cases:
-            infos = None if fmt == "parquet" else tmp / ("kitti_infos_train.pkl" if fmt == "openpcdet" else "mmdet3d_infos_train.pkl")
-            out = tmp / f"out-{fmt}-{enc}.{'parquet' if fmt == 'parquet' else 'pkl'}"
-            wall, cpu = median_s(lambda: export_results(tmp / "res", out, encoding=enc, source=src, fmt=fmt, infos=infos), args.repeat)  # noqa: B023
-            print(f"{fmt:<10} {enc:<9} {src:<11} {args.objects:>8} {wall:>7.2f} {cpu:>6.2f} {args.objects / wall:>17.0f}")
+            infos = None if fmt == "parquet" else tmp / ("mmdet3d_infos_train.pkl" if fmt == "mmdet3d" else "kitti_infos_train.pkl")
+            dbinfos = tmp / "kitti_dbinfos_train.pkl" if fmt == "glenet" else None
+            out = tmp / (f"out-{fmt}" if fmt == "glenet" else f"out-{fmt}-{enc}.{'parquet' if fmt == 'parquet' else 'pkl'}")
+            run = lambda: export_results(tmp / "res", out, encoding=enc, source=src, fmt=fmt, infos=infos, dbinfos=dbinfos)  # noqa: B023, E731
+            wall, cpu = median_s(run, args.repeat)
+            print(f"{fmt:<10} {enc or '-':<9} {src:<11} {args.objects:>8} {wall:>7.2f} {cpu:>6.2f} {args.objects / wall:>17.0f}")
 
 
 if __name__ == "__main__":

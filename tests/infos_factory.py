@@ -10,12 +10,16 @@ mmdetection3d ``tools/dataset_converters/update_infos_to_v2.py``), documented in
   ``gt_boxes_lidar`` has the non-DontCare rows only).
 - OpenPCDet Waymo: ``point_cloud`` {num_features, lidar_sequence, sample_idx}, ``frame_id``,
   ``metadata`` {context_name, timestamp_micros}, ``annos`` with ``obj_ids`` and l, w, h dimensions.
+- OpenPCDet gt-database infos (``create_groundtruth_database``): {class: [entry, …]}; a KITTI entry
+  names its frame by ``image_idx`` and its object by ``gt_idx`` = i over ``gt_boxes_lidar`` (the
+  non-DontCare ordinal); a Waymo entry by ``sequence_name``, ``sample_idx`` and ``gt_idx`` = the annos row.
 - mmdet3d v2: {"metainfo": {categories, dataset, info_version}, "data_list": [{sample_idx,
   lidar_points: {lidar_path}, instances: [{bbox_3d (camera x, y, z, l, h, w, ry), bbox_label_3d, index, …}]}]}.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -72,7 +76,8 @@ def openpcdet_kitti_infos(frames: dict[str, Sequence[Obj]]) -> list[dict[str, An
             "score": -np.ones(len(objs)),
             "difficulty": np.zeros(len(objs), np.int32),
             "index": np.array(list(range(n_obj)) + [-1] * (len(objs) - n_obj), dtype=np.int32),
-            "gt_boxes_lidar": np.zeros((n_obj, 7)),
+            # l, w, h of the non-DontCare rows (position and heading do not enter the export)
+            "gt_boxes_lidar": np.array([[0.0, 0.0, 0.0, o[1], o[2], o[3], 0.0] for o, d in zip(objs, dc) if not d]).reshape(-1, 7),
             "num_points_in_gt": -np.ones(len(objs), dtype=np.int32),
         }
         infos.append(
@@ -131,8 +136,54 @@ def openpcdet_waymo_infos(frames: dict[str, Sequence[tuple[str, str, float, floa
                     "heading_angles": np.zeros(len(objs)),
                     "obj_ids": np.array([o[0] for o in objs]),
                     "num_points_in_gt": np.full(len(objs), 50),
-                    "gt_boxes_lidar": np.zeros((len(objs), 9)),
+                    "gt_boxes_lidar": np.array([[0.0, 0.0, 0.0, o[2], o[3], o[4], 0.0, 0.0, 0.0] for o in objs]).reshape(-1, 9),
                 },
             }
         )
     return infos
+
+
+def openpcdet_kitti_infos_from_labels(root: Path) -> list[dict[str, Any]]:
+    """OpenPCDet KITTI infos of every labelled frame of a KITTI root, as ``get_infos`` builds them from label_2 and calib."""
+    from labelaudit.datasets.kitti import boxes_camera_to_lidar, read_calib, read_label
+
+    frames = {}
+    infos = []
+    for p in sorted((root / "training" / "label_2").glob("*.txt")):
+        lab = read_label(p)
+        frames[p.stem] = [(n, l, w, h) for n, (h, w, l) in zip(lab.class_names, lab.dims_hwl)]
+        info = openpcdet_kitti_infos({p.stem: frames[p.stem]})[0]
+        annos = info["annos"]
+        dc = np.array([n == "DontCare" for n in lab.class_names], dtype=bool)
+        annos["location"] = lab.location.copy()
+        annos["dimensions"] = lab.dims_hwl[:, [2, 0, 1]].copy()  # l, h, w
+        annos["rotation_y"] = lab.rotation_y.copy()
+        annos["bbox"] = lab.bbox2d.astype(np.float32)
+        calib = read_calib(root / "training" / "calib" / f"{p.stem}.txt")
+        annos["gt_boxes_lidar"] = boxes_camera_to_lidar(lab.location[~dc], lab.dims_hwl[~dc], lab.rotation_y[~dc], calib)
+        infos.append(info)
+    return infos
+
+
+def openpcdet_dbinfos(infos: Sequence[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """Gt-database infos of OpenPCDet infos (KITTI or Waymo), entry by entry as ``create_groundtruth_database`` writes them."""
+    db: dict[str, list[dict[str, Any]]] = {}
+    for info in infos:
+        annos = info["annos"]
+        gt_boxes = annos["gt_boxes_lidar"]
+        pc_info = info["point_cloud"]
+        # KITTI's gt_boxes_lidar rows are the non-DontCare objects (DontCare come last in KITTI's files)
+        names = [str(n) for n in annos["name"] if n != "DontCare"]
+        difficulty = [d for n, d in zip(annos["name"], annos["difficulty"]) if n != "DontCare"]
+        for i in range(gt_boxes.shape[0]):
+            name = names[i]
+            if "lidar_sequence" in pc_info:
+                where = {"sequence_name": pc_info["lidar_sequence"], "sample_idx": pc_info["sample_idx"]}
+                path = f"gt_database/{pc_info['lidar_sequence']}_{pc_info['sample_idx']:04d}_{name}_{i}.bin"
+            else:
+                where = {"image_idx": pc_info["lidar_idx"]}
+                path = f"gt_database/{pc_info['lidar_idx']}_{name}_{i}.bin"
+            entry = {"name": name, "path": path, **where, "gt_idx": i, "box3d_lidar": gt_boxes[i], "num_points_in_gt": 20,
+                     "difficulty": difficulty[i]}  # fmt: skip
+            db.setdefault(name, []).append(entry)
+    return db

@@ -30,16 +30,18 @@ class ExportFormat(str, Enum):
     parquet = "parquet"
     openpcdet = "openpcdet"
     mmdet3d = "mmdet3d"
+    glenet = "glenet"
 
 
 @app.command()
 def export(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer` (or one Parquet file of rows)."),
-    output: Path = typer.Option(..., "-o", "--output", help="File to write: the Parquet table, or the copy of the infos pickle."),
-    encoding: Encoding = typer.Option(Encoding.box, "--encoding", help="Targets: box (x,y,z,l,w,h,yaw), log-size = centerpoint (x,y,z,log l/w/h,sin,cos), pixor (dx,dy,log l,log w,sin,cos), residual (the anchor coder of OpenPCDet/mmdet3d)."),
+    output: Path = typer.Option(..., "-o", "--output", help="File to write: the Parquet table, or the copy of the infos pickle; for --format glenet the folder of the copies."),
+    encoding: Optional[Encoding] = typer.Option(None, "--encoding", help="Targets: box (x,y,z,l,w,h,yaw; the default), log-size = centerpoint (x,y,z,log l/w/h,sin,cos), pixor (dx,dy,log l,log w,sin,cos), residual (the anchor coder of OpenPCDet/mmdet3d). Not with --format glenet (it has its own)."),
     source: str = typer.Option("model", "--source", help="Where σ_p comes from: model (posterior covariance), num_points, hull_iou, or fixed:VAR."),
-    out_format: ExportFormat = typer.Option(ExportFormat.parquet, "--format", help="parquet (keyed by frame_id, object_index, object_id), openpcdet or mmdet3d (a copy of --infos with the targets added)."),
-    infos: Optional[Path] = typer.Option(None, "--infos", help="OpenPCDet kitti_infos_*.pkl / Waymo infos, or mmdet3d v2 info file to copy."),
+    out_format: ExportFormat = typer.Option(ExportFormat.parquet, "--format", help="parquet (keyed by frame_id, object_index, object_id), openpcdet or mmdet3d (a copy of --infos with the targets added), glenet (copies of --infos and --dbinfos with GLENet's 'uncertainty' added, in folder -o)."),
+    infos: Optional[Path] = typer.Option(None, "--infos", help="OpenPCDet kitti_infos_*.pkl / Waymo infos, or mmdet3d v2 info file to copy; for glenet also a folder of OpenPCDet's per-sequence Waymo infos (<seq>/<seq>.pkl)."),
+    dbinfos: Optional[Path] = typer.Option(None, "--dbinfos", help="OpenPCDet gt-database infos to copy with --format glenet (kitti_dbinfos_train.pkl, Waymo's …_waymo_dbinfos_train_sampled_1.pkl)."),
     anchor_size: Optional[list[str]] = typer.Option(None, "--anchor-size", help="CLASS=l,w,h anchor size for --encoding residual (repeat; adds to/overrides the KITTI or Waymo defaults)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
@@ -48,7 +50,9 @@ def export(
 
     Variances and covariances of the encoded targets come from the posterior covariance of each label (first-order propagation with the exact Jacobian at the label) or from a heuristic; formulas, sources and file formats: docs/training.md. The Parquet output is keyed by (frame_id, object_index, object_id); openpcdet and mmdet3d write a copy of --infos with label_std, label_cov and label_std_valid added to every object, in that file's own object order.
 
-    Objects without targets (DontCare, classes not audited, rows without a posterior, frames missing from the results) get NaN and a False mask, never a neighbour's values; the summary (stderr, or --json on stdout) counts them by reason. Exit 2 for bad options, unreadable results, a pickle with a disallowed global, an infos file that does not match the results (the message names the first mismatching frame), or when no object got targets; nothing is written then.
+    --format glenet writes what GLENet's training reads instead of its CVAE's output: annos['uncertainty'] (K, 7) of every infos frame, DontCare included, and 'uncertainty' (7,) of every gt-database entry — variances of OpenPCDet's ResidualCoder targets at the class anchor (x, y, z, log l, log w, log h, sin of the heading difference), all > 0; objects without a posterior get -1, as GLENet writes them. A BEV posterior takes z and h from the class prior (counted; --model 3d infers them). How to train with them: docs/training.md.
+
+    Objects without targets (DontCare, classes not audited, rows without a posterior, frames missing from the results) get NaN and a False mask (-1 for glenet), never a neighbour's values; the summary (stderr, or --json on stdout) counts them by reason. Exit 2 for bad options, unreadable results, a pickle with a disallowed global, an infos file that does not match the results (the message names the first mismatching frame), or when no object got targets; nothing is written then.
 
     [bold]Examples[/bold]
 
@@ -59,6 +63,10 @@ def export(
       labelaudit export results/ -o kitti_infos_train_sigma.pkl --format mmdet3d --infos kitti_infos_train.pkl --source num_points
 
       labelaudit export results/ -o fixed.parquet --source fixed:0.01 --json
+
+      labelaudit export results/ --format glenet --infos kitti_infos_train.pkl --dbinfos kitti_dbinfos_train.pkl -o glenet/
+
+      labelaudit export results/ --format glenet --infos waymo_processed_data_v0_5_0/ --dbinfos waymo_processed_data_v0_5_0_waymo_dbinfos_train_sampled_1.pkl -o glenet/
     """
     from labelaudit.export import export_results, parse_anchor_sizes
 
@@ -66,11 +74,12 @@ def export(
         summary = export_results(
             results,
             output,
-            encoding=encoding.value,
+            encoding=None if encoding is None else encoding.value,
             source=source,
             fmt=out_format.value,  # type: ignore[arg-type]
             infos=infos,
             anchor_sizes=parse_anchor_sizes(anchor_size or ()),
+            dbinfos=dbinfos,
         )
         if as_json:
             sys.stdout.write(json.dumps(summary.to_dict(), indent=2, sort_keys=True) + "\n")
@@ -88,10 +97,18 @@ def export(
             t.add_row("infos objects", str(summary.infos_objects))
             t.add_row("  with targets", str(summary.infos_objects_with_targets))
             for reason, n in sorted(summary.infos_objects_without_targets.items()):
-                t.add_row(f"  NaN: {escape(reason)}", str(n))
+                t.add_row(f"  {'-1' if summary.format == 'glenet' else 'NaN'}: {escape(reason)}", str(n))
             t.add_row("result rows not in the infos", str(summary.results_rows_not_in_infos))
             t.add_row("result frames not in the infos", str(summary.results_frames_not_in_infos))
+        if summary.dbinfos is not None:
+            t.add_row("gt-database objects", str(summary.dbinfos_objects))
+            t.add_row("  with values", str(summary.dbinfos_objects_with_targets))
+            for reason, n in sorted(summary.dbinfos_objects_without_targets.items()):
+                t.add_row(f"  -1: {escape(reason)}", str(n))
+        if summary.format == "glenet":
+            t.add_row("z, h from the class prior", str(summary.objects_z_h_from_prior))
         console.print(t)
         for note in summary.notes:
             console.print(f"note: {escape(note)}", soft_wrap=True)
-        console.print(f"wrote {escape(summary.output)} ({summary.format})", soft_wrap=True)
+        for path in summary.outputs or [summary.output]:
+            console.print(f"wrote {escape(path)} ({summary.format})", soft_wrap=True)

@@ -32,6 +32,8 @@ __all__ = [
     "align_frames",
     "attach_to_infos",
     "detect_infos_format",
+    "kitti_frame_id",
+    "malformed",
     "openpcdet_frames",
 ]
 
@@ -61,7 +63,8 @@ class ResultIndex:
         self.key = key
 
 
-def _kitti_frame_id(value: Any) -> str:
+def kitti_frame_id(value: Any) -> str:
+    """KITTI frame id ``'000123'`` of an infos ``lidar_idx`` / ``image_idx`` (int or str)."""
     if isinstance(value, (int, np.integer)):
         return f"{int(value):06d}"
     return str(value)
@@ -75,7 +78,7 @@ def openpcdet_frames(infos: Any, path: str) -> tuple[str, list[FrameObjects]]:
     kinds = set()
     for i, info in enumerate(infos):
         where = f"{path}: frame entry {i}"
-        with _malformed(where):
+        with malformed(where):
             kind, frame = _openpcdet_frame(info, where)
         kinds.add(kind)
         if len(kinds) > 1:
@@ -85,7 +88,7 @@ def openpcdet_frames(infos: Any, path: str) -> tuple[str, list[FrameObjects]]:
 
 
 @contextmanager
-def _malformed(where: str) -> Iterator[None]:
+def malformed(where: str) -> Iterator[None]:
     """Turn a type/shape error while reading one infos entry into an ExportError naming it."""
     try:
         yield
@@ -122,7 +125,7 @@ def _openpcdet_frame(info: Any, where: str) -> tuple[str, FrameObjects]:
     ordinal = np.cumsum(not_dc) - 1  # position among the non-DontCare rows = results object_index
     keys = [int(o) if nd else None for o, nd in zip(ordinal, not_dc)]
     # OpenPCDet KITTI 'dimensions' are l, h, w (camera order)
-    return "kitti", FrameObjects(_kitti_frame_id(pc_info["lidar_idx"]), keys, names, dims[:, [0, 2, 1]])
+    return "kitti", FrameObjects(kitti_frame_id(pc_info["lidar_idx"]), keys, names, dims[:, [0, 2, 1]])
 
 
 def _mmdet3d_frames(infos: Any, path: str) -> list[FrameObjects]:
@@ -133,12 +136,12 @@ def _mmdet3d_frames(infos: Any, path: str) -> list[FrameObjects]:
             f"{path}: mmdet3d infos of dataset {meta.get('dataset')!r}: only KITTI v2 infos can be aligned "
             "(mmdet3d's Waymo infos keep no laser object ids); use --format openpcdet or parquet"
         )
-    with _malformed(f"{path}: metainfo"):
+    with malformed(f"{path}: metainfo"):
         label_name = {int(v): str(k) for k, v in (meta.get("categories") or {}).items() if int(v) >= 0}
     frames = []
     for i, item in enumerate(infos.get("data_list") or []):
         where = f"{path}: data_list[{i}]"
-        with _malformed(where):
+        with malformed(where):
             frames.append(_mmdet3d_frame(item, label_name, where))
     return frames
 
@@ -150,7 +153,7 @@ def _mmdet3d_frame(item: Any, label_name: Mapping[int, str], where: str) -> Fram
     if lidar.get("lidar_path"):
         fid = Path(str(lidar["lidar_path"])).stem
     elif "sample_idx" in item:
-        fid = _kitti_frame_id(item["sample_idx"])
+        fid = kitti_frame_id(item["sample_idx"])
     else:
         raise ExportError(f"{where}: neither lidar_points.lidar_path nor sample_idx names the frame")
     keys, names, dims = [], [], []
@@ -171,9 +174,12 @@ def _mmdet3d_frame(item: Any, label_name: Mapping[int, str], where: str) -> Fram
 
 
 def align_frames(
-    frames: Sequence[FrameObjects], arrays: ResultArrays, targets: ExportTargets, index: ResultIndex, path: str
+    frames: Sequence[FrameObjects], arrays: ResultArrays, reason: NDArray[np.object_], index: ResultIndex, path: str
 ) -> tuple[list[NDArray[np.int64]], dict[str, Any]]:
     """Result row of every infos object (−1 where none), checking that the infos describe the results.
+
+    ``reason`` (one per result row, "" when it has values) feeds the counts of objects without
+    values (``stats["reasons"]``), next to DontCare, classes not audited and missing rows.
 
     Raises
     ------
@@ -233,7 +239,7 @@ def align_frames(
             first_bad = (f, f"frame {frames[f].frame_id} object {j} (key {frames[f].keys[j]}): infos say {names[i]} l,w,h = "
                          f"{', '.join(f'{v:.3f}' for v in dims[i])}, the results say {arrays.class_name[res_rows[i]]} "
                          f"{', '.join(f'{v:.3f}' for v in lwh[i])}")  # fmt: skip
-        stats.update(r for r in targets.reason[res_rows].tolist() if r)
+        stats.update(r for r in reason[res_rows].tolist() if r)
     errors = [e for e in (first_extra, first_bad) if e is not None]
     if errors:
         raise InfosMismatchError(f"{path}: {min(errors)[1]}; the infos file does not belong to these results")
@@ -293,7 +299,7 @@ def attach_to_infos(
             raise ExportError(f"{path}: an mmdet3d v2 info file is a dict with 'metainfo' and 'data_list'; got {type(infos).__name__}")
         frames = _mmdet3d_frames(infos, path)
         index = ResultIndex(arrays, "object_index")
-    rows, extra = align_frames(frames, arrays, targets, index, path)
+    rows, extra = align_frames(frames, arrays, targets.reason, index, path)
     meta = targets.metadata()
     n_obj = n_with = 0
     if fmt == "openpcdet":

@@ -8,36 +8,43 @@ from typing import Literal, Mapping, Sequence
 from labelaudit import results as R
 from labelaudit.errors import ExportError
 from labelaudit.export.arrays import read_result_arrays
+from labelaudit.export.glenet import export_glenet
 from labelaudit.export.infos import attach_to_infos, detect_infos_format
 from labelaudit.export.parquet import targets_to_table
 from labelaudit.export.pickles import dump_infos, load_infos
 from labelaudit.export.summary import ExportSummary, reasons_text
 from labelaudit.export.targets import compute_targets
 
-__all__ = ["Format", "export_results"]
+__all__ = ["FORMATS", "Format", "export_results"]
 
-Format = Literal["parquet", "openpcdet", "mmdet3d"]
+Format = Literal["parquet", "openpcdet", "mmdet3d", "glenet"]
+FORMATS = ("parquet", "openpcdet", "mmdet3d", "glenet")
 
 
 def export_results(
     results: str | Path,
     output: str | Path,
     *,
-    encoding: str = "box",
+    encoding: str | None = None,
     source: str = "model",
     fmt: Format = "parquet",
     infos: str | Path | None = None,
     anchor_sizes: Mapping[str, Sequence[float]] | None = None,
+    dbinfos: str | Path | None = None,
 ) -> ExportSummary:
     """Export σ_p targets of a results folder (see docs/training.md).
 
     Parameters
     ----------
     results : results folder of ``labelaudit infer`` (or one Parquet file of rows)
-    output : the Parquet file, or the infos copy to write
-    encoding, source, anchor_sizes : see :func:`compute_targets`
-    fmt : ``parquet`` (keyed by frame_id, object_index, object_id), ``openpcdet`` or ``mmdet3d``
-    infos : the OpenPCDet / mmdet3d infos pickle to copy (required for those formats)
+    output : the Parquet file, or the infos copy to write; the folder of the copies for ``glenet``
+    encoding, source, anchor_sizes : see :func:`compute_targets` (encoding None = ``box``;
+        ``glenet`` has its own and takes none)
+    fmt : ``parquet`` (keyed by frame_id, object_index, object_id), ``openpcdet``, ``mmdet3d`` or
+        ``glenet`` (:func:`labelaudit.export.glenet.export_glenet`)
+    infos : the OpenPCDet / mmdet3d infos pickle to copy (required for those formats; for
+        ``glenet`` also a folder of per-sequence Waymo infos)
+    dbinfos : the gt-database infos pickle to copy (``glenet`` only)
 
     Raises
     ------
@@ -46,8 +53,16 @@ def export_results(
         :class:`labelaudit.results.ResultsError` for unreadable results.
     """
     output = Path(output)
-    if fmt not in ("parquet", "openpcdet", "mmdet3d"):
-        raise ExportError(f"unknown format {fmt!r}; expected parquet, openpcdet or mmdet3d")
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown format {fmt!r}; expected {', '.join(FORMATS)}")
+    if dbinfos is not None and fmt != "glenet":
+        raise ExportError(f"--dbinfos is for --format glenet; --format {fmt} writes no gt-database file")
+    if fmt == "glenet":
+        if infos is None:
+            raise ExportError("--format glenet writes copies of the infos files: give them with --infos FILE (and --dbinfos FILE)")
+        if encoding is not None:
+            raise ExportError(f"--encoding {encoding}: --format glenet has its own targets (GLENet's residual variances); drop --encoding")
+        return export_glenet(results, output, infos, dbinfos, source=source, anchor_sizes=anchor_sizes)
     if fmt == "parquet" and infos is not None:
         raise ExportError("--infos is for --format openpcdet or mmdet3d; the Parquet output needs none")
     if fmt != "parquet" and infos is None:
@@ -57,7 +72,7 @@ def export_results(
     if output.is_dir():
         raise ExportError(f"{output}: is a folder; -o/--output takes a file name")
     arrays = read_result_arrays(results)
-    targets = compute_targets(arrays, encoding, source, anchor_sizes)
+    targets = compute_targets(arrays, encoding or "box", source, anchor_sizes)
     summary = ExportSummary(
         output=str(output),
         format=fmt,
@@ -83,11 +98,5 @@ def export_results(
         raise ExportError(f"{infos}: no object of the infos got targets ({reasons_text(stats['reasons'])}); nothing written")
     dump_infos(data, output)
     summary.infos = str(infos)
-    summary.infos_frames = stats["frames"]
-    summary.infos_frames_without_results = stats["frames_without_results"]
-    summary.infos_objects = stats["objects"]
-    summary.infos_objects_with_targets = stats["objects_with_targets"]
-    summary.infos_objects_without_targets = stats["reasons"]
-    summary.results_frames_not_in_infos = stats["results_frames_not_in_infos"]
-    summary.results_rows_not_in_infos = stats["results_rows_not_in_infos"]
+    summary.add_infos_stats(stats)
     return summary

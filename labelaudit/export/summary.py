@@ -27,10 +27,26 @@ class ExportSummary:
     infos_objects_without_targets: dict[str, int] = field(default_factory=dict)
     results_frames_not_in_infos: int = 0
     results_rows_not_in_infos: int = 0
+    dbinfos: str | None = None
+    dbinfos_objects: int = 0
+    dbinfos_objects_with_targets: int = 0
+    dbinfos_objects_without_targets: dict[str, int] = field(default_factory=dict)
+    objects_z_h_from_prior: int = 0
+    outputs: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def add_infos_stats(self, stats: Mapping[str, Any]) -> None:
+        """Take the counts of an infos alignment (:func:`labelaudit.export.infos.align_frames` and the attach step)."""
+        self.infos_frames = stats["frames"]
+        self.infos_frames_without_results = stats["frames_without_results"]
+        self.infos_objects = stats["objects"]
+        self.infos_objects_with_targets = stats["objects_with_targets"]
+        self.infos_objects_without_targets = dict(stats["reasons"])
+        self.results_frames_not_in_infos = stats["results_frames_not_in_infos"]
+        self.results_rows_not_in_infos = stats["results_rows_not_in_infos"]
 
 
 def reasons_text(reasons: Mapping[str, int]) -> str:

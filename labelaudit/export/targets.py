@@ -27,10 +27,13 @@ FloatArray = NDArray[np.float64]
 __all__ = [
     "AUDITED_STATUSES",
     "INFOS_KEYS",
+    "BoxCovariances",
     "ExportTargets",
+    "box_covariances",
     "compute_targets",
     "default_anchor_sizes",
     "parse_anchor_sizes",
+    "prior_variances",
 ]
 
 INFOS_KEYS = ("label_std", "label_cov", "label_std_valid")
@@ -96,6 +99,12 @@ def _prior_std(arrays: ResultArrays) -> tuple[FloatArray, float]:
     return np.array([table.get(c, default) for c in arrays.class_name.tolist()], dtype=float).reshape(-1, 7), weight
 
 
+def prior_variances(arrays: ResultArrays) -> FloatArray:
+    """(N, 7) variance of y under each row's class prior (std² / w), from the run's manifest."""
+    std, weight = _prior_std(arrays)
+    return T.prior_box_variance(std, weight)
+
+
 def parse_anchor_sizes(specs: Iterable[str]) -> dict[str, tuple[float, float, float]]:
     """Parse ``CLASS=l,w,h`` strings (``--anchor-size``).
 
@@ -127,29 +136,57 @@ def default_anchor_sizes(datasets: Iterable[str]) -> dict[str, tuple[float, floa
     return out
 
 
-def compute_targets(
+@dataclass
+class BoxCovariances:
+    """Covariance of the box parameters y = (cx, cy, cz, l, w, h, yaw) of every result row, before any encoding.
+
+    Attributes
+    ----------
+    source : where it came from
+    cov : (N, 7, 7) covariance of y; NaN for rows without one, and for every row of a ``fixed``
+        source (its variance is given on the targets, not on y)
+    available : (N, 7) the parameters ``cov`` really holds (a BEV posterior has no cz and h)
+    anchor : (N, 3) anchor l, w, h of each row's class; NaN where no anchor was asked for
+    reason : (N,) why a row has no covariance ("" when it has one)
+    anchor_sizes : class → (l, w, h) used
+    """
+
+    source: T.VarianceSource
+    cov: FloatArray
+    available: NDArray[np.bool_]
+    anchor: FloatArray
+    reason: NDArray[np.object_]
+    anchor_sizes: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+
+
+def box_covariances(
     arrays: ResultArrays,
-    encoding: str | T.Encoding = "box",
     source: str | T.VarianceSource = "model",
     anchor_sizes: Mapping[str, Sequence[float]] | None = None,
-) -> ExportTargets:
-    """σ_p targets of every row: covariance on y from the source, then :func:`labelaudit.training.propagate`.
+    *,
+    needs_anchor: bool = False,
+) -> BoxCovariances:
+    """Covariance of y of every row from the source, and why a row has none.
+
+    A row has none when it was not audited (status), its box is not finite or not positive, its
+    class has no anchor size (only with ``needs_anchor``), the source's column is null in it, or
+    its posterior covariance is not finite.
 
     Parameters
     ----------
     arrays : from :func:`read_result_arrays`
-    encoding : ``box``, ``log-size`` (= ``centerpoint``), ``pixor`` or ``residual``
-    source : ``model`` (posterior covariance of φ), ``num_points``, ``hull_iou`` or ``fixed:VAR``
-    anchor_sizes : class → (l, w, h) for ``residual``; None = the defaults for the results'
-        dataset, extended/overridden by what is given
+    source : ``model`` (posterior covariance of φ, mapped to y with the exact Jacobian at the
+        label), ``num_points``, ``hull_iou`` (the class prior scaled) or ``fixed:VAR``
+    anchor_sizes : class → (l, w, h); None = the defaults for the results' dataset, extended or
+        overridden by what is given
+    needs_anchor : look up each row's anchor size (rows of a class without one get none)
 
     Raises
     ------
     ExportError
-        Unknown encoding or source, or a source whose column is null in every row.
+        Unknown source, or a source whose column is null in every audited row.
     """
     try:
-        enc = T.get_encoding(encoding)
         src = source if isinstance(source, T.VarianceSource) else T.parse_source(source)
     except ValueError as exc:
         raise ExportError(str(exc)) from None
@@ -163,7 +200,7 @@ def compute_targets(
 
     anchors_used: dict[str, tuple[float, float, float]] = {}
     anchor = np.full((n, 3), np.nan)
-    if enc.needs_anchor:
+    if needs_anchor:
         sizes = default_anchor_sizes(arrays.dataset.tolist())
         sizes.update({k: tuple(float(x) for x in v) for k, v in (anchor_sizes or {}).items()})  # type: ignore[misc]
         for name in np.unique(arrays.class_name[reason == ""]).tolist():
@@ -191,32 +228,60 @@ def compute_targets(
         raise ExportError(f"source {src}: the column {what!r} is null in every audited row; rerun `labelaudit infer` with this version")
     reason[(reason == "") & missing] = f"no {what}"
 
-    Tn = enc.size
-    cov = np.full((n, Tn, Tn), np.nan)
+    cov = np.full((n, 7, 7), np.nan)
+    available = np.ones((n, 7), dtype=bool)
     ok = np.flatnonzero(reason == "")
-    if len(ok):
-        if src.kind == "fixed":
-            cov[ok] = T.fixed_target_covariance(len(ok), enc, float(src.value))  # type: ignore[arg-type]
-        elif src.kind == "model":
-            for p, model in ((6, "bev"), (8, "3d")):
-                rows = ok[arrays.cov_dim[ok] == p]
-                if not len(rows):
-                    continue
-                S = arrays.cov_phi(rows, p)
-                finite = np.all(np.isfinite(S.reshape(len(rows), -1)), axis=1)
-                reason[rows[~finite]] = "non-finite cov"
-                rows, S = rows[finite], S[finite]
-                cov_y = T.box_covariance_from_phi(b[rows], S, model)  # type: ignore[arg-type]
-                cov[rows] = T.propagate(b[rows], cov_y, enc, anchor_sizes=anchor[rows], available=T.available_params(model))  # type: ignore[arg-type]
+    if len(ok) and src.kind == "model":
+        for p, model in ((6, "bev"), (8, "3d")):
+            rows = ok[arrays.cov_dim[ok] == p]
+            if not len(rows):
+                continue
+            S = arrays.cov_phi(rows, p)
+            finite = np.all(np.isfinite(S.reshape(len(rows), -1)), axis=1)
+            reason[rows[~finite]] = "non-finite cov"
+            rows, S = rows[finite], S[finite]
+            cov[rows] = T.box_covariance_from_phi(b[rows], S, model)  # type: ignore[arg-type]
+            available[rows] = T.available_params(model)  # type: ignore[arg-type]
+    elif len(ok) and src.kind in ("num_points", "hull_iou"):
+        prior_var = prior_variances(arrays)[ok]
+        if src.kind == "num_points":
+            scale = T.num_points_scale(np.clip(arrays.num_points[ok], 0, None))
         else:
-            prior_std, weight = _prior_std(arrays)
-            prior_var = T.prior_box_variance(prior_std[ok], weight)
-            if src.kind == "num_points":
-                scale = T.num_points_scale(np.clip(arrays.num_points[ok], 0, None))
-            else:
-                scale = T.hull_iou_scale(np.clip(arrays.hull_iou[ok], 0.0, 1.0))
-            cov_y = T.heuristic_box_covariance(prior_var, scale)
-            cov[ok] = T.propagate(b[ok], cov_y, enc, anchor_sizes=anchor[ok])
-    valid = reason == ""
-    cov[~valid] = np.nan
-    return ExportTargets(enc, src, T.target_std(cov), cov, valid, reason, anchors_used)
+            scale = T.hull_iou_scale(np.clip(arrays.hull_iou[ok], 0.0, 1.0))
+        cov[ok] = T.heuristic_box_covariance(prior_var, scale)
+    return BoxCovariances(src, cov, available, anchor, reason, anchors_used)
+
+
+def compute_targets(
+    arrays: ResultArrays,
+    encoding: str | T.Encoding = "box",
+    source: str | T.VarianceSource = "model",
+    anchor_sizes: Mapping[str, Sequence[float]] | None = None,
+) -> ExportTargets:
+    """σ_p targets of every row: covariance on y from the source, then :func:`labelaudit.training.propagate`.
+
+    Parameters
+    ----------
+    arrays : from :func:`read_result_arrays`
+    encoding : ``box``, ``log-size`` (= ``centerpoint``), ``pixor`` or ``residual``
+    source, anchor_sizes : see :func:`box_covariances`
+
+    Raises
+    ------
+    ExportError
+        Unknown encoding or source, or a source whose column is null in every row.
+    """
+    try:
+        enc = T.get_encoding(encoding)
+    except ValueError as exc:
+        raise ExportError(str(exc)) from None
+    bc = box_covariances(arrays, source, anchor_sizes, needs_anchor=enc.needs_anchor)
+    Tn = enc.size
+    cov = np.full((len(arrays), Tn, Tn), np.nan)
+    ok = np.flatnonzero(bc.reason == "")
+    if len(ok) and bc.source.kind == "fixed":
+        cov[ok] = T.fixed_target_covariance(len(ok), enc, float(bc.source.value))  # type: ignore[arg-type]
+    elif len(ok):
+        b = arrays.boxes[ok]
+        cov[ok] = T.propagate(b, bc.cov[ok], enc, anchor_sizes=bc.anchor[ok], available=bc.available[ok])
+    return ExportTargets(enc, bc.source, T.target_std(cov), cov, bc.reason == "", bc.reason, bc.anchor_sizes)
