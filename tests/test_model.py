@@ -954,8 +954,8 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
     terms = M.box_prior_terms(g.validate_box(CAR), ModelParams().prior_for("Car"), 1.0, model)
     phi, sigma = g.phi_of_valid_box(y, model), 0.05
     for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma)):
-        got, rr, ss, sw = LF._fit_precision_kernel(y, pts_t, three_d, *LF._FIT_POINT_CONSTANTS, sigma, phi, terms.P0, 1.0 / sigma**2, *rays)
-        ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._FIT_POINT_CONSTANTS, sigma, phi)
+        got, rr, ss, sw = LF._fit_precision_kernel(y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays)
+        ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._fit_point_constants(), sigma, phi)
         if rays[0].shape[1]:
             ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays, three_d, phi)
             assert active > 0  # the rays do add rows

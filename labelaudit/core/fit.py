@@ -498,14 +498,16 @@ def _fit_iterate(
     iteration, the NumPy calls around the point pass cost as much as the pass itself.
     """
     phi, y_cur, it, converged = _fit_iterate_kernel(
-        y_cur, phi, pts, model == "3d", *_FIT_POINT_CONSTANTS, float(tol), P0, prior_eta,
+        y_cur, phi, pts, model == "3d", *_fit_point_constants(), float(tol), P0, prior_eta,
         label, float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, *rays,
     )
     return phi, y_cur, int(it), bool(converged)
 
 
-_FIT_POINT_CONSTANTS = (C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB)
-"""(free depth, deep-point √weight, outlier probability) of the fit's point rows (:func:`_rows_kernel`)."""
+def _fit_point_constants() -> tuple[float, float, float]:
+    """(free depth, deep-point √weight, outlier probability) of the fit's point rows (:func:`_rows_kernel`),
+    read from the constants at each call (the real-data benchmark chooses some of them by leave-one-frame-out)."""
+    return (C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, C.FIT_OUTLIER_PROB)
 
 
 def _fit_em(
@@ -538,7 +540,7 @@ def _fit_em(
     inv_s2 = 1.0 / sigma**2
     phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
     phi_rect = g.phi_of_valid_box(y_cur, model)
-    precision, rr, ss, sw = _fit_precision_kernel(y_cur, pts, model == "3d", *_FIT_POINT_CONSTANTS, sigma, phi_rect, P0, inv_s2, *rays)
+    precision, rr, ss, sw = _fit_precision_kernel(y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays)
     cov = spd_inverse(precision)
     dphi = phi_rect - phi_label
     log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi.dot(P0).dot(dphi))
@@ -568,7 +570,17 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
 
 _BEV_BLOCK = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
 _BEV_BLOCK_FLAT = (g.BEV_OF_3D[:, None] * 8 + g.BEV_OF_3D[None, :]).ravel()  # _BEV_BLOCK as flat indices into a C-ordered (8, 8)
-_TOLERANCE = ClassPrior(**C.LABEL_TOLERANCE)
+_TOLERANCE: list[tuple[dict[str, float], ClassPrior]] = []  # (the constants' dict, its ClassPrior)
+
+
+def _tolerance_prior() -> ClassPrior:
+    """:data:`~labelaudit.constants.LABEL_TOLERANCE` as a ClassPrior, made again only when the constant changes."""
+    last = _TOLERANCE[-1] if _TOLERANCE else None
+    if last is not None and last[0] == C.LABEL_TOLERANCE:
+        return last[1]
+    out = ClassPrior(**C.LABEL_TOLERANCE)
+    _TOLERANCE[:] = [(dict(C.LABEL_TOLERANCE), out)]
+    return out
 _AS_KIND: list[tuple[ModelParams, ModelKind, ModelParams]] = []  # the last params → params of another kind
 
 
@@ -647,7 +659,7 @@ def fit_label_valid(
     if terms is None or not terms.matches(model, prior, params.prior_weight):  # e.g. a BEV run's, or points without z
         terms = box_prior_terms(y, prior, params.prior_weight, model)
     phi_label, P0 = terms.phi, terms.P0
-    S_tol = terms.G.dot(prior_cov_extended_cached(_TOLERANCE, model)).dot(terms.G.T)  # ndarray.dot: the BLAS products of @, less overhead
+    S_tol = terms.G.dot(prior_cov_extended_cached(_tolerance_prior(), model)).dot(terms.G.T)  # ndarray.dot: the BLAS products of @, less overhead
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM

@@ -138,6 +138,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     # which copy is kept, and in which order, changes no flag (a point is foreign when any label holds it)
     others = np.array(list(dict.fromkeys(map(tuple, others.tolist()))), dtype=float).reshape(-1, 7)
     tau = C.FREE_SPACE_TOLERANCE
+    tau_in = C.FREE_SPACE_INSIDE_TOLERANCE
     wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
     # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
     buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
@@ -178,7 +179,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, sel[j], rotations[j], sel[j, 5] > 0)
         fs = FreeSpace(
             origin=o, ends=ray_ends[j], ground=planes[j], ref=box[:2].copy(),
-            slab=(slab_list[j][0], slab_list[j][1]), tolerance=tau, object_height=crop.ground_cut,
+            slab=(slab_list[j][0], slab_list[j][1]), tolerance=tau, inside_tolerance=tau_in, object_height=crop.ground_cut,
         )
         out.append(BoxEvidence(model_idx, fit_idx, idx, fs, ground_list[j], int(n_foreign), int(n_scenery)))
     return out
