@@ -1,9 +1,10 @@
 #!/usr/bin/env python
-"""Benchmark the simulator: frames/s and points/frame, ray-casting alone and writing a KITTI dataset.
+"""Benchmark the simulator: frames/s and points/frame, ray-casting alone, writing a KITTI dataset, and
+simulated sequences (Waymo v2 segments, Argoverse 2 logs) at the sensors' real resolution.
 
 Usage::
 
-    .venv/bin/python scripts/bench_simulate.py [--frames 500] [--workers 1 2] [--keep DIR]
+    .venv/bin/python scripts/bench_simulate.py [--frames 500] [--workers 1 2] [--keep DIR] [--sequence-frames 50]
 
 Prints one line per measurement. The dataset is written to a temporary folder and removed
 (unless ``--keep``); 500 KITTI-size frames take about 0.8 GB.
@@ -84,6 +85,11 @@ def realism(realdata: Path, frames: int) -> None:
             if f.labels.object_index[j] >= 0 and f.labels.occluded[j] == 0 and o.class_name in ("Car", "Van", "Truck"):
                 rows["sim"].append((float(np.hypot(o.box[0], o.box[1])), _points_in_box(f.points, o.box)))
     print("points in unoccluded vehicle boxes (median [min, max], count) by distance:")
+    _print_by_distance(rows)
+
+
+def _print_by_distance(rows: dict[str, list[tuple[float, int]]]) -> None:
+    """One line per distance bin: median [min, max] and count of the point counts of each source."""
     for lo, hi in ((0, 10), (10, 20), (20, 30), (30, 45), (45, 70)):
         cells = []
         for name in ("real", "sim"):
@@ -92,12 +98,54 @@ def realism(realdata: Path, frames: int) -> None:
         print(f"  {lo:2d}-{hi:2d} m: " + "   ".join(cells))
 
 
+def bench_sequences(fmt: str, sequences: int, frames: int) -> None:
+    """simulate_sequences end to end (files + manifest), real sensor resolution."""
+    from labelaudit.sim.dataset import simulate_sequences
+
+    root = Path(tempfile.mkdtemp(prefix="labelaudit-bench-seq-"))
+    try:
+        s = simulate_sequences(root / "ds", fmt, sequences=sequences, frames=frames, seed=0, noise=NoiseSpec.benchmark(), size="real", progress=False)
+        size = sum(p.stat().st_size for p in (root / "ds").rglob("*") if p.is_file()) / 1e9
+        print(
+            f"simulate {fmt:8s}: {sequences} x {frames} frames in {s.seconds:6.2f} s = {s.frames_per_second:6.1f} frames/s, "
+            f"{s.points_per_frame:9.0f} points/frame, {s.num_labels / s.frames:4.1f} labels/frame, {size:.2f} GB written"
+        )
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def realism_av2(realdata: Path, frames: int) -> None:
+    """Points per sweep and in REGULAR_VEHICLE boxes by distance: the real AV2 sweeps vs simulated logs."""
+    from labelaudit.datasets import open_dataset
+    from labelaudit.sim.av2_writer import simulate_av2_log
+
+    rows: dict[str, list[tuple[float, int]]] = {"real": [], "sim": []}
+    sweeps: dict[str, list[int]] = {"real": [], "sim": []}
+    root = realdata / "av2-sensor"
+    if root.is_dir():
+        reader = open_dataset(root, "av2")
+        for ref in reader.list_units():
+            for f in reader.load_unit(ref):
+                if len(f.points):
+                    sweeps["real"].append(len(f.points))
+                    rows["real"] += [(float(np.hypot(b[0], b[1])), int(n)) for b, c, n in zip(f.boxes, f.class_names, f.extras["num_lidar_points_in_box"]) if c == "REGULAR_VEHICLE"]
+    log = simulate_av2_log(seed=0, frames=frames, size="real")
+    for fr in log.frames:
+        sweeps["sim"].append(len(fr.points))
+        rows["sim"] += [(float(np.hypot(b[0], b[1])), int(n)) for b, c, n in zip(fr.boxes, fr.categories, fr.num_interior_pts) if c == "REGULAR_VEHICLE"]
+    print("AV2 points per sweep: " + "   ".join(f"{k} {np.median(v):.0f} (n={len(v)})" for k, v in sweeps.items() if v))
+    print("AV2 points in REGULAR_VEHICLE boxes (median [min, max], count) by distance (all boxes, occluded included):")
+    _print_by_distance(rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=500)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--raycast-frames", type=int, default=100)
     ap.add_argument("--keep", type=Path, default=None, help="write the dataset here and keep it")
+    ap.add_argument("--sequences", type=int, default=2, help="Waymo v2 segments / AV2 logs simulated")
+    ap.add_argument("--sequence-frames", type=int, default=20, help="frames per simulated sequence")
     ap.add_argument("--realdata", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "realdata",
                     help="real KITTI frames to compare point densities with (skipped when absent)")
     args = ap.parse_args()
@@ -108,6 +156,9 @@ def main() -> None:
     realism(args.realdata, 30)
     for w in args.workers:
         bench_dataset(args.frames, w, lidar, args.keep)
+    realism_av2(args.realdata, 10)
+    for fmt in ("av2", "waymo-v2"):
+        bench_sequences(fmt, args.sequences, args.sequence_frames)
 
 
 if __name__ == "__main__":

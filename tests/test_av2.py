@@ -15,7 +15,7 @@ from labelaudit.config import resolve_config
 from labelaudit.core.geometry import quaternion_to_matrix, quaternion_yaw, rotation_z, yaw_quaternion
 from labelaudit.datasets import DatasetError, Frame, FrameFailure, detect_format, open_dataset
 from labelaudit.datasets.av2 import ANNOTATIONS, POSES, SWEEP_DIR, Av2Reader, find_logs, read_city_poses
-from labelaudit.executors import PoolExecutor, SerialExecutor
+from labelaudit.executors import SerialExecutor
 from labelaudit.infer.crop import points_in_boxes_numpy
 from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.results import open_results
@@ -349,23 +349,6 @@ def test_infer_on_the_real_logs(realdata: Path, tmp_path: Path) -> None:
         assert all(len(r["object_id"]) == 36 and r["object_id"].count("-") == 4 for r in rs)  # track uuids
     errors = open_results(tmp_path / "res").errors().to_pylist()
     assert sum("no sweep" in e["message"] for e in errors) == 2 and all(e["level"] == "warning" for e in errors)
-
-
-@pytest.mark.slow
-def test_rows_identical_across_workers_and_resume(tmp_path: Path) -> None:
-    for k in range(3):
-        make_log(tmp_path / "data", sweeps=(0, 1, 2), log_id=f"{LOG[:-1]}{k}")
-    root = tmp_path / "data"
-    cfg = resolve_config(None, "av2")
-    s1 = run_infer(InferRequest(root, tmp_path / "w1"), cfg, executor=SerialExecutor())
-    s2 = run_infer(InferRequest(root, tmp_path / "w2"), cfg, executor=PoolExecutor(2))
-    assert s1.chunks == s2.chunks == 3
-    rows1 = _rows(tmp_path / "w1")
-    assert rows1 == _rows(tmp_path / "w2") and len(rows1) == 18
-    assert {r["status"] for r in rows1} == {"ok"}
-    # a resumed run finds every shard and leaves the rows as they were
-    s3 = run_infer(InferRequest(root, tmp_path / "w1"), cfg, executor=SerialExecutor())
-    assert s3.chunks_skipped == 3 and _rows(tmp_path / "w1") == rows1
 
 
 def test_waymo_frames_carry_their_pose(tmp_path: Path) -> None:

@@ -1,7 +1,8 @@
-"""``labelaudit simulate``: write a synthetic KITTI-layout dataset with injected label noise."""
+"""``labelaudit simulate``: write a synthetic dataset (KITTI, Waymo v1/v2, Argoverse 2) with injected label noise."""
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 
 import typer
@@ -11,36 +12,55 @@ from labelaudit import constants as C
 from labelaudit.cli.app import app, err, handle_errors
 
 
+class SimFormat(str, Enum):
+    kitti = "kitti"
+    waymo_v2 = "waymo-v2"
+    waymo_v1 = "waymo-v1"
+    av2 = "av2"
+
+
+class SensorSize(str, Enum):
+    real = "real"
+    small = "small"
+
+
 @app.command()
 def simulate(
-    out: Path = typer.Argument(..., help="Folder to write the KITTI-format dataset to."),
-    frames: int = typer.Option(20, "--frames", help="Number of frames."),
+    out: Path = typer.Argument(..., help="Folder to write the dataset to."),
+    dataset_format: SimFormat = typer.Option(SimFormat.kitti, "--dataset-format", help="kitti (single frames), or sequences with track ids and a moving ego vehicle: waymo-v2, waymo-v1, av2."),
+    frames: int = typer.Option(20, "--frames", help="Number of frames (per sequence for waymo-v2, waymo-v1, av2)."),
+    sequences: int = typer.Option(2, "--sequences", help="waymo-v2, waymo-v1, av2: number of segments / logs."),
+    size: SensorSize = typer.Option(SensorSize.real, "--size", help="waymo-v2, waymo-v1, av2: the sensors' real resolution, or small (fewer rays, quick)."),
     seed: int = typer.Option(0, "--seed", help="Random seed (same seed, same dataset)."),
     noise_fraction: float = typer.Option(0.2, "--noise-fraction", help="Share of vehicle labels with Gaussian jitter."),
     noise_center_std: float = typer.Option(C.SIM_BENCH_NOISE[0], "--noise-center-std", help="Jitter std of the centre (m)."),
     noise_size_std: float = typer.Option(C.SIM_BENCH_NOISE[1], "--noise-size-std", help="Jitter std of length and width (m)."),
     noise_yaw_std: float = typer.Option(C.SIM_BENCH_NOISE[2], "--noise-yaw-std", help="Jitter std of the yaw (rad)."),
     gross_fraction: float = typer.Option(0.02, "--gross-fraction", help="Share of vehicle labels with a gross error (shifted 1 m, swapped l/w, turned 90°)."),
-    workers: int = typer.Option(1, "--workers", help="Worker processes (same files for any count)."),
-    detections: bool = typer.Option(False, "--detections", help="Also write a synthetic detector's output (OUT/detections/, KITTI result format) for `labelaudit eval`."),
+    workers: int = typer.Option(1, "--workers", help="KITTI: worker processes (same files for any count)."),
+    detections: bool = typer.Option(False, "--detections", help="KITTI: also write a synthetic detector's output (OUT/detections/, KITTI result format) for `labelaudit eval`."),
     detections_cov: bool = typer.Option(False, "--detections-cov", help="With --detections: a probabilistic detector, per-detection std in OUT/detections.parquet."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a simulated dataset already in OUT."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
-    """Write a synthetic LiDAR dataset in KITTI layout with known, injected label noise.
+    """Write a synthetic LiDAR dataset (KITTI, Waymo v2/v1 or Argoverse 2 layout) with known, injected label noise.
 
-    manifest.parquet in OUT records every object's true box, written box and perturbation (docs/simulator.md). --detections adds a synthetic detector (localisation noise growing with distance, misses, false positives, scores that follow quality; docs/eval.md).
+    manifest.parquet in OUT records every object's true box, written box and perturbation (docs/simulator.md). Waymo segments and AV2 logs are sequences: a static scene seen from an ego vehicle driving through it, each object one track id, ego poses in the files; the noise options perturb the vehicle labels of every frame. --detections adds a synthetic detector (localisation noise growing with distance, misses, false positives, scores that follow quality; docs/eval.md).
 
     [bold]Examples[/bold]
 
       labelaudit simulate sim/ --frames 100 --seed 1
 
+      labelaudit simulate sim-av2/ --dataset-format av2 --sequences 4 --frames 50 && labelaudit infer sim-av2/
+
+      labelaudit simulate sim-waymo/ --dataset-format waymo-v2 --sequences 2 --frames 20 --size small
+
       labelaudit simulate sim/ --noise-fraction 0.3 --noise-center-std 0.2 --gross-fraction 0.05
 
       labelaudit simulate sim/ --frames 50 --detections && labelaudit eval sim/ sim/detections
     """
-    from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.dataset import simulate_dataset, simulate_sequences
     from labelaudit.sim.noise import NoiseSpec
 
     with handle_errors(debug):
@@ -48,14 +68,27 @@ def simulate(
             raise typer.BadParameter(f"must be ≥ 1, got {frames}", param_hint="--frames")
         if workers < 1:
             raise typer.BadParameter(f"must be ≥ 1, got {workers}", param_hint="--workers")
+        if sequences < 1:
+            raise typer.BadParameter(f"must be ≥ 1, got {sequences}", param_hint="--sequences")
         if detections_cov and not detections:
             raise typer.BadParameter("needs --detections", param_hint="--detections-cov")
+        sequence = dataset_format is not SimFormat.kitti
+        if sequence and detections:
+            raise typer.BadParameter(f"the synthetic detector writes KITTI result files; not available for {dataset_format.value}", param_hint="--detections")
+        if sequence and workers > 1:
+            raise typer.BadParameter(f"{dataset_format.value} sequences are simulated in one process", param_hint="--workers")
         try:
             spec = NoiseSpec(fraction=noise_fraction, center_std=noise_center_std, size_std=noise_size_std, yaw_std=noise_yaw_std, gross_fraction=gross_fraction)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--noise-*/--gross-fraction") from None
-        simulate_dataset(out, frames=frames, seed=seed, noise=spec, progress=not quiet, workers=workers, overwrite=overwrite)
-        err().print(f"wrote {frames} frames to {escape(str(out))} (next: labelaudit infer {escape(str(out))})", soft_wrap=True)
+        if sequence:
+            summary = simulate_sequences(out, dataset_format.value, sequences=sequences, frames=frames, seed=seed, noise=spec,
+                                         size=size.value, progress=not quiet, overwrite=overwrite)
+            what = f"{sequences} {'log' if dataset_format is SimFormat.av2 else 'segment'}(s) of {frames} frames ({summary.num_labels} labels)"
+        else:
+            simulate_dataset(out, frames=frames, seed=seed, noise=spec, progress=not quiet, workers=workers, overwrite=overwrite)
+            what = f"{frames} frames"
+        err().print(f"wrote {what} to {escape(str(out))} (next: labelaudit infer {escape(str(out))})", soft_wrap=True)
         if detections:
             from labelaudit.sim.detector import DetectorSpec, simulate_detections
 

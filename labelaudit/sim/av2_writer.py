@@ -1,24 +1,37 @@
-"""Argoverse 2 sensor-dataset files: write cuboids, sweeps, ego poses and calibration of a log.
+"""Simulated Argoverse 2 logs, and the writers of AV2's files: cuboids, sweeps, ego poses, calibration.
 Test and benchmark fixtures in the layout :mod:`labelaudit.datasets.av2` reads; it never audits.
 
 The file writers take whatever boxes and points they are given (a simulated sequence, a perturbed
 copy of real annotations, a hand-made bad file), in the column names and types of the real
 dataset: cuboids as float64 with a quaternion per row, sweeps as float16 ``x, y, z`` with uint8
-``intensity`` and ``laser_number`` and int32 ``offset_ns``.
+``intensity`` and ``laser_number`` and int32 ``offset_ns``. :func:`simulate_av2_log` renders a log
+with the Waymo simulator's scene, ego motion and label noise and AV2's two lidars;
+:func:`write_av2_log` writes any :class:`SimAv2Log` (its frames' boxes as they are, so noise
+added to them afterwards is written too).
 """
 
 from __future__ import annotations
 
+import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.feather as feather
+import pyarrow.parquet as pq
 from numpy.typing import ArrayLike, NDArray
 
+from labelaudit import constants as C
 from labelaudit.core.geometry import yaw_quaternion
 from labelaudit.datasets import av2
+from labelaudit.infer.crop import points_in_boxes_numpy
+from labelaudit.sim.noise import NoiseSpec, perturb_boxes
+from labelaudit.sim.raycast import LidarSpec, render_range_image
+from labelaudit.sim.scene import SceneSpec, sample_scene
+from labelaudit.sim.waymo_writer import _scene_in_vehicle as scene_in_vehicle
+from labelaudit.sim.waymo_writer import planar_motion, planar_pose
 
 FloatArray = NDArray[np.float64]
 
@@ -130,4 +143,223 @@ def _write(path: str | Path, table: pa.Table) -> Path:
     return path
 
 
-__all__ = ["write_annotations", "write_calibration", "write_poses", "write_sweep"]
+
+
+# --------------------------------------------------------------------------- simulated logs
+
+# The simulator's classes → AV2 categories (AV2's REGULAR_VEHICLE includes vans; a rider is BICYCLIST).
+AV2_CATEGORY = {"Car": "REGULAR_VEHICLE", "Van": "REGULAR_VEHICLE", "Truck": "BOX_TRUCK", "Pedestrian": "PEDESTRIAN", "Cyclist": "BICYCLIST"}
+# Elevations (deg) of the 32 lasers of a VLP-32C, top first: dense around the horizon.
+VLP32C_INCLINATION_DEG = (
+    15.0, 10.33, 7.0, 4.67, 3.33, 2.33, 1.67, 1.33, 1.0, 0.67, 0.33, 0.0, -0.33, -0.67, -1.0, -1.33,
+    -1.67, -2.0, -2.33, -2.67, -3.0, -3.33, -3.67, -4.0, -4.67, -5.33, -6.15, -7.25, -8.84, -11.31, -15.64, -25.0,
+)
+AV2_COLUMNS = {"real": 1800, "small": 360}  # azimuth columns per sweep: 0.2° (VLP-32C at 10 Hz), or a cheap 1°
+AV2_MAX_RANGE = 200.0  # m; VLP-32C
+SWEEP_NS = 100_000_000  # 10 Hz
+AV2_T0 = 315_966_265_259_836_000  # ns; timestamps start where the real val logs do (+ 1 s per seed)
+MANIFEST_COLUMNS = ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation")  # as the Waymo simulator's
+
+
+@dataclass
+class SimAv2Frame:
+    """One simulated sweep with its labels (egovehicle frame).
+
+    Attributes
+    ----------
+    timestamp : ns
+    pose : (4, 4) egovehicle → city
+    points : (N, 4) float32 x, y, z, intensity (0–255) as the reader returns them (float16-rounded)
+    laser_number : (N,) 0–31 up lidar, 32–63 down lidar
+    offset_ns : (N,) capture time after the sweep timestamp
+    boxes : (K, 7) written labels; true_boxes (K, 7) before label noise
+    categories, track_ids, sim_classes, perturbation : K strings each
+    num_interior_pts : (K,) points of ``points`` inside each written box (boundary included)
+    """
+
+    timestamp: int
+    pose: FloatArray
+    points: NDArray[np.float32]
+    laser_number: NDArray[np.uint8]
+    offset_ns: NDArray[np.int32]
+    boxes: FloatArray
+    true_boxes: FloatArray
+    categories: list[str]
+    track_ids: list[str]
+    sim_classes: list[str]
+    perturbation: list[str]
+    num_interior_pts: NDArray[np.int64]
+
+
+@dataclass
+class SimAv2Log:
+    log_id: str
+    mounts: dict[str, tuple[float, float, float]]
+    frames: list[SimAv2Frame] = field(default_factory=list)
+
+
+def _uuid(rng: np.random.Generator) -> str:
+    """A version-4 UUID string drawn from ``rng`` (reproducible, unlike uuid.uuid4)."""
+    return str(uuid.UUID(bytes=rng.bytes(16), version=4))
+
+
+def av2_lidar_spec(size: str = "small", noise: bool = True) -> LidarSpec:
+    """One of AV2's two VLP-32C: 32 lasers, 0.2° azimuth step (``"small"``: 1°)."""
+    if size not in AV2_COLUMNS:
+        raise ValueError(f"size must be one of {sorted(AV2_COLUMNS)}, got {size!r}")
+    kw = {} if noise else {"range_noise_std": 0.0, "dropout": 0.0, "far_dropout": 0.0}
+    return LidarSpec(beams=len(VLP32C_INCLINATION_DEG), columns=AV2_COLUMNS[size], inclinations_deg=VLP32C_INCLINATION_DEG,
+                     min_range=1.0, max_range=AV2_MAX_RANGE, **kw)
+
+
+def simulate_av2_log(
+    seed: int = 0,
+    frames: int = 3,
+    size: str = "small",
+    speed: float = 8.0,
+    yaw_rate: float = 0.2,
+    noise: bool = True,
+    label_noise: NoiseSpec | None = None,
+    scene_spec: SceneSpec | None = None,
+    world_offset: tuple[float, float] = (5200.0, 2380.0),
+) -> SimAv2Log:
+    """Render an Argoverse 2 log: a static scene seen from an ego vehicle driving through it.
+
+    The scene, the ego motion and the label noise are the Waymo simulator's
+    (:func:`~labelaudit.sim.waymo_writer.simulate_waymo_segment`); the sensors are AV2's two
+    VLP-32C at the rig's mounts (both upright here; the real down lidar hangs upside down, which
+    changes which elevations it covers, not where its rays start). Every sweep is rendered from
+    the frame's pose, so its points are where the labels are (no motion distortion), as the reader
+    assumes; ``offset_ns`` is each column's capture time within the sweep, for the record.
+    Every object keeps one track uuid for the whole log.
+
+    Parameters
+    ----------
+    seed : scene, sensor-noise and id seed
+    frames : sweeps at 10 Hz
+    size : "small" (1° azimuth step, tests) or "real" (0.2°, ~2 × 57k rays)
+    speed, yaw_rate : ego motion (m/s, rad/s)
+    noise : range noise and dropout of the sensors
+    label_noise : label noise injected into the written boxes (vehicles, per frame)
+    scene_spec : object counts and distances (default: the simulator's, labelled all around)
+    world_offset : where the scene sits in the city frame
+    """
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    rng = np.random.default_rng([seed, 21])
+    spec = scene_spec or SceneSpec(front_fraction=0.0)  # AV2 labels 360°: objects all around
+    scene_v = sample_scene(rng, spec, ground_z=0.0)
+    start = planar_pose(*world_offset, 0.0)
+    world = scene_in_vehicle(scene_v, np.linalg.inv(start))  # drawn around the ego at t = 0
+    log = SimAv2Log(_uuid(rng), {n: tuple(C.AV2_LIDAR_MOUNTS[n]) for n in av2.LIDARS})
+    tracks = [_uuid(rng) for _ in world.objects]
+    classes = [o.class_name for o in world.objects]
+    lidar = av2_lidar_spec(size, noise)
+    t0 = AV2_T0 + seed * 1_000_000_000
+    for f in range(frames):
+        t = f * SWEEP_NS / 1e9
+        pose = start @ planar_motion(speed, yaw_rate, t)
+        local = scene_in_vehicle(world, pose)
+        parts, lasers, offsets = [], [], []
+        for k, name in enumerate(av2.LIDARS):
+            x, y, z = log.mounts[name]
+            mount = planar_pose(x, y, 0.0)
+            mount[2, 3] = z
+            image = render_range_image(local, lidar, mount, rng if noise else None)
+            pts, _ = image.points("scene")
+            rows, cols = np.nonzero(image.valid)
+            parts.append(pts)
+            lasers.append((32 * k + rows).astype(np.uint8))
+            # column j is captured (j + ½)/W into the sweep; the down lidar fires half a turn later
+            offsets.append((((cols + 0.5) / lidar.columns + 0.5 * k) % 1.0 * SWEEP_NS).astype(np.int32))
+        points = np.concatenate(parts)
+        points[:, 3] = np.clip(np.rint(points[:, 3] * 255.0), 0, 255)
+        points[:, :3] = points[:, :3].astype(np.float16)  # what the file keeps
+        true_boxes = local.boxes
+        if label_noise is not None:
+            boxes, kinds = perturb_boxes(true_boxes, classes, label_noise, np.random.default_rng([seed, f, 7]))
+        else:
+            boxes, kinds = true_boxes.copy(), ["none"] * len(classes)
+        counts = np.array([len(i) for i in points_in_boxes_numpy(points, boxes)], dtype=np.int64)
+        log.frames.append(SimAv2Frame(
+            t0 + f * SWEEP_NS, pose, points, np.concatenate(lasers), np.concatenate(offsets), boxes, true_boxes,
+            [AV2_CATEGORY.get(c, c.upper()) for c in classes], list(tracks), list(classes), list(kinds), counts,
+        ))
+    return log
+
+
+def write_av2_log(log: SimAv2Log, root: str | Path, *, sweeps: bool = True) -> Path:
+    """Write a log under ``root/<log_id>/`` (annotations, sweeps, poses, calibration); returns the log folder.
+
+    ``sweeps=False`` writes the labels and poses only (a log as the av2-api test data ships it:
+    annotation-only timestamps). Ego poses are written at every sweep timestamp and three times
+    between sweeps, as AV2's pose stream is denser than its sweeps.
+    """
+    folder = Path(root) / log.log_id
+    frames = log.frames
+    ts = [fr.timestamp for fr in frames for _ in range(len(fr.boxes))]
+    write_annotations(
+        folder / av2.ANNOTATIONS, ts, np.concatenate([fr.boxes for fr in frames]).reshape(-1, 7),
+        [c for fr in frames for c in fr.categories], [t for fr in frames for t in fr.track_ids],
+        np.concatenate([fr.num_interior_pts for fr in frames]),
+    )
+    if sweeps:
+        for fr in frames:
+            write_sweep(folder / av2.SWEEP_DIR / f"{fr.timestamp}.feather", fr.points, fr.laser_number, fr.offset_ns)
+    pose_ts, poses = [], []
+    for a, b in zip(frames, frames[1:] + frames[-1:]):
+        for q in range(4 if b is not a else 1):
+            pose_ts.append(a.timestamp + q * (b.timestamp - a.timestamp) // 4)
+            poses.append(_interpolate_planar(a.pose, b.pose, q / 4.0))
+    write_poses(folder / av2.POSES, pose_ts, poses)
+    write_calibration(folder / av2.CALIBRATION, {n: np.asarray(p) for n, p in log.mounts.items()})
+    return folder
+
+
+def _interpolate_planar(a: FloatArray, b: FloatArray, s: float) -> FloatArray:
+    """The planar pose a fraction ``s`` of the way from ``a`` to ``b`` (yaw and translation linear)."""
+    ya, yb = np.arctan2(a[1, 0], a[0, 0]), np.arctan2(b[1, 0], b[0, 0])
+    yaw = ya + s * np.arctan2(np.sin(yb - ya), np.cos(yb - ya))
+    out = planar_pose(*(a[:2, 3] + s * (b[:2, 3] - a[:2, 3])), yaw)
+    out[2, 3] = a[2, 3] + s * (b[2, 3] - a[2, 3])
+    return out
+
+
+def av2_manifest_rows(log: SimAv2Log) -> dict[str, list]:
+    """Manifest rows of a log (the columns of :func:`~labelaudit.sim.waymo_writer.write_manifest`)."""
+    rows: dict[str, list] = {k: [] for k in MANIFEST_COLUMNS}
+    for fr in log.frames:
+        for k in range(len(fr.boxes)):
+            rows["frame_id"].append(f"{log.log_id}:{fr.timestamp}")
+            rows["object_id"].append(fr.track_ids[k])
+            rows["class_name"].append(fr.categories[k])
+            rows["sim_class"].append(fr.sim_classes[k])
+            rows["true_box"].append([float(v) for v in fr.true_boxes[k]])
+            rows["written_box"].append([float(v) for v in fr.boxes[k]])
+            rows["perturbation"].append(fr.perturbation[k])
+    return rows
+
+
+def simulate_av2_dataset(
+    out_dir: str | Path, logs: int = 2, frames: int = 3, seed: int = 0, size: str = "small",
+    label_noise: NoiseSpec | None = None, split: str = "val",
+) -> Path:
+    """Simulate ``logs`` AV2 logs into ``out_dir/<split>/<log_id>/`` and ``out_dir/manifest.parquet``
+    (true vs written box per object and frame); returns the split folder."""
+    out = Path(out_dir)
+    logs_ = [simulate_av2_log(seed=seed + i, frames=frames, size=size, label_noise=label_noise) for i in range(logs)]
+    for log in logs_:
+        write_av2_log(log, out / split)
+    rows: dict[str, list] = {k: [] for k in MANIFEST_COLUMNS}
+    for log in logs_:
+        for k, v in av2_manifest_rows(log).items():
+            rows[k].extend(v)
+    out.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.table(rows), out / "manifest.parquet")
+    return out / split
+
+
+__all__ = [
+    "SimAv2Frame", "SimAv2Log", "av2_lidar_spec", "av2_manifest_rows", "simulate_av2_dataset", "simulate_av2_log",
+    "write_annotations", "write_av2_log", "write_calibration", "write_poses", "write_sweep",
+]

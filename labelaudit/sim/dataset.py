@@ -22,7 +22,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -48,8 +48,11 @@ __all__ = [
     "SimulationSummary",
     "frame_generators",
     "render_range_image",
+    "SEQUENCE_FORMATS",
+    "prepare_output",
     "simulate_dataset",
     "simulate_frame",
+    "simulate_sequences",
     "write_manifest",
 ]
 
@@ -203,13 +206,14 @@ def write_manifest(out_dir: str | Path, rows: list[dict[str, list[Any]]], metada
 
 @dataclass
 class SimulationSummary:
-    """What :func:`simulate_dataset` wrote.
+    """What :func:`simulate_dataset` (KITTI) or :func:`simulate_sequences` (Waymo, AV2) wrote.
 
     Attributes
     ----------
-    out_dir : dataset root (holds ``training/``, ``ImageSets/``, ``manifest.parquet``)
+    out_dir : dataset root (holds ``training/``, ``ImageSets/``, ``manifest.parquet``; sequences:
+        the format's folder and ``manifest.parquet``)
     manifest : path of the manifest
-    frames : frames written
+    frames : frames written (all sequences)
     seed : the dataset seed
     num_points : LiDAR points written, all frames
     num_objects : objects in all scenes
@@ -256,6 +260,112 @@ def _write_one(job: tuple[int, dict[str, Any]]) -> tuple[int, dict[str, list[Any
 _OWNED = ("training", "ImageSets", MANIFEST_NAME)
 
 
+def prepare_output(out_dir: str | Path, owned: Sequence[str], overwrite: bool) -> Path:
+    """Create the output folder of a simulation; with ``overwrite``, first remove what a previous
+    simulation wrote there (the ``owned`` names only, nothing else in the folder).
+
+    Raises
+    ------
+    UsageError
+        The path is a file or cannot be created.
+    OutputExistsError
+        One of ``owned`` exists and ``overwrite`` is false.
+    """
+    out = Path(out_dir)
+    try:
+        if out.exists() and not out.is_dir():
+            raise UsageError(f"{out}: exists and is not a folder; choose another output folder")
+        existing = [out / name for name in owned if os.path.lexists(out / name)]
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise UsageError(f"{out}: cannot use this output folder ({exc.strerror or exc})") from None
+    if existing:
+        if not overwrite:
+            raise OutputExistsError(f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite it (--overwrite)")
+        for p in existing:
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a dangling link, a path under a file …
+        raise UsageError(f"{out}: cannot create the output folder ({exc.strerror or exc}); choose another one") from None
+    return out
+
+
+SEQUENCE_FORMATS: dict[str, str] = {"waymo-v2": "waymo_v2", "waymo-v1": "waymo_v1", "av2": "val"}
+"""Simulated sequence formats and the folder each writes under OUT (AV2: the ``val`` split)."""
+
+
+def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: int = 2, frames: int = 10, seed: int = 0,
+                       noise: NoiseSpec = NoiseSpec(), size: str = "real", progress: bool = True,
+                       overwrite: bool = False) -> SimulationSummary:
+    """Simulate Waymo segments or Argoverse 2 logs: sequences with track ids and a moving ego vehicle.
+
+    Sequence ``i`` is drawn from seed ``seed + i`` (:func:`~labelaudit.sim.waymo_writer.simulate_waymo_segment`,
+    :func:`~labelaudit.sim.av2_writer.simulate_av2_log`): a static scene seen from an ego vehicle
+    driving through it, every object one track id for the whole sequence, ``noise`` injected per
+    frame into the written vehicle boxes. Writes ``OUT/waymo_v2/<component>/<segment>.parquet``,
+    ``OUT/waymo_v1/<segment>.tfrecord`` or ``OUT/val/<log_id>/…`` and ``OUT/manifest.parquet``
+    (frame_id, object_id, class_name, sim_class, true_box, written_box, perturbation per object
+    and frame).
+
+    Parameters
+    ----------
+    dataset_format : "waymo-v2", "waymo-v1" or "av2"
+    sequences : segments / logs
+    frames : frames per sequence (10 Hz)
+    size : "real" (the sensors' resolution) or "small" (fewer rays, for tests)
+
+    Raises
+    ------
+    UsageError
+        Bad format, counts or size, or an output folder that cannot be used.
+    OutputExistsError
+        OUT already holds this format's folder or a manifest and ``overwrite`` is false.
+    """
+    from labelaudit.sim import av2_writer, waymo_writer
+
+    if dataset_format not in SEQUENCE_FORMATS:
+        raise UsageError(f"dataset format must be one of {', '.join(SEQUENCE_FORMATS)}, got {dataset_format!r}")
+    if sequences < 1 or frames < 1:
+        raise UsageError(f"sequences and frames must be >= 1, got {sequences} and {frames}")
+    if seed < 0:
+        raise UsageError(f"seed must be >= 0, got {seed}")
+    if size not in ("real", "small"):
+        raise UsageError(f"size must be 'real' or 'small', got {size!r}")
+    folder = SEQUENCE_FORMATS[dataset_format]
+    out = prepare_output(out_dir, (folder, MANIFEST_NAME), overwrite)
+    start = time.perf_counter()
+    num_points = 0
+    segments: list[Any] = []
+    manifest_rows: dict[str, list[Any]] = {}
+    for i in tqdm(range(sequences), desc="simulate", unit="sequence", file=sys.stderr, disable=not progress):
+        if dataset_format == "av2":
+            log = av2_writer.simulate_av2_log(seed=seed + i, frames=frames, size=size, label_noise=noise)
+            av2_writer.write_av2_log(log, out / folder)
+            num_points += sum(len(fr.points) for fr in log.frames)
+            for k, v in av2_writer.av2_manifest_rows(log).items():
+                manifest_rows.setdefault(k, []).extend(v)
+            continue
+        seg = waymo_writer.simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=noise)
+        if dataset_format == "waymo-v2":
+            waymo_writer.write_waymo_v2(seg, out / folder)
+        else:
+            waymo_writer.write_waymo_v1(seg, out / folder / f"{seg.name}.tfrecord")
+        num_points += sum(len(fr.points) for fr in seg.frames)
+        segments.append(seg)
+    manifest = out / MANIFEST_NAME
+    if dataset_format == "av2":
+        pq.write_table(pa.table(manifest_rows), manifest)
+    else:
+        waymo_writer.write_manifest(segments, manifest)
+    kinds = np.asarray(pq.read_table(manifest, columns=["perturbation"]).column("perturbation").to_pylist(), dtype=object)
+    return SimulationSummary(
+        out_dir=out, manifest=manifest, frames=sequences * frames, seed=seed, num_points=num_points,
+        num_objects=len(kinds), num_labels=len(kinds),
+        perturbations={k: int(np.count_nonzero(kinds == k)) for k in PERTURBATION_KINDS},
+        seconds=time.perf_counter() - start,
+    )
+
+
 def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
                      lidar: LidarSpec = LidarSpec(), workers: int = 1, progress: bool = True,
                      scene: SceneSpec = SceneSpec(), label_fov: str = "camera", label_precision: int | None = 2,
@@ -299,23 +409,7 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         raise UsageError(f"label_fov must be 'camera' or 'all', got {label_fov!r}")
     if label_precision is not None and not (isinstance(label_precision, int) and 0 <= label_precision <= 17):
         raise UsageError(f"label_precision must be None or an integer 0..17, got {label_precision!r}")
-    out = Path(out_dir)
-    try:
-        if out.exists() and not out.is_dir():
-            raise UsageError(f"{out}: exists and is not a folder; choose another output folder")
-        existing = [out / name for name in _OWNED if os.path.lexists(out / name)]
-    except OSError as exc:  # e.g. a name too long for the file system
-        raise UsageError(f"{out}: cannot use this output folder ({exc.strerror or exc})") from None
-    if existing:
-        if not overwrite:
-            raise OutputExistsError(f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite it (--overwrite)")
-        for p in existing:
-            shutil.rmtree(p) if p.is_dir() else p.unlink()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:  # a dangling link, a path under a file …
-        raise UsageError(f"{out}: cannot create the output folder ({exc.strerror or exc}); choose another one") from None
-
+    out = prepare_output(out_dir, _OWNED, overwrite)
     start = time.perf_counter()
     opts = {"out_dir": out, "seed": seed, "noise": noise, "lidar": lidar, "scene_spec": scene,
             "label_fov": label_fov, "label_precision": label_precision}

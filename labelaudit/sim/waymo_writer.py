@@ -98,6 +98,17 @@ def planar_pose(x: float, y: float, yaw: float) -> FloatArray:
     return _extrinsic(x, y, 0.0, yaw)
 
 
+def planar_motion(speed: float, yaw_rate: float, t: float) -> FloatArray:
+    """(4, 4) pose after ``t`` seconds of driving at constant ``speed`` (m/s) and ``yaw_rate``
+    (rad/s) from the identity pose: a circular arc (a straight line when the yaw rate is 0)."""
+    yaw = yaw_rate * t
+    if abs(yaw_rate) < 1e-12:
+        x, y = speed * t, 0.0
+    else:
+        x, y = speed / yaw_rate * np.sin(yaw), speed / yaw_rate * (1.0 - np.cos(yaw))
+    return planar_pose(x, y, yaw)
+
+
 @dataclass
 class SimLidarFrame:
     """What one lidar wrote in one frame: (H, W, 4) images per return, TOP pixel pose (H, W, 6)."""
@@ -211,12 +222,7 @@ def simulate_waymo_segment(
     t0 = 1_600_000_000_000_000 + seed * 1_000_000_000
 
     def pose_at(t: float) -> FloatArray:
-        yaw = yaw_rate * t
-        if abs(yaw_rate) < 1e-12:
-            x, y = speed * t, 0.0
-        else:
-            x, y = speed / yaw_rate * np.sin(yaw), speed / yaw_rate * (1.0 - np.cos(yaw))
-        return start @ planar_pose(x, y, yaw)
+        return start @ planar_motion(speed, yaw_rate, t)
 
     for f in range(frames):
         t_f = f * SWEEP_SECONDS
