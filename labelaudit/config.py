@@ -1,5 +1,7 @@
 """Typed run configuration: model, prior, spatial grid, crop and class selection, loaded from TOML.
-It owns the run parameters, their validation and their hash; it computes nothing and reads no dataset.
+It owns the run configuration (:class:`RunConfig`), its TOML files, their validation and the hash;
+it computes nothing and reads no dataset. The parameter types it is made of are the core's
+(:mod:`labelaudit.core.params`).
 
 Every tunable has a default in :mod:`labelaudit.constants`; a TOML file overrides them per dataset
 (``configs/kitti.toml``, ``configs/waymo.toml``, ``configs/av2.toml``). Unknown keys are an error, so a typo never
@@ -17,16 +19,12 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from labelaudit import constants as C
-from labelaudit.core.geometry import ModelKind
+from labelaudit.core.params import SAMPLE_TABLE, ClassPrior, CropParams, ModelParams, SpatialParams, default_priors
 from labelaudit.errors import ConfigError
 
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 """Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
-
-SAMPLE_TABLE = Path(__file__).parent / "data" / "normal_samples.npz"
-"""The stored Sobol normal samples of p_G (read by :mod:`labelaudit.core.spatial`, hashed by
-:func:`constants_digest`; defined here so hashing never loads the core)."""
 
 ALL_CLASSES = "all"
 """Put this alone in ``classes`` to audit every class (``--classes all``)."""
@@ -41,61 +39,6 @@ def preset_path(path: str | Path) -> Path:
     if not p.exists() and str(path) in PRESETS:
         return CONFIG_DIR / PRESETS[str(path)]
     return p
-
-
-@dataclass(frozen=True)
-class ClassPrior:
-    """Prior std of one class's box parameters (metres, radians), before the weight w."""
-
-    center: float  # std of cx, cy and cz
-    length: float
-    width: float
-    height: float
-    yaw: float
-
-
-def default_priors() -> dict[str, ClassPrior]:
-    """The built-in per-class priors of :data:`labelaudit.constants.DEFAULT_PRIORS`."""
-    return {name: ClassPrior(**values) for name, values in C.DEFAULT_PRIORS.items()}
-
-
-@dataclass(frozen=True)
-class ModelParams:
-    """Parameters of the generative label model (docs/method.md)."""
-
-    kind: ModelKind = C.DEFAULT_MODEL  # "bev" or "3d": which φ (and which rows of the fit) the model uses
-    sigma: float = C.DEFAULT_SIGMA
-    estimate_sigma: bool = False
-    num_nearest: int = C.DEFAULT_NUM_NEAREST
-    outlier_prob: float = 0.0
-    prior_weight: float = C.DEFAULT_PRIOR_WEIGHT
-    priors: Mapping[str, ClassPrior] = field(default_factory=lambda: default_priors())
-    min_points: int = C.DEFAULT_MIN_POINTS
-
-    def prior_for(self, class_name: str) -> ClassPrior:
-        """Prior of a class; unknown classes fall back to the ``default`` entry."""
-        if class_name in self.priors:
-            return self.priors[class_name]
-        return self.priors["default"]
-
-
-@dataclass(frozen=True)
-class SpatialParams:
-    """Grid and sampling of the spatial distribution p_G (docs/method.md §6–7)."""
-
-    cells_per_side: int = C.DEFAULT_CELLS_PER_SIDE
-    num_samples: int = C.DEFAULT_NUM_SAMPLES
-    support_std: float = C.DEFAULT_SUPPORT_STD
-    seed: int = C.DEFAULT_QMC_SEED
-
-
-@dataclass(frozen=True)
-class CropParams:
-    """Point selection per box (docs/datasets.md)."""
-
-    margin: float = C.DEFAULT_CROP_MARGIN
-    ground_cut: float = C.DEFAULT_GROUND_CUT
-    fit_margin: float = C.DEFAULT_FIT_CROP_MARGIN  # crop of the label-error fit (≥ margin)
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ import numpy as np
 import pyarrow as pa
 
 from labelaudit import SCHEMA_VERSION, __version__
-from labelaudit.core.geometry import BOX_FIELDS
+from labelaudit.core.params import BOX_FIELDS
 from labelaudit.errors import InferError, ResultsError, one_line
 
 if TYPE_CHECKING:

@@ -9,7 +9,7 @@ of the paper's model), the heuristic sources of σ_p the paper compares against 
 It does no I/O: reading results and writing Parquet or infos files is :mod:`labelaudit.export`'s.
 
 Box parameters are always ``y = (cx, cy, cz, l, w, h, yaw)`` (LiDAR frame, geometric centre,
-:data:`labelaudit.core.geometry.BOX_FIELDS`); arrays of boxes have shape (N, 7).
+:data:`labelaudit.core.params.BOX_FIELDS`); arrays of boxes have shape (N, 7).
 """
 
 from __future__ import annotations

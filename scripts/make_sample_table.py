@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from labelaudit import constants as C
-from labelaudit.core.spatial import SAMPLE_TABLE, generate_normal_samples
+from labelaudit.core.params import SAMPLE_TABLE
+from labelaudit.core.spatial import generate_normal_samples
 
 
 def main() -> None:

@@ -10,7 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from labelaudit.datasets.kitti import KittiReader, read_label, read_velodyne
-from labelaudit.core.geometry import BOX_FIELDS
+from labelaudit.core.params import BOX_FIELDS
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import HIT_GROUND, HIT_NOTHING, LidarSpec, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, make_object, sample_scene

@@ -2,5 +2,5 @@
 the label-error fit (:mod:`.fit`), the spatial distribution and JIoU (:mod:`.spatial`), overlaps (:mod:`.iou`).
 
 Nothing in ``core/`` reads or writes files, prints, or knows a dataset format; inputs are NumPy
-arrays and the parameter dataclasses of :mod:`labelaudit.config`.
+arrays and the parameter dataclasses of :mod:`.params` (which :mod:`labelaudit.config` loads from TOML).
 """

@@ -20,9 +20,9 @@ from numpy.typing import ArrayLike
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
-from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core.freespace import FreeSpace, _displacement, _free_rows_kernel, _ray_bounds
-from labelaudit.core.geometry import FloatArray, ModelKind
+from labelaudit.core.geometry import FloatArray
+from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
 from labelaudit.core.posterior import (
     BoxPriorTerms,
     box_prior_terms,

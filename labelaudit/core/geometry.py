@@ -25,16 +25,12 @@ where ``a`` is the direction of the length axis and ``b`` that of the width axis
 from __future__ import annotations
 
 import math
-from typing import Literal
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-ModelKind = Literal["bev", "3d"]
-FloatArray = NDArray[np.float64]
+from labelaudit.core.params import BOX_FIELDS, ModelKind
 
-BOX_FIELDS: tuple[str, ...] = ("cx", "cy", "cz", "length", "width", "height", "yaw")
-"""Names of the 7 box parameters, in the order of ``y``."""
+FloatArray = NDArray[np.float64]
 
 BEV_OF_3D = np.array([0, 1, 3, 4, 5, 6])  # entries of φ_3d that make φ_bev: cx, cy, l·cos, l·sin, w·cos, w·sin
 

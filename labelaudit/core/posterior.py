@@ -25,8 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
-from labelaudit.config import ClassPrior, ModelParams
-from labelaudit.core.geometry import ModelKind
+from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
 from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
@@ -768,7 +767,7 @@ def box_prior_terms(y: FloatArray, prior: ClassPrior, weight: float, model: Mode
 
     Examples
     --------
-    >>> from labelaudit.config import ModelParams
+    >>> from labelaudit.core.params import ModelParams
     >>> params = ModelParams(kind="3d")
     >>> y = g.validate_box([10.0, 2.0, -1.0, 4.0, 1.8, 1.5, 0.3])
     >>> box_prior_terms(y, params.prior_for("Car"), params.prior_weight, "3d").P0.shape

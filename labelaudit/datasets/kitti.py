@@ -32,7 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 from labelaudit import constants as C
 from labelaudit.datasets.base import Frame, FrameRef, box_problems
 from labelaudit.errors import DatasetError
-from labelaudit.core.geometry import BOX_FIELDS, box_corners, normalize_angle
+from labelaudit.core.geometry import box_corners, normalize_angle
+from labelaudit.core.params import BOX_FIELDS
 
 FloatArray = NDArray[np.float64]
 

@@ -32,7 +32,8 @@ from tqdm import tqdm
 
 from labelaudit import constants as C
 from labelaudit.datasets.kitti import Calibration
-from labelaudit.core.geometry import BOX_FIELDS, normalize_angle
+from labelaudit.core.geometry import normalize_angle
+from labelaudit.core.params import BOX_FIELDS
 from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calibration, write_kitti_frame
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
