@@ -1,4 +1,4 @@
-"""The compiled kernels (labelaudit/kernels.py): ahead-of-time and JIT give the same rows, bit for
+"""The compiled kernels (labelaudit/kernels/): ahead-of-time and JIT give the same rows, bit for
 bit; the ahead-of-time dispatch calls the signature numba would pick, and anything else goes to
 numba's JIT; a stale or missing build is never used."""
 
@@ -116,7 +116,7 @@ def test_a_missing_or_stale_build_is_not_used(tmp_path, monkeypatch):
         with pytest.raises(ImportError, match="not built"):
             K.kernel_mode()
         stale = tmp_path / "stale.json"
-        stale.write_text(json.dumps({"fingerprint": "0" * 64, "sources": ["kernels.py"], "kernels": {}}))
+        stale.write_text(json.dumps({"fingerprint": "0" * 64, "sources": ["kernels/__init__.py"], "kernels": {}}))
         monkeypatch.setattr(K, "_TABLE", stale)
         K._STATE.clear()
         monkeypatch.setenv(K.MODE_ENV, "")

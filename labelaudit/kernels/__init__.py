@@ -3,8 +3,9 @@
 Every compiled loop of labelaudit is a plain Python function decorated with :func:`kernel`. It runs
 one of two ways, with the same results bit for bit (a test compares them):
 
-- **ahead of time**: ``python -m labelaudit.kernels build`` (run by ``scripts/dev.sh``) compiles every
-  kernel, at the argument types the pipeline passes, into one extension module beside this file
+- **ahead of time**: ``python -m labelaudit.kernels build`` (run by ``scripts/dev.sh``; the program is
+  :mod:`labelaudit.kernels.__main__`) compiles every kernel, at the argument types the pipeline passes,
+  into one extension module in the package directory
   (numba's ``pycc``; it needs a C compiler). A process then loads all of them in about a millisecond,
   without importing numba or LLVM: that is most of a worker's start-up otherwise (numba's set-up,
   a ``scipy.linalg`` import it always makes, and loading ~30 cached kernels: about 1 s).
@@ -17,6 +18,10 @@ The ahead-of-time module is compiled for this machine's CPU (as numba's JIT is),
 copied to other machines: its fingerprint names the CPU, and elsewhere the JIT path is taken.
 
 ``python -m labelaudit.kernels`` prints which path a process takes and why.
+
+Every core module imports this one, so it imports nothing of the package (NumPy only; numba on the
+JIT path and in the build): what the build runs to see the argument types spans the whole package
+and is the program's (:mod:`labelaudit.kernels.__main__`), handed to :func:`build`.
 """
 
 from __future__ import annotations
@@ -40,7 +45,8 @@ __all__ = ["kernel", "kernel_mode", "build"]
 
 MODE_ENV = "LABELAUDIT_KERNELS"  # "jit": never load the ahead-of-time module; "aot": fail loudly when it cannot be used
 AOT_NAME = "_kernels_aot"  # the extension module's name (a sibling of this file)
-_PACKAGE_DIR = Path(__file__).resolve().parent
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]  # labelaudit/
+_SELF = str(Path(__file__).resolve().relative_to(_PACKAGE_DIR))  # this module's source: it shapes every compiled function
 _TABLE = _PACKAGE_DIR / f"{AOT_NAME}.json"  # what the module holds: fingerprint, kernel → exported functions
 
 _REGISTRY: dict[str, Kernel | Any] = {}  # "module.qualname" → the decorated kernel (Kernel, or a numba dispatcher on the JIT path)
@@ -258,43 +264,6 @@ def _type_key(t: Any) -> Any:
     return None
 
 
-def _workload() -> None:
-    """Run what the commands run, in this process, so every kernel is compiled at the types it is
-    called with: ``infer`` (KITTI and Waymo, BEV and 3D, rays), ``eval`` (BEV and 3D overlaps,
-    JIoU, matching) on a small simulated dataset with detections, and the crops of ``show``."""
-    import contextlib
-    import io
-
-    from labelaudit.cli import app
-    from labelaudit.config import load_config, resolve_config
-    from labelaudit.datasets import Frame
-    from labelaudit.evaluate.warmup import warm_up as eval_warm_up
-    from labelaudit.infer.crop import crop_frame
-    from labelaudit.infer.rows import process_frame
-    from labelaudit.infer.warmup import warm_up
-    from labelaudit.sim.dataset import simulate_frame
-
-    warm_up(strict=True)
-    eval_warm_up(strict=True)
-    sim = simulate_frame(0, seed=0)
-    boxes, names = sim.written_boxes, list(sim.scene.class_names)
-    for fmt, classes in (("kitti", ("Car", "Van", "Truck", "Pedestrian", "Cyclist")), ("waymo", ("Vehicle", "Pedestrian", "Cyclist"))):
-        for model in ("bev", "3d"):
-            cfg = resolve_config(None, fmt, classes, model)
-            mask = np.arange(len(sim.points)) % 2 == 0 if fmt == "waymo" else None  # Waymo: only some points end rays
-            as_read = [n if fmt == "kitti" or n in classes else "Vehicle" for n in names]
-            frame = Frame("build", sim.points, boxes, as_read, [str(i) for i in range(len(boxes))], ray_mask=mask)
-            process_frame(frame, cfg)
-    crop_frame(sim.points, boxes, load_config(None, "kitti").crop)
-    quiet = contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO())  # the commands' own reports
-    with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp, quiet[0], quiet[1]:
-        data = f"{tmp}/sim"
-        for argv in (["simulate", data, "--frames", "3", "--seed", "1", "--detections", "-q"],
-                     ["eval", data, f"{data}/detections", "--workers", "1", "-q"],
-                     ["eval", data, f"{data}/detections", "--workers", "1", "--metric", "3d", "-q"]):
-            app(argv, standalone_mode=False)
-
-
 def _with_contiguous_variants(signatures: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
     """The recorded signatures, each also with its strided ('A') array arguments C-contiguous (in
     every combination, up to three such arguments): a column slice of a 1-row array is contiguous,
@@ -327,9 +296,11 @@ def _build_marker() -> int:  # pragma: no cover - compiled; exported as build_<t
     return 0
 
 
-def build(verbose: bool = False) -> Path:
+def build(workload: Callable[[], object], verbose: bool = False) -> Path:
     """Compile every kernel ahead of time into ``labelaudit/_kernels_aot*.so`` (and its table).
 
+    ``workload`` runs what the commands run, in this process, so every kernel is imported and
+    compiled at the argument types it is called with (:func:`labelaudit.kernels.__main__.workload`).
     Runs in a process on the JIT path (``python -m labelaudit.kernels build`` sets it); takes about
     half a minute. Returns the path of the table.
     """
@@ -339,7 +310,7 @@ def build(verbose: bool = False) -> Path:
 
     from numba.pycc import CC
 
-    _workload()  # imports every module with a kernel the commands run
+    workload()  # imports every module with a kernel the commands run
     cc = CC(AOT_NAME, source_module=__name__)
     cc.target_cpu = "host"  # as numba's JIT: the same instructions, so the same results
     token = os.urandom(8).hex()  # names this build in the module and in its table
@@ -360,7 +331,7 @@ def build(verbose: bool = False) -> Path:
             n += 1
     # every module that holds a kernel (an exported one, or one compiled into it), so editing any of them retires the build
     modules = {disp.py_func.__module__ for disp in _REGISTRY.values()}
-    sources = sorted({str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in modules} | {"kernels.py"})
+    sources = sorted({str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in modules} | {_SELF})
     with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp:
         cc.output_dir = tmp
         cc.verbose = verbose
@@ -378,29 +349,3 @@ def build(verbose: bool = False) -> Path:
     staged_table.write_text(json.dumps(doc, indent=1), encoding="utf-8")
     os.replace(staged_table, _TABLE)
     return _TABLE
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m labelaudit.kernels [status|build]``."""
-    args = sys.argv[1:] if argv is None else argv
-    cmd = args[0] if args else "status"
-    if cmd == "build":
-        os.environ[MODE_ENV] = "jit"
-        if _STATE.get("mode", "jit") != "jit":
-            raise SystemExit("build: this process already loaded the ahead-of-time kernels")
-        path = build(verbose="-v" in args)
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        print(f"built {doc['functions']} compiled functions of {len(doc['kernels'])} kernels: {path.with_suffix('')}*.so", file=sys.stderr)
-        return 0
-    if cmd == "status":
-        mode, why = kernel_mode()
-        print(f"{mode}: {why}")
-        return 0
-    print("usage: python -m labelaudit.kernels [status|build [-v]]", file=sys.stderr)
-    return 2
-
-
-if __name__ == "__main__":  # run as labelaudit.kernels, not __main__: the kernels register there
-    from labelaudit.kernels import main as _main
-
-    raise SystemExit(_main())
