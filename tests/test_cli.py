@@ -256,3 +256,11 @@ def test_the_console_script_starts_infers_fork_server_only_when_a_pool_will_run(
 
     (script,) = [e for e in entry_points(group="console_scripts") if e.name == "labelaudit"]
     assert script.value == "labelaudit.__main__:main"
+
+
+def test_dataset_format_choices_are_the_readers():
+    """``--dataset-format`` (one enum for infer and eval) offers exactly auto and the readers' formats."""
+    from labelaudit.cli.app import DatasetFormat
+    from labelaudit.datasets import FORMATS
+
+    assert [f.value for f in DatasetFormat] == ["auto", *FORMATS]

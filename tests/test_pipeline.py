@@ -17,7 +17,7 @@ import pytest
 from labelaudit import results as R
 from labelaudit.config import RunConfig
 from labelaudit.datasets import Frame, FrameRef
-from labelaudit.errors import InferError, StrictError
+from labelaudit.errors import DatasetError, InferError, StrictError
 from labelaudit.executors import SerialExecutor
 from labelaudit.config import ALL_CLASSES, resolve_config
 from labelaudit.infer.rows import process_frame
@@ -280,11 +280,23 @@ def test_bad_frame_is_recorded_and_strict_makes_it_fatal(fake_core, sim_kitti, t
 
 
 def test_input_errors(fake_core, tmp_path):
-    with pytest.raises(InferError, match="does not exist"):
+    with pytest.raises(DatasetError, match="nope: dataset path does not exist"):
         _run(tmp_path / "nope", tmp_path / "res")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(InferError, match="cannot tell the format"):
+    with pytest.raises(DatasetError, match="cannot tell the format"):
         _run(tmp_path / "empty", tmp_path / "res")
+
+
+def test_resolve_format_checks_the_name_and_the_path(tmp_path):
+    from labelaudit.datasets import resolve_format
+
+    (tmp_path / "training" / "velodyne").mkdir(parents=True)
+    assert resolve_format(tmp_path, "auto") == "kitti"
+    assert resolve_format(tmp_path, "waymo-v2") == "waymo-v2"  # a named format is taken as given
+    with pytest.raises(DatasetError, match=r"unknown dataset format 'kiti': expected auto or one of kitti, waymo-v2"):
+        resolve_format(tmp_path, "kiti")
+    with pytest.raises(DatasetError, match="cannot open the dataset"):
+        resolve_format(tmp_path / ("x" * 5000), "kitti")
 
 
 # --------------------------------------------------------------------------- end to end with the real core

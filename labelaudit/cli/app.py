@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 from contextlib import contextmanager
+from enum import Enum
 from typing import Any, Iterator
 
 import typer
@@ -102,6 +103,17 @@ def handle_errors(debug: bool) -> Iterator[None]:
             raise
         err().print(f"[red]internal error:[/red] {type(exc).__name__}: {escape(one_line(str(exc)))} (rerun with --debug for the traceback)", soft_wrap=True)
         raise typer.Exit(EXIT_INTERNAL) from None
+
+
+class DatasetFormat(str, Enum):
+    """``--dataset-format`` of the commands that read a dataset: ``auto`` or one of
+    :data:`labelaudit.datasets.FORMATS` (spelled out here: the CLI's start-up imports no reader)."""
+
+    auto = "auto"
+    kitti = "kitti"
+    waymo_v2 = "waymo-v2"
+    waymo_v1 = "waymo-v1"
+    av2 = "av2"
 
 
 def split_list(values: list[str] | None) -> tuple[str, ...]:

@@ -19,16 +19,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from labelaudit import constants as C
-from labelaudit.cli.app import EXIT_USAGE, app, err, handle_errors, out, split_list
+from labelaudit.cli.app import EXIT_USAGE, DatasetFormat, app, err, handle_errors, out, split_list
 from labelaudit.errors import UsageError
-
-
-class DatasetFormat(str, Enum):
-    auto = "auto"
-    kitti = "kitti"
-    waymo_v2 = "waymo-v2"
-    waymo_v1 = "waymo-v1"
-    av2 = "av2"
 
 
 class View(str, Enum):

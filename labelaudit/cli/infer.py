@@ -9,16 +9,8 @@ from typing import Optional
 import typer
 
 from labelaudit import constants as C
-from labelaudit.cli.app import app, err, handle_errors
+from labelaudit.cli.app import DatasetFormat, app, err, handle_errors
 from labelaudit.errors import UsageError
-
-
-class DatasetFormat(str, Enum):
-    auto = "auto"
-    kitti = "kitti"
-    waymo_v2 = "waymo-v2"
-    waymo_v1 = "waymo-v1"
-    av2 = "av2"
 
 
 class ModelChoice(str, Enum):

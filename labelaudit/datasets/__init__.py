@@ -10,7 +10,8 @@ from labelaudit.errors import DatasetError
 
 FORMATS = ("kitti", "waymo-v2", "waymo-v1", "av2")
 
-__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "detect_format", "open_dataset"]
+__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "detect_format", "open_dataset",
+           "resolve_format"]
 
 
 def detect_format(root: str | Path) -> str:
@@ -45,6 +46,27 @@ def detect_format(root: str | Path) -> str:
         "Waymo v2 (lidar_box/ …), Argoverse 2 (<log_id>/annotations.feather or <log_id>/sensors/lidar/) "
         "or Waymo v1 (*.tfrecord); pass --dataset-format",
     )
+
+
+def resolve_format(dataset: str | Path, fmt: str) -> str:
+    """The format of ``dataset``: ``fmt`` itself after checking it and that the path exists, or the
+    detected one for ``"auto"`` (:func:`detect_format`).
+
+    Raises
+    ------
+    DatasetError
+        Unknown format name, missing or unopenable path, undetectable format; the message names the path.
+    """
+    dataset = Path(dataset)
+    if fmt != "auto" and fmt not in FORMATS:
+        raise DatasetError(dataset, f"unknown dataset format {fmt!r}: expected auto or one of {', '.join(FORMATS)}")
+    try:
+        exists = dataset.exists()
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise DatasetError(dataset, f"cannot open the dataset ({exc.strerror or exc})") from None
+    if not exists:
+        raise DatasetError(dataset, "dataset path does not exist")
+    return detect_format(dataset) if fmt == "auto" else fmt
 
 
 def open_dataset(root: str | Path, fmt: str = "auto", **options: object) -> DatasetReader:

@@ -223,8 +223,7 @@ def run_eval(request: EvalRequest, progress: Progress | None = None) -> EvalResu
         Unreadable labels or (``strict``) a bad detection line; the message names file, line, field.
     """
     from labelaudit.config import resolve_config
-    from labelaudit.errors import InferError
-    from labelaudit.infer.run import resolve_format
+    from labelaudit.datasets import DatasetError, resolve_format
 
     progress = progress or Progress()
     timings: dict[str, float] = {}
@@ -233,7 +232,7 @@ def run_eval(request: EvalRequest, progress: Progress | None = None) -> EvalResu
         raise EvalError(f"--metric: expected bev or 3d, got {request.view!r}")
     try:
         fmt = resolve_format(Path(request.dataset), request.dataset_format)
-    except InferError as exc:
+    except DatasetError as exc:
         raise EvalError(str(exc)) from None
     fam = family(fmt)
 

@@ -23,7 +23,7 @@ import pyarrow as pa
 
 from labelaudit import constants as C
 from labelaudit.config import RunConfig, hash_inputs, resolve_config, validate_config
-from labelaudit.datasets import DatasetError, FORMATS, FrameFailure, FrameRef, detect_format, open_dataset
+from labelaudit.datasets import DatasetError, FrameFailure, FrameRef, open_dataset, resolve_format
 from labelaudit import results as R
 from labelaudit.errors import InferError, ResultsError, StrictError, one_line
 from labelaudit.executors import Executor, make_executor
@@ -226,24 +226,6 @@ class NoProgress:
         pass
 
 
-def resolve_format(dataset: Path, fmt: str) -> str:
-    """``auto`` → the detected format; raises :class:`InferError` with the reason."""
-    if fmt != "auto" and fmt not in FORMATS:
-        raise InferError(f"--dataset-format {fmt!r}: expected auto or one of {', '.join(FORMATS)}")
-    try:
-        exists = dataset.exists()
-    except OSError as exc:  # e.g. a name too long for the file system
-        raise InferError(f"{dataset}: cannot open the dataset ({exc.strerror or exc})") from None
-    if not exists:
-        raise InferError(f"{dataset}: dataset path does not exist")
-    if fmt == "auto":
-        try:
-            return detect_format(dataset)
-        except DatasetError as exc:
-            raise InferError(str(exc)) from None
-    return fmt
-
-
 def chunk_name(refs: Sequence[FrameRef]) -> str:
     """Shard file name of a chunk: a hash of its unit keys, so a resumed run finds it again."""
     # surrogateescape: a key from a non-UTF-8 file name hashes as its bytes
@@ -277,6 +259,8 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
 
     Raises
     ------
+    DatasetError
+        Missing dataset path or undetectable format.
     InferError
         Unreadable dataset, no frames, output folder of another run.
     StrictError
@@ -453,7 +437,7 @@ def infer_dataset(request: InferRequest, progress: Progress | None = None, execu
 
     Raises
     ------
-    InferError, ConfigError
+    InferError, DatasetError, ConfigError
         Unreadable dataset or config, bad options, output folder of another run.
     ResultsError
         The run audited no object at all (e.g. ``--classes`` names no class of the dataset).
