@@ -357,7 +357,7 @@ def test_compiled_raster_equals_the_bincount_form():
     box = np.array([0.0, 0.0, 0.0, 4.2, 1.8, 1.5, 0.3])
     cov = np.diag([0.05, 0.04, 0.02, 0.02, 0.01, 0.01]) ** 2
     dist = sp.BoxDistribution(box, "bev", cov)
-    s = sp._sample_boxes(dist, box, SpatialParams())
+    s = sp.sample_boxes(dist, box, SpatialParams())
     for n in (16, 64, 150):
         xe = np.linspace(-3.5, 3.5 + rng.uniform(0, 0.1), n + 1)
         ye = np.linspace(-1.6, 1.6, n // 2 + 1)
@@ -502,7 +502,7 @@ def test_compiled_3d_raster_equals_the_sparse_form():
         box = np.array([*rng.normal(0, 2, 3), rng.uniform(0.3, 8), rng.uniform(0.05, 3), rng.uniform(0.5, 3), rng.uniform(-4, 4)])
         ref = np.array([*box[:3], *box[3:6], box[6] + rng.normal(0, 0.3)])
         L = rng.normal(size=(8, 8)) * 10.0 ** rng.uniform(-3, -0.5)
-        s = sp._sample_boxes(sp.BoxDistribution(box, "3d", L @ L.T), ref, SpatialParams(num_samples=int(rng.choice([16, 128]))))
+        s = sp.sample_boxes(sp.BoxDistribution(box, "3d", L @ L.T), ref, SpatialParams(num_samples=int(rng.choice([16, 128]))))
         n = int(rng.integers(4, 90))
         xe = np.linspace(-0.6 * box[3] - 0.3, 0.6 * box[3] + 0.3, n + 1)
         ye = np.linspace(-0.6 * box[4] - 0.3, 0.6 * box[4] + 0.3, int(rng.integers(2, 60)) + 1)
@@ -512,7 +512,7 @@ def test_compiled_3d_raster_equals_the_sparse_form():
 
 
 def test_axis_edges_in_python_floats_equal_the_numpy_scalar_form():
-    """_axis_edges computes in Python floats what it computed on NumPy scalars, bit for bit (also
+    """axis_edges computes in Python floats what it computed on NumPy scalars, bit for bit (also
     when the cell cap applies)."""
     import math
 
@@ -532,5 +532,5 @@ def test_axis_edges_in_python_floats_equal_the_numpy_scalar_form():
         half = np.float64(rng.uniform(0.05, 10))
         lo, hi = np.float64(-half - rng.exponential(half)), np.float64(half + rng.exponential(half))
         cell = np.float64(2 * half / rng.uniform(1, 400))
-        got, want = sp._axis_edges(half, lo, hi, cell), numpy_form(half, lo, hi, cell)
+        got, want = sp.axis_edges(half, lo, hi, cell), numpy_form(half, lo, hi, cell)
         assert got.shape == want.shape and np.array_equal(got, want)

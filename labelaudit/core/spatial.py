@@ -39,7 +39,10 @@ from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["BoxDistribution", "Grid", "jaccard", "spatial_distribution", "jiou", "jiou_gt", "normal_samples"]
+__all__ = ["BoxDistribution", "Grid", "jaccard", "spatial_distribution", "jiou", "jiou_gt", "normal_samples",
+           # the building blocks evaluate.jiou shares: samples, grid, rasteriser
+           "Samples", "sample_boxes", "make_grid", "axis_edges", "sqrt_psd", "rasterise", "pair_masses", "z_coverage",
+           "events_kernel"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -125,7 +128,7 @@ def normal_samples(dim: int, num: int, seed: int) -> FloatArray:
     return _normal_samples_cached(int(dim), int(num), int(seed))
 
 
-def _sqrt_psd(cov: FloatArray) -> FloatArray:
+def sqrt_psd(cov: FloatArray) -> FloatArray:
     """The symmetric square root of a PSD matrix (L Lᵀ = cov, L = Lᵀ).
 
     Unlike a Cholesky factor or V·√Λ it is unique and continuous in ``cov`` and commutes with
@@ -136,7 +139,7 @@ def _sqrt_psd(cov: FloatArray) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class _Samples:
+class Samples:
     """Sample boxes in the grid frame and statistics of their boundary.
 
     centres (S, 2), in-plane axes (S, 2, 2) (columns: length and width edge vectors), z-intervals
@@ -157,6 +160,14 @@ class _Samples:
     z_mean: FloatArray | None
     z_std: FloatArray | None
 
+    @classmethod
+    def single(cls, centres: FloatArray, axes: FloatArray, z: FloatArray | None, weights: FloatArray, corners: FloatArray) -> "Samples":
+        """One sample box (a deterministic distribution, or only its support): a sharp boundary
+        (corner std and blur 0); ``centres`` (1, 2), ``axes`` (1, 2, 2), ``z`` (1, 2) or None (BEV),
+        ``weights`` (1,), ``corners`` (4, 2)."""
+        d = 2 if z is None else 3
+        return cls(centres, axes, z, weights, corners, 0.0, np.zeros(d), None if z is None else z[0], None if z is None else np.zeros(2))
+
 
 def _cos_sin(angle: float) -> tuple[float, float]:
     return math.cos(angle), math.sin(angle)
@@ -167,7 +178,7 @@ _IDX_3D_PLANAR = np.ix_([0, 1, 3, 4, 5, 6], [0, 1, 3, 4, 5, 6])  # the three in-
 _FACE_POINTS_UNIT = np.array([[0.5, -0.5, -0.5, 0.5, 0.5, -0.5, 0.0, 0.0], [0.5, 0.5, -0.5, -0.5, 0.0, 0.0, 0.5, -0.5]])
 
 
-def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams) -> _Samples:
+def sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams) -> Samples:
     """Samples of ``dist`` expressed in the frame of ``ref`` (deterministic: one sample)."""
     d = g.point_dim(dist.model)
     box = dist.box
@@ -194,14 +205,14 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
                 T = np.eye(8)
                 T[_IDX_3D_PLANAR] = T6
             z = normal_samples(phi.size, params.num_samples, params.seed)
-            phis = phi + z @ _sqrt_psd(T @ dist.cov @ T.T)
+            phis = phi + z @ sqrt_psd(T @ dist.cov @ T.T)
     else:
         k = dist.cov.shape[0]
         T = np.eye(k)
         T[:2, :2] = Rt
         z = normal_samples(k, params.num_samples, params.seed)
         mean = yl[[0, 1, 3, 4, 6]] if k == 5 else yl
-        ys = mean + z @ _sqrt_psd(T @ dist.cov @ T.T)
+        ys = mean + z @ sqrt_psd(T @ dist.cov @ T.T)
         if k == 5:
             ys = np.c_[ys[:, 0:2], np.full(len(ys), yl[2]), ys[:, 2:4], np.full(len(ys), yl[5]), ys[:, 4]]
         # The same φ layout: centre, length edge (l cos, l sin), width edge (w cos, w sin) [, height].
@@ -215,8 +226,8 @@ def _sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams)
         weights = 1.0 / size if size[0] > 0 else np.zeros(1)
         a0, a1 = 0.5 * A[0, :, 0], 0.5 * A[0, :, 1]
         corners = centres[0] + np.stack([a0 + a1, a1 - a0, -a0 - a1, a0 - a1])
-        return _Samples(centres, A, zint, weights, corners, 0.0, np.zeros(d), None if zint is None else zint[0], None if zint is None else np.zeros(2))
-    return _Samples(centres, A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
+        return Samples.single(centres, A, zint, weights, corners)
+    return Samples(centres, A, zint, weights, corner_mean, corner_std, blur, z_mean, z_std)
 
 
 @kernel(error_model="numpy")
@@ -225,7 +236,7 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
 
     Returns centres (S, 2), axes A (S, 2, 2), z-intervals (S, 2) (zeros in BEV), sizes (S,), and for
     S > 1 the weights, corner_mean (4, 2), corner_std, blur (d,), z_mean, z_std (2,) of
-    :class:`_Samples`. Element by element the float64 operations of the NumPy form it replaced, in
+    :class:`Samples`. Element by element the float64 operations of the NumPy form it replaced, in
     the same order (sums over samples run sequentially as NumPy's reductions along axis 0 do; the
     two edge sums that pick the blur axes are pairwise like ``ndarray.sum``), so the results are
     bit-identical (tests/test_spatial.py keeps the NumPy form).
@@ -351,7 +362,7 @@ class Grid:
         return np.stack([X, Y], -1) @ R.T + self.ref[:2]
 
 
-def _axis_edges(half: float, lo: float, hi: float, cell: float) -> FloatArray:
+def axis_edges(half: float, lo: float, hi: float, cell: float) -> FloatArray:
     """Edges with the reference box's faces (±half) on cell boundaries, covering [lo, hi]."""
     half, lo, hi, cell = float(half), float(lo), float(hi), float(cell)  # Python floats: the same IEEE arithmetic, faster
     n_box = max(1, int(round(2 * half / cell)))
@@ -365,7 +376,7 @@ def _axis_edges(half: float, lo: float, hi: float, cell: float) -> FloatArray:
     return -half - n_lo * step + step * np.arange(total + 1)
 
 
-def _support(s: _Samples, support_std: float) -> tuple[FloatArray, FloatArray]:
+def _support(s: Samples, support_std: float) -> tuple[FloatArray, FloatArray]:
     """Bounds (lo (k,), hi (k,)) of x, y [, z] covering the mean box ± support_std × largest corner std."""
     lo = np.min(s.corner_mean, axis=0) - support_std * s.corner_std
     hi = np.max(s.corner_mean, axis=0) + support_std * s.corner_std
@@ -375,10 +386,10 @@ def _support(s: _Samples, support_std: float) -> tuple[FloatArray, FloatArray]:
     return lo, hi
 
 
-def _make_grid(
+def make_grid(
     ref: FloatArray,
     model: ModelKind,
-    samples: list[_Samples],
+    samples: list[Samples],
     params: SpatialParams,
     boxes: list[FloatArray] | None = None,
     blur: FloatArray | None = None,
@@ -400,9 +411,9 @@ def _make_grid(
     size = min(max(b[3], b[4]) for b in (boxes or [ref]))
     blur = np.zeros(d) if blur is None else blur
     cell = np.maximum(size, C.CELL_STD_SPAN * blur) / max(cells, 1.0)
-    xe = _axis_edges(ref[3] / 2, lo[0], hi[0], cell[0])
-    ye = _axis_edges(ref[4] / 2, lo[1], hi[1], cell[1])
-    ze = _axis_edges(ref[5] / 2, lo[2], hi[2], cell[2]) if d == 3 else None
+    xe = axis_edges(ref[3] / 2, lo[0], hi[0], cell[0])
+    ye = axis_edges(ref[4] / 2, lo[1], hi[1], cell[1])
+    ze = axis_edges(ref[5] / 2, lo[2], hi[2], cell[2]) if d == 3 else None
     return Grid(ref, xe, ye, ze)
 
 
@@ -426,16 +437,16 @@ class _Events:
     dy: float  # height of one sub-row
 
 
-def _events(s: _Samples, xe: FloatArray, ye: FloatArray) -> _Events:
+def _events(s: Samples, xe: FloatArray, ye: FloatArray) -> _Events:
     """Intersect every sample box with every (sub-)row centre line: O(S × rows), closed form.
 
-    One compiled pass (:func:`_events_kernel`): as NumPy array code this was ~30 calls on (S, R)
+    One compiled pass (:func:`events_kernel`): as NumPy array code this was ~30 calls on (S, R)
     arrays per JIoU-GT, whose call overhead cost more than the arithmetic.
     """
     nx, ny = len(xe) - 1, len(ye) - 1
     nsub = C.SUBROWS_PER_CELL
     dx, dy = xe[1] - xe[0], ye[1] - ye[0]
-    i_lo, i_hi, f_lo, f_hi, valid = _events_kernel(
+    i_lo, i_hi, f_lo, f_hi, valid = events_kernel(
         np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
         float(xe[0]), float(xe[-1]), float(ye[0]), float(dx), float(dy), nx, ny, nsub,
     )
@@ -443,7 +454,7 @@ def _events(s: _Samples, xe: FloatArray, ye: FloatArray) -> _Events:
 
 
 @kernel
-def _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
+def events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
     """Per (sample, sub-row): the x-interval of the sample box on the row's centre line.
 
     v* = A⁻¹ (u − c); row i of A⁻¹ is (bx_i, by_i)/det. On the line y = c_y + t the slab |v*_i| ≤ ½
@@ -512,7 +523,7 @@ def _row_interval(t, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx):  
     return k_lo, k_hi, lo - (x0 + k_lo * dx), hi - (x0 + k_hi * dx), ok
 
 
-def _aligned_single(s: _Samples, xe: FloatArray, ye: FloatArray, weight: float = 1.0) -> FloatArray | None:
+def _aligned_single(s: Samples, xe: FloatArray, ye: FloatArray, weight: float = 1.0) -> FloatArray | None:
     """Exact separable area per cell (times ``weight``) for a single axis-aligned box (the label in
     its own frame), else None."""
     A = s.axes
@@ -544,7 +555,7 @@ def _aligned_kernel(cx, cy, hx, hy, xe, ye, weight):  # pragma: no cover - compi
     return out
 
 
-def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
+def _raster_bev(s: Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
     """Weighted area of the sample boxes in every BEV cell, (ny, nx).
 
     Per interval, coverage(j) = dx·[k_lo ≤ j < k_hi] + f_hi·[j = k_hi] − f_lo·[j = k_lo]: the first
@@ -563,7 +574,7 @@ def _raster_bev(s: _Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
 
 @kernel
 def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
-    """:func:`_events_kernel` and :func:`_raster_bev_kernel` in one pass: each interval is added to
+    """:func:`events_kernel` and :func:`_raster_bev_kernel` in one pass: each interval is added to
     the difference arrays as it is found (the same sums in the same order, no (S, R) event arrays)."""
     nb = ny * (nx + 1)
     lo_dx = np.zeros(nb)
@@ -624,7 +635,7 @@ def _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy, ny, nx):  # pragma: no cover - co
     return out
 
 
-def _raster_3d(s: _Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> FloatArray:
+def _raster_3d(s: Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> FloatArray:
     """Σ_s B_s(x, y) · zw[s, j]: BEV raster of each sample times a per-sample column weight, (ny, nx, ncols).
 
     The per-sample rasters are never formed densely: the interval events make a sparse
@@ -663,7 +674,7 @@ def _raster_3d_kernel(A, centres, zw, x0, x1, y0, dx, dy, nx, ny):  # pragma: no
     CSR rows (bins) hold their samples in ascending order, the entries of one (bin, sample) merged
     by a sum (an interval inside one cell: dx − dx and f_hi − f_lo; two terms, so their order does
     not matter), each row of ``M @ zw`` summed from 0 in that order; then the running sum along x."""
-    i_lo, i_hi, f_lo, f_hi, valid = _events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, 1)
+    i_lo, i_hi, f_lo, f_hi, valid = events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, 1)
     S, R = i_lo.shape
     ncol = zw.shape[1]
     nb = ny * (nx + 1)
@@ -695,7 +706,7 @@ def _raster_3d_kernel(A, centres, zw, x0, x1, y0, dx, dy, nx, ny):  # pragma: no
     return out
 
 
-def _z_coverage(s: _Samples, ze: FloatArray) -> FloatArray:
+def z_coverage(s: Samples, ze: FloatArray) -> FloatArray:
     """Length of each sample's z-interval inside each z cell, (S, nz)."""
     return np.clip(np.minimum(s.z[:, 1:2], ze[None, 1:]) - np.maximum(s.z[:, 0:1], ze[None, :-1]), 0.0, None)
 
@@ -721,7 +732,7 @@ def _clean_kernel(flat):  # pragma: no cover - compiled
             flat[i] = 0.0
 
 
-def _pair_masses(sa: _Samples, sb: _Samples, grid: Grid) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+def pair_masses(sa: Samples, sb: Samples, grid: Grid) -> tuple[FloatArray, FloatArray, FloatArray | None]:
     """Masses of two distributions on the grid, as (p, q, counts) for :func:`jaccard`.
 
     3D: z-layers that every sample of both distributions covers completely are identical
@@ -732,7 +743,7 @@ def _pair_masses(sa: _Samples, sb: _Samples, grid: Grid) -> tuple[FloatArray, Fl
         return _clean(_raster_bev(sa, grid.x_edges, grid.y_edges)), _clean(_raster_bev(sb, grid.x_edges, grid.y_edges)), None
     ze = grid.z_edges
     dz = np.diff(ze)
-    za, zb = _z_coverage(sa, ze), _z_coverage(sb, ze)
+    za, zb = z_coverage(sa, ze), z_coverage(sb, ze)
     full = (za >= dz * (1 - 1e-9)).all(axis=0) & (zb >= dz * (1 - 1e-9)).all(axis=0)
     empty = ~(za > 0).any(axis=0) & ~(zb > 0).any(axis=0)
     rest = ~full & ~empty
@@ -747,11 +758,11 @@ def _pair_masses(sa: _Samples, sb: _Samples, grid: Grid) -> tuple[FloatArray, Fl
     return out[0], out[1], counts
 
 
-def _rasterise(s: _Samples, grid: Grid) -> FloatArray:
+def rasterise(s: Samples, grid: Grid) -> FloatArray:
     """Probability mass of p_G in every cell of the grid: (ny, nx) or (ny, nx, nz)."""
     if grid.z_edges is None:
         return _clean(_raster_bev(s, grid.x_edges, grid.y_edges))
-    zw = s.weights[:, None] * _z_coverage(s, grid.z_edges)
+    zw = s.weights[:, None] * z_coverage(s, grid.z_edges)
     return _clean(_raster_3d(s, grid.x_edges, grid.y_edges, zw))
 
 
@@ -860,10 +871,10 @@ def spatial_distribution(
         beyond ``support_std`` is cut off)
     """
     ref = dist.box if grid is None else grid.ref
-    s = _sample_boxes(dist, ref, params)
+    s = sample_boxes(dist, ref, params)
     if grid is None:
-        grid = _make_grid(ref, dist.model, [s], params, blur=s.blur)
-    return grid, _rasterise(s, grid)
+        grid = make_grid(ref, dist.model, [s], params, blur=s.blur)
+    return grid, rasterise(s, grid)
 
 
 def jiou(a: BoxDistribution, b: BoxDistribution, params: SpatialParams) -> float:
@@ -874,16 +885,16 @@ def jiou(a: BoxDistribution, b: BoxDistribution, params: SpatialParams) -> float
     if a.model != b.model:
         raise ValueError(f"both distributions need the same model, got {a.model!r} and {b.model!r}")
     ref = b.box
-    sa, sb = _sample_boxes(a, ref, params), _sample_boxes(b, ref, params)
+    sa, sb = sample_boxes(a, ref, params), sample_boxes(b, ref, params)
     # The boundary blur sets the cell size; a deterministic box counts as sharp (blur 0) unless it
     # is the reference box itself, whose edges lie on cell boundaries and are rasterised exactly.
     blurs = [s.blur for s, dist in ((sa, a), (sb, b)) if not (dist.cov is None and np.array_equal(dist.box, ref))]
     blur = np.min(blurs, axis=0) if blurs else None
-    grid = _make_grid(ref, b.model, [sa, sb], params, [a.box, b.box], blur)
-    return jaccard(*_pair_masses(sa, sb, grid))
+    grid = make_grid(ref, b.model, [sa, sb], params, [a.box, b.box], blur)
+    return jaccard(*pair_masses(sa, sb, grid))
 
 
-def _reference_samples(ref: FloatArray, model: ModelKind) -> _Samples:
+def _reference_samples(ref: FloatArray, model: ModelKind) -> Samples:
     """The uniform distribution on the reference box itself, in its own frame (one aligned sample)."""
     d = g.point_dim(model)
     hl, hw = 0.5 * ref[3], 0.5 * ref[4]
@@ -891,7 +902,7 @@ def _reference_samples(ref: FloatArray, model: ModelKind) -> _Samples:
     corners = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
     size = ref[3] * ref[4] * (ref[5] if d == 3 else 1.0)
     z = np.array([[-0.5 * ref[5], 0.5 * ref[5]]]) if d == 3 else None
-    return _Samples(np.zeros((1, 2)), A, z, np.array([1.0 / size]), corners, 0.0, np.zeros(d), None if z is None else z[0], None if z is None else np.zeros(2))
+    return Samples.single(np.zeros((1, 2)), A, z, np.array([1.0 / size]), corners)
 
 
 def jiou_gt(post: "object", params: SpatialParams) -> float:
@@ -908,14 +919,14 @@ def jiou_gt(post: "object", params: SpatialParams) -> float:
     object.__setattr__(label, "model", model)
     object.__setattr__(label, "cov", np.asarray(post.cov, dtype=float))  # type: ignore[attr-defined]
     object.__setattr__(label, "cov_on", "phi")
-    sa, sb = _reference_samples(ref, model), _sample_boxes(label, ref, params)
+    sa, sb = _reference_samples(ref, model), sample_boxes(label, ref, params)
     # q = 0 outside the labeled box, so p there only enters through its total, 1 − (p inside):
     # the grid covers the box alone (no truncated tails either).
     d = g.point_dim(model)
     cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     cell = np.maximum(max(ref[3], ref[4]), C.CELL_STD_SPAN * sb.blur) / max(cells, 1.0)
-    edges = [_axis_edges(0.5 * ref[3 + i], -0.5 * ref[3 + i], 0.5 * ref[3 + i], cell[i]) for i in range(d)]
+    edges = [axis_edges(0.5 * ref[3 + i], -0.5 * ref[3 + i], 0.5 * ref[3 + i], cell[i]) for i in range(d)]
     grid = Grid(ref, edges[0], edges[1], edges[2] if d == 3 else None)
-    uniform, p_g, counts = _pair_masses(sa, sb, grid)
+    uniform, p_g, counts = pair_masses(sa, sb, grid)
     inside = float((p_g if counts is None else p_g * counts).sum())
     return jaccard(uniform, p_g, counts, q_outside=max(0.0, 1.0 - inside))

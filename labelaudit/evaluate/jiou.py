@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from labelaudit import constants as C
 from labelaudit.core import spatial as S
 from labelaudit.config import SpatialParams
-from labelaudit.evaluate.overlap import _clip_area, bev_corners
+from labelaudit.evaluate.overlap import clip_area, bev_corners
 from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
@@ -122,7 +122,7 @@ def _cell_areas(quad, xe, ye):  # pragma: no cover - compiled
             cell[1, 0], cell[1, 1] = xe[i + 1], ya
             cell[2, 0], cell[2, 1] = xe[i + 1], yb
             cell[3, 0], cell[3, 1] = xe[i], yb
-            out[j, i] = _clip_area(cell, quad)
+            out[j, i] = clip_area(cell, quad)
     return out
 
 
@@ -130,14 +130,14 @@ def _cell_areas(quad, xe, ye):  # pragma: no cover - compiled
 def _jiou_uniform_bev_kernel(A, centres, weights, xe, ye, quad, box_area, q_total, nsub):  # pragma: no cover - compiled
     """BEV JIoU of a uniform box (quad, area) and label samples rasterised on the window (xe, ye).
 
-    The label raster is spatial's (row centre-line intervals, :func:`labelaudit.core.spatial._events_kernel`);
+    The label raster is spatial's (row centre-line intervals, :func:`labelaudit.core.spatial.events_kernel`);
     the box's cell shares are exact and partly covered cells are split (see :func:`_uniform_jaccard`).
     Cells outside the window hold no box mass, so the label's mass there enters through
     ``q_total`` minus what the window holds.
     """
     nx, ny = xe.shape[0] - 1, ye.shape[0] - 1
     dx, dy = xe[1] - xe[0], ye[1] - ye[0]
-    i_lo, i_hi, f_lo, f_hi, _ = S._events_kernel(A, centres, xe[0], xe[-1], ye[0], dx, dy, nx, ny, nsub)
+    i_lo, i_hi, f_lo, f_hi, _ = S.events_kernel(A, centres, xe[0], xe[-1], ye[0], dx, dy, nx, ny, nsub)
     nb = ny * (nx + 1)
     steps = np.zeros(nb)
     direct = np.zeros(nb)
@@ -278,12 +278,11 @@ def _uniform_jaccard(box: FloatArray, ref: FloatArray, grid: S.Grid, q: FloatArr
     )
 
 
-def _box_samples(box: FloatArray, ref: FloatArray, quad: FloatArray, three_d: bool) -> "S._Samples":
+def _box_samples(box: FloatArray, ref: FloatArray, quad: FloatArray, three_d: bool) -> "S.Samples":
     """A deterministic box as spatial's one-sample description (only its support is used: the grid)."""
     dz = box[2] - ref[2]
     z = np.array([[dz - box[5] / 2, dz + box[5] / 2]]) if three_d else None
-    zero = np.zeros(3 if three_d else 2)
-    return S._Samples(np.zeros((1, 2)), np.zeros((1, 2, 2)), z, np.ones(1), quad, 0.0, zero, None if z is None else z[0], None if z is None else np.zeros(2))
+    return S.Samples.single(np.zeros((1, 2)), np.zeros((1, 2, 2)), z, np.ones(1), quad)
 
 
 def _window(grid: S.Grid, quads: list[FloatArray]) -> S.Grid:
@@ -301,18 +300,18 @@ _UNIT8 = np.array([[0.5, -0.5, -0.5, 0.5, 0.5, -0.5, 0.0, 0.0], [0.5, 0.5, -0.5,
 
 
 def _label_samples_bev(box: FloatArray, cov: FloatArray, params: SpatialParams) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The label's p_G samples in its own frame, as ``spatial._sample_boxes`` draws them (BEV, φ covariance).
+    """The label's p_G samples in its own frame, as ``spatial.sample_boxes`` draws them (BEV, φ covariance).
 
     Returns axes (S, 2, 2), centres (S, 2), weights (S,) and the support bounds lo, hi (2,) — the mean
     corners ± ``support_std`` times the largest corner std; without the boundary statistics
-    ``_sample_boxes`` adds (a grid for deterministic detections does not need them).
+    ``sample_boxes`` adds (a grid for deterministic detections does not need them).
     """
     c0, s0 = np.cos(box[6]), np.sin(box[6])
     Rt = np.array([[c0, s0], [-s0, c0]])
     T = np.zeros((6, 6))
     T[0:2, 0:2] = T[2:4, 2:4] = T[4:6, 4:6] = Rt
     z = S.normal_samples(6, params.num_samples, params.seed)
-    phis = np.array([0.0, 0.0, box[3], 0.0, box[4], 0.0]) + z @ S._sqrt_psd(T @ cov @ T.T)
+    phis = np.array([0.0, 0.0, box[3], 0.0, box[4], 0.0]) + z @ S.sqrt_psd(T @ cov @ T.T)
     n = len(phis)
     A = np.empty((n, 2, 2))
     A[:, 0, 0], A[:, 1, 0] = phis[:, 2], phis[:, 3]
@@ -344,7 +343,7 @@ def _fast_bev_group(task: PairTask, g: int, rows: NDArray[np.int64], out: FloatA
     lo = np.minimum(lo, pts.min(axis=0))
     hi = np.maximum(hi, pts.max(axis=0))
     cell = min(max(ref[3], ref[4]), float(np.min(np.maximum(boxes[:, 3], boxes[:, 4])))) / max(float(p.cells_per_side), 1.0)
-    grid = S.Grid(ref, S._axis_edges(ref[3] / 2, lo[0], hi[0], cell), S._axis_edges(ref[4] / 2, lo[1], hi[1], cell))
+    grid = S.Grid(ref, S.axis_edges(ref[3] / 2, lo[0], hi[0], cell), S.axis_edges(ref[4] / 2, lo[1], hi[1], cell))
     win = _window(grid, quads)
     for k, (b, qd) in enumerate(zip(boxes, quads)):
         out[k] = _jiou_uniform_bev_kernel(A, cen, w, win.x_edges, win.y_edges, qd, b[3] * b[4], 1.0, C.SUBROWS_PER_CELL)
@@ -377,20 +376,20 @@ def _label_group(task: PairTask, g: int, rows: NDArray[np.int64]) -> FloatArray:
         return out
     label = _dist(task.gt_boxes[g], task.model, None if label_det else gcov, "phi")
     ref = label.box
-    sb = S._sample_boxes(label, ref, p)
+    sb = S.sample_boxes(label, ref, p)
     quads = [_grid_quad(b, ref) for _, b in uniform]
     s_uniform = [_box_samples(b, ref, qd, three_d) for (_, b), qd in zip(uniform, quads)]
-    s_spread = [S._sample_boxes(d, ref, p) for _, d in spread]
+    s_spread = [S.sample_boxes(d, ref, p) for _, d in spread]
     # as spatial.jiou: a deterministic box counts as sharp (blur 0) unless it is the reference itself
     blurs = [s.blur for s, (_, b) in zip(s_uniform, uniform) if not np.array_equal(b, ref)] + [s.blur for s in s_spread]
     if not label_det:
         blurs.append(sb.blur)
     blur = np.min(blurs, axis=0) if blurs else None
     boxes = [ref, *(b for _, b in uniform), *(d.box for _, d in spread)]
-    grid = S._make_grid(ref, label.model, [sb, *s_uniform, *s_spread], p, boxes, blur)
+    grid = S.make_grid(ref, label.model, [sb, *s_uniform, *s_spread], p, boxes, blur)
     q_full = None
     if three_d and sb.z is not None:
-        q_full = np.all(S._z_coverage(sb, grid.z_edges) >= np.diff(grid.z_edges) * (1 - 1e-9), axis=0)
+        q_full = np.all(S.z_coverage(sb, grid.z_edges) >= np.diff(grid.z_edges) * (1 - 1e-9), axis=0)
     if uniform:
         # deterministic detections have no mass outside their boxes: the label is rasterised on
         # the window they cover only; the rest of its mass (total 1) enters through its sum
@@ -402,16 +401,16 @@ def _label_group(task: PairTask, g: int, rows: NDArray[np.int64]) -> FloatArray:
             for (k, b), qd in zip(uniform, quads):
                 out[k] = _jiou_uniform_bev_kernel(A, cen, w, win.x_edges, win.y_edges, qd, b[3] * b[4], 1.0, C.SUBROWS_PER_CELL)
         else:
-            q = S._rasterise(sb, win)
+            q = S.rasterise(sb, win)
             for (k, b) in uniform:
                 out[k] = _uniform_jaccard(b, ref, win, q, q_full)
     if spread:
-        q = S._rasterise(sb, grid)
+        q = S.rasterise(sb, grid)
         for (k, d), sa in zip(spread, s_spread):
             if not three_d:
-                out[k] = S.jaccard(S._rasterise(sa, grid), q)
+                out[k] = S.jaccard(S.rasterise(sa, grid), q)
             else:  # spatial's own pair rasteriser (merges the z-layers both cover completely)
-                out[k] = S.jaccard(*S._pair_masses(sa, sb, grid))
+                out[k] = S.jaccard(*S.pair_masses(sa, sb, grid))
     return out
 
 

@@ -18,7 +18,7 @@ from labelaudit.kernels import kernel
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["bev_corners", "pair_overlaps", "box_areas"]
+__all__ = ["bev_corners", "pair_overlaps", "box_areas", "clip_area"]
 
 
 def bev_corners(boxes: ArrayLike) -> FloatArray:
@@ -44,7 +44,7 @@ def box_areas(boxes: ArrayLike, view: str) -> FloatArray:
 
 
 @kernel
-def _clip_area(P, Q):  # pragma: no cover - compiled
+def clip_area(P, Q):  # pragma: no cover - compiled
     """Area of the intersection of two convex counter-clockwise quadrilaterals P, Q (4, 2)."""
     # The intersection of two convex quadrilaterals has at most 8 vertices.
     bx = np.empty(16)
@@ -107,7 +107,7 @@ def _pairs_kernel(ca, cb, centre_a, centre_b, radius_a, radius_b, za, zb, ia, ib
             dz = min(za[i, 1], zb[j, 1]) - max(za[i, 0], zb[j, 0])
             if dz <= 0.0:
                 continue
-        inter[k] = _clip_area(ca[i], cb[j]) * dz
+        inter[k] = clip_area(ca[i], cb[j]) * dz
     return inter
 
 

@@ -127,7 +127,7 @@ def detect_frame(rng: np.random.Generator, true_boxes: FloatArray, classes: list
     boxes : (D, 7), class names (D), scores (D,), stds (D, 7) of the error each was drawn with,
     kinds (D): "object" (a detected object), "duplicate" or "background" (a false positive)
     """
-    from labelaudit.sim.scene import _SIZE_STATS
+    from labelaudit.sim.scene import SIZE_STATS
 
     out_boxes, out_cls, out_score, out_std, kinds = [], [], [], [], []
     k = len(true_boxes)
@@ -168,7 +168,7 @@ def detect_frame(rng: np.random.Generator, true_boxes: FloatArray, classes: list
     n_fp = rng.poisson(spec.false_positives)
     for _ in range(n_fp):
         cls = str(rng.choice(_FP_CLASSES, p=_FP_CLASS_P))
-        mean, sd, _ = _SIZE_STATS[cls]
+        mean, sd, _ = SIZE_STATS[cls]
         lwh = np.maximum(np.asarray(mean) + rng.normal(size=3) * np.asarray(sd), 0.3)
         r = rng.uniform(*C.SIM_DISTANCE)
         az = np.deg2rad(rng.uniform(-38.0, 38.0))

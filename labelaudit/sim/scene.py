@@ -26,7 +26,7 @@ VEHICLE_CLASSES: tuple[str, ...] = ("Car", "Van", "Truck")
 
 # KITTI training-set size statistics per class: mean and std of (length, width, height), in metres,
 # plus the share of the class among vehicles / among vulnerable road users.
-_SIZE_STATS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float], float]] = {
+SIZE_STATS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float], float]] = {
     "Car": ((3.88, 1.63, 1.53), (0.43, 0.10, 0.14), 0.78),
     "Van": ((5.08, 1.90, 2.21), (0.50, 0.12, 0.30), 0.14),
     "Truck": ((10.1, 2.58, 3.25), (2.0, 0.15, 0.40), 0.08),
@@ -168,7 +168,7 @@ class SceneSpec:
 
 
 def _sample_size(rng: np.random.Generator, class_name: str) -> FloatArray:
-    mean, std, _ = _SIZE_STATS[class_name]
+    mean, std, _ = SIZE_STATS[class_name]
     lo, hi = _SIZE_LIMITS[class_name]
     return np.clip(np.asarray(mean) + np.asarray(std) * rng.standard_normal(3), lo, hi)
 
@@ -228,7 +228,7 @@ def _parts_local(rng: np.random.Generator, class_name: str, lwh: FloatArray) -> 
         ]
         refl = [paint, rng.uniform(*_CLOTH_REFLECTIVITY)]
     else:
-        raise ValueError(f"unknown class {class_name!r}; expected one of {sorted(_SIZE_STATS)}")
+        raise ValueError(f"unknown class {class_name!r}; expected one of {sorted(SIZE_STATS)}")
     return np.asarray(parts, dtype=float), np.asarray(refl, dtype=float)
 
 
@@ -275,8 +275,8 @@ def sample_scene(rng: np.random.Generator, spec: SceneSpec = SceneSpec(), *, gro
     scene = Scene(ground_z=ground_z, ground_reflectivity=float(rng.uniform(*_GROUND_REFLECTIVITY)))
     n_veh = int(rng.integers(spec.num_vehicles[0], spec.num_vehicles[1] + 1))
     n_vru = int(rng.integers(spec.num_vru[0], spec.num_vru[1] + 1))
-    veh_p = np.array([_SIZE_STATS[c][2] for c in _VEHICLE_MIX])
-    vru_p = np.array([_SIZE_STATS[c][2] for c in _VRU_MIX])
+    veh_p = np.array([SIZE_STATS[c][2] for c in _VEHICLE_MIX])
+    vru_p = np.array([SIZE_STATS[c][2] for c in _VRU_MIX])
     wanted = [str(c) for c in rng.choice(_VEHICLE_MIX, size=n_veh, p=veh_p / veh_p.sum())]
     wanted += [str(c) for c in rng.choice(_VRU_MIX, size=n_vru, p=vru_p / vru_p.sum())]
     footprints: list[FloatArray] = []
