@@ -964,3 +964,23 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
         precision = terms.P0 + ata * (1.0 / sigma**2)
         assert got.tobytes() == (0.5 * (precision + precision.T)).tobytes()
         assert (rr, ss, sw) == (rr_want, ss_want, sw_want)
+
+
+def test_corner_covariances_known_answer_and_one_formula():
+    """Isotropic φ covariance s²·I (BEV): a corner v* = (±½, ±½) has J Jᵀ = (1 + v₁² + v₂²)·I₂ = 1.5·I₂,
+    so each corner's covariance is 1.5 s²·I₂ and its total variance 3 s²; the per-box trace (compiled),
+    the corner covariances and the stacked traces are one formula."""
+    s2 = 0.04
+    cov = s2 * np.eye(6)
+    cc = M.corner_covariances(cov, "bev")
+    np.testing.assert_allclose(cc, np.broadcast_to(1.5 * s2 * np.eye(2), (4, 2, 2)), rtol=1e-15)
+    rng = np.random.default_rng(3)
+    for model, p in (("bev", 6), ("3d", 8)):
+        A = rng.normal(size=(3, p, p))
+        covs = A @ A.transpose(0, 2, 1) * 0.01
+        box = np.array([5.0, -2.0, 0.5, 4.0, 1.8, 1.5, 0.7])
+        stacked = M.corner_variances(covs, model)
+        for k in range(3):
+            tv, order = M.corner_total_variance(box, covs[k], model)
+            np.testing.assert_allclose(tv, stacked[k][order], rtol=1e-13)
+            np.testing.assert_allclose(np.trace(M.corner_covariances(covs[k], model), axis1=1, axis2=2), stacked[k], rtol=1e-13)

@@ -624,6 +624,22 @@ _CORNER_J = {m: g.design_matrix(corner_unit_coords(m), m) for m in ("bev", "3d")
 _CORNERS_UNIT = [tuple(u) for u in g.BEV_CORNERS_UNIT.tolist()]
 
 
+def corner_covariances(cov: ArrayLike, model: ModelKind) -> FloatArray:
+    """Covariances J(v*_c) Σ J(v*_c)ᵀ (4, d, d) of the 4 BEV corners (order of
+    :func:`labelaudit.core.geometry.box_corners`, box frame axes = world axes) for a φ covariance Σ
+    (p, p); their traces are :func:`corner_total_variance`'s, their x–y blocks the ellipses ``show`` draws.
+    """
+    J = _CORNER_J[model]
+    return np.einsum("cdp,pq,ceq->cde", J, np.asarray(cov, dtype=float), J)
+
+
+def corner_variances(covs: ArrayLike, model: ModelKind) -> FloatArray:
+    """Total variances trace(J(v*_c) Σ_n J(v*_c)ᵀ) (n, 4) of the 4 BEV corners for a stack of φ
+    covariances (n, p, p), in the order of :func:`labelaudit.core.geometry.box_corners`."""
+    J = _CORNER_J[model]
+    return np.einsum("cdp,npq,cdq->nc", J, np.asarray(covs, dtype=float), J)
+
+
 def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
     tv = _corner_quad_forms(_CORNER_J[model], cov)  # = np.einsum("cdp,pq,cdq->c", J, cov, J)
     c, s = math.cos(y[6]), math.sin(y[6])

@@ -176,7 +176,7 @@ def frame_pairs(a_off: NDArray[np.int64], b_off: NDArray[np.int64]) -> tuple[NDA
 
 def corner_std(cov: FloatArray, model: str) -> FloatArray:
     """Largest BEV corner std (m) of φ covariances (N, p, p); 0 for NaN rows."""
-    from labelaudit.core.geometry import BEV_CORNERS_UNIT, design_matrix
+    from labelaudit.core.posterior import corner_variances
 
     n = len(cov)
     out = np.zeros(n)
@@ -187,8 +187,7 @@ def corner_std(cov: FloatArray, model: str) -> FloatArray:
     if model == "3d":
         keep = [0, 1, 3, 4, 5, 6]
         c = c[:, keep][:, :, keep]
-    J = design_matrix(BEV_CORNERS_UNIT, "bev")  # (4, 2, 6)
-    tv = np.einsum("kdp,npq,kdq->nk", J, c, J)
+    tv = corner_variances(c, "bev")
     out[ok] = np.sqrt(np.clip(tv.max(axis=1), 0.0, None))
     return out
 

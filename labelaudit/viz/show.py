@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.datasets.base import box_problems
-from labelaudit.core.posterior import corner_unit_coords
+from labelaudit.core.posterior import corner_covariances as corner_cov
 from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit
 
 FloatArray = NDArray[np.float64]
@@ -105,13 +105,10 @@ def _to_box_frame(xy: FloatArray, box: FloatArray) -> FloatArray:
 def corner_covariances(audit: ObjectAudit) -> FloatArray:
     """BEV covariance (4, 2, 2) of the label's corners, world frame, C1..C4 (nearest the sensor first).
 
-    J(v*_c) Σ J(v*_c)ᵀ at the four corners (:func:`labelaudit.core.posterior.corner_total_variance` is
-    their trace); the x–y block for a 3D model.
+    The x–y blocks of :func:`labelaudit.core.posterior.corner_covariances`, in the posterior's corner order.
     """
     post = audit.posterior
-    J = g.design_matrix(corner_unit_coords(post.model), post.model)  # (4, d, p)
-    cov = np.einsum("cdp,pq,ceq->cde", J, post.cov, J)[:, :2, :2]
-    return cov[post.corner_order]
+    return corner_cov(post.cov, post.model)[:, :2, :2][post.corner_order]
 
 
 def _nice_length(span: float) -> float:
