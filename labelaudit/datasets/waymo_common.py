@@ -36,6 +36,30 @@ def class_name(label_type: int) -> str:
     return CLASS_NAMES.get(int(label_type), f"Type{int(label_type)}")
 
 
+@dataclass(frozen=True)
+class FrameLabels:
+    """The labels of one Waymo frame without its points (what ``eval`` reads: no range image is decoded).
+
+    Attributes
+    ----------
+    frame_id : ``<segment>:<timestamp_micros>``, as the readers name frames
+    boxes : (K, 7) vehicle-frame boxes (cx, cy, cz, length, width, height, heading), in label order
+    types : (K,) Waymo label types (:data:`CLASS_NAMES`)
+    difficulty : (K,) detection difficulty level (0 unset, 1, 2)
+    num_points : (K,) the dataset's LiDAR point count per box (−1 unknown)
+    sensor_origin : (3,) the TOP lidar's position in the vehicle frame
+    source : the segment file
+    """
+
+    frame_id: str
+    boxes: NDArray[np.float64]
+    types: NDArray[np.int64]
+    difficulty: NDArray[np.int64]
+    num_points: NDArray[np.int64]
+    sensor_origin: NDArray[np.float64]
+    source: str
+
+
 @dataclass
 class LidarCalibration:
     """Calibration of one lidar.

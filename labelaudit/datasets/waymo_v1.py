@@ -31,6 +31,7 @@ from labelaudit.datasets.base import Frame, FrameFailure, FrameRef
 from labelaudit.errors import DatasetError, one_line
 from labelaudit.datasets.waymo_common import (
     TOP,
+    FrameLabels,
     LidarCalibration,
     LidarData,
     check_extras,
@@ -160,6 +161,38 @@ def _range_image(ri: object, what: str, source: str) -> NDArray[np.float32] | No
     return None
 
 
+def iter_labels(path: str | Path, verify: bool = True) -> Iterator[FrameLabels]:
+    """The labels of every frame of a segment file, in record order, without decoding a range image.
+
+    Raises
+    ------
+    DatasetError
+        A record that is not a Waymo ``Frame``, an empty or corrupt file (the message names the file and record).
+    """
+    path = Path(path)
+    count = 0
+    for index, payload in enumerate(iter_records(path, verify)):
+        try:
+            msg = wp.Frame.FromString(payload)
+        except Exception as exc:  # protobuf's DecodeError
+            raise DatasetError(path, f"record {index} is not a Waymo Frame: {exc}") from exc
+        segment = msg.context.name or path.stem
+        labels = msg.laser_labels
+        boxes = np.array([[l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading] for l in labels], dtype=float).reshape(-1, 7)
+        yield FrameLabels(
+            frame_id=f"{segment}:{msg.timestamp_micros}",
+            boxes=boxes,
+            types=np.array([l.type for l in labels], dtype=np.int64),
+            difficulty=np.array([l.detection_difficulty_level for l in labels], dtype=np.int64),
+            num_points=np.array([l.num_lidar_points_in_box for l in labels], dtype=np.int64),
+            sensor_origin=sensor_origin(_calibrations(msg.context, f"{path} record {index}")),
+            source=str(path),
+        )
+        count += 1
+    if count == 0:
+        raise DatasetError(path, "empty TFRecord file: no records")
+
+
 def decode_frame(
     payload: bytes, source: str | Path, classes: tuple[str, ...] | None = None, index: int = 0
 ) -> Frame:
@@ -287,6 +320,10 @@ class WaymoV1Reader:
             if not files:
                 raise DatasetError(self.root, "no *.tfrecord files found (searched recursively)")
         return [FrameRef(FORMAT, str(self.root), str(p)) for p in files]
+
+    def labels(self, ref: FrameRef) -> Iterator[FrameLabels]:
+        """The labels of one segment file's frames, without their points (:func:`iter_labels`)."""
+        return iter_labels(Path(ref.key), self.verify_crc)
 
     def load_unit(self, ref: FrameRef) -> Iterator[Frame | FrameFailure]:
         """Frames of one segment file, in record order; a record that cannot be decoded (or whose

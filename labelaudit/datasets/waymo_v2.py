@@ -35,6 +35,7 @@ from labelaudit.datasets.base import Frame, FrameFailure, FrameRef
 from labelaudit.errors import DatasetError, one_line
 from labelaudit.datasets.waymo_common import (
     TOP,
+    FrameLabels,
     LidarCalibration,
     LidarData,
     check_extras,
@@ -245,6 +246,10 @@ class WaymoV2Reader:
             raise DatasetError(self.root, "lidar_box/ holds no .parquet files")
         return [FrameRef(FORMAT, str(self.root), str(p)) for p in files]
 
+    def labels(self, ref: FrameRef) -> Iterator[FrameLabels]:
+        """The labels of one segment's frames, without their points (:func:`read_labels`)."""
+        return read_labels(Path(ref.key))
+
     def load_unit(self, ref: FrameRef) -> Iterator[Frame | FrameFailure]:
         """Frames of one segment, by timestamp.
 
@@ -422,3 +427,44 @@ def read_vehicle_poses(path: str | Path) -> dict[int, NDArray[np.float64]]:
 
 
 __all__ = ["WaymoV2Reader", "read_vehicle_poses", "COMPONENTS", "TOP"]
+
+
+def read_labels(box_path: str | Path) -> Iterator[FrameLabels]:
+    """The labels of every frame of one segment (its ``lidar_box`` file), by timestamp, file order
+    within a frame (the reader's order); the sensor origin from ``lidar_calibration`` when present.
+
+    Raises
+    ------
+    DatasetError
+        An unreadable file or a missing column (the message names the file).
+    """
+    box_path = Path(box_path)
+    segment = box_path.stem
+    t = _read(box_path, [K_TS, *BOX_COLUMNS.values()], list(BOX_EXTRAS.values()))
+    cal_path = box_path.parent.parent / "lidar_calibration" / f"{segment}.parquet"
+    origin = sensor_origin(WaymoV2Reader._calibrations(cal_path)) if cal_path.is_file() else np.zeros(3)
+    ts_all = t.column(K_TS).to_numpy()
+    order = np.argsort(ts_all, kind="stable")
+    rows_of: dict[int, list[int]] = defaultdict(list)
+    for i in order:
+        rows_of[int(ts_all[i])].append(int(i))
+    cols = {k: t.column(c).to_numpy(zero_copy_only=False) for k, c in BOX_COLUMNS.items()}
+
+    def extra(name: str, default: int) -> NDArray[np.int64]:
+        c = BOX_EXTRAS[name]
+        if c not in t.schema.names:
+            return np.full(t.num_rows, default, dtype=np.int64)
+        return np.nan_to_num(t.column(c).to_numpy(zero_copy_only=False).astype(float), nan=default).astype(np.int64)
+
+    level, points = extra("detection_difficulty", 0), extra("num_lidar_points_in_box", -1)
+    for ts in sorted(rows_of):
+        idx = np.asarray(rows_of[ts])
+        yield FrameLabels(
+            frame_id=f"{segment}:{ts}",
+            boxes=np.stack([cols[k][idx].astype(float) for k in _BOX_KEYS], axis=1).reshape(len(idx), 7),
+            types=cols["type"][idx].astype(np.int64),
+            difficulty=level[idx],
+            num_points=points[idx],
+            sensor_origin=np.asarray(origin, dtype=float),
+            source=str(box_path),
+        )

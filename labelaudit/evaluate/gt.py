@@ -9,8 +9,8 @@ numbering as the readers of :mod:`labelaudit.datasets` (``object_index`` here eq
   per frame: KITTI detections are converted to the LiDAR frame with it); the 2D box height,
   occlusion and truncation drive the difficulty; DontCare rows become DontCare regions when they
   carry a real 3D box (KITTI's carry placeholders, −1 sizes at −1000 m, see docs/eval.md).
-* Waymo v1: the ``laser_labels`` of each ``Frame`` record (range images are not decoded).
-* Waymo v2: the ``lidar_box`` component only.
+* Waymo v1 and v2: the readers' labels without points (``reader.labels``: the ``laser_labels`` of
+  each ``Frame`` record, range images not decoded; the ``lidar_box`` component).
 * Argoverse 2: ``annotations.feather`` (and the sweep file names, so that frames without labels
   are frames here too); every box is one difficulty level, boxes with ``num_interior_pts = 0``
   are ignored like Waymo's empty boxes (AV2's own evaluation drops them).
@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from labelaudit.datasets import DatasetError, FrameRef, open_dataset
 from labelaudit.datasets.kitti import Calibration, boxes_camera_to_lidar, kitti_difficulty, read_calib, read_label
+from labelaudit.datasets.waymo_common import FrameLabels
 from labelaudit.datasets.waymo_common import class_name as waymo_class_name
 
 FloatArray = NDArray[np.float64]
@@ -184,80 +185,26 @@ def kitti_frame(label_path: Path, calib_path: Path, frame_id: str) -> GroundTrut
 # --------------------------------------------------------------------------- Waymo
 
 
-def _waymo_frame(frame_id: str, boxes: FloatArray, types: NDArray[np.integer], level: NDArray[np.integer], points: NDArray[np.integer], origin: FloatArray, source: str) -> GroundTruthFrame:
+def _waymo_frame(labels: FrameLabels) -> GroundTruthFrame:
     from labelaudit.evaluate.matching import waymo_level
 
-    k = len(boxes)
+    k = len(labels.boxes)
     return GroundTruthFrame(
-        frame_id=frame_id,
-        boxes=np.asarray(boxes, dtype=float).reshape(k, 7),
-        class_names=[waymo_class_name(int(t)) for t in types],
+        frame_id=labels.frame_id,
+        boxes=np.asarray(labels.boxes, dtype=float).reshape(k, 7),
+        class_names=[waymo_class_name(int(t)) for t in labels.types],
         object_index=np.arange(k, dtype=np.int64),
         height=np.full(k, np.nan),
         occluded=np.full(k, -1, dtype=np.int64),
         truncated=np.full(k, np.nan),
-        difficulty=waymo_level(level, points),
-        num_points=np.asarray(points, dtype=np.int64),
+        difficulty=waymo_level(labels.difficulty, labels.num_points),
+        num_points=np.asarray(labels.num_points, dtype=np.int64),
         dontcare=np.zeros((0, 7)),
         dontcare_rows=0,
         calib=None,
-        sensor_origin=np.asarray(origin, dtype=float),
-        source=source,
+        sensor_origin=np.asarray(labels.sensor_origin, dtype=float),
+        source=labels.source,
     )
-
-
-def _waymo_v1_frames(path: Path, verify: bool = True) -> Iterator[GroundTruthFrame]:
-    from labelaudit.datasets import waymo_proto as wp
-    from labelaudit.datasets.waymo_common import sensor_origin
-    from labelaudit.datasets.waymo_v1 import _calibrations, iter_records
-
-    count = 0
-    for index, payload in enumerate(iter_records(path, verify)):
-        try:
-            msg = wp.Frame.FromString(payload)
-        except Exception as exc:  # protobuf's DecodeError
-            raise DatasetError(path, f"record {index} is not a Waymo Frame: {exc}") from exc
-        segment = msg.context.name or path.stem
-        frame_id = f"{segment}:{msg.timestamp_micros}"
-        labels = msg.laser_labels
-        boxes = np.array([[l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading] for l in labels], dtype=float).reshape(-1, 7)
-        origin = sensor_origin(_calibrations(msg.context, f"{path} record {index}"))
-        yield _waymo_frame(
-            frame_id, boxes, np.array([l.type for l in labels], dtype=np.int64),
-            np.array([l.detection_difficulty_level for l in labels], dtype=np.int64),
-            np.array([l.num_lidar_points_in_box for l in labels], dtype=np.int64), origin, str(path),
-        )
-        count += 1
-    if count == 0:
-        raise DatasetError(path, "empty TFRecord file: no records")
-
-
-def _waymo_v2_frames(box_path: Path) -> Iterator[GroundTruthFrame]:
-    from labelaudit.datasets import waymo_v2 as v2
-    from labelaudit.datasets.waymo_common import sensor_origin
-
-    segment = box_path.stem
-    t = v2._read(box_path, [v2.K_TS, *v2.BOX_COLUMNS.values()], list(v2.BOX_EXTRAS.values()))
-    cal_path = box_path.parent.parent / "lidar_calibration" / f"{segment}.parquet"
-    origin = sensor_origin(v2.WaymoV2Reader._calibrations(cal_path)) if cal_path.is_file() else np.zeros(3)
-    ts_all = t.column(v2.K_TS).to_numpy()
-    order = np.argsort(ts_all, kind="stable")  # the reader's order: by timestamp, file order within
-    rows_of: dict[int, list[int]] = defaultdict(list)
-    for i in order:
-        rows_of[int(ts_all[i])].append(int(i))
-    cols = {k: t.column(c).to_numpy(zero_copy_only=False) for k, c in v2.BOX_COLUMNS.items()}
-
-    def extra(name: str, default: int) -> NDArray[np.int64]:
-        c = v2.BOX_EXTRAS[name]
-        if c not in t.schema.names:
-            return np.full(t.num_rows, default, dtype=np.int64)
-        return np.nan_to_num(t.column(c).to_numpy(zero_copy_only=False).astype(float), nan=default).astype(np.int64)
-
-    level, points = extra("detection_difficulty", 0), extra("num_lidar_points_in_box", -1)
-    for ts in sorted(rows_of):
-        idx = np.asarray(rows_of[ts])
-        boxes = np.stack([cols[k][idx].astype(float) for k in ("cx", "cy", "cz", "length", "width", "height", "heading")], axis=1)
-        yield _waymo_frame(f"{segment}:{ts}", boxes, cols["type"][idx].astype(np.int64), level[idx], points[idx], origin, str(box_path))
 
 
 # --------------------------------------------------------------------------- Argoverse 2
@@ -310,10 +257,9 @@ def _av2_frames(log_dir: Path) -> Iterator[GroundTruthFrame]:
 def _frames_of(fmt: str, reader: Any, ref: FrameRef) -> Iterator[GroundTruthFrame]:
     if fmt == "kitti":
         yield kitti_frame(reader.label_path(ref.key), reader.calib_path(ref.key), ref.key)
-    elif fmt == "waymo-v1":
-        yield from _waymo_v1_frames(Path(ref.key), getattr(reader, "verify_crc", True))
-    elif fmt == "waymo-v2":
-        yield from _waymo_v2_frames(Path(ref.key))
+    elif fmt in ("waymo-v1", "waymo-v2"):
+        for labels in reader.labels(ref):
+            yield _waymo_frame(labels)
     elif fmt == "av2":
         yield from _av2_frames(Path(ref.key))
     else:
