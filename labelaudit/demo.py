@@ -33,7 +33,7 @@ from labelaudit.viz.report import build_report
 DEMO_NOISE = NoiseSpec(
     fraction=0.2, center_std=C.SIM_BENCH_NOISE[0], size_std=C.SIM_BENCH_NOISE[1], yaw_std=C.SIM_BENCH_NOISE[2], gross_fraction=0.05
 )
-"""The demo's label noise: the issue-6 benchmark jitter on 20 % of vehicles, gross errors on 5 %."""
+"""The demo's label noise: the label-error benchmark's jitter on 20 % of vehicles, gross errors on 5 %."""
 
 DEMO_QUERIES = (RankQuery(top=10, min_points=1), RankQuery(by="label_error", top=10))
 """Lowest JIoU-GT among boxes with points (all point-less boxes are equally uncertain), highest label_error."""

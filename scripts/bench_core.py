@@ -1,9 +1,9 @@
 """Benchmark of the core model: median per-object time of inference and of JIoU-GT, BEV and 3D.
 
-Four cases (issue 2): a near car (l 4.2, w 1.7, h 1.5 at 15 m, 300 points on two faces, 0.05 m
+Four cases: a near car (l 4.2, w 1.7, h 1.5 at 15 m, 300 points on two faces, 0.05 m
 noise), a far car (40 m, 10 points), a single visible face (60 points), 2 points. Prints a table of
-medians (ms) and the JIoU-GT values; the last column is the label-error box fit (issue 6, always 3D
-when the points have z), not part of the issue-2 target. Single process, one core; the machine may be shared, so the
+medians (ms) and the JIoU-GT values; the last column is the label-error box fit (always 3D
+when the points have z), not part of the inference target. Single process, one core; the machine may be shared, so the
 median CPU time (``time.process_time``) over a few repetitions is reported.
 
     python scripts/bench_core.py [--repeat 30]
@@ -75,7 +75,7 @@ def main() -> None:
             t_inf = median_ms(lambda: infer_label(box, pts, "Car", params), args.repeat)
             post = infer_label(box, pts, "Car", params)
             t_j = median_ms(lambda: jiou_gt(post, spatial), args.repeat)
-            t_fit = median_ms(lambda: fit_label(box, pts, "Car", params), args.repeat)  # label error (issue 6)
+            t_fit = median_ms(lambda: fit_label(box, pts, "Car", params), args.repeat)  # label error
             print(f"{name:<20} {model:<5} {t_inf:9.2f} {t_j:11.2f} {t_inf + t_j:9.2f} {jiou_gt(post, spatial):8.4f} {t_fit:7.2f}")
 
 

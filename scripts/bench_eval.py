@@ -1,4 +1,4 @@
-"""Benchmark of ``labelaudit eval`` on a KITTI-val-sized synthetic set (issue 10).
+"""Benchmark of ``labelaudit eval`` on a KITTI-val-sized synthetic set.
 
 Prepares once (kept in --data; reused when present): ``labelaudit simulate`` of 3,769 frames with
 about 4 labels each (≈ 15k GT) and a lighter LiDAR (1,024 columns: the points only feed ``infer``),

@@ -1,4 +1,4 @@
-"""Benchmark of ``labelaudit export`` (issue 12 target: 30,000 objects in ≤ 5 s).
+"""Benchmark of ``labelaudit export`` (target: 30,000 objects in ≤ 5 s).
 
 Synthesises a results folder of N objects (default 30,000: 3,000 KITTI-like frames of 10 audited
 objects, shards of 16 frames written by the results writer like a real run, random small SPD

@@ -1,4 +1,4 @@
-"""Benchmarks of `labelaudit infer` on one machine (issues 4 and 13): start-up, one warm process, the floor ratio.
+"""Benchmarks of `labelaudit infer` on one machine: start-up, one warm process, the floor ratio.
 
 Prints, each repeated ``--repeat`` times (median and range, with the machine's load average):
 
@@ -148,7 +148,7 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
     clock = time.process_time
     acc: dict[str, float] = defaultdict(float)
     originals = {}
-    crop_name = "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"  # crops, ground, neighbours, rays (issue 14)
+    crop_name = "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"  # crops, ground, neighbours, rays
     def called(name: str) -> str:  # the pipeline calls the *_valid forms on a box it validated once
         return f"{name}_valid" if hasattr(rows_mod, f"{name}_valid") else name
 

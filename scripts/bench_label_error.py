@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""Issue-6 benchmark: does ``label_error`` rank wrong labels first, better than the baselines?
+"""The label-error benchmark: does ``label_error`` rank wrong labels first, better than the baselines?
 
-1. Simulate ``--frames`` KITTI-format frames with the issue-6 label noise
+1. Simulate ``--frames`` KITTI-format frames with the benchmark's label noise
    (``NoiseSpec.benchmark()``: 20 % of vehicle labels jittered — centre N(0, 0.3 m) per axis, size
    N(0, 0.2 m), yaw N(0, 0.1 rad) — plus 2 % gross errors: 1 m shift, l/w swap, 90° yaw).
 2. Run the real pipeline (``labelaudit.infer.run.run_infer``, built-in KITTI config) into a
@@ -189,7 +189,7 @@ def synthetic(args: argparse.Namespace) -> str:
     md = [f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
           f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))}).\n"]
     rows = ranking_table(scores, pos, standard_subsets(n_pts, t["distance"]), TOP)
-    md.append(print_table("Synthetic, issue-6 definition (positive = any perturbation)", rows))
+    md.append(print_table("Synthetic, benchmark definition (positive = any perturbation)", rows))
     md.append(print_table("Synthetic, by perturbation kind", kind_rows(scores, kinds, np.ones(len(kinds), bool)),
                           "each kind's positives against all unperturbed labels"))
     md.append(print_table("Synthetic, by perturbation kind, ≥ 10 points", kind_rows(scores, kinds, n_pts >= 10)))
@@ -201,7 +201,7 @@ def synthetic(args: argparse.Namespace) -> str:
         f"EXTRA VIEW (not the issue's definition): jitters with centre offset < {VISIBLE_CENTER} m and |yaw| < {VISIBLE_YAW} rad left out",
         ranking_table(scores, pos, vis_sub, TOP),
     ))
-    # Target of issue 6.
+    # The target: label_error finds the perturbed labels among those with ≥ 10 points.
     target = next(r for r in rows if r.name.startswith("≥ 10"))
     verdicts = [f"label_error AUROC on ≥ 10 points = {target.auroc['label_error']:.3f} (target ≥ 0.95): {'PASS' if target.auroc['label_error'] >= 0.95 else 'FAIL'}"]
     losing = [f"{r.name} (vs {b}: {r.auroc['label_error']:.3f} ≤ {r.auroc[b]:.3f})" for r in rows for b in SCORES[1:]
@@ -471,7 +471,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markdown", type=Path, default=None, help="also write the tables as Markdown to this file")
     args = ap.parse_args(argv)
     if args.frames < 300:
-        print(f"note: {args.frames} frames (issue 6 asks for ≥ 300)", flush=True)
+        print(f"note: {args.frames} frames (the target is set on ≥ 300)", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.realdata is None:
         args.realdata = list(DEFAULT_REAL)

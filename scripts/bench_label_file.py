@@ -1,4 +1,4 @@
-"""Time a frame whose label file has thousands of lines: reading it, and its crop (issue 15).
+"""Time a frame whose label file has thousands of lines: reading it, and its crop.
 
 Usage: ``python scripts/bench_label_file.py [--lines 100,1000,10000] [--repeat N]``
 

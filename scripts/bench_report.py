@@ -1,4 +1,4 @@
-"""Benchmark of ``labelaudit report`` (issue 11): 30,000 objects, a 50-picture gallery, ≤ 30 s, HTML ≤ 10 MB.
+"""Benchmark of ``labelaudit report``: 30,000 objects, a 50-picture gallery, ≤ 30 s, HTML ≤ 10 MB.
 
 A real simulated KITTI dataset is audited by ``infer`` (its rows are the gallery's candidates, and
 the pictures are recomputed from its frames). The results are then grown to ``--objects`` rows with

@@ -1,4 +1,4 @@
-"""Scaling benchmarks of `labelaudit infer` (issue 13): workers, Dask, memory, and a Waymo-scale projection.
+"""Scaling benchmarks of `labelaudit infer`: workers, Dask, memory, and a Waymo-scale projection.
 
 Prints, each repeated ``--repeat`` times (median and range, with the machine's load average):
 

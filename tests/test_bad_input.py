@@ -1,6 +1,6 @@
-"""One regression test per cause of issue 15 (hostile input through ``labelaudit infer``), end to end.
+"""One regression test per way hostile input through ``labelaudit infer`` once broke it, end to end.
 
-Each test builds a tiny dataset (tests/_hostile.py), damages it the way the issue's fuzz campaign
+Each test builds a tiny dataset (tests/_hostile.py), damages it the way a fuzz campaign
 did, runs the real command line and checks what the user sees (docs/datasets.md § Bad input):
 exit 0 with the damage recorded where it belongs, or exit 2 and one line naming the file.
 """

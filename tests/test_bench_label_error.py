@@ -1,4 +1,4 @@
-"""The issue-6 benchmark script runs end to end on a tiny simulated dataset (numbers: docs/label-error.md)."""
+"""The label-error benchmark script runs end to end on a tiny simulated dataset (numbers: docs/label-error.md)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def test_bench_runs_on_a_tiny_dataset(tmp_path, capsys):
     md = tmp_path / "tables.md"
     assert bench.main(["--frames", "3", "--workers", "1", "--out", str(tmp_path / "work"), "--realdata", str(tmp_path / "absent"), "--markdown", str(md)]) == 0
     out = capsys.readouterr().out
-    assert "Synthetic, issue-6 definition" in out and "AUROC label_error" in out
+    assert "Synthetic, benchmark definition" in out and "AUROC label_error" in out
     assert "label_error AUROC on ≥ 10 points" in out
     assert "real data:" in out and "skipped" in out  # the real-data part skips cleanly
     text = md.read_text()

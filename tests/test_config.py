@@ -92,8 +92,8 @@ def test_wrong_type_and_range_are_errors(tmp_path):
 @pytest.mark.parametrize(
     "text",
     [
-        "[model]\nsigma = inf\n",  # issue 15: accepted, every std became the prior's
-        "[model]\nsigma = 1e308\n",  # issue 15: every object became status=error with exit 0
+        "[model]\nsigma = inf\n",  # else accepted: every std would be the prior's
+        "[model]\nsigma = 1e308\n",  # else every object would be status=error with exit 0
         "[model]\nsigma = nan\n",
         "[model]\nsigma = 1e-300\n",
         "[model]\nprior_weight = inf\n",
@@ -124,7 +124,7 @@ def test_the_built_in_configs_are_within_the_ranges():
 
 
 def test_non_utf8_and_folder_configs_name_the_file(tmp_path):
-    # issue 15: a non-UTF-8 --config was a UnicodeDecodeError (exit 3), a folder an IsADirectoryError
+    # a non-UTF-8 --config or a folder is a config error naming it, not a UnicodeDecodeError (exit 3) or an IsADirectoryError
     p = tmp_path / "cfg.toml"
     p.write_bytes(b"[model]\nsigma = 0.2 # \xff\n")
     with pytest.raises(ConfigError, match=r"cfg\.toml: config file is not UTF-8 text \(byte 22\)"):

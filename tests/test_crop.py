@@ -192,7 +192,7 @@ def test_real_exact_box_counts_against_gt_database(realdata: Path) -> None:
 
 
 def test_frames_with_many_boxes_crop_through_the_grid_to_identical_indices():
-    """issue 15: a 10,000-line label file took 27 s in the crop (Open3D tests every point against
+    """A 10,000-line label file would take 27 s in Open3D's crop (it tests every point against
     every box, K·N); from CROP_GRID_MIN_BOXES boxes on the crop goes through a BEV grid. Its
     indices must equal Open3D's exactly, on faces, corners and non-finite points too."""
     from dataclasses import replace

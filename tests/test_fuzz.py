@@ -1,4 +1,4 @@
-"""Seeded fuzzing of every input kind through the real command line (issue 15).
+"""Seeded fuzzing of every input kind through the real command line.
 
 Each test takes one input kind — KITTI labels, velodyne bins, calib files, file names; Waymo v1
 records (bytes) and Frame fields; Waymo v2 columns and component files; results-folder states;

@@ -267,7 +267,7 @@ def _load_all(reader: KittiReader) -> tuple[dict[str, object], dict[str, Dataset
         (GOOD_LINE + " 0.9 7", "expected 15 columns .* got 17", 2),
         ("Car 0.00 0 -1.57 600 150 700 220 1.5 abc 4.0 1.0 1.5 10.0 0.0", "column 'width': expected a number, got 'abc'", 2),
         ("Car 0.00 0.5 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
-        # issue 15: an occlusion an int column cannot hold was an ArrowInvalid that killed the run
+        # an occlusion an int column cannot hold is an object error, not an ArrowInvalid that ends the run
         ("Car 0.00 3000000000 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'.*'3000000000'", 2),
         ("Car 0.00 1e300 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'.*'1e300'", 2),
         ("Car 0.00 7 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
@@ -289,7 +289,7 @@ def test_bad_label_lines(tmp_path: Path, bad_line: str, pattern: str, line: int)
 @pytest.mark.parametrize(
     ("field", "value", "pattern"),
     [
-        ("x", "nan", "x = nan .expected a finite number"),  # issue 15: a NaN box killed the run
+        ("x", "nan", "x = nan .expected a finite number"),  # a NaN box is an object error, the run goes on
         ("z", "nan", "z = nan"),
         ("rotation_y", "nan", "rotation_y = nan"),
         ("width", "0.0", r"width = 0 .expected a size in \[0.01, 200\] m"),
@@ -322,7 +322,7 @@ def test_a_calibration_that_throws_boxes_out_of_range_names_the_calib_file(tmp_p
 
 
 def test_bom_and_crlf_label_and_split_files_read_every_row(tmp_path: Path) -> None:
-    # issue 15: a byte-order mark made the first class '\ufeffCar': neither audited nor reported
+    # a byte-order mark must not make the first class '\ufeffCar' (neither audited nor reported)
     write_frame(tmp_path, "000001", random_points(), [GOOD_LINE, GOOD_LINE.replace("Car", "Van")])
     label = tmp_path / "training/label_2/000001.txt"
     label.write_bytes(b"\xef\xbb\xbf" + label.read_bytes().replace(b"\n", b"\r\n"))
@@ -349,7 +349,7 @@ def test_unprintable_class_names_are_warned_about(tmp_path: Path) -> None:
 
 
 def test_non_utf8_text_files_name_the_file(tmp_path: Path) -> None:
-    # issue 15: a non-UTF-8 ImageSets/val.txt was a UnicodeDecodeError (exit 3)
+    # a non-UTF-8 ImageSets/val.txt is an input error naming the file, not a UnicodeDecodeError (exit 3)
     write_frame(tmp_path, "000001", random_points(), [GOOD_LINE])
     (tmp_path / "ImageSets").mkdir()
     (tmp_path / "ImageSets/val.txt").write_bytes(b"000001\n\xff\xfe\n")

@@ -387,7 +387,7 @@ def test_moment_form_equals_the_generic_posterior(model):
 
 
 # ---------------------------------------------------------------------------------------------
-# label error: suggested box, offsets, score, symmetries, hull baseline (issue 6)
+# label error: suggested box, offsets, score, symmetries, hull baseline
 # ---------------------------------------------------------------------------------------------
 
 ALL_SIDES = ["-x", "+x", "-y", "+y", "+z", "-z"]

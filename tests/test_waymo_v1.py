@@ -194,7 +194,7 @@ def test_crc_mismatch_names_file(tmp_path: Path, segment) -> None:
 
 
 def test_a_forged_length_is_named_before_reading(tmp_path: Path) -> None:
-    # issue 15: a length of 2^60 made the reader ask for exabytes: "MemoryError while reading <file>: "
+    # a length of 2^60 must be refused before the reader asks for exabytes (a bare "MemoryError while reading <file>: ")
     path = tmp_path / "x.tfrecord"
     good = encode_record(b"hello")
     length = struct.pack("<Q", 2**60)

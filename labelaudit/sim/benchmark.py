@@ -1,7 +1,7 @@
 """Ranking metrics for label-error detection: AUROC, precision at the top k %, binning.
 Pure functions over score arrays, used by the label-error benchmark (scripts/bench_label_error.py); no I/O.
 
-Vectorised NumPy, no scikit-learn. Used by ``scripts/bench_label_error.py`` (issue 6) to compare
+Vectorised NumPy, no scikit-learn. Used by ``scripts/bench_label_error.py`` to compare
 ``label_error`` with the baselines; ties are handled exactly (average ranks for AUROC, expected
 value under random tie-breaking for precision at k), so a constant score gets AUROC 0.5 and the
 base rate as precision.

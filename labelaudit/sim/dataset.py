@@ -382,7 +382,7 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     out_dir : dataset root to create
     frames : number of frames (ids 000000 …)
     seed : dataset seed (>= 0)
-    noise : label noise to inject (default none; :meth:`NoiseSpec.benchmark` for issue 6)
+    noise : label noise to inject (default none; :meth:`NoiseSpec.benchmark` for the label-error benchmark)
     lidar : the sensor (default: KITTI's HDL-64E, ~120k points per frame)
     workers : processes; frames are independent, so any count gives the same files
     progress : tqdm progress bar on stderr

@@ -84,7 +84,7 @@ class NoiseSpec:
 
     @classmethod
     def benchmark(cls) -> "NoiseSpec":
-        """The issue-6 label-error benchmark: 20 % jitter (centre 0.3 m, size 0.2 m, yaw 0.1 rad) + 2 % gross."""
+        """The label-error benchmark's noise: 20 % jitter (centre 0.3 m, size 0.2 m, yaw 0.1 rad) + 2 % gross."""
         return cls(
             fraction=C.SIM_BENCH_FRACTIONS[0], gross_fraction=C.SIM_BENCH_FRACTIONS[1],
             center_std=C.SIM_BENCH_NOISE[0], size_std=C.SIM_BENCH_NOISE[1], yaw_std=C.SIM_BENCH_NOISE[2],
