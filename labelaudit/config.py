@@ -146,7 +146,7 @@ def _typed(value: Any, kind: type, key: str, source: str) -> Any:
     raise ConfigError(f"{source}: {key} must be {kind.__name__}, got {value!r}")
 
 
-def _build(cls: type, section: Mapping[str, Any], where: str, source: str, skip: set[str] = set()) -> Any:
+def _build(cls: type, section: Mapping[str, Any], where: str, source: str, skip: frozenset[str] = frozenset()) -> Any:
     names = {f.name: f for f in fields(cls) if f.name not in skip}
     check_keys(section, set(names), where, source)
     kw = {}
@@ -213,7 +213,7 @@ def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", datas
     if not (isinstance(classes, list) and all(isinstance(c, str) for c in classes) and classes):
         raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {classes!r}")
 
-    model_kw = _build(ModelParams, data.get("model", {}), "model", source, skip={"priors"})
+    model_kw = _build(ModelParams, data.get("model", {}), "model", source, skip=frozenset({"priors"}))
     if "kind" in model_kw and model_kw["kind"] not in ("bev", "3d"):
         raise ConfigError(f"{source}: [model] kind must be 'bev' or '3d', got {model_kw['kind']!r}")
     priors = default_priors()
