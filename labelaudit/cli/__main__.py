@@ -2,4 +2,5 @@
 
 from labelaudit.cli import main
 
-main()
+if __name__ == "__main__":  # not when a doctest collector imports it
+    main()
