@@ -204,7 +204,7 @@ MISSING_COLUMNS: tuple[Column, ...] = (
     Column("score", pa.float64(), False, "", "how likely an object of the audited classes is here without a label, in [0, 1] (higher = more likely)", "model"),
     Column("source", pa.string(), False, "", "points | detections | both", "model"),
     # evidence
-    Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2 or waymo-v1", "identity"),
+    Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2, waymo-v1 or av2", "identity"),
     Column("points_score", pa.float64(), True, "", "score of the point-cloud evidence alone (product of the four factors below); null for a detection no cluster supports", "model"),
     Column("size_score", pa.float64(), True, "", "how well the box size matches the class size prior, in [0, 1]", "model"),
     Column("shape_score", pa.float64(), True, "", "how much of the points lie on one or two vertical faces (planar side / L-shape) of the box, in [0, 1]", "model"),

@@ -26,7 +26,7 @@ class ShowBy(str, Enum):
 @app.command()
 def show(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
-    frame: str = typer.Argument(..., help="Frame id as in the results (KITTI '000123', Waymo '<segment>:<timestamp>')."),
+    frame: str = typer.Argument(..., help="Frame id as in the results (KITTI '000123', Waymo '<segment>:<timestamp>', Argoverse 2 '<log_id>:<timestamp_ns>')."),
     object_index: Optional[int] = typer.Argument(None, metavar="[OBJECT]", help="object_index of the label in the frame; omit it for the whole frame."),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="PNG file to write (default: show-<frame>[-<object>].png)."),
     dataset: Optional[Path] = typer.Option(None, "--dataset", help="The dataset's current location, when it moved since `infer` (default: the manifest's)."),

@@ -60,7 +60,7 @@ class AuditSource:
     results : the opened results
     cfg : the run's configuration, rebuilt from the manifest (its hash is the manifest's)
     dataset : dataset path actually read (the manifest's input, or the ``--dataset`` override)
-    dataset_format : "kitti", "waymo-v2" or "waymo-v1"
+    dataset_format : "kitti", "waymo-v2", "waymo-v1" or "av2"
     reader : the dataset reader
     notes : warnings for the user (results of another labelaudit version or other model constants)
     """
