@@ -238,6 +238,12 @@ def test_bad_sweep_is_a_frame_failure_and_the_log_goes_on(tmp_path: Path) -> Non
     assert isinstance(bad, FrameFailure) and bad.frame_id == f"{LOG}:{T0}" and f"{T0}.feather" in str(bad.error)
     assert isinstance(missing_col, FrameFailure) and "missing column(s) intensity" in str(missing_col.error)
     assert isinstance(ok, Frame) and ok.num_objects == 2
+    # the labels alone (what eval reads) do not touch a sweep: every frame, its boxes, no points
+    reader = Av2Reader(tmp_path)
+    labels = list(reader.labels(reader.list_units()[0]))
+    assert [f.frame_id for f in labels] == [bad.frame_id, missing_col.frame_id, ok.frame_id]
+    assert all(len(f.points) == 0 and f.num_objects == 2 for f in labels)
+    np.testing.assert_array_equal(labels[2].boxes, ok.boxes)
 
 
 def test_non_finite_points_are_dropped_with_a_warning(tmp_path: Path) -> None:

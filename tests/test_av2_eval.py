@@ -16,7 +16,7 @@ from labelaudit.datasets import open_dataset
 from labelaudit.errors import DetectionsError
 from labelaudit.evaluate.detections import detect_detections_format, read_detections, write_av2_detections
 from labelaudit.evaluate.gt import load_ground_truth
-from tests.test_av2 import LOG, T0, DT, _trimmed_real, make_log
+from tests.test_av2 import _trimmed_real, make_log
 
 
 def invoke(*args: object):

@@ -367,6 +367,16 @@ class Av2Reader:
         DatasetError
             When ``annotations.feather`` cannot be read or lacks a column, or has a null timestamp.
         """
+        return self._frames(ref, with_points=True)
+
+    def labels(self, ref: FrameRef) -> Iterator[Frame]:
+        """The frames of one log as :meth:`load_unit` yields them, without reading a sweep (0 points):
+        the same frames, boxes, ids, numbering, extras and ``object_errors`` — what ``eval`` reads."""
+        for frame in self._frames(ref, with_points=False):
+            assert isinstance(frame, Frame)  # no sweep is read, so none can fail
+            yield frame
+
+    def _frames(self, ref: FrameRef, with_points: bool) -> Iterator[Frame | FrameFailure]:
         log_dir = Path(ref.key)
         log_id = log_dir.name
         log_notes: list[str] = []
@@ -408,7 +418,7 @@ class Av2Reader:
             warnings: list[str] = []
             sweep = sweeps.get(ts)
             try:
-                points = read_sweep(sweep, warnings) if sweep is not None else np.zeros((0, 4), dtype=np.float32)
+                points = read_sweep(sweep, warnings) if sweep is not None and with_points else np.zeros((0, 4), dtype=np.float32)
             except DatasetError as exc:
                 yield FrameFailure(frame_id, exc)
                 continue
@@ -418,7 +428,7 @@ class Av2Reader:
                     f"{log_dir / SWEEP_DIR / f'{ts}.feather'}: no sweep for this annotated timestamp; read with 0 points "
                     "(every box gets status no_points)"
                 )
-            elif not len(points) and frame.num_objects:
+            elif with_points and not len(points) and frame.num_objects:
                 warnings.append(f"{sweep}: the sweep holds no points (every box gets status no_points)")
             if ts not in poses and pose_path.is_file() and poses:
                 warnings.append(f"{pose_path}: no pose at timestamp {ts}; the frame has no ego pose")

@@ -210,44 +210,32 @@ def _waymo_frame(labels: FrameLabels) -> GroundTruthFrame:
 # --------------------------------------------------------------------------- Argoverse 2
 
 
-def _av2_frames(log_dir: Path) -> Iterator[GroundTruthFrame]:
-    """The frames of one AV2 log as the reader numbers them: every annotated or swept timestamp,
-    cuboids in file order, rows with a null category left out."""
-    from labelaudit.datasets import av2
-
-    ann = log_dir / av2.ANNOTATIONS
-    cub = av2.read_cuboids(ann) if ann.is_file() else None
-    origin, _ = av2.lidar_origin(log_dir)
-    sweeps = {int(p.stem) for p in (log_dir / av2.SWEEP_DIR).glob("*.feather") if p.stem.isdigit()}
-    rows_of: dict[int, list[int]] = defaultdict(list)
-    if cub is not None:
-        for r in np.argsort(cub.timestamps, kind="stable"):
-            if cub.categories[r] is not None:
-                rows_of[int(cub.timestamps[r])].append(int(r))
-        if cub.problems:  # eval needs every box: a label the audit marks as an error stops this log here
-            message = next(iter(cub.problems.values()))  # "<file> row R: …"
-            raise DatasetError(ann, message[len(str(ann)):].lstrip() if message.startswith(str(ann)) else message)
-    for ts in sorted(set(rows_of) | sweeps):
-        idx = np.asarray(rows_of.get(ts, []), dtype=np.int64)
-        k = len(idx)
-        num = np.full(k, -1, dtype=np.int64)
-        if cub is not None and cub.num_points is not None and k:
-            num = np.nan_to_num(np.asarray(cub.num_points, dtype=float)[idx], nan=-1).astype(np.int64)
+def _av2_frames(reader: Any, ref: FrameRef) -> Iterator[GroundTruthFrame]:
+    """The frames of one AV2 log from the reader's labels (no sweep is read): the reader's frames,
+    numbering and extras. A label the audit would mark as an error stops the log: eval needs every box."""
+    frames = list(reader.labels(ref))  # the whole log is checked before any frame is kept
+    for frame in frames:
+        if frame.object_errors:
+            message = next(iter(frame.object_errors.values()))  # "<file> row R: …"
+            raise DatasetError(frame.source, message[len(frame.source):].lstrip() if message.startswith(frame.source) else message)
+    for frame in frames:
+        k = frame.num_objects
+        num = np.asarray(frame.extras.get("num_lidar_points_in_box", np.full(k, -1)), dtype=float)
         yield GroundTruthFrame(
-            frame_id=f"{log_dir.name}:{ts}",
-            boxes=cub.boxes[idx] if k else np.zeros((0, 7)),
-            class_names=[str(cub.categories[r]) for r in idx] if k else [],
+            frame_id=frame.frame_id,
+            boxes=frame.boxes,
+            class_names=list(frame.class_names),
             object_index=np.arange(k, dtype=np.int64),
             height=np.full(k, np.nan),
             occluded=np.full(k, -1, dtype=np.int64),
             truncated=np.full(k, np.nan),
             difficulty=np.ones(k, dtype=np.int8),
-            num_points=num,
+            num_points=np.nan_to_num(num, nan=-1).astype(np.int64),
             dontcare=np.zeros((0, 7)),
             dontcare_rows=0,
             calib=None,
-            sensor_origin=np.asarray(origin, dtype=float),
-            source=str(ann),
+            sensor_origin=np.asarray(frame.sensor_origin, dtype=float),
+            source=frame.source,
         )
 
 
@@ -261,7 +249,7 @@ def _frames_of(fmt: str, reader: Any, ref: FrameRef) -> Iterator[GroundTruthFram
         for labels in reader.labels(ref):
             yield _waymo_frame(labels)
     elif fmt == "av2":
-        yield from _av2_frames(Path(ref.key))
+        yield from _av2_frames(reader, ref)
     else:
         raise ValueError(f"unknown dataset format {fmt!r}")
 
