@@ -42,7 +42,7 @@ def export(
     out_format: ExportFormat = typer.Option(ExportFormat.parquet, "--format", help="parquet (keyed by frame_id, object_index, object_id), openpcdet or mmdet3d (a copy of --infos with the targets added), glenet (copies of --infos and --dbinfos with GLENet's 'uncertainty' added, in folder -o)."),
     infos: Optional[Path] = typer.Option(None, "--infos", help="OpenPCDet kitti_infos_*.pkl / Waymo infos, or mmdet3d v2 info file to copy; for glenet also a folder of OpenPCDet's per-sequence Waymo infos (<seq>/<seq>.pkl)."),
     dbinfos: Optional[Path] = typer.Option(None, "--dbinfos", help="OpenPCDet gt-database infos to copy with --format glenet (kitti_dbinfos_train.pkl, Waymo's …_waymo_dbinfos_train_sampled_1.pkl)."),
-    anchor_size: Optional[list[str]] = typer.Option(None, "--anchor-size", help="CLASS=l,w,h anchor size for --encoding residual (repeat; adds to/overrides the KITTI or Waymo defaults)."),
+    anchor_size: Optional[list[str]] = typer.Option(None, "--anchor-size", help="CLASS=l,w,h anchor size for --encoding residual and --format glenet (repeat; adds to/overrides the KITTI or Waymo defaults)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
