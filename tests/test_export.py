@@ -13,14 +13,13 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
+from _core_synth import face_points
+from infos_factory import kitti_frames_and_rows, mmdet3d_kitti_infos, openpcdet_kitti_infos, openpcdet_waymo_infos
 from labelaudit import export as E
 from labelaudit import training as T
 from labelaudit.cli import app
 from labelaudit.config import ModelParams
 from labelaudit.core.posterior import infer_label
-
-from _core_synth import face_points
-from infos_factory import kitti_frames_and_rows, mmdet3d_kitti_infos, openpcdet_kitti_infos, openpcdet_waymo_infos
 from results_factory import make_results, make_row
 
 runner = CliRunner()

@@ -13,6 +13,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from _core_synth import face_points
+from infos_factory import (
+    openpcdet_dbinfos,
+    openpcdet_kitti_infos,
+    openpcdet_kitti_infos_from_labels,
+    openpcdet_waymo_infos,
+)
 from labelaudit import constants as C
 from labelaudit import export as E
 from labelaudit import training as T
@@ -20,9 +27,6 @@ from labelaudit.cli import app
 from labelaudit.config import ModelParams
 from labelaudit.core.posterior import infer_label
 from labelaudit.export import glenet as G
-
-from _core_synth import face_points
-from infos_factory import openpcdet_dbinfos, openpcdet_kitti_infos, openpcdet_kitti_infos_from_labels, openpcdet_waymo_infos
 from results_factory import make_results, make_row
 
 runner = CliRunner()
