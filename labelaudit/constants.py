@@ -68,8 +68,54 @@ NEIGHBOUR_MARGIN = 0.1  # m; points within this of another label (BEV) and outsi
 MISSING_MAX_RANGE = 70.0  # m; default labelled range (KITTI labels to ~70 m; configs override per dataset)
 MISSING_MIN_POINTS = 10  # a cluster with fewer non-ground points is not a candidate
 MISSING_DETECTION_MIN_SCORE = 0.5  # detections below this confidence are not candidates (--detections)
+MISSING_GROUND_CELL = 1.0  # m; cells of the ground estimate: the lowest return of the 3 × 3 cells around is the ground (a 3 m window: 15 cm off on a 10 % slope)
+MISSING_CELL = 0.2  # m; BEV occupancy cells of the clustering (8-connected: a gap of two cells separates)
+MISSING_LABEL_MARGIN = 0.3  # m; returns within this of a label (BEV, any class) are explained by it
+MISSING_BAND = (0.3, 4.4)  # m above the ground: returns clustered (below: road, kerbs; above: signs, canopies)
+MISSING_TALL = 6.0  # m; returns above the band up to this height mark structures that go on upwards (walls, poles, trunks)
+MISSING_MAX_OVER_SHARE = 0.2  # a cluster with more returns above the band than this share of its band returns is a tall structure
+MISSING_EGO_RADIUS = 3.0  # m; nothing whose centre is this close to the sensor (BEV) is a candidate: the ego vehicle and its mounts
+MISSING_SIZE_SLACK = 0.5  # m; the size score falls from 1 to 0 over this much beyond a class's largest length, width or height
+MISSING_MIN_TOP = (0.8, 1.1)  # m; the size score rises from 0 to 1 as the highest return above the ground goes from the first to the second
+MISSING_MIN_EXTENT = (1.0, 1.5)  # m; … and as the longer visible side goes from the first to the second (poles, people, signs)
+MISSING_UNSEEN_TOP_FACTOR = 0.3  # size score × this when the returns reach as high as the beams go at that range (top not seen: a wall?)
+MISSING_TOP_CLEARANCE = 0.15  # m; the top is seen when the highest return is this far below the highest beam at the cluster's range
+MISSING_FACE_BAND = (0.3, 0.7)  # m above the ground: the lower body, whose returns lie on the vertical faces of a vehicle
+MISSING_FACE_WIDTH = 0.3  # m; slices across the box axes whose returns make a vertical face (LiDAR noise, bumpers)
+MISSING_FACE_SHARE = (0.6, 0.85)  # the shape score rises from 0 to 1 as the share of lower-body returns on vertical faces (two slices per axis) goes from the first to the second
+MISSING_FILL = (0.1, 0.3)  # the density score rises from 0 to 1 as returns per ray over the cluster's angular extent go from the first to the second
+MISSING_HEADINGS = 90  # headings tried over [0, 90°) (1° steps)
+MISSING_RATE_SAMPLE = 4096  # returns sampled to estimate the sensor's rays per steradian (elevation quantiles)
+MISSING_MIN_DEPTH = 0.5  # m; KITTI: a candidate's centre must be this far in front of the camera
+MISSING_DONTCARE_OVERLAP = 0.5  # KITTI: a candidate whose 2D box lies this much inside a DontCare region is not one
+MISSING_LABEL_IOU = 0.1  # a detection with a BEV IoU below this to every label is a candidate
+MISSING_MERGE_IOU = 0.1  # a detection and a cluster overlapping this much (BEV IoU) are one candidate ("both")
+MISSING_MIN_KEPT_SCORE = 0.05  # clusters scoring below this are not written (most of the frame's clutter)
+MISSING_CLASS_SIZES = {  # classes the search looks for: (mean, largest) length, width, height in metres (KITTI / Waymo statistics)
+    "Car": ((3.9, 1.6, 1.55), (5.3, 2.1, 2.1)),
+    "Van": ((5.1, 1.9, 2.2), (6.5, 2.4, 3.0)),
+    "Vehicle": ((4.6, 2.0, 1.8), (6.5, 2.5, 2.8)),
+}
+MISSING_IMAGE_SLACK = 100.0  # px; KITTI: clusters whose centroid projects this far outside image_2 are not boxed (a candidate's centre must project inside)
+MISSING_FRAGMENT_POINTS = 3  # components with fewer returns are not joined to others (noise)
+MISSING_MERGE_GAP = 2.5  # m; a fragment this far behind another (range) in the same direction is the same object (rear face and cabin)
+MISSING_MERGE_OVERLAP = 0.5  # … when their azimuth intervals overlap by this share of the narrower one
+MISSING_POINTS_RAMP = (10, 25)  # the density score also rises from 0 to 1 as the cluster's returns go from the first to the second (too few to tell)
+MISSING_CONTINUATION = 3.0  # m; a face whose line goes on this far beyond the cluster through other unexplained returns is part of a longer structure (a wall)
+MISSING_CONTINUATION_CELLS = 3  # … when at least this many cells along that extension hold such returns
+MISSING_CONTINUATION_RUN = 1.0  # m; … spread along the extension over at least this length (a wall square to the face, behind it, crosses in less)
+MISSING_TALL_MARGIN = 0.4  # m; an unseen top counts against a class only where the beams would pass this much over its mean height
+MISSING_MERGE_SIDE_CELLS = 3  # … or when their footprints come within this many cells of each other (a side broken by a dark panel or glass)
+MISSING_CORNER_DEPTH = 1.5  # m; … or where other returns at one of its ends run this far away from the sensor, square to it (a building's corner)
+MISSING_REGION_SLACK = 3.0  # m; clusters whose centroid lies this far beyond the labelled range are not boxed (a box centre may lie farther than its returns)
+MISSING_CLASS_FIT = 0.5  # a candidate resembles the smallest class whose size score reaches this (else the best-scoring one)
+MISSING_FREE_SHARE = (0.1, 0.4)  # the free-space score falls from 1 to 0 as the share of rays passing through the box's lower body goes from the first to the second
+MISSING_REFINE = True  # the candidate's box is refined by the label-error fit (core/fit.py) before its rays are counted
+MISSING_GROUND_RANK = 3  # a ground cell's floor is its this-lowest return (fewer returns below the road than this are ignored)
+MISSING_FACE_TIE = 0.1  # headings whose face share is within this of the best one tie; the tightest rectangle among them wins
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
+KITTI_IMAGE_SIZE = (1242, 375)  # px; image_2's usual width, height: the labelled field of view when image_2/<frame>.png cannot be read
 KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)
 KITTI_MAX_OCCLUSION = (0, 1, 2)  # Easy/Moderate/Hard: largest allowed occlusion level (3 = unknown)
 KITTI_MAX_TRUNCATION = (0.15, 0.30, 0.50)  # Easy/Moderate/Hard: largest allowed truncation fraction
@@ -161,6 +207,7 @@ SIM_BENCH_FRACTIONS = (0.2, 0.02)  # label-error benchmark: jittered share, gros
 SIM_GROSS_SHIFT = 1.0  # gross "shift" error: box centre moved this far (m) in a random BEV direction
 SIM_MAX_TRUNCATION = 0.9  # objects whose 2D box is truncated more than this are outside the camera FOV (not labelled)
 SIM_MAX_LABEL_OCCLUSION = 0.9  # objects with more of their LiDAR rays blocked than this are not labelled (unseen)
+SIM_CLUTTER = (4, 12)  # --clutter: unlabelled walls, poles and bushes per frame (min, max)
 SIM_DET_CENTER_STD = 0.07  # synthetic detector (labelaudit/sim/detector.py): centre error std near the sensor (m)
 SIM_DET_SIZE_STD = 0.04  # synthetic detector: length/width/height error std near the sensor (m)
 SIM_DET_YAW_STD = 0.02  # synthetic detector: yaw error std near the sensor (rad)

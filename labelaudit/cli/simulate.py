@@ -37,6 +37,8 @@ def simulate(
     noise_size_std: float = typer.Option(C.SIM_BENCH_NOISE[1], "--noise-size-std", help="Jitter std of length and width (m)."),
     noise_yaw_std: float = typer.Option(C.SIM_BENCH_NOISE[2], "--noise-yaw-std", help="Jitter std of the yaw (rad)."),
     gross_fraction: float = typer.Option(0.02, "--gross-fraction", help="Share of vehicle labels with a gross error (shifted 1 m, swapped l/w, turned 90°)."),
+    clutter: bool = typer.Option(False, "--clutter", help="KITTI: add unlabelled surroundings: building walls beside the road, poles and bushes (docs/simulator.md)."),
+    drop_fraction: float = typer.Option(0.0, "--drop-fraction", metavar="F", help="KITTI: leave out this share of the vehicle labels (their points stay): missing labels, recorded in manifest.parquet (column dropped)."),
     workers: int = typer.Option(1, "--workers", help="KITTI: worker processes (same files for any count)."),
     detections: bool = typer.Option(False, "--detections", help="KITTI: also write a synthetic detector's output (OUT/detections/, KITTI result format) for `labelaudit eval`."),
     detections_cov: bool = typer.Option(False, "--detections-cov", help="With --detections: a probabilistic detector, per-detection std in OUT/detections.parquet."),
@@ -59,6 +61,8 @@ def simulate(
       labelaudit simulate sim/ --noise-fraction 0.3 --noise-center-std 0.2 --gross-fraction 0.05
 
       labelaudit simulate sim/ --frames 50 --detections && labelaudit eval sim/ sim/detections
+
+      labelaudit simulate sim/ --clutter --drop-fraction 0.15 && labelaudit infer sim/ -o results/
     """
     from labelaudit.sim.dataset import simulate_dataset, simulate_sequences
     from labelaudit.sim.noise import NoiseSpec
@@ -81,12 +85,20 @@ def simulate(
             spec = NoiseSpec(fraction=noise_fraction, center_std=noise_center_std, size_std=noise_size_std, yaw_std=noise_yaw_std, gross_fraction=gross_fraction)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--noise-*/--gross-fraction") from None
+        if not 0.0 <= drop_fraction <= 1.0:
+            raise typer.BadParameter(f"must be in [0, 1], got {drop_fraction}", param_hint="--drop-fraction")
+        if sequence and (clutter or drop_fraction > 0):
+            raise typer.BadParameter(f"KITTI only, not {dataset_format.value} sequences", param_hint="--clutter/--drop-fraction")
         if sequence:
             summary = simulate_sequences(out, dataset_format.value, sequences=sequences, frames=frames, seed=seed, noise=spec,
                                          size=size.value, progress=not quiet, overwrite=overwrite)
             what = f"{sequences} {'log' if dataset_format is SimFormat.av2 else 'segment'}(s) of {frames} frames ({summary.num_labels} labels)"
         else:
-            simulate_dataset(out, frames=frames, seed=seed, noise=spec, progress=not quiet, workers=workers, overwrite=overwrite)
+            from labelaudit.sim.scene import SceneSpec
+
+            scene = SceneSpec(num_clutter=C.SIM_CLUTTER) if clutter else SceneSpec()
+            simulate_dataset(out, frames=frames, seed=seed, noise=spec, progress=not quiet, workers=workers, overwrite=overwrite,
+                             scene=scene, drop_fraction=drop_fraction)
             what = f"{frames} frames"
         err().print(f"wrote {what} to {escape(str(out))} (next: labelaudit infer {escape(str(out))})", soft_wrap=True)
         if detections:

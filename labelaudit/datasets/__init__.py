@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from labelaudit.datasets.base import DatasetReader, Frame, FrameFailure, FrameRef
+from labelaudit.datasets.base import DatasetReader, Frame, FrameFailure, FrameRef, ImageView
 from labelaudit.errors import DatasetError
 
 FORMATS = ("kitti", "waymo-v2", "waymo-v1", "av2")
 
-__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "detect_format", "open_dataset",
+__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "ImageView", "detect_format", "open_dataset",
            "resolve_format"]
 
 

@@ -19,6 +19,45 @@ from labelaudit import constants as C
 from labelaudit.errors import DatasetError
 
 
+@dataclass(frozen=True)
+class ImageView:
+    """The camera image a dataset's labels were drawn in (KITTI: image_2): where labels exist.
+
+    Attributes
+    ----------
+    projection : (3, 4) LiDAR frame → pixels (homogeneous): KITTI's P2 · R0_rect · Tr_velo_to_cam
+    size : (width, height) of the image in pixels
+    dontcare : (M, 4) regions (left, top, right, bottom, pixels) the annotators marked DontCare
+    """
+
+    projection: NDArray[np.float64]
+    size: tuple[int, int]
+    dontcare: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
+
+    def project(self, xyz: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pixels (M, 2) of LiDAR-frame points (M, 3) and their depth in front of the camera (M,)."""
+        p = np.asarray(xyz, dtype=float).reshape(-1, 3)
+        uvw = p @ self.projection[:, :3].T + self.projection[:, 3]
+        depth = uvw[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return uvw[:, :2] / depth[:, None], depth
+
+    def box_to_image(self, box: ArrayLike, min_depth: float = 0.1) -> NDArray[np.float64]:
+        """2D box (left, top, right, bottom) of a LiDAR-frame box (7,), clipped to the image; its
+        corners nearer than ``min_depth`` to the camera plane are clamped to it."""
+        b = np.asarray(box, dtype=float)
+        c, s = np.cos(b[6]), np.sin(b[6])
+        sx = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * 0.5 * b[3]
+        sy = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * 0.5 * b[4]
+        sz = np.array([1, 1, 1, 1, -1, -1, -1, -1]) * 0.5 * b[5]
+        corners = np.c_[b[0] + c * sx - s * sy, b[1] + s * sx + c * sy, b[2] + sz]
+        uvw = corners @ self.projection[:, :3].T + self.projection[:, 3]
+        w = np.maximum(uvw[:, 2], min_depth)
+        u, v = uvw[:, 0] / w, uvw[:, 1] / w
+        width, height = self.size
+        return np.array([np.clip(u.min(), 0, width), np.clip(v.min(), 0, height), np.clip(u.max(), 0, width), np.clip(v.max(), 0, height)])
+
+
 @dataclass
 class Frame:
     """One LiDAR sweep with its labeled boxes, everything in the LiDAR/vehicle frame.
@@ -45,6 +84,8 @@ class Frame:
     pose : (4, 4) float64 vehicle → world transform at the frame's timestamp (Waymo frame pose,
         Argoverse 2 ``city_SE3_egovehicle``), for putting the boxes of a sequence in one frame;
         None when the dataset has none (KITTI object) or the frame's pose is missing
+    image_view : the camera image the labels were drawn in, when the dataset labels only what one
+        camera sees (KITTI: image_2, with its DontCare regions); None = labels all around (Waymo)
     """
 
     frame_id: str
@@ -59,6 +100,7 @@ class Frame:
     object_errors: dict[int, str] = field(default_factory=dict)
     ray_mask: NDArray[np.bool_] | None = None
     pose: NDArray[np.float64] | None = None
+    image_view: ImageView | None = None
 
     def __post_init__(self) -> None:
         k = len(self.boxes)

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
-from labelaudit.datasets.base import Frame, FrameRef, box_problems
+from labelaudit.datasets.base import Frame, FrameRef, ImageView, box_problems
 from labelaudit.errors import DatasetError
 from labelaudit.core.geometry import box_corners, normalize_angle
 from labelaudit.core.params import BOX_FIELDS
@@ -704,6 +704,8 @@ class KittiReader:
             "score": labels.score[rows],
             "label_line": labels.line[rows],
         }
+        dontcare = labels.bbox2d[~not_dontcare].reshape(-1, 4)
+        view = ImageView(calib.P2 @ calib.T_cam_velo, self.image_size(frame_id), np.asarray(dontcare, dtype=float))
         return Frame(
             frame_id=frame_id,
             points=np.ascontiguousarray(points, dtype=np.float32),
@@ -715,7 +717,22 @@ class KittiReader:
             warnings=warnings,
             source=str(label_path),
             object_errors=object_errors,
+            image_view=view,
         )
+
+    def image_size(self, frame_id: str) -> tuple[int, int]:
+        """(width, height) of ``image_2/<frame_id>.png`` from its header; KITTI's usual size
+        (:data:`~labelaudit.constants.KITTI_IMAGE_SIZE`) when there is no readable image."""
+        try:
+            with open(self.data_dir.joinpath("image_2", f"{frame_id}.png"), "rb") as f:
+                head = f.read(24)
+        except OSError:
+            return C.KITTI_IMAGE_SIZE
+        if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+            width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+            if 0 < width < 100_000 and 0 < height < 100_000:
+                return width, height
+        return C.KITTI_IMAGE_SIZE
 
 
 _LABEL_BOX_FIELDS = ("height", "width", "length", "x", "y", "z", "rotation_y")

@@ -1,20 +1,861 @@
 """Frame → missing-label candidates: objects of the audited classes that no label explains.
 
 :func:`find_missing` returns the rows of the ``missing/`` table (:data:`labelaudit.results.MISSING_SCHEMA`)
-for one frame. Pure function: no files, no printing.
+for one frame; docs/missing.md describes the method. Model-free: the points alone, plus a
+detector's output when one is given. Pure function: no files, no printing.
+
+The search, in compiled passes over the frame (a few milliseconds per KITTI frame):
+
+1. ground: the lowest return of every ``MISSING_GROUND_CELL`` cell, the lowest of its 3 × 3
+   neighbourhood is the ground under it (a car never covers a neighbourhood of cells);
+2. the returns between ``MISSING_BAND`` above that ground, within the labelled range, outside the
+   ego zone and outside every label grown by ``MISSING_LABEL_MARGIN`` go into a BEV occupancy grid
+   of ``MISSING_CELL`` cells; its 8-connected components are the clusters;
+3. a cluster of plausible size gets a box: an L-shape fit (the rectangle whose sides the points
+   hug, searched over the heading) grown to the class's size away from the sensor (the hidden
+   sides), then the label-error fit of :mod:`labelaudit.core.fit` from it;
+4. its ``score`` multiplies four factors in [0, 1]: size against the class prior, points on one or
+   two vertical faces (planar side / L-shape), points against range, and free space (rays that
+   pass through the would-be body).
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, replace
 from typing import Any
 
-from labelaudit.config import RunConfig
+import numpy as np
+from numpy.typing import NDArray
+
+from labelaudit import constants as C
+from labelaudit.config import ALL_CLASSES, RunConfig
+from labelaudit.core import geometry as g
+from labelaudit.core.fit import fit_label_valid
+from labelaudit.core.iou import bev_iou_exact
 from labelaudit.datasets import Frame
+from labelaudit.core.freespace import ray_counts
+from labelaudit.infer.evidence import frame_evidence, label_boxes
+from labelaudit.kernels import kernel
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["FrameDetections", "find_missing", "search_clusters"]
 
 
-def find_missing(frame: Frame, cfg: RunConfig, detections: Any = None) -> list[dict[str, Any]]:
-    """Candidate objects without a label in ``frame`` (rows of the ``missing/`` table).
+@dataclass(frozen=True)
+class FrameDetections:
+    """A detector's boxes of one frame (LiDAR/vehicle frame), already above the score threshold."""
 
-    The point-cloud search is not wired in yet: no candidates.
+    boxes: FloatArray  # (D, 7)
+    scores: FloatArray  # (D,)
+    class_names: list[str]
+    sources: list[str]  # "file:line" per detection
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """One candidate from the points: its box and the evidence behind its score."""
+
+    box: FloatArray  # (7,)
+    class_name: str
+    num_points: int
+    ground_z: float
+    size_score: float
+    shape_score: float
+    density_score: float
+    free_space_score: float
+    free_rays: int
+    end_rays: int
+
+    @property
+    def score(self) -> float:
+        return self.size_score * self.shape_score * self.density_score * self.free_space_score
+
+
+# --------------------------------------------------------------------------- compiled passes
+
+
+@kernel
+def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank):  # pragma: no cover - compiled
+    """Ground height per cell (n, n) (inf where unknown) and the steepest upward slope (z − oz) / r of
+    any return farther than 2 m: the top beam's elevation, how high the sensor sees at a range.
+
+    A cell's floor is its ``rank``-th lowest return (a few returns below the road — reflections
+    off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
+    floor of the 3 × 3 cells around it (one cell of such returns is ignored too), so under a vehicle,
+    whose cells hold no road returns, it comes from the road beside it."""
+    low = np.full((n, n, rank), np.inf)
+    top = -np.inf
+    for k in range(xyz.shape[0]):
+        dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
+        r2 = dx * dx + dy * dy
+        if r2 > reach2:
+            continue
+        z = xyz[k, 2]
+        if r2 > 4.0:
+            s = (z - oz) / math.sqrt(r2)
+            if s > top:
+                top = s
+        i = int((xyz[k, 0] - x0) / cell)
+        j = int((xyz[k, 1] - y0) / cell)
+        if 0 <= i < n and 0 <= j < n and z < low[i, j, rank - 1]:
+            q = rank - 1
+            while q > 0 and low[i, j, q - 1] > z:
+                low[i, j, q] = low[i, j, q - 1]
+                q -= 1
+            low[i, j, q] = z
+    floor = np.full((n, n), np.inf)
+    for i in range(n):
+        for j in range(n):
+            f = np.inf
+            for q in range(rank):
+                if low[i, j, q] < np.inf:
+                    f = low[i, j, q]
+            floor[i, j] = f
+    ground = np.full((n, n), np.inf)
+    for i in range(n):
+        for j in range(n):
+            m1, m2 = np.inf, np.inf
+            for a in range(max(0, i - 1), min(n, i + 2)):
+                for b in range(max(0, j - 1), min(n, j + 2)):
+                    v = floor[a, b]
+                    if v < m1:
+                        m1, m2 = v, m1
+                    elif v < m2:
+                        m2 = v
+            ground[i, j] = m2 if m2 < np.inf else m1
+    return ground, top
+
+
+@kernel
+def _label_mask(boxes, margin, x0, y0, cell, n):  # pragma: no cover - compiled
+    """(n, n) uint8: 1 where the cell's centre lies in a label's rectangle grown by ``margin``."""
+    mask = np.zeros((n, n), dtype=np.uint8)
+    for b in range(boxes.shape[0]):
+        cx, cy = boxes[b, 0], boxes[b, 1]
+        hl, hw = 0.5 * boxes[b, 3] + margin, 0.5 * boxes[b, 4] + margin
+        c, s = math.cos(boxes[b, 6]), math.sin(boxes[b, 6])
+        ex = abs(c) * hl + abs(s) * hw
+        ey = abs(s) * hl + abs(c) * hw
+        i0 = max(0, int((cx - ex - x0) / cell))
+        i1 = min(n - 1, int((cx + ex - x0) / cell))
+        j0 = max(0, int((cy - ey - y0) / cell))
+        j1 = min(n - 1, int((cy + ey - y0) / cell))
+        for i in range(i0, i1 + 1):
+            px = x0 + (i + 0.5) * cell - cx
+            for j in range(j0, j1 + 1):
+                py = y0 + (j + 0.5) * cell - cy
+                if abs(c * px + s * py) <= hl and abs(-s * px + c * py) <= hw:
+                    mask[i, j] = 1
+    return mask
+
+
+@kernel
+def _occupancy(xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, y0, cell, n, lo, hi, tall):  # pragma: no cover - compiled
+    """Cell (flat index) of every return in the search band (−1 otherwise), its height above the
+    ground, and per cell the band returns (n, n) and the returns above the band up to ``tall``.
+    All around the sensor, whatever the labelled region: a wall that leaves the camera's view is
+    still one wall."""
+    m = xyz.shape[0]
+    cell_of = np.full(m, -1, dtype=np.int64)
+    height = np.zeros(m)
+    counts = np.zeros((n, n), dtype=np.int32)
+    over = np.zeros((n, n), dtype=np.int32)
+    for k in range(m):
+        dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
+        r2 = dx * dx + dy * dy
+        if r2 < near2 or r2 > far2:
+            continue
+        gi = int((xyz[k, 0] - gx0) / gcell)
+        gj = int((xyz[k, 1] - gy0) / gcell)
+        if gi < 0 or gj < 0 or gi >= gn or gj >= gn:
+            continue
+        h = xyz[k, 2] - ground[gi, gj]
+        if h < lo or h > tall:
+            continue
+        i = int((xyz[k, 0] - x0) / cell)
+        j = int((xyz[k, 1] - y0) / cell)
+        if i < 0 or j < 0 or i >= n or j >= n or mask[i, j]:
+            continue
+        if h <= hi:
+            counts[i, j] += 1
+            cell_of[k] = i * n + j
+            height[k] = h
+        else:
+            over[i, j] += 1
+    return cell_of, height, counts, over
+
+
+@kernel
+def _components(counts, over):  # pragma: no cover - compiled
+    """8-connected components of the occupied cells: (n, n) component id (−1 empty) and per
+    component (points, over-band points, cells, i0, i1, j0, j1)."""
+    n = counts.shape[0]
+    comp = np.full((n, n), -1, dtype=np.int32)
+    occupied = 0
+    for i in range(n):
+        for j in range(n):
+            if counts[i, j] > 0:
+                occupied += 1
+    stack = np.empty(occupied, dtype=np.int64)
+    stats = np.zeros((occupied, 7), dtype=np.int64)
+    k = 0
+    for i in range(n):
+        for j in range(n):
+            if counts[i, j] == 0 or comp[i, j] >= 0:
+                continue
+            comp[i, j] = k
+            top = 0
+            stack[top] = i * n + j
+            top += 1
+            stats[k, 3] = i
+            stats[k, 4] = i
+            stats[k, 5] = j
+            stats[k, 6] = j
+            while top > 0:
+                top -= 1
+                a = stack[top] // n
+                b = stack[top] % n
+                stats[k, 0] += counts[a, b]
+                stats[k, 1] += over[a, b]
+                stats[k, 2] += 1
+                stats[k, 3] = min(stats[k, 3], a)
+                stats[k, 4] = max(stats[k, 4], a)
+                stats[k, 5] = min(stats[k, 5], b)
+                stats[k, 6] = max(stats[k, 6], b)
+                for da in range(-1, 2):
+                    for db in range(-1, 2):
+                        u, v = a + da, b + db
+                        if 0 <= u < n and 0 <= v < n and counts[u, v] > 0 and comp[u, v] < 0:
+                            comp[u, v] = k
+                            stack[top] = u * n + v
+                            top += 1
+            k += 1
+    return comp, stats[:k]
+
+
+@kernel
+def _comp_extras(xyz, cell_of, height, comp_flat, k, ox, oy):  # pragma: no cover - compiled
+    """Per component (k, 7): highest return above the ground, azimuth interval seen from the sensor
+    (radians, unwrapped about the component's first return), nearest and farthest BEV range, sums
+    of x and y."""
+    out = np.empty((k, 7))
+    ref = np.full(k, np.nan)
+    for q in range(k):
+        out[q, 0] = 0.0
+        out[q, 1] = np.inf
+        out[q, 2] = -np.inf
+        out[q, 3] = np.inf
+        out[q, 4] = -np.inf
+        out[q, 5] = 0.0
+        out[q, 6] = 0.0
+    for p in range(cell_of.shape[0]):
+        c = cell_of[p]
+        if c < 0:
+            continue
+        q = comp_flat[c]
+        dx, dy = xyz[p, 0] - ox, xyz[p, 1] - oy
+        az = math.atan2(dy, dx)
+        if ref[q] != ref[q]:
+            ref[q] = az
+        a = az - ref[q]
+        if a > math.pi:
+            a -= 2.0 * math.pi
+        elif a < -math.pi:
+            a += 2.0 * math.pi
+        a += ref[q]
+        r = math.sqrt(dx * dx + dy * dy)
+        if height[p] > out[q, 0]:
+            out[q, 0] = height[p]
+        out[q, 1] = min(out[q, 1], a)
+        out[q, 2] = max(out[q, 2], a)
+        out[q, 3] = min(out[q, 3], r)
+        out[q, 4] = max(out[q, 4], r)
+        out[q, 5] += xyz[p, 0]
+        out[q, 6] += xyz[p, 1]
+    return out
+
+
+@kernel
+def _merge_fragments(stats, extras, min_points, gap, overlap, side_gap, max_extent, cell):  # pragma: no cover - compiled
+    """Group id per component: fragments of one object seen through gaps of returns are joined
+    when the joined footprint stays within ``max_extent`` (m; cells of ``cell`` m) and either one lies
+    behind the other within ``gap`` metres of range with azimuth intervals overlapping by at least
+    ``overlap`` of the narrower (a car's rear face and its cabin, no return on the trunk between),
+    or their footprints are within ``side_gap`` cells of each other (a side broken by a dark panel)."""
+    k = stats.shape[0]
+    parent = np.arange(k)
+    lo_i = stats[:, 3].copy()
+    hi_i = stats[:, 4].copy()
+    lo_j = stats[:, 5].copy()
+    hi_j = stats[:, 6].copy()
+    big = np.flatnonzero(stats[:, 0] >= min_points)
+    for x in range(big.shape[0]):
+        a = big[x]
+        for y in range(x + 1, big.shape[0]):
+            b = big[y]
+            ra, rb = a, b
+            while parent[ra] != ra:
+                ra = parent[ra]
+            while parent[rb] != rb:
+                rb = parent[rb]
+            if ra == rb:
+                continue
+            near = max(stats[a, 3] - stats[b, 4], stats[b, 3] - stats[a, 4], stats[a, 5] - stats[b, 6], stats[b, 5] - stats[a, 6]) <= side_gap
+            if not near and (extras[b, 3] - extras[a, 4] > gap or extras[a, 3] - extras[b, 4] > gap):
+                continue
+            d = 0.0
+            ca = 0.5 * (extras[a, 1] + extras[a, 2])
+            cb = 0.5 * (extras[b, 1] + extras[b, 2])
+            d = cb - ca
+            if d > math.pi:
+                d -= 2.0 * math.pi
+            elif d < -math.pi:
+                d += 2.0 * math.pi
+            wa = extras[a, 2] - extras[a, 1]
+            wb = extras[b, 2] - extras[b, 1]
+            inter = min(0.5 * wa, d + 0.5 * wb) - max(-0.5 * wa, d - 0.5 * wb)
+            if not near and inter < overlap * min(wa, wb):
+                continue
+            i0, i1 = min(lo_i[ra], lo_i[rb]), max(hi_i[ra], hi_i[rb])
+            j0, j1 = min(lo_j[ra], lo_j[rb]), max(hi_j[ra], hi_j[rb])
+            if math.hypot((i1 - i0 + 1) * cell, (j1 - j0 + 1) * cell) > max_extent:
+                continue
+            parent[rb] = ra
+            lo_i[ra], hi_i[ra], lo_j[ra], hi_j[ra] = i0, i1, j0, j1
+    for q in range(k):
+        r = q
+        while parent[r] != r:
+            r = parent[r]
+        parent[q] = r
+    return parent
+
+
+@kernel
+def _gather(cell_of, comp_flat, wanted, starts):  # pragma: no cover - compiled
+    """Indices of the returns of the wanted components, component by component (a counting sort):
+    component ``c`` (with ``wanted[c]`` = its slot s ≥ 0) owns ``out[starts[s]:starts[s + 1]]``."""
+    fill = starts[:-1].copy()
+    out = np.empty(starts[-1], dtype=np.int64)
+    for k in range(cell_of.shape[0]):
+        c = cell_of[k]
+        if c < 0:
+            continue
+        s = wanted[comp_flat[c]]
+        if s >= 0:
+            out[fill[s]] = k
+            fill[s] += 1
+    return out
+
+
+@kernel
+def _faces(xy, h, lo, hi, steps, width, tie):  # pragma: no cover - compiled
+    """The heading θ ∈ [0, π/2) whose axes best explain the lower-body returns (heights in
+    [lo, hi]; all returns when fewer than 3) as vertical faces: the share of them that fall in the
+    two densest ``width``-wide slices across either axis (a side, a rear and the cabin's rear behind
+    it, an L-shape). Returns (θ, share, a1, b1, a2, b2) with the extents of all returns along
+    (cos θ, sin θ) and (−sin θ, cos θ)."""
+    m = xy.shape[0]
+    sel = np.zeros(m, dtype=np.bool_)
+    n = 0
+    for k in range(m):
+        if lo <= h[k] <= hi:
+            sel[k] = True
+            n += 1
+    if n < 3:
+        sel[:] = True
+        n = m
+    shares = np.empty(steps)
+    areas = np.empty(steps)
+    for s in range(steps):
+        t = 0.5 * math.pi * s / steps
+        c, sn = math.cos(t), math.sin(t)
+        shares[s] = _face_share(xy, sel, c, sn, width)
+        a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
+        for k in range(m):
+            p = c * xy[k, 0] + sn * xy[k, 1]
+            q = -sn * xy[k, 0] + c * xy[k, 1]
+            a1, b1, a2, b2 = min(a1, p), max(b1, p), min(a2, q), max(b2, q)
+        areas[s] = (b1 - a1) * (b2 - a2)
+    # among the headings that explain the faces nearly as well as the best, the tightest rectangle
+    # (a rear face with the roof above it, curved bumper corners: several headings tie on faces)
+    best = shares.max()
+    best_s, best_area = 0, np.inf
+    for s in range(steps):
+        if shares[s] >= best - tie and areas[s] < best_area:
+            best_s, best_area = s, areas[s]
+    best_t = 0.5 * math.pi * best_s / steps
+    c, sn = math.cos(best_t), math.sin(best_t)
+    a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
+    for k in range(m):
+        p = c * xy[k, 0] + sn * xy[k, 1]
+        q = -sn * xy[k, 0] + c * xy[k, 1]
+        a1, b1, a2, b2 = min(a1, p), max(b1, p), min(a2, q), max(b2, q)
+    return best_t, best, a1, b1, a2, b2
+
+
+@kernel
+def _face_share(xy, sel, c, sn, width):  # pragma: no cover - compiled
+    """Share of the selected returns in the two densest ``width`` slices across either axis."""
+    m = xy.shape[0]
+    lo1, lo2 = np.inf, np.inf
+    for k in range(m):
+        if sel[k]:
+            lo1 = min(lo1, c * xy[k, 0] + sn * xy[k, 1])
+            lo2 = min(lo2, -sn * xy[k, 0] + c * xy[k, 1])
+    nb = 128
+    h1 = np.zeros(nb, dtype=np.int64)
+    h2 = np.zeros(nb, dtype=np.int64)
+    total = 0
+    for k in range(m):
+        if sel[k]:
+            i = min(nb - 1, int((c * xy[k, 0] + sn * xy[k, 1] - lo1) / width))
+            j = min(nb - 1, int((-sn * xy[k, 0] + c * xy[k, 1] - lo2) / width))
+            h1[i] += 1
+            h2[j] += 1
+            total += 1
+    i1 = np.argmax(h1)
+    c1 = h1[i1]
+    h1[i1] = -1
+    i2 = np.argmax(h1)
+    j1 = np.argmax(h2)
+    c2 = h2[j1]
+    h2[j1] = -1
+    j2 = np.argmax(h2)
+    inside = 0
+    for k in range(m):
+        if sel[k]:
+            i = min(nb - 1, int((c * xy[k, 0] + sn * xy[k, 1] - lo1) / width))
+            j = min(nb - 1, int((-sn * xy[k, 0] + c * xy[k, 1] - lo2) / width))
+            if i == i1 or i == i2 or j == j1 or j == j2:
+                inside += 1
+    return inside / max(total, 1)
+
+
+# --------------------------------------------------------------------------- the search
+
+
+def class_sizes(cfg: RunConfig) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """The audited classes the search looks for: name → (mean, largest) (length, width, height), m.
+
+    Only classes with an entry in :data:`~labelaudit.constants.MISSING_CLASS_SIZES` (vehicles) are
+    looked for; ``classes = ["all"]`` looks for every class there."""
+    table = C.MISSING_CLASS_SIZES
+    names = list(table) if ALL_CLASSES in cfg.classes else [c for c in cfg.classes if c in table]
+    return {c: (tuple(table[c][0]), tuple(table[c][1])) for c in names}
+
+
+def _ramp(x: float, lo: float, hi: float) -> float:
+    """0 at or below ``lo``, 1 at or above ``hi``, linear between."""
+    if hi <= lo:
+        return 1.0 if x >= hi else 0.0
+    return min(1.0, max(0.0, (x - lo) / (hi - lo)))
+
+
+def _size_match(vis_l: float, vis_w: float, top: float, top_seen: bool, ceiling: float, mean: tuple[float, float, float],
+                largest: tuple[float, float, float]) -> float:
+    """How well visible extents (m) and the seen top (m above ground) fit a class: 1 inside its
+    largest size, falling to 0 at ``MISSING_SIZE_SLACK`` beyond. Returns that reach as high as the
+    beams go at that range (``top_seen`` false) while the beams there (``ceiling``, m above ground)
+    would pass over such a vehicle are no vehicle of the class (a wall, a pole)."""
+    L, W, H = largest
+    slack = C.MISSING_SIZE_SLACK
+    s = 1.0 - _ramp(vis_l, L, L + slack)
+    s *= 1.0 - _ramp(vis_w, W, W + slack)
+    s *= 1.0 - _ramp(top, H, H + slack)
+    s *= _ramp(top, C.MISSING_MIN_TOP[0], C.MISSING_MIN_TOP[1])  # kerbs, low walls, debris
+    s *= _ramp(vis_l, C.MISSING_MIN_EXTENT[0], C.MISSING_MIN_EXTENT[1])  # poles, signs, people
+    if not top_seen and ceiling > mean[2] + C.MISSING_TALL_MARGIN + C.MISSING_TOP_CLEARANCE:
+        s *= C.MISSING_UNSEEN_TOP_FACTOR
+    return s
+
+
+def _grow(a: float, b: float, size: float, sensor: float) -> tuple[float, float]:
+    """Grow the visible extent [a, b] along one axis to ``size``, away from the sensor (its
+    projection ``sensor``): the sides the sensor cannot see are behind the visible ones."""
+    if b - a >= size:
+        return a, b
+    if sensor <= a:
+        return a, a + size
+    if sensor >= b:
+        return b - size, b
+    mid = 0.5 * (a + b)
+    return mid - 0.5 * size, mid + 0.5 * size
+
+
+def _fill(n: int, corners: FloatArray, ox: float, oy: float, z_lo: float, z_hi: float, rays_per_rad2: float) -> float:
+    """Returns per ray that the visible rectangle (``corners`` (4, 2)) between the heights
+    ``z_lo`` and ``z_hi`` (relative to the sensor) sends back: about 1 for a solid surface, less for
+    a porous one (vegetation, fences) or a loose fragment: the points against what the range allows."""
+    az = np.arctan2(corners[:, 1] - oy, corners[:, 0] - ox)
+    az = (az - az[0] + np.pi) % (2 * np.pi) - np.pi
+    d = float(np.min(np.hypot(corners[:, 0] - ox, corners[:, 1] - oy)))
+    el = math.atan2(z_hi, d) - math.atan2(z_lo, d)
+    solid = float(az.max() - az.min()) * max(el, 0.0)
+    return n / max(solid * rays_per_rad2, 1.0)
+
+
+def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
+    """The point-cloud search of one frame: clusters no label explains, boxed and scored.
+
+    Returns every cluster of a plausible size (scores may be low); the caller keeps those in the
+    labelled region. Deterministic: the same frame gives the same clusters.
     """
-    return []
+    sizes = class_sizes(cfg)
+    pts = frame.points
+    if not sizes or len(pts) == 0:
+        return []
+    params = cfg.missing
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
+    xyz = pts[:, :3]
+    reach = params.max_range + C.MISSING_GROUND_CELL * 2
+    gcell = C.MISSING_GROUND_CELL
+    gn = int(math.ceil(2 * reach / gcell))
+    gx0, gy0 = ox - reach, oy - reach
+    ground, top_slope = _ground_grid(xyz, ox, oy, oz, gx0, gy0, gcell, gn, reach * reach, C.MISSING_GROUND_RANK)
+    cell = C.MISSING_CELL
+    n = int(math.ceil(2 * reach / cell))
+    x0, y0 = ox - reach, oy - reach
+    labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
+    mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, n)
+    lo, hi = C.MISSING_BAND
+    cell_of, height, counts, over = _occupancy(xyz, ox, oy, C.MISSING_EGO_RADIUS ** 2, (params.max_range + C.MISSING_CONTINUATION) ** 2, ground,
+                                               gx0, gy0, gcell, gn, mask, x0, y0, cell, n, lo, hi, C.MISSING_TALL)
+    comp, stats = _components(counts, over)
+    if len(stats) == 0:
+        return []
+    extras = _comp_extras(xyz, cell_of, height, comp.ravel(), len(stats), ox, oy)
+    largest = max(v[1][0] for v in sizes.values())
+    max_diag = math.hypot(largest, 3.0) + C.MISSING_SIZE_SLACK
+    group = _merge_fragments(stats, extras, C.MISSING_FRAGMENT_POINTS, C.MISSING_MERGE_GAP, C.MISSING_MERGE_OVERLAP,
+                             C.MISSING_MERGE_SIDE_CELLS, max_diag, cell)
+    k = len(stats)
+    roots = np.unique(group)
+    g_points = np.bincount(group, weights=stats[:, 0], minlength=k)[roots]
+    g_over = np.bincount(group, weights=stats[:, 1], minlength=k)[roots]
+    g_top = np.zeros(k)
+    np.maximum.at(g_top, group, extras[:, 0])
+    g_top = g_top[roots]
+    i0 = np.full(k, np.iinfo(np.int64).max); np.minimum.at(i0, group, stats[:, 3])
+    i1 = np.zeros(k, dtype=np.int64); np.maximum.at(i1, group, stats[:, 4])
+    j0 = np.full(k, np.iinfo(np.int64).max); np.minimum.at(j0, group, stats[:, 5])
+    j1 = np.zeros(k, dtype=np.int64); np.maximum.at(j1, group, stats[:, 6])
+    diag = np.hypot((i1[roots] - i0[roots] + 1) * cell, (j1[roots] - j0[roots] + 1) * cell)
+    keep = (g_points >= params.min_points) & (diag <= max_diag) & (diag >= C.MISSING_MIN_EXTENT[0])
+    keep &= g_over <= C.MISSING_MAX_OVER_SHARE * g_points  # walls, poles, trunks: they go on above the band
+    keep &= g_top >= C.MISSING_MIN_TOP[0]  # kerbs, low walls, debris
+    if keep.any():  # only where labels exist (the exact test is on the boxes; this spares boxing the rest)
+        sx = np.bincount(group, weights=extras[:, 5], minlength=k)[roots]
+        sy = np.bincount(group, weights=extras[:, 6], minlength=k)[roots]
+        probe = np.zeros((len(roots), 7))
+        probe[:, 0], probe[:, 1] = sx / np.maximum(g_points, 1), sy / np.maximum(g_points, 1)
+        probe[:, 3:6] = 1.0
+        keep &= in_labelled_region(probe, frame, params.max_range + C.MISSING_REGION_SLACK, dontcare=False, slack_px=C.MISSING_IMAGE_SLACK)
+    chosen_roots = roots[keep]
+    if len(chosen_roots) == 0:
+        return []
+    slot_of_root = np.full(k, -1, dtype=np.int64)
+    slot_of_root[chosen_roots] = np.arange(len(chosen_roots))
+    wanted = slot_of_root[group]  # component → slot of its group (−1: not searched)
+    starts = np.concatenate([[0], np.cumsum(g_points[keep])]).astype(np.int64)
+    chosen = chosen_roots
+    order = _gather(cell_of, comp.ravel(), wanted, starts)
+    # rays per steradian of the sensor, from the frame: its returns over the band of elevations it covers
+    rays_per_rad2 = _rays_per_rad2(xyz, ox, oy, oz)
+    out = []
+    g_total = np.bincount(group, weights=stats[:, 0], minlength=k)
+    solid = g_total[group] >= C.MISSING_FRAGMENT_POINTS  # components of groups with a few returns at least (not stray ones)
+    owner = np.where(comp >= 0, np.where(solid, group, -1)[np.maximum(comp, 0)], -1)  # the group of every occupied cell
+    grid = (owner, x0, y0, cell)
+    for s in range(len(chosen)):
+        idx = order[starts[s]:starts[s + 1]]
+        cl = _box_cluster(xyz[idx].astype(float), height[idx], sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, int(chosen[s]))
+        if cl is not None:
+            out.append(cl)
+    return out
+
+
+def _rays_per_rad2(xyz: NDArray, ox: float, oy: float, oz: float) -> float:
+    sub = np.asarray(xyz[:: max(1, len(xyz) // C.MISSING_RATE_SAMPLE)], dtype=float)
+    r = np.hypot(sub[:, 0] - ox, sub[:, 1] - oy)
+    el = np.arctan2(sub[:, 2] - oz, np.maximum(r, 1e-6))
+    lo, hi = np.quantile(el, [0.01, 0.99])
+    return len(xyz) / max(2 * np.pi * float(hi - lo), 1e-6)
+
+
+def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1: float, b1: float, a2: float, b2: float, along1: bool,
+               po: float, qo: float) -> bool:
+    """Whether the cluster's longer face (the side facing the sensor, at ``po``, ``qo`` in the
+    cluster's frame) goes on beyond it through returns of other clusters no label explains: a
+    stretch of a wall or a hedge, not an object of its own."""
+    owner, x0, y0, cell = grid
+    n = owner.shape[0]
+    step = 0.5 * cell
+    ts = np.arange(step, C.MISSING_CONTINUATION + step, step)
+    if along1:  # the face runs along axis 1, on the side of axis 2 nearer the sensor
+        q = a2 if qo < 0.5 * (a2 + b2) else b2
+        ends = [(b1 + ts, np.full_like(ts, q)), (a1 - ts, np.full_like(ts, q))]
+    else:
+        p = a1 if po < 0.5 * (a1 + b1) else b1
+        ends = [(np.full_like(ts, p), b2 + ts), (np.full_like(ts, p), a2 - ts)]
+    for p, q in ends:
+        x = centre[0] + c * p - s * q
+        y = centre[1] + s * p + c * q
+        i = ((x - x0) / cell).astype(np.int64)
+        j = ((y - y0) / cell).astype(np.int64)
+        ok = (i >= 0) & (i < n) & (j >= 0) & (j < n)
+        cells = set()
+        along = np.zeros(len(ts), dtype=bool)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                ii, jj = np.clip(i + di, 0, n - 1), np.clip(j + dj, 0, n - 1)
+                o = owner[ii, jj]
+                hit = ok & (o >= 0) & (o != own)
+                along |= hit
+                cells.update(zip(ii[hit].tolist(), jj[hit].tolist()))
+        # the returns must run along the line (a wall going on), not cross it (a wall behind, square to the face)
+        if len(cells) >= C.MISSING_CONTINUATION_CELLS and np.any(along) and np.ptp(ts[along]) >= C.MISSING_CONTINUATION_RUN:
+            return True
+    # a corner: at an end of the face, other returns run away from the sensor, square to the face
+    # (the end wall of a building whose front the cluster is), deeper than a vehicle is wide
+    half = C.MISSING_MERGE_SIDE_CELLS * cell
+    across = np.linspace(-half, half, 5)
+    if along1:
+        q = a2 if qo < 0.5 * (a2 + b2) else b2
+        away = 1.0 if q == a2 else -1.0
+        corners = [(e + across[:, None] + 0.0 * ts[None, :], q + away * ts[None, :] + 0.0 * across[:, None]) for e in (a1, b1)]
+    else:
+        p = a1 if po < 0.5 * (a1 + b1) else b1
+        away = 1.0 if p == a1 else -1.0
+        corners = [(p + away * ts[None, :] + 0.0 * across[:, None], e + across[:, None] + 0.0 * ts[None, :]) for e in (a2, b2)]
+    depth = np.broadcast_to(ts[None, :], (5, len(ts)))
+    for p, q in corners:
+        x = centre[0] + c * p - s * q
+        y = centre[1] + s * p + c * q
+        i = np.clip(((x - x0) / cell).astype(np.int64), 0, n - 1)
+        j = np.clip(((y - y0) / cell).astype(np.int64), 0, n - 1)
+        o = owner[i, j]
+        hit = (o >= 0) & (o != own)
+        if np.any(hit) and np.ptp(depth[hit]) >= C.MISSING_CORNER_DEPTH:
+            return True
+    return False
+
+
+def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: float, oz: float, top_slope: float, rays_per_rad2: float,
+                 grid: tuple | None = None, own: int = -1) -> Cluster | None:
+    """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,))."""
+    centre = xyz[:, :2].mean(axis=0)
+    xy = np.ascontiguousarray(xyz[:, :2] - centre)
+    lo, hi = C.MISSING_FACE_BAND
+    t, share, a1, b1, a2, b2 = _faces(xy, h, lo, hi, C.MISSING_HEADINGS, C.MISSING_FACE_WIDTH, C.MISSING_FACE_TIE)
+    c, s = math.cos(t), math.sin(t)
+    e1, e2 = b1 - a1, b2 - a2
+    rx, ry = ox - centre[0], oy - centre[1]  # the sensor in the cluster's frame
+    po, qo = c * rx + s * ry, -s * rx + c * ry
+    top = float(h.max())
+    near = float(np.min(np.hypot(xyz[:, 0] - ox, xyz[:, 1] - oy)))
+    ground_z = float(np.median(xyz[:, 2] - h))
+    ceiling = (oz - ground_z) + near * top_slope  # the highest the beams reach at the cluster's nearest range, above the ground
+    top_seen = top < ceiling - C.MISSING_TOP_CLEARANCE
+    vis_l, vis_w = max(e1, e2), min(e1, e2)
+    # the smallest class that explains the visible extents (a larger one fits any fragment of a
+    # smaller and would place the box far off), else the best-fitting one
+    fits = [(_size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest), name) for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])]
+    size_score, best_name = next(((m, name) for m, name in fits if m >= C.MISSING_CLASS_FIT), max(fits))
+    mean, _ = sizes[best_name]
+    # which axis is the length: the longer visible one, unless both fit in a width (a car seen
+    # head-on or from behind): then the axis nearer the line of sight
+    if vis_l > mean[1] + C.MISSING_SIZE_SLACK:
+        len_axis1 = e1 >= e2
+    else:
+        len_axis1 = abs(po) * 1.0 >= abs(qo)
+    L1, L2 = (mean[0], mean[1]) if len_axis1 else (mean[1], mean[0])
+    A1, B1 = _grow(a1, b1, L1, po)
+    A2, B2 = _grow(a2, b2, L2, qo)
+    mx, my = 0.5 * (A1 + B1), 0.5 * (A2 + B2)
+    cx, cy = centre[0] + c * mx - s * my, centre[1] + s * mx + c * my
+    length, width, yaw = (B1 - A1, B2 - A2, t) if len_axis1 else (B2 - A2, B1 - A1, t + 0.5 * math.pi)
+    height = top if top_seen else max(top, mean[2])
+    box = np.array([cx, cy, ground_z + 0.5 * height, length, width, height, float(g.normalize_angle(yaw))])
+    shape_score = _ramp(share, *C.MISSING_FACE_SHARE)
+    rect = np.array([[a1, a2], [b1, a2], [b1, b2], [a1, b2]])
+    corners = centre + rect @ np.array([[c, s], [-s, c]])
+    density_score = _ramp(_fill(len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2), *C.MISSING_FILL)
+    density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
+    if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo):
+        shape_score = 0.0
+    return Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
+
+
+# --------------------------------------------------------------------------- where labels exist
+
+
+def in_labelled_region(boxes: FloatArray, frame: Frame, max_range: float, *, dontcare: bool = True, slack_px: float = 0.0) -> NDArray[np.bool_]:
+    """(K,) whether each box lies where the dataset labels objects.
+
+    Every format: BEV distance of the centre from the sensor ≤ ``max_range`` and beyond the ego zone
+    (``MISSING_EGO_RADIUS``). With an image view (KITTI): the centre projects into image_2 (in front
+    of the camera) and the box's 2D projection is not mostly inside a DontCare region.
+    """
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    d = np.hypot(b[:, 0] - o[0], b[:, 1] - o[1])
+    ok = (d <= max_range) & (d > C.MISSING_EGO_RADIUS)
+    view = frame.image_view
+    if view is None or not len(b):
+        return ok
+    w, h = view.size
+    centre = np.c_[b[:, :3], np.ones(len(b))] @ view.projection.T
+    depth = centre[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = centre[:, 0] / depth, centre[:, 1] / depth
+    ok &= (depth > C.MISSING_MIN_DEPTH) & (u >= -slack_px) & (u < w + slack_px) & (v >= -slack_px) & (v < h + slack_px)
+    if dontcare and len(view.dontcare):
+        for k in np.flatnonzero(ok):
+            rect = view.box_to_image(b[k])
+            area = max(rect[2] - rect[0], 0.0) * max(rect[3] - rect[1], 0.0)
+            if area <= 0:
+                continue
+            dc = view.dontcare
+            iw = np.clip(np.minimum(dc[:, 2], rect[2]) - np.maximum(dc[:, 0], rect[0]), 0, None)
+            ih = np.clip(np.minimum(dc[:, 3], rect[3]) - np.maximum(dc[:, 1], rect[1]), 0, None)
+            if float((iw * ih).max()) >= C.MISSING_DONTCARE_OVERLAP * area:
+                ok[k] = False
+    return ok
+
+
+def _max_iou(box: FloatArray, others: FloatArray) -> float:
+    best = 0.0
+    for o in others:
+        if math.hypot(o[0] - box[0], o[1] - box[1]) < 0.5 * (math.hypot(o[3], o[4]) + math.hypot(box[3], box[4])):
+            best = max(best, bev_iou_exact(box, o))
+    return best
+
+
+def with_free_space(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> list[Cluster]:
+    """The clusters with their free-space evidence: the label-error fit of :mod:`labelaudit.core.fit`
+    moves each box onto its points (free-space rays included, as for a label), then the rays
+    through the lower body of the fitted box that end behind it (``free_rays``) against the rays
+    that end on or in it (``end_rays``) give ``free_space_score``: a car stops the rays that reach
+    it, a hedge or a fence lets many through, and a box grown over empty road is crossed by them."""
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    boxes = np.array([c.box for c in clusters])
+    with np.errstate(all="ignore"):
+        evidence = frame_evidence(frame.points, boxes, o, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask)
+        out = []
+        for c, ev in zip(clusters, evidence):
+            box = c.box
+            if C.MISSING_REFINE:
+                fit = fit_label_valid(box, frame.points[ev.fit_idx], c.class_name, cfg.model, free_space=ev.free_space)
+                if np.all(np.isfinite(fit.box)):
+                    box = fit.box
+            free, end = ray_counts(box, ev.free_space, frame.points[ev.near_idx])
+            ratio = free / max(free + end, 1)
+            score = 1.0 - _ramp(ratio, *C.MISSING_FREE_SHARE)
+            out.append(replace(c, box=box, free_space_score=score, free_rays=int(free), end_rays=int(end)))
+    return out
+
+
+def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | None = None) -> list[dict[str, Any]]:
+    """Candidate objects without a label in ``frame``: rows of the ``missing/`` table.
+
+    Parameters
+    ----------
+    frame : points (N, ≥3) and every label of the frame (all classes), LiDAR/vehicle frame
+    cfg : run configuration (``cfg.missing``, the audited classes)
+    detections : the frame's detections above ``cfg.missing.detection_min_score`` (``--detections``)
+
+    Returns
+    -------
+    One dict per candidate with the columns of :data:`labelaudit.results.MISSING_SCHEMA`, nearest
+    to the sensor first (``candidate_index``). Clusters of the points (``source`` "points") and
+    detections overlapping no label (BEV IoU < ``MISSING_LABEL_IOU``; "detections") that overlap
+    each other (BEV IoU ≥ ``MISSING_MERGE_IOU``) are one candidate, ``source`` "both", with the
+    detection's box.
+    """
+    if not cfg.missing.enabled:
+        return []
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    labels = np.asarray(frame.boxes, dtype=float).reshape(-1, 7)
+    labels = labels[np.all(np.isfinite(labels), axis=1)]
+    regions = labels
+    clusters = search_clusters(frame, cfg)
+    if clusters:
+        inside = in_labelled_region(np.array([c.box for c in clusters]), frame, cfg.missing.max_range)
+        clusters = [c for c, ok in zip(clusters, inside) if ok and c.score >= C.MISSING_MIN_KEPT_SCORE]
+    if clusters:
+        clusters = with_free_space(frame, clusters, cfg)
+    rows: list[dict[str, Any]] = []
+    for c in clusters:
+        rows.append(_row(frame, cfg, c.box, c.class_name, c.num_points, c.score, "points", c, _max_iou(c.box, regions)))
+    if detections is not None and len(detections.scores):
+        inside = in_labelled_region(detections.boxes, frame, cfg.missing.max_range)
+        for k in np.flatnonzero(inside):
+            box = np.asarray(detections.boxes[k], dtype=float)
+            iou = _max_iou(box, regions)
+            if iou >= C.MISSING_LABEL_IOU:
+                continue
+            det_score = float(min(1.0, max(0.0, detections.scores[k])))
+            match = None
+            for r in rows:
+                if r["source"] == "points" and bev_iou_exact(box, np.array([r[f] for f in g.BOX_FIELDS])) >= C.MISSING_MERGE_IOU:
+                    match = r
+                    break
+            evidence = {"detection_score": float(detections.scores[k]), "detection_class": detections.class_names[k],
+                        "detection_source": detections.sources[k]}
+            if match is not None:
+                both = 1.0 - (1.0 - match["score"]) * (1.0 - det_score)
+                match.update(dict(zip(g.BOX_FIELDS, box.tolist())), score=both, source="both", max_label_iou=iou, **evidence)
+                match["distance"] = float(math.hypot(box[0] - o[0], box[1] - o[1]))
+            else:
+                n = _points_in_box(frame.points, box)
+                cls = detections.class_names[k] if detections.class_names[k] in class_sizes(cfg) else _nearest_class(box, cfg)
+                row = _row(frame, cfg, box, cls, n, det_score, "detections", None, iou)
+                row.update(evidence)
+                rows.append(row)
+    rows.sort(key=lambda r: (r["distance"], r["cx"], r["cy"]))
+    for i, r in enumerate(rows):
+        r["candidate_index"] = i
+    return rows
+
+
+def _nearest_class(box: FloatArray, cfg: RunConfig) -> str:
+    sizes = class_sizes(cfg)
+    if not sizes:
+        return cfg.classes[0]
+    return min(sizes, key=lambda c: abs(sizes[c][0][0] - box[3]) + abs(sizes[c][0][1] - box[4]))
+
+
+def _points_in_box(points: NDArray, box: FloatArray) -> int:
+    c, s = math.cos(box[6]), math.sin(box[6])
+    dx, dy = points[:, 0] - box[0], points[:, 1] - box[1]
+    u, v = c * dx + s * dy, -s * dx + c * dy
+    inside = (np.abs(u) <= 0.5 * box[3]) & (np.abs(v) <= 0.5 * box[4]) & (np.abs(points[:, 2] - box[2]) <= 0.5 * box[5])
+    return int(inside.sum())
+
+
+def _row(frame: Frame, cfg: RunConfig, box: FloatArray, class_name: str, num_points: int, score: float, source: str,
+         cluster: Cluster | None, max_label_iou: float) -> dict[str, Any]:
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    labels = np.asarray(frame.boxes, dtype=float).reshape(-1, 7)
+    nearest = float(np.min(np.hypot(labels[:, 0] - box[0], labels[:, 1] - box[1]))) if len(labels) else None
+    row: dict[str, Any] = {
+        "frame_id": frame.frame_id,
+        "candidate_index": 0,
+        "class_name": class_name,
+        **dict(zip(g.BOX_FIELDS, np.asarray(box, dtype=float).tolist())),
+        "num_points": int(num_points),
+        "distance": float(math.hypot(box[0] - o[0], box[1] - o[1])),
+        "score": float(score),
+        "source": source,
+        "dataset": cfg.dataset_format,
+        "nearest_label_m": nearest,
+        "max_label_iou": float(max_label_iou),
+    }
+    if cluster is not None:
+        row.update(points_score=cluster.score, size_score=cluster.size_score, shape_score=cluster.shape_score,
+                   density_score=cluster.density_score, free_space_score=cluster.free_space_score,
+                   free_rays=cluster.free_rays, end_rays=cluster.end_rays, ground_z=cluster.ground_z)
+    return row

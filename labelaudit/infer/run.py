@@ -348,8 +348,10 @@ def _run_locked(
     retried = sum(1 for s in state.values() if s == "retry")
     R.write_json_atomic({**metadata, "complete": False, "units": len(refs), "chunks": len(chunks)}, output / R.MANIFEST_NAME)
 
+    detections = read_missing_detections(cfg, fmt, refs[0].root, request.split, request.limit) if cfg.missing.detections else {}
     tasks = [
-        ChunkTask(name, c, cfg, reader_options, request.limit if fmt != "kitti" else None, request.debug)
+        ChunkTask(name, c, cfg, reader_options, request.limit if fmt != "kitti" else None, request.debug,
+                  detections_of_chunk(detections, c, fmt))
         for name, c in chunks
         if name not in done
     ]
@@ -416,6 +418,47 @@ def _raise_if_failed(result: ChunkResult) -> None:
             line = f" (line {row['label_line']})" if row.get("label_line") is not None else ""
             where = "" if not source or source in (row["message"] or "") else f"{source}{line}: "
             raise StrictError(one_line(f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"))
+
+
+def read_missing_detections(cfg: RunConfig, fmt: str, dataset: str, split: str | None, limit: int | None) -> dict[str, Any]:
+    """A detector's output for the missing-label search (``--detections``): frame id →
+    :class:`~labelaudit.infer.missing.FrameDetections` of the detections at or above
+    ``cfg.missing.detection_min_score``, in the dataset's LiDAR/vehicle frame.
+
+    Read once here, with the readers of ``eval`` (KITTI result files, Waymo ``Objects``, Parquet;
+    KITTI boxes converted with each frame's calibration); a frame whose detections cannot be read
+    is an error of the whole run (:class:`InferError` naming the file), as a wrong path is.
+    """
+    from labelaudit.evaluate.detections import read_detections
+    from labelaudit.evaluate.gt import load_ground_truth
+    from labelaudit.infer.missing import FrameDetections
+
+    path = Path(str(cfg.missing.detections))
+    try:
+        gt = load_ground_truth(dataset, fmt, split=split, limit=limit, strict=False)
+        det = read_detections(path, gt, cfg.missing.detections_format, strict=True)
+    except (DatasetError, ValueError) as exc:
+        raise InferError(f"--detections: {one_line(str(exc))}") from None
+    out: dict[str, Any] = {}
+    threshold = cfg.missing.detection_min_score
+    for f, fid in enumerate(gt.frame_ids):
+        lo, hi = int(det.det_off[f]), int(det.det_off[f + 1])
+        keep = [k for k in range(lo, hi) if det.scores[k] >= threshold]
+        if keep:
+            out[fid] = FrameDetections(det.boxes[keep].copy(), det.scores[keep].copy(), [det.class_names[k] for k in keep], [det.source[k] for k in keep])
+    return out
+
+
+def detections_of_chunk(detections: Mapping[str, Any], refs: Sequence[FrameRef], fmt: str) -> dict[str, Any]:
+    """The detections a chunk's frames need (KITTI: a unit is a frame; Waymo: a segment's frame ids
+    start with its name)."""
+    if not detections:
+        return {}
+    if fmt == "kitti":
+        keys = {r.key for r in refs}
+        return {k: v for k, v in detections.items() if k in keys}
+    names = tuple(Path(r.key).name.split(".")[0] for r in refs)
+    return {k: v for k, v in detections.items() if any(n and n in k for n in names)} or dict(detections)
 
 
 def with_missing_options(cfg: RunConfig, request: InferRequest) -> RunConfig:

@@ -37,7 +37,8 @@ def fast_exit_in_fork_server() -> bool:
 
 
 def warm_up(strict: bool = False) -> None:
-    """Audit a synthetic frame of two boxes (BEV and 3D: crops, ground, rays, covariance, JIoU-GT, box fit, hull IoU).
+    """Audit a synthetic frame of two boxes (BEV and 3D: crops, ground, rays, covariance, JIoU-GT, box fit, hull IoU)
+    and search it for missing labels.
 
     Never raises unless ``strict`` (tests): a failed warm-up only means workers load lazily.
     """
@@ -61,6 +62,10 @@ def warm_up(strict: bool = False) -> None:
         for model in ("bev", "3d"):  # crops, ground, rays, neighbours, the fit with rays, counts: every kernel
             cfg = base.with_overrides(model=replace(base.model, kind=model))
             process_frame(Frame("warm-up", pts, np.stack([box, box + [0, 2.5, 0, 0, 0, 0, 0]]), ["Car", "Car"], ["a", "b"]), cfg)
+        from labelaudit.infer.missing import find_missing
+
+        # the missing-label search: the same returns with no label, so a cluster is boxed and its rays counted
+        find_missing(Frame("warm-up", pts, np.zeros((0, 7)), [], []), base)
     except Exception:  # a warm-up must never stop the fork server; workers then load lazily
         if strict:
             raise

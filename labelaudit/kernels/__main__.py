@@ -30,6 +30,7 @@ def workload() -> None:
     from labelaudit.datasets import Frame
     from labelaudit.evaluate.warmup import warm_up as eval_warm_up
     from labelaudit.infer.crop import crop_frame
+    from labelaudit.infer.missing import find_missing
     from labelaudit.infer.rows import process_frame
     from labelaudit.infer.warmup import warm_up
     from labelaudit.sim.dataset import simulate_frame
@@ -45,6 +46,8 @@ def workload() -> None:
             as_read = [n if fmt == "kitti" or n in classes else "Vehicle" for n in names]
             frame = Frame("build", sim.points, boxes, as_read, [str(i) for i in range(len(boxes))], ray_mask=mask)
             process_frame(frame, cfg)
+            half = len(boxes) // 2  # the missing-label search: half the labels left out, so clusters are boxed
+            find_missing(Frame("build", sim.points, boxes[:half], as_read[:half], [str(i) for i in range(half)], ray_mask=mask), cfg)
     crop_frame(sim.points, boxes, load_config(None, "kitti").crop)
     quiet = contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO())  # the commands' own reports
     with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp, quiet[0], quiet[1]:

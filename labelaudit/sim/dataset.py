@@ -37,7 +37,7 @@ from labelaudit.core.params import BOX_FIELDS
 from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calibration, write_kitti_frame
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
-from labelaudit.sim.scene import Scene, SceneSpec, sample_scene
+from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, sample_scene
 from labelaudit.errors import OutputExistsError, UsageError
 from labelaudit.executors import make_executor
 
@@ -59,12 +59,12 @@ __all__ = [
 
 MANIFEST_NAME = "manifest.parquet"
 MANIFEST_VERSION = "1"
-_STREAMS = ("scene", "lidar", "calib", "noise")
+_STREAMS = ("scene", "lidar", "calib", "noise", "drop")
 _SPLIT_KEY = 0xFFFFFFFF  # spawn key of the train/val split generator (no frame index reaches it)
 
 
 def frame_generators(seed: int, index: int) -> dict[str, np.random.Generator]:
-    """Independent generators of frame ``index``: "scene", "lidar", "calib" and "noise".
+    """Independent generators of frame ``index``: "scene", "lidar", "calib", "noise" and "drop".
 
     A Waymo writer that re-renders the same scene draws it from ``frame_generators(...)["scene"]``.
     """
@@ -115,6 +115,7 @@ class SimFrame:
             "scene_index": list(range(k)),
             "class_name": self.scene.class_names,
             "labelled": labelled.tolist(),
+            "dropped": (np.zeros(k, dtype=bool) if lab.dropped is None else lab.dropped).tolist(),
         }
         for j, name in enumerate(BOX_FIELDS):
             rows[f"true_{name}"] = true[:, j].tolist()
@@ -143,13 +144,16 @@ def manifest_schema() -> pa.Schema:
     ``"<frame_id>:<object_index>"`` (column ``object_id``). ``true_*`` is the exact box of the
     object, ``written_*`` the label box as the KITTI reader reads it back (perturbation and the
     label file's rounding included), ``delta_*`` the perturbation applied (before rounding; yaw
-    wrapped), ``perturbation`` one of "none", "jitter", "shift", "swap_lw", "yaw90".
+    wrapped), ``perturbation`` one of "none", "jitter", "shift", "swap_lw", "yaw90". ``dropped``:
+    a vehicle that would have been labelled but whose label was left out (``--drop-fraction``: a
+    missing label; ``labelled`` is false for it).
     ``num_points`` counts the LiDAR returns on the true object; ``num_rays`` the rays that would hit
     it without occluders, ``visible_rays`` those it actually stops (before noise and dropout).
     """
     fields = [
         pa.field("frame_id", pa.string()), pa.field("object_index", pa.int64()), pa.field("object_id", pa.string()),
         pa.field("scene_index", pa.int64()), pa.field("class_name", pa.string()), pa.field("labelled", pa.bool_()),
+        pa.field("dropped", pa.bool_()),
     ]
     fields += [pa.field(f"{p}_{n}", pa.float64()) for p in ("true", "written") for n in BOX_FIELDS]
     fields += [pa.field("perturbation", pa.string())]
@@ -164,7 +168,7 @@ def manifest_schema() -> pa.Schema:
 
 def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(), lidar: LidarSpec = LidarSpec(),
                    scene_spec: SceneSpec = SceneSpec(), label_fov: str = "camera",
-                   label_precision: int | None = 2, scene: Scene | None = None) -> SimFrame:
+                   label_precision: int | None = 2, scene: Scene | None = None, drop_fraction: float = 0.0) -> SimFrame:
     """Simulate frame ``index`` of the dataset with ``seed`` (pure: writes nothing).
 
     Parameters
@@ -177,6 +181,9 @@ def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
     scene : render this scene instead of drawing one (its frame must be the KITTI LiDAR frame:
         sensor at the origin, ground at ``-lidar.sensor_height``) — e.g. to write the KITTI
         rendering of a scene also rendered for Waymo
+    drop_fraction : share of the vehicle labels left out of the label file (their objects and points
+        stay; the manifest's ``dropped``): missing labels, drawn per object from the frame's "drop"
+        stream, so the scene, points and other labels are the same as without dropping
     """
     gens = frame_generators(seed, index)
     if scene is None:
@@ -185,8 +192,10 @@ def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
     points, hits = ri.points("scene")
     calib = make_calibration(gens["calib"])
     written, kinds = perturb_boxes(scene.boxes, scene.class_names, noise, gens["noise"])
+    u = gens["drop"].random(len(scene.objects))  # one draw per object whatever the fraction: a larger fraction drops a superset
+    drop = (u < drop_fraction) & np.array([c in VEHICLE_CLASSES for c in scene.class_names], dtype=bool)
     labels = kitti_labels(scene.boxes, written, scene.class_names, ri.occlusion_fraction, calib,
-                          label_fov=label_fov, precision=label_precision)
+                          label_fov=label_fov, precision=label_precision, drop=drop)
     return SimFrame(f"{index:06d}", scene, ri, points, hits, calib, written, kinds, labels)
 
 
@@ -370,7 +379,7 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
 def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
                      lidar: LidarSpec = LidarSpec(), workers: int = 1, progress: bool = True,
                      scene: SceneSpec = SceneSpec(), label_fov: str = "camera", label_precision: int | None = 2,
-                     overwrite: bool = False) -> SimulationSummary:
+                     overwrite: bool = False, drop_fraction: float = 0.0) -> SimulationSummary:
     """Simulate a KITTI-format dataset with known label noise.
 
     Writes ``training/velodyne/*.bin``, ``training/label_2/*.txt``, ``training/calib/*.txt``,
@@ -391,6 +400,7 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     label_precision : decimals in label files (2 like KITTI; ``None`` writes exact floats)
     overwrite : replace an existing simulated dataset in ``out_dir`` (only the simulator's own
         ``training/``, ``ImageSets/`` and manifest are removed)
+    drop_fraction : share of vehicle labels left out (missing labels; manifest column ``dropped``)
 
     Raises
     ------
@@ -406,6 +416,8 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         raise UsageError(f"seed must be >= 0, got {seed}")
     if workers < 1:
         raise UsageError(f"workers must be >= 1, got {workers}")
+    if not (0.0 <= drop_fraction <= 1.0):
+        raise UsageError(f"drop_fraction must be in [0, 1], got {drop_fraction}")
     if label_fov not in ("camera", "all"):
         raise UsageError(f"label_fov must be 'camera' or 'all', got {label_fov!r}")
     if label_precision is not None and not (isinstance(label_precision, int) and 0 <= label_precision <= 17):
@@ -413,7 +425,7 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     out = prepare_output(out_dir, _OWNED, overwrite)
     start = time.perf_counter()
     opts = {"out_dir": out, "seed": seed, "noise": noise, "lidar": lidar, "scene_spec": scene,
-            "label_fov": label_fov, "label_precision": label_precision}
+            "label_fov": label_fov, "label_precision": label_precision, "drop_fraction": drop_fraction}
     jobs = [(i, dict(opts)) for i in range(frames)]
     results: list[tuple[int, dict[str, list[Any]], int]] = []
     bar = tqdm(total=frames, desc="simulate", unit="frame", file=sys.stderr, disable=not progress)
@@ -435,6 +447,7 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         "labelaudit.lidar": json.dumps(asdict(lidar)),
         "labelaudit.scene": json.dumps(asdict(scene)),
         "labelaudit.label_fov": label_fov,
+        "labelaudit.drop_fraction": repr(float(drop_fraction)),
     }
     manifest = write_manifest(out, [rows for _, rows, _ in results], meta)
     _write_imagesets(out, frames, seed)

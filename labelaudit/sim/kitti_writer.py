@@ -86,6 +86,8 @@ class KittiLabelInfo:
     truncated, occluded, alpha, bbox2d : (K,), (K,), (K,), (K, 4) the KITTI label fields
     in_camera_fov : (K,) whether the object is in the camera's field of view
     lines : the label file's lines, in object_index order
+    dropped : (K,) objects that would have been labelled but whose label was left out on purpose
+        (``drop``: a missing label, for the missing-label benchmark)
     """
 
     object_index: NDArray[np.int64]
@@ -96,6 +98,7 @@ class KittiLabelInfo:
     bbox2d: FloatArray
     in_camera_fov: NDArray[np.bool_]
     lines: list[str]
+    dropped: NDArray[np.bool_] | None = None
 
 
 def image_boxes(boxes: FloatArray, calib: Calibration) -> FloatArray:
@@ -134,7 +137,8 @@ def occlusion_level(occlusion_fraction: FloatArray) -> NDArray[np.int64]:
 
 def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names: list[str],
                  occlusion_fraction: FloatArray, calib: Calibration, *, label_fov: str = "camera",
-                 precision: int | None = 2, image_size: tuple[int, int] = C.SIM_IMAGE_SIZE) -> KittiLabelInfo:
+                 precision: int | None = 2, image_size: tuple[int, int] = C.SIM_IMAGE_SIZE,
+                 drop: NDArray[np.bool_] | None = None) -> KittiLabelInfo:
     """Label lines for one frame and what the reader will read back from them.
 
     The 2D box and truncation come from the *true* box (2D boxes are drawn on the image of the
@@ -153,6 +157,8 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
         rays blocked (or no rays at all) are not labelled.
     precision : decimals in the label file (2 like KITTI; ``None`` exact)
     image_size : (width, height) of the P2 image in pixels
+    drop : (K,) objects whose label is left out even where it would be written (the object and its
+        points stay: a missing label)
     """
     if label_fov not in LABEL_FOV_CHOICES:
         raise ValueError(f"label_fov must be one of {LABEL_FOV_CHOICES}, got {label_fov!r}")
@@ -177,6 +183,8 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
     frac = np.asarray(occlusion_fraction, dtype=float)
     seen = np.isfinite(frac) & (frac <= C.SIM_MAX_LABEL_OCCLUSION)
     write = seen & in_fov if label_fov == "camera" else seen
+    dropped = write & (np.zeros(k, dtype=bool) if drop is None else np.asarray(drop, dtype=bool).reshape(k))
+    write &= ~dropped
     loc, dims, ry = boxes_lidar_to_camera(written_boxes, calib)
     alpha = np.atleast_1d(alpha_from_location(loc, ry))
     lines: list[str] = []
@@ -194,7 +202,7 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
         # Read the numbers back the way the reader does, so the manifest holds the boxes it will see.
         tok = np.array([[float(t) for t in line.split()[1:]] for line in lines])
         written[object_index >= 0] = boxes_camera_to_lidar(tok[:, 10:13], tok[:, 7:10], tok[:, 13], calib)
-    return KittiLabelInfo(object_index, written, truncated, occluded, alpha, bbox2d, in_fov, lines)
+    return KittiLabelInfo(object_index, written, truncated, occluded, alpha, bbox2d, in_fov, lines, dropped)
 
 
 def write_kitti_frame(root: str | Path, frame_id: str, points: NDArray[np.float32], label_lines: list[str],
