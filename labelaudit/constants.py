@@ -232,6 +232,8 @@ DASK_WORKER_WAIT = 60.0  # s; a scheduler without workers is reported after this
 DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)
 DEFAULT_RANK_TOP = 20  # rows shown by `labelaudit rank`
 DEMO_FRAMES = 12  # simulated frames of `labelaudit demo`: a few hundred objects, seconds on 2 cores
+DEMO_DROP_FRACTION = 0.1  # share of vehicle labels the demo's simulator leaves out: missing labels for the search to find
+DEMO_MISSING_SCORE = 0.5  # the demo lists missing-label candidates at or above this score
 DEMO_REPORT_NAME = "labelaudit-demo-report.html"  # where `labelaudit demo` without FOLDER writes its report (the current folder)
 
 # --- export: training targets (labelaudit.training / labelaudit.export, docs/training.md) ---

@@ -50,6 +50,8 @@ class DemoRun:
     evaluation: dict[str, Any] | None = None  # summary of the synthetic detector's evaluation (labelaudit eval)
     eval_dir: Path | None = None  # its EVAL_DIR
     report: Path | None = None  # the HTML review page
+    missing: list[dict[str, Any]] = field(default_factory=list)  # missing-label candidates (score ≥ DEMO_MISSING_SCORE), each with the dropped label it found (or None)
+    dropped: int = 0  # vehicle labels the simulator left out (DEMO_DROP_FRACTION)
 
 
 def injected_by_object(manifest: Path) -> dict[str, str]:
@@ -59,6 +61,26 @@ def injected_by_object(manifest: Path) -> dict[str, str]:
     except (OSError, pa.ArrowInvalid, KeyError):
         return {}
     return dict(zip(t.column("object_id").to_pylist(), t.column("perturbation").to_pylist()))
+
+
+def missing_found(results: Path, manifest: Path) -> tuple[list[dict[str, Any]], int]:
+    """The missing-label candidates of ``results`` with score ≥ ``DEMO_MISSING_SCORE`` (nearest first),
+    each with ``found``: the object id of the label the simulator dropped within 1 m of it (None
+    when it is no dropped label), and how many vehicle labels the simulator dropped."""
+    import math
+
+    from labelaudit.results import read_missing
+
+    try:
+        man = pq.read_table(manifest, columns=["frame_id", "scene_index", "class_name", "dropped", "true_cx", "true_cy"]).to_pylist()
+    except (OSError, pa.ArrowInvalid, KeyError):
+        man = []
+    dropped = [m for m in man if m["dropped"]]
+    rows = [r for r in read_missing(results).to_pylist() if r["score"] >= C.DEMO_MISSING_SCORE]
+    for r in rows:
+        hit = [m for m in dropped if m["frame_id"] == r["frame_id"] and math.hypot(m["true_cx"] - r["cx"], m["true_cy"] - r["cy"]) <= 1.0]
+        r["found"] = f"{hit[0]['class_name']} (scene object {hit[0]['scene_index']})" if hit else None
+    return rows, len(dropped)
 
 
 def run_demo(
@@ -82,10 +104,11 @@ def run_demo(
     data, results = folder / "sim-kitti", folder / "results"
     say(f"[bold]1/6 simulate[/bold] {frames} frames with injected label errors → {escape(str(data))}")
     simulate_dataset(data, frames=frames, seed=0, noise=DEMO_NOISE, progress=progress is not None,
-                     workers=workers or os.cpu_count() or 1, overwrite=True)
+                     workers=workers or os.cpu_count() or 1, overwrite=True, drop_fraction=C.DEMO_DROP_FRACTION)
     say(f"[bold]2/6 infer[/bold] {escape(str(data))} → {escape(str(results))}")
     after_infer(infer_dataset(InferRequest(data, results, "kitti", workers=workers, overwrite=True, debug=debug), progress))
     run = DemoRun(data, results)
+    run.missing, run.dropped = missing_found(results, data / "manifest.parquet")
     opened = open_results(results)
     say(
         "[bold]3/6 rank[/bold] the worst labels; 'injected' is the simulator's ground truth "

@@ -114,3 +114,206 @@ def test_a_failing_search_is_an_error_row_naming_the_file_and_the_objects_stay(s
     assert errors[0]["file"].endswith("label_2/000001.txt") and "synthetic search failure" in errors[0]["message"]
     ids = set(R.open_results(out).read(["frame_id"])["frame_id"].to_pylist())
     assert "000001" in ids
+
+
+# --------------------------------------------------------------------------- the search itself
+
+import math
+
+import numpy as np
+
+from labelaudit.datasets import Frame, ImageView
+from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_region
+
+GROUND = -1.73
+
+
+def _ground(x0=2.0, x1=60.0, y0=-25.0, y1=25.0, step=0.25):
+    xs, ys = np.meshgrid(np.arange(x0, x1, step), np.arange(y0, y1, step))
+    return np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, GROUND)]
+
+
+def _face(p0, p1, z0, z1, step):
+    """Points on the vertical rectangle above the segment p0 → p1 between heights z0 and z1."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    n = max(2, int(np.linalg.norm(p1 - p0) / step))
+    t = np.linspace(0, 1, n)
+    zs = np.arange(z0, z1, step)
+    xy = p0 + t[:, None] * (p1 - p0)
+    return np.array([[x, y, z] for x, y in xy for z in zs])
+
+
+def _car_points(cx, cy, length=4.2, width=1.8, height=1.5, step=0.08):
+    """The two faces a sensor at the origin sees of an axis-aligned car ahead and to the left."""
+    x0, y0 = cx - length / 2, cy - width / 2
+    return np.vstack([_face((x0, y0), (x0, y0 + width), GROUND + 0.2, GROUND + height, step),  # rear
+                      _face((x0, y0), (x0 + length, y0), GROUND + 0.2, GROUND + height, step)])  # right side
+
+
+def _unshadowed(ground, objects):
+    """The ground returns no object hides from the sensor at the origin (its azimuth window, behind its nearest return)."""
+    keep = np.ones(len(ground), dtype=bool)
+    az = np.arctan2(ground[:, 1], ground[:, 0])
+    r = np.hypot(ground[:, 0], ground[:, 1])
+    for obj in objects:
+        if len(obj) == 0:
+            continue
+        oaz = np.arctan2(obj[:, 1], obj[:, 0])
+        keep &= ~((az >= oaz.min()) & (az <= oaz.max()) & (r >= np.hypot(obj[:, 0], obj[:, 1]).min()))
+    return ground[keep]
+
+
+def _frame(*objects, boxes=None, names=(), view=None):
+    pts = np.vstack([_unshadowed(_ground(), objects), *objects])
+    boxes = np.zeros((0, 7)) if boxes is None else np.asarray(boxes, dtype=float).reshape(-1, 7)
+    return Frame("000001", np.c_[pts, np.zeros(len(pts))].astype(np.float32), boxes, list(names),
+                 [f"000001:{i}" for i in range(len(boxes))], image_view=view)
+
+
+def _best(rows, x, y, radius=1.5):
+    near = [r for r in rows if math.hypot(r["cx"] - x, r["cy"] - y) <= radius]
+    return max((r["score"] for r in near), default=0.0)
+
+
+def test_an_unlabelled_car_is_found_where_it_stands_and_a_labelled_one_is_not():
+    cfg = RunConfig()
+    rows = find_missing(_frame(_car_points(15.0, 3.0)), cfg)
+    assert _best(rows, 15.0, 3.0) >= 0.5
+    top = max(rows, key=lambda r: r["score"])
+    assert math.hypot(top["cx"] - 15.0, top["cy"] - 3.0) < 1.0 and top["class_name"] == "Car" and top["source"] == "points"
+    assert 3.0 <= top["length"] <= 5.3 and 1.4 <= top["width"] <= 2.2
+    labelled = find_missing(_frame(_car_points(15.0, 3.0), boxes=[[15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]], names=["Car"]), cfg)
+    assert _best(labelled, 15.0, 3.0) == 0.0  # its label explains its returns
+
+
+def test_a_car_scores_higher_than_a_wall_a_pole_a_bush_and_a_kerb():
+    cfg = RunConfig()
+    rng = np.random.default_rng(0)
+    car = _car_points(20.0, 4.0)
+    wall = _face((14.0, -8.0), (34.0, -8.0), GROUND + 0.1, GROUND + 4.0, 0.1)  # 20 m of building front
+    pole = np.vstack([_face((25.0, 10.0), (25.3, 10.0), GROUND, GROUND + 6.0, 0.05), _face((25.0, 10.0), (25.0, 10.3), GROUND, GROUND + 6.0, 0.05)])
+    bush = np.array([28.0, -3.0, GROUND + 0.9]) + rng.normal(0.0, [1.0, 0.8, 0.45], (1500, 3))  # foliage: returns scattered in depth
+    kerb = _face((10.0, -5.0), (30.0, -5.0), GROUND, GROUND + 0.15, 0.05)
+    rows = find_missing(_frame(car, wall, pole, bush, kerb), cfg)
+    car_score = _best(rows, 20.0, 4.0)
+    assert car_score >= 0.5
+    for x, y, what in ((24.0, -8.5, "wall"), (25.0, 10.0, "pole"), (28.0, -3.0, "bush"), (20.0, -5.0, "kerb")):
+        assert _best(rows, x, y, radius=2.5) < min(0.5, car_score), what
+
+
+def test_nothing_inside_the_ego_zone_or_beyond_the_labelled_range():
+    cfg = RunConfig()
+    near = _car_points(2.5, 0.0)
+    far = _car_points(80.0, 3.0)
+    rows = find_missing(_frame(near, far), cfg)
+    assert all(r["distance"] > 3.0 and r["distance"] <= cfg.missing.max_range for r in rows)
+
+
+def _camera() -> ImageView:
+    """A pinhole camera at the sensor looking along +x (KITTI-like: u right, v down), 1242 × 375."""
+    f, cu, cv = 700.0, 621.0, 187.5
+    # camera axes: x_cam = −y_lidar, y_cam = −z_lidar, z_cam = x_lidar
+    P = np.array([[cu, -f, 0.0, 0.0], [cv, 0.0, -f, 0.0], [1.0, 0.0, 0.0, 0.0]])
+    return ImageView(P, (1242, 375))
+
+
+def test_kitti_only_in_the_camera_view_and_not_in_dontcare_waymo_all_around():
+    cfg = RunConfig()
+    ahead, behind = _car_points(15.0, 3.0), _car_points(15.0, 3.0) * [-1, 1, 1]
+    behind[:, 2] = _car_points(15.0, 3.0)[:, 2]
+    all_round = find_missing(_frame(ahead, behind), cfg)
+    assert _best(all_round, 15.0, 3.0) >= 0.5 and _best(all_round, -15.0, 3.0) >= 0.5
+    view = _camera()
+    kitti = find_missing(_frame(ahead, behind, view=view), cfg)
+    assert _best(kitti, 15.0, 3.0) >= 0.5 and _best(kitti, -15.0, 3.0) == 0.0
+    box = max(kitti, key=lambda r: r["score"])
+    rect = view.box_to_image([box[k] for k in ("cx", "cy", "cz", "length", "width", "height", "yaw")])
+    covered = ImageView(view.projection, view.size, np.array([[rect[0] - 5, rect[1] - 5, rect[2] + 5, rect[3] + 5]]))
+    assert _best(find_missing(_frame(ahead, behind, view=covered), cfg), 15.0, 3.0) == 0.0  # inside a DontCare region
+    elsewhere = ImageView(view.projection, view.size, np.array([[0.0, 0.0, 50.0, 50.0]]))
+    assert _best(find_missing(_frame(ahead, behind, view=elsewhere), cfg), 15.0, 3.0) >= 0.5
+    inside = in_labelled_region(np.array([[15.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0], [-15.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0]]), _frame(view=view), 70.0)
+    assert inside.tolist() == [True, False]
+
+
+def test_detections_without_a_label_are_candidates_and_one_found_both_ways_is_one():
+    cfg = RunConfig()
+    label = [30.0, -6.0, GROUND + 0.75, 4.0, 1.7, 1.5, 0.0]
+    dets = FrameDetections(
+        boxes=np.array([[15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0],  # on the unlabelled car: both
+                        [40.0, 10.0, GROUND + 0.75, 4.0, 1.7, 1.5, 0.3],  # no label, no cluster: detections
+                        [30.2, -6.1, GROUND + 0.75, 4.0, 1.7, 1.5, 0.0]]),  # on the label: not a candidate
+        scores=np.array([0.9, 0.8, 0.95]), class_names=["Car", "Car", "Car"], sources=["d.txt:1", "d.txt:2", "d.txt:3"])
+    rows = find_missing(_frame(_car_points(15.0, 3.0), boxes=[label], names=["Car"]), cfg, dets)
+    by_source = {r["source"]: r for r in rows if r["score"] >= 0.5}
+    assert set(by_source) == {"both", "detections"}
+    assert math.hypot(by_source["both"]["cx"] - 15.0, by_source["both"]["cy"] - 3.0) < 0.01  # the detection's box
+    assert by_source["both"]["detection_source"] == "d.txt:1" and by_source["both"]["points_score"] >= 0.5
+    assert by_source["detections"]["detection_score"] == 0.8 and by_source["detections"]["score"] == 0.8
+    assert not any(math.hypot(r["cx"] - 30.0, r["cy"] + 6.0) < 1.0 for r in rows)
+    assert [r["candidate_index"] for r in rows] == list(range(len(rows)))
+    assert sorted(r["distance"] for r in rows) == [r["distance"] for r in rows]
+
+
+def test_rows_of_a_frame_are_reproducible():
+    frame = _frame(_car_points(15.0, 3.0), _car_points(30.0, -4.0))
+    assert find_missing(frame, RunConfig()) == find_missing(frame, RunConfig())
+
+
+def test_no_missing_turns_the_search_off():
+    off = replace(RunConfig(), missing=MissingParams(enabled=False))
+    assert find_missing(_frame(_car_points(15.0, 3.0)), off) == []
+
+
+# --------------------------------------------------------------------------- simulator
+
+
+def test_simulated_dropped_labels_keep_their_points_and_are_in_the_manifest(tmp_path):
+    from labelaudit.sim.dataset import read_manifest, simulate_dataset, simulate_frame
+    from labelaudit.sim.scene import SceneSpec
+
+    kept = simulate_frame(2, seed=4)
+    dropped = simulate_frame(2, seed=4, drop_fraction=1.0)
+    assert np.array_equal(kept.points, dropped.points)  # same scene, same returns
+    assert dropped.labels.dropped.any() and not kept.labels.dropped.any()
+    vehicles = np.array([c in ("Car", "Van", "Truck") for c in kept.scene.class_names])
+    assert np.array_equal(dropped.labels.dropped, (kept.labels.object_index >= 0) & vehicles)
+    assert np.all(dropped.labels.object_index[dropped.labels.dropped] < 0)
+    simulate_dataset(tmp_path / "sim", frames=2, seed=4, scene=SceneSpec(num_clutter=(3, 3)), drop_fraction=0.5, progress=False)
+    man = read_manifest(tmp_path / "sim")
+    assert "dropped" in man.column_names and man.schema.metadata[b"labelaudit.drop_fraction"] == b"0.5"
+    rows = man.to_pylist()
+    assert all(not r["labelled"] for r in rows if r["dropped"])
+
+
+def test_clutter_stays_unlabelled(tmp_path):
+    from labelaudit.sim.dataset import simulate_frame
+    from labelaudit.sim.scene import SceneSpec
+
+    f = simulate_frame(1, seed=2, scene_spec=SceneSpec(num_clutter=(6, 6)))
+    assert len(f.scene.clutter) >= 1 and len(f.labels.lines) == int((f.labels.object_index >= 0).sum())
+
+
+# --------------------------------------------------------------------------- real KITTI
+
+
+def test_a_real_car_removed_from_its_label_file_is_found(realdata, tmp_path):
+    from labelaudit.datasets import FrameRef, open_dataset
+
+    src = realdata / "openpcdet-pr653-kitti" / "training"
+    if not (src / "label_2" / "000004.txt").is_file():
+        pytest.skip("frame 000004 not present")
+    for sub in ("velodyne", "calib", "image_2"):
+        (tmp_path / "training" / sub).mkdir(parents=True)
+        for f in (src / sub).glob("000004.*"):
+            (tmp_path / "training" / sub / f.name).symlink_to(f)
+    lines = (src / "label_2" / "000004.txt").read_text().splitlines(keepends=True)
+    (tmp_path / "training" / "label_2").mkdir()
+    (tmp_path / "training" / "label_2" / "000004.txt").write_text("".join(lines[1:]))  # line 1: a Car with ~70 points
+    full = next(open_dataset(src.parent, "kitti").load_unit(FrameRef("kitti", str(src.parent), "000004")))
+    cut = next(open_dataset(tmp_path, "kitti").load_unit(FrameRef("kitti", str(tmp_path), "000004")))
+    car = full.boxes[0]
+    assert full.class_names[0] == "Car"
+    rows = find_missing(cut, RunConfig())
+    assert _best(rows, car[0], car[1], radius=1.0) >= 0.5
+    assert _best(find_missing(full, RunConfig()), car[0], car[1], radius=1.0) == 0.0
