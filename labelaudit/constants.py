@@ -95,6 +95,7 @@ MISSING_CLASS_SIZES = {  # classes the search looks for: (mean, largest) length,
     "Car": ((3.9, 1.6, 1.55), (5.3, 2.1, 2.1)),
     "Van": ((5.1, 1.9, 2.2), (6.5, 2.4, 3.0)),
     "Vehicle": ((4.6, 2.0, 1.8), (6.5, 2.5, 2.8)),
+    "REGULAR_VEHICLE": ((4.7, 1.95, 1.7), (6.5, 2.5, 2.6)),
 }
 MISSING_IMAGE_SLACK = 100.0  # px; KITTI: clusters whose centroid projects this far outside image_2 are not boxed (a candidate's centre must project inside)
 MISSING_FRAGMENT_POINTS = 3  # components with fewer returns are not joined to others (noise)
