@@ -25,8 +25,6 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 REALDATA = Path(os.environ.get("LABELAUDIT_REALDATA", REPO.parent / "shared" / "realdata"))
 REAL_FOLDERS = (("openpcdet-pr653-kitti", "built with"), ("kitti-object-more", "held out"))
@@ -51,11 +49,11 @@ def _candidates(frame, cfg):
 def bench_sim(frames: int, seed: int, drop: float, threshold: float, min_points: int, workers: int, keep: Path | None) -> None:
     import pyarrow.parquet as pq
 
+    from labelaudit import constants as C
     from labelaudit.config import load_config
     from labelaudit.datasets import open_dataset
     from labelaudit.sim.dataset import simulate_dataset
     from labelaudit.sim.scene import SceneSpec
-    from labelaudit import constants as C
 
     tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="bench-missing-"))
     data = tmp / "sim"

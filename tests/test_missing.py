@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from labelaudit import results as R
 from labelaudit.config import MissingParams, RunConfig
+from labelaudit.datasets import Frame, ImageView
 from labelaudit.errors import ResultsError
 from labelaudit.executors import SerialExecutor
+from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_region
 from labelaudit.infer.run import InferRequest, run_infer
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
@@ -117,13 +121,6 @@ def test_a_failing_search_is_an_error_row_naming_the_file_and_the_objects_stay(s
 
 
 # --------------------------------------------------------------------------- the search itself
-
-import math
-
-import numpy as np
-
-from labelaudit.datasets import Frame, ImageView
-from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_region
 
 GROUND = -1.73
 

@@ -32,9 +32,9 @@ from labelaudit import constants as C
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
+from labelaudit.core.freespace import ray_counts
 from labelaudit.core.iou import bev_iou_exact
 from labelaudit.datasets import Frame
-from labelaudit.core.freespace import ray_counts
 from labelaudit.infer.evidence import frame_evidence, label_boxes
 from labelaudit.kernels import kernel
 
@@ -77,16 +77,17 @@ class Cluster:
 
 
 @kernel
-def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank):  # pragma: no cover - compiled
-    """Ground height per cell (n, n) (inf where unknown) and the steepest upward slope (z − oz) / r of
-    any return farther than 2 m: the top beam's elevation, how high the sensor sees at a range.
+def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop):  # pragma: no cover - compiled
+    """Ground height per cell (n, n) (inf where unknown) and, per azimuth bin (nbins,), the steepest
+    upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
+    high the sensor sees at a range (a tilted sensor sees higher on one side than on the other).
 
     A cell's floor is its ``rank``-th lowest return (a few returns below the road — reflections
     off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
     floor of the 3 × 3 cells around it (one cell of such returns is ignored too), so under a vehicle,
     whose cells hold no road returns, it comes from the road beside it."""
     low = np.full((n, n, rank), np.inf)
-    top = -np.inf
+    top = np.full(nbins, -np.inf)
     for k in range(xyz.shape[0]):
         dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
         r2 = dx * dx + dy * dy
@@ -95,8 +96,9 @@ def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank):  # pragma: no 
         z = xyz[k, 2]
         if r2 > 4.0:
             s = (z - oz) / math.sqrt(r2)
-            if s > top:
-                top = s
+            b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
+            if s > top[b]:
+                top[b] = s
         i = int((xyz[k, 0] - x0) / cell)
         j = int((xyz[k, 1] - y0) / cell)
         if 0 <= i < n and 0 <= j < n and z < low[i, j, rank - 1]:
@@ -116,15 +118,21 @@ def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank):  # pragma: no 
     ground = np.full((n, n), np.inf)
     for i in range(n):
         for j in range(n):
-            m1, m2 = np.inf, np.inf
+            vals = np.empty(9)
+            k = 0
             for a in range(max(0, i - 1), min(n, i + 2)):
                 for b in range(max(0, j - 1), min(n, j + 2)):
-                    v = floor[a, b]
-                    if v < m1:
-                        m1, m2 = v, m1
-                    elif v < m2:
-                        m2 = v
-            ground[i, j] = m2 if m2 < np.inf else m1
+                    if floor[a, b] < np.inf:
+                        vals[k] = floor[a, b]
+                        k += 1
+            if k == 0:
+                continue
+            med = np.median(vals[:k])
+            m1 = np.inf
+            for q in range(k):
+                if vals[q] >= med - drop:  # a floor far below its neighbours' is a cell of stray returns under the road
+                    m1 = min(m1, vals[q])
+            ground[i, j] = m1
     return ground, top
 
 
@@ -397,7 +405,8 @@ def _faces(xy, h, lo, hi, steps, width, tie):  # pragma: no cover - compiled
 
 @kernel
 def _face_share(xy, sel, c, sn, width):  # pragma: no cover - compiled
-    """Share of the selected returns in the two densest ``width`` slices across either axis."""
+    """Share of the selected returns in the densest ``width`` slice across either axis (one face
+    square to each axis: a side, a rear, an L-shape)."""
     m = xy.shape[0]
     lo1, lo2 = np.inf, np.inf
     for k in range(m):
@@ -416,19 +425,13 @@ def _face_share(xy, sel, c, sn, width):  # pragma: no cover - compiled
             h2[j] += 1
             total += 1
     i1 = np.argmax(h1)
-    c1 = h1[i1]
-    h1[i1] = -1
-    i2 = np.argmax(h1)
     j1 = np.argmax(h2)
-    c2 = h2[j1]
-    h2[j1] = -1
-    j2 = np.argmax(h2)
     inside = 0
     for k in range(m):
         if sel[k]:
             i = min(nb - 1, int((c * xy[k, 0] + sn * xy[k, 1] - lo1) / width))
             j = min(nb - 1, int((-sn * xy[k, 0] + c * xy[k, 1] - lo2) / width))
-            if i == i1 or i == i2 or j == j1 or j == j2:
+            if i == i1 or j == j1:
                 inside += 1
     return inside / max(total, 1)
 
@@ -514,7 +517,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     gcell = C.MISSING_GROUND_CELL
     gn = int(math.ceil(2 * reach / gcell))
     gx0, gy0 = ox - reach, oy - reach
-    ground, top_slope = _ground_grid(xyz, ox, oy, oz, gx0, gy0, gcell, gn, reach * reach, C.MISSING_GROUND_RANK)
+    ground, top_slope = _ground_grid(xyz, ox, oy, oz, gx0, gy0, gcell, gn, reach * reach, C.MISSING_GROUND_RANK, C.MISSING_CEILING_BINS, C.MISSING_GROUND_DROP)
     cell = C.MISSING_CELL
     n = int(math.ceil(2 * reach / cell))
     x0, y0 = ox - reach, oy - reach
@@ -538,10 +541,12 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     g_top = np.zeros(k)
     np.maximum.at(g_top, group, extras[:, 0])
     g_top = g_top[roots]
-    i0 = np.full(k, np.iinfo(np.int64).max); np.minimum.at(i0, group, stats[:, 3])
-    i1 = np.zeros(k, dtype=np.int64); np.maximum.at(i1, group, stats[:, 4])
-    j0 = np.full(k, np.iinfo(np.int64).max); np.minimum.at(j0, group, stats[:, 5])
-    j1 = np.zeros(k, dtype=np.int64); np.maximum.at(j1, group, stats[:, 6])
+    i0, j0 = np.full(k, np.iinfo(np.int64).max), np.full(k, np.iinfo(np.int64).max)
+    i1, j1 = np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.int64)
+    np.minimum.at(i0, group, stats[:, 3])
+    np.maximum.at(i1, group, stats[:, 4])
+    np.minimum.at(j0, group, stats[:, 5])
+    np.maximum.at(j1, group, stats[:, 6])
     diag = np.hypot((i1[roots] - i0[roots] + 1) * cell, (j1[roots] - j0[roots] + 1) * cell)
     keep = (g_points >= params.min_points) & (diag <= max_diag) & (diag >= C.MISSING_MIN_EXTENT[0])
     keep &= g_over <= C.MISSING_MAX_OVER_SHARE * g_points  # walls, poles, trunks: they go on above the band
@@ -657,7 +662,10 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: flo
     top = float(h.max())
     near = float(np.min(np.hypot(xyz[:, 0] - ox, xyz[:, 1] - oy)))
     ground_z = float(np.median(xyz[:, 2] - h))
-    ceiling = (oz - ground_z) + near * top_slope  # the highest the beams reach at the cluster's nearest range, above the ground
+    nb = len(top_slope)
+    bins = np.minimum(nb - 1, ((np.arctan2(xyz[:, 1] - oy, xyz[:, 0] - ox) + np.pi) / (2 * np.pi) * nb).astype(np.int64))
+    slope = float(np.min(top_slope[np.unique(bins)]))  # the lowest top beam over the cluster's directions
+    ceiling = (oz - ground_z) + near * slope  # the highest the beams reach at the cluster's nearest range, above the ground
     top_seen = top < ceiling - C.MISSING_TOP_CLEARANCE
     vis_l, vis_w = max(e1, e2), min(e1, e2)
     # the smallest class that explains the visible extents (a larger one fits any fragment of a
