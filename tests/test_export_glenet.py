@@ -197,6 +197,10 @@ def test_kitti_round_trip_aligned_with_annos_and_dbinfos(tmp_path, model):
             n_db += 1
     assert n_db == summary.dbinfos_objects == 9
     assert summary.dbinfos_objects_with_targets == 5
+    assert summary.dbinfos_objects_without_targets == {
+        "class Misc not audited": 1, "status skipped": 1,
+        "no anchor size for class Van (--anchor-size Van=l,w,h)": 1, "no anchor size for class Truck (--anchor-size Truck=l,w,h)": 1,
+    }  # fmt: skip
     # what GLENet's database sampler stacks for pasted objects
     assert np.array([x[G.GLENET_KEY] for x in db["Car"]]).shape == (len(db["Car"]), 7)
     meta = json.loads((out / G.GLENET_META_NAME).read_text())
@@ -221,7 +225,12 @@ def test_bev_z_and_h_come_from_the_class_prior_and_the_note_says_so(tmp_path):
 
 def test_anchor_size_option_gives_van_values_and_fewer_points_give_larger_values(tmp_path):
     res, ip, dp, rows = write_kitti(tmp_path, "3d")
-    E.export_results(res, tmp_path / "g", fmt="glenet", infos=ip, dbinfos=dp, anchor_sizes={"Van": (5.0, 2.0, 2.0)})
+    db = pickle.loads(dp.read_bytes())
+    db["Car"].append({**db["Car"][0], "image_idx": "000777"})  # a gt-database entry of a frame the infos do not hold
+    dp.write_bytes(pickle.dumps(db))
+    summary = E.export_results(res, tmp_path / "g", fmt="glenet", infos=ip, dbinfos=dp, anchor_sizes={"Van": (5.0, 2.0, 2.0)})
+    assert summary.dbinfos_objects_without_targets["frame not in the infos"] == 1
+    assert np.all(pickle.loads((tmp_path / "g" / dp.name).read_bytes())["Car"][-1][G.GLENET_KEY] == -1)
     infos = pickle.loads((tmp_path / "g" / "kitti_infos_train.pkl").read_bytes())
     van = infos[0]["annos"][G.GLENET_KEY][2]
     assert np.all(van > 0)
@@ -356,6 +365,7 @@ def test_waymo_per_sequence_infos_folder_and_vehicle_dbinfos(tmp_path):
     zed = [e for e in new_db["Vehicle"] if e["sequence_name"].startswith(f"segment-{segs[2]}")]
     assert len(zed) == 1 and np.all(zed[0][G.GLENET_KEY] == -1)  # its sequence was not audited
     assert summary.dbinfos_objects == 6 and summary.dbinfos_objects_with_targets == 4
+    assert summary.dbinfos_objects_without_targets == {"class Sign not audited": 1, "frame not in the results": 1}
     assert summary.infos_frames_without_results == 2  # the empty frame and the sequence not audited
 
 

@@ -155,7 +155,8 @@ def attach_glenet_infos(
     kind : ``kitti`` or ``waymo``
     frames : the parsed frames, in file order
     values : per frame its (K, 7) float32 array (the one stored)
-    stats : counts (frames, objects, objects with values, reasons of the others)
+    stats : counts (frames, objects, objects with values, reasons of the others) and per frame
+        each object's reason (``object_reasons``, "" = has values)
 
     Raises
     ------
@@ -190,12 +191,15 @@ def attach_glenet_dbinfos(
     infos: Sequence[Mapping[str, Any]],
     frames: Sequence[FrameObjects],
     values: Sequence[NDArray[np.float32]],
+    reasons: Sequence[Sequence[str]],
     path: str = "<dbinfos>",
 ) -> dict[str, Any]:
     """Set ``uncertainty`` of every gt-database entry to its frame's row (in place).
 
-    Entries of frames the infos do not hold get −1 (counted); an entry whose object the frame
-    does not have, or has with another class or size, is an error.
+    ``reasons`` are the frames' per-object reasons of :func:`attach_glenet_infos` (an entry
+    without values is counted under its object's). Entries of frames the infos do not hold get
+    −1 (counted); an entry whose object the frame does not have, or has with another class or
+    size, is an error.
 
     Raises
     ------
@@ -248,7 +252,7 @@ def attach_glenet_dbinfos(
             if v[0] > 0:
                 n_with += 1
             else:
-                stats[f"{name} without a value in its frame"] += 1
+                stats[str(reasons[f][j]) or "no value"] += 1
     return {"objects": n, "objects_with_targets": n_with, "reasons": dict(stats)}
 
 
@@ -339,7 +343,7 @@ def export_glenet(
     db_data = None
     if dbinfos is not None:
         db_data = load_infos(dbinfos)
-        db_stats = attach_glenet_dbinfos(db_data, kind, merged, frames, values, str(dbinfos))
+        db_stats = attach_glenet_dbinfos(db_data, kind, merged, frames, values, stats["object_reasons"], str(dbinfos))
         summary.dbinfos = str(dbinfos)
         summary.dbinfos_objects = db_stats["objects"]
         summary.dbinfos_objects_with_targets = db_stats["objects_with_targets"]

@@ -178,8 +178,10 @@ def align_frames(
 ) -> tuple[list[NDArray[np.int64]], dict[str, Any]]:
     """Result row of every infos object (−1 where none), checking that the infos describe the results.
 
-    ``reason`` (one per result row, "" when it has values) feeds the counts of objects without
-    values (``stats["reasons"]``), next to DontCare, classes not audited and missing rows.
+    ``reason`` (one per result row, "" when it has values) says why a matched object has none;
+    the others have none because they are DontCare, of a class not audited, or without a row.
+    ``stats["object_reasons"]`` holds, per frame, each object's reason ("" = has values) and
+    ``stats["reasons"]`` their counts.
 
     Raises
     ------
@@ -188,7 +190,7 @@ def align_frames(
         the infos lack, another class, or other sizes.
     """
     audited_classes = set(arrays.class_name.tolist())
-    stats: Counter[str] = Counter()
+    why: list[str] = []  # per object, file order
     first_extra: tuple[int, str] | None = None  # (frame position, message) of a result row the infos lack
     frames_without = 0
     per_frame: list[list[int]] = []
@@ -208,15 +210,15 @@ def align_frames(
         rows = [-2 if k is None else results.get(k, -1) for k in fr.keys]  # -2: DontCare, -1: no row
         for j, r in enumerate(rows):
             if r == -2:
-                stats["DontCare"] += 1
-            elif r == -1:
-                name = fr.names[j]
-                if fr.frame_id not in index.by_frame:
-                    stats["frame not in the results"] += 1
-                elif name not in audited_classes:
-                    stats[f"class {name} not audited"] += 1
-                else:
-                    stats["no result row"] += 1
+                why.append("DontCare")
+            elif r >= 0:
+                why.append("")  # the result row's own reason, below
+            elif fr.frame_id not in index.by_frame:
+                why.append("frame not in the results")
+            elif fr.names[j] not in audited_classes:
+                why.append(f"class {fr.names[j]} not audited")
+            else:
+                why.append("no result row")
         per_frame.append(rows)
 
     # class and size of every matched object at once; the earliest disagreement in file order wins
@@ -225,6 +227,7 @@ def align_frames(
     frame_of = np.repeat(np.arange(len(frames)), sizes)
     hit = np.flatnonzero(flat >= 0)
     first_bad: tuple[int, str] | None = None
+    why_arr = np.array(why, dtype=object)
     if len(hit):
         names = np.array([n for fr in frames for n in fr.names], dtype=object)[hit]
         dims = np.concatenate([fr.dims_lwh for fr in frames])[hit]
@@ -239,7 +242,7 @@ def align_frames(
             first_bad = (f, f"frame {frames[f].frame_id} object {j} (key {frames[f].keys[j]}): infos say {names[i]} l,w,h = "
                          f"{', '.join(f'{v:.3f}' for v in dims[i])}, the results say {arrays.class_name[res_rows[i]]} "
                          f"{', '.join(f'{v:.3f}' for v in lwh[i])}")  # fmt: skip
-        stats.update(r for r in reason[res_rows].tolist() if r)
+        why_arr[hit] = reason[res_rows]
     errors = [e for e in (first_extra, first_bad) if e is not None]
     if errors:
         raise InfosMismatchError(f"{path}: {min(errors)[1]}; the infos file does not belong to these results")
@@ -253,7 +256,8 @@ def align_frames(
     rows_out = np.split(np.where(flat >= 0, flat, -1), np.cumsum(sizes)[:-1]) if sizes else []
     extra = {
         "frames_without_results": frames_without,
-        "reasons": dict(stats),
+        "reasons": dict(Counter(w for w in why_arr.tolist() if w)),
+        "object_reasons": np.split(why_arr, np.cumsum(sizes)[:-1]) if sizes else [],
         "results_frames_not_in_infos": len(set(index.by_frame) - seen_frames),
         "results_rows_not_in_infos": len(arrays) - len(hit),
     }
