@@ -272,8 +272,6 @@ REPORT_DISTANCE_BIN = 10.0  # m; Fig. 7b bins of the distance to the sensor
 REPORT_LOG_POINTS_BIN = 0.25  # Fig. 7c bins of log10(number of points)
 REPORT_MIN_BIN_COUNT = 3  # a plot bin with fewer objects is not drawn (its mean is noise)
 REPORT_MAX_ERROR_ROWS = 50  # failed frames listed in the report (the rest are counted)
-REPORT_AP_THRESHOLDS = {"Car": 0.7, "Vehicle": 0.7}  # usual AP overlap threshold per class (KITTI Car, Waymo Vehicle); others 0.5
-REPORT_AP_DEFAULT_THRESHOLD = 0.5  # usual AP overlap threshold of every other class
 REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's official since 2019)
 
 # --- what the parameter hash leaves out (labelaudit.config.constants_digest) ---

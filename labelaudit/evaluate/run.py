@@ -27,6 +27,7 @@ from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit.config import RunConfig
 from labelaudit.evaluate.ap import PrecisionCurve, precision_curve
+from labelaudit.evaluate.cells import DIFFICULTIES, INTERPS, METRICS, family, usual_threshold
 from labelaudit.evaluate.detections import Detections, read_detections
 from labelaudit.evaluate.gt import GroundTruth, load_ground_truth
 from labelaudit.evaluate.jiou import pair_jious
@@ -44,32 +45,14 @@ from labelaudit.evaluate.matching import (
     second_pass,
     waymo_ignored_gt,
 )
-from labelaudit.evaluate.overlap import pair_overlaps
+from labelaudit.evaluate.overlap import kitti_devkit_boxes, pair_overlaps
 
 FloatArray = NDArray[np.float64]
 
 __all__ = ["DIFFICULTIES", "METRICS", "EvalRequest", "EvalResult", "evaluate", "run_eval", "usual_threshold"]
 
-METRICS = ("iou", "jiou", "jiou_ratio")
-DIFFICULTIES = {"kitti": ("easy", "moderate", "hard"), "waymo": ("level_1", "level_2"), "av2": ("all",)}
 HEADLINE_DIFFICULTY = {"kitti": "moderate", "waymo": "level_2", "av2": "all"}
 SUMMARY_VERSION = "1"
-
-
-def family(dataset_format: str) -> str:
-    """"kitti", "waymo" (both Waymo versions share classes and difficulty levels) or "av2" (one
-    level: every box with a LiDAR point counts, like Waymo's LEVEL_2 without the level labels)."""
-    if dataset_format == "av2":
-        return "av2"
-    return "waymo" if dataset_format.startswith("waymo") else "kitti"
-
-
-def usual_threshold(class_name: str) -> float:
-    """The class's customary minimum overlap (Car/Vehicle 0.7, Pedestrian/Cyclist 0.5)."""
-    for k, v in C.EVAL_MIN_OVERLAP.items():
-        if k.lower() == class_name.lower():
-            return float(v)
-    return float(C.EVAL_DEFAULT_MIN_OVERLAP)
 
 
 def thresholds_for(class_name: str) -> list[float]:
@@ -369,6 +352,166 @@ def _counted_at(gt: GroundTruth, fam: str, d: int) -> NDArray[np.bool_]:
     return (gt.difficulty <= d + 1) & (gt.num_points != 0)
 
 
+@dataclass
+class PairOverlaps:
+    """Every (detection, GT) pair of a frame, detection-major blocks, with the devkit's frame blocks.
+
+    Attributes
+    ----------
+    pd, pg : (P,) detection and GT row of each pair
+    iou : (P,) IoU in the view (KITTI: the devkit's camera-frame geometry)
+    blocks : the frames' blocks (GT, detections, DontCare overlaps over the detection)
+    """
+
+    pd: NDArray[np.int64]
+    pg: NDArray[np.int64]
+    iou: FloatArray
+    blocks: FrameBlocks
+
+
+def overlap_geometry(gt: GroundTruth, dets: Detections) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """GT, detection and DontCare boxes as the overlaps are taken on them.
+
+    KITTI: the devkit's geometry (rectangles in the rectified camera's x–z plane, heights along
+    camera y; :func:`~labelaudit.evaluate.overlap.kitti_devkit_boxes`). Every other format: the
+    LiDAR/vehicle-frame boxes themselves (Waymo's own 3D IoU).
+    """
+    if gt.dataset_format != "kitti":
+        return gt.boxes, dets.boxes, gt.dontcare
+    dc_frame = np.repeat(np.arange(gt.num_frames), np.diff(gt.dc_off))
+    try:
+        return (
+            kitti_devkit_boxes(gt.boxes, gt.frame_of_row, gt.calibs),
+            kitti_devkit_boxes(dets.boxes, dets.frame_of_row, gt.calibs),
+            kitti_devkit_boxes(gt.dontcare, dc_frame, gt.calibs),
+        )
+    except ValueError as exc:
+        raise EvalError(f"KITTI overlaps are taken in the camera frame, as the devkit does: {exc}") from None
+
+
+def pair_ious(gt: GroundTruth, dets: Detections, view: str) -> PairOverlaps:
+    """IoU of every (detection, GT) pair of a frame and the detections' overlap with DontCare regions."""
+    gt_boxes, det_boxes, dc_boxes = overlap_geometry(gt, dets)
+    pd, pg = frame_pairs(dets.det_off, gt.gt_off)
+    _, iou, _ = pair_overlaps(det_boxes, gt_boxes, pd, pg, view)
+    dd, dm = frame_pairs(dets.det_off, gt.dc_off)
+    _, _, dc_over = pair_overlaps(det_boxes, dc_boxes, dd, dm, view)
+    blocks = FrameBlocks.build(np.diff(gt.gt_off), np.diff(dets.det_off), np.diff(gt.dc_off), dc_over)
+    return PairOverlaps(pd, pg, iou, blocks)
+
+
+def jiou_overlaps(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Sequence[str], view: str, cfg: RunConfig, pairs: PairOverlaps,
+                  metrics: Sequence[str], workers: int | None, progress: Progress) -> tuple[dict[str, FloatArray], int]:
+    """The overlap of every pair under each metric (``jiou_deterministic`` added for probabilistic
+    detections), and the number of pairs whose JIoU was computed.
+
+    JIoU is computed only for pairs whose distributions can touch (boxes grown by ``support_std``
+    corner stds intersect) and that some evaluated cell looks at; every other pair has JIoU 0.
+    """
+    pd, pg, iou = pairs.pd, pairs.pg, pairs.iou
+    with_jiou = len(metrics) > 1
+    fam = family(gt.dataset_format)
+    grow_gt = cfg.spatial.support_std * corner_std(labels.cov, view)
+    grow_det = np.zeros(dets.num)
+    if dets.cov is not None:
+        grow_det = cfg.spatial.support_std * (corner_std(dets.cov, view) if dets.cov_on == "phi" else box_cov_corner_std(dets.cov, dets.boxes))
+    wanted = np.isin([n.lower() for n in dets.class_names], [c.lower() for c in classes])
+    if fam == "kitti":  # a detection lower than the minimum height is ignored, not dropped: it may absorb a GT
+        wanted = wanted | (np.trunc(np.abs(dets.height)) < max(C.KITTI_MIN_HEIGHT))
+    det_relevant = np.asarray(wanted, dtype=bool).reshape(-1)
+    use = labels.needed[pg] & det_relevant[pd] if (len(pd) and with_jiou) else np.zeros(len(pd), bool)
+    inter_grown, _, _ = pair_overlaps(dets.boxes, gt.boxes, pd[use], pg[use], "bev", grow_a=grow_det, grow_b=grow_gt)
+    cand = np.flatnonzero(use)[inter_grown > 0]
+    jiou = np.zeros(len(pd))
+    if with_jiou:
+        progress.stage(f"JIoU of {len(cand)} candidate (detection, label) pairs")
+    # two certain boxes: JIoU is the IoU handed in (the devkit's, for KITTI)
+    jiou[cand] = pair_jious(view, cfg.spatial, gt.boxes, labels.cov, dets.boxes, dets.cov, dets.cov_on, pg[cand], pd[cand], iou[cand],
+                            workers=workers, progress=progress.pairs)
+    jgt = labels.jiou_gt[pg] if len(pg) else np.zeros(0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(jgt > 0, jiou / jgt, 0.0)
+    overlaps = {m: {"iou": iou, "jiou": jiou, "jiou_ratio": ratio}[m] for m in metrics}
+    if dets.probabilistic and with_jiou:
+        jiou_det = np.zeros(len(pd))
+        jiou_det[cand] = pair_jious(view, cfg.spatial, gt.boxes, labels.cov, dets.boxes, dets.cov, dets.cov_on, pg[cand], pd[cand], iou[cand],
+                                    deterministic=True, workers=workers, progress=progress.pairs)
+        overlaps["jiou_deterministic"] = jiou_det
+    return overlaps, len(cand)
+
+
+def ap_cells(gt: GroundTruth, dets: Detections, classes: Sequence[str], view: str, blocks: FrameBlocks, overlaps: dict[str, FloatArray]
+             ) -> tuple[list[dict[str, Any]], dict[tuple[str, str, str, float], PrecisionCurve], dict[tuple[str, int], Cell]]:
+    """The devkit's two passes for every class × difficulty × metric × threshold cell: AP records
+    (R40 and R11), the PR curves and each (class, difficulty)'s :class:`Cell`."""
+    fam = family(gt.dataset_format)
+    ap_records: list[dict[str, Any]] = []
+    curves: dict[tuple[str, str, str, float], PrecisionCurve] = {}
+    cells: dict[tuple[str, int], Cell] = {}
+    for cls in classes:
+        for d, dname in enumerate(DIFFICULTIES[fam]):
+            gi, di = _ignored(gt, dets, fam, cls, d)
+            cell = cells[(cls, d)] = Cell.build(blocks, gi, di)  # only the rows this cell looks at
+            scores = dets.scores[cell.det_rows]
+            num_det = int(np.count_nonzero(di == 0))
+            for metric, ov in overlaps.items():
+                ovc = ov[cell.pairs]
+                for t in thresholds_for(cls):
+                    v, n_gt = first_pass(cell.blocks, ovc, cell.gt_ign, cell.det_ign, scores, t)
+                    ths = recall_thresholds(v, n_gt)
+                    tp, fp, fn = second_pass(cell.blocks, ovc, cell.gt_ign, cell.det_ign, scores, t, ths)
+                    curve = precision_curve(tp, fp, fn, ths)
+                    curves[(cls, dname, metric, t)] = curve
+                    for interp in INTERPS:
+                        ap_records.append(_ap_record(cls, dname, view, metric, t, interp, curve, n_gt, num_det))
+    return ap_records, curves, cells
+
+
+def associate(gt: GroundTruth, dets: Detections, classes: Sequence[str], pairs: PairOverlaps) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Which GT row each detection localises (−1 none) and the index of that pair.
+
+    The devkit's matching at :data:`~labelaudit.constants.EVAL_ASSOCIATION_MIN_IOU`, where every GT
+    of the class or a neighbouring class may take the detection.
+    """
+    matched_gt = np.full(dets.num, -1, dtype=np.int64)
+    matched_pair = np.full(dets.num, -1, dtype=np.int64)
+    gt_lower = np.array([n.lower() for n in gt.class_names], dtype=object)
+    det_lower = np.array([n.lower() for n in dets.class_names], dtype=object)
+    for cls in classes:
+        own = [cls.lower(), *(n.lower() for k, nb in C.EVAL_NEIGHBOUR_CLASSES.items() if k.lower() == cls.lower() for n in nb)]
+        gi = np.where(np.isin(gt_lower, own), 0, -1).astype(np.int8)
+        di = np.where(det_lower == cls.lower(), 0, -1).astype(np.int8)
+        cell = Cell.build(pairs.blocks, gi, di)
+        _, m = assign(cell.blocks, pairs.iou[cell.pairs], cell.gt_ign, cell.det_ign, dets.scores[cell.det_rows], C.EVAL_ASSOCIATION_MIN_IOU)
+        hit = m >= 0
+        matched_gt[cell.det_rows[hit]] = cell.gt_rows[m[hit]]
+    if dets.num:
+        fr = dets.frame_of_row
+        has = matched_gt >= 0
+        j_local = np.arange(dets.num) - dets.det_off[fr]
+        g_local = matched_gt - gt.gt_off[fr]
+        ng = np.diff(gt.gt_off)[fr]
+        matched_pair[has] = pairs.blocks.ov_off[fr[has]] + j_local[has] * ng[has] + g_local[has]
+    return matched_gt, matched_pair
+
+
+def outcomes_at_usual_threshold(dets: Detections, classes: Sequence[str], difficulties: Sequence[str], cells: dict[tuple[str, int], Cell],
+                                overlaps: dict[str, FloatArray]) -> dict[str, NDArray[np.int8]]:
+    """Per detection, its outcome code (:data:`OUTCOMES`) under each metric and difficulty at its class's usual threshold."""
+    det_lower = np.array([n.lower() for n in dets.class_names], dtype=object)
+    outcomes: dict[str, NDArray[np.int8]] = {}
+    for metric in (m for m in overlaps if m in METRICS):
+        for d, dname in enumerate(difficulties):
+            col = np.full(dets.num, 4, dtype=np.int8)
+            for cls in classes:
+                cell = cells[(cls, d)]
+                oc, _ = assign(cell.blocks, overlaps[metric][cell.pairs], cell.gt_ign, cell.det_ign, dets.scores[cell.det_rows], usual_threshold(cls))
+                own = det_lower[cell.det_rows] == cls.lower()
+                col[cell.det_rows[own]] = oc[own]
+            outcomes[f"outcome_{metric}_{dname}"] = col
+    return outcomes
+
+
 def evaluate(
     gt: GroundTruth,
     dets: Detections,
@@ -395,120 +538,34 @@ def evaluate(
     """
     progress = progress or Progress()
     timings = timings if timings is not None else {}
-    fam = family(gt.dataset_format)
-    difficulties = DIFFICULTIES[fam]
-    t0 = time.perf_counter()
-
-    # -- overlaps of every (detection, GT) pair of a frame, detection-major blocks
-    pd, pg = frame_pairs(dets.det_off, gt.gt_off)
-    _, iou, _ = pair_overlaps(dets.boxes, gt.boxes, pd, pg, view)
-    dd, dm = frame_pairs(dets.det_off, gt.dc_off)
-    _, _, dc_over = pair_overlaps(dets.boxes, gt.dontcare, dd, dm, view)
-    blocks = FrameBlocks.build(np.diff(gt.gt_off), np.diff(dets.det_off), np.diff(gt.dc_off), dc_over)
-    timings["iou"] = time.perf_counter() - t0
-
     unknown = set(metrics) - set(METRICS)
     if unknown or "iou" not in metrics:
         raise ValueError(f"metrics must include 'iou' and be among {METRICS}, got {tuple(metrics)}")
-    with_jiou = len(metrics) > 1
-    # -- JIoU for the pairs whose distributions can touch and that some cell can use
-    t1 = time.perf_counter()
-    grow_gt = cfg.spatial.support_std * corner_std(labels.cov, view)
-    grow_det = np.zeros(dets.num)
-    if dets.cov is not None:
-        grow_det = cfg.spatial.support_std * (corner_std(dets.cov, view) if dets.cov_on == "phi" else box_cov_corner_std(dets.cov, dets.boxes))
-    if fam == "kitti":
-        det_relevant = np.isin([n.lower() for n in dets.class_names], [c.lower() for c in classes]) | (np.trunc(np.abs(dets.height)) < max(C.KITTI_MIN_HEIGHT))
-    else:
-        det_relevant = np.isin([n.lower() for n in dets.class_names], [c.lower() for c in classes])
-    det_relevant = np.asarray(det_relevant, dtype=bool).reshape(-1)
-    use = labels.needed[pg] & det_relevant[pd] if (len(pd) and with_jiou) else np.zeros(len(pd), bool)
-    inter_grown, _, _ = pair_overlaps(dets.boxes, gt.boxes, pd[use], pg[use], "bev", grow_a=grow_det, grow_b=grow_gt)
-    cand = np.flatnonzero(use)[inter_grown > 0]
-    jiou = np.zeros(len(pd))
-    jiou_det = None
-    if with_jiou:
-        progress.stage(f"JIoU of {len(cand)} candidate (detection, label) pairs")
-    jiou[cand] = pair_jious(
-        view, cfg.spatial, gt.boxes, labels.cov, dets.boxes, dets.cov, dets.cov_on, pg[cand], pd[cand], iou[cand],
-        workers=workers, progress=progress.pairs,
-    )
-    if dets.probabilistic and with_jiou:
-        jiou_det = np.zeros(len(pd))
-        jiou_det[cand] = pair_jious(
-            view, cfg.spatial, gt.boxes, labels.cov, dets.boxes, dets.cov, dets.cov_on, pg[cand], pd[cand], iou[cand],
-            deterministic=True, workers=workers, progress=progress.pairs,
-        )
-    jgt = labels.jiou_gt[pg] if len(pg) else np.zeros(0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(jgt > 0, jiou / jgt, 0.0)
-    overlaps = {m: {"iou": iou, "jiou": jiou, "jiou_ratio": ratio}[m] for m in metrics}
-    if jiou_det is not None:
-        overlaps["jiou_deterministic"] = jiou_det
-    timings["jiou"] = time.perf_counter() - t1
-    timings["jiou_pairs"] = float(len(cand))
+    fam = family(gt.dataset_format)
+    difficulties = DIFFICULTIES[fam]
 
-    # -- AP of every cell
+    t0 = time.perf_counter()
+    pairs = pair_ious(gt, dets, view)
+    timings["iou"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    overlaps, n_cand = jiou_overlaps(gt, dets, labels, classes, view, cfg, pairs, metrics, workers, progress)
+    timings["jiou"] = time.perf_counter() - t1
+    timings["jiou_pairs"] = float(n_cand)
+
     t2 = time.perf_counter()
     progress.stage(f"matching: {len(classes)} classes × {len(difficulties)} difficulties × {len(overlaps)} metrics × {len(C.EVAL_MAP_THRESHOLDS)}+ thresholds")
-    ap_records: list[dict[str, Any]] = []
-    curves: dict[tuple[str, str, str, float], PrecisionCurve] = {}
-    cells: dict[tuple[str, int], Cell] = {}
-    for cls in classes:
-        for d, dname in enumerate(difficulties):
-            gi, di = _ignored(gt, dets, fam, cls, d)
-            cell = cells[(cls, d)] = Cell.build(blocks, gi, di)  # only the rows this cell looks at
-            scores = dets.scores[cell.det_rows]
-            num_det = int(np.count_nonzero(di == 0))
-            for metric, ov in overlaps.items():
-                ovc = ov[cell.pairs]
-                for t in thresholds_for(cls):
-                    v, n_gt = first_pass(cell.blocks, ovc, cell.gt_ign, cell.det_ign, scores, t)
-                    ths = recall_thresholds(v, n_gt)
-                    tp, fp, fn = second_pass(cell.blocks, ovc, cell.gt_ign, cell.det_ign, scores, t, ths)
-                    curve = precision_curve(tp, fp, fn, ths)
-                    curves[(cls, dname, metric, t)] = curve
-                    for interp in ("R40", "R11"):
-                        ap_records.append(_ap_record(cls, dname, view, metric, t, interp, curve, n_gt, num_det))
+    ap_records, curves, cells = ap_cells(gt, dets, classes, view, pairs.blocks, overlaps)
     timings["matching"] = time.perf_counter() - t2
 
-    # -- association (which GT each detection localises), outcomes, mean overlaps
     t3 = time.perf_counter()
-    matched_gt = np.full(dets.num, -1, dtype=np.int64)
-    matched_pair = np.full(dets.num, -1, dtype=np.int64)
-    gt_lower = np.array([n.lower() for n in gt.class_names], dtype=object)
-    det_lower = np.array([n.lower() for n in dets.class_names], dtype=object)
-    for cls in classes:
-        # every GT of the class or a neighbouring class may take the detection (as in the devkit)
-        own = [cls.lower(), *(n.lower() for k, nb in C.EVAL_NEIGHBOUR_CLASSES.items() if k.lower() == cls.lower() for n in nb)]
-        gi = np.where(np.isin(gt_lower, own), 0, -1).astype(np.int8)
-        di = np.where(det_lower == cls.lower(), 0, -1).astype(np.int8)
-        cell = Cell.build(blocks, gi, di)
-        _, m = assign(cell.blocks, iou[cell.pairs], cell.gt_ign, cell.det_ign, dets.scores[cell.det_rows], C.EVAL_ASSOCIATION_MIN_IOU)
-        hit = m >= 0
-        matched_gt[cell.det_rows[hit]] = cell.gt_rows[m[hit]]
-    if dets.num:
-        fr = dets.frame_of_row
-        has = matched_gt >= 0
-        j_local = np.arange(dets.num) - dets.det_off[fr]
-        g_local = matched_gt - gt.gt_off[fr]
-        ng = np.diff(gt.gt_off)[fr]
-        matched_pair[has] = blocks.ov_off[fr[has]] + j_local[has] * ng[has] + g_local[has]
-    outcomes: dict[str, NDArray[np.int8]] = {}
-    for metric in metrics:
-        for d, dname in enumerate(difficulties):
-            col = np.full(dets.num, 4, dtype=np.int8)
-            for cls in classes:
-                cell = cells[(cls, d)]
-                oc, _ = assign(cell.blocks, overlaps[metric][cell.pairs], cell.gt_ign, cell.det_ign, dets.scores[cell.det_rows], usual_threshold(cls))
-                own = det_lower[cell.det_rows] == cls.lower()
-                col[cell.det_rows[own]] = oc[own]
-            outcomes[f"outcome_{metric}_{dname}"] = col
+    matched_gt, matched_pair = associate(gt, dets, classes, pairs)
+    outcomes = outcomes_at_usual_threshold(dets, classes, difficulties, cells, overlaps)
     mean_records = _mean_overlaps(gt, dets, fam, classes, difficulties, overlaps, matched_gt, matched_pair)
     timings["association"] = time.perf_counter() - t3
 
     table = _detections_table(gt, dets, labels, overlaps, matched_gt, matched_pair, outcomes, difficulties)
-    summary = _summary(gt, dets, labels, classes, view, cfg, ap_records, mean_records, curves, fam, len(cand))
+    summary = _summary(gt, dets, labels, classes, view, cfg, ap_records, mean_records, curves, fam, n_cand)
     return EvalResult(summary, table, curves, timings)
 
 
@@ -609,7 +666,7 @@ def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Seque
     for cls in classes:
         for dname in difficulties:
             for metric in {r["metric"] for r in ap_all}:
-                for interp in ("R40", "R11"):
+                for interp in INTERPS:
                     sel = [r for r in ap_all if r["class"] == cls and r["difficulty"] == dname and r["metric"] == metric
                            and r["interp"] == interp and any(abs(r["threshold"] - t) < 1e-9 for t in C.EVAL_MAP_THRESHOLDS)]
                     vals = [r["ap"] for r in sel]
@@ -669,7 +726,7 @@ def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Seque
     return {
         "tool": "labelaudit", "tool_version": __version__, "summary_version": SUMMARY_VERSION,
         "metric": {
-            "view": view, "metrics": list(dict.fromkeys(r["metric"] for r in ap_all)), "interp": ["R40", "R11"], "difficulties": list(difficulties),
+            "view": view, "metrics": list(dict.fromkeys(r["metric"] for r in ap_all)), "interp": list(INTERPS), "difficulties": list(difficulties),
             "headline_difficulty": headline, "map_thresholds": [float(t) for t in C.EVAL_MAP_THRESHOLDS],
             "usual_thresholds": {c: usual_threshold(c) for c in classes}, "distance_bins": [b[0] for b in distance_bins()],
             "association_min_iou": C.EVAL_ASSOCIATION_MIN_IOU, "recall_points": C.EVAL_RECALL_POINTS,

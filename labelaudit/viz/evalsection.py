@@ -9,7 +9,7 @@ The contract (docs/review.md): ``EVAL_DIR/summary.json`` is an object with
 
 plus any number of ``EVAL_DIR/*.png`` plots, embedded in file-name order. Validation names the file,
 the record and the field. The report shows AP at the usual thresholds only
-(:data:`~labelaudit.constants.REPORT_AP_THRESHOLDS`, else 0.5; R40). This module reads and
+(:func:`labelaudit.evaluate.cells.usual_threshold`; R40). This module reads and
 reshapes; it evaluates nothing.
 """
 
@@ -22,12 +22,11 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from labelaudit import constants as C
+from labelaudit.evaluate.cells import INTERPS, METRICS, usual_threshold
 from labelaudit.viz.objects import ViewError
 
 __all__ = ["EvalSection", "read_eval_dir", "usual_threshold", "METRICS"]
 
-METRICS = ("iou", "jiou", "jiou_ratio")
-INTERPS = ("R40", "R11")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _AP_FIELDS: dict[str, tuple[type | tuple[type, ...], bool]] = {  # field → (types, may be null)
     "class": (str, False),
@@ -47,11 +46,6 @@ _OVERLAP_FIELDS: dict[str, tuple[type | tuple[type, ...], bool]] = {
     "mean": ((int, float), True),
     "count": (int, False),
 }
-
-
-def usual_threshold(class_name: str) -> float:
-    """The AP overlap threshold a class is usually reported at (KITTI: Car 0.7, others 0.5)."""
-    return float(C.REPORT_AP_THRESHOLDS.get(class_name, C.REPORT_AP_DEFAULT_THRESHOLD))
 
 
 @dataclass
