@@ -33,11 +33,11 @@ def _cli(*args: str) -> list[str]:
 
 
 def prepare(data: Path, frames: int, workers: int) -> tuple[Path, Path, Path]:
+    from labelaudit.sim.dataset import simulate_dataset
     from labelaudit.sim.detector import DetectorSpec, simulate_detections
     from labelaudit.sim.noise import NoiseSpec
     from labelaudit.sim.raycast import LidarSpec
     from labelaudit.sim.scene import SceneSpec
-    from labelaudit.sim.dataset import simulate_dataset
 
     sim, results = data / "sim", data / "results"
     dets = sim / "detections"
@@ -66,10 +66,9 @@ def prepare(data: Path, frames: int, workers: int) -> tuple[Path, Path, Path]:
 
 
 def _results_fit(sim: Path, results: Path) -> bool:
-    from labelaudit.errors import EvalError
-    from labelaudit.evaluate.labels import check_results_match
     from labelaudit.config import resolve_config
-    from labelaudit.errors import ResultsError
+    from labelaudit.errors import EvalError, ResultsError
+    from labelaudit.evaluate.labels import check_results_match
     from labelaudit.results import open_results
 
     try:
@@ -107,12 +106,13 @@ def main() -> None:
           f"{cpu:.1f} CPU-s in the process and its waited-for children (fork-server workers may be missing); load average {load0:.1f} → {load1:.1f} on {os.cpu_count()} cores")
     print("    stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in tm.items() if k != "jiou_pairs"))
 
+    import numpy as np
+
     from labelaudit.config import RunConfig
     from labelaudit.evaluate.detections import read_detections
     from labelaudit.evaluate.gt import load_ground_truth
     from labelaudit.evaluate.labels import LabelSet
     from labelaudit.evaluate.run import evaluate
-    import numpy as np
 
     t, c0 = time.perf_counter(), time.process_time()
     gt = load_ground_truth(sim, "kitti")

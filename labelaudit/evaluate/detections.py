@@ -189,8 +189,7 @@ def _as_detections_error(exc: DatasetError) -> DetectionsError:
 
 
 def _read_kitti_file(path: Path, calib: Any) -> _Rows:
-    from labelaudit.datasets.kitti import boxes_camera_to_lidar
-    from labelaudit.datasets.kitti import read_label
+    from labelaudit.datasets.kitti import boxes_camera_to_lidar, read_label
 
     try:
         labels = read_label(path)  # the one KITTI parser: BOM, CRLF, ranges, file:line:column errors

@@ -31,9 +31,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.core import spatial as S
 from labelaudit.config import SpatialParams
-from labelaudit.evaluate.overlap import clip_area, bev_corners
+from labelaudit.core import spatial as S
+from labelaudit.evaluate.overlap import bev_corners, clip_area
 from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
@@ -406,7 +406,7 @@ def _label_group(task: PairTask, g: int, rows: NDArray[np.int64]) -> FloatArray:
                 out[k] = _uniform_jaccard(b, ref, win, q, q_full)
     if spread:
         q = S.rasterise(sb, grid)
-        for (k, d), sa in zip(spread, s_spread):
+        for (k, _d), sa in zip(spread, s_spread):
             if not three_d:
                 out[k] = S.jaccard(S.rasterise(sa, grid), q)
             else:  # spatial's own pair rasteriser (merges the z-layers both cover completely)

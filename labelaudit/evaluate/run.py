@@ -26,12 +26,12 @@ from numpy.typing import NDArray
 from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit.config import RunConfig
+from labelaudit.errors import EvalError
 from labelaudit.evaluate.ap import PrecisionCurve, precision_curve
 from labelaudit.evaluate.cells import DIFFICULTIES, INTERPS, METRICS, family, usual_threshold
 from labelaudit.evaluate.detections import Detections, read_detections
 from labelaudit.evaluate.gt import GroundTruth, load_ground_truth
 from labelaudit.evaluate.jiou import pair_jious
-from labelaudit.errors import EvalError
 from labelaudit.evaluate.labels import LabelSet, check_results_match, infer_labels, label_uncertainty, needed_rows
 from labelaudit.evaluate.matching import (
     OUTCOMES,
