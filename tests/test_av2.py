@@ -271,6 +271,15 @@ def test_bad_poses_are_left_out_with_a_warning(tmp_path: Path) -> None:
     assert any(f"row {row}" in w for w in f0.warnings)  # log-level notes go with the first frame
 
 
+def test_unlabelled_logs_are_not_units(tmp_path: Path) -> None:
+    make_log(tmp_path)
+    test_log = tmp_path / "test" / "f00dcafe-0000-4000-8000-000000000000"
+    write_sweep(test_log / SWEEP_DIR / f"{T0}.feather", np.array([[1.0, 2.0, 3.0, 4.0]]))
+    assert [Path(u.key).name for u in Av2Reader(tmp_path).list_units()] == [LOG]  # the test split's sweeps have no label
+    with pytest.raises(DatasetError, match=r"1 Argoverse 2 log\(s\) but none with annotations.feather"):
+        Av2Reader(tmp_path, split="test").list_units()
+
+
 def test_find_logs_and_no_logs(tmp_path: Path) -> None:
     assert find_logs(tmp_path) == []
     (tmp_path / "empty").mkdir()

@@ -349,12 +349,21 @@ class Av2Reader:
         self.split = split
 
     def list_units(self) -> list[FrameRef]:
-        """One unit per log folder, sorted by path."""
+        """One unit per labelled log folder (with ``annotations.feather``), sorted by path.
+
+        Logs with sweeps but no annotations (AV2's test split) have no label to audit and are not
+        units; when every log found is such a one, that is the error.
+        """
         base = self.root / self.split if self.split else self.root
         logs = find_logs(base)
         if not logs:
             raise DatasetError(base, f"no Argoverse 2 log here or one or two levels down (expected <log_id>/{ANNOTATIONS} or <log_id>/{SWEEP_DIR}/)")
-        return [FrameRef(FORMAT, str(self.root), str(d)) for d in logs]
+        labelled = [d for d in logs if (d / ANNOTATIONS).is_file()]
+        if not labelled:
+            raise DatasetError(
+                base, f"{len(logs)} Argoverse 2 log(s) but none with {ANNOTATIONS} (an unlabelled split such as test?): no label to audit"
+            )
+        return [FrameRef(FORMAT, str(self.root), str(d)) for d in labelled]
 
     def load_unit(self, ref: FrameRef) -> Iterator[Frame | FrameFailure]:
         """Frames of one log, by timestamp (see the module notes for what makes a frame).
