@@ -97,8 +97,10 @@ def test_cli_simulates_sequences_that_the_readers_detect(tmp_path: Path, fmt: st
 
 
 def test_cli_rejects_what_sequences_do_not_have(tmp_path: Path) -> None:
-    r = invoke("simulate", tmp_path / "s", "--dataset-format", "av2", "--detections")
+    r = invoke("simulate", tmp_path / "s", "--dataset-format", "waymo-v2", "--detections")
     assert r.exit_code == 2 and "--detections" in r.output
+    r = invoke("simulate", tmp_path / "s", "--dataset-format", "av2", "--detections", "--detections-cov")
+    assert r.exit_code == 2 and "--detections-cov" in r.output
     r = invoke("simulate", tmp_path / "s", "--dataset-format", "av2", "--sequences", "0")
     assert r.exit_code == 2 and "--sequences" in r.output
 
@@ -123,3 +125,22 @@ def test_infer_on_simulated_logs_is_identical_across_workers_and_resumes(tmp_pat
     assert {r["class_name"] for r in rows} <= set(cfg.classes)
     s3 = run_infer(InferRequest(root, tmp_path / "w1"), cfg, executor=SerialExecutor())
     assert s3.chunks_skipped == 3 and _rows(tmp_path / "w1") == rows
+
+
+def test_simulated_av2_detections_evaluate(tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "sim"
+    r = invoke("simulate", out, "--dataset-format", "av2", "--sequences", "2", "--frames", "3", "--size", "small", "--detections", "-q")
+    assert r.exit_code == 0, r.output
+    det = out / "detections.feather"
+    first = det.read_bytes()
+    assert invoke("simulate", out, "--dataset-format", "av2", "--sequences", "2", "--frames", "3", "--size", "small", "--detections", "-q", "--overwrite").exit_code == 0
+    assert det.read_bytes() == first  # same seed, same detections
+    r = invoke("eval", out, det, "--format", "json", "--workers", "1", "--classes", "REGULAR_VEHICLE")
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.stdout)
+    assert doc["detections_source"]["format"] == "av2"
+    rec = next(x for x in doc["ap"] if x["metric"] == "iou" and x["interp"] == "R40" and x["threshold"] == 0.5)
+    # a noisy but real detector: it finds most cars (AP in percent), not all, and not none
+    assert rec["num_gt"] > 20 and 20.0 < rec["ap"] < 100.0

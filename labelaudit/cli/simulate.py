@@ -40,7 +40,7 @@ def simulate(
     clutter: bool = typer.Option(False, "--clutter", help="KITTI: add unlabelled surroundings: building walls beside the road, poles and bushes (docs/simulator.md)."),
     drop_fraction: float = typer.Option(0.0, "--drop-fraction", metavar="F", help="KITTI: leave out this share of the vehicle labels (their points stay): missing labels, recorded in manifest.parquet (column dropped)."),
     workers: int = typer.Option(1, "--workers", help="KITTI: worker processes (same files for any count)."),
-    detections: bool = typer.Option(False, "--detections", help="KITTI: also write a synthetic detector's output (OUT/detections/, KITTI result format) for `labelaudit eval`."),
+    detections: bool = typer.Option(False, "--detections", help="Also write a synthetic detector's output for `labelaudit eval`: KITTI OUT/detections/ (result files), av2 OUT/detections.feather."),
     detections_cov: bool = typer.Option(False, "--detections-cov", help="With --detections: a probabilistic detector, per-detection std in OUT/detections.parquet."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a simulated dataset already in OUT."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
@@ -55,6 +55,8 @@ def simulate(
       labelaudit simulate sim/ --frames 100 --seed 1
 
       labelaudit simulate sim-av2/ --dataset-format av2 --sequences 4 --frames 50 && labelaudit infer sim-av2/
+
+      labelaudit simulate sim-av2/ --dataset-format av2 --detections && labelaudit eval sim-av2/ sim-av2/detections.feather
 
       labelaudit simulate sim-waymo/ --dataset-format waymo-v2 --sequences 2 --frames 20 --size small
 
@@ -77,8 +79,10 @@ def simulate(
         if detections_cov and not detections:
             raise typer.BadParameter("needs --detections", param_hint="--detections-cov")
         sequence = dataset_format is not SimFormat.kitti
-        if sequence and detections:
-            raise typer.BadParameter(f"the synthetic detector writes KITTI result files; not available for {dataset_format.value}", param_hint="--detections")
+        if detections and dataset_format in (SimFormat.waymo_v2, SimFormat.waymo_v1):
+            raise typer.BadParameter(f"the synthetic detector writes KITTI result files or AV2 detections; not available for {dataset_format.value}", param_hint="--detections")
+        if detections_cov and sequence:
+            raise typer.BadParameter("AV2 detections carry no per-detection std; KITTI only", param_hint="--detections-cov")
         if sequence and workers > 1:
             raise typer.BadParameter(f"{dataset_format.value} sequences are simulated in one process", param_hint="--workers")
         try:
@@ -90,8 +94,11 @@ def simulate(
         if sequence and (clutter or drop_fraction > 0):
             raise typer.BadParameter(f"KITTI only, not {dataset_format.value} sequences", param_hint="--clutter/--drop-fraction")
         if sequence:
+            from labelaudit.sim.detector import DetectorSpec
+
             summary = simulate_sequences(out, dataset_format.value, sequences=sequences, frames=frames, seed=seed, noise=spec,
-                                         size=size.value, progress=not quiet, overwrite=overwrite)
+                                         size=size.value, progress=not quiet, overwrite=overwrite,
+                                         detections=DetectorSpec() if detections else None)
             what = f"{sequences} {'log' if dataset_format is SimFormat.av2 else 'segment'}(s) of {frames} frames ({summary.num_labels} labels)"
         else:
             from labelaudit.sim.scene import SceneSpec
@@ -101,7 +108,11 @@ def simulate(
                              scene=scene, drop_fraction=drop_fraction)
             what = f"{frames} frames"
         err().print(f"wrote {what} to {escape(str(out))} (next: labelaudit infer {escape(str(out))})", soft_wrap=True)
-        if detections:
+        if sequence and summary.detections is not None:
+            det = summary.detections
+            path = out / "detections.feather"
+            err().print(f"wrote {det.detections} synthetic detections to {escape(str(path))} (next: labelaudit eval {escape(str(out))} {escape(str(path))})", soft_wrap=True)
+        elif detections:
             from labelaudit.sim.detector import DetectorSpec, simulate_detections
 
             det = simulate_detections(out, DetectorSpec(probabilistic=detections_cov), seed=seed)

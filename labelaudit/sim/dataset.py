@@ -20,7 +20,7 @@ import os
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -241,6 +241,7 @@ class SimulationSummary:
     num_labels: int
     perturbations: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
+    detections: Any = None  # simulate_sequences(detections=…): the DetectorSummary of OUT/detections.feather
 
     @property
     def points_per_frame(self) -> float:
@@ -300,13 +301,15 @@ def prepare_output(out_dir: str | Path, owned: Sequence[str], overwrite: bool) -
     return out
 
 
+AV2_DETECTIONS = "detections.feather"  # the synthetic detector's output for simulated AV2 logs
+
 SEQUENCE_FORMATS: dict[str, str] = {"waymo-v2": "waymo_v2", "waymo-v1": "waymo_v1", "av2": "val"}
 """Simulated sequence formats and the folder each writes under OUT (AV2: the ``val`` split)."""
 
 
 def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: int = 2, frames: int = 10, seed: int = 0,
                        noise: NoiseSpec = NoiseSpec(), size: str = "real", progress: bool = True,
-                       overwrite: bool = False) -> SimulationSummary:
+                       overwrite: bool = False, detections: Any = None) -> SimulationSummary:
     """Simulate Waymo segments or Argoverse 2 logs: sequences with track ids and a moving ego vehicle.
 
     Sequence ``i`` is drawn from seed ``seed + i`` (:func:`~labelaudit.sim.waymo_writer.simulate_waymo_segment`,
@@ -323,6 +326,9 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
     sequences : segments / logs
     frames : frames per sequence (10 Hz)
     size : "real" (the sensors' resolution) or "small" (fewer rays, for tests)
+    detections : a :class:`~labelaudit.sim.detector.DetectorSpec` — AV2 only: also write the
+        synthetic detector's output, ``OUT/detections.feather`` (AV2's detections layout; its
+        :class:`~labelaudit.sim.detector.DetectorSummary` is ``summary.detections``)
 
     Raises
     ------
@@ -341,11 +347,14 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
         raise UsageError(f"seed must be >= 0, got {seed}")
     if size not in ("real", "small"):
         raise UsageError(f"size must be 'real' or 'small', got {size!r}")
+    if detections is not None and dataset_format != "av2":
+        raise UsageError(f"the synthetic detector of sequences writes Argoverse 2 detections; not available for {dataset_format}")
     folder = SEQUENCE_FORMATS[dataset_format]
-    out = prepare_output(out_dir, (folder, MANIFEST_NAME), overwrite)
+    out = prepare_output(out_dir, (folder, MANIFEST_NAME, AV2_DETECTIONS), overwrite)
     start = time.perf_counter()
     num_points = 0
     segments: list[Any] = []
+    logs: list[Any] = []
     manifest_rows: dict[str, list[Any]] = {}
     for i in tqdm(range(sequences), desc="simulate", unit="sequence", file=sys.stderr, disable=not progress):
         if dataset_format == "av2":
@@ -354,6 +363,9 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
             num_points += sum(len(fr.points) for fr in log.frames)
             for k, v in av2_writer.av2_manifest_rows(log).items():
                 manifest_rows.setdefault(k, []).extend(v)
+            if detections is not None:
+                log.frames = [replace(fr, points=fr.points[:0]) for fr in log.frames]  # the detector needs boxes and counts only
+                logs.append(log)
             continue
         seg = waymo_writer.simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=noise)
         if dataset_format == "waymo-v2":
@@ -368,11 +380,12 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
     else:
         waymo_writer.write_manifest(segments, manifest)
     kinds = np.asarray(pq.read_table(manifest, columns=["perturbation"]).column("perturbation").to_pylist(), dtype=object)
+    det = av2_writer.simulate_av2_detections(logs, out / AV2_DETECTIONS, detections, seed) if detections is not None else None
     return SimulationSummary(
         out_dir=out, manifest=manifest, frames=sequences * frames, seed=seed, num_points=num_points,
         num_objects=len(kinds), num_labels=len(kinds),
         perturbations={k: int(np.count_nonzero(kinds == k)) for k in PERTURBATION_KINDS},
-        seconds=time.perf_counter() - start,
+        seconds=time.perf_counter() - start, detections=det,
     )
 
 
