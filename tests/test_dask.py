@@ -132,6 +132,23 @@ def test_dask_rows_equal_the_pool_rows(cluster, sim_data, pool_rows, tmp_path):
     assert len(list((tmp_path / "res" / R.OBJECTS_DIR).glob("*.parquet"))) == 10
 
 
+@pytest.mark.slow
+def test_dask_rows_equal_the_pool_rows_on_argoverse2_logs(cluster, tmp_path):
+    """A log is one unit: its frames travel to a worker by path and come back as the pool's rows."""
+    from labelaudit.sim.av2_writer import simulate_av2_log, write_av2_log
+    from labelaudit.sim.noise import NoiseSpec
+
+    for seed in (0, 1):
+        write_av2_log(simulate_av2_log(seed=seed, frames=2, label_noise=NoiseSpec(fraction=0.3, gross_fraction=0.1)), tmp_path / "av2" / "val")
+    cl, _ = cluster
+    cfg = resolve_config(None, "av2")
+    run_infer(InferRequest(tmp_path / "av2", tmp_path / "pool"), cfg, executor=PoolExecutor(2))
+    summary = run_infer(InferRequest(tmp_path / "av2", tmp_path / "dask"), cfg, executor=DaskExecutor(cl.scheduler_address))
+    assert summary.chunks == 2 and summary.frames == 4 and summary.failed_frames == 0
+    rows = _rows(tmp_path / "dask")
+    assert rows == _rows(tmp_path / "pool") and len(rows) > 10 and {r["dataset"] for r in rows} == {"av2"}
+
+
 def _exit_soon() -> None:
     """Run on a worker: die (no cleanup, like a crash) just after answering."""
     import threading
