@@ -215,45 +215,66 @@ def attach_glenet_dbinfos(
         by_frame[_frame_key(kind, info)] = f
     ordinal_pos = [{k: j for j, k in enumerate(fr.keys) if k is not None} for fr in frames] if kind == "kitti" else None
     stats: Counter[str] = Counter()
-    n = n_with = 0
+    nan3 = np.full(3, np.nan)
+    # one pass over the entries for their keys; the checks and the values then go at once
+    matched, where, at, names, dims = [], [], [], [], []
+    n = 0
     for cls, entries in dbinfos.items():
         for i, entry in enumerate(entries):
-            where = f"{path}: {cls}[{i}]"
-            with malformed(where):
+            with malformed(f"{path}: {cls}[{i}]"):
                 if kind == "waymo":
                     fkey: Any = (str(entry["sequence_name"]), int(entry["sample_idx"]))
                 else:
                     fkey = kitti_frame_id(entry["image_idx"])
                 gt_idx = int(entry["gt_idx"])
                 name = str(entry.get("name", cls))
-                box = np.asarray(entry.get("box3d_lidar", np.full(7, np.nan)), dtype=float).reshape(-1)
+                box = entry.get("box3d_lidar")
+                d = nan3 if box is None or len(box) < 6 else box[3:6]
             n += 1
             f = by_frame.get(fkey)
             if f is None:
                 entry[GLENET_KEY] = np.full(7, C.EXPORT_GLENET_MISSING, dtype=np.float32)
                 stats["frame not in the infos"] += 1
                 continue
-            fr = frames[f]
             j = ordinal_pos[f].get(gt_idx, -1) if ordinal_pos is not None else gt_idx
-            frame_name = fkey if kind == "kitti" else f"{fkey[0]} sample {fkey[1]}"
-            if not 0 <= j < len(fr.names):
-                raise InfosMismatchError(f"{where}: gt_idx {gt_idx}, but frame {frame_name} of the infos has no such object "
-                                         f"({len(fr.names)} annos entries); the gt-database file does not belong to these infos")  # fmt: skip
-            dims = box[3:6] if len(box) >= 6 else np.full(3, np.nan)
-            off = np.where(np.isfinite(dims) & np.isfinite(fr.dims_lwh[j]), np.abs(dims - fr.dims_lwh[j]), 0.0).max()
-            if name != fr.names[j] or off > C.INFOS_DIMENSION_TOLERANCE:
-                raise InfosMismatchError(
-                    f"{where}: {name} l,w,h = {', '.join(f'{v:.3f}' for v in dims)} of frame {frame_name} gt_idx {gt_idx}, but the "
-                    f"infos list {fr.names[j]} l,w,h = {', '.join(f'{v:.3f}' for v in fr.dims_lwh[j])} there; the gt-database "
-                    "file does not belong to these infos"
-                )
-            v = values[f][j].copy()
-            entry[GLENET_KEY] = v
-            if v[0] > 0:
-                n_with += 1
-            else:
-                stats[str(reasons[f][j]) or "no value"] += 1
-    return {"objects": n, "objects_with_targets": n_with, "reasons": dict(stats)}
+            matched.append(entry)
+            where.append((cls, i, fkey, gt_idx))
+            at.append((f, j if 0 <= j < len(frames[f].names) else -1))
+            names.append(name)
+            dims.append(d)
+    if not matched:
+        return {"objects": n, "objects_with_targets": 0, "reasons": dict(stats)}
+
+    offsets = np.concatenate([[0], np.cumsum([len(fr.names) for fr in frames])])
+    pos = np.array(at, dtype=np.int64).reshape(-1, 2)
+    in_range = pos[:, 1] >= 0
+    flat = np.where(in_range, offsets[pos[:, 0]] + pos[:, 1], 0)
+    all_names = np.array([nm for fr in frames for nm in fr.names], dtype=object)
+    all_dims = np.concatenate([fr.dims_lwh for fr in frames]).reshape(-1, 3)
+    ours = np.asarray(dims, dtype=float).reshape(-1, 3)
+    theirs = all_dims[flat]
+    off = np.where(np.isfinite(ours) & np.isfinite(theirs), np.abs(ours - theirs), 0.0).max(axis=1)
+    bad = ~in_range | (np.array(names, dtype=object) != all_names[flat]) | (off > C.INFOS_DIMENSION_TOLERANCE)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        cls, i, fkey, gt_idx = where[k]
+        f = int(pos[k, 0])
+        frame_name = fkey if kind == "kitti" else f"{fkey[0]} sample {fkey[1]}"
+        if not in_range[k]:
+            raise InfosMismatchError(f"{path}: {cls}[{i}]: gt_idx {gt_idx}, but frame {frame_name} of the infos has no such object "
+                                     f"({len(frames[f].names)} annos entries); the gt-database file does not belong to these infos")  # fmt: skip
+        raise InfosMismatchError(
+            f"{path}: {cls}[{i}]: {names[k]} l,w,h = {', '.join(f'{v:.3f}' for v in ours[k])} of frame {frame_name} gt_idx {gt_idx}, "
+            f"but the infos list {all_names[flat[k]]} l,w,h = {', '.join(f'{v:.3f}' for v in theirs[k])} there; the gt-database "
+            "file does not belong to these infos"
+        )
+    got = np.concatenate(values).reshape(-1, 7)[flat]  # a copy: every entry its own row of it
+    for entry, v in zip(matched, got):
+        entry[GLENET_KEY] = v
+    with_values = got[:, 0] > 0
+    all_reasons = np.concatenate([np.asarray(r, dtype=object) for r in reasons]) if len(reasons) else np.zeros(0, dtype=object)
+    stats.update(str(r) or "no value" for r in all_reasons[flat[~with_values]].tolist())
+    return {"objects": n, "objects_with_targets": int(with_values.sum()), "reasons": dict(stats)}
 
 
 # --------------------------------------------------------------------------- the whole export
