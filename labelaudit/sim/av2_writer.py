@@ -12,6 +12,7 @@ added to them afterwards is written too).
 
 from __future__ import annotations
 
+import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,9 +139,12 @@ def write_calibration(path: str | Path, mounts: dict[str, ArrayLike]) -> Path:
 
 
 def _write(path: str | Path, table: pa.Table) -> Path:
+    """Write a Feather file atomically (a temporary name, then a rename): a stopped run leaves whole files."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    feather.write_feather(table, path, compression="uncompressed")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    feather.write_feather(table, tmp, compression="uncompressed")
+    os.replace(tmp, path)
     return path
 
 
@@ -391,7 +395,9 @@ def simulate_av2_dataset(
         for k, v in av2_manifest_rows(log).items():
             rows[k].extend(v)
     out.mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.table(rows), out / "manifest.parquet")
+    tmp = out / f".manifest.parquet.tmp-{os.getpid()}"
+    pq.write_table(pa.table(rows), tmp)
+    os.replace(tmp, out / "manifest.parquet")
     return out / split
 
 

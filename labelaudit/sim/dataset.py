@@ -376,7 +376,9 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
         segments.append(seg)
     manifest = out / MANIFEST_NAME
     if dataset_format == "av2":
-        pq.write_table(pa.table(manifest_rows), manifest)
+        tmp = manifest.with_name(f".{manifest.name}.tmp-{os.getpid()}")
+        pq.write_table(pa.table(manifest_rows), tmp)
+        os.replace(tmp, manifest)
     else:
         waymo_writer.write_manifest(segments, manifest)
     kinds = np.asarray(pq.read_table(manifest, columns=["perturbation"]).column("perturbation").to_pylist(), dtype=object)
