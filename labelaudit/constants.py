@@ -137,6 +137,19 @@ EVAL_CLASSES = {
 EVAL_DISTANCE_BINS = (20.0, 40.0)  # m; mean overlaps per GT distance bin 0–20, 20–40, ≥ 40 m (the paper's Figs. 10–11)
 EVAL_ASSOCIATION_MIN_IOU = 0.1  # a detection "localises" a GT (per-detection table, mean overlaps) when the devkit matching pairs them at IoU above this
 EVAL_WAYMO_LEVEL2_MAX_POINTS = 5  # Waymo: GT boxes with at most this many LiDAR points are LEVEL_2 whatever their label says
+EVAL_LET_WAYMO_CAMERA = (1.43, 0.0, 2.18)  # m, vehicle frame; Waymo's camera-only challenge measures range (LET) from here
+EVAL_LET_AV2_CAMERA = (1.635, 0.003, 1.398)  # m, ego frame; Argoverse 2 ring_front_center as its sensor calibration (egovehicle_SE3_sensor) places it
+EVAL_LET_TOLERANCE_FRACTION = 0.1  # LET: longitudinal tolerance as a fraction of the GT's range from the camera (Waymo's 10 %)
+EVAL_LET_MIN_TOLERANCE = 0.5  # m; LET: the tolerance never falls below this (near objects)
+EVAL_LET_MIN_IOU = dict.fromkeys((
+    "Car", "Vehicle", "Van", "Truck", "Bus", "Tram",
+    "REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "ARTICULATED_BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB",
+), 0.5)  # LET-IoU a vehicle match needs (Waymo's camera-only challenge; KITTI, Waymo and Argoverse 2 vehicle names)
+EVAL_LET_DEFAULT_MIN_IOU = 0.3  # LET-IoU every other class (pedestrians, cyclists) needs
+EVAL_LET_SCORE_CUTOFFS = 101  # LET: score cut-offs 0, 0.01, …, 1 (a detection counts at cut-offs ≤ its score)
+EVAL_LET_RECALL_DELTA = 0.05  # LET: AP integration pads the PR curve with a point every 0.05 of recall (Waymo's desired_recall_delta)
+EVAL_LET_EPSILON = 1e-6  # m; LET: smallest range (a centre at the camera) — Waymo's kEpsilon
+EVAL_LET_WEIGHT_SCALE = 1_000_000  # LET: Hungarian weights LET-IoU·a quantised to integers of 10⁻⁶, as Waymo's matcher (kMaxIoU)
 EVAL_WORKER_PRELOAD = ("labelaudit.evaluate.warmup",)  # eval's fork server: the JIoU kernels only (no Open3D), warmed once; several s less than WORKER_PRELOAD when the server starts
 
 # --- sane ranges of label values (readers: labelaudit/datasets/base.py box_problems) ---

@@ -9,7 +9,8 @@ infer --classes all`` for the label covariances. Then times:
     on 2 cores), with its stage timings;
 (b) the IoU-only part in-process (reading, IoU of all pairs, devkit matching of the IoU cells) —
     what a devkit-style evaluator does;
-(c) JIoU per candidate pair (the JIoU stage over the pairs it computed).
+(c) JIoU per candidate pair (the JIoU stage over the pairs it computed);
+(d) LET-3D-AP / APL (``eval --let``) in-process: the Hungarian matching at 101 score cut-offs.
 
 Prints figures only; run it once, not in a loop: ``python scripts/bench_eval.py --data /tmp/bench-eval``.
 """
@@ -126,6 +127,12 @@ def main() -> None:
     t_eval = time.perf_counter() - t
     print(f"(b) IoU-only part, in-process, 1 process: {t_read + t_eval:.1f} s wall, {time.process_time() - c0:.1f} CPU-s (read labels + detections {t_read:.1f} s, "
           f"IoU of all pairs {tm2['iou']:.2f} s, devkit matching of {len(summary['classes'])} classes x 3 difficulties x {len(summary['metric']['map_thresholds'])} thresholds {tm2['matching']:.2f} s)")
+    from labelaudit.evaluate.run import let_ap_records
+
+    t, c0 = time.perf_counter(), time.process_time()
+    recs = let_ap_records(gt, d, tuple(summary["classes"]))
+    print(f"(d) LET-3D-AP/APL of {len(summary['classes'])} classes x 3 difficulties ({len(recs)} records), 1 process: "
+          f"{time.perf_counter() - t:.1f} s wall, {time.process_time() - c0:.1f} CPU-s")
     pairs = max(c["jiou_pairs"], 1)
     print(f"(c) JIoU: {tm['jiou']:.1f} s for {c['jiou_pairs']} pairs on {args.workers} workers = {tm['jiou'] / pairs * 1e3:.2f} ms per pair wall, "
           f"{tm['jiou'] / pairs * 1e3 * args.workers:.2f} ms per pair per core")

@@ -21,6 +21,7 @@ from rich.table import Table
 from labelaudit import constants as C
 from labelaudit.cli.app import EXIT_USAGE, DatasetFormat, app, err, handle_errors, out, split_list
 from labelaudit.errors import UsageError
+from labelaudit.evaluate.cells import LET_INTERP, LET_METRICS, METRIC_NAMES
 
 
 class View(str, Enum):
@@ -46,7 +47,6 @@ class Interp(str, Enum):
     r11 = "R11"
 
 
-_METRIC_NAMES = {"iou": "IoU", "jiou": "JIoU", "jiou_ratio": "JIoU-ratio", "jiou_deterministic": "JIoU (det.)"}
 
 
 class StderrProgress:
@@ -86,7 +86,8 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
     """
     meta = summary["metric"]
     ap_all = summary["ap"] + (summary.get("probabilistic_ap") or [])
-    metrics = [m for m in _METRIC_NAMES if any(r["metric"] == m for r in ap_all)]
+    metrics = [m for m in METRIC_NAMES if m not in LET_METRICS and any(r["metric"] == m for r in ap_all)]
+    let = {(r["class"], r["difficulty"], r["metric"]): r for r in ap_all if r["metric"] in LET_METRICS and r["interp"] == LET_INTERP}
     ap = {(r["class"], r["difficulty"], r["metric"], r["threshold"], r["interp"]): r for r in ap_all}
     mp = {(r["class"], r["difficulty"], r["metric"], r["interp"]): r for r in summary["map"]}
     lo, hi = meta["map_thresholds"][0], meta["map_thresholds"][-1]
@@ -94,9 +95,12 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
     for c in ("class", "difficulty", "GT", "det"):
         t.add_column(c, justify="left" if c in ("class", "difficulty") else "right")
     for m in metrics:
-        t.add_column(f"{_METRIC_NAMES[m]}@t", justify="right")
+        t.add_column(f"{METRIC_NAMES[m]}@t", justify="right")
     for m in metrics:
-        t.add_column(f"mAP {_METRIC_NAMES[m]}", justify="right")
+        t.add_column(f"mAP {METRIC_NAMES[m]}", justify="right")
+    let_metrics = [m for m in LET_METRICS if any(k[2] == m for k in let)]
+    for m in let_metrics:
+        t.add_column(METRIC_NAMES[m], justify="right")
     for cls in summary["classes"]:
         th = meta["usual_thresholds"][cls]
         for diff in meta["difficulties"]:
@@ -104,8 +108,15 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
             row = [escape(cls) + f" (t={th:g})", diff, str(first.get("num_gt", 0)), str(first.get("num_det", 0))]
             row += [_fmt(ap.get((cls, diff, m, th, interp), {}).get("ap")) for m in metrics]
             row += [_fmt(mp.get((cls, diff, m, interp), {}).get("map")) for m in metrics]
+            row += [_fmt(let.get((cls, diff, m), {}).get("ap")) for m in let_metrics]
             t.add_row(*row)
     console.print(t)
+    if let_metrics:
+        lm = meta.get("let", {})
+        iou = ", ".join(f"{escape(c)} {v:g}" for c, v in lm.get("min_let_iou", {}).items())
+        console.print(f"LET-AP / LET-APL: Waymo's longitudinal-error-tolerant AP (3D, LET-IoU ≥ {iou}; range from the camera, tolerance "
+                      f"max({lm.get('tolerance_fraction', C.EVAL_LET_TOLERANCE_FRACTION):g}·r, {lm.get('min_tolerance_m', C.EVAL_LET_MIN_TOLERANCE):g} m); "
+                      "Waymo's AP integration, not R40/R11; docs/eval.md)", soft_wrap=True)
     few = sorted({(r["class"], r["difficulty"]) for r in summary["ap"] if r["num_gt"] and r["num_gt"] < C.EVAL_RECALL_POINTS - 1})
     if few:
         cells = ", ".join(f"{c} {d}" for c, d in few)
@@ -128,7 +139,7 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
                 for b in bins:
                     r = mo.get((cls, diff, b, m))
                     cells.append("–" if not r or r["mean"] is None else f"{r['mean']:.3f} ({r['count']})")
-                t2.add_row(escape(cls), diff, _METRIC_NAMES[m], *cells)
+                t2.add_row(escape(cls), diff, METRIC_NAMES[m], *cells)
     console.print(t2)
 
     if summary.get("probabilistic"):
@@ -167,13 +178,14 @@ def eval_command(
     split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (val, …) / Waymo or Argoverse 2 split folder."),
     limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for JIoU and label inference (default: all cores)."),
+    let: bool = typer.Option(False, "--let", help="Also Waymo's LET-3D-AP and LET-3D-APL (longitudinal-error-tolerant: depth errors along the camera's line of sight forgiven up to max(10 % of range, 0.5 m); APL charges them); records with metric let / let_apl."),
     lenient: bool = typer.Option(False, "--lenient", help="Leave out (and report) frames with an unreadable label or detection, instead of stopping."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress messages."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
     """Evaluate a detector with IoU, JIoU and JIoU-ratio: AP that respects label uncertainty.
 
-    Matching and AP follow the official KITTI object devkit (difficulties, DontCare, neighbouring classes, greedy matching by score, R40 and R11); the same procedure then runs with the overlap replaced by JIoU (detection vs the uncertain label) and JIoU-ratio (JIoU / JIoU-GT). See docs/eval.md.
+    Matching and AP follow the official KITTI object devkit (difficulties, DontCare, neighbouring classes, greedy matching by score, R40 and R11; KITTI overlaps in the camera frame as the devkit takes them); the same procedure then runs with the overlap replaced by JIoU (detection vs the uncertain label) and JIoU-ratio (JIoU / JIoU-GT). --let adds Waymo's LET-3D-AP and LET-3D-APL, which forgive depth errors along the camera's line of sight. See docs/eval.md.
 
     [bold]Examples[/bold]
 
@@ -196,7 +208,7 @@ def eval_command(
         request = EvalRequest(
             dataset=dataset, detections=detections, results=results, output=output, dataset_format=dataset_format.value,
             detections_format=detections_format.value, classes=split_list(classes) or None, view=view.value, config=config,
-            split=split, limit=limit, workers=workers, strict=not lenient, debug=debug,
+            split=split, limit=limit, workers=workers, strict=not lenient, debug=debug, let=let,
         )
         console = err()
         result = run_eval(request, StderrProgress(console, quiet))

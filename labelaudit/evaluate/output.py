@@ -68,7 +68,7 @@ def write_plots(summary: dict[str, Any], out: Path) -> list[Path]:
     diff = meta["headline_difficulty"]
     view = meta["view"].upper()
     ap_all = summary["ap"] + (summary.get("probabilistic_ap") or [])
-    metrics = sorted({r["metric"] for r in ap_all}, key=lambda m: list(_LABELS).index(m))
+    metrics = [m for m in _LABELS if any(r["metric"] == m for r in ap_all)]  # LET has one threshold per class: in the tables, not these plots
     files = []
 
     fig, axes = _figure(len(classes))

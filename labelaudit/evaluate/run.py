@@ -28,11 +28,12 @@ from labelaudit import constants as C
 from labelaudit.config import RunConfig
 from labelaudit.errors import EvalError
 from labelaudit.evaluate.ap import PrecisionCurve, precision_curve
-from labelaudit.evaluate.cells import DIFFICULTIES, INTERPS, METRICS, family, usual_threshold
+from labelaudit.evaluate.cells import DIFFICULTIES, INTERPS, LET_METRICS, METRICS, family, usual_threshold
 from labelaudit.evaluate.detections import Detections, read_detections
 from labelaudit.evaluate.gt import GroundTruth, load_ground_truth
 from labelaudit.evaluate.jiou import pair_jious
 from labelaudit.evaluate.labels import LabelSet, check_results_match, infer_labels, label_uncertainty, needed_rows
+from labelaudit.evaluate.let import let_curves, let_min_iou, let_origins, let_records
 from labelaudit.evaluate.matching import (
     OUTCOMES,
     Cell,
@@ -91,6 +92,7 @@ class EvalRequest:
     split, limit : frame selection, as for ``infer``
     workers : processes for the JIoU pairs and the label inference
     strict : a bad detection line or label file stops the run (else the frame is left out, recorded)
+    let : add Waymo's LET-3D-AP and LET-3D-APL records (:mod:`~labelaudit.evaluate.let`)
     """
 
     dataset: Path
@@ -107,6 +109,7 @@ class EvalRequest:
     workers: int | None = None
     strict: bool = True
     debug: bool = False
+    let: bool = False
 
 
 @dataclass
@@ -243,7 +246,7 @@ def run_eval(request: EvalRequest, progress: Progress | None = None) -> EvalResu
     labels = _labels(request, gt, fmt, cfg, classes, needed, progress)
     timings["labels"] = time.perf_counter() - t1
 
-    result = evaluate(gt, dets, labels, classes, request.view, cfg, workers=request.workers, progress=progress, timings=timings)
+    result = evaluate(gt, dets, labels, classes, request.view, cfg, workers=request.workers, progress=progress, timings=timings, let=request.let)
     result.summary["dataset"] = {"path": str(Path(request.dataset).resolve()), "format": fmt, "split": request.split, "limit": request.limit}
     result.summary["detections_source"] = {"path": str(Path(request.detections).resolve()), "format": dets.format}
     timings["total"] = time.perf_counter() - t0
@@ -524,6 +527,7 @@ def evaluate(
     progress: Progress | None = None,
     timings: dict[str, float] | None = None,
     metrics: Sequence[str] = METRICS,
+    let: bool = False,
 ) -> EvalResult:
     """The evaluation on data already in memory (the library entry point behind :func:`run_eval`).
 
@@ -535,6 +539,7 @@ def evaluate(
     view : "bev" or "3d"
     cfg : run configuration (its ``spatial`` parameters define p_G)
     metrics : overlaps to evaluate; ``("iou",)`` skips JIoU altogether (a plain devkit run)
+    let : add LET-3D-AP / LET-3D-APL records (metrics ``let`` and ``let_apl``)
     """
     progress = progress or Progress()
     timings = timings if timings is not None else {}
@@ -557,6 +562,11 @@ def evaluate(
     progress.stage(f"matching: {len(classes)} classes × {len(difficulties)} difficulties × {len(overlaps)} metrics × {len(C.EVAL_MAP_THRESHOLDS)}+ thresholds")
     ap_records, curves, cells = ap_cells(gt, dets, classes, view, pairs.blocks, overlaps)
     timings["matching"] = time.perf_counter() - t2
+    if let:
+        t_let = time.perf_counter()
+        progress.stage(f"LET-3D-AP: Hungarian matching of {len(classes)} classes at {C.EVAL_LET_SCORE_CUTOFFS} score cut-offs")
+        ap_records += let_ap_records(gt, dets, classes)
+        timings["let"] = time.perf_counter() - t_let
 
     t3 = time.perf_counter()
     matched_gt, matched_pair = associate(gt, dets, classes, pairs)
@@ -566,7 +576,41 @@ def evaluate(
 
     table = _detections_table(gt, dets, labels, overlaps, matched_gt, matched_pair, outcomes, difficulties)
     summary = _summary(gt, dets, labels, classes, view, cfg, ap_records, mean_records, curves, fam, n_cand)
+    if let:
+        summary["metric"]["let"] = let_parameters(gt, classes)
+        outside = int(np.count_nonzero((dets.scores < 0.0) | (dets.scores > 1.0)))
+        if outside:
+            summary["notes"].append(f"{outside} detections score outside [0, 1]: LET's score cut-offs are 0, 0.01, …, 1, so scores above 1 count at every cut-off "
+                                    "and negative ones at none; rescale such scores to probabilities for a meaningful LET-3D-AP")
     return EvalResult(summary, table, curves, timings)
+
+
+def let_ap_records(gt: GroundTruth, dets: Detections, classes: Sequence[str]) -> list[dict[str, Any]]:
+    """LET-3D-AP and LET-3D-APL records of every class × difficulty (:mod:`~labelaudit.evaluate.let`).
+
+    A GT box counts (may be a false negative) at a difficulty as in the devkit cells; Waymo and
+    Argoverse 2 boxes without any LiDAR point take no part, as in Waymo's metrics.
+    """
+    fam = family(gt.dataset_format)
+    try:
+        origins = let_origins(gt.dataset_format, gt.calibs)
+    except ValueError as exc:
+        raise EvalError(f"--let: {exc}") from None
+    counted = np.stack([_counted_at(gt, fam, d) for d in range(len(DIFFICULTIES[fam]))]) if len(gt.boxes) else np.zeros((len(DIFFICULTIES[fam]), 0), bool)
+    in_pool = gt.num_points != 0 if fam in ("waymo", "av2") else np.ones(len(gt.boxes), bool)
+    curves = let_curves(gt.boxes, gt.frame_of_row, gt.class_names, counted, in_pool, dets.boxes, dets.frame_of_row, dets.class_names, dets.scores, origins, classes)
+    return let_records(curves, DIFFICULTIES[fam])
+
+
+def let_parameters(gt: GroundTruth, classes: Sequence[str]) -> dict[str, Any]:
+    """What the LET records were computed with (``summary.metric.let``)."""
+    fam = family(gt.dataset_format)
+    camera = {"kitti": "image_2 camera centre from each frame's calibration (P2)", "waymo": list(C.EVAL_LET_WAYMO_CAMERA), "av2": list(C.EVAL_LET_AV2_CAMERA)}[fam]
+    return {
+        "camera": camera, "tolerance_fraction": C.EVAL_LET_TOLERANCE_FRACTION, "min_tolerance_m": C.EVAL_LET_MIN_TOLERANCE,
+        "min_let_iou": {c: let_min_iou(c) for c in classes}, "score_cutoffs": C.EVAL_LET_SCORE_CUTOFFS, "recall_delta": C.EVAL_LET_RECALL_DELTA,
+        "matching": "Hungarian, maximum sum of LET-IoU x affinity per frame and cut-off", "boxes": "LiDAR/vehicle frame, 3D IoU",
+    }
 
 
 def _ap_record(cls: str, dname: str, view: str, metric: str, t: float, interp: str, curve: PrecisionCurve, n_gt: int, num_det: int) -> dict[str, Any]:
@@ -658,14 +702,14 @@ def _detections_table(gt: GroundTruth, dets: Detections, labels: LabelSet, overl
 def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Sequence[str], view: str, cfg: RunConfig, ap_all: list[dict[str, Any]],
              mean_records: tuple[list[dict[str, Any]], list[dict[str, Any]]], curves: dict[tuple[str, str, str, float], PrecisionCurve], fam: str, n_pairs: int) -> dict[str, Any]:
     difficulties = DIFFICULTIES[fam]
-    # the contract's ``ap`` holds the three metrics; the deterministic baseline of probabilistic
+    # the contract's ``ap`` holds the three metrics (and LET with --let); the deterministic baseline of probabilistic
     # detections goes to ``probabilistic_ap`` (same records)
-    ap_records = [r for r in ap_all if r["metric"] in METRICS]
-    ap_baseline = [r for r in ap_all if r["metric"] not in METRICS]
+    ap_records = [r for r in ap_all if r["metric"] in METRICS + LET_METRICS]
+    ap_baseline = [r for r in ap_all if r["metric"] not in METRICS + LET_METRICS]
     maps: list[dict[str, Any]] = []
     for cls in classes:
         for dname in difficulties:
-            for metric in {r["metric"] for r in ap_all}:
+            for metric in {r["metric"] for r in ap_all} - set(LET_METRICS):  # LET has one threshold: no mean over thresholds
                 for interp in INTERPS:
                     sel = [r for r in ap_all if r["class"] == cls and r["difficulty"] == dname and r["metric"] == metric
                            and r["interp"] == interp and any(abs(r["threshold"] - t) < 1e-9 for t in C.EVAL_MAP_THRESHOLDS)]

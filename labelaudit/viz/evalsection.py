@@ -3,12 +3,13 @@
 The contract (docs/review.md): ``EVAL_DIR/summary.json`` is an object with
 
 - ``ap``: records ``{class, difficulty, view, metric, threshold, interp, ap, num_gt, num_det}``,
-  ``metric`` one of iou / jiou / jiou_ratio, ``interp`` R40 or R11;
+  ``metric`` one of iou / jiou / jiou_ratio with ``interp`` R40 or R11, or let / let_apl (``eval
+  --let``: Waymo's LET-3D-AP / APL) with ``interp`` waymo and its LET-IoU as the threshold;
 - ``mean_overlap``: records ``{difficulty, distance_bin, metric, mean, count}``;
 - ``counts``, ``dataset``, ``metric``: shown as given;
 
 plus any number of ``EVAL_DIR/*.png`` plots, embedded in file-name order. Validation names the file,
-the record and the field. The report shows AP at the usual thresholds only
+the record and the field. The report shows AP at the usual thresholds only, and LET at its own
 (:func:`labelaudit.evaluate.cells.usual_threshold`; R40). This module reads and
 reshapes; it evaluates nothing.
 """
@@ -22,7 +23,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from labelaudit import constants as C
-from labelaudit.evaluate.cells import INTERPS, METRICS, usual_threshold
+from labelaudit.evaluate.cells import INTERPS, LET_INTERP, LET_METRICS, METRICS, usual_threshold
 from labelaudit.viz.objects import ViewError
 
 __all__ = ["EvalSection", "read_eval_dir", "usual_threshold", "METRICS"]
@@ -90,10 +91,13 @@ def _check_records(records: Any, key: str, fields: Mapping[str, tuple[Any, bool]
             if isinstance(v, bool) or not isinstance(v, types) or (isinstance(v, float) and not math.isfinite(v)):
                 want = " or ".join(t.__name__ for t in (types if isinstance(types, tuple) else (types,)))
                 raise ViewError(f"{where}: {key}[{i}].{name} must be {want}{' or null' if nullable else ''}, got {v!r}")
-        if rec["metric"] not in METRICS:
-            raise ViewError(f"{where}: {key}[{i}].metric must be one of {', '.join(METRICS)}, got {rec['metric']!r}")
-        if "interp" in fields and rec["interp"] not in INTERPS:
-            raise ViewError(f"{where}: {key}[{i}].interp must be one of {', '.join(INTERPS)}, got {rec['interp']!r}")
+        metrics = METRICS + LET_METRICS if "interp" in fields else METRICS
+        if rec["metric"] not in metrics:
+            raise ViewError(f"{where}: {key}[{i}].metric must be one of {', '.join(metrics)}, got {rec['metric']!r}")
+        if "interp" in fields:
+            interps = (LET_INTERP,) if rec["metric"] in LET_METRICS else INTERPS
+            if rec["interp"] not in interps:
+                raise ViewError(f"{where}: {key}[{i}].interp must be {' or '.join(interps)} for metric {rec['metric']}, got {rec['interp']!r}")
     return records
 
 
@@ -115,7 +119,7 @@ def _ap_table(records: list[dict[str, Any]]) -> tuple[list[str], list[dict[str, 
     rows: dict[tuple[str, str, str], dict[str, Any]] = {}
     for cls in _ordered([r["class"] for r in records]):
         thr = usual_threshold(cls)
-        mine = [r for r in records if r["class"] == cls]
+        mine = [r for r in records if r["class"] == cls and r["metric"] not in LET_METRICS]
         picked = [r for r in mine if r["interp"] == C.REPORT_AP_INTERP and abs(float(r["threshold"]) - thr) < 1e-9]
         if not picked:
             have = ", ".join(f"{t:g}" for t in sorted({float(r["threshold"]) for r in mine}))
@@ -132,6 +136,14 @@ def _ap_table(records: list[dict[str, Any]]) -> tuple[list[str], list[dict[str, 
                 for r in sel:
                     cells[columns.index(str(r["difficulty"]))] = {"ap": r["ap"], "num_gt": r["num_gt"], "num_det": r["num_det"]}
                 rows[(cls, view, metric)] = {"class": cls, "view": view, "metric": metric, "threshold": thr, "cells": cells, "note": ""}
+        for metric in LET_METRICS:  # LET: its own LET-IoU threshold and Waymo's integration
+            sel = [r for r in records if r["class"] == cls and r["metric"] == metric]
+            if not sel:
+                continue
+            cells = [None] * len(columns)
+            for r in sel:
+                cells[columns.index(str(r["difficulty"]))] = {"ap": r["ap"], "num_gt": r["num_gt"], "num_det": r["num_det"]}
+            rows[(cls, "3d", metric)] = {"class": cls, "view": sel[0]["view"], "metric": metric, "threshold": float(sel[0]["threshold"]), "cells": cells, "note": ""}
     return columns, list(rows.values())
 
 
