@@ -314,3 +314,22 @@ def test_a_real_car_removed_from_its_label_file_is_found(realdata, tmp_path):
     rows = find_missing(cut, RunConfig())
     assert _best(rows, car[0], car[1], radius=1.0) >= 0.5
     assert _best(find_missing(full, RunConfig()), car[0], car[1], radius=1.0) == 0.0
+
+
+def test_simulated_foliage_is_porous_and_solid_clutter_is_not():
+    from labelaudit.sim.raycast import HIT_CLUTTER, LidarSpec, render_range_image
+    from labelaudit.sim.scene import VEGETATION, Scene, SimObject
+
+    box = np.array([15.0, 0.0, GROUND + 1.0, 2.0, 3.0, 2.0, 0.0])
+
+    def returns(name):
+        scene = Scene([], GROUND, clutter=[SimObject(name, box, box[None].copy(), np.array([0.4]))])
+        ri = render_range_image(scene, LidarSpec(), None, np.random.default_rng(1))
+        pts, hits = ri.points("scene")
+        return pts[hits == HIT_CLUTTER, :3].astype(float)
+
+    solid, bush = returns("Building"), returns(VEGETATION)
+    face = box[0] - box[3] / 2
+    assert np.abs(solid[:, 0] - face).max() < 0.1  # on the face, range noise only
+    assert np.median(bush[:, 0] - face) > 0.1 and (bush[:, 0] - face).std() > 0.15  # returns from inside the foliage
+    assert 0.6 * len(solid) < len(bush) < 0.9 * len(solid)  # some rays pass through its gaps

@@ -457,17 +457,18 @@ def _ramp(x: float, lo: float, hi: float) -> float:
 
 
 def _size_match(vis_l: float, vis_w: float, top: float, top_seen: bool, ceiling: float, mean: tuple[float, float, float],
-                largest: tuple[float, float, float]) -> float:
+                largest: tuple[float, float, float], gap: float = 0.0) -> float:
     """How well visible extents (m) and the seen top (m above ground) fit a class: 1 inside its
     largest size, falling to 0 at ``MISSING_SIZE_SLACK`` beyond. Returns that reach as high as the
     beams go at that range (``top_seen`` false) while the beams there (``ceiling``, m above ground)
-    would pass over such a vehicle are no vehicle of the class (a wall, a pole)."""
+    would pass over such a vehicle are no vehicle of the class (a wall, a pole). ``gap``: the height
+    between two beams at the cluster's range, by which the highest return may lie under the top."""
     L, W, H = largest
     slack = C.MISSING_SIZE_SLACK
     s = 1.0 - _ramp(vis_l, L, L + slack)
     s *= 1.0 - _ramp(vis_w, W, W + slack)
     s *= 1.0 - _ramp(top, H, H + slack)
-    s *= _ramp(top, C.MISSING_MIN_TOP[0], C.MISSING_MIN_TOP[1])  # kerbs, low walls, debris
+    s *= _ramp(top + gap, C.MISSING_MIN_TOP[0], C.MISSING_MIN_TOP[1])  # kerbs, low walls, debris
     s *= _ramp(vis_l, C.MISSING_MIN_EXTENT[0], C.MISSING_MIN_EXTENT[1])  # poles, signs, people
     if not top_seen and ceiling > mean[2] + C.MISSING_TALL_MARGIN + C.MISSING_TOP_CLEARANCE:
         s *= C.MISSING_UNSEEN_TOP_FACTOR
@@ -664,14 +665,18 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: flo
     ground_z = float(np.median(xyz[:, 2] - h))
     nb = len(top_slope)
     bins = np.minimum(nb - 1, ((np.arctan2(xyz[:, 1] - oy, xyz[:, 0] - ox) + np.pi) / (2 * np.pi) * nb).astype(np.int64))
-    slope = float(np.min(top_slope[np.unique(bins)]))  # the lowest top beam over the cluster's directions
+    # the lowest top beam over the cluster's directions, but no lower than the sensor's tilt allows
+    # below its highest: a direction whose top beams hit nothing (open sky) holds only lower beams
+    highest = float(np.max(top_slope))
+    slope = max(float(np.min(top_slope[np.unique(bins)])), math.tan(math.atan(highest) - math.radians(C.MISSING_CEILING_SPREAD)))
     ceiling = (oz - ground_z) + near * slope  # the highest the beams reach at the cluster's nearest range, above the ground
     top_seen = top < ceiling - C.MISSING_TOP_CLEARANCE
     vis_l, vis_w = max(e1, e2), min(e1, e2)
     # the smallest class that explains the visible extents (a larger one fits any fragment of a
     # smaller and would place the box far off), else the best-fitting one
-    fits = [(_size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest), name) for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])]
-    size_score, best_name = next(((m, name) for m, name in fits if m >= C.MISSING_CLASS_FIT), max(fits))
+    gap = near * math.tan(math.radians(C.MISSING_BEAM_GAP))
+    fits = [(_size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap), name) for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])]
+    size_score, best_name = next(((m, name) for m, name in fits if m >= C.MISSING_CLASS_FIT), max(fits, key=lambda f: f[0]))  # ties: the smaller
     mean, _ = sizes[best_name]
     # which axis is the length: the longer visible one, unless both fit in a width (a car seen
     # head-on or from behind): then the axis nearer the line of sight

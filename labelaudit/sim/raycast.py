@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from labelaudit import constants as C
 from labelaudit.core.geometry import invert_transform
-from labelaudit.sim.scene import Scene, corners_of
+from labelaudit.sim.scene import VEGETATION, Scene, corners_of
 
 FloatArray = NDArray[np.float64]
 
@@ -391,6 +391,7 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
         pair_obj.append(idx)
     ray_counts = np.zeros(k, dtype=np.int64)
     t_flat, hit_flat, int_flat = t_best.reshape(-1), hit.reshape(-1), intensity.reshape(-1)
+    foliage = np.zeros(height * width, dtype=bool)  # rays whose first hit is vegetation (porous: see below)
     if pair_rays:
         # All (object, ray) candidate pairs in one batch: a few ten thousand, whatever the object count.
         ray = np.concatenate(pair_rays)
@@ -413,6 +414,10 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
         win = np.isfinite(t_obj) & (t_obj == t_flat[ray])
         hit_flat[ray[win]] = np.where(obj[win] < k, obj[win], HIT_CLUTTER)
         int_flat[ray[win]] = int_obj[win]
+        porous = np.array([o.class_name == VEGETATION for o in solids], dtype=bool)
+        if porous.any():
+            foliage[ray[win]] = porous[obj[win]]
+            foliage &= hit_flat == HIT_CLUTTER  # a nearer solid that took the ray later
 
     visible_counts = np.bincount(hit[hit >= 0], minlength=k).astype(np.int64)
 
@@ -427,6 +432,17 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
         keep = ~dropped & (rng_range >= lidar.min_range) & (rng_range <= lidar.max_range)
     else:
         keep = (rng_range >= lidar.min_range) & (rng_range <= lidar.max_range)
+    if rng is not None and foliage.any():
+        # Foliage is porous: a ray enters it before it returns (an exponential depth), and some pass
+        # through its gaps (no return here). Drawn after the sensor noise, only where there is
+        # foliage, so a scene without vegetation renders exactly as before.
+        leaf = foliage.reshape(height, width)
+        n_leaf = int(leaf.sum())
+        depth = rng.exponential(C.SIM_FOLIAGE_DEPTH, n_leaf).astype(f32)
+        through = rng.random(n_leaf) < C.SIM_FOLIAGE_GAP
+        rng_range = rng_range.copy()
+        rng_range[leaf] += depth
+        keep[leaf] &= ~through
     ranges = np.where(keep, rng_range, f32(NO_RETURN))
     intensity = np.where(keep, np.clip(intensity, f32(0.0), f32(1.0)), f32(0.0))
     kept_hits = hit[keep]

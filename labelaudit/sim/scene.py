@@ -109,8 +109,9 @@ class Scene:
     objects : the labelled objects, in placement order (nearest first is *not* guaranteed)
     ground_z : height of the ground plane (m)
     ground_reflectivity : reflectivity of the road surface
-    clutter : unlabelled static surroundings (buildings, poles, bushes; class "Clutter"): they
-        return points and occlude objects but never get a label
+    clutter : unlabelled static surroundings (class "Building", "Pole" or :data:`VEGETATION`): they
+        return points and occlude objects but never get a label; vegetation is porous (the
+        ray-caster lets rays into it and some through it)
     """
 
     objects: list[SimObject] = field(default_factory=list)
@@ -307,6 +308,8 @@ def sample_scene(rng: np.random.Generator, spec: SceneSpec = SceneSpec(), *, gro
 
 
 _CLUTTER_REFLECTIVITY = (0.1, 0.6)
+VEGETATION = "Vegetation"
+"""Class name of the bushes among ``Scene.clutter``: porous to the ray-caster (``SIM_FOLIAGE_*``)."""
 
 
 def _add_clutter(rng: np.random.Generator, scene: Scene, spec: SceneSpec, footprints: list[FloatArray]) -> None:
@@ -333,5 +336,6 @@ def _add_clutter(rng: np.random.Generator, scene: Scene, spec: SceneSpec, footpr
                 continue
             footprints.append(corners)
             box = np.array([cxy[0], cxy[1], scene.ground_z + lwh[2] / 2, *lwh, normalize_angle(yaw)])
-            scene.clutter.append(SimObject("Clutter", box, box[None].copy(), np.array([rng.uniform(*_CLUTTER_REFLECTIVITY)])))
+            name = {"building": "Building", "pole": "Pole"}.get(str(kind), VEGETATION)
+            scene.clutter.append(SimObject(name, box, box[None].copy(), np.array([rng.uniform(*_CLUTTER_REFLECTIVITY)])))
             break
