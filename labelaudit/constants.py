@@ -116,6 +116,8 @@ MISSING_GROUND_RANK = 3  # a ground cell's floor is its this-lowest return (fewe
 MISSING_GROUND_DROP = 1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
 MISSING_CEILING_BINS = 360  # azimuth bins (1°) of the top beam's elevation (the sensor's tilt makes it vary around)
 MISSING_BEAM_GAP = 0.4  # deg; elevation between two beams (HDL-64E 0.4°, Waymo TOP 0.3°): a far vehicle's highest return may lie this far under its top
+MISSING_FORWARD_COS = 0.9  # a camera whose optical axis is this close to +x (cosine) looks forward: the search grid starts just behind the sensor
+MISSING_CEILING_FLOOR = -2.0  # deg; returns below this elevation are never a top beam's (the per-direction top beam looks only above it)
 MISSING_CEILING_SPREAD = 1.5  # deg; the top beam in a direction is taken no lower than this under the frame's highest (a direction with open sky returns only lower beams)
 MISSING_FACE_TIE = 0.1  # headings whose face share is within this of the best one tie; the tightest rectangle among them wins
 

@@ -77,7 +77,7 @@ class Cluster:
 
 
 @kernel
-def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop):  # pragma: no cover - compiled
+def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop, slope_floor):  # pragma: no cover - compiled
     """Ground height per cell (n, n) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
     high the sensor sees at a range (a tilted sensor sees higher on one side than on the other).
@@ -94,8 +94,10 @@ def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop):  
         if r2 > reach2:
             continue
         z = xyz[k, 2]
-        if r2 > 4.0:
-            s = (z - oz) / math.sqrt(r2)
+        dz = z - oz
+        # only returns above the sensor's lower beams can be a top beam's (spares a sqrt and an atan2 per return)
+        if r2 > 4.0 and (dz >= 0.0 or dz * dz < slope_floor * slope_floor * r2):
+            s = dz / math.sqrt(r2)
             b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
             if s > top[b]:
                 top[b] = s
@@ -116,18 +118,23 @@ def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop):  
                     f = low[i, j, q]
             floor[i, j] = f
     ground = np.full((n, n), np.inf)
+    vals = np.empty(9)
     for i in range(n):
         for j in range(n):
-            vals = np.empty(9)
+            if floor[i, j] == np.inf:  # no return here: no height is measured from this cell
+                continue
             k = 0
             for a in range(max(0, i - 1), min(n, i + 2)):
                 for b in range(max(0, j - 1), min(n, j + 2)):
-                    if floor[a, b] < np.inf:
-                        vals[k] = floor[a, b]
+                    v = floor[a, b]
+                    if v < np.inf:  # insertion sort of at most 9 floors
+                        q = k
+                        while q > 0 and vals[q - 1] > v:
+                            vals[q] = vals[q - 1]
+                            q -= 1
+                        vals[q] = v
                         k += 1
-            if k == 0:
-                continue
-            med = np.median(vals[:k])
+            med = vals[k // 2] if k % 2 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
             m1 = np.inf
             for q in range(k):
                 if vals[q] >= med - drop:  # a floor far below its neighbours' is a cell of stray returns under the road
@@ -137,9 +144,9 @@ def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop):  
 
 
 @kernel
-def _label_mask(boxes, margin, x0, y0, cell, n):  # pragma: no cover - compiled
-    """(n, n) uint8: 1 where the cell's centre lies in a label's rectangle grown by ``margin``."""
-    mask = np.zeros((n, n), dtype=np.uint8)
+def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - compiled
+    """(nx, ny) uint8: 1 where the cell's centre lies in a label's rectangle grown by ``margin``."""
+    mask = np.zeros((nx, ny), dtype=np.uint8)
     for b in range(boxes.shape[0]):
         cx, cy = boxes[b, 0], boxes[b, 1]
         hl, hw = 0.5 * boxes[b, 3] + margin, 0.5 * boxes[b, 4] + margin
@@ -147,9 +154,9 @@ def _label_mask(boxes, margin, x0, y0, cell, n):  # pragma: no cover - compiled
         ex = abs(c) * hl + abs(s) * hw
         ey = abs(s) * hl + abs(c) * hw
         i0 = max(0, int((cx - ex - x0) / cell))
-        i1 = min(n - 1, int((cx + ex - x0) / cell))
+        i1 = min(nx - 1, int((cx + ex - x0) / cell))
         j0 = max(0, int((cy - ey - y0) / cell))
-        j1 = min(n - 1, int((cy + ey - y0) / cell))
+        j1 = min(ny - 1, int((cy + ey - y0) / cell))
         for i in range(i0, i1 + 1):
             px = x0 + (i + 0.5) * cell - cx
             for j in range(j0, j1 + 1):
@@ -160,16 +167,18 @@ def _label_mask(boxes, margin, x0, y0, cell, n):  # pragma: no cover - compiled
 
 
 @kernel
-def _occupancy(xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, y0, cell, n, lo, hi, tall):  # pragma: no cover - compiled
-    """Cell (flat index) of every return in the search band (−1 otherwise), its height above the
-    ground, and per cell the band returns (n, n) and the returns above the band up to ``tall``.
-    All around the sensor, whatever the labelled region: a wall that leaves the camera's view is
-    still one wall."""
+def _occupancy(xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, y0, cell, nx, ny, lo, hi, tall):  # pragma: no cover - compiled
+    """The returns in the search band — their indices, cells (flat index) and heights above the
+    ground, (B,) each — and per cell the band returns (nx, ny) and the returns above the band up to
+    ``tall``. All around the sensor, whatever the labelled region: a wall that leaves the camera's
+    view is still one wall."""
     m = xyz.shape[0]
-    cell_of = np.full(m, -1, dtype=np.int64)
-    height = np.zeros(m)
-    counts = np.zeros((n, n), dtype=np.int32)
-    over = np.zeros((n, n), dtype=np.int32)
+    band_idx = np.empty(m, dtype=np.int64)
+    band_cell = np.empty(m, dtype=np.int64)
+    band_h = np.empty(m)
+    nb = 0
+    counts = np.zeros((nx, ny), dtype=np.int32)
+    over = np.zeros((nx, ny), dtype=np.int32)
     for k in range(m):
         dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
         r2 = dx * dx + dy * dy
@@ -184,67 +193,66 @@ def _occupancy(xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, 
             continue
         i = int((xyz[k, 0] - x0) / cell)
         j = int((xyz[k, 1] - y0) / cell)
-        if i < 0 or j < 0 or i >= n or j >= n or mask[i, j]:
+        if i < 0 or j < 0 or i >= nx or j >= ny or mask[i, j]:
             continue
         if h <= hi:
             counts[i, j] += 1
-            cell_of[k] = i * n + j
-            height[k] = h
+            band_idx[nb] = k
+            band_cell[nb] = i * ny + j
+            band_h[nb] = h
+            nb += 1
         else:
             over[i, j] += 1
-    return cell_of, height, counts, over
+    return band_idx[:nb], band_cell[:nb], band_h[:nb], counts, over
 
 
 @kernel
-def _components(counts, over):  # pragma: no cover - compiled
-    """8-connected components of the occupied cells: (n, n) component id (−1 empty) and per
-    component (points, over-band points, cells, i0, i1, j0, j1)."""
-    n = counts.shape[0]
-    comp = np.full((n, n), -1, dtype=np.int32)
-    occupied = 0
-    for i in range(n):
-        for j in range(n):
-            if counts[i, j] > 0:
-                occupied += 1
-    stack = np.empty(occupied, dtype=np.int64)
-    stats = np.zeros((occupied, 7), dtype=np.int64)
+def _components(counts, over, occupied):  # pragma: no cover - compiled
+    """8-connected components of the occupied cells (``occupied``: their flat indices, ascending):
+    (nx, ny) component id (−1 empty) and per component (points, over-band points, cells, i0, i1, j0, j1)."""
+    nx, ny = counts.shape
+    comp = np.full((nx, ny), -1, dtype=np.int32)
+    m = occupied.shape[0]
+    stack = np.empty(m, dtype=np.int64)
+    stats = np.zeros((m, 7), dtype=np.int64)
     k = 0
-    for i in range(n):
-        for j in range(n):
-            if counts[i, j] == 0 or comp[i, j] >= 0:
-                continue
-            comp[i, j] = k
-            top = 0
-            stack[top] = i * n + j
-            top += 1
-            stats[k, 3] = i
-            stats[k, 4] = i
-            stats[k, 5] = j
-            stats[k, 6] = j
-            while top > 0:
-                top -= 1
-                a = stack[top] // n
-                b = stack[top] % n
-                stats[k, 0] += counts[a, b]
-                stats[k, 1] += over[a, b]
-                stats[k, 2] += 1
-                stats[k, 3] = min(stats[k, 3], a)
-                stats[k, 4] = max(stats[k, 4], a)
-                stats[k, 5] = min(stats[k, 5], b)
-                stats[k, 6] = max(stats[k, 6], b)
-                for da in range(-1, 2):
-                    for db in range(-1, 2):
-                        u, v = a + da, b + db
-                        if 0 <= u < n and 0 <= v < n and counts[u, v] > 0 and comp[u, v] < 0:
-                            comp[u, v] = k
-                            stack[top] = u * n + v
-                            top += 1
-            k += 1
+    for s in range(m):
+        i = occupied[s] // ny
+        j = occupied[s] % ny
+        if comp[i, j] >= 0:
+            continue
+        comp[i, j] = k
+        top = 0
+        stack[top] = i * ny + j
+        top += 1
+        stats[k, 3] = i
+        stats[k, 4] = i
+        stats[k, 5] = j
+        stats[k, 6] = j
+        while top > 0:
+            top -= 1
+            a = stack[top] // ny
+            b = stack[top] % ny
+            stats[k, 0] += counts[a, b]
+            stats[k, 1] += over[a, b]
+            stats[k, 2] += 1
+            stats[k, 3] = min(stats[k, 3], a)
+            stats[k, 4] = max(stats[k, 4], a)
+            stats[k, 5] = min(stats[k, 5], b)
+            stats[k, 6] = max(stats[k, 6], b)
+            for da in range(-1, 2):
+                for db in range(-1, 2):
+                    u, v = a + da, b + db
+                    if 0 <= u < nx and 0 <= v < ny and counts[u, v] > 0 and comp[u, v] < 0:
+                        comp[u, v] = k
+                        stack[top] = u * ny + v
+                        top += 1
+        k += 1
     return comp, stats[:k]
 
 
 @kernel
-def _comp_extras(xyz, cell_of, height, comp_flat, k, ox, oy):  # pragma: no cover - compiled
+def _comp_extras(xyz, band_idx, band_cell, band_h, comp_flat, k, ox, oy):  # pragma: no cover - compiled
     """Per component (k, 7): highest return above the ground, azimuth interval seen from the sensor
     (radians, unwrapped about the component's first return), nearest and farthest BEV range, sums
     of x and y."""
@@ -258,11 +266,9 @@ def _comp_extras(xyz, cell_of, height, comp_flat, k, ox, oy):  # pragma: no cove
         out[q, 4] = -np.inf
         out[q, 5] = 0.0
         out[q, 6] = 0.0
-    for p in range(cell_of.shape[0]):
-        c = cell_of[p]
-        if c < 0:
-            continue
-        q = comp_flat[c]
+    for b in range(band_idx.shape[0]):
+        p = band_idx[b]
+        q = comp_flat[band_cell[b]]
         dx, dy = xyz[p, 0] - ox, xyz[p, 1] - oy
         az = math.atan2(dy, dx)
         if ref[q] != ref[q]:
@@ -274,8 +280,8 @@ def _comp_extras(xyz, cell_of, height, comp_flat, k, ox, oy):  # pragma: no cove
             a += 2.0 * math.pi
         a += ref[q]
         r = math.sqrt(dx * dx + dy * dy)
-        if height[p] > out[q, 0]:
-            out[q, 0] = height[p]
+        if band_h[b] > out[q, 0]:
+            out[q, 0] = band_h[b]
         out[q, 1] = min(out[q, 1], a)
         out[q, 2] = max(out[q, 2], a)
         out[q, 3] = min(out[q, 3], r)
@@ -341,16 +347,14 @@ def _merge_fragments(stats, extras, min_points, gap, overlap, side_gap, max_exte
 
 
 @kernel
-def _gather(cell_of, comp_flat, wanted, starts):  # pragma: no cover - compiled
-    """Indices of the returns of the wanted components, component by component (a counting sort):
-    component ``c`` (with ``wanted[c]`` = its slot s ≥ 0) owns ``out[starts[s]:starts[s + 1]]``."""
+def _gather(band_cell, comp_flat, wanted, starts):  # pragma: no cover - compiled
+    """Positions (into the band arrays) of the returns of the wanted components, component by
+    component (a counting sort): component ``c`` (with ``wanted[c]`` = its slot s ≥ 0) owns
+    ``out[starts[s]:starts[s + 1]]``."""
     fill = starts[:-1].copy()
     out = np.empty(starts[-1], dtype=np.int64)
-    for k in range(cell_of.shape[0]):
-        c = cell_of[k]
-        if c < 0:
-            continue
-        s = wanted[comp_flat[c]]
+    for k in range(band_cell.shape[0]):
+        s = wanted[comp_flat[band_cell[k]]]
         if s >= 0:
             out[fill[s]] = k
             fill[s] += 1
@@ -518,19 +522,26 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     gcell = C.MISSING_GROUND_CELL
     gn = int(math.ceil(2 * reach / gcell))
     gx0, gy0 = ox - reach, oy - reach
-    ground, top_slope = _ground_grid(xyz, ox, oy, oz, gx0, gy0, gcell, gn, reach * reach, C.MISSING_GROUND_RANK, C.MISSING_CEILING_BINS, C.MISSING_GROUND_DROP)
+    ground, top_slope = _ground_grid(xyz, ox, oy, oz, gx0, gy0, gcell, gn, reach * reach, C.MISSING_GROUND_RANK, C.MISSING_CEILING_BINS, C.MISSING_GROUND_DROP,
+                                     math.tan(math.radians(C.MISSING_CEILING_FLOOR)))
     cell = C.MISSING_CELL
-    n = int(math.ceil(2 * reach / cell))
     x0, y0 = ox - reach, oy - reach
+    x1, y1 = ox + reach, oy + reach
+    view = frame.image_view
+    if view is not None:  # a camera looking along +x (KITTI): the grid need not reach behind it (but walls run on past its edge)
+        d = np.asarray(view.projection, dtype=float)[2, :3]
+        if d[0] > C.MISSING_FORWARD_COS * float(np.linalg.norm(d)):
+            x0 = ox - C.MISSING_CONTINUATION - C.MISSING_EGO_RADIUS
+    nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
-    mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, n)
+    mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
     lo, hi = C.MISSING_BAND
-    cell_of, height, counts, over = _occupancy(xyz, ox, oy, C.MISSING_EGO_RADIUS ** 2, (params.max_range + C.MISSING_CONTINUATION) ** 2, ground,
-                                               gx0, gy0, gcell, gn, mask, x0, y0, cell, n, lo, hi, C.MISSING_TALL)
-    comp, stats = _components(counts, over)
+    band_idx, band_cell, band_h, counts, over = _occupancy(xyz, ox, oy, C.MISSING_EGO_RADIUS ** 2, (params.max_range + C.MISSING_CONTINUATION) ** 2, ground,
+                                               gx0, gy0, gcell, gn, mask, x0, y0, cell, nx, ny, lo, hi, C.MISSING_TALL)
+    comp, stats = _components(counts, over, np.flatnonzero(counts))
     if len(stats) == 0:
         return []
-    extras = _comp_extras(xyz, cell_of, height, comp.ravel(), len(stats), ox, oy)
+    extras = _comp_extras(xyz, band_idx, band_cell, band_h, comp.ravel(), len(stats), ox, oy)
     largest = max(v[1][0] for v in sizes.values())
     max_diag = math.hypot(largest, 3.0) + C.MISSING_SIZE_SLACK
     group = _merge_fragments(stats, extras, C.MISSING_FRAGMENT_POINTS, C.MISSING_MERGE_GAP, C.MISSING_MERGE_OVERLAP,
@@ -567,7 +578,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     wanted = slot_of_root[group]  # component → slot of its group (−1: not searched)
     starts = np.concatenate([[0], np.cumsum(g_points[keep])]).astype(np.int64)
     chosen = chosen_roots
-    order = _gather(cell_of, comp.ravel(), wanted, starts)
+    order = _gather(band_cell, comp.ravel(), wanted, starts)
     # rays per steradian of the sensor, from the frame: its returns over the band of elevations it covers
     rays_per_rad2 = _rays_per_rad2(xyz, ox, oy, oz)
     out = []
@@ -576,8 +587,8 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     owner = np.where(comp >= 0, np.where(solid, group, -1)[np.maximum(comp, 0)], -1)  # the group of every occupied cell
     grid = (owner, x0, y0, cell)
     for s in range(len(chosen)):
-        idx = order[starts[s]:starts[s + 1]]
-        cl = _box_cluster(xyz[idx].astype(float), height[idx], sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, int(chosen[s]))
+        pos = order[starts[s]:starts[s + 1]]
+        cl = _box_cluster(xyz[band_idx[pos]].astype(float), band_h[pos], sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, int(chosen[s]))
         if cl is not None:
             out.append(cl)
     return out
@@ -597,7 +608,7 @@ def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1
     cluster's frame) goes on beyond it through returns of other clusters no label explains: a
     stretch of a wall or a hedge, not an object of its own."""
     owner, x0, y0, cell = grid
-    n = owner.shape[0]
+    nx, ny = owner.shape
     step = 0.5 * cell
     ts = np.arange(step, C.MISSING_CONTINUATION + step, step)
     if along1:  # the face runs along axis 1, on the side of axis 2 nearer the sensor
@@ -611,12 +622,12 @@ def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1
         y = centre[1] + s * p + c * q
         i = ((x - x0) / cell).astype(np.int64)
         j = ((y - y0) / cell).astype(np.int64)
-        ok = (i >= 0) & (i < n) & (j >= 0) & (j < n)
+        ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
         cells = set()
         along = np.zeros(len(ts), dtype=bool)
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
-                ii, jj = np.clip(i + di, 0, n - 1), np.clip(j + dj, 0, n - 1)
+                ii, jj = np.clip(i + di, 0, nx - 1), np.clip(j + dj, 0, ny - 1)
                 o = owner[ii, jj]
                 hit = ok & (o >= 0) & (o != own)
                 along |= hit
@@ -640,8 +651,8 @@ def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1
     for p, q in corners:
         x = centre[0] + c * p - s * q
         y = centre[1] + s * p + c * q
-        i = np.clip(((x - x0) / cell).astype(np.int64), 0, n - 1)
-        j = np.clip(((y - y0) / cell).astype(np.int64), 0, n - 1)
+        i = np.clip(((x - x0) / cell).astype(np.int64), 0, nx - 1)
+        j = np.clip(((y - y0) / cell).astype(np.int64), 0, ny - 1)
         o = owner[i, j]
         hit = (o >= 0) & (o != own)
         if np.any(hit) and np.ptp(depth[hit]) >= C.MISSING_CORNER_DEPTH:
