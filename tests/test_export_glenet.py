@@ -291,6 +291,29 @@ def test_written_pickles_import_only_names_numpy_1_has(tmp_path):
     assert [p.name for p in (tmp_path / "g").iterdir() if ".tmp-" in p.name] == []
 
 
+def test_a_failed_write_leaves_the_previous_files_whole_and_no_temporaries(tmp_path, monkeypatch):
+    """Infos and gt-database infos are replaced together or not at all (a failure in the second write keeps both old files)."""
+    res, ip, dp, _ = write_kitti(tmp_path, "bev")
+    out = tmp_path / "g"
+    E.export_results(res, out, fmt="glenet", infos=ip, dbinfos=dp)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    import labelaudit.export.pickles as P
+
+    real_dump, calls = pickle.dump, []
+
+    def failing_dump(obj, f, protocol=None):
+        calls.append(1)
+        if len(calls) == 2:  # the gt-database file: half written, then the disk is full
+            f.write(b"\x80\x04partial")
+            raise OSError(28, "No space left on device")
+        real_dump(obj, f, protocol=protocol)
+
+    monkeypatch.setattr(P.pickle, "dump", failing_dump)
+    with pytest.raises(OSError, match="No space left"):
+        E.export_results(res, out, fmt="glenet", infos=ip, dbinfos=dp, source="fixed:0.01")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # both old files, no temporaries
+
+
 @pytest.mark.skipif(not os.environ.get("LABELAUDIT_NUMPY1_PYTHON"), reason="set LABELAUDIT_NUMPY1_PYTHON to a Python with NumPy 1.x")
 def test_written_pickles_load_in_a_real_numpy_1(tmp_path):
     """The files load in a NumPy 1.x interpreter, the NumPy-2 inputs do not (numpy._core)."""

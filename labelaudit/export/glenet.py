@@ -16,7 +16,7 @@ The values are :func:`labelaudit.training.glenet_variances` of each label's cova
 residual encoding of its class anchor; objects without one get −1 in every entry, as GLENet's
 own converter writes them. A BEV posterior has no z and h: their variances come from the class
 prior (counted in the summary). Both copies are built in memory, checked against each other and
-the results, and only then written, each atomically.
+the results, and only then written: every file to a temporary name, then all renamed.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from labelaudit import training as T
 from labelaudit.errors import ExportError, InfosMismatchError
 from labelaudit.export.arrays import ResultArrays, read_result_arrays
 from labelaudit.export.infos import FrameObjects, ResultIndex, align_frames, kitti_frame_id, malformed, openpcdet_frames
-from labelaudit.export.pickles import dump_infos, load_infos
+from labelaudit.export.pickles import dump_infos_all, load_infos
 from labelaudit.export.summary import ExportSummary, reasons_text
 from labelaudit.export.targets import box_covariances, prior_variances
 
@@ -371,12 +371,10 @@ def export_glenet(
         summary.dbinfos_objects_without_targets = db_stats["reasons"]
 
     # everything checked: write
-    for (_, dst), d in zip(pairs, data):
-        dump_infos(d, dst)
-        summary.outputs.append(str(dst))
+    writes = [(d, dst) for (_, dst), d in zip(pairs, data)]
     if db_data is not None:
-        dump_infos(db_data, pairs_db[1])
-        summary.outputs.append(str(pairs_db[1]))
+        writes.append((db_data, pairs_db[1]))
+    summary.outputs += [str(p) for p in dump_infos_all(writes)]  # all or none
     meta = {**gv.metadata(), "results_param_hash": arrays.manifest.get("param_hash"), "results_input": arrays.manifest.get("input"),
             "infos": [str(s) for s, _ in pairs], "dbinfos": None if dbinfos is None else str(dbinfos)}  # fmt: skip
     R.write_json_atomic(meta, output_dir / GLENET_META_NAME)

@@ -15,13 +15,13 @@ import pickle
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.errors import ExportError, UnsafePickleError
 
-__all__ = ["ALLOWED_GLOBALS", "dump_infos", "load_infos"]
+__all__ = ["ALLOWED_GLOBALS", "dump_infos", "dump_infos_all", "load_infos"]
 
 ALLOWED_GLOBALS = frozenset(
     {
@@ -109,15 +109,31 @@ def _numpy1_global_names() -> Iterator[None]:
 
 def dump_infos(obj: Any, path: str | Path) -> Path:
     """Pickle ``obj`` to ``path`` atomically (temporary file + rename), loadable with NumPy 1.x and 2.x."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}{R.TMP_MARKER}{os.getpid()}")
+    return dump_infos_all([(obj, path)])[0]
+
+
+def dump_infos_all(items: Sequence[tuple[Any, str | Path]]) -> list[Path]:
+    """Pickle several objects like :func:`dump_infos`, all or none.
+
+    Every object is written to a temporary name beside its target first; only when all are
+    written are they renamed over their targets. A failure in any write removes the temporaries
+    and leaves every target as it was (files that belong together, such as infos and their
+    gt-database infos, never end up one new and one old).
+    """
+    staged: list[tuple[Path, Path]] = []
     try:
-        with open(tmp, "wb") as f, warnings.catch_warnings(), _numpy1_global_names():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            pickle.dump(obj, f, protocol=C.INFOS_PICKLE_PROTOCOL)
-        os.replace(tmp, path)
+        for obj, path in items:
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{path.name}{R.TMP_MARKER}{os.getpid()}")
+            staged.append((tmp, path))
+            with open(tmp, "wb") as f, warnings.catch_warnings(), _numpy1_global_names():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                pickle.dump(obj, f, protocol=C.INFOS_PICKLE_PROTOCOL)
+        for tmp, path in staged:
+            os.replace(tmp, path)
     finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+        for tmp, _ in staged:
+            if tmp.exists():
+                tmp.unlink()
+    return [path for _, path in staged]
