@@ -146,6 +146,15 @@ def test_waymo_average_precision_by_hand():
     assert waymo_average_precision([], []) == 0.0
 
 
+def test_waymo_average_precision_gives_the_answers_waymo_tests_its_own_with():
+    # the cases of waymo-open-dataset's metrics_utils_test (ComputeMeanAveragePrecision), as numbers
+    assert waymo_average_precision([0.1], [0.2], 0.05) == pytest.approx(0.2 * 0.1, abs=1e-6)
+    assert waymo_average_precision([0.1, 0.05], [0.2, 1.0], 0.05) == pytest.approx(0.05 * 0.8 + 0.1 * 0.2 + (0.1 - 0.05) * 0.5 * 0.05, abs=1e-6)
+    assert waymo_average_precision([0.1, 0.05], [0.2, 1.0], 1.0) == pytest.approx(0.2 * 0.1 + 0.5 * (0.1 + 0.05) * 0.8, abs=1e-6)
+    # a lower precision at recall 0.4 changes nothing (the running maximum from recall 1 down)
+    assert waymo_average_precision([0.1, 0.0, 0.05], [0.2, 0.4, 1.0], 0.05) == pytest.approx(0.05 * 0.8 + 0.1 * 0.2 + (0.1 - 0.05) * 0.5 * 0.05, abs=1e-6)
+
+
 def test_score_cutoffs_are_hundredths():
     c = score_cutoffs()
     assert len(c) == 101 and c[0] == 0.0 and c[-1] == 1.0 and c[37] == 0.37
