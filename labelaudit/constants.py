@@ -37,6 +37,22 @@ FREE_SPACE_SLIT_PROB = 0.1  # prior probability that a ray through a right box's
 FREE_SPACE_AZIMUTH_BINS = 2048  # azimuth buckets of the frame's points for the ray selection (speed only)
 LABEL_TOLERANCE = {"center": 0.10, "length": 0.20, "width": 0.20, "height": 0.10, "yaw": 0.02}  # offsets of about this std (m, rad) are not errors; sizes wider: the fit barely sees them (docs/label-error.md)
 
+# --- tracks: every label judged against its own track (labelaudit/core/track.py, docs/method.md "Tracks") ---
+TRACK_FORMATS = ("waymo-v1", "waymo-v2", "av2")  # dataset formats whose object ids are track ids (KITTI object: none, the columns stay null)
+TRACK_WINDOW = 0.55  # s; neighbours within this time of a frame predict its centre and heading (±5 frames at 10 Hz)
+TRACK_MAX_NEIGHBOURS = 5  # at most this many neighbours on each side of a frame
+TRACK_MIN_FRAMES = 3  # a track with fewer labelled frames cannot tell which label is wrong: null scores
+TRACK_RATE_PRIOR = (40.0, 6.0, 1.5, 0.5)  # std of the local fit's ridge prior: centre velocity m/s, acceleration m/s², yaw rate rad/s, yaw acceleration rad/s²
+TRACK_NOISE_FLOOR = {"center": 0.03, "length": 0.03, "width": 0.02, "height": 0.03, "yaw": 0.015}  # m, rad; ordinary per-frame label noise is never taken below this (the run's own, pooled per class, when larger)
+TRACK_NOISE_MIN_SAMPLES = 30  # residuals of a class needed before its own noise scale replaces the floor
+TRACK_HUBER_K = 2.0  # Huber threshold of the first robust iterations (standardised residual)
+TRACK_BIWEIGHT_C = 4.685  # Tukey biweight cut-off of the later iterations (95 % efficiency): gross outliers weigh 0
+TRACK_ERROR_PRIOR = 0.02  # π: prior probability that a label contradicts its track
+TRACK_ERROR_SCALE = 10.0  # k: a wrong label's residual is ~k times the ordinary noise (the broad component of the mixture)
+TRACK_ISSUE_MIN = 0.5  # track_issue names a kind when its probability reaches this, else "none"
+TRACK_FLAG = 0.9  # a frame with track_error at or above this counts as flagged in tracks.parquet (and the gate's default)
+TRACK_MOVING_SPEED = 1.0  # m/s; a track faster than this in a frame is moving there (heading vs motion in tracks.parquet)
+
 # --- spatial distribution p_G and JIoU (docs/method.md §6–7) ---
 DEFAULT_CELLS_PER_SIDE = 64  # grid cells across the longer box side; JIoU stable ±0.01 when doubled
 DEFAULT_NUM_SAMPLES = 128  # quasi-random (Sobol) samples of φ for form (b) of p_G (128 vs 1024: JIoU-GT within 0.003)

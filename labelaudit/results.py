@@ -9,6 +9,7 @@ A results folder looks like this::
       missing/part-<h>.parquet candidate objects without a label found in that chunk (when the search ran)
       errors/part-<h>.parquet  frame-level errors of that chunk (only when there were any)
       errors.parquet           all frame-level errors of the run, gathered at the end (may be empty)
+      tracks.parquet           one row per track (datasets with track ids), written by the tracks pass
 
 Every shard carries the same metadata as the manifest (key ``labelaudit`` in the Parquet schema
 metadata). Files are written under a temporary dot-name and renamed, so readers (which ignore
@@ -61,6 +62,7 @@ OBJECTS_DIR = "objects"
 MISSING_DIR = "missing"
 ERRORS_DIR = "errors"
 ERRORS_FILE = "errors.parquet"
+TRACKS_FILE = "tracks.parquet"
 METADATA_KEY = b"labelaudit"
 TMP_MARKER = ".tmp-"
 
@@ -80,7 +82,7 @@ class Column(NamedTuple):
     nullable: bool
     unit: str
     description: str
-    source: str  # who fills it: identity / box (infer.rows from the Frame), model (audit_object), row, extra (Frame.extras)
+    source: str  # who fills it: identity / box (infer.rows from the Frame), model (audit_object), row, extra (Frame.extras), track (the tracks pass)
 
 
 # The single definition of the results table. docs/results-schema.md documents the same list;
@@ -147,6 +149,14 @@ COLUMNS: tuple[Column, ...] = (
     Column("tracking_difficulty", pa.int32(), True, "", "Waymo tracking difficulty level", "extra"),
     Column("speed_x", pa.float64(), True, "m/s", "Waymo object speed along x (vehicle frame)", "extra"),
     Column("speed_y", pa.float64(), True, "m/s", "Waymo object speed along y", "extra"),
+    # Sequences (datasets with ego poses and track ids: Waymo, Argoverse 2); null for KITTI object.
+    Column("timestamp", pa.float64(), True, "s", "capture time of the frame (Waymo / Argoverse 2 timestamp in seconds); null without one", "box"),
+    Column("world_cx", pa.float64(), True, "m", "box centre x in the world frame (the dataset's ego pose applied); null without a pose", "box"),
+    Column("world_cy", pa.float64(), True, "m", "box centre y in the world frame", "box"),
+    Column("world_cz", pa.float64(), True, "m", "box centre z in the world frame", "box"),
+    Column("world_yaw", pa.float64(), True, "rad", "heading about the world z axis, in [-π, π)", "box"),
+    Column("track_error", pa.float64(), True, "", "probability in [0, 1] that the label contradicts its own track (size, heading or trajectory of the object's other frames); null without a track of ≥ 3 frames", "track"),
+    Column("track_issue", pa.string(), True, "", "what the label contradicts most: size | heading | position | none (below 0.5); null where track_error is null", "track"),
 )
 
 SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=c.nullable) for c in COLUMNS])
@@ -160,6 +170,10 @@ LIST_COLUMNS = frozenset(n for n, t, *_ in COLUMNS if pa.types.is_list(t))
 NUMERIC_COLUMNS = FLOAT_COLUMNS | INT_COLUMNS
 IDENTITY_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS if c.source == "identity")
 """dataset, frame_id, object_index, object_id, class_name: what names an object."""
+TRACK_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS if c.source == "track")
+"""track_error, track_issue: filled by the tracks pass over the written shards (:mod:`labelaudit.infer.tracks`), null before it."""
+WORLD_COLUMNS = ("timestamp", "world_cx", "world_cy", "world_cz", "world_yaw")
+"""The frame's time and the box in the world frame: what the tracks pass reads besides the label."""
 KEY_COLUMNS = ("frame_id", "object_index")
 """The key of a row: joins with the dataset's labels (object_index = position in the frame's labels)."""
 MODEL_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS if c.source == "model")
@@ -585,6 +599,17 @@ class Results:
         """The missing-label candidates (:func:`read_missing`; empty when the search did not run)."""
         return read_missing(self.root)
 
+    def tracks(self) -> pa.Table | None:
+        """``tracks.parquet`` (one row per track), or None when the run has none (KITTI, a bare file)."""
+        import pyarrow.parquet as pq
+        path = self.root / TRACKS_FILE
+        if self.root.is_file() or not os.path.lexists(path):
+            return None
+        try:
+            return pq.read_table(path)
+        except (pa.ArrowException, OSError) as exc:
+            raise damaged(path, f"unreadable tracks table ({one_line(str(exc))})") from None
+
     def failed_frames(self) -> int:
         """Number of frames (or units) that failed as a whole."""
         import pyarrow.compute as pc
@@ -900,7 +925,7 @@ def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -
     """
     check_output_folder(output)
     if overwrite:
-        for name in (OBJECTS_DIR, ERRORS_DIR, MISSING_DIR, ERRORS_FILE, MANIFEST_NAME):
+        for name in (OBJECTS_DIR, ERRORS_DIR, MISSING_DIR, ERRORS_FILE, TRACKS_FILE, MANIFEST_NAME):
             try:
                 _remove(output / name)
             except OSError as exc:

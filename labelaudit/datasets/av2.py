@@ -492,6 +492,7 @@ class Av2Reader:
             object_errors=errors,
             ray_mask=None,
             pose=None if pose is None else pose.copy(),
+            timestamp=ts / 1e9,
         )
 
 

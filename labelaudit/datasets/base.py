@@ -86,6 +86,8 @@ class Frame:
         None when the dataset has none (KITTI object) or the frame's pose is missing
     image_view : the camera image the labels were drawn in, when the dataset labels only what one
         camera sees (KITTI: image_2, with its DontCare regions); None = labels all around (Waymo)
+    timestamp : capture time in seconds (Waymo timestamp_micros / 1e6, Argoverse 2
+        timestamp_ns / 1e9), for ordering a sequence in time; None when unknown (KITTI object)
     """
 
     frame_id: str
@@ -101,6 +103,7 @@ class Frame:
     ray_mask: NDArray[np.bool_] | None = None
     pose: NDArray[np.float64] | None = None
     image_view: ImageView | None = None
+    timestamp: float | None = None
 
     def __post_init__(self) -> None:
         k = len(self.boxes)

@@ -326,6 +326,7 @@ def make_frame(
     object_errors: dict[int, str] | None = None,
     ray_mask: NDArray[np.bool_] | None = None,
     pose: NDArray[np.floating] | None = None,
+    timestamp: float | None = None,
 ) -> Frame:
     """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None).
 
@@ -356,6 +357,7 @@ def make_frame(
         object_errors=problems,
         ray_mask=ray_mask,
         pose=None if pose is None else np.asarray(pose, dtype=np.float64),
+        timestamp=timestamp,
     )
 
 

@@ -272,6 +272,7 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
     return make_frame(
         frame_id, points, boxes, types, ids, extras, sensor_origin(calibrations), warnings, classes,
         source=str(source), locations=locations, box_fields=_BOX_FIELDS, ray_mask=ray_mask, pose=frame_pose,
+        timestamp=msg.timestamp_micros / 1e6,
     )
 
 

@@ -365,7 +365,7 @@ class WaymoV2Reader:
         return make_frame(
             frame_id, points, boxes, types, object_ids, extras, origin, warnings, self.classes,
             source=str(box_file), locations=locations, box_fields=tuple(BOX_COLUMNS[k] for k in _BOX_KEYS), object_errors=object_errors,
-            ray_mask=ray_mask, pose=frame_pose,
+            ray_mask=ray_mask, pose=frame_pose, timestamp=ts / 1e6,
         )
 
     @staticmethod

@@ -74,6 +74,26 @@ def _extras_for(frame: Frame, i: int, present: list[tuple[str, Any]] | None = No
     return out
 
 
+def world_boxes(frame: Frame, indices: list[int]) -> dict[int, dict[str, float | None]]:
+    """The :data:`~labelaudit.results.WORLD_COLUMNS` of labels ``indices``: the frame's time and each
+    box moved into the world frame with the ego pose (yaw turned by the pose's heading about z).
+    Empty when the frame has neither pose nor time (KITTI object)."""
+    if frame.pose is None and frame.timestamp is None:
+        return {}
+    out: dict[int, dict[str, float | None]] = {}
+    ts = None if frame.timestamp is None else float(frame.timestamp)
+    if frame.pose is None:
+        return {i: {"timestamp": ts} for i in indices}
+    pose = np.asarray(frame.pose, dtype=float)
+    boxes = np.asarray(frame.boxes[indices], dtype=float).reshape(-1, 7)
+    centres = boxes[:, :3] @ pose[:3, :3].T + pose[:3, 3]
+    yaws = g.normalize_angle(boxes[:, 6] + math.atan2(pose[1, 0], pose[0, 0]))
+    for j, i in enumerate(indices):
+        cx, cy, cz = centres[j].tolist()
+        out[i] = {"timestamp": ts, "world_cx": cx, "world_cy": cy, "world_cz": cz, "world_yaw": float(yaws[j])}
+    return out
+
+
 def wants_class(cfg: RunConfig, class_name: str) -> bool:
     """Whether objects of ``class_name`` are audited under ``cfg`` (``classes = ["all"]`` = every class)."""
     return ALL_CLASSES in cfg.classes or class_name in cfg.classes
@@ -103,6 +123,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     final: set[int] = set()  # indices whose row is already normalised
     to_audit: list[int] = []
     extras = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
+    world = world_boxes(frame, selected)
     for i in selected:
         box = frame.boxes[i]
         row: dict[str, Any] = {
@@ -116,6 +137,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             "model": cfg.model.kind,
             "sigma": cfg.model.sigma,
             **_extras_for(frame, i, extras),
+            **world.get(i, {}),
         }
         rows[i] = row
         problem = frame.object_errors.get(i)  # the reader's reason, naming file, line and field

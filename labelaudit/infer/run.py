@@ -385,6 +385,10 @@ def _run_locked(
             for p in d.glob("*.parquet"):
                 if p.name not in keep:
                     p.unlink()
+    # Tracks span chunks: judged once, over every written row (labelaudit/infer/tracks.py).
+    from labelaudit.infer.tracks import run_tracks_pass
+
+    run_tracks_pass(output, cfg, metadata)
     error_parts = sorted(err_dir.glob("*.parquet")) if err_dir.is_dir() else []
     errors = R.read_error_tables(error_parts)
     R.write_parquet_atomic(R.with_metadata(errors, metadata), output / R.ERRORS_FILE)
