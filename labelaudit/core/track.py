@@ -23,6 +23,7 @@ N(0, k²·I_d) (errors ~k times the ordinary noise) with prior probability π.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -187,6 +188,31 @@ def local_fit(
     return coef[:, 0, :], inv00, coef[:, 1, :]
 
 
+def pairwise_prediction(dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_]) -> FloatArray:
+    """Median over every pair of a frame's neighbours of the line through the pair, at dt = 0.
+
+    A robust, leverage-free prediction (Theil–Sen-like) that one wrong neighbour cannot move:
+    it only enters the pairs that contain it.
+
+    Parameters
+    ----------
+    dt : (n, m) neighbour times relative to the frame; y : (n, m, d) their values; valid : (n, m)
+
+    Returns
+    -------
+    (n, d) predictions; NaN where a frame has fewer than two neighbours at different times
+    """
+    m = dt.shape[1]
+    j, k = np.triu_indices(m, 1)
+    tj, tk = dt[:, j], dt[:, k]
+    ok = valid[:, j] & valid[:, k] & (tj != tk)
+    frac = np.where(ok, -tj / np.where(ok, tk - tj, 1.0), np.nan)  # (n, P): where dt = 0 lies on the segment j → k
+    pred = y[:, j, :] + (y[:, k, :] - y[:, j, :]) * frac[..., None]
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: frames with < 2 neighbours, NaN on purpose
+        return np.nanmedian(np.where(ok[..., None], pred, np.nan), axis=1)
+
+
 def robust_location(values: FloatArray, precision: FloatArray, params: TrackParams, iterations: int = 5) -> tuple[FloatArray, FloatArray]:
     """Robust precision-weighted mean of one track's measurements of a constant.
 
@@ -241,13 +267,17 @@ def track_residuals(
     # fits, and the fits are redone, until no frame stands out (a few rounds).
     def fit(y: FloatArray, ridge: FloatArray, residual: Any) -> tuple[FloatArray, FloatArray]:
         out = np.zeros(n, dtype=bool)
+        # Which of two frames that both stand out is the wrong one: the one a median of pairwise
+        # lines through its neighbours (insensitive to one wrong neighbour) disagrees with most.
+        pp = pairwise_prediction(dt, y, valid)
+        b = np.sqrt(np.sum(np.reshape(np.nan_to_num(residual(pp, np.zeros(n))), (n, -1)) ** 2, axis=1))
         for _ in range(_OUTLIER_ROUNDS):
             use = valid & ~out[idx]
             pred, var, slope = local_fit(dt, y, use, ridge, params)
             z = residual(pred, var)
             a = np.sqrt(np.sum(np.reshape(z, (n, -1)) ** 2, axis=1))
-            worst_near = np.where(use, a[idx], 0.0).max(axis=1, initial=0.0)
-            new = (a > params.biweight_c) & (a >= worst_near) & ~out
+            worst_near = np.where(use & (a[idx] > params.biweight_c), b[idx], 0.0).max(axis=1, initial=0.0)
+            new = (a > params.biweight_c) & (b >= worst_near) & ~out
             if not new.any():
                 break
             out |= new

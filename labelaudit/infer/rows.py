@@ -86,8 +86,9 @@ def world_boxes(frame: Frame, indices: list[int]) -> dict[int, dict[str, float |
         return {i: {"timestamp": ts} for i in indices}
     pose = np.asarray(frame.pose, dtype=float)
     boxes = np.asarray(frame.boxes[indices], dtype=float).reshape(-1, 7)
-    centres = boxes[:, :3] @ pose[:3, :3].T + pose[:3, 3]
-    yaws = g.normalize_angle(boxes[:, 6] + math.atan2(pose[1, 0], pose[0, 0]))
+    with np.errstate(invalid="ignore", over="ignore"):  # a label the reader could not use (inf, NaN) stays unusable, silently: its row says why
+        centres = boxes[:, :3] @ pose[:3, :3].T + pose[:3, 3]
+        yaws = g.normalize_angle(boxes[:, 6] + math.atan2(pose[1, 0], pose[0, 0]))
     for j, i in enumerate(indices):
         cx, cy, cz = centres[j].tolist()
         out[i] = {"timestamp": ts, "world_cx": cx, "world_cy": cy, "world_cz": cz, "world_yaw": float(yaws[j])}
