@@ -222,3 +222,60 @@ def test_kitti_rows_have_no_tracks(tmp_path: Path) -> None:
 
 def test_log_of() -> None:
     assert log_of("seg_1:1600000000000000") == "seg_1" and log_of("a:b:123") == "a:b" and log_of("000123") == "000123"
+
+
+# --------------------------------------------------------------------------- simulator: noise inside tracks
+
+
+def test_track_noise_injects_recorded_errors_of_the_given_sizes() -> None:
+    from labelaudit.sim.tracknoise import TrackNoiseSpec, perturb_track_labels
+
+    k = 4000
+    boxes = np.tile([10.0, 5.0, -1.0, 4.5, 1.9, 1.6, 0.3], (k, 1))
+    classes = ["Car"] * (k - 10) + ["Pedestrian"] * 10
+    spec = TrackNoiseSpec(error_fraction=0.5)
+    out, kinds, mag = perturb_track_labels(boxes, classes, spec, np.random.default_rng(0))
+    again = perturb_track_labels(boxes, classes, spec, np.random.default_rng(0))
+    assert np.array_equal(out, again[0]) and kinds == again[1]
+    assert np.array_equal(out[-10:], boxes[-10:]) and set(kinds[-10:]) == {"none"}  # other classes untouched
+    kinds_a = np.array(kinds)
+    d = out - boxes
+    clean = kinds_a == "none"
+    assert 0.45 < np.mean(~clean[:-10]) < 0.55
+    np.testing.assert_allclose(np.std(d[clean][:, [0, 1, 3, 4]], axis=0), [0.03, 0.03, 0.03, 0.02], rtol=0.1)
+    assert abs(np.std(normalize(d[clean][:, 6])) - 0.02) < 0.003
+    for kind, col, (lo, hi) in (("length", 3, (0.25, 0.5)), ("width", 4, (0.15, 0.3)), ("yaw", 6, (0.1, 0.25))):
+        sel = kinds_a == kind
+        assert sel.sum() > 300
+        assert np.all((np.abs(mag[sel]) >= lo) & (np.abs(mag[sel]) <= hi))
+        off = normalize(d[sel][:, col]) if col == 6 else d[sel][:, col]
+        assert np.all(np.abs(off - mag[sel]) < 0.15)  # the error plus the ordinary noise
+    flip = kinds_a == "flip"
+    assert np.all(np.abs(np.abs(normalize(d[flip][:, 6])) - np.pi) < 0.1)
+    centre = kinds_a == "centre"
+    assert np.all(np.abs(np.hypot(d[centre][:, 0], d[centre][:, 1]) - mag[centre]) < 0.15) and mag[centre].min() >= 0.3
+    with pytest.raises(ValueError, match="kinds"):
+        TrackNoiseSpec(kinds=("bogus",))
+
+
+def test_simulated_segment_vehicles_drive_and_record_track_errors(tmp_path: Path) -> None:
+    from labelaudit.sim.tracknoise import TrackNoiseSpec
+    from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_manifest
+
+    seg = simulate_waymo_segment(seed=3, frames=3, size="small", chunks=1, moving_fraction=1.0, track_noise=TrackNoiseSpec(error_fraction=0.3))
+    f0, f2 = seg.frames[0], seg.frames[2]
+
+    def world(fr: Any) -> np.ndarray:
+        return fr.true_boxes[:, :3] @ fr.pose[:3, :3].T + fr.pose[:3, 3]
+
+    step = np.hypot(*(world(f2) - world(f0))[:, :2].T) / 0.2
+    vehicles = np.array([c in ("Car", "Van", "Truck") for c in f0.sim_classes])
+    lo, hi = C.SIM_MOVING_SPEED
+    assert np.all((step[vehicles] > lo * 0.95) & (step[vehicles] < hi * 1.01)) and np.all(step[~vehicles] < 1e-9)
+    assert set(f0.track_error_kind) - {"none"} and len(f0.track_error_size) == len(f0.boxes)
+    m = pq.read_table(write_manifest([seg], tmp_path / "manifest.parquet")).to_pylist()
+    assert {r["track_error_kind"] for r in m} >= {"none"} and len(m) == sum(len(f.boxes) for f in seg.frames)
+    # without the new options the scene is the one earlier versions rendered
+    plain = simulate_waymo_segment(seed=3, frames=1, size="small", chunks=1)
+    still = simulate_waymo_segment(seed=3, frames=1, size="small", chunks=1, moving_fraction=0.0)
+    assert np.array_equal(plain.frames[0].points, still.frames[0].points) and plain.frames[0].track_error_kind == []

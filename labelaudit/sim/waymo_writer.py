@@ -16,8 +16,10 @@ The scene and the ray-caster are the KITTI simulator's (:mod:`labelaudit.sim.sce
   with the pose it was rendered at and back into the frame's vehicle frame. The readers must
   reproduce them from the written files.
 
-The scene is static in the world frame (ground z = 0); the ego vehicle drives on it with constant
-speed and yaw rate (planar motion: roll = pitch = 0, since the ray-caster's ground is a plane).
+The scene is static in the world frame (ground z = 0) unless ``moving_fraction`` lets some vehicles
+drive (constant speed and yaw rate, rendered where they are at each column group's capture time);
+the ego vehicle drives with constant speed and yaw rate (planar motion: roll = pitch = 0, since
+the ray-caster's ground is a plane).
 """
 
 from __future__ import annotations
@@ -36,9 +38,11 @@ from labelaudit.datasets import waymo_proto as wp
 from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
+from labelaudit import constants as C
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
+from labelaudit.sim.tracknoise import TrackNoiseSpec, perturb_track_labels
 from labelaudit.sim.raycast import LidarSpec, ray_directions, render_range_image
-from labelaudit.sim.scene import Scene, SceneSpec, SimObject, sample_scene
+from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, SimObject, sample_scene
 from labelaudit.infer.crop import points_in_boxes_numpy
 
 FloatArray = NDArray[np.float64]
@@ -132,6 +136,8 @@ class SimWaymoFrame:
     sim_classes: list[str] = field(default_factory=list)  # the simulator's KITTI class names
     true_boxes: FloatArray | None = None  # (K, 7) before label noise (None: boxes are exact)
     perturbation: list[str] = field(default_factory=list)  # per object, labelaudit.sim.noise kinds
+    track_error_kind: list[str] = field(default_factory=list)  # per object, labelaudit.sim.tracknoise kinds (empty: no track noise)
+    track_error_size: list[float] = field(default_factory=list)  # per object, the injected error's magnitude (m / rad)
 
 
 @dataclass
@@ -154,6 +160,47 @@ def _scene_in_vehicle(scene: Scene, pose: FloatArray) -> Scene:
 
     objs = [SimObject(o.class_name, move(o.box), move(o.parts), o.reflectivity) for o in scene.objects]
     return Scene(objects=objs, ground_z=scene.ground_z, ground_reflectivity=scene.ground_reflectivity)
+
+
+def _motions(rng: np.random.Generator, scene: Scene, fraction: float) -> list[tuple[float, float] | None]:
+    """(speed, yaw rate) of each object that drives (vehicles only, a ``fraction`` of them), None for parked ones."""
+    out: list[tuple[float, float] | None] = []
+    for o in scene.objects:
+        u, v, w = rng.random(3)
+        if o.class_name in VEHICLE_CLASSES and u < fraction:
+            lo, hi = C.SIM_MOVING_SPEED
+            out.append((lo + (hi - lo) * v, C.SIM_MOVING_YAW_RATE * (2.0 * w - 1.0)))
+        else:
+            out.append(None)
+    return out
+
+
+def _scene_at(world: Scene, motions: list[tuple[float, float] | None], t: float) -> Scene:
+    """The world scene at time ``t``: each driving object moved along its arc (constant speed and yaw rate)."""
+    if not any(motions):
+        return world
+    objs = []
+    for o, m in zip(world.objects, motions):
+        if m is None:
+            objs.append(o)
+            continue
+        speed, rate = m
+        c0, th0 = o.box[:2], float(o.box[6])
+        if abs(rate) < 1e-9:
+            shift = speed * t * np.array([np.cos(th0), np.sin(th0)])
+        else:
+            shift = speed / rate * np.array([np.sin(th0 + rate * t) - np.sin(th0), np.cos(th0) - np.cos(th0 + rate * t)])
+        turn = rate * t
+        rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+
+        def move(b: FloatArray) -> FloatArray:
+            out = b.copy()
+            out[..., :2] = (b[..., :2] - c0) @ rot.T + c0 + shift
+            out[..., 6] = np.arctan2(np.sin(b[..., 6] + turn), np.cos(b[..., 6] + turn))
+            return out
+
+        objs.append(SimObject(o.class_name, move(o.box), move(o.parts), o.reflectivity))
+    return Scene(objects=objs, ground_z=world.ground_z, ground_reflectivity=world.ground_reflectivity)
 
 
 def _spec(calib: LidarCalibration, width: int, height: int, name: int, noise: bool) -> LidarSpec:
@@ -187,6 +234,8 @@ def simulate_waymo_segment(
     scene_spec: SceneSpec | None = None,
     world_offset: tuple[float, float] = (1200.0, -340.0),
     name: str | None = None,
+    track_noise: TrackNoiseSpec | None = None,
+    moving_fraction: float = 0.0,
 ) -> SimWaymoSegment:
     """Render a Waymo segment of a static scene seen from a moving vehicle.
 
@@ -204,6 +253,11 @@ def simulate_waymo_segment(
     scene_spec : object counts and distances (default: the simulator's)
     world_offset : where the scene sits in the world frame, so poses have large translations
     name : segment context name (default derived from the seed)
+    track_noise : per-frame label noise inside tracks (ordinary scatter and injected annotator
+        errors, :mod:`labelaudit.sim.tracknoise`), after ``label_noise``; ``track_error_kind`` and
+        ``track_error_size`` record it
+    moving_fraction : share of vehicles that drive (constant speed and yaw rate, constants
+        ``SIM_MOVING_*``); the rest of the scene is static. 0 keeps the scene of earlier versions
     """
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
@@ -215,6 +269,7 @@ def simulate_waymo_segment(
     start = planar_pose(ox, oy, 0.0)
     # the scene was drawn around the vehicle at t = 0: move it to the world
     world = _scene_in_vehicle(scene_v, np.linalg.inv(start))
+    motions = _motions(np.random.default_rng([seed, 13]), world, moving_fraction) if moving_fraction > 0 else [None] * len(world.objects)
     calibs = waymo_calibrations(size)
     seg = SimWaymoSegment(name or f"{seed:019d}_0000_000_0020_000", calibs)
     ids = [f"sim{seed}-{i:04d}" for i in range(len(world.objects))]
@@ -247,7 +302,7 @@ def simulate_waymo_segment(
                 # column j is captured at (j + ½)/W of the sweep, centred on the frame time
                 t_c = t_f + ((j0 + j1) / 2.0 / w - 0.5) * SWEEP_SECONDS if n_chunks > 1 else t_f
                 pose_c = pose_at(t_c)
-                local = _scene_in_vehicle(world, pose_c)
+                local = _scene_in_vehicle(_scene_at(world, motions, t_c), pose_c)
                 img = render_range_image(local, spec, calib.extrinsic, rng if noise else None)
                 ground = render_range_image(Scene([], local.ground_z, local.ground_reflectivity), spec, calib.extrinsic, None)
                 cols = np.zeros((h, w), dtype=bool)
@@ -268,17 +323,22 @@ def simulate_waymo_segment(
                 yaw_c = np.arctan2(pose_c[1, 0], pose_c[0, 0])
                 ppose[:, j0:j1] = (0.0, 0.0, yaw_c, pose_c[0, 3], pose_c[1, 3], pose_c[2, 3])
             lidars[name_] = SimLidarFrame([r1, r2], ppose if name_ == 1 else None)
-        true_boxes = _scene_in_vehicle(world, pose_f).boxes
+        true_boxes = _scene_in_vehicle(_scene_at(world, motions, t_f), pose_f).boxes
         classes = [o.class_name for o in world.objects]
         if label_noise is not None:
             boxes, kinds = perturb_boxes(true_boxes, classes, label_noise, np.random.default_rng([seed, f, 7]))
         else:
             boxes, kinds = true_boxes, ["none"] * len(classes)
+        track_kinds: list[str] = []
+        track_sizes: list[float] = []
+        if track_noise is not None:
+            boxes, track_kinds, mags = perturb_track_labels(boxes, classes, track_noise, np.random.default_rng([seed, f, 11]))
+            track_sizes = mags.tolist()
         pts = np.concatenate(expected) if expected else np.zeros((0, 4), np.float32)
         counts = np.array([len(idx) for idx in points_in_boxes_numpy(pts, boxes)], dtype=np.int64)  # Waymo counts every point in the box
         seg.frames.append(
             SimWaymoFrame(t0 + int(round(t_f * 1e6)), pose_f, lidars, boxes, types.copy(), list(ids), counts, pts,
-                          classes, true_boxes, kinds)
+                          classes, true_boxes, kinds, track_kinds, track_sizes)
         )
     return seg
 
@@ -443,8 +503,10 @@ def write_as_kitti(segment: SimWaymoSegment, root: str | Path, seed: int = 0) ->
 
 
 def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
-    """One row per object: frame_id, object_id, class names, true and written box, perturbation."""
-    rows: dict[str, list] = {k: [] for k in ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation")}
+    """One row per object: frame_id, object_id, class names, true and written box, perturbation,
+    the injected track error (``track_error_kind``: none / length / width / yaw / flip / centre) and its size."""
+    rows: dict[str, list] = {k: [] for k in ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation",
+                                             "track_error_kind", "track_error_size")}
     for seg in segments:
         for fr in seg.frames:
             true = fr.boxes if fr.true_boxes is None else fr.true_boxes
@@ -456,6 +518,8 @@ def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
                 rows["true_box"].append([float(v) for v in true[k]])
                 rows["written_box"].append([float(v) for v in fr.boxes[k]])
                 rows["perturbation"].append(fr.perturbation[k] if fr.perturbation else "none")
+                rows["track_error_kind"].append(fr.track_error_kind[k] if fr.track_error_kind else "none")
+                rows["track_error_size"].append(float(fr.track_error_size[k]) if fr.track_error_size else 0.0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(pa.table(rows), path)
@@ -470,6 +534,8 @@ def simulate_waymo_dataset(
     size: str = "small",
     formats: tuple[str, ...] = ("waymo-v2", "waymo-v1"),
     label_noise: NoiseSpec | None = None,
+    track_noise: TrackNoiseSpec | None = None,
+    moving_fraction: float = 0.0,
 ) -> dict[str, Path]:
     """Simulate ``segments`` Waymo segments and write them in each of ``formats``.
 
@@ -481,7 +547,10 @@ def simulate_waymo_dataset(
     if unknown:
         raise ValueError(f"unknown formats {sorted(unknown)}; expected waymo-v2 and/or waymo-v1")
     out = Path(out_dir)
-    segs = [simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=label_noise) for i in range(segments)]
+    segs = [
+        simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=label_noise, track_noise=track_noise, moving_fraction=moving_fraction)
+        for i in range(segments)
+    ]
     roots: dict[str, Path] = {}
     if "waymo-v2" in formats:
         roots["waymo-v2"] = out / "waymo_v2"
