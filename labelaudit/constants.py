@@ -304,6 +304,7 @@ SHOW_FRAME_SIZE = (1000, 800)  # default `show` picture of a whole frame, pixels
 SHOW_MAX_POINTS_DRAWN = 1500  # a denser crop is drawn with an even subsample (same look, bounded drawing time)
 SHOW_CONTEXT_MARGIN = 2.0  # m; points this far around the box are drawn (grey) for orientation
 SHOW_VIEW_MARGIN = 0.8  # m of free space around the label, suggested box and 2-σ corner ellipses
+SHOW_TRACK_FRAMES = 3  # `show` of a tracked object draws its labels in this many frames before and after (moved into this frame)
 SHOW_FRAME_WORST = 5  # `show` of a frame numbers this many worst boxes
 SHOW_FRAME_MARGIN = 6.0  # m around the frame's boxes (and the sensor) in the frame picture
 REPORT_TOP = 12  # default gallery size per ranking of `labelaudit report`

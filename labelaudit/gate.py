@@ -13,7 +13,7 @@ A gate file is TOML with a ``[default]`` table (rules for every class) and optio
 
 Every rule is evaluated per class present in the results, except ``max_failed_frames``, which is
 dataset-wide; ``[class.X]`` tables of classes without objects are listed as absent. Outcome per
-rule: ``pass``, ``fail``, ``skip`` (inactive: no ``label_error`` values yet) or ``error`` (could
+rule: ``pass``, ``fail``, ``skip`` (inactive: no ``label_error`` / ``track_error`` values) or ``error`` (could
 not be evaluated).
 Exit code: 2 when any rule errs or nothing was evaluated, else 1 when any rule fails, else 0.
 """
@@ -49,14 +49,17 @@ KEYS: dict[str, tuple[str, str]] = {
     "max_count_no_points": ("max", "number of objects without any LiDAR point"),
     "label_error_threshold": ("param", "label_error above this counts as a likely wrong label"),
     "max_fraction_label_error_above": ("max", "fraction of objects with label_error above label_error_threshold"),
+    "track_error_threshold": ("param", "track_error at or above this counts as a label that contradicts its track"),
+    "max_fraction_track_error_above": ("max", "fraction of tracked objects with track_error at or above track_error_threshold"),
     "max_failed_objects": ("max", "objects whose inference failed (status error)"),
     "min_objects": ("min", "objects evaluated (status ok, few_points or no_points)"),
     "max_failed_frames": ("max", "frames that could not be read or audited (dataset-wide)"),
 }
 GLOBAL_KEYS = frozenset({"max_failed_frames"})
 COUNT_KEYS = frozenset({"max_count_no_points", "max_failed_objects", "min_objects", "max_failed_frames"})
-FRACTION_KEYS = frozenset({"max_fraction_jiou_gt_below", "max_fraction_no_points", "max_fraction_label_error_above"})
-NEEDS = {"max_fraction_jiou_gt_below": "jiou_gt_threshold", "max_fraction_label_error_above": "label_error_threshold"}
+FRACTION_KEYS = frozenset({"max_fraction_jiou_gt_below", "max_fraction_no_points", "max_fraction_label_error_above", "max_fraction_track_error_above"})
+NEEDS = {"max_fraction_jiou_gt_below": "jiou_gt_threshold", "max_fraction_label_error_above": "label_error_threshold",
+         "max_fraction_track_error_above": "track_error_threshold"}
 # Order of rules in reports.
 RULE_ORDER = tuple(k for k, (kind, _) in KEYS.items() if kind != "param")
 
@@ -220,7 +223,7 @@ def _finite(values: np.ndarray) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
-def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, jiou: np.ndarray, lerr: np.ndarray) -> list[RuleResult]:
+def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, jiou: np.ndarray, lerr: np.ndarray, terr: np.ndarray) -> list[RuleResult]:
     """Rules of one class over its rows (arrays of equal length; NaN = null)."""
     evaluated = np.isin(status, EVALUATED_STATUSES)
     n = int(evaluated.sum())
@@ -261,6 +264,14 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
                 continue
             value = float(np.mean(values > rules["label_error_threshold"]))
             note = f"above {format_number(rules['label_error_threshold'])}"
+        elif rule == "max_fraction_track_error_above":
+            values = _finite(terr[evaluated])
+            count = len(values)
+            if count == 0:
+                out.append(RuleResult(name, rule, None, thr, "skip", 0, "inactive: no track_error (no tracks: KITTI, or tracks of < 3 frames)"))
+                continue
+            value = float(np.mean(values >= rules["track_error_threshold"]))
+            note = f"at or above {format_number(rules['track_error_threshold'])}"
         if value is None:
             out.append(RuleResult(name, rule, None, thr, "error", count, note or "could not be evaluated"))
         else:
@@ -281,19 +292,20 @@ def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
             f"{results.root}: the run that wrote these results did not finish; rerun `labelaudit infer` "
             "with the same options to resume, then check again"
         )
-    table = results.read(["class_name", "status", "jiou_gt", "label_error"])
+    table = results.read(["class_name", "status", "jiou_gt", "label_error", "track_error"])
     if table.num_rows == 0:
         raise ResultsError(f"{results.root}: results hold no objects; nothing to check (wrong --classes, or an empty dataset?)")
     classes = np.asarray(table.column("class_name").to_pylist(), dtype=object)
     status = np.asarray(table.column("status").to_pylist(), dtype=object)
     jiou = table.column("jiou_gt").to_numpy(zero_copy_only=False).astype(float)
     lerr = np.asarray([np.nan if v is None else v for v in table.column("label_error").to_pylist()], dtype=float)
+    terr = np.asarray([np.nan if v is None else v for v in table.column("track_error").to_pylist()], dtype=float)
 
     out: list[RuleResult] = []
     names = sorted(set(classes.tolist()))
     for name in names:
         m = classes == name
-        out.extend(_evaluate_class(name, gate.rules_for(name), status[m], jiou[m], lerr[m]))
+        out.extend(_evaluate_class(name, gate.rules_for(name), status[m], jiou[m], lerr[m], terr[m]))
     if "max_failed_frames" in gate.default:
         failed = results.failed_frames()
         thr = gate.default["max_failed_frames"]

@@ -165,3 +165,17 @@ def test_json_and_junit_reports(tmp_path):
     assert int(suite.get("failures")) == sum(r.status == "fail" for r in report.results) >= 1
     failed = [c.get("name") for c in suite.iter("testcase") if c.find("failure") is not None]
     assert "min_median_jiou_gt" in failed
+
+
+def test_track_error_rule_counts_labels_at_or_above_the_threshold_and_is_inactive_without_tracks(tmp_path):
+    gate = gate_from_dict({"default": {"track_error_threshold": 0.9, "max_fraction_track_error_above": 0.02}})
+    kitti = evaluate_gate(open_results(make_results(tmp_path / "k", [_cars(20, 0.8)])), gate)
+    assert _outcome(kitti, "Car", "max_fraction_track_error_above").status == "skip" and kitti.exit_code == 2
+    rows = _cars(49, 0.8, track_error=0.1) + [make_row("000002", 0, jiou_gt=0.8, track_error=0.9)]
+    r = _outcome(evaluate_gate(open_results(make_results(tmp_path / "a", [rows])), gate), "Car", "max_fraction_track_error_above")
+    assert r.status == "pass" and r.value == pytest.approx(0.02) and r.objects == 50
+    rows += [make_row("000003", 0, jiou_gt=0.8, track_error=0.95), make_row("000004", 0, jiou_gt=0.8)]  # a row without a track does not count
+    r = _outcome(evaluate_gate(open_results(make_results(tmp_path / "b", [rows])), gate), "Car", "max_fraction_track_error_above")
+    assert r.status == "fail" and r.objects == 51
+    with pytest.raises(ConfigError, match="track_error_threshold"):
+        gate_from_dict({"default": {"max_fraction_track_error_above": 0.02}})

@@ -86,6 +86,9 @@ def display_columns(table: pa.Table, by: str) -> list[str]:
     cols = [c for c in cols if c in ("frame_id", "object_index", "class_name", "status") or c == by or table.column(c).null_count < table.num_rows]
     if by not in cols:
         cols.append(by)
+    if by == "track_error":  # which track, and what the label contradicts in it
+        cols.insert(cols.index("object_index") + 1, "object_id")
+        cols.append("track_issue")
     return cols
 
 

@@ -23,7 +23,7 @@ class OutputFormat(str, Enum):
 @app.command()
 def rank(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
-    by: str = typer.Option("jiou_gt", "--by", help="Numeric column to rank by (jiou_gt, label_error, sigma_hat, num_points …)."),
+    by: str = typer.Option("jiou_gt", "--by", help="Numeric column to rank by (jiou_gt, label_error, track_error, sigma_hat, num_points …)."),
     top: int = typer.Option(C.DEFAULT_RANK_TOP, "--top", help="Number of rows."),
     descending: Optional[bool] = typer.Option(None, "--desc/--asc", help="Sort order (default: worst first — ascending for jiou_gt, num_points, hull_iou; descending otherwise)."),
     class_: Optional[list[str]] = typer.Option(None, "--class", help="Only these classes (repeat or comma-separate)."),
@@ -47,6 +47,8 @@ def rank(
       labelaudit rank results/ --status few_points --max-distance 40 --format csv > worst.csv
 
       labelaudit rank results/ --where 'difficulty==Easy' --where 'num_points>=50'
+
+      labelaudit rank results/ --by track_error --where 'track_issue==size'
     """
     from labelaudit.cli.display import print_rank_table
     from labelaudit.rank import RankQuery, rank_results, to_csv, to_json

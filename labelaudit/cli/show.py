@@ -37,7 +37,7 @@ def show(
 ) -> None:
     """Draw one label with its spatial distribution p_G, or a whole frame's boxes coloured by a score.
 
-    One object: its crop's points coloured by height, the labeled box, p_G as a heatmap, the 1-σ ellipses of its corners (C1 nearest the sensor), the suggested box of the label-error fit, the direction to the sensor, a scale bar and the row's numbers. Everything is recomputed from the dataset with the run's parameters, so the picture matches the row. Prints the PNG's path on stdout.
+    One object: its crop's points coloured by height, the labeled box, p_G as a heatmap, the 1-σ ellipses of its corners (C1 nearest the sensor), the suggested box of the label-error fit, the direction to the sensor, a scale bar and the row's numbers; for a tracked object (Waymo, Argoverse 2) also its labels in the 3 frames before and after, moved into this frame through the world frame (blue earlier, red later), with its track_error and the track's fused size. Everything is recomputed from the dataset with the run's parameters, so the picture matches the row. Prints the PNG's path on stdout.
 
     [bold]Examples[/bold]
 
@@ -54,6 +54,7 @@ def show(
         object_row,
         open_source,
         recompute,
+        track_view,
     )
     from labelaudit.viz.show import parse_size, render_frame, render_object
 
@@ -74,7 +75,7 @@ def show(
             audit = recompute(source, row)
             for col, (want, got) in audit.mismatches(rtol=1e-6).items():
                 err().print(f"warning: recomputed {col} = {got} but the row says {want} (dataset or labelaudit changed since infer)", soft_wrap=True)
-            png = render_object(audit, px).png
+            png = render_object(audit, px, track=track_view(opened, row)).png
         else:
             fr = load_frame(source, frame)
             png = render_frame(frame, fr.points, rows.to_pylist(), by.value, px, worst, fr.sensor_origin).png

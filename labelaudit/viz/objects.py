@@ -38,7 +38,7 @@ from labelaudit.results import BOX_COLUMNS, MANIFEST_NAME, Results
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ViewError", "AuditSource", "ObjectAudit", "open_source", "audit_view", "frame_rows", "object_row", "load_frame", "recompute"]
+__all__ = ["ViewError", "AuditSource", "ObjectAudit", "TrackView", "open_source", "audit_view", "frame_rows", "object_row", "load_frame", "recompute", "track_view"]
 
 AUDITED_STATUSES = ("ok", "few_points", "no_points")
 """Statuses whose rows carry model results (``skipped`` and ``error`` rows do not)."""
@@ -375,4 +375,71 @@ def recompute(source: AuditSource, row: Mapping[str, Any], frame: Frame | None =
         context=frame.points[np.setdiff1d(ctx_idx, ev.fit_idx, assume_unique=True)],
         row=row,
         free_space=ev.free_space,
+    )
+
+
+# --------------------------------------------------------------------------- the object's track
+
+
+@dataclass(frozen=True)
+class TrackView:
+    """The object's labels in the neighbouring frames of its track, moved into this frame.
+
+    Attributes
+    ----------
+    dt : (T,) time of each neighbouring label relative to this frame (s)
+    boxes : (T, 7) those labels in this frame's LiDAR/vehicle frame (through the world frame:
+        the ego poses of both frames)
+    frame_ids : T frame ids
+    track_error, track_issue : this label's (None when the track was not scored)
+    size : (3,) the track's fused length, width, height (tracks.parquet), or None
+    """
+
+    dt: FloatArray
+    boxes: FloatArray
+    frame_ids: list[str]
+    track_error: float | None
+    track_issue: str | None
+    size: FloatArray | None
+
+
+def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TRACK_FRAMES) -> TrackView | None:
+    """The labels of ``row``'s track in up to ``frames`` frames before and after it, or None when
+    the row has no track (KITTI, no pose, a made-up id)."""
+    needed = ("timestamp", "world_cx", "world_cy", "world_cz", "world_yaw")
+    if any(row.get(c) is None for c in needed) or row.get("object_id") in (None, f"{row['frame_id']}:{row['object_index']}"):
+        return None
+    log = str(row["frame_id"]).rsplit(":", 1)[0]
+    cols = ["frame_id", "object_id", *needed, "length", "width", "height"]
+    present = [c for c in cols if c in results.dataset.schema.names]
+    if len(present) < len(cols):
+        return None
+    t = results.dataset.to_table(columns=cols, filter=pc.field("object_id") == row["object_id"])
+    mates = [r for r in t.to_pylist() if str(r["frame_id"]).rsplit(":", 1)[0] == log and r["timestamp"] is not None and r["world_cx"] is not None]
+    mates.sort(key=lambda r: (r["timestamp"], r["frame_id"]))
+    here = [i for i, r in enumerate(mates) if r["frame_id"] == row["frame_id"]]
+    if not here:
+        return None
+    i = here[0]
+    chosen = mates[max(0, i - frames) : i] + mates[i + 1 : i + 1 + frames]
+    # this frame's pose from its own row: ψ = world_yaw − yaw, t = world_c − R(ψ)·c
+    psi = float(row["world_yaw"]) - float(row["yaw"])
+    rot = g.rotation_2d(psi)
+    shift = np.array([row["world_cx"], row["world_cy"]]) - rot @ np.array([row["cx"], row["cy"]])
+    dz = float(row["world_cz"]) - float(row["cz"])
+    boxes = np.zeros((len(chosen), 7))
+    for k, r in enumerate(chosen):
+        boxes[k, :2] = rot.T @ (np.array([r["world_cx"], r["world_cy"]]) - shift)
+        boxes[k, 2] = r["world_cz"] - dz
+        boxes[k, 3:6] = (r["length"], r["width"], r["height"])
+        boxes[k, 6] = g.normalize_angle(float(r["world_yaw"]) - psi)
+    size = None
+    tracks = results.tracks()
+    if tracks is not None:
+        for tr in tracks.filter(pc.field("object_id") == row["object_id"]).to_pylist():
+            if tr["log_id"] == log and tr["length"] is not None:
+                size = np.array([tr["length"], tr["width"], tr["height"]])
+    return TrackView(
+        np.array([r["timestamp"] - row["timestamp"] for r in chosen], dtype=float), boxes, [str(r["frame_id"]) for r in chosen],
+        row.get("track_error"), row.get("track_issue"), size,
     )

@@ -4,7 +4,9 @@ The page (template ``templates/report.html.j2``, rendered by jinja2 with autoesc
 user string is escaped by the template engine) holds the run summary (dataset, parameters hash,
 objects by class and status, failed frames from ``errors.parquet``), the gate verdict when a gate
 file is given, the paper's Fig. 7a/7b/7c plots and the score distributions (from Parquet columns
-only), a gallery of the worst labels by label_error and by JIoU-GT — each with its ``show``
+only), a tracks section (datasets with tracks: labels that contradict their own track, the worst
+tracks from ``tracks.parquet``), a gallery of the worst labels by label_error and by JIoU-GT
+(and by track_error where there are tracks) — each with its ``show``
 picture, its numbers and a stable anchor ``#<frame_id>-<object_index>`` — and, with an eval
 folder, the detector evaluation. Images are PNG data URIs: no network, no JavaScript. The file is
 written atomically (temporary name, then rename). This module assembles; the pictures come from
@@ -37,7 +39,8 @@ __all__ = ["ReportSummary", "build_report", "render_report", "anchor_of", "open_
 
 TEMPLATE_DIR = Path(__file__).with_name("templates")
 TEMPLATE_NAME = "report.html.j2"
-GALLERY_COLUMNS = ("class_name", "status", "distance", "num_points", "jiou_gt", "label_error", "sigma_hat", "fit_offset_m", "mahalanobis", "hull_iou")
+GALLERY_COLUMNS = ("class_name", "status", "distance", "num_points", "jiou_gt", "label_error", "sigma_hat", "fit_offset_m", "mahalanobis", "hull_iou",
+                   "track_error", "track_issue")
 GALLERIES = (  # (key, ranking column, title, points needed)
     ("label_error", "label_error", "Worst labels by label_error (most likely wrong)", None),
     ("jiou_gt", "jiou_gt", "Worst labels by JIoU-GT (least certain, boxes with points)", 1),
@@ -216,11 +219,11 @@ def _plots(table: pa.Table) -> list[dict[str, Any]]:
 def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress: Progress | None) -> tuple[list[dict[str, Any]], int]:
     """Both galleries: the worst ``top`` by each score, each object pictured once."""
     from labelaudit.rank import RankQuery, rank_results
-    from labelaudit.viz.objects import open_source, recompute
+    from labelaudit.viz.objects import open_source, recompute, track_view
     from labelaudit.viz.show import render_object
 
     ranked = []
-    for key, by, title, min_points in GALLERIES:
+    for key, by, title, min_points in GALLERIES + ((TRACK_GALLERY,) if results.tracks() is not None else ()):
         if by not in results.columns:
             ranked.append((key, title, []))
             continue
@@ -239,7 +242,7 @@ def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress:
             row = unique[anchor]
             try:
                 audit = recompute(source, row)
-                pic = render_object(audit, C.REPORT_GALLERY_SIZE, compact=True)
+                pic = render_object(audit, C.REPORT_GALLERY_SIZE, compact=True, track=track_view(results, row))
                 mism = audit.mismatches(rtol=1e-6)
                 pictures[anchor] = {"src": data_uri(pic.png), "error": "", "mismatch": ", ".join(f"{k}: row {a} vs {b}" for k, (a, b) in mism.items())}
             except ViewError as exc:
@@ -268,6 +271,45 @@ def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress:
             seen.add(anchor)
         galleries.append({"key": key, "title": title, "entries": entries})
     return galleries, len(pictures)
+
+
+TRACK_GALLERY = ("track_error", "track_error", "Worst labels by track_error (contradict their own track)", None)
+"""The third gallery, on runs with tracks (Waymo, Argoverse 2)."""
+
+
+def _tracks(results: R.Results, top: int) -> dict[str, Any] | None:
+    """The tracks section: how many labels contradict their track, by kind, and the worst tracks (tracks.parquet)."""
+    tracks = results.tracks()
+    if tracks is None:
+        return None
+    t = results.read(["track_error", "track_issue"])
+    err = _floats(t, "track_error")
+    judged = np.isfinite(err)
+    issue = np.asarray(t.column("track_issue").to_pylist(), dtype=object)
+    flagged = judged & (err >= C.TRACK_FLAG)
+    by_issue = [(k, int(np.sum(flagged & (issue == k)))) for k in ("size", "heading", "position")]
+    rows = sorted(tracks.to_pylist(), key=lambda r: (-(r["max_track_error"] or 0.0), -r["flagged"], r["log_id"], r["object_id"]))[:top]
+    meta = R.shard_metadata(results.root / R.TRACKS_FILE) if (results.root / R.TRACKS_FILE).is_file() else {}
+    noise = meta.get("track_noise") or {}
+    return {
+        "tracks": tracks.num_rows,
+        "judged": int(judged.sum()),
+        "flagged": int(flagged.sum()),
+        "threshold": C.TRACK_FLAG,
+        "by_issue": by_issue,
+        "tracks_flagged": int(sum(1 for r in tracks.column("flagged").to_pylist() if r)),
+        "noise": [(c, ", ".join(f"{k} {v:.3f}" for k, v in sorted(n.items()))) for c, n in sorted(noise.items())],
+        "worst": [
+            {
+                "log_id": r["log_id"], "object_id": r["object_id"], "class_name": r["class_name"], "frames": r["frames"],
+                "size": f"{r['length']:.2f} × {r['width']:.2f} × {r['height']:.2f} m (± {r['std_length']:.3f}, {r['std_width']:.3f}, {r['std_height']:.3f})",
+                "speed": r["mean_speed"], "flagged": r["flagged"], "max_track_error": r["max_track_error"],
+                "worst_frame_id": r["worst_frame_id"], "worst_object_index": r["worst_object_index"], "worst_issue": r["worst_issue"],
+                "anchor": anchor_of(r["worst_frame_id"], r["worst_object_index"]),
+            }
+            for r in rows
+        ],
+    }
 
 
 def _eval(eval_dir: str | Path | None) -> dict[str, Any] | None:
@@ -382,6 +424,8 @@ def build_report(
     lap("gate")
     plots = _plots(table) if summary["evaluated"] else []
     lap("plots")
+    tracks_section = _tracks(results, top)
+    lap("tracks")
     galleries, pictures = _gallery(results, top, dataset, progress) if summary["evaluated"] else ([{"key": k, "title": title, "entries": []} for k, _, title, _ in GALLERIES], 0)
     lap("gallery")
     context = {
@@ -396,6 +440,7 @@ def build_report(
         "top": top,
         "gallery_size": C.REPORT_GALLERY_SIZE,
         "eval": eval_section,
+        "tracks": tracks_section,
     }
     html = render_report(context)
     out = Path(output)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -31,7 +31,7 @@ from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.datasets.base import box_problems
 from labelaudit.core.posterior import corner_covariances as corner_cov
-from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit
+from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit, TrackView
 
 FloatArray = NDArray[np.float64]
 
@@ -48,6 +48,7 @@ LABEL_COLOUR = "#ffffff"
 FIT_COLOUR = "#00e5ff"
 ELLIPSE_COLOUR = "#7CFC00"
 CONTEXT_COLOUR = "#8a8a8a"
+TRACK_CMAP = "coolwarm"  # the track's other frames: blue earlier, red later
 
 
 
@@ -157,6 +158,7 @@ class ObjectPicture:
     sensor_direction : (2,) unit vector from the box centre towards the sensor
     view : (x0, x1, y0, y1) axes limits
     caption : the caption text
+    track_corners : (T, 4, 2) the object's labels in the neighbouring frames of its track (box frame)
     """
 
     png: bytes
@@ -174,14 +176,19 @@ class ObjectPicture:
     sensor_direction: FloatArray
     view: tuple[float, float, float, float]
     caption: str
+    track_corners: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 2)))
 
 
-def _caption(audit: ObjectAudit) -> str:
+def _caption(audit: ObjectAudit, track: TrackView | None = None) -> str:
     row = audit.row or {}
     where = f"frame {row['frame_id']} · object {row['object_index']}" if "frame_id" in row else "object"
     status = row.get("status", "")
     first = f"{audit.class_name} · {where} · {audit.distance:.1f} m · {len(audit.points)} points" + (f" ({status})" if status and status != "ok" else "")
     second = f"JIoU-GT {_fmt(audit.jiou_gt)}   label_error {_fmt(audit.label_error)}   σ̂ {_fmt(audit.sigma_hat, '.3f', ' m')}"
+    if track is not None:
+        issue = f" ({track.track_issue})" if track.track_issue not in (None, "none") else ""
+        size = "" if track.size is None else f"   track size {track.size[0]:.2f} × {track.size[1]:.2f} m (label {audit.box[3]:.2f} × {audit.box[4]:.2f})"
+        second += f"\ntrack_error {_fmt(track.track_error)}{issue}{size}"
     return f"{first}\n{second}"
 
 
@@ -192,7 +199,8 @@ def _ellipse(ax: Any, centre: FloatArray, cov: FloatArray, **kw: Any) -> None:
     ax.add_patch(Ellipse(tuple(centre), 2 * math.sqrt(lam[1]), 2 * math.sqrt(lam[0]), angle=angle, **kw))
 
 
-def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, overlays: bool = True, compact: bool = False) -> ObjectPicture:
+def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, overlays: bool = True, compact: bool = False,
+                  track: TrackView | None = None) -> ObjectPicture:
     """Draw one label with its spatial distribution (the paper's Fig. 1 look).
 
     Parameters
@@ -203,6 +211,8 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
         checking the rendered pixels against p_G
     compact : no colour bars, legend, ticks or caption (the report's gallery explains the colours
         once and prints the numbers beside the picture): a larger plot, under half the drawing time
+    track : the object's labels in the neighbouring frames of its track
+        (:func:`labelaudit.viz.objects.track_view`), drawn as thin outlines coloured by time
 
     Returns
     -------
@@ -232,7 +242,9 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     sensor_dir = sensor_dir / max(float(np.linalg.norm(sensor_dir)), 1e-12)
 
     # View: the label, the suggested box and the 2-σ corner ellipses, plus a margin; the figure's aspect.
-    reach = np.vstack([label_corners, fit_corners, centres + 2 * np.sqrt(covs[:, [0, 1], [0, 1]]), centres - 2 * np.sqrt(covs[:, [0, 1], [0, 1]])])
+    track_corners = np.array([_to_box_frame(g.box_corners(b, "bev"), box) for b in track.boxes]) if track is not None and len(track.boxes) else np.zeros((0, 4, 2))
+    reach = np.vstack([label_corners, fit_corners, centres + 2 * np.sqrt(covs[:, [0, 1], [0, 1]]), centres - 2 * np.sqrt(covs[:, [0, 1], [0, 1]]),
+                       track_corners.reshape(-1, 2)])
     lo, hi = reach.min(axis=0) - C.SHOW_VIEW_MARGIN, reach.max(axis=0) + C.SHOW_VIEW_MARGIN
     fig = _figure(size)
     ax_rect = ((0.01, 0.01, 0.98, 0.98) if compact else (0.1, 0.13, 0.72, 0.74)) if overlays else (0.0, 0.0, 1.0, 1.0)
@@ -246,11 +258,11 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     ax.set_xlim(view[0], view[1])
     ax.set_ylim(view[2], view[3])
     ax.set_aspect("equal")
-    caption = _caption(audit)
+    caption = _caption(audit, track)
     if not overlays:
         ax.set_axis_off()
         png = _png(fig)
-        return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption)
+        return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners)
 
     if len(context_xy):
         ax.plot(context_xy[:, 0], context_xy[:, 1], ls="", marker="o", markersize=1.4, markerfacecolor=CONTEXT_COLOUR, markeredgewidth=0, zorder=2)
@@ -261,6 +273,15 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     # the marker pass dominated the drawing time. ``points_xy`` keeps every point.
     step = max(1, -(-len(pts) // C.SHOW_MAX_POINTS_DRAWN))
     pts_art = ax.scatter(pts[::step, 0], pts[::step, 1], s=9, c=height[::step], cmap=HEIGHT_CMAP, vmin=0.0, vmax=h_top, edgecolors="black", linewidths=0.3, zorder=4) if len(pts) else None
+    if len(track_corners):
+        span = max(float(np.abs(track.dt).max()), 1e-9)  # type: ignore[union-attr]
+        tcmap = colormaps[TRACK_CMAP]
+        for corners, dt in zip(track_corners, track.dt):  # type: ignore[union-attr]
+            colour = tcmap(0.5 + 0.5 * dt / span)
+            ax.add_patch(Polygon(corners, closed=True, fill=False, edgecolor=colour, linewidth=1.0, alpha=0.9, zorder=4.5))
+            front = corners[[0, 3]].mean(axis=0)  # box_corners: 0 front-left, 3 front-right
+            mid = corners.mean(axis=0)
+            ax.plot([mid[0], front[0]], [mid[1], front[1]], color=colour, linewidth=0.8, alpha=0.9, zorder=4.5)
     ax.add_patch(Polygon(label_corners, closed=True, fill=False, edgecolor=LABEL_COLOUR, linewidth=1.6, zorder=5))
     ax.add_patch(Polygon(fit_corners, closed=True, fill=False, edgecolor=FIT_COLOUR, linewidth=1.4, linestyle=(0, (4, 2)), zorder=5))
     # Heading: a short tick from the centre to the front face.
@@ -286,7 +307,7 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     if compact:  # the scale bar gives the metres and the report prints the numbers beside the picture: ticks and glyphs cost most of the drawing
         ax.set_xticks([])
         ax.set_yticks([])
-        return ObjectPicture(_png(fig), size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption)
+        return ObjectPicture(_png(fig), size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners)
     fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=9)
     ax.tick_params(labelsize=7)
     ax.set_xlabel("along the label's length (m)", fontsize=8)
@@ -308,11 +329,14 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
         Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="none", markeredgecolor="#777", label="fit-only points"),
         Line2D([], [], ls="", marker="o", markersize=3, markerfacecolor=CONTEXT_COLOUR, markeredgecolor="none", label="other points"),
     ]
-    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06, 0.0), ncol=3, fontsize=6.5, frameon=True, handlelength=2.2, columnspacing=1.0, labelcolor="white")
+    if len(track_corners):
+        handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](0.0), lw=1.0, label="track: earlier frames"))
+        handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](1.0), lw=1.0, label="track: later frames"))
+    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06, 0.0), ncol=3 if len(handles) <= 6 else 4, fontsize=6.5, frameon=True, handlelength=2.2, columnspacing=1.0, labelcolor="white")
     leg.get_frame().set_facecolor(heat_cmap(0.0))  # the label's white line needs the heatmap's dark ground
     leg.get_frame().set_edgecolor("none")
     png = _png(fig)
-    return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption)
+    return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners)
 
 
 # --------------------------------------------------------------------------- a whole frame
@@ -331,6 +355,7 @@ class FramePicture:
     numbered : object_index of the numbered boxes, worst first (number 1 = worst)
     view : (x0, x1, y0, y1) axes limits
     caption : the caption text
+    track_corners : (T, 4, 2) the object's labels in the neighbouring frames of its track (box frame)
     """
 
     png: bytes
