@@ -28,6 +28,7 @@ Usage::
     .venv/bin/python scripts/bench_tracks.py                       # 4 segments × 40 frames, seed 0
     .venv/bin/python scripts/bench_tracks.py --real                # the real AV2 annotations
     .venv/bin/python scripts/bench_tracks.py --real --direct       # … without the AV2 reader
+    .venv/bin/python scripts/bench_tracks.py --cost                # what the pass adds to a Waymo-size run
 """
 
 from __future__ import annotations
@@ -153,7 +154,22 @@ def run_sim(args: argparse.Namespace) -> dict[str, float]:
     kinds = [truth[(r["frame_id"], r["object_id"])]["track_error_kind"] for r in rows]
     score = np.array([np.nan if r["track_error"] is None else r["track_error"] for r in rows])
     per_frame = np.array([np.nan if r["label_error"] is None else r["label_error"] for r in rows])
-    return report("simulated Waymo v2 segments", kinds, score, [r["track_issue"] for r in rows], naive_scores(rows), per_frame)
+    figures = report("simulated Waymo v2 segments", kinds, score, [r["track_issue"] for r in rows], naive_scores(rows), per_frame)
+    # the points' say in the size posterior: the same rows scored from the labels alone
+    from labelaudit.config import resolve_config
+    from labelaudit.infer.tracks import score_table
+
+    table = R.read_results(out / "results")
+    with_points = score_table(table, resolve_config(None, "waymo-v2")).track_error
+    labels_only = score_table(table, None).track_error
+    k = np.array(kinds)
+    for name, sel in (("length", k == "length"), ("width", k == "width")):
+        lab = np.r_[np.ones(int(sel.sum())), np.zeros(int((k == "none").sum()))]
+        print(f"size posterior, {name}: AUROC with the points' evidence {auroc(np.r_[with_points[sel], with_points[k == 'none']], lab):.4f}, "
+              f"labels only {auroc(np.r_[labels_only[sel], labels_only[k == 'none']], lab):.4f}")
+    moved = np.abs(with_points - labels_only)
+    print(f"the points move track_error by more than 0.01 on {np.mean(moved > 0.01):.2%} of the labels")
+    return figures
 
 
 # --------------------------------------------------------------------------- real Argoverse 2 annotations
@@ -290,6 +306,55 @@ def run_real(args: argparse.Namespace) -> dict[str, float]:
     return report(f"real Argoverse 2 annotations ({how}), vehicles", kinds, np.asarray(score, dtype=float), issues, naive_scores(rows))
 
 
+def run_cost(args: argparse.Namespace) -> None:
+    """What the tracks pass adds to a Waymo-size run: infer on real-size simulated frames (per
+    frame, with its labels) against the pass over a 200-frame segment's rows (per row × labels per frame)."""
+    from labelaudit.config import resolve_config
+    from labelaudit.infer.run import InferRequest, infer_dataset
+    from labelaudit.infer.tracks import run_tracks_pass
+    from labelaudit.sim.waymo_writer import simulate_waymo_dataset
+
+    out = Path(args.out) / "cost"
+    shutil.rmtree(out, ignore_errors=True)
+    simulate_waymo_dataset(out, segments=1, frames=args.cost_frames, seed=args.seed, size="real", formats=("waymo-v2",),
+                           track_noise=TrackNoiseSpec(), moving_fraction=C.SIM_MOVING_FRACTION)
+    t = time.perf_counter()
+    infer_dataset(InferRequest(out / "waymo_v2", out / "results", workers=1))
+    infer_wall = time.perf_counter() - t
+    rows = R.read_results(out / "results").to_pylist()
+    per_frame_rows = len(rows) / args.cost_frames
+    # a Waymo segment's rows: 200 frames of tracks with ordinary noise (the pass does not look at points)
+    rng = np.random.default_rng(args.seed)
+    n_frames, n_tracks = 200, int(round(per_frame_rows))
+    seg_rows = []
+    speed = rng.uniform(0, 12, n_tracks)
+    heading = rng.uniform(-np.pi, np.pi, n_tracks)
+    for f in range(n_frames):
+        ts = 1_600_000_000_000_000 + f * 100_000
+        for k in range(n_tracks):
+            x = 100 + k * 7 + speed[k] * f * 0.1 * np.cos(heading[k]) + rng.normal(0, 0.03)
+            y = -50 + speed[k] * f * 0.1 * np.sin(heading[k]) + rng.normal(0, 0.03)
+            seg_rows.append({"dataset": "waymo-v2", "frame_id": f"seg:{ts}", "object_index": k, "object_id": f"trk{k}", "class_name": "Vehicle",
+                             "cx": x, "cy": y, "cz": 1.0, "length": 4.5 + rng.normal(0, 0.03), "width": 1.9 + rng.normal(0, 0.02), "height": 1.6,
+                             "yaw": heading[k], "distance": 10.0, "status": "ok", "model": "bev", "timestamp": ts / 1e6,
+                             "world_cx": x, "world_cy": y, "world_cz": 1.0, "world_yaw": heading[k] + rng.normal(0, 0.02)})
+    seg = Path(args.out) / "cost-pass"
+    shutil.rmtree(seg, ignore_errors=True)
+    meta = R.run_metadata({}, "0" * 16, "/seg", "waymo-v2")
+    R.write_parquet_atomic(R.rows_to_table(seg_rows, meta), seg / R.OBJECTS_DIR / "part-0.parquet")
+    cfg = resolve_config(None, "waymo-v2")
+    t = time.perf_counter()
+    run_tracks_pass(seg, cfg, meta)
+    pass_wall = time.perf_counter() - t
+    per_row = pass_wall / len(seg_rows)
+    infer_frame = infer_wall / args.cost_frames
+    print(f"infer at Waymo's real sensor size: {args.cost_frames} frames, {per_frame_rows:.1f} labels per frame, "
+          f"{infer_frame * 1e3:.0f} ms per frame (wall, one worker, start-up included)")
+    print(f"tracks pass over a 200-frame segment of {n_tracks} tracks ({len(seg_rows)} rows): {pass_wall:.2f} s, "
+          f"{per_row * 1e3:.3f} ms per row = {per_row * per_frame_rows * 1e3:.1f} ms per frame")
+    print(f"the tracks pass adds {per_row * per_frame_rows / infer_frame:.1%} to a Waymo-size run (must hold: ≤ 10 %)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--segments", type=int, default=4)
@@ -300,7 +365,12 @@ def main() -> None:
     ap.add_argument("--real", action="store_true", help="the real Argoverse 2 annotations instead of simulated segments")
     ap.add_argument("--direct", action="store_true", help="--real: score the annotations without the av2 reader")
     ap.add_argument("--realdata", default=str(REALDATA))
+    ap.add_argument("--cost", action="store_true", help="what the tracks pass adds to a Waymo-size run (real sensor size)")
+    ap.add_argument("--cost-frames", type=int, default=4)
     args = ap.parse_args()
+    if args.cost:
+        run_cost(args)
+        return
     figures = run_real(args) if args.real else run_sim(args)
     print(f"\nmust hold: AUROC ≥ 0.97 → {figures['auroc']:.4f}; per kind ≥ 0.95 → {figures['worst_kind_auroc']:.4f}; "
           f"clean ≥ 0.9 ≤ 1 % → {figures['clean_flagged']:.2%}")

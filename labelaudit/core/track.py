@@ -23,7 +23,6 @@ N(0, k²·I_d) (errors ~k times the ordinary noise) with prior probability π.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -170,22 +169,36 @@ def local_fit(
     slope : (n, d) first-order coefficient (per second)
     """
     n, m = dt.shape
-    x = np.stack([np.ones_like(dt), dt, dt * dt], axis=-1)  # (n, m, 3)
+    powers = np.stack([np.ones_like(dt), dt, dt * dt, dt**3, dt**4], axis=-1)  # (n, m, 5): XᵀWX is a Hankel matrix of weighted moments
     base = valid.astype(float) if prior is None else valid * prior
     w = base
     lam = np.diag(ridge)
+    hankel = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4]])
     for it in range(iterations + 1):
-        xw = x * w[..., None]
-        a = np.einsum("nmi,nmj->nij", xw, x) + lam  # (n, 3, 3)
-        b = np.einsum("nmi,nmd->nid", xw, y)  # (n, 3, d)
-        coef = np.linalg.solve(a, b)  # (n, 3, d)
+        moments = np.sum(powers * w[..., None], axis=1)  # (n, 5)
+        a = moments[:, hankel] + lam  # (n, 3, 3)
+        wy = w[..., None] * y  # (n, m, d)
+        b = np.stack([wy.sum(axis=1), (wy * dt[..., None]).sum(axis=1), (wy * (dt * dt)[..., None]).sum(axis=1)], axis=1)  # (n, 3, d)
+        inv = _inverse_sym3(a)
+        coef = np.einsum("nij,njd->nid", inv, b) if b.shape[2] > 1 else inv @ b  # (n, 3, d)
         if it == iterations:
             break
-        resid = y - np.einsum("nmi,nid->nmd", x, coef)
+        resid = y - (coef[:, None, 0, :] + dt[..., None] * coef[:, None, 1, :] + (dt * dt)[..., None] * coef[:, None, 2, :])
         z = np.sqrt(np.mean(resid * resid, axis=-1))  # one robust weight per neighbour (all d coordinates together)
         w = base * _robust_weights(z, params.huber_k, params.biweight_c, it)
-    inv00 = np.linalg.solve(a, np.broadcast_to(np.array([1.0, 0.0, 0.0]), (n, 3))[..., None])[:, 0, 0]
-    return coef[:, 0, :], inv00, coef[:, 1, :]
+    return coef[:, 0, :], inv[:, 0, 0], coef[:, 1, :]
+
+
+def _inverse_sym3(a: FloatArray) -> FloatArray:
+    """Inverses of a stack of symmetric positive-definite 3 × 3 matrices (n, 3, 3), by the adjugate:
+    a batched LAPACK solve costs ~20× more on such small matrices."""
+    p, q, r = a[:, 0, 0], a[:, 0, 1], a[:, 0, 2]
+    s, t, u = a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
+    c00, c01, c02 = s * u - t * t, r * t - q * u, q * t - r * s
+    c11, c12, c22 = p * u - r * r, q * r - p * t, p * s - q * q
+    det = p * c00 + q * c01 + r * c02
+    inv = np.stack([np.stack([c00, c01, c02], -1), np.stack([c01, c11, c12], -1), np.stack([c02, c12, c22], -1)], axis=1)
+    return inv / det[:, None, None]
 
 
 def pairwise_prediction(dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_]) -> FloatArray:
@@ -208,9 +221,12 @@ def pairwise_prediction(dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_])
     ok = valid[:, j] & valid[:, k] & (tj != tk)
     frac = np.where(ok, -tj / np.where(ok, tk - tj, 1.0), np.nan)  # (n, P): where dt = 0 lies on the segment j → k
     pred = y[:, j, :] + (y[:, k, :] - y[:, j, :]) * frac[..., None]
-    with warnings.catch_warnings(), np.errstate(all="ignore"):
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: frames with < 2 neighbours, NaN on purpose
-        return np.nanmedian(np.where(ok[..., None], pred, np.nan), axis=1)
+    ranked = np.sort(np.where(ok[..., None], pred, np.inf), axis=1)  # the valid pairs first (a masked median, without np.ma's cost)
+    count = ok.sum(axis=1)
+    rows = np.arange(len(count))
+    lo, hi = np.maximum(count - 1, 0) // 2, np.maximum(count, 1) // 2
+    med = 0.5 * (ranked[rows, lo, :] + ranked[rows, hi, :])
+    return np.where((count > 0)[:, None], med, np.nan)
 
 
 def robust_location(values: FloatArray, precision: FloatArray, params: TrackParams, iterations: int = 5) -> tuple[FloatArray, FloatArray]:
@@ -269,13 +285,17 @@ def track_residuals(
         out = np.zeros(n, dtype=bool)
         # Which of two frames that both stand out is the wrong one: the one a median of pairwise
         # lines through its neighbours (insensitive to one wrong neighbour) disagrees with most.
-        pp = pairwise_prediction(dt, y, valid)
-        b = np.sqrt(np.sum(np.reshape(np.nan_to_num(residual(pp, np.zeros(n))), (n, -1)) ** 2, axis=1))
+        b = None
         for _ in range(_OUTLIER_ROUNDS):
             use = valid & ~out[idx]
             pred, var, slope = local_fit(dt, y, use, ridge, params)
             z = residual(pred, var)
             a = np.sqrt(np.sum(np.reshape(z, (n, -1)) ** 2, axis=1))
+            if not (a > params.biweight_c).any():
+                break
+            if b is None:  # only tracks with a frame that stands out need it
+                pp = pairwise_prediction(dt, y, valid)
+                b = np.sqrt(np.sum(np.reshape(np.nan_to_num(residual(pp, np.zeros(n))), (n, -1)) ** 2, axis=1))
             worst_near = np.where(use & (a[idx] > params.biweight_c), b[idx], 0.0).max(axis=1, initial=0.0)
             new = (a > params.biweight_c) & (b >= worst_near) & ~out
             if not new.any():
