@@ -39,8 +39,8 @@ LABEL_TOLERANCE = {"center": 0.10, "length": 0.20, "width": 0.20, "height": 0.10
 
 # --- tracks: every label judged against its own track (labelaudit/core/track.py, docs/method.md "Tracks") ---
 TRACK_FORMATS = ("waymo-v1", "waymo-v2", "av2")  # dataset formats whose object ids are track ids (KITTI object: none, the columns stay null)
-TRACK_WINDOW = 0.55  # s; neighbours within this time of a frame predict its centre and heading (±5 frames at 10 Hz)
-TRACK_MAX_NEIGHBOURS = 5  # at most this many neighbours on each side of a frame
+TRACK_WINDOW = 1.05  # s; a frame's centre and heading are predicted from the frames nearest in time within this (10 Hz: ±0.5 s inside a track, 1 s on one side at its ends)
+TRACK_MAX_NEIGHBOURS = 5  # 2 × this many nearest frames (5 on each side inside a track)
 TRACK_MIN_FRAMES = 3  # a track with fewer labelled frames cannot tell which label is wrong: null scores
 TRACK_RATE_PRIOR = (40.0, 6.0, 1.5, 0.5)  # std of the local fit's ridge prior: centre velocity m/s, acceleration m/s², yaw rate rad/s, yaw acceleration rad/s²
 TRACK_NOISE_FLOOR = {"center": 0.03, "length": 0.03, "width": 0.02, "height": 0.03, "yaw": 0.015}  # m, rad; ordinary per-frame label noise is never taken below this (the run's own, pooled per class, when larger)

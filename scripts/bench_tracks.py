@@ -13,8 +13,8 @@ Simulated (default):
 
 Real (``--real``): the Argoverse 2 annotations in ``--realdata`` (2 logs × 156 timestamps of real,
 smooth tracks): vehicle labels get the same per-frame noise, then the same injected errors. With the
-``av2`` reader installed the noisy logs are written as an AV2 dataset (the real sweeps where they
-exist, empty sweeps elsewhere) and go through ``labelaudit infer``; without it (``--direct``) the
+``av2`` reader the noisy logs are written as an AV2 dataset (the real sweeps where they exist;
+every other annotated timestamp is a frame without points) and go through ``labelaudit infer``; without it (``--direct``) the
 noisy annotations are turned into result rows here and scored by the same tracks pass.
 
 Printed: AUROC of track_error for injected vs clean (overall and per kind, each kind against all
@@ -147,7 +147,7 @@ def run_sim(args: argparse.Namespace) -> dict[str, float]:
         stamp.write_text(key)
         print(f"simulated {key} in {time.perf_counter() - t:.0f} s", flush=True)
     t = time.perf_counter()
-    infer_dataset(InferRequest(out / "waymo_v2", out / "results", workers=args.workers))
+    infer_dataset(InferRequest(out / "waymo_v2", out / "results", workers=args.workers, overwrite=True))
     print(f"infer (with the tracks pass) in {time.perf_counter() - t:.0f} s", flush=True)
     rows = R.read_results(out / "results").to_pylist()
     truth = {(r["frame_id"], r["object_id"]): r for r in pq.read_table(out / "manifest.parquet").to_pylist()}
@@ -242,7 +242,7 @@ def rows_of_annotations(log: str, ann: pa.Table, poses: pa.Table) -> list[dict[s
 
 
 def write_av2(dest: Path, realdata: Path, logs: list[tuple[str, pa.Table, pa.Table, list[str], list[float]]]) -> Path:
-    """An AV2 dataset of the noisy logs: annotations, poses, calibration, the real sweeps, empty sweeps elsewhere."""
+    """An AV2 dataset of the noisy logs: annotations, poses, calibration and the real sweeps (other timestamps have none)."""
     import pyarrow.feather as feather
 
     shutil.rmtree(dest, ignore_errors=True)
@@ -253,14 +253,8 @@ def write_av2(dest: Path, realdata: Path, logs: list[tuple[str, pa.Table, pa.Tab
         feather.write_feather(poses, d / "city_SE3_egovehicle.feather")
         if (src / "calibration").is_dir():
             shutil.copytree(src / "calibration", d / "calibration")
-        real = {p.name: p for p in (src / "sensors" / "lidar").glob("*.feather")}
-        template = feather.read_table(next(iter(real.values()))).schema
-        for t in np.unique(ann.column("timestamp_ns").to_numpy()):
-            name = f"{int(t)}.feather"
-            if name in real:
-                shutil.copy(real[name], d / "sensors" / "lidar" / name)
-            else:
-                feather.write_feather(template.empty_table(), d / "sensors" / "lidar" / name)
+        for sweep in (src / "sensors" / "lidar").glob("*.feather"):  # the reader makes a 0-point frame of every other annotated timestamp
+            shutil.copy(sweep, d / "sensors" / "lidar" / sweep.name)
     return dest
 
 
@@ -280,7 +274,12 @@ def run_real(args: argparse.Namespace) -> dict[str, float]:
             print("no av2 reader in this build: the noisy annotations are scored directly (--direct)")
         from labelaudit.infer.tracks import score_table
 
-        rows = [r for log, ann, poses, _, _ in logs for r in rows_of_annotations(log, ann, poses) if r["class_name"] in AV2_VEHICLES]
+        audited = AV2_VEHICLES
+        if "av2" in FORMATS:  # the classes the built-in Argoverse 2 config audits
+            from labelaudit.config import resolve_config
+
+            audited = tuple(resolve_config(None, "av2").classes)
+        rows = [r for log, ann, poses, _, _ in logs for r in rows_of_annotations(log, ann, poses) if r["class_name"] in audited]
         table = R.rows_to_table(rows)  # sorted by (frame_id, object_index): the order of the scores
         t = time.perf_counter()
         s = score_table(table)
@@ -295,8 +294,7 @@ def run_real(args: argparse.Namespace) -> dict[str, float]:
         out = Path(args.out)
         root = write_av2(out / "av2", realdata, logs)
         t = time.perf_counter()
-        infer_dataset(InferRequest(root, out / "results", dataset_format="av2", workers=args.workers, overwrite=True,
-                                   classes=AV2_VEHICLES))
+        infer_dataset(InferRequest(root, out / "results", dataset_format="av2", workers=args.workers, overwrite=True))  # the built-in config's vehicles
         print(f"infer (av2 reader, tracks pass) in {time.perf_counter() - t:.0f} s")
         rows = R.read_results(out / "results").to_pylist()
         score = np.array([np.nan if r["track_error"] is None else r["track_error"] for r in rows])

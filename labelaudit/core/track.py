@@ -10,7 +10,7 @@ consensus models, each judged leave-one-out so that a frame is never compared wi
   per-frame posterior (the fitted size with precision 1/std² − 1/prior²). Robust weights
   (Huber, then Tukey's biweight) keep wrong labels out of it.
 * **position** — smooth motion: the centre at frame i predicted by a robust local quadratic in
-  time through the neighbouring frames (window ±``window`` s, frame i left out).
+  time through the nearest frames in time (within ``window`` s, frame i left out).
 * **heading** — continuous: the same local quadratic on the yaw, unwrapped around the
   neighbours' circular mean, so a label flipped by π is a residual of π, not a wrap.
 
@@ -44,8 +44,8 @@ class TrackParams:
 
     Attributes
     ----------
-    window : s; neighbours within this time of a frame predict its centre and heading
-    max_neighbours : at most this many neighbours on each side
+    window : s; the frames nearest in time to a frame, within this time, predict its centre and heading
+    max_neighbours : 2 × this many nearest frames (as many on each side inside a track)
     min_frames : tracks with fewer labelled frames get no score (null)
     rate_prior : (centre velocity m/s, centre acceleration m/s², yaw rate rad/s, yaw acceleration
         rad/s²) — std of the ridge prior on the local quadratic's slope and curvature, so a
@@ -130,19 +130,25 @@ def _robust_weights(z: FloatArray, k: float, c: float, stage: int) -> FloatArray
 
 
 def neighbour_index(t: FloatArray, window: float, max_neighbours: int) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
-    """Neighbours of each frame of a time-sorted track, itself excluded.
+    """The ``2 · max_neighbours`` frames nearest in time to each frame of a time-sorted track
+    (itself excluded), within ``window`` seconds: inside a track as many before as after, at its
+    ends all on one side — a one-sided extrapolation needs the extra frames most.
 
     Returns
     -------
-    index : (n, 2m) frame indices (clipped into range where invalid)
+    index : (n, 2m) frame indices, nearest first (clipped into range where invalid)
     valid : (n, 2m) whether that neighbour exists and lies within ``window`` seconds
     """
     n = len(t)
-    offsets = np.concatenate([np.arange(-max_neighbours, 0), np.arange(1, max_neighbours + 1)])
+    k = 2 * max_neighbours
+    offsets = np.concatenate([np.arange(-k, 0), np.arange(1, k + 1)])
     raw = np.arange(n)[:, None] + offsets[None, :]
     inside = (raw >= 0) & (raw < n)
     index = np.clip(raw, 0, max(n - 1, 0))
-    valid = inside & (np.abs(t[index] - t[:, None]) <= window)
+    gap = np.where(inside, np.abs(t[index] - t[:, None]), np.inf)
+    order = np.argsort(gap, axis=1, kind="stable")[:, :k]  # ties (a regular rate): the earlier frame first, both sides kept
+    index = np.take_along_axis(index, order, axis=1)
+    valid = np.take_along_axis(gap, order, axis=1) <= window
     return index, valid
 
 
@@ -285,19 +291,15 @@ def track_residuals(
         out = np.zeros(n, dtype=bool)
         # Which of two frames that both stand out is the wrong one: the one a median of pairwise
         # lines through its neighbours (insensitive to one wrong neighbour) disagrees with most.
-        b = None
+        pp = pairwise_prediction(dt, y, valid)
+        b = np.sqrt(np.sum(np.reshape(np.nan_to_num(residual(pp, np.zeros(n))), (n, -1)) ** 2, axis=1))
         for _ in range(_OUTLIER_ROUNDS):
             use = valid & ~out[idx]
             pred, var, slope = local_fit(dt, y, use, ridge, params)
             z = residual(pred, var)
             a = np.sqrt(np.sum(np.reshape(z, (n, -1)) ** 2, axis=1))
-            if not (a > params.biweight_c).any():
-                break
-            if b is None:  # only tracks with a frame that stands out need it
-                pp = pairwise_prediction(dt, y, valid)
-                b = np.sqrt(np.sum(np.reshape(np.nan_to_num(residual(pp, np.zeros(n))), (n, -1)) ** 2, axis=1))
-            worst_near = np.where(use & (a[idx] > params.biweight_c), b[idx], 0.0).max(axis=1, initial=0.0)
-            new = (a > params.biweight_c) & (b >= worst_near) & ~out
+            worst_near = np.where(use, b[idx], 0.0).max(axis=1, initial=0.0)
+            new = ((a > params.biweight_c) | (b > params.biweight_c)) & (b >= worst_near) & ~out
             if not new.any():
                 break
             out |= new
