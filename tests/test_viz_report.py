@@ -113,6 +113,10 @@ def test_report_escapes_user_strings(tmp_path):
     text = rep.render_report({
         "title": evil, "results_root": evil, "generated": "now", "version": "x", "gate": None, "plots": [], "top": 1,
         "gallery_size": (10, 10), "eval": None, "galleries": [],
+        "tracks": {"tracks": 1, "judged": 3, "flagged": 1, "threshold": 0.9, "by_issue": [("size", 1)], "tracks_flagged": 1,
+                   "noise": [(evil, "center 0.030")],
+                   "worst": [{"log_id": evil, "object_id": evil, "class_name": evil, "frames": 3, "size": evil, "speed": 1.0, "flagged": 1,
+                              "max_track_error": 0.99, "worst_frame_id": evil, "worst_object_index": 0, "worst_issue": "size", "anchor": evil}]},
         "summary": {"objects": 1, "evaluated": 1, "complete": True, "run": [("dataset", evil)], "statuses": ["ok"], "status_totals": [1],
                     "by_class": [{"name": evil, "total": 1, "statuses": [1], "median_jiou_gt": 0.5, "median_label_error": None}],
                     "failed_frames": [], "failed_total": 0, "warnings_total": 0},
