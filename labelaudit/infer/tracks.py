@@ -8,8 +8,11 @@ with ``track_error`` / ``track_issue`` filled (the rows themselves are still def
 row per track. The pass depends only on the rows, never on how they were chunked or on the worker
 count, so it is bit-identical across both; a killed pass is simply run again by ``--resume``.
 
-The ordinary per-frame label noise is the run's own, pooled per class (robust: 1.4826 × the
-median absolute standardised residual), never below :data:`~labelaudit.constants.TRACK_NOISE_FLOOR`.
+The pass holds one group of shards at a time (the shards that share a log: one Waymo segment or
+Argoverse 2 log per shard with the built-in chunking), reading each twice: first for the run's
+ordinary per-frame label noise, pooled per class (robust: 1.4826 × the median absolute
+standardised residual, from a histogram of the residuals, so memory does not grow with the run),
+never below :data:`~labelaudit.constants.TRACK_NOISE_FLOOR`; then to score and rewrite.
 """
 
 from __future__ import annotations
@@ -91,19 +94,35 @@ def _column(table: pa.Table, name: str) -> np.ndarray:
     return np.asarray(table.column(name).to_numpy(zero_copy_only=False), dtype=float)
 
 
-def _eligible(table: pa.Table) -> np.ndarray:
+@dataclass
+class _Rows:
+    """The columns the pass uses, converted once (NumPy / Python lists)."""
+
+    frame: list[str]
+    index: list[int]
+    oid: list[str]
+    classes: list[str]
+    status: np.ndarray
+    num: dict[str, np.ndarray]
+
+    @classmethod
+    def of(cls, table: pa.Table) -> "_Rows":
+        numeric = (*R.WORLD_COLUMNS, "length", "width", "height", "fit_length", "fit_width", "fit_height", "std_length", "std_width", "std_height")
+        return cls(
+            table.column("frame_id").to_pylist(), table.column("object_index").to_pylist(), table.column("object_id").to_pylist(),
+            table.column("class_name").to_pylist(), np.array(table.column("status").to_pylist(), dtype=object),
+            {c: _column(table, c) for c in numeric},
+        )
+
+
+def _eligible(rows: _Rows, fmt: list[str]) -> np.ndarray:
     """Rows that take part: a tracked format, a time, a world box, a real track id, a usable label."""
-    n = table.num_rows
-    fmt = table.column("dataset").to_pylist()
-    frame = table.column("frame_id").to_pylist()
-    index = table.column("object_index").to_pylist()
-    oid = table.column("object_id").to_pylist()
-    status = table.column("status").to_pylist()
+    n = len(rows.frame)
     finite = np.ones(n, dtype=bool)
     for c in (*R.WORLD_COLUMNS, "length", "width", "height"):
-        finite &= np.isfinite(_column(table, c))
+        finite &= np.isfinite(rows.num[c])
     ok = np.array(
-        [fmt[i] in C.TRACK_FORMATS and status[i] != "error" and oid[i] != f"{frame[i]}:{index[i]}" for i in range(n)], dtype=bool
+        [fmt[i] in C.TRACK_FORMATS and rows.status[i] != "error" and rows.oid[i] != f"{rows.frame[i]}:{rows.index[i]}" for i in range(n)], dtype=bool
     ) if n else np.zeros(0, dtype=bool)
     return ok & finite
 
@@ -112,28 +131,25 @@ def _noise_from(values: Mapping[str, float]) -> T.TrackNoise:
     return T.TrackNoise(np.full(3, values["center"]), np.array([values["length"], values["width"], values["height"]]), values["yaw"])
 
 
-def _size_evidence(table: pa.Table, rows: np.ndarray, cfg: RunConfig | None, class_name: str) -> tuple[np.ndarray, np.ndarray] | None:
+def _size_evidence(rows: _Rows, idx: np.ndarray, cfg: RunConfig | None, class_name: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Each frame's fitted size and its data precision (per-frame posterior minus the prior), 0 without points."""
     if cfg is None:
         return None
     prior = cfg.model.prior_for(class_name)
     w = cfg.model.prior_weight
-    fit = np.stack([_column(table, f"fit_{d}")[rows] for d in ("length", "width", "height")], axis=1)
-    std = np.stack([_column(table, f"std_{d}")[rows] for d in ("length", "width", "height")], axis=1)
+    fit = np.stack([rows.num[f"fit_{d}"][idx] for d in ("length", "width", "height")], axis=1)
+    std = np.stack([rows.num[f"std_{d}"][idx] for d in ("length", "width", "height")], axis=1)
     prior_prec = w / np.array([prior.length, prior.width, prior.height]) ** 2
-    status = np.array(table.column("status").to_pylist(), dtype=object)[rows]
     with np.errstate(divide="ignore", invalid="ignore"):
         data = 1.0 / (std * std) - prior_prec
-    ok = (status == "ok")[:, None] & np.isfinite(fit) & np.isfinite(data)
+    ok = (rows.status[idx] == "ok")[:, None] & np.isfinite(fit) & np.isfinite(data)
     return np.where(ok, fit, np.nan), np.where(ok, np.maximum(data, 0.0), 0.0)
 
 
-def _groups(table: pa.Table, rows: np.ndarray) -> list[np.ndarray]:
+def _groups(rows: _Rows, eligible: np.ndarray) -> list[np.ndarray]:
     """Row indices of each track (sorted by log, object id, then time; repeated times left out)."""
-    frame = table.column("frame_id").to_pylist()
-    oid = table.column("object_id").to_pylist()
-    ts = _column(table, "timestamp")
-    keys = sorted(((log_of(frame[i]), oid[i], float(ts[i]), int(i)) for i in np.flatnonzero(rows)))
+    ts = rows.num["timestamp"]
+    keys = sorted(((log_of(rows.frame[i]), rows.oid[i], float(ts[i]), int(i)) for i in np.flatnonzero(eligible)))
     out: list[np.ndarray] = []
     current: list[int] = []
     last: tuple[str, str] | None = None
@@ -152,61 +168,92 @@ def _groups(table: pa.Table, rows: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def _residuals(table: pa.Table, rows: np.ndarray, noise: T.TrackNoise, params: T.TrackParams, evidence: Any) -> T.TrackResiduals:
-    t = _column(table, "timestamp")[rows]
-    centre = np.stack([_column(table, c)[rows] for c in ("world_cx", "world_cy", "world_cz")], axis=1)
-    yaw = _column(table, "world_yaw")[rows]
-    size = np.stack([_column(table, c)[rows] for c in ("length", "width", "height")], axis=1)
-    return T.track_residuals(t - t[0], centre, yaw, size, noise, params, evidence)
+@dataclass
+class _Tracks:
+    """The tracks of one table, ready to score."""
+
+    rows: _Rows
+    groups: list[np.ndarray]
+    classes: list[str]
+    evidence: list[Any]
+
+    @classmethod
+    def of(cls, table: pa.Table, cfg: RunConfig | None, params: T.TrackParams) -> "_Tracks":
+        rows = _Rows.of(table)
+        groups = [g for g in _groups(rows, _eligible(rows, table.column("dataset").to_pylist())) if len(g) >= params.min_frames]
+        classes = [max(sorted({rows.classes[i] for i in g}), key=[rows.classes[i] for i in g].count) for g in groups]
+        return cls(rows, groups, classes, [_size_evidence(rows, g, cfg, c) for g, c in zip(groups, classes)])
+
+    def residuals(self, k: int, noise: T.TrackNoise, params: T.TrackParams) -> T.TrackResiduals:
+        g, num = self.groups[k], self.rows.num
+        t = num["timestamp"][g]
+        centre = np.stack([num[c][g] for c in ("world_cx", "world_cy", "world_cz")], axis=1)
+        size = np.stack([num[c][g] for c in ("length", "width", "height")], axis=1)
+        return T.track_residuals(t - t[0], centre, num["world_yaw"][g], size, noise, params, self.evidence[k])
 
 
-def score_table(table: pa.Table, cfg: RunConfig | None = None, params: T.TrackParams | None = None) -> TrackScores:
-    """Score every row of an objects table against its track.
+NoiseCounts = dict[str, dict[str, np.ndarray]]
+"""class → noise key → histogram of |standardised residual| at the floor (bins of ``TRACK_NOISE_BIN``)."""
 
-    Parameters
-    ----------
-    table : the objects table (at least :data:`NEEDED_COLUMNS`)
-    cfg : the run's configuration (its priors turn the per-frame posteriors into size evidence);
-        None: the labels alone
-    params : the track model (default :func:`labelaudit.core.track.default_params`)
-    """
-    params = params or T.default_params()
-    n = table.num_rows
+
+def _bins() -> int:
+    return int(round(C.TRACK_NOISE_RANGE / C.TRACK_NOISE_BIN))
+
+
+def _noise_counts(tracks: _Tracks, params: T.TrackParams) -> NoiseCounts:
+    """Pass 1: every track at the noise floor; the histograms of its standardised residuals per class."""
+    floor = _noise_from(C.TRACK_NOISE_FLOOR)
+    out: NoiseCounts = {}
+    nb = _bins()
+    for k, c in enumerate(tracks.classes):
+        r = tracks.residuals(k, floor, params)
+        hist = out.setdefault(c, {key: np.zeros(nb + 1, dtype=np.int64) for key in _NOISE_KEYS})
+        for key, z in (("center", r.position.ravel()), ("length", r.size[:, 0]), ("width", r.size[:, 1]), ("height", r.size[:, 2]), ("yaw", r.heading)):
+            b = np.minimum((np.abs(z) / C.TRACK_NOISE_BIN).astype(np.int64), nb)  # the last bin holds everything beyond the range
+            hist[key] += np.bincount(b, minlength=nb + 1)
+    return out
+
+
+def _merge_counts(parts: list[NoiseCounts]) -> NoiseCounts:
+    """The histograms of several groups added up."""
+    out: NoiseCounts = {}
+    for part in parts:
+        for c, hists in part.items():
+            mine = out.setdefault(c, {k: np.zeros_like(v) for k, v in hists.items()})
+            for k, v in hists.items():
+                mine[k] += v
+    return out
+
+
+def _noise_of(counts: NoiseCounts) -> dict[str, dict[str, float]]:
+    """Per class the ordinary label noise: floor × max(1, 1.4826 × median |z|), the median from the
+    histogram (the centre of the bin where half the residuals are reached); the floor below
+    ``TRACK_NOISE_MIN_SAMPLES`` residuals."""
+    floor = C.TRACK_NOISE_FLOOR
+    out: dict[str, dict[str, float]] = {}
+    for c, hists in sorted(counts.items()):
+        out[c] = {}
+        for k in _NOISE_KEYS:
+            h = hists[k]
+            total = int(h.sum())
+            scale = 1.0
+            if total >= C.TRACK_NOISE_MIN_SAMPLES:
+                median_bin = int(np.searchsorted(np.cumsum(h), (total + 1) / 2.0))
+                scale = 1.4826 * (median_bin + 0.5) * C.TRACK_NOISE_BIN
+            out[c][k] = float(floor[k] * max(1.0, scale))
+    return out
+
+
+def _score(tracks: _Tracks, noise: Mapping[str, Mapping[str, float]], params: T.TrackParams) -> TrackScores:
+    """Pass 2: every track with its class's noise (the floor for a class the noise does not know)."""
+    rows = tracks.rows
+    n = len(rows.frame)
     error = np.full(n, np.nan)
     issue: list[str | None] = [None] * n
-    if n == 0:
-        return TrackScores(error, issue, [], {})
-    rows = _eligible(table)
-    groups = [g for g in _groups(table, rows) if len(g) >= params.min_frames]
-    classes = table.column("class_name").to_pylist()
-    track_class = [max(sorted({classes[i] for i in g}), key=[classes[i] for i in g].count) for g in groups]
-    evidence = [_size_evidence(table, g, cfg, c) for g, c in zip(groups, track_class)]
-
-    # pass 1 at the floor: the run's own noise per class, pooled over its tracks
-    floor = dict(C.TRACK_NOISE_FLOOR)
-    pooled: dict[str, dict[str, list[np.ndarray]]] = {}
-    for g, c, ev in zip(groups, track_class, evidence):
-        r = _residuals(table, g, _noise_from(floor), params, ev)
-        p = pooled.setdefault(c, {k: [] for k in _NOISE_KEYS})
-        p["center"].append(r.position.ravel())
-        for j, k in enumerate(("length", "width", "height")):
-            p[k].append(r.size[:, j])
-        p["yaw"].append(r.heading)
-    noise: dict[str, dict[str, float]] = {}
-    for c, p in sorted(pooled.items()):
-        noise[c] = {}
-        for k in _NOISE_KEYS:
-            z = np.abs(np.concatenate(p[k]))
-            scale = 1.4826 * float(np.median(z)) if len(z) >= C.TRACK_NOISE_MIN_SAMPLES else 1.0
-            noise[c][k] = float(floor[k] * max(1.0, scale))
-
-    frame = table.column("frame_id").to_pylist()
-    index = table.column("object_index").to_pylist()
-    oid = table.column("object_id").to_pylist()
-    ts = _column(table, "timestamp")
-    tracks: list[dict[str, Any]] = []
-    for g, c, ev in zip(groups, track_class, evidence):
-        r = _residuals(table, g, _noise_from(noise[c]), params, ev)
+    out: list[dict[str, Any]] = []
+    ts = rows.num["timestamp"]
+    for k, (g, c) in enumerate(zip(tracks.groups, tracks.classes)):
+        r = tracks.residuals(k, _noise_from(noise.get(c, C.TRACK_NOISE_FLOOR)), params)
         scores = T.kind_scores(r, params)
         err = scores.max(axis=1)
         kinds = T.issue_of(scores, C.TRACK_ISSUE_MIN)
@@ -216,22 +263,41 @@ def score_table(table: pa.Table, cfg: RunConfig | None = None, params: T.TrackPa
         worst = int(np.argmax(err))
         speed = np.hypot(r.velocity[:, 0], r.velocity[:, 1])
         moving = speed > C.TRACK_MOVING_SPEED
-        yaw = _column(table, "world_yaw")[g]
         if moving.any():
-            diff = yaw[moving] - np.arctan2(r.velocity[moving, 1], r.velocity[moving, 0])
+            diff = rows.num["world_yaw"][g][moving] - np.arctan2(r.velocity[moving, 1], r.velocity[moving, 0])
             vs_motion: float | None = float(normalize_angle(float(np.arctan2(np.sin(diff).mean(), np.cos(diff).mean()))))
         else:
             vs_motion = None
-        tracks.append({
-            "log_id": log_of(frame[g[0]]), "object_id": oid[g[0]], "class_name": c, "frames": len(g),
-            "first_frame_id": frame[g[0]], "last_frame_id": frame[g[-1]], "duration": float(ts[g[-1]] - ts[g[0]]),
+        first, last, w = g[0], g[-1], g[worst]
+        out.append({
+            "log_id": log_of(rows.frame[first]), "object_id": rows.oid[first], "class_name": c, "frames": len(g),
+            "first_frame_id": rows.frame[first], "last_frame_id": rows.frame[last], "duration": float(ts[last] - ts[first]),
             **{d: float(v) for d, v in zip(("length", "width", "height"), r.size_mean)},
             **{f"std_{d}": float(v) for d, v in zip(("length", "width", "height"), r.size_std)},
             "mean_speed": float(speed.mean()), "heading_vs_motion": vs_motion,
             "flagged": int(np.sum(err >= C.TRACK_FLAG)), "max_track_error": float(err[worst]),
-            "worst_frame_id": frame[g[worst]], "worst_object_index": int(index[g[worst]]), "worst_issue": kinds[worst],
+            "worst_frame_id": rows.frame[w], "worst_object_index": int(rows.index[w]), "worst_issue": kinds[worst],
         })
-    return TrackScores(error, issue, tracks, noise)
+    return TrackScores(error, issue, out, dict(noise))
+
+
+def score_table(table: pa.Table, cfg: RunConfig | None = None, params: T.TrackParams | None = None,
+                noise: Mapping[str, Mapping[str, float]] | None = None) -> TrackScores:
+    """Score every row of an objects table against its track.
+
+    Parameters
+    ----------
+    table : the objects table (at least :data:`NEEDED_COLUMNS`)
+    cfg : the run's configuration (its priors turn the per-frame posteriors into size evidence);
+        None: the labels alone
+    params : the track model (default :func:`labelaudit.core.track.default_params`)
+    noise : class → the ordinary label noise (per class, as in ``tracks.parquet``'s metadata ``track_noise``); None: estimated from this table
+    """
+    params = params or T.default_params()
+    tracks = _Tracks.of(table, cfg, params)
+    if noise is None:
+        noise = _noise_of(_noise_counts(tracks, params))
+    return _score(tracks, noise, params)
 
 
 def tracks_table(scores: TrackScores, metadata: Mapping[str, Any] | None = None) -> pa.Table:
@@ -241,12 +307,43 @@ def tracks_table(scores: TrackScores, metadata: Mapping[str, Any] | None = None)
     return R.with_metadata(table, {**metadata, "track_noise": scores.noise}) if metadata is not None else table
 
 
+def shard_groups(files: list[Path]) -> list[list[Path]]:
+    """The shards that must be scored together: those that share a log (a track never leaves its log).
+    With the built-in chunking (one Waymo segment / Argoverse 2 log per shard) every shard is alone."""
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    owner: dict[str, int] = {}
+    parent = list(range(len(files)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, f in enumerate(files):
+        frames = pc.unique(pq.read_table(f, columns=["frame_id"]).column("frame_id")).to_pylist()
+        for log in {log_of(x) for x in frames}:
+            if log in owner:
+                a, b = root(owner[log]), root(i)
+                parent[max(a, b)] = min(a, b)
+            else:
+                owner[log] = i
+    groups: dict[int, list[Path]] = {}
+    for i, f in enumerate(files):
+        groups.setdefault(root(i), []).append(f)
+    return [groups[k] for k in sorted(groups)]
+
+
 def run_tracks_pass(output: Path, cfg: RunConfig, metadata: Mapping[str, Any]) -> int:
     """Score every track of a results folder and write the scores into its shards and ``tracks.parquet``.
 
-    Shards are rewritten atomically, keeping their metadata (the chunk records ``--resume`` reads);
-    a shard whose scores are already the ones written is left alone. Returns the number of tracks scored.
-    Formats without tracks (KITTI) write no ``tracks.parquet`` (an old one is removed).
+    One group of shards (:func:`shard_groups`) in memory at a time, read twice: the noise
+    histograms of every group first, then the scores. Shards are rewritten atomically, keeping
+    their metadata (the chunk records ``--resume`` reads); a shard whose scores are already the
+    ones written is left alone. Returns the number of tracks scored. Formats without tracks
+    (KITTI) write no ``tracks.parquet`` (an old one is removed).
     """
     import pyarrow.parquet as pq
 
@@ -256,23 +353,30 @@ def run_tracks_pass(output: Path, cfg: RunConfig, metadata: Mapping[str, Any]) -
     if metadata.get("format") not in C.TRACK_FORMATS or not files:
         tracks_path.unlink(missing_ok=True)
         return 0
-    parts = [pq.read_table(f, columns=[*NEEDED_COLUMNS, *R.TRACK_COLUMNS]) for f in files]
-    table = pa.concat_tables(parts) if parts else R.SCHEMA.empty_table().select(list(NEEDED_COLUMNS))
-    scores = score_table(table, cfg)
-    start = 0
-    for f, part in zip(files, parts):
-        stop = start + part.num_rows
-        err = scores.track_error[start:stop]
-        kinds = scores.track_issue[start:stop]
-        start = stop
-        new_err = pa.array([None if v != v else float(v) for v in err], pa.float64())
-        new_issue = pa.array(kinds, pa.string())
-        if part.column("track_error").combine_chunks().equals(new_err) and part.column("track_issue").combine_chunks().equals(new_issue):
-            continue  # already written (a resumed run whose rows did not change)
-        shard = pq.read_table(f)
-        meta = shard.schema.metadata
-        shard = shard.set_column(shard.schema.get_field_index("track_error"), R.SCHEMA.field("track_error"), new_err)
-        shard = shard.set_column(shard.schema.get_field_index("track_issue"), R.SCHEMA.field("track_issue"), new_issue)
-        R.write_parquet_atomic(shard.replace_schema_metadata(meta), f)
-    R.write_parquet_atomic(tracks_table(scores, metadata), tracks_path)
-    return len(scores.tracks)
+    params = T.default_params()
+    groups = shard_groups(files)
+
+    def read(group: list[Path]) -> list[pa.Table]:
+        return [pq.read_table(f, columns=[*NEEDED_COLUMNS, *R.TRACK_COLUMNS]) for f in group]
+
+    noise = _noise_of(_merge_counts([_noise_counts(_Tracks.of(pa.concat_tables(read(g)), cfg, params), params) for g in groups]))
+    all_tracks: list[dict[str, Any]] = []
+    for group in groups:
+        parts = read(group)
+        scores = _score(_Tracks.of(pa.concat_tables(parts), cfg, params), noise, params)
+        all_tracks.extend(scores.tracks)
+        start = 0
+        for f, part in zip(group, parts):
+            stop = start + part.num_rows
+            new_err = pa.array([None if v != v else float(v) for v in scores.track_error[start:stop]], pa.float64())
+            new_issue = pa.array(scores.track_issue[start:stop], pa.string())
+            start = stop
+            if part.column("track_error").combine_chunks().equals(new_err) and part.column("track_issue").combine_chunks().equals(new_issue):
+                continue  # already written (a resumed run whose rows did not change)
+            shard = pq.read_table(f)
+            meta = shard.schema.metadata
+            shard = shard.set_column(shard.schema.get_field_index("track_error"), R.SCHEMA.field("track_error"), new_err)
+            shard = shard.set_column(shard.schema.get_field_index("track_issue"), R.SCHEMA.field("track_issue"), new_issue)
+            R.write_parquet_atomic(shard.replace_schema_metadata(meta), f)
+    R.write_parquet_atomic(tracks_table(TrackScores(np.zeros(0), [], all_tracks, noise), metadata), tracks_path)
+    return len(all_tracks)
