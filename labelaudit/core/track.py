@@ -106,6 +106,8 @@ class TrackResiduals:
     size_mean, size_std : (3,) posterior mean and std of the track's size (all frames, robust weights)
     size_weight : (n,) robust weight of each label in the size posterior (1 = fully trusted)
     velocity : (n, 2) world BEV velocity of the centre from the local fit (m/s)
+    expected : (n, 7) the box the rest of the track expects at each frame (world frame): the
+        predicted centre, the other frames' size consensus and the predicted heading
     """
 
     size: FloatArray
@@ -115,6 +117,7 @@ class TrackResiduals:
     size_std: FloatArray
     size_weight: FloatArray
     velocity: FloatArray
+    expected: FloatArray
 
 
 _OUTLIER_ROUNDS = 4  # refits leaving out the frames that stand out (each round removes at least one)
@@ -287,7 +290,7 @@ def track_residuals(
     # A wrong neighbour must not pass its error on (near a track's end it has the most leverage on
     # the extrapolation): the frame that stands out most among its neighbours is left out of their
     # fits, and the fits are redone, until no frame stands out (a few rounds).
-    def fit(y: FloatArray, ridge: FloatArray, residual: Any) -> tuple[FloatArray, FloatArray]:
+    def fit(y: FloatArray, ridge: FloatArray, residual: Any) -> tuple[FloatArray, FloatArray, FloatArray]:
         out = np.zeros(n, dtype=bool)
         # Which of two frames that both stand out is the wrong one: the one a median of pairwise
         # lines through its neighbours (insensitive to one wrong neighbour) disagrees with most.
@@ -303,13 +306,13 @@ def track_residuals(
             if not new.any():
                 break
             out |= new
-        return slope, z
+        return pred, slope, z
 
     # position: all three coordinates share the robust weights of a neighbour
     sc = np.asarray(noise.centre, dtype=float)
     rel = (centre[idx] - centre[:, None, :]) / sc  # relative to the frame itself: small numbers, same fit
     ridge_c = np.array([_NO_NEIGHBOUR_PRECISION, (sc.min() / v1) ** 2, (sc.min() / a1) ** 2])
-    slope_c, pos = fit(rel, ridge_c, lambda pred, var: -pred / np.sqrt(1.0 + var)[:, None])  # the label is at 0
+    pred_c, slope_c, pos = fit(rel, ridge_c, lambda pred, var: -pred / np.sqrt(1.0 + var)[:, None])  # the label is at 0
     velocity = slope_c[:, :2] * sc[:2]
 
     # heading: neighbours unwrapped around their circular mean, so flips are residuals of ±π
@@ -318,7 +321,7 @@ def track_residuals(
     ref = np.where((s != 0) | (c != 0), np.arctan2(s, c), yaw)
     d = normalize_angle(ny - ref[:, None])[..., None] / noise.yaw
     ridge_y = np.array([_NO_NEIGHBOUR_PRECISION, (noise.yaw / w1) ** 2, (noise.yaw / wa1) ** 2])
-    _, head = fit(d, ridge_y, lambda pred, var: normalize_angle(yaw - (ref + pred[:, 0] * noise.yaw)) / noise.yaw / np.sqrt(1.0 + var))
+    pred_y, _, head = fit(d, ridge_y, lambda pred, var: normalize_angle(yaw - (ref + pred[:, 0] * noise.yaw)) / noise.yaw / np.sqrt(1.0 + var))
 
     # size: one rigid size; labels and (optionally) the points' fitted sizes
     ss = np.asarray(noise.size, dtype=float)
@@ -340,7 +343,8 @@ def track_residuals(
     size_z = (lab - loo_mean) / np.sqrt(1.0 + 1.0 / loo_total)
     size_std = ss / np.sqrt(np.maximum(total, 1e-12))
     weight = np.where(prec > 0, wl / prec, 0.0).min(axis=1)
-    return TrackResiduals(size_z, pos, head, mean * ss, size_std, weight, velocity)
+    expected = np.concatenate([centre + pred_c * sc, loo_mean * ss, normalize_angle(ref + pred_y[:, 0] * noise.yaw)[:, None]], axis=1)
+    return TrackResiduals(size_z, pos, head, mean * ss, size_std, weight, velocity, expected)
 
 
 def error_probability(q: FloatArray, dims: int, params: TrackParams) -> FloatArray:

@@ -13,6 +13,7 @@ nothing (:mod:`labelaudit.viz.show` does).
 from __future__ import annotations
 
 import bisect
+import json
 import difflib
 import math
 from dataclasses import dataclass, field, replace
@@ -28,6 +29,7 @@ from numpy.typing import NDArray
 from labelaudit import constants as C
 from labelaudit.config import RunConfig, config_from_params, hash_inputs
 from labelaudit.core import geometry as g
+from labelaudit.core import track as T
 from labelaudit.core.fit import LabelFit, fit_label
 from labelaudit.core.posterior import LabelPosterior, infer_label
 from labelaudit.core.spatial import BoxDistribution, Grid, jiou_gt, spatial_distribution
@@ -393,6 +395,8 @@ class TrackView:
     frame_ids : T frame ids
     track_error, track_issue : this label's (None when the track was not scored)
     size : (3,) the track's fused length, width, height (tracks.parquet), or None
+    expected : (7,) the box the rest of the track expects in this frame (its predicted centre and
+        heading, the other frames' size), in this frame; None for a track of < 3 frames
     """
 
     dt: FloatArray
@@ -401,6 +405,7 @@ class TrackView:
     track_error: float | None
     track_issue: str | None
     size: FloatArray | None
+    expected: FloatArray | None = None
 
 
 def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TRACK_FRAMES) -> TrackView | None:
@@ -427,19 +432,35 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
     rot = g.rotation_2d(psi)
     shift = np.array([row["world_cx"], row["world_cy"]]) - rot @ np.array([row["cx"], row["cy"]])
     dz = float(row["world_cz"]) - float(row["cz"])
-    boxes = np.zeros((len(chosen), 7))
-    for k, r in enumerate(chosen):
-        boxes[k, :2] = rot.T @ (np.array([r["world_cx"], r["world_cy"]]) - shift)
-        boxes[k, 2] = r["world_cz"] - dz
-        boxes[k, 3:6] = (r["length"], r["width"], r["height"])
-        boxes[k, 6] = g.normalize_angle(float(r["world_yaw"]) - psi)
+
+    def here(world_box: Sequence[float]) -> FloatArray:
+        out = np.asarray(world_box, dtype=float).copy()
+        out[:2] = rot.T @ (out[:2] - shift)
+        out[2] -= dz
+        out[6] = g.normalize_angle(float(out[6]) - psi)
+        return out
+
+    boxes = np.array([here([r["world_cx"], r["world_cy"], r["world_cz"], r["length"], r["width"], r["height"], r["world_yaw"]]) for r in chosen]).reshape(-1, 7)
     size = None
+    noise = T.TrackNoise.floor()
     tracks = results.tracks()
     if tracks is not None:
         for tr in tracks.filter(pc.field("object_id") == row["object_id"]).to_pylist():
             if tr["log_id"] == log and tr["length"] is not None:
                 size = np.array([tr["length"], tr["width"], tr["height"]])
+        used = (tracks.schema.metadata or {}).get(b"labelaudit")
+        per_class = json.loads(used).get("track_noise", {}).get(row["class_name"]) if used else None
+        if per_class:
+            noise = T.TrackNoise(np.full(3, per_class["center"]), np.array([per_class["length"], per_class["width"], per_class["height"]]), per_class["yaw"])
+    expected = None
+    if len(mates) >= C.TRACK_MIN_FRAMES:  # what the rest of the track expects here (the labels' size consensus)
+        t = np.array([r["timestamp"] for r in mates], dtype=float)
+        res = T.track_residuals(
+            t - t[0], np.array([[r["world_cx"], r["world_cy"], r["world_cz"]] for r in mates]), np.array([r["world_yaw"] for r in mates]),
+            np.array([[r["length"], r["width"], r["height"]] for r in mates]), noise, T.default_params(),
+        )
+        expected = here(res.expected[i])
     return TrackView(
         np.array([r["timestamp"] - row["timestamp"] for r in chosen], dtype=float), boxes, [str(r["frame_id"]) for r in chosen],
-        row.get("track_error"), row.get("track_issue"), size,
+        row.get("track_error"), row.get("track_issue"), size, expected,
     )

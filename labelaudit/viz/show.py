@@ -49,6 +49,7 @@ FIT_COLOUR = "#00e5ff"
 ELLIPSE_COLOUR = "#7CFC00"
 CONTEXT_COLOUR = "#8a8a8a"
 TRACK_CMAP = "coolwarm"  # the track's other frames: blue earlier, red later
+EXPECTED_COLOUR = "#ffd400"  # the box the rest of the track expects in this frame
 
 
 
@@ -159,6 +160,7 @@ class ObjectPicture:
     view : (x0, x1, y0, y1) axes limits
     caption : the caption text
     track_corners : (T, 4, 2) the object's labels in the neighbouring frames of its track (box frame)
+    expected_corners : (4, 2) the box the rest of the track expects in this frame (box frame), or (0, 2)
     """
 
     png: bytes
@@ -177,6 +179,7 @@ class ObjectPicture:
     view: tuple[float, float, float, float]
     caption: str
     track_corners: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 2)))
+    expected_corners: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def _caption(audit: ObjectAudit, track: TrackView | None = None) -> str:
@@ -243,8 +246,9 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
 
     # View: the label, the suggested box and the 2-σ corner ellipses, plus a margin; the figure's aspect.
     track_corners = np.array([_to_box_frame(g.box_corners(b, "bev"), box) for b in track.boxes]) if track is not None and len(track.boxes) else np.zeros((0, 4, 2))
+    expected_corners = _to_box_frame(g.box_corners(track.expected, "bev"), box) if track is not None and track.expected is not None else np.zeros((0, 2))
     reach = np.vstack([label_corners, fit_corners, centres + 2 * np.sqrt(covs[:, [0, 1], [0, 1]]), centres - 2 * np.sqrt(covs[:, [0, 1], [0, 1]]),
-                       track_corners.reshape(-1, 2)])
+                       track_corners.reshape(-1, 2), expected_corners])
     lo, hi = reach.min(axis=0) - C.SHOW_VIEW_MARGIN, reach.max(axis=0) + C.SHOW_VIEW_MARGIN
     fig = _figure(size)
     ax_rect = ((0.01, 0.01, 0.98, 0.98) if compact else (0.1, 0.13, 0.72, 0.74)) if overlays else (0.0, 0.0, 1.0, 1.0)
@@ -262,7 +266,7 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     if not overlays:
         ax.set_axis_off()
         png = _png(fig)
-        return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners)
+        return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners, expected_corners)
 
     if len(context_xy):
         ax.plot(context_xy[:, 0], context_xy[:, 1], ls="", marker="o", markersize=1.4, markerfacecolor=CONTEXT_COLOUR, markeredgewidth=0, zorder=2)
@@ -282,6 +286,10 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
             front = corners[[0, 3]].mean(axis=0)  # box_corners: 0 front-left, 3 front-right
             mid = corners.mean(axis=0)
             ax.plot([mid[0], front[0]], [mid[1], front[1]], color=colour, linewidth=0.8, alpha=0.9, zorder=4.5)
+    if len(expected_corners):
+        ax.add_patch(Polygon(expected_corners, closed=True, fill=False, edgecolor=EXPECTED_COLOUR, linewidth=1.4, linestyle=(0, (1.5, 1.5)), zorder=5))
+        tip, mid = expected_corners[[0, 3]].mean(axis=0), expected_corners.mean(axis=0)
+        ax.plot([mid[0], tip[0]], [mid[1], tip[1]], color=EXPECTED_COLOUR, linewidth=1.0, linestyle=(0, (1.5, 1.5)), zorder=5)
     ax.add_patch(Polygon(label_corners, closed=True, fill=False, edgecolor=LABEL_COLOUR, linewidth=1.6, zorder=5))
     ax.add_patch(Polygon(fit_corners, closed=True, fill=False, edgecolor=FIT_COLOUR, linewidth=1.4, linestyle=(0, (4, 2)), zorder=5))
     # Heading: a short tick from the centre to the front face.
@@ -307,7 +315,7 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     if compact:  # the scale bar gives the metres and the report prints the numbers beside the picture: ticks and glyphs cost most of the drawing
         ax.set_xticks([])
         ax.set_yticks([])
-        return ObjectPicture(_png(fig), size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners)
+        return ObjectPicture(_png(fig), size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners, expected_corners)
     fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=9)
     ax.tick_params(labelsize=7)
     ax.set_xlabel("along the label's length (m)", fontsize=8)
@@ -330,13 +338,15 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
         Line2D([], [], ls="", marker="o", markersize=3, markerfacecolor=CONTEXT_COLOUR, markeredgecolor="none", label="other points"),
     ]
     if len(track_corners):
-        handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](0.0), lw=1.0, label="track: earlier frames"))
-        handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](1.0), lw=1.0, label="track: later frames"))
-    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06, 0.0), ncol=3 if len(handles) <= 6 else 4, fontsize=6.5, frameon=True, handlelength=2.2, columnspacing=1.0, labelcolor="white")
+        handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](0.0), lw=1.0, label="track: earlier"))
+        handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](1.0), lw=1.0, label="track: later"))
+    if len(expected_corners):
+        handles.append(Line2D([], [], color=EXPECTED_COLOUR, lw=1.4, ls=(0, (1.5, 1.5)), label="track expects here"))
+    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06 if len(handles) <= 8 else 0.0, 0.0), ncol=3 if len(handles) <= 6 else 4 if len(handles) <= 8 else 5, fontsize=6.5, frameon=True, handlelength=2.2 if len(handles) <= 8 else 1.6, columnspacing=1.0 if len(handles) <= 8 else 0.6, labelcolor="white")
     leg.get_frame().set_facecolor(heat_cmap(0.0))  # the label's white line needs the heatmap's dark ground
     leg.get_frame().set_edgecolor("none")
     png = _png(fig)
-    return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners)
+    return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners, expected_corners)
 
 
 # --------------------------------------------------------------------------- a whole frame
@@ -356,6 +366,7 @@ class FramePicture:
     view : (x0, x1, y0, y1) axes limits
     caption : the caption text
     track_corners : (T, 4, 2) the object's labels in the neighbouring frames of its track (box frame)
+    expected_corners : (4, 2) the box the rest of the track expects in this frame (box frame), or (0, 2)
     """
 
     png: bytes
