@@ -60,6 +60,10 @@ COUNT_KEYS = frozenset({"max_count_no_points", "max_failed_objects", "min_object
 FRACTION_KEYS = frozenset({"max_fraction_jiou_gt_below", "max_fraction_no_points", "max_fraction_label_error_above", "max_fraction_track_error_above"})
 NEEDS = {"max_fraction_jiou_gt_below": "jiou_gt_threshold", "max_fraction_label_error_above": "label_error_threshold",
          "max_fraction_track_error_above": "track_error_threshold"}
+_SCORE_RULES = {  # rule → (score column, its threshold key, counts values at the threshold, why inactive without values)
+    "max_fraction_label_error_above": ("label_error", "label_error_threshold", False, "no label_error yet"),
+    "max_fraction_track_error_above": ("track_error", "track_error_threshold", True, "no track_error (no tracks: KITTI, or tracks of < 3 frames)"),
+}
 # Order of rules in reports.
 RULE_ORDER = tuple(k for k, (kind, _) in KEYS.items() if kind != "param")
 
@@ -256,22 +260,15 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
             else:
                 value = float(np.mean(values < rules["jiou_gt_threshold"]))
                 note = f"below {format_number(rules['jiou_gt_threshold'])}"
-        elif rule == "max_fraction_label_error_above":
-            values = _finite(lerr[evaluated])
+        elif rule in _SCORE_RULES:
+            score, param, at_or_above, inactive = _SCORE_RULES[rule]
+            values = _finite((lerr if score == "label_error" else terr)[evaluated])
             count = len(values)
-            if count == 0:
-                out.append(RuleResult(name, rule, None, thr, "skip", 0, "inactive: no label_error yet"))
+            if count == 0:  # the score is not computed for these objects (yet): the rule is inactive
+                out.append(RuleResult(name, rule, None, thr, "skip", 0, f"inactive: {inactive}"))
                 continue
-            value = float(np.mean(values > rules["label_error_threshold"]))
-            note = f"above {format_number(rules['label_error_threshold'])}"
-        elif rule == "max_fraction_track_error_above":
-            values = _finite(terr[evaluated])
-            count = len(values)
-            if count == 0:
-                out.append(RuleResult(name, rule, None, thr, "skip", 0, "inactive: no track_error (no tracks: KITTI, or tracks of < 3 frames)"))
-                continue
-            value = float(np.mean(values >= rules["track_error_threshold"]))
-            note = f"at or above {format_number(rules['track_error_threshold'])}"
+            value = float(np.mean(values >= rules[param] if at_or_above else values > rules[param]))
+            note = f"{'at or above' if at_or_above else 'above'} {format_number(rules[param])}"
         if value is None:
             out.append(RuleResult(name, rule, None, thr, "error", count, note or "could not be evaluated"))
         else:
