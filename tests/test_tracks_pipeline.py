@@ -66,6 +66,10 @@ def test_pool_and_resume_after_a_killed_tracks_pass_give_the_same_rows(segments:
     infer_dataset(InferRequest(root / "waymo_v2", out, workers=2))
     assert _objects(out).equals(_objects(run1))
     assert pq.read_table(out / R.TRACKS_FILE).equals(pq.read_table(run1 / R.TRACKS_FILE))
+    dask = tmp_path / "dask"  # a real LocalCluster: the pass runs in the client over the rows the workers wrote
+    infer_dataset(InferRequest(root / "waymo_v2", dask, scheduler="local:1"))
+    assert _objects(dask).equals(_objects(run1))
+    assert pq.read_table(dask / R.TRACKS_FILE).equals(pq.read_table(run1 / R.TRACKS_FILE))
     # a run killed during the tracks pass: one shard without its scores, no tracks.parquet, manifest incomplete
     shard = sorted((out / R.OBJECTS_DIR).glob("*.parquet"))[0]
     t = pq.read_table(shard)
@@ -110,6 +114,11 @@ def test_show_moves_the_neighbouring_labels_into_this_frame(segments: tuple[Path
     assert np.allclose(here.boxes[k], [row[c] for c in R.BOX_COLUMNS], atol=1e-6)
     pic = render_object(recompute(open_source(results), row), track=view)
     assert pic.track_corners.shape == (len(view.boxes), 4, 2) and "track_error" in pic.caption
+    # the box the rest of the track expects here: the true box, up to the ordinary noise (the label is the wrong one)
+    assert view.expected is not None and pic.expected_corners.shape == (4, 2)
+    truth = here.true_boxes[k]
+    assert np.hypot(*(view.expected[:2] - truth[:2])) < 0.15 and np.all(np.abs(view.expected[3:5] - truth[3:5]) < 0.08)
+    assert abs(np.angle(np.exp(1j * (view.expected[6] - truth[6])))) < 0.08
     # KITTI-like rows (no pose, made-up ids) have no track to draw
     assert track_view(results, {**row, "world_cx": None}) is None
 
@@ -121,3 +130,19 @@ def test_report_has_a_tracks_section_and_gallery(run1: Path, tmp_path: Path) -> 
     html = (tmp_path / "r.html").read_text()
     assert 'id="tracks"' in html and 'id="worst-tracks"' in html and 'data-gallery="track_error"' in html
     assert s.gallery.get("track_error") == 2
+
+
+def test_simulate_and_rank_from_the_command_line(tmp_path: Path) -> None:
+    import _hostile as H
+
+    sim, out = tmp_path / "sim", tmp_path / "res"
+    run = H.run_cli("simulate", sim, "--dataset-format", "av2", "--sequences", "1", "--frames", "12", "--size", "small",
+                    "--track-noise", "--moving", "0.5", "--noise-fraction", "0", "--gross-fraction", "0", "-q")
+    assert run.exit_code == 0, run.stderr
+    truth = {(r["frame_id"], r["object_id"]): r["track_error_kind"] for r in pq.read_table(sim / "manifest.parquet").to_pylist()}
+    assert set(truth.values()) - {"none"}  # errors were injected and recorded
+    assert H.run_cli("infer", sim, "-o", out, "--workers", "1", "-q").exit_code == 0
+    ranked = json.loads(H.run_cli("rank", out, "--by", "track_error", "--top", "3", "--format", "json").stdout)
+    assert ranked and all(truth[(r["frame_id"], r["object_id"])] != "none" and r["track_error"] > 0.9 for r in ranked)
+    bad = H.run_cli("simulate", tmp_path / "k", "--track-noise")  # KITTI frames are no sequences
+    assert bad.exit_code == 2 and "--track-noise" in bad.stderr

@@ -39,6 +39,8 @@ def simulate(
     gross_fraction: float = typer.Option(0.02, "--gross-fraction", help="Share of vehicle labels with a gross error (shifted 1 m, swapped l/w, turned 90°)."),
     clutter: bool = typer.Option(False, "--clutter", help="KITTI: add unlabelled surroundings: building walls beside the road, poles and bushes (docs/simulator.md)."),
     drop_fraction: float = typer.Option(0.0, "--drop-fraction", metavar="F", help="KITTI: leave out this share of the vehicle labels (their points stay): missing labels, recorded in manifest.parquet (column dropped)."),
+    track_noise: bool = typer.Option(False, "--track-noise", help="waymo-v2, waymo-v1, av2: label noise inside tracks — every vehicle label a few cm / 0.02 rad off (ordinary per-frame scatter) and 5 % with one annotator error (length ±0.25–0.5 m, width ±0.15–0.3 m, heading ±0.1–0.25 rad or flipped, centre 0.3–0.6 m), in the manifest's track_error_kind; the tracks benchmark's noise (use with --noise-fraction 0 --gross-fraction 0)."),
+    moving: float = typer.Option(0.0, "--moving", help="waymo-v2, waymo-v1, av2: share of the vehicles that drive (3–12 m/s, turning gently); the rest are parked."),
     workers: int = typer.Option(1, "--workers", help="KITTI: worker processes (same files for any count)."),
     detections: bool = typer.Option(False, "--detections", help="Also write a synthetic detector's output for `labelaudit eval`: KITTI OUT/detections/ (result files), av2 OUT/detections.feather."),
     detections_cov: bool = typer.Option(False, "--detections-cov", help="With --detections: a probabilistic detector, per-detection std in OUT/detections.parquet."),
@@ -59,6 +61,8 @@ def simulate(
       labelaudit simulate sim-av2/ --dataset-format av2 --detections && labelaudit eval sim-av2/ sim-av2/detections.feather
 
       labelaudit simulate sim-waymo/ --dataset-format waymo-v2 --sequences 2 --frames 20 --size small
+
+      labelaudit simulate sim-tracks/ --dataset-format waymo-v2 --track-noise --moving 0.5 --noise-fraction 0 --gross-fraction 0 --frames 40 --size small
 
       labelaudit simulate sim/ --noise-fraction 0.3 --noise-center-std 0.2 --gross-fraction 0.05
 
@@ -93,12 +97,18 @@ def simulate(
             raise typer.BadParameter(f"must be in [0, 1], got {drop_fraction}", param_hint="--drop-fraction")
         if sequence and (clutter or drop_fraction > 0):
             raise typer.BadParameter(f"KITTI only, not {dataset_format.value} sequences", param_hint="--clutter/--drop-fraction")
+        if not sequence and (track_noise or moving):
+            raise typer.BadParameter("KITTI frames are not sequences; use --dataset-format waymo-v2, waymo-v1 or av2", param_hint="--track-noise/--moving")
+        if not 0.0 <= moving <= 1.0:
+            raise typer.BadParameter(f"must be a fraction in [0, 1], got {moving}", param_hint="--moving")
         if sequence:
             from labelaudit.sim.detector import DetectorSpec
+            from labelaudit.sim.tracknoise import TrackNoiseSpec
 
             summary = simulate_sequences(out, dataset_format.value, sequences=sequences, frames=frames, seed=seed, noise=spec,
                                          size=size.value, progress=not quiet, overwrite=overwrite,
-                                         detections=DetectorSpec() if detections else None)
+                                         detections=DetectorSpec() if detections else None,
+                                         track_noise=TrackNoiseSpec() if track_noise else None, moving_fraction=moving)
             what = f"{sequences} {'log' if dataset_format is SimFormat.av2 else 'segment'}(s) of {frames} frames ({summary.num_labels} labels)"
         else:
             from labelaudit.sim.scene import SceneSpec

@@ -32,6 +32,9 @@ from labelaudit.sim.detector import DetectorSpec, DetectorSummary
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import SceneSpec, sample_scene
+from labelaudit.sim.tracknoise import TrackNoiseSpec, perturb_track_labels
+from labelaudit.sim.waymo_writer import _motions as vehicle_motions
+from labelaudit.sim.waymo_writer import _scene_at as scene_at
 from labelaudit.sim.waymo_writer import _scene_in_vehicle as scene_in_vehicle
 from labelaudit.sim.waymo_writer import planar_motion, planar_pose
 
@@ -163,7 +166,8 @@ AV2_COLUMNS = {"real": 1800, "small": 360}  # azimuth columns per sweep: 0.2° (
 AV2_MAX_RANGE = 200.0  # m; VLP-32C
 SWEEP_NS = 100_000_000  # 10 Hz
 AV2_T0 = 315_966_265_259_836_000  # ns; timestamps start where the real val logs do (+ 1 s per seed)
-MANIFEST_COLUMNS = ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation")  # as the Waymo simulator's
+MANIFEST_COLUMNS = ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation",
+                    "track_error_kind", "track_error_size")  # as the Waymo simulator's
 
 
 @dataclass
@@ -180,6 +184,7 @@ class SimAv2Frame:
     boxes : (K, 7) written labels; true_boxes (K, 7) before label noise
     categories, track_ids, sim_classes, perturbation : K strings each
     num_interior_pts : (K,) points of ``points`` inside each written box (boundary included)
+    track_error_kind, track_error_size : K injected track errors (:mod:`labelaudit.sim.tracknoise`; empty without)
     """
 
     timestamp: int
@@ -194,6 +199,8 @@ class SimAv2Frame:
     sim_classes: list[str]
     perturbation: list[str]
     num_interior_pts: NDArray[np.int64]
+    track_error_kind: list[str] = field(default_factory=list)  # per object, labelaudit.sim.tracknoise kinds (empty: no track noise)
+    track_error_size: list[float] = field(default_factory=list)  # per object, the injected error's magnitude (m / rad)
 
 
 @dataclass
@@ -227,6 +234,8 @@ def simulate_av2_log(
     label_noise: NoiseSpec | None = None,
     scene_spec: SceneSpec | None = None,
     world_offset: tuple[float, float] = (5200.0, 2380.0),
+    track_noise: TrackNoiseSpec | None = None,
+    moving_fraction: float = 0.0,
 ) -> SimAv2Log:
     """Render an Argoverse 2 log: a static scene seen from an ego vehicle driving through it.
 
@@ -248,6 +257,9 @@ def simulate_av2_log(
     label_noise : label noise injected into the written boxes (vehicles, per frame)
     scene_spec : object counts and distances (default: the simulator's, labelled all around)
     world_offset : where the scene sits in the city frame
+    track_noise : per-frame label noise inside tracks (ordinary scatter and injected annotator
+        errors), after ``label_noise``, as the Waymo simulator's
+    moving_fraction : share of vehicles that drive (the Waymo simulator's motion); 0 = a static scene
     """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
@@ -256,6 +268,7 @@ def simulate_av2_log(
     scene_v = sample_scene(rng, spec, ground_z=0.0)
     start = planar_pose(*world_offset, 0.0)
     world = scene_in_vehicle(scene_v, np.linalg.inv(start))  # drawn around the ego at t = 0
+    motions = vehicle_motions(np.random.default_rng([seed, 13]), world, moving_fraction) if moving_fraction > 0 else [None] * len(world.objects)
     log = SimAv2Log(_uuid(rng), {n: tuple(C.AV2_LIDAR_MOUNTS[n]) for n in av2.LIDARS})
     tracks = [_uuid(rng) for _ in world.objects]
     classes = [o.class_name for o in world.objects]
@@ -264,7 +277,7 @@ def simulate_av2_log(
     for f in range(frames):
         t = f * SWEEP_NS / 1e9
         pose = start @ planar_motion(speed, yaw_rate, t)
-        local = scene_in_vehicle(world, pose)
+        local = scene_in_vehicle(scene_at(world, motions, t), pose)
         parts, lasers, offsets = [], [], []
         for k, name in enumerate(av2.LIDARS):
             x, y, z = log.mounts[name]
@@ -285,10 +298,16 @@ def simulate_av2_log(
             boxes, kinds = perturb_boxes(true_boxes, classes, label_noise, np.random.default_rng([seed, f, 7]))
         else:
             boxes, kinds = true_boxes.copy(), ["none"] * len(classes)
+        track_kinds: list[str] = []
+        track_sizes: list[float] = []
+        if track_noise is not None:
+            boxes, track_kinds, mags = perturb_track_labels(boxes, classes, track_noise, np.random.default_rng([seed, f, 11]))
+            track_sizes = mags.tolist()
         counts = np.array([len(i) for i in points_in_boxes_numpy(points, boxes)], dtype=np.int64)
         log.frames.append(SimAv2Frame(
             t0 + f * SWEEP_NS, pose, points, np.concatenate(lasers), np.concatenate(offsets), boxes, true_boxes,
             [AV2_CATEGORY.get(c, c.upper()) for c in classes], list(tracks), list(classes), list(kinds), counts,
+            track_kinds, track_sizes,
         ))
     return log
 
@@ -342,6 +361,8 @@ def av2_manifest_rows(log: SimAv2Log) -> dict[str, list]:
             rows["true_box"].append([float(v) for v in fr.true_boxes[k]])
             rows["written_box"].append([float(v) for v in fr.boxes[k]])
             rows["perturbation"].append(fr.perturbation[k])
+            rows["track_error_kind"].append(fr.track_error_kind[k] if fr.track_error_kind else "none")
+            rows["track_error_size"].append(float(fr.track_error_size[k]) if fr.track_error_size else 0.0)
     return rows
 
 

@@ -309,7 +309,8 @@ SEQUENCE_FORMATS: dict[str, str] = {"waymo-v2": "waymo_v2", "waymo-v1": "waymo_v
 
 def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: int = 2, frames: int = 10, seed: int = 0,
                        noise: NoiseSpec = NoiseSpec(), size: str = "real", progress: bool = True,
-                       overwrite: bool = False, detections: Any = None) -> SimulationSummary:
+                       overwrite: bool = False, detections: Any = None, track_noise: Any = None,
+                       moving_fraction: float = 0.0) -> SimulationSummary:
     """Simulate Waymo segments or Argoverse 2 logs: sequences with track ids and a moving ego vehicle.
 
     Sequence ``i`` is drawn from seed ``seed + i`` (:func:`~labelaudit.sim.waymo_writer.simulate_waymo_segment`,
@@ -329,6 +330,10 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
     detections : a :class:`~labelaudit.sim.detector.DetectorSpec` — AV2 only: also write the
         synthetic detector's output, ``OUT/detections.feather`` (AV2's detections layout; its
         :class:`~labelaudit.sim.detector.DetectorSummary` is ``summary.detections``)
+    track_noise : a :class:`~labelaudit.sim.tracknoise.TrackNoiseSpec`: per-frame label noise inside
+        tracks (ordinary scatter and injected annotator errors; the manifest's ``track_error_kind``
+        and ``track_error_size``), or None
+    moving_fraction : share of the vehicles that drive (0: a static scene)
 
     Raises
     ------
@@ -358,7 +363,8 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
     manifest_rows: dict[str, list[Any]] = {}
     for i in tqdm(range(sequences), desc="simulate", unit="sequence", file=sys.stderr, disable=not progress):
         if dataset_format == "av2":
-            log = av2_writer.simulate_av2_log(seed=seed + i, frames=frames, size=size, label_noise=noise)
+            log = av2_writer.simulate_av2_log(seed=seed + i, frames=frames, size=size, label_noise=noise, track_noise=track_noise,
+                                              moving_fraction=moving_fraction)
             av2_writer.write_av2_log(log, out / folder)
             num_points += sum(len(fr.points) for fr in log.frames)
             for k, v in av2_writer.av2_manifest_rows(log).items():
@@ -367,7 +373,8 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
                 log.frames = [replace(fr, points=fr.points[:0]) for fr in log.frames]  # the detector needs boxes and counts only
                 logs.append(log)
             continue
-        seg = waymo_writer.simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=noise)
+        seg = waymo_writer.simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=noise, track_noise=track_noise,
+                                                  moving_fraction=moving_fraction)
         if dataset_format == "waymo-v2":
             waymo_writer.write_waymo_v2(seg, out / folder)
         else:
