@@ -228,7 +228,7 @@ MISSING_COLUMNS: tuple[Column, ...] = (
     Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the candidate", "model"),
     Column("ground_z", pa.float64(), True, "m", "height of the ground under the candidate", "model"),
     Column("nearest_label_m", pa.float64(), True, "m", "BEV distance from the candidate's centre to the nearest label of the frame (any class); null when the frame has none", "model"),
-    Column("max_label_iou", pa.float64(), False, "", "largest BEV IoU between the candidate and any label of the frame (DontCare regions with a 3D box included)", "model"),
+    Column("max_label_iou", pa.float64(), False, "", "largest BEV IoU between the candidate and any label of the frame (any class; KITTI's DontCare regions have no 3D box and are applied in the image)", "model"),
     Column("detection_score", pa.float64(), True, "", "the detector's confidence (source detections / both); null for points-only candidates", "model"),
     Column("detection_class", pa.string(), True, "", "the detector's class (source detections / both)", "model"),
     Column("detection_source", pa.string(), True, "", "file and line (or row) of the detection", "model"),

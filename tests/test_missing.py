@@ -333,3 +333,13 @@ def test_simulated_foliage_is_porous_and_solid_clutter_is_not():
     assert np.abs(solid[:, 0] - face).max() < 0.1  # on the face, range noise only
     assert np.median(bush[:, 0] - face) > 0.1 and (bush[:, 0] - face).std() > 0.15  # returns from inside the foliage
     assert 0.6 * len(solid) < len(bush) < 0.9 * len(solid)  # some rays pass through its gaps
+
+
+def test_detections_need_the_search_and_an_existing_path(sim_kitti, tmp_path):
+    from labelaudit.errors import InferError
+    from labelaudit.infer.run import infer_dataset
+
+    with pytest.raises(InferError, match="--detections and --no-missing"):
+        infer_dataset(InferRequest(sim_kitti, tmp_path / "a", missing=False, detections=sim_kitti))
+    with pytest.raises(InferError, match="nowhere: --detections path does not exist"):
+        infer_dataset(InferRequest(sim_kitti, tmp_path / "b", detections=tmp_path / "nowhere"))
