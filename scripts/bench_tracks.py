@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import shutil
 import sys
 import time
@@ -54,7 +55,7 @@ from labelaudit.sim.tracknoise import ISSUE_OF_KIND, TRACK_ERROR_KINDS, TrackNoi
 FLAG = C.TRACK_FLAG
 AV2_VEHICLES = ("REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER",
                 "ARTICULATED_BUS", "SCHOOL_BUS", "MESSAGE_BOARD_TRAILER")
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "av2-sensor"
+REALDATA = Path(os.environ.get("LABELAUDIT_REALDATA", Path(__file__).resolve().parents[2] / "shared" / "realdata")) / "av2-sensor"
 
 
 # --------------------------------------------------------------------------- scoring

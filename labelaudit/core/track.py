@@ -120,14 +120,12 @@ class TrackResiduals:
     expected: FloatArray
 
 
-_OUTLIER_ROUNDS = 4  # refits leaving out the frames that stand out (each round removes at least one)
-_NO_NEIGHBOUR_PRECISION = 1e-9  # intercept prior precision: a frame without neighbours gets a finite, enormous prediction variance (residual ~0), not a singular fit
 
 
 def _robust_weights(z: FloatArray, k: float, c: float, stage: int) -> FloatArray:
     """Huber weights in the first stages (convex: a safe start), Tukey's biweight after (a gross outlier gets weight 0)."""
     a = np.abs(z)
-    if stage < 2:
+    if stage < C.TRACK_HUBER_ITERATIONS:
         return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
     return np.where(a < c, (1.0 - (a / c) ** 2) ** 2, 0.0)
 
@@ -156,7 +154,7 @@ def neighbour_index(t: FloatArray, window: float, max_neighbours: int) -> tuple[
 
 
 def local_fit(
-    dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_], ridge: FloatArray, params: TrackParams, iterations: int = 5,
+    dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_], ridge: FloatArray, params: TrackParams, iterations: int = C.TRACK_IRLS_ITERATIONS,
     prior: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Robust weighted quadratic through each frame's neighbours, evaluated at the frame (dt = 0).
@@ -168,7 +166,7 @@ def local_fit(
         weights per neighbour serves all d coordinates)
     valid : (n, m) which neighbours exist
     ridge : (3,) prior precision of the intercept, slope and curvature (standardised units)
-    iterations : IRLS iterations: two Huber, the rest biweight
+    iterations : IRLS iterations: ``TRACK_HUBER_ITERATIONS`` Huber, the rest biweight
     prior : (n, m) weights in [0, 1] the robust weights are multiplied by (default 1)
 
     Returns
@@ -238,7 +236,7 @@ def pairwise_prediction(dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_])
     return np.where((count > 0)[:, None], med, np.nan)
 
 
-def robust_location(values: FloatArray, precision: FloatArray, params: TrackParams, iterations: int = 5) -> tuple[FloatArray, FloatArray]:
+def robust_location(values: FloatArray, precision: FloatArray, params: TrackParams, iterations: int = C.TRACK_IRLS_ITERATIONS) -> tuple[FloatArray, FloatArray]:
     """Robust precision-weighted mean of one track's measurements of a constant.
 
     Parameters
@@ -296,7 +294,7 @@ def track_residuals(
         # lines through its neighbours (insensitive to one wrong neighbour) disagrees with most.
         pp = pairwise_prediction(dt, y, valid)
         b = np.sqrt(np.sum(np.reshape(np.nan_to_num(residual(pp, np.zeros(n))), (n, -1)) ** 2, axis=1))
-        for _ in range(_OUTLIER_ROUNDS):
+        for _ in range(C.TRACK_OUTLIER_ROUNDS):
             use = valid & ~out[idx]
             pred, var, slope = local_fit(dt, y, use, ridge, params)
             z = residual(pred, var)
@@ -311,7 +309,7 @@ def track_residuals(
     # position: all three coordinates share the robust weights of a neighbour
     sc = np.asarray(noise.centre, dtype=float)
     rel = (centre[idx] - centre[:, None, :]) / sc  # relative to the frame itself: small numbers, same fit
-    ridge_c = np.array([_NO_NEIGHBOUR_PRECISION, (sc.min() / v1) ** 2, (sc.min() / a1) ** 2])
+    ridge_c = np.array([C.TRACK_NO_NEIGHBOUR_PRECISION, (sc.min() / v1) ** 2, (sc.min() / a1) ** 2])
     pred_c, slope_c, pos = fit(rel, ridge_c, lambda pred, var: -pred / np.sqrt(1.0 + var)[:, None])  # the label is at 0
     velocity = slope_c[:, :2] * sc[:2]
 
@@ -320,7 +318,7 @@ def track_residuals(
     s, c = np.where(valid, np.sin(ny), 0.0).sum(axis=1), np.where(valid, np.cos(ny), 0.0).sum(axis=1)
     ref = np.where((s != 0) | (c != 0), np.arctan2(s, c), yaw)
     d = normalize_angle(ny - ref[:, None])[..., None] / noise.yaw
-    ridge_y = np.array([_NO_NEIGHBOUR_PRECISION, (noise.yaw / w1) ** 2, (noise.yaw / wa1) ** 2])
+    ridge_y = np.array([C.TRACK_NO_NEIGHBOUR_PRECISION, (noise.yaw / w1) ** 2, (noise.yaw / wa1) ** 2])
     pred_y, _, head = fit(d, ridge_y, lambda pred, var: normalize_angle(yaw - (ref + pred[:, 0] * noise.yaw)) / noise.yaw / np.sqrt(1.0 + var))
 
     # size: one rigid size; labels and (optionally) the points' fitted sizes
