@@ -11,10 +11,11 @@ A gate file is TOML with a ``[default]`` table (rules for every class) and optio
     [class.Pedestrian]
     min_median_jiou_gt = 0.4
 
-Every rule is evaluated per class present in the results, except ``max_failed_frames``, which is
-dataset-wide; ``[class.X]`` tables of classes without objects are listed as absent. Outcome per
-rule: ``pass``, ``fail``, ``skip`` (inactive: no ``label_error`` / ``track_error`` values) or ``error`` (could
-not be evaluated).
+Every rule is evaluated per class present in the results, except ``max_failed_frames`` and
+``max_missing_per_frame``, which are dataset-wide; ``[class.X]`` tables of classes without objects
+are listed as absent. Outcome per rule: ``pass``, ``fail``, ``skip`` (inactive: no ``label_error`` /
+``track_error`` values, or no missing-label table because the run skipped the search) or ``error``
+(could not be evaluated).
 Exit code: 2 when any rule errs or nothing was evaluated, else 1 when any rule fails, else 0.
 """
 
@@ -23,11 +24,13 @@ from __future__ import annotations
 import json
 import math
 import xml.etree.ElementTree as ET
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+import pyarrow as pa
 
 from labelaudit.config import CONFIG_DIR, ConfigError, check_keys, read_toml
 from labelaudit import constants as C
@@ -54,12 +57,14 @@ KEYS: dict[str, tuple[str, str]] = {
     "max_failed_objects": ("max", "objects whose inference failed (status error)"),
     "min_objects": ("min", "objects evaluated (status ok, few_points or no_points)"),
     "max_failed_frames": ("max", "frames that could not be read or audited (dataset-wide)"),
+    "missing_score_threshold": ("param", "a missing-label candidate with a score at or above this counts (for max_missing_per_frame)"),
+    "max_missing_per_frame": ("max", "missing-label candidates with score ≥ missing_score_threshold per frame, on average over the frames (dataset-wide)"),
 }
-GLOBAL_KEYS = frozenset({"max_failed_frames"})
+GLOBAL_KEYS = frozenset({"max_failed_frames", "max_missing_per_frame", "missing_score_threshold"})
 COUNT_KEYS = frozenset({"max_count_no_points", "max_failed_objects", "min_objects", "max_failed_frames"})
 FRACTION_KEYS = frozenset({"max_fraction_jiou_gt_below", "max_fraction_no_points", "max_fraction_label_error_above", "max_fraction_track_error_above"})
 NEEDS = {"max_fraction_jiou_gt_below": "jiou_gt_threshold", "max_fraction_label_error_above": "label_error_threshold",
-         "max_fraction_track_error_above": "track_error_threshold"}
+         "max_fraction_track_error_above": "track_error_threshold", "max_missing_per_frame": "missing_score_threshold"}
 _SCORE_RULES = {  # rule → (score column, its threshold key, counts values at the threshold, why inactive without values)
     "max_fraction_label_error_above": ("label_error", "label_error_threshold", False, "no label_error yet"),
     "max_fraction_track_error_above": ("track_error", "track_error_threshold", True, "no track_error (no tracks: KITTI, or tracks of < 3 frames)"),
@@ -91,9 +96,11 @@ def _check_section(section: Any, where: str, source: str) -> dict[str, float]:
             raise ConfigError(f"{source}: [{where}] {key} must be a number, got {value!r}")
         if key in COUNT_KEYS and (not float(value).is_integer() or value < 0):
             raise ConfigError(f"{source}: [{where}] {key} must be a whole number ≥ 0, got {value!r}")
+        if key == "max_missing_per_frame" and value < 0:
+            raise ConfigError(f"{source}: [{where}] {key} must be ≥ 0 (candidates per frame), got {value!r}")
         if key in FRACTION_KEYS and not 0 <= value <= 1:
             raise ConfigError(f"{source}: [{where}] {key} must be a fraction in [0, 1], got {value!r}")
-        if key == "min_median_jiou_gt" and not 0 <= value <= 1:
+        if key in ("min_median_jiou_gt", "missing_score_threshold") and not 0 <= value <= 1:
             raise ConfigError(f"{source}: [{where}] {key} must be in [0, 1], got {value!r}")
         out[key] = float(value)
     return out
@@ -276,6 +283,31 @@ def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, j
     return out
 
 
+def _missing_rule(results: Results, objects: pa.Table, rules: Mapping[str, float]) -> RuleResult:
+    """``max_missing_per_frame``: candidates with score ≥ the threshold, per frame of the run.
+
+    The frames are those with a label row or a candidate row (a frame with neither has nothing to
+    count and is not known from the tables), so the rate is never understated by empty frames. The
+    note names the frame with the most candidates, the first to look at.
+    """
+    from labelaudit.rank import read_candidates
+
+    thr, floor = rules["max_missing_per_frame"], rules["missing_score_threshold"]
+    candidates = read_candidates(results)
+    if candidates is None:
+        return RuleResult("dataset", "max_missing_per_frame", None, thr, "skip", 0, "inactive: the run did not search for missing labels (infer --no-missing)")
+    frames = set(objects.column("frame_id").to_pylist()) | set(candidates.column("frame_id").to_pylist())
+    scores = np.asarray(candidates.column("score").to_numpy(zero_copy_only=False), dtype=float)
+    counted = [f for f, s in zip(candidates.column("frame_id").to_pylist(), scores) if s >= floor]
+    value = len(counted) / len(frames)
+    note = f"{len(counted)} candidates with score ≥ {format_number(floor)} in {len(frames)} frames"
+    if counted:
+        per_frame = Counter(counted)
+        worst = min(per_frame, key=lambda f: (-per_frame[f], f))
+        note += f"; most in frame {worst} ({per_frame[worst]})"
+    return RuleResult("dataset", "max_missing_per_frame", value, thr, _compare("max_missing_per_frame", value, thr), objects.num_rows, note)
+
+
 def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
     """Evaluate every rule of ``gate`` on opened results.
 
@@ -289,7 +321,7 @@ def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
             f"{results.root}: the run that wrote these results did not finish; rerun `labelaudit infer` "
             "with the same options to resume, then check again"
         )
-    table = results.read(["class_name", "status", "jiou_gt", "label_error", "track_error"])
+    table = results.read(["frame_id", "class_name", "status", "jiou_gt", "label_error", "track_error"])
     if table.num_rows == 0:
         raise ResultsError(f"{results.root}: results hold no objects; nothing to check (wrong --classes, or an empty dataset?)")
     classes = np.asarray(table.column("class_name").to_pylist(), dtype=object)
@@ -307,4 +339,6 @@ def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
         failed = results.failed_frames()
         thr = gate.default["max_failed_frames"]
         out.append(RuleResult("dataset", "max_failed_frames", float(failed), thr, _compare("max_failed_frames", failed, thr), table.num_rows))
+    if "max_missing_per_frame" in gate.default:
+        out.append(_missing_rule(results, table, gate.default))
     return GateReport(out, gate.source, table.num_rows, sorted(set(gate.classes) - set(names)))

@@ -1,4 +1,5 @@
-"""Ranking queries for ``labelaudit rank``: the worst labels first, filtered, as rows, JSON or CSV.
+"""Ranking queries for ``labelaudit rank``: the worst labels first (or the likeliest missing labels,
+``--missing``), filtered, as rows, JSON or CSV.
 
 Reads only the columns a query needs through :mod:`pyarrow.dataset`, sorts, keeps the top N and
 only then fetches their full rows, so it stays fast on millions of objects. Machine formats (JSON,
@@ -13,7 +14,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -24,7 +25,8 @@ from labelaudit.results import Results, ResultsError
 
 ASCENDING_BY_DEFAULT = frozenset({"jiou_gt", "num_points", "hull_iou"})
 """Columns where *low* is bad (sorted ascending by default); every other column sorts descending
-(higher = worse: label_error, sigma_hat, fit_offset_m, std_*, distance …)."""
+(higher = worse: label_error, sigma_hat, fit_offset_m, std_*, distance …; for missing-label
+candidates: score, higher = more likely a missed label)."""
 
 
 def default_descending(by: str) -> bool:
@@ -97,6 +99,32 @@ def parse_where(condition: str, schema: pa.Schema) -> tuple[str, Any, Any]:
     return column, _OPS[op], value
 
 
+def _mask(
+    table: pa.Table,
+    by: str,
+    one_of: Mapping[str, Sequence[str]],
+    at_least: Mapping[str, float | None],
+    at_most: Mapping[str, float | None],
+    conditions: Sequence[tuple[str, Any, Any]],
+) -> pa.Array:
+    """Rows with a finite ``by`` value that pass every filter (an empty ``one_of`` list or a None
+    bound is no filter; :func:`parse_where` conditions must all hold; null never passes)."""
+    col = table.column(by)
+    mask = pc.is_valid(col)
+    if pa.types.is_floating(col.type):
+        mask = pc.and_(mask, pc.invert(pc.is_nan(col)))
+    for name, values in one_of.items():
+        if values:
+            mask = pc.and_(mask, pc.is_in(table.column(name), value_set=pa.array(list(values))))
+    for bounds, op in ((at_least, pc.greater_equal), (at_most, pc.less_equal)):
+        for name, bound in bounds.items():
+            if bound is not None:
+                mask = pc.and_(mask, op(table.column(name), bound))
+    for column, op, value in conditions:
+        mask = pc.and_(mask, op(table.column(column), value))
+    return pc.fill_null(mask, False)
+
+
 def rank_results(results: Results, query: RankQuery) -> RankResult:
     """Rank objects by a numeric column, worst first.
 
@@ -121,22 +149,8 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
             needed.append(c)
     needed += [c for c, _, _ in conditions if c not in needed]
     table = results.read(needed)
-    by = table.column(query.by)
-    mask = pc.is_valid(by)
-    if pa.types.is_floating(by.type):
-        mask = pc.and_(mask, pc.invert(pc.is_nan(by)))
-    if query.classes:
-        mask = pc.and_(mask, pc.is_in(table.column("class_name"), value_set=pa.array(list(query.classes))))
-    if query.statuses:
-        mask = pc.and_(mask, pc.is_in(table.column("status"), value_set=pa.array(list(query.statuses))))
-    if query.min_points is not None:
-        mask = pc.and_(mask, pc.greater_equal(table.column("num_points"), query.min_points))
-    if query.max_distance is not None:
-        mask = pc.and_(mask, pc.less_equal(table.column("distance"), query.max_distance))
-    for column, op, value in conditions:
-        mask = pc.and_(mask, op(table.column(column), value))
-    mask = pc.fill_null(mask, False)
-    kept = table.filter(mask)
+    one_of = {"class_name": query.classes, "status": query.statuses}
+    kept = table.filter(_mask(table, query.by, one_of, {"num_points": query.min_points}, {"distance": query.max_distance}, conditions))
     order = "descending" if query.is_descending else "ascending"
     idx = pc.sort_indices(kept, sort_keys=[(query.by, order), ("frame_id", "ascending"), ("object_index", "ascending")])
     top = kept.take(idx[: query.top])
@@ -151,6 +165,114 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
     else:
         full = schema.empty_table()
     return RankResult(full, kept.num_rows, query)
+
+
+# --------------------------------------------------------------------------- missing labels
+
+MISSING_COLUMNS_FIRST = (
+    "frame_id", "candidate_index", "class_name", "cx", "cy", "cz", "length", "width", "height", "yaw",
+    "num_points", "distance", "score", "source",
+)  # fmt: skip
+"""The contract columns of the ``missing/`` table, in the order output shows them (evidence after)."""
+MISSING_SOURCES = ("points", "detections", "both")
+"""Values of the candidates' ``source`` column."""
+
+
+def read_candidates(results: Results) -> pa.Table | None:
+    """The ``missing/`` table of a results folder (every candidate row), or None when the run did
+    not search for missing labels (``infer --no-missing``, or results of an older labelaudit).
+
+    Raises
+    ------
+    ResultsError
+        The table exists but cannot be read (the message names the folder).
+    """
+    folder = results.root / "missing"
+    if results.root.is_file() or not folder.is_dir():
+        return None
+    files = sorted(str(p) for p in folder.glob("*.parquet") if not p.name.startswith((".", "_")))
+    try:
+        if not files:
+            return None
+        return pads.dataset(files, format="parquet").to_table()
+    except (pa.ArrowException, OSError) as exc:
+        raise ResultsError(f"{folder}: unreadable missing-label table ({exc}); rerun `labelaudit infer --overwrite`") from None
+
+
+def require_candidates(results: Results) -> pa.Table:
+    """:func:`read_candidates`, with a :class:`ResultsError` naming the fix when the search did not run."""
+    table = read_candidates(results)
+    if table is None:
+        raise ResultsError(
+            f"{results.root}: no missing-label table (missing/); the run skipped the search (--no-missing) or is "
+            "from an older labelaudit: rerun `labelaudit infer` without --no-missing"
+        )
+    return table
+
+
+@dataclass(frozen=True)
+class MissingQuery:
+    """Which missing-label candidates to list and how (default: highest ``score`` first)."""
+
+    by: str = "score"
+    top: int = 20
+    descending: bool | None = None  # None: highest first (score, num_points: more evidence of an object)
+    classes: tuple[str, ...] = ()
+    sources: tuple[str, ...] = ()
+    min_score: float | None = None
+    min_points: int | None = None
+    max_distance: float | None = None
+    where: tuple[str, ...] = ()
+
+    @property
+    def is_descending(self) -> bool:
+        return True if self.descending is None else self.descending
+
+
+@dataclass
+class MissingResult:
+    """The top candidates (every column, first = most likely a missed label), how many matched, how many there are."""
+
+    table: pa.Table
+    matched: int
+    total: int
+    query: MissingQuery
+
+
+def rank_missing(results: Results, query: MissingQuery) -> MissingResult:
+    """Rank missing-label candidates by a numeric column (``score`` by default, highest first).
+
+    Raises
+    ------
+    ResultsError
+        No missing-label table, an unknown ``by`` or ``--where`` column, ``top`` < 1, a ``min_score``
+        outside [0, 1] or an unknown source.
+    """
+    if query.top < 1:
+        raise ResultsError(f"--top must be ≥ 1, got {query.top}")
+    if query.min_score is not None and not 0.0 <= query.min_score <= 1.0:
+        raise ResultsError(f"--min-score must be in [0, 1], got {query.min_score}")
+    bad = [s for s in query.sources if s not in MISSING_SOURCES]
+    if bad:
+        raise ResultsError(f"--source {', '.join(bad)}: expected one of {', '.join(MISSING_SOURCES)}")
+    table = require_candidates(results)
+    table = table.select(missing_column_order(table))
+    numeric = _numeric_columns(table.schema)
+    if query.by not in numeric:
+        raise ResultsError(f"--by {query.by!r}: not a numeric column of the missing-label table; choose one of {', '.join(numeric)}")
+    conditions = [parse_where(w, table.schema) for w in query.where]
+    one_of = {"class_name": query.classes, "source": query.sources}
+    at_least = {"score": query.min_score, "num_points": query.min_points}
+    kept = table.filter(_mask(table, query.by, one_of, at_least, {"distance": query.max_distance}, conditions))
+    order = "descending" if query.is_descending else "ascending"
+    idx = pc.sort_indices(kept, sort_keys=[(query.by, order), ("frame_id", "ascending"), ("candidate_index", "ascending")])
+    return MissingResult(kept.take(idx[: query.top]), kept.num_rows, table.num_rows, query)
+
+
+def missing_column_order(table: pa.Table) -> list[str]:
+    """The contract columns of a candidates table first, then its evidence columns in file order."""
+    names = table.schema.names
+    return [c for c in MISSING_COLUMNS_FIRST if c in names] + [c for c in names if c not in MISSING_COLUMNS_FIRST]
 
 
 # --------------------------------------------------------------------------- output
@@ -172,7 +294,7 @@ def _plain(value: Any) -> Any:
 
 def to_records(table: pa.Table) -> list[dict[str, Any]]:
     """Rows as dicts keyed by column name (NaN → None), schema columns first."""
-    cols = ordered_columns(table)
+    cols = missing_column_order(table) if "candidate_index" in table.schema.names else ordered_columns(table)
     return [{c: _plain(row[c]) for c in cols} for row in table.select(cols).to_pylist()]
 
 
@@ -183,7 +305,7 @@ def to_json(table: pa.Table) -> str:
 
 def to_csv(table: pa.Table) -> str:
     """CSV with a header; list columns (corner_tv, cov) as JSON arrays, nulls as empty fields."""
-    cols = ordered_columns(table)
+    cols = missing_column_order(table) if "candidate_index" in table.schema.names else ordered_columns(table)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
@@ -196,6 +318,12 @@ __all__: Sequence[str] = [
     "RankQuery",
     "RankResult",
     "rank_results",
+    "MissingQuery",
+    "MissingResult",
+    "rank_missing",
+    "read_candidates",
+    "require_candidates",
+    "missing_column_order",
     "to_json",
     "to_csv",
     "to_records",

@@ -179,3 +179,42 @@ def test_track_error_rule_counts_labels_at_or_above_the_threshold_and_is_inactiv
     assert r.status == "fail" and r.objects == 51
     with pytest.raises(ConfigError, match="track_error_threshold"):
         gate_from_dict({"default": {"max_fraction_track_error_above": 0.02}})
+
+
+# --------------------------------------------------------------------------- missing labels
+
+MISSING_GATE = {"default": {"min_median_jiou_gt": 0.5, "missing_score_threshold": 0.5, "max_missing_per_frame": 0.5}}
+
+
+def test_missing_rule_counts_candidates_above_the_score_per_frame(tmp_path):
+    from results_factory import add_missing, make_candidate
+
+    rows = [make_row(f"00000{f}", i) for f in range(4) for i in range(2)]  # 4 frames with labels
+    values = []
+    for n in (0, 1, 2, 3):  # candidates scoring ≥ 0.5, always in frame 000001, plus one below the threshold
+        cands = [make_candidate("000001", k, 0.9) for k in range(n)] + [make_candidate("000002", 0, 0.49)]
+        root = add_missing(make_results(tmp_path / str(n), [rows]), [cands])
+        values.append(_outcome(evaluate_gate(open_results(root), gate_from_dict(MISSING_GATE)), "dataset", "max_missing_per_frame"))
+    assert [v.value for v in values] == [0.0, 0.25, 0.5, 0.75]
+    assert [v.status for v in values] == ["pass", "pass", "pass", "fail"]
+    assert "3 candidates with score ≥ 0.5 in 4 frames" in values[3].note and "most in frame 000001 (3)" in values[3].note
+    # A frame with a candidate but no label counts as a frame.
+    root = add_missing(make_results(tmp_path / "extra", [rows]), [[make_candidate("000009", 0, 0.9)]])
+    r = _outcome(evaluate_gate(open_results(root), gate_from_dict(MISSING_GATE)), "dataset", "max_missing_per_frame")
+    assert r.value == pytest.approx(1 / 5)
+
+
+def test_missing_rule_is_inactive_without_the_search_and_validated(tmp_path):
+    report = evaluate_gate(open_results(make_results(tmp_path, [_cars(5, 0.9)])), gate_from_dict(MISSING_GATE))
+    r = _outcome(report, "dataset", "max_missing_per_frame")
+    assert r.status == "skip" and "--no-missing" in r.note and report.exit_code == 0
+    for data, match in (
+        ({"default": {"max_missing_per_frame": 1}}, "needs missing_score_threshold"),
+        ({"default": {"missing_score_threshold": 1.5, "max_missing_per_frame": 1}}, r"in \[0, 1\]"),
+        ({"default": {"missing_score_threshold": 0.5, "max_missing_per_frame": -1}}, "≥ 0"),
+        ({"default": {"min_median_jiou_gt": 0.5}, "class": {"Car": {"max_missing_per_frame": 1}}}, "dataset-wide"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            gate_from_dict(data, source="gate.toml")
+    builtin = load_gate(None)
+    assert 0 < builtin.default["missing_score_threshold"] <= 1 and builtin.default["max_missing_per_frame"] >= 0

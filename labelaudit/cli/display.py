@@ -20,7 +20,7 @@ from rich.table import Table
 if TYPE_CHECKING:
     from labelaudit.gate import GateReport
     from labelaudit.infer.run import ChunkResult, RunSummary
-    from labelaudit.rank import RankResult
+    from labelaudit.rank import MissingResult, RankResult
 
 
 class RichProgress:
@@ -113,6 +113,28 @@ def print_rank_table(console: Console, result: RankResult, extra: dict[str, list
     t.add_column("#", justify="right")
     for c in cols:
         t.add_column(escape(c), justify="left" if c in ("frame_id", "class_name", "status") or c in (extra or {}) else "right")
+    for i, row in enumerate(table.select(cols).to_pylist(), start=1):
+        t.add_row(str(i), *(escape(format_cell(row[c])) for c in cols))
+    console.print(t)
+
+
+MISSING_DISPLAY_COLUMNS = ("frame_id", "candidate_index", "class_name", "source", "score", "num_points", "distance", "cx", "cy", "length", "width", "yaw")
+"""Columns of the Rich table of ``rank --missing`` (JSON and CSV carry every column)."""
+
+
+def print_missing_table(console: Console, result: MissingResult) -> None:
+    """Rich table of a :class:`~labelaudit.rank.MissingResult`: the likeliest missed labels first."""
+    q = result.query
+    table = result.table
+    cols = [c for c in MISSING_DISPLAY_COLUMNS if c in table.schema.names]
+    if q.by not in cols:
+        cols.append(q.by)
+    order = "highest" if q.is_descending else "lowest"
+    floor = f" with score ≥ {q.min_score:g}" if q.min_score is not None else ""
+    t = Table(title=f"{table.num_rows} of {result.matched} missing-label candidates{floor} by {escape(q.by)} ({order} first; {result.total} in the results)", title_justify="left")
+    t.add_column("#", justify="right")
+    for c in cols:
+        t.add_column(escape(c), justify="left" if c in ("frame_id", "class_name", "source") else "right")
     for i, row in enumerate(table.select(cols).to_pylist(), start=1):
         t.add_row(str(i), *(escape(format_cell(row[c])) for c in cols))
     console.print(t)
