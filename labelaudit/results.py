@@ -490,11 +490,20 @@ def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
 
 def write_json_atomic(data: Mapping[str, Any], path: str | Path) -> Path:
     """Write JSON through a temporary file and rename (same guarantee as Parquet shards)."""
+    return write_text_atomic(json.dumps(data, indent=2, sort_keys=True) + "\n", path)
+
+
+def write_text_atomic(text: str, path: str | Path) -> Path:
+    """Write UTF-8 text through a temporary dot-file and :func:`os.replace` (no temporary is left on failure)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_name(path)
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
     return path
 
 

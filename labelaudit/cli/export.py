@@ -15,6 +15,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from labelaudit import constants as C
 from labelaudit.cli.app import app, err, handle_errors
 
 
@@ -31,26 +32,32 @@ class ExportFormat(str, Enum):
     openpcdet = "openpcdet"
     mmdet3d = "mmdet3d"
     glenet = "glenet"
+    kitti_labels = "kitti-labels"
 
 
 @app.command()
 def export(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer` (or one Parquet file of rows)."),
-    output: Path = typer.Option(..., "-o", "--output", help="File to write: the Parquet table, or the copy of the infos pickle; for --format glenet the folder of the copies."),
+    output: Path = typer.Option(..., "-o", "--output", help="File to write: the Parquet table, or the copy of the infos pickle; for --format glenet the folder of the copies; kitti-labels: the review folder."),
     encoding: Optional[Encoding] = typer.Option(None, "--encoding", help="Targets: box (x,y,z,l,w,h,yaw; the default), log-size = centerpoint (x,y,z,log l/w/h,sin,cos), pixor (dx,dy,log l,log w,sin,cos), residual (the anchor coder of OpenPCDet/mmdet3d). Not with --format glenet (it has its own)."),
     source: str = typer.Option("model", "--source", help="Where σ_p comes from: model (posterior covariance), num_points, hull_iou, or fixed:VAR."),
     out_format: ExportFormat = typer.Option(ExportFormat.parquet, "--format", help="parquet (keyed by frame_id, object_index, object_id), openpcdet or mmdet3d (a copy of --infos with the targets added), glenet (copies of --infos and --dbinfos with GLENet's 'uncertainty' added, in folder -o)."),
     infos: Optional[Path] = typer.Option(None, "--infos", help="OpenPCDet kitti_infos_*.pkl / Waymo infos, or mmdet3d v2 info file to copy; for glenet also a folder of OpenPCDet's per-sequence Waymo infos (<seq>/<seq>.pkl)."),
     dbinfos: Optional[Path] = typer.Option(None, "--dbinfos", help="OpenPCDet gt-database infos to copy with --format glenet (kitti_dbinfos_train.pkl, Waymo's …_waymo_dbinfos_train_sampled_1.pkl)."),
     anchor_size: Optional[list[str]] = typer.Option(None, "--anchor-size", help="CLASS=l,w,h anchor size for --encoding residual and --format glenet (repeat; adds to/overrides the KITTI or Waymo defaults)."),
+    min_label_error: float = typer.Option(C.EXPORT_REVIEW_LABEL_ERROR, "--min-label-error", help="kitti-labels: add the suggested box (the label-error fit) of labels whose label_error is above this."),
+    min_score: float = typer.Option(C.EXPORT_REVIEW_MIN_SCORE, "--min-score", help="kitti-labels: add the missing-label candidates whose score is at least this."),
+    dataset: Optional[Path] = typer.Option(None, "--dataset", help="kitti-labels: the dataset's current location, when it moved since `infer`."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
-    """Write per-object label uncertainty σ_p as training targets in a detector's encoding.
+    """Write per-object label uncertainty σ_p as training targets in a detector's encoding; or, with --format kitti-labels, the labels to review in a labelling tool.
 
     Variances and covariances of the encoded targets come from the posterior covariance of each label (first-order propagation with the exact Jacobian at the label) or from a heuristic; formulas, sources and file formats: docs/training.md. The Parquet output is keyed by (frame_id, object_index, object_id); openpcdet and mmdet3d write a copy of --infos with label_std, label_cov and label_std_valid added to every object, in that file's own object order.
 
     --format glenet writes what GLENet's training reads instead of its CVAE's output: annos['uncertainty'] (K, 7) of every infos frame, DontCare included, and 'uncertainty' (7,) of every gt-database entry — variances of OpenPCDet's ResidualCoder targets at the class anchor (x, y, z, log l, log w, log h, sin of the heading difference), all > 0; objects without a posterior get -1, as GLENet writes them. A BEV posterior takes z and h from the class prior (counted; --model 3d infers them). How to train with them: docs/training.md.
+
+    --format kitti-labels writes the review loop into the folder -o (docs/review.md): per frame a KITTI label_2 file with the original lines unchanged, then the suggested box of every label whose label_error is above --min-label-error and every missing-label candidate whose score is at least --min-score, the score in the 16th column; changes.csv lists each added box, review.json the counts. Boxes are converted back to the rectified camera frame exactly (they read back to the same LiDAR boxes). Other datasets (Waymo …): the same boxes as boxes.parquet in the LiDAR frame.
 
     Objects without targets (DontCare, classes not audited, rows without a posterior, frames missing from the results) get NaN and a False mask (-1 for glenet), never a neighbour's values; the summary (stderr, or --json on stdout) counts them by reason. Exit 2 for bad options, unreadable results, a pickle with a disallowed global, an infos file that does not match the results (the message names the first mismatching frame), or when no object got targets; nothing is written then.
 
@@ -67,10 +74,15 @@ def export(
       labelaudit export results/ --format glenet --infos kitti_infos_train.pkl --dbinfos kitti_dbinfos_train.pkl -o glenet/
 
       labelaudit export results/ --format glenet --infos waymo_processed_data_v0_5_0/ --dbinfos waymo_processed_data_v0_5_0_waymo_dbinfos_train_sampled_1.pkl -o glenet/
+
+      labelaudit export results/ --format kitti-labels -o review/ --min-score 0.6
     """
     from labelaudit.export import export_results, parse_anchor_sizes
 
     with handle_errors(debug):
+        if out_format is ExportFormat.kitti_labels:
+            _export_review(results, output, min_label_error, min_score, dataset, as_json)
+            return
         summary = export_results(
             results,
             output,
@@ -112,3 +124,26 @@ def export(
             console.print(f"note: {escape(note)}", soft_wrap=True)
         for path in summary.outputs or [summary.output]:
             console.print(f"wrote {escape(path)} ({summary.format})", soft_wrap=True)
+
+
+def _export_review(results: Path, output: Path, min_label_error: float, min_score: float, dataset: Optional[Path], as_json: bool) -> None:
+    """``--format kitti-labels``: :func:`labelaudit.review.export_review`, its counts on stderr (or JSON on stdout)."""
+    from labelaudit.review import export_review
+
+    summary = export_review(results, output, min_label_error=min_label_error, min_score=min_score, dataset=dataset)
+    if as_json:
+        sys.stdout.write(json.dumps(summary.to_dict(), indent=2, sort_keys=True) + "\n")
+    console = err()
+    what = "label_2 files" if summary.format == "kitti-labels" else "frames in boxes.parquet"
+    console.print(
+        f"review: {summary.frames_written} {what} ({summary.frames_changed} changed): {summary.labels} labels, "
+        f"{summary.suggested} suggested boxes (label_error > {summary.min_label_error:g}), {summary.missing} missing-label candidates (score ≥ {summary.min_score:g})",
+        soft_wrap=True,
+    )
+    if not summary.missing_searched:
+        console.print("note: the results have no missing-label table (infer --no-missing): no candidates added", soft_wrap=True)
+    for fid, why in list(summary.skipped_frames.items())[:10]:
+        console.print(f"warning: frame {escape(fid)} not written: {escape(why)}", soft_wrap=True)
+    if len(summary.skipped_frames) > 10:
+        console.print(f"warning: … {len(summary.skipped_frames) - 10} more frames not written (review.json lists them)", soft_wrap=True)
+    console.print(f"wrote {escape(summary.output)} (changes.csv lists every added box)", soft_wrap=True)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import math
-import os
 import shlex
 import time
 from dataclasses import dataclass
@@ -359,17 +358,6 @@ def render_report(context: Mapping[str, Any]) -> str:
     return env.get_template(TEMPLATE_NAME).render(**context)
 
 
-def _write_atomic(text: str, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}{R.TMP_MARKER}{os.getpid()}")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def build_report(
     results_path: str | Path,
     output: str | Path,
@@ -444,7 +432,7 @@ def build_report(
     }
     html = render_report(context)
     out = Path(output)
-    _write_atomic(html, out)
+    R.write_text_atomic(html, out)
     lap("html")
     return ReportSummary(
         out, out.stat().st_size, summary["objects"], summary["evaluated"], pictures,

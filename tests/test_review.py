@@ -1,0 +1,197 @@
+"""The review loop: `export --format kitti-labels` writes label_2 files a labelling tool imports,
+the boxes read back exactly, changes.csv lists what was added; other formats get boxes.parquet."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from typer.testing import CliRunner
+
+from labelaudit import results as R
+from labelaudit.cli import app
+from labelaudit.datasets.kitti import LABEL_COLUMNS, KittiReader, boxes_camera_to_lidar, read_calib, read_label
+from labelaudit.review import kitti_lines, png_size, suggested_boxes
+from results_factory import add_missing, make_candidate, make_results, make_row
+from viz_data import simulate_and_infer
+
+runner = CliRunner()
+REAL_KITTI = Path("/work/shared/realdata/openpcdet-pr653-kitti/training")
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def audited(tmp_path_factory):
+    """A simulated KITTI dataset with injected label errors, audited for real, and three candidates."""
+    root = tmp_path_factory.mktemp("review")
+    data, results = simulate_and_infer(root)
+    shutil.rmtree(results / "missing", ignore_errors=True)  # the test's own candidates, whatever the search found
+    add_missing(results, [[
+        make_candidate("000000", 0, 0.9, cx=18.0, cy=2.5, yaw=0.4),
+        make_candidate("000000", 1, 0.3, cx=25.0, cy=-3.0),  # below the default score threshold
+        make_candidate("000001", 0, 0.6, class_name="Van", cx=12.0, cy=-1.0, cz=-0.6, length=5.1, width=2.0, height=2.1, yaw=-2.9),
+    ]])
+    return data, results
+
+
+def _file_boxes(path: Path, calib_path: Path) -> tuple[np.ndarray, object]:
+    labels = read_label(path)
+    return boxes_camera_to_lidar(labels.location, labels.dims_hwl, labels.rotation_y, read_calib(calib_path)), labels
+
+
+def test_kitti_labels_keep_the_originals_and_add_suggestions_and_candidates(audited, tmp_path):
+    data, results = audited
+    out = tmp_path / "review"
+    result = invoke("export", results, "--format", "kitti-labels", "-o", out, "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    rows = R.read_results(results)
+    lerr = np.asarray(rows.column("label_error").to_numpy(zero_copy_only=False), dtype=float)
+    expected_suggestions = int(np.sum(lerr > 0.5))
+    assert expected_suggestions > 0  # the simulator injected label errors: some must be suggested
+    assert summary["suggested"] == expected_suggestions and summary["missing"] == 2
+    assert summary["frames_written"] == 3 and summary["skipped_frames"] == {}
+    assert "suggested boxes" in result.stderr and "changes.csv" in result.stderr
+
+    changes = list(csv.DictReader((out / "changes.csv").open()))
+    assert len(changes) == expected_suggestions + 2
+    sim_root = data / "training" if (data / "training").is_dir() else data
+    for fid in ("000000", "000001", "000002"):
+        original = (sim_root / "label_2" / f"{fid}.txt").read_text().splitlines()
+        written = (out / "label_2" / f"{fid}.txt").read_text().splitlines()
+        assert written[: len(original)] == original  # the original labels, byte for byte
+        added = written[len(original):]
+        mine = [c for c in changes if c["frame_id"] == fid]
+        assert len(added) == len(mine)
+        boxes, labels = _file_boxes(out / "label_2" / f"{fid}.txt", sim_root / "calib" / f"{fid}.txt")
+        for c in mine:
+            line = int(c["line"])
+            k = list(labels.line).index(line)
+            assert len(written[line - 1].split()) == 16
+            assert labels.score[k] == pytest.approx(float(c["score"]), abs=0)  # the score in the 16th column
+            want = np.array([float(c[n]) for n in R.BOX_COLUMNS])
+            np.testing.assert_allclose(boxes[k], want, rtol=0, atol=1e-9)  # the round trip through the KITTI reader
+            if c["change"] == "suggested_box":
+                row = rows.filter(np.asarray(rows.column("frame_id").to_pylist()) == fid).to_pylist()
+                (r,) = [r for r in row if r["object_index"] == int(c["object_index"])]
+                assert r["label_error"] > 0.5 and float(c["score"]) == r["label_error"]
+                assert int(c["original_line"]) == r["label_line"] and labels.class_names[k] == r["class_name"]
+                fit = suggested_boxes(rows.filter(np.asarray([x["frame_id"] == fid and x["object_index"] == r["object_index"] for x in rows.to_pylist()])))[0]
+                np.testing.assert_allclose(boxes[k], fit, rtol=0, atol=1e-9)
+            else:
+                assert c["change"] == "missing_label" and float(c["score"]) >= 0.5 and c["source"] == "points"
+    cand = [c for c in changes if c["change"] == "missing_label"]
+    assert {(c["frame_id"], c["candidate_index"], c["class_name"]) for c in cand} == {("000000", "0", "Car"), ("000001", "0", "Van")}
+
+    # review/ is a KITTI folder of its own: the reader loads it, the added boxes included.
+    reader = KittiReader(out)
+    frame = reader.load_frame("000001")
+    van = [k for k, n in enumerate(frame.class_names) if n == "Van" and frame.extras["score"][k] == 0.6]
+    assert len(van) == 1
+    np.testing.assert_allclose(frame.boxes[van[0]], [12.0, -1.0, -0.6, 5.1, 2.0, 2.1, -2.9], rtol=0, atol=1e-9)
+    meta = json.loads((out / "review.json").read_text())
+    assert meta["suggested"] == expected_suggestions and meta["min_score"] == 0.5 and meta["dataset_format"] == "kitti"
+
+
+def test_kitti_labels_thresholds_rewrite_and_refusals(audited, tmp_path):
+    data, results = audited
+    out = tmp_path / "review"
+    assert invoke("export", results, "--format", "kitti-labels", "-o", out).exit_code == 0
+    # Stricter thresholds, same folder: the earlier export is replaced, not added to.
+    result = invoke("export", results, "--format", "kitti-labels", "-o", out, "--min-score", "0.95", "--min-label-error", "1.0", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["suggested"] == 0 and summary["missing"] == 0 and summary["frames_changed"] == 0
+    assert list(csv.DictReader((out / "changes.csv").open())) == []
+    sim_root = data / "training" if (data / "training").is_dir() else data
+    for fid in ("000000", "000001", "000002"):
+        assert (out / "label_2" / f"{fid}.txt").read_text() == (sim_root / "label_2" / f"{fid}.txt").read_text()
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary left behind
+    for args, needle in (
+        (("--min-score", "1.5"), "--min-score must be in [0, 1]"),
+        (("--min-label-error", "-0.1"), "--min-label-error must be in [0, 1]"),
+    ):
+        result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "x", *args)
+        assert result.exit_code == 2 and needle in result.stderr, result.output
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "notes.txt").write_text("mine")
+    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "busy")
+    assert result.exit_code == 2 and "not a review folder" in result.stderr
+    assert (tmp_path / "busy" / "notes.txt").read_text() == "mine"
+
+
+def test_kitti_labels_skip_a_frame_whose_labels_changed_since_infer(audited, tmp_path):
+    data, results = audited
+    moved = tmp_path / "moved"
+    shutil.copytree(data, moved)
+    sim_root = moved / "training" if (moved / "training").is_dir() else moved
+    label = sim_root / "label_2" / "000001.txt"
+    lines = label.read_text().splitlines()
+    first = next(i for i, l in enumerate(lines) if not l.startswith("DontCare"))
+    parts = lines[first].split()
+    parts[11] = f"{float(parts[11]) + 0.5:.2f}"  # x of the location moved by half a metre
+    lines[first] = " ".join(parts)
+    label.write_text("\n".join(lines) + "\n")
+    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["frames_written"] == 2 and list(summary["skipped_frames"]) == ["000001"]
+    assert "labels edited since infer" in summary["skipped_frames"]["000001"] and "000001.txt" in summary["skipped_frames"]["000001"]
+    assert "warning: frame 000001 not written" in result.stderr
+    assert not (tmp_path / "review" / "label_2" / "000001.txt").exists()
+
+
+def test_waymo_results_get_a_parquet_of_boxes(tmp_path):
+    fit = {"fit_cx": 11.0, "fit_cy": 2.5, "fit_cz": None, "fit_length": 4.4, "fit_width": 1.8, "fit_height": None, "fit_yaw": 0.2}
+    rows = [make_row("seg:1", 0, dataset="waymo-v2", label_error=0.95, **fit), make_row("seg:1", 1, dataset="waymo-v2", label_error=0.1, **fit),
+            make_row("seg:2", 0, dataset="waymo-v2", label_error=None)]
+    root = make_results(tmp_path / "r", [rows])
+    manifest = json.loads((root / "manifest.json").read_text())
+    R.write_json_atomic({**manifest, "format": "waymo-v2", "input": "/data/waymo"}, root / "manifest.json")
+    add_missing(root, [[make_candidate("seg:2", 0, 0.7, dataset="waymo-v2"), make_candidate("seg:2", 1, 0.2, dataset="waymo-v2")]])
+    result = invoke("export", root, "--format", "kitti-labels", "-o", tmp_path / "review", "--json")
+    assert result.exit_code == 0, result.output
+    table = pq.read_table(tmp_path / "review" / "boxes.parquet").to_pylist()
+    assert [(b["frame_id"], b["kind"], b["object_index"], b["candidate_index"]) for b in table] == [
+        ("seg:1", "label", 0, None), ("seg:1", "label", 1, None), ("seg:1", "suggested", 0, None), ("seg:2", "label", 0, None), ("seg:2", "missing", None, 0),
+    ]
+    suggested = table[2]
+    # A BEV fit keeps the label's cz and height.
+    assert [suggested[c] for c in R.BOX_COLUMNS] == [11.0, 2.5, -0.8, 4.4, 1.8, 1.5, 0.2] and suggested["score"] == 0.95
+    changes = list(csv.DictReader((tmp_path / "review" / "changes.csv").open()))
+    assert [(c["frame_id"], c["change"], c["file"]) for c in changes] == [("seg:1", "suggested_box", ""), ("seg:2", "missing_label", "")]
+    assert json.loads(result.stdout)["format"] == "parquet"
+
+
+def test_kitti_lines_round_trip_on_real_calibrations():
+    """Exact write → read on the real KITTI calibrations (printed matrices, not exactly orthonormal)."""
+    calibs = sorted((REAL_KITTI / "calib").glob("*.txt")) if REAL_KITTI.is_dir() else []
+    if not calibs:
+        pytest.skip("no real KITTI frames in /work/shared/realdata (CI has none)")
+    rng = np.random.default_rng(0)
+    for path in calibs:
+        calib = read_calib(path)
+        boxes = np.c_[rng.uniform(2, 60, 20), rng.uniform(-20, 20, 20), rng.uniform(-2, 0.5, 20), rng.uniform(0.5, 12, 20),
+                      rng.uniform(0.4, 3, 20), rng.uniform(1, 4, 20), rng.uniform(-np.pi, np.pi, 20)]  # fmt: skip
+        lines = kitti_lines(boxes, ["Car"] * 20, rng.uniform(0, 1, 20), np.zeros(20), np.full(20, 3), calib, png_size(REAL_KITTI / "image_2" / f"{path.stem}.png") or (1242, 375))
+        parsed = np.array([[float(v) for v in line.split()[1:]] for line in lines])
+        assert parsed.shape == (20, len(LABEL_COLUMNS) - 1)
+        back = boxes_camera_to_lidar(parsed[:, 10:13], parsed[:, 7:10], parsed[:, 13], calib)
+        d = back - boxes
+        d[:, 6] = (d[:, 6] + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(d).max() < 1e-9, (path, np.abs(d).max())
+
+
+def test_png_size_reads_the_header(tmp_path):
+    if REAL_KITTI.is_dir():
+        assert png_size(REAL_KITTI / "image_2" / "000001.png") == (1242, 375)
+    (tmp_path / "x.png").write_bytes(b"not a png")
+    assert png_size(tmp_path / "x.png") is None and png_size(tmp_path / "none.png") is None
