@@ -316,6 +316,8 @@ SHOW_VIEW_MARGIN = 0.8  # m of free space around the label, suggested box and 2-
 SHOW_TRACK_FRAMES = 3  # `show` of a tracked object draws its labels in this many frames before and after (moved into this frame)
 SHOW_FRAME_WORST = 5  # `show` of a frame numbers this many worst boxes
 SHOW_FRAME_MARGIN = 6.0  # m around the frame's boxes (and the sensor) in the frame picture
+SHOW_CANDIDATE_MARGIN = 2.5  # m around a missing-label candidate in its close-up (enough to see a neighbouring label or wall)
+SHOW_MISSING_MIN_SCORE = 0.5  # `show` of a frame draws the missing-label candidates with at least this score (--min-score)
 REPORT_TOP = 12  # default gallery size per ranking of `labelaudit report`
 REPORT_GALLERY_SIZE = (520, 480)  # gallery pictures, pixels (smaller than `show`'s: the HTML stays light)
 REPORT_PLOT_SIZE = (620, 400)  # aggregate plots, pixels
@@ -323,6 +325,7 @@ REPORT_DISTANCE_BIN = 10.0  # m; Fig. 7b bins of the distance to the sensor
 REPORT_LOG_POINTS_BIN = 0.25  # Fig. 7c bins of log10(number of points)
 REPORT_MIN_BIN_COUNT = 3  # a plot bin with fewer objects is not drawn (its mean is noise)
 REPORT_MAX_ERROR_ROWS = 50  # failed frames listed in the report (the rest are counted)
+REPORT_MISSING_MIN_SCORE = 0.5  # `labelaudit report`: candidates with at least this score are counted and pictured
 REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's official since 2019)
 
 # --- what the parameter hash leaves out (labelaudit.config.constants_digest) ---

@@ -13,7 +13,7 @@ import shutil
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from viz_data import make_eval_dir, simulate_and_infer
+from viz_data import make_eval_dir, simulate_with_a_dropped_label
 
 from labelaudit.viz.report import build_report
 
@@ -27,10 +27,13 @@ pytestmark = pytest.mark.skipif(
 )
 
 
+MISSING = 2  # missing-label candidates pictured (the nearest car of frame 000001 lost its label; one weaker candidate)
+
+
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     root = tmp_path_factory.mktemp("viz_browser")
-    _, results = simulate_and_infer(root)
+    _, results, _ = simulate_with_a_dropped_label(root)
     out = root / "report.html"
     summary = build_report(results, out, gate="default", top=TOP, eval_dir=make_eval_dir(root / "eval"))
     return out, summary
@@ -56,7 +59,7 @@ def test_report_renders_in_chromium(report, browser, tmp_path):
     page.goto(out.as_uri(), wait_until="load")
 
     widths = page.evaluate("Promise.all(Array.from(document.images).map(i => i.decode().then(() => i.naturalWidth)))")
-    assert len(widths) == 5 + 2 * TOP + 2  # plots, both galleries, the eval PNGs
+    assert len(widths) == 5 + 2 * TOP + MISSING + 2  # plots, both galleries, the missing labels, the eval PNGs
     assert all(w > 0 for w in widths), widths
     for key in ("label_error", "jiou_gt"):
         assert page.locator(f"section[data-gallery={key}] article.entry").count() == TOP
@@ -74,5 +77,30 @@ def test_report_renders_in_chromium(report, browser, tmp_path):
     img = mpimg.imread(io.BytesIO(shot), format="png")[..., :3]
     assert img.shape[:2] == (900, 1280)
     assert img.std() > 0.05 and len(np.unique((img * 255).astype(np.uint8).reshape(-1, 3), axis=0)) > 200  # not blank
+    assert problems == []
+    page.close()
+
+
+def test_missing_labels_section_renders_in_chromium(report, browser, tmp_path):
+    out, summary = report
+    assert summary.missing_pictures == MISSING
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    problems = []
+    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type in ("error", "warning") else None)
+    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    page.goto(f"{out.as_uri()}#missing-000001-0", wait_until="load")
+    assert page.evaluate("document.querySelector(':target').dataset.candidate") == "missing-000001-0"
+    section = page.locator("section[data-gallery=missing]")
+    assert section.locator("article.entry").count() == MISSING
+    widths = page.evaluate("Promise.all(Array.from(document.querySelectorAll('section#missing img')).map(i => i.decode().then(() => i.naturalWidth)))")
+    assert widths == [520] * MISSING
+    assert section.locator("table#missing-counts").inner_text().count("Car") == 1
+    box = section.locator("article.entry img").first.bounding_box()
+    assert box is not None and box["width"] > 300 and box["y"] < 900  # the target's picture is on screen
+    shot = page.screenshot(full_page=False)
+    (tmp_path / "missing.png").write_bytes(shot)
+    img = mpimg.imread(io.BytesIO(shot), format="png")[..., :3]
+    magenta = np.abs(img - np.array([1.0, 0x3D / 255, 0xF5 / 255])).max(axis=-1) < 0.1
+    assert magenta.sum() > 100  # a candidate's outline is on the screen
     assert problems == []
     page.close()

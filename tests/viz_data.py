@@ -64,3 +64,37 @@ def make_eval_dir(path: Path, summary: dict | None = None, plots: tuple[str, ...
     for i, name in enumerate(plots):
         (path / name).write_bytes(tiny_png(("#336699", "#993366", "#669933")[i % 3]))
     return path
+
+
+def simulate_with_a_dropped_label(root: Path, frame_id: str = "000001") -> tuple[Path, Path, "object"]:
+    """A simulated KITTI dataset whose ``frame_id`` lost the label of its nearest car (its points
+    kept), audited for real, with that car's box as missing-label candidate 0 of the frame
+    (score 0.93) and a weaker candidate 1 (score 0.55) on open ground; returns (data, results, box).
+    The ``missing/`` table is the test's own, whatever the search of ``infer`` found."""
+    import shutil
+
+    import numpy as np
+
+    from labelaudit.datasets.kitti import boxes_camera_to_lidar, read_calib, read_label
+    from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.noise import NoiseSpec
+    from results_factory import add_missing, make_candidate
+
+    data, results = root / "sim", root / "results"
+    simulate_dataset(data, frames=3, seed=3, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False)
+    split = data / "training" if (data / "training").is_dir() else data
+    label = split / "label_2" / f"{frame_id}.txt"
+    labels = read_label(label)
+    boxes = boxes_camera_to_lidar(labels.location, labels.dims_hwl, labels.rotation_y, read_calib(split / "calib" / f"{frame_id}.txt"))
+    cars = [k for k, n in enumerate(labels.class_names) if n == "Car"]
+    k = min(cars, key=lambda j: float(np.hypot(*boxes[j, :2])))
+    lines = label.read_text().splitlines()
+    label.write_text("".join(line + "\n" for j, line in enumerate(lines) if j != k))
+    run_infer(InferRequest(data, results, "kitti"), resolve_config(None, "kitti"), executor=SerialExecutor())
+    shutil.rmtree(results / "missing", ignore_errors=True)
+    b = boxes[k]
+    add_missing(results, [[
+        make_candidate(frame_id, 0, 0.93, cx=b[0], cy=b[1], cz=b[2], length=b[3], width=b[4], height=b[5], yaw=b[6], distance=float(np.hypot(b[0], b[1]))),
+        make_candidate(frame_id, 1, 0.55, cx=20.0, cy=14.0, distance=float(np.hypot(20.0, 14.0)), num_points=35),
+    ]])
+    return data, results, b

@@ -61,7 +61,7 @@ def report(
                 bar = Progress(TextColumn("[bold]report[/bold] gallery"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=err())
                 task = bar.add_task("gallery", total=total)
                 bar.start()
-            bar.update(task, completed=done)
+            bar.update(task, completed=done, total=total)  # the candidates' pictures follow the galleries' and extend the total
 
         try:
             summary = build_report(results, output, gate=gate, top=top, eval_dir=eval_dir, dataset=dataset, progress=progress)
@@ -72,8 +72,9 @@ def report(
                 bar.stop()
         if not quiet:
             verdict = f", gate {summary.gate_verdict}" if summary.gate_verdict else ""
+            missing = "" if summary.missing_counted is None else f", {summary.missing_counted} possibly missing labels ({summary.missing_pictures} pictured)"
             err().print(
-                f"report: {summary.objects} objects ({summary.evaluated} evaluated), {summary.pictures} pictures{verdict}, "
+                f"report: {summary.objects} objects ({summary.evaluated} evaluated), {summary.pictures} pictures{verdict}{missing}, "
                 f"{summary.size_bytes / 1e6:.1f} MB in {summary.seconds:.1f} s → {escape(str(summary.path))}",
                 soft_wrap=True,
             )

@@ -33,9 +33,13 @@ def show(
     size: Optional[str] = typer.Option(None, "--size", help=f"Picture size WIDTHxHEIGHT in pixels (default {C.SHOW_SIZE[0]}x{C.SHOW_SIZE[1]}; a frame {C.SHOW_FRAME_SIZE[0]}x{C.SHOW_FRAME_SIZE[1]})."),
     by: ShowBy = typer.Option(ShowBy.jiou_gt, "--by", help="Whole frame: colour the boxes by this score."),
     worst: int = typer.Option(C.SHOW_FRAME_WORST, "--worst", help="Whole frame: number this many worst boxes."),
+    candidate: Optional[int] = typer.Option(None, "--candidate", help="Draw this missing-label candidate of the frame (candidate_index, as `rank --missing` prints it) close up, instead of a label."),
+    min_score: float = typer.Option(C.SHOW_MISSING_MIN_SCORE, "--min-score", help="Whole frame: draw the missing-label candidates with at least this score."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
-    """Draw one label with its spatial distribution p_G, or a whole frame's boxes coloured by a score.
+    """Draw one label with its spatial distribution p_G, a whole frame's boxes coloured by a score, or one missing-label candidate.
+
+    A whole frame also draws its missing-label candidates (objects nobody labelled, the missing/ table) with a score of at least --min-score: magenta, dashed, tagged M<candidate_index> and their score, with a legend. --candidate K draws candidate K close up: the points inside it coloured by height, the labels around it, its score and evidence.
 
     One object: its crop's points coloured by height, the labeled box, p_G as a heatmap, the 1-σ ellipses of its corners (C1 nearest the sensor), the suggested box of the label-error fit, the direction to the sensor, a scale bar and the row's numbers; for a tracked object (Waymo, Argoverse 2) also its labels in the 3 frames before and after, moved into this frame through the world frame (blue earlier, red later), with its track_error and the track's fused size. Everything is recomputed from the dataset with the run's parameters, so the picture matches the row. Prints the PNG's path on stdout.
 
@@ -46,9 +50,14 @@ def show(
       labelaudit show results/ 000123 --by label_error -o frame.png
 
       labelaudit show results/ 000123 4 --dataset /mnt/new/kitti --size 900x800
+
+      labelaudit show results/ 000123 --candidate 0 -o missing.png
     """
     from labelaudit.results import open_results
     from labelaudit.viz.objects import (
+        ViewError,
+        candidate_row,
+        frame_candidates,
         frame_rows,
         load_frame,
         object_row,
@@ -56,31 +65,46 @@ def show(
         recompute,
         track_view,
     )
-    from labelaudit.viz.show import parse_size, render_frame, render_object
+    from labelaudit.viz.show import parse_size, render_candidate, render_frame, render_object
 
     with handle_errors(debug):
         if worst < 0:
             raise typer.BadParameter(f"must be ≥ 0, got {worst}", param_hint="--worst")
         try:
-            px = parse_size(size) if size else (C.SHOW_SIZE if object_index is not None else C.SHOW_FRAME_SIZE)
+            px = parse_size(size) if size else (C.SHOW_SIZE if object_index is not None or candidate is not None else C.SHOW_FRAME_SIZE)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--size") from None
+        if candidate is not None and object_index is not None:
+            raise typer.BadParameter("draw either an OBJECT or a --candidate, not both", param_hint="--candidate")
+        if not 0.0 <= min_score <= 1.0:
+            raise typer.BadParameter(f"must be in [0, 1], got {min_score}", param_hint="--min-score")
         opened = open_results(results)
-        rows = frame_rows(opened, frame)
+        cand = candidate_row(opened, frame, candidate) if candidate is not None else None
+        try:
+            rows = frame_rows(opened, frame)
+        except ViewError:
+            if object_index is not None or (cand is None and not frame_candidates(opened, frame)):
+                raise
+            rows = opened.dataset.schema.empty_table()  # a frame without labels, with candidates
         row = object_row(rows, object_index) if object_index is not None else None
         source = open_source(opened, dataset)
         for note in source.notes:
             err().print(f"warning: {escape(note)}", soft_wrap=True)
-        if row is not None:
+        if cand is not None:
+            fr = load_frame(source, frame)
+            png = render_candidate(frame, fr.points, cand, rows.to_pylist(), px, fr.sensor_origin).png
+        elif row is not None:
             audit = recompute(source, row)
             for col, (want, got) in audit.mismatches(rtol=1e-6).items():
                 err().print(f"warning: recomputed {col} = {got} but the row says {want} (dataset or labelaudit changed since infer)", soft_wrap=True)
             png = render_object(audit, px, track=track_view(opened, row)).png
         else:
             fr = load_frame(source, frame)
-            png = render_frame(frame, fr.points, rows.to_pylist(), by.value, px, worst, fr.sensor_origin).png
+            shown = [c for c in frame_candidates(opened, frame) if c["score"] >= min_score]
+            png = render_frame(frame, fr.points, rows.to_pylist(), by.value, px, worst, fr.sensor_origin, shown).png
         safe = frame.replace("/", "_").replace(":", "_")
-        out = output or Path(f"show-{safe}{'' if object_index is None else f'-{object_index}'}.png")
+        which = f"-{object_index}" if object_index is not None else f"-missing-{candidate}" if candidate is not None else ""
+        out = output or Path(f"show-{safe}{which}.png")
         _write_png(png, out)
         typer.echo(str(out))
 

@@ -40,7 +40,8 @@ from labelaudit.results import BOX_COLUMNS, MANIFEST_NAME, Results
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ViewError", "AuditSource", "ObjectAudit", "TrackView", "open_source", "audit_view", "frame_rows", "object_row", "load_frame", "recompute", "track_view"]
+__all__ = ["ViewError", "AuditSource", "ObjectAudit", "TrackView", "open_source", "audit_view", "frame_rows", "object_row", "load_frame", "recompute",
+           "track_view", "frame_candidates", "candidate_row"]
 
 AUDITED_STATUSES = ("ok", "few_points", "no_points")
 """Statuses whose rows carry model results (``skipped`` and ``error`` rows do not)."""
@@ -180,6 +181,44 @@ def object_row(rows: pa.Table, object_index: int) -> dict[str, Any]:
     frame = rows.column("frame_id")[0].as_py()
     more = f" of {len(indices)}" if len(indices) > C.VIZ_NEAREST_IDS else ""
     raise ViewError(f"frame {frame}: no audited object {object_index}; nearest objects{more}: {listed}")
+
+
+def frame_candidates(results: Results, frame_id: str) -> list[dict[str, Any]]:
+    """The missing-label candidates of one frame (every column), by candidate_index; empty when
+    the frame has none or the run did not search (``infer --no-missing``)."""
+    from labelaudit.rank import read_candidates
+
+    table = read_candidates(results)
+    if table is None:
+        return []
+    rows = [r for r in table.filter(pc.equal(table.column("frame_id"), frame_id)).to_pylist()]
+    return sorted(rows, key=lambda r: r["candidate_index"])
+
+
+def candidate_row(results: Results, frame_id: str, candidate_index: int) -> dict[str, Any]:
+    """One missing-label candidate.
+
+    Raises
+    ------
+    ViewError
+        The run did not search for missing labels, or the frame has no such candidate (the message
+        lists the frame's candidates, or the frames that have some).
+    """
+    from labelaudit.rank import read_candidates
+
+    table = read_candidates(results)
+    if table is None:
+        raise ViewError(f"{results.root}: no missing-label table (missing/): the run skipped the search (infer --no-missing)")
+    rows = frame_candidates(results, frame_id)
+    for r in rows:
+        if r["candidate_index"] == candidate_index:
+            return r
+    if rows:
+        listed = ", ".join(f"{r['candidate_index']} ({r['class_name']}, score {r['score']:.2f})" for r in rows[: C.VIZ_NEAREST_IDS])
+        raise ViewError(f"frame {frame_id}: no candidate {candidate_index}; its candidates: {listed}")
+    frames = sorted(set(table.column("frame_id").to_pylist()))
+    near = ", ".join(_nearest(frame_id, frames)) if frames else "none"
+    raise ViewError(f"frame {frame_id}: no missing-label candidate; frames with candidates nearest to it: {near}")
 
 
 def _units_for(source: AuditSource, frame_id: str) -> list[FrameRef]:

@@ -32,9 +32,10 @@ import pyarrow.dataset as pads
 from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit import results as R
+from labelaudit.errors import DatasetError
 from labelaudit.viz.objects import AUDITED_STATUSES, ViewError
 
-__all__ = ["ReportSummary", "build_report", "render_report", "anchor_of", "open_for_report"]
+__all__ = ["ReportSummary", "build_report", "render_report", "anchor_of", "missing_anchor", "open_for_report"]
 
 TEMPLATE_DIR = Path(__file__).with_name("templates")
 TEMPLATE_NAME = "report.html.j2"
@@ -61,8 +62,10 @@ class ReportSummary:
     gallery : entries per gallery key (``label_error``, ``jiou_gt``)
     gate_verdict : PASS / FAIL / ERROR, or None without a gate
     seconds : wall time
-    timings : wall seconds per stage (read, summary, gate, plots, gallery, html)
+    timings : wall seconds per stage (read, summary, gate, plots, gallery, missing, html)
     cpu_timings : CPU seconds of this process per stage (the same keys)
+    missing_pictures : missing-label candidates pictured
+    missing_counted : candidates with a score of at least ``REPORT_MISSING_MIN_SCORE`` (None: the run did not search)
     """
 
     path: Path
@@ -75,6 +78,8 @@ class ReportSummary:
     seconds: float
     timings: dict[str, float]
     cpu_timings: dict[str, float]
+    missing_pictures: int = 0
+    missing_counted: int | None = None
 
 
 def anchor_of(frame_id: str, object_index: int) -> str:
@@ -311,6 +316,65 @@ def _tracks(results: R.Results, top: int) -> dict[str, Any] | None:
     }
 
 
+def missing_anchor(frame_id: str, candidate_index: int) -> str:
+    """The stable anchor of a missing-label candidate in the report: ``missing-<frame_id>-<candidate_index>``."""
+    return "missing-" + anchor_of(frame_id, candidate_index)
+
+
+def _missing(results: R.Results, top: int, dataset: str | Path | None, progress: Progress | None) -> dict[str, Any]:
+    """The "possibly missing labels" section: counts, and the ``top`` likeliest candidates pictured."""
+    from labelaudit.rank import MissingQuery, rank_missing, read_candidates
+    from labelaudit.viz.objects import frame_rows, load_frame, open_source
+    from labelaudit.viz.show import EVIDENCE_COLUMNS, render_candidate
+
+    table = read_candidates(results)
+    if table is None:
+        return {"searched": False, "entries": [], "total": 0, "counted": 0, "frames": 0, "by_class": [], "min_score": C.REPORT_MISSING_MIN_SCORE}
+    scores = np.asarray(table.column("score").to_numpy(zero_copy_only=False), dtype=float)
+    counted = scores >= C.REPORT_MISSING_MIN_SCORE
+    classes = np.asarray(table.column("class_name").to_pylist(), dtype=object)
+    sources = np.asarray(table.column("source").to_pylist(), dtype=object)
+    by_class = [
+        {"name": str(name), "counted": int(np.sum(counted & (classes == name))), "total": int(np.sum(classes == name)),
+         "sources": [int(np.sum(counted & (classes == name) & (sources == src))) for src in ("points", "detections", "both")]}
+        for name in sorted(set(classes.tolist()))
+    ]  # fmt: skip
+    frames = len(set(np.asarray(table.column("frame_id").to_pylist(), dtype=object)[counted].tolist()))
+    rows = rank_missing(results, MissingQuery(top=top, min_score=C.REPORT_MISSING_MIN_SCORE)).table.to_pylist() if counted.any() else []
+    source = open_source(results, dataset) if rows else None
+    root = shlex.quote(str(results.root))
+    entries = []
+    for done, r in enumerate(rows, start=1):
+        anchor = missing_anchor(r["frame_id"], r["candidate_index"])
+        entry = {
+            "rank": done,
+            "anchor": anchor,
+            "frame_id": r["frame_id"],
+            "candidate_index": r["candidate_index"],
+            "class_name": r["class_name"],
+            "numbers": [(c, r.get(c)) for c in ("score", "source", "num_points", "distance", "length", "width", "height", *EVIDENCE_COLUMNS) if c in r],
+            "command": f"labelaudit show {root} {shlex.quote(str(r['frame_id']))} --candidate {r['candidate_index']} -o {shlex.quote(anchor)}.png",
+            "src": "",
+            "error": "",
+        }
+        try:
+            assert source is not None
+            frame = load_frame(source, r["frame_id"])
+            try:
+                labels = frame_rows(results, r["frame_id"]).to_pylist()
+            except ViewError:  # a frame without labels
+                labels = []
+            pic = render_candidate(r["frame_id"], frame.points, r, labels, C.REPORT_GALLERY_SIZE, frame.sensor_origin, compact=True)
+            entry["src"] = data_uri(pic.png)
+        except (ViewError, DatasetError) as exc:
+            entry["error"] = str(exc)
+        entries.append(entry)
+        if progress is not None:
+            progress(done, len(rows))
+    return {"searched": True, "entries": entries, "total": int(table.num_rows), "counted": int(counted.sum()), "frames": frames,
+            "by_class": by_class, "min_score": C.REPORT_MISSING_MIN_SCORE}  # fmt: skip
+
+
 def _eval(eval_dir: str | Path | None) -> dict[str, Any] | None:
     if eval_dir is None:
         return None
@@ -375,7 +439,7 @@ def build_report(
     results_path : results folder written by ``labelaudit infer``
     output : the HTML file to write
     gate : a gate TOML (``"default"``: the built-in one) whose verdict the page shows
-    top : gallery entries per ranking (worst by label_error, worst by JIoU-GT)
+    top : gallery entries per ranking (worst by label_error, worst by JIoU-GT) and missing-label candidates pictured
     eval_dir : an output folder of ``labelaudit eval`` to include
     dataset : the dataset's current path when it moved since ``infer``
     progress : called as ``progress(done, total)`` after each gallery picture
@@ -416,6 +480,8 @@ def build_report(
     lap("tracks")
     galleries, pictures = _gallery(results, top, dataset, progress) if summary["evaluated"] else ([{"key": k, "title": title, "entries": []} for k, _, title, _ in GALLERIES], 0)
     lap("gallery")
+    missing = _missing(results, top, dataset, None if progress is None else (lambda done, total: progress(pictures + done, pictures + total)))
+    lap("missing")
     context = {
         "title": f"labelaudit report — {Path(str(results.manifest.get('input', results.root))).name or results.root}",
         "results_root": str(results.root),
@@ -425,6 +491,7 @@ def build_report(
         "gate": gate_section,
         "plots": plots,
         "galleries": galleries,
+        "missing": missing,
         "top": top,
         "gallery_size": C.REPORT_GALLERY_SIZE,
         "eval": eval_section,
@@ -437,4 +504,5 @@ def build_report(
     return ReportSummary(
         out, out.stat().st_size, summary["objects"], summary["evaluated"], pictures,
         {g["key"]: len(g["entries"]) for g in galleries}, None if gate_section is None else gate_section["verdict"], time.perf_counter() - start, timings, cpu_timings,
+        missing_pictures=len(missing["entries"]), missing_counted=missing["counted"] if missing["searched"] else None,
     )

@@ -35,7 +35,7 @@ from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit, TrackView
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ObjectPicture", "FramePicture", "render_object", "render_frame", "parse_size", "corner_covariances", "SCORES"]
+__all__ = ["ObjectPicture", "FramePicture", "CandidatePicture", "render_object", "render_frame", "render_candidate", "parse_size", "corner_covariances", "SCORES"]
 
 SCORES = {"jiou_gt": "JIoU-GT", "label_error": "label_error"}
 """Scores a frame picture can colour boxes by (low JIoU-GT is bad; high label_error is bad)."""
@@ -50,6 +50,7 @@ ELLIPSE_COLOUR = "#7CFC00"
 CONTEXT_COLOUR = "#8a8a8a"
 TRACK_CMAP = "coolwarm"  # the track's other frames: blue earlier, red later
 EXPECTED_COLOUR = "#ffd400"  # the box the rest of the track expects in this frame
+CANDIDATE_COLOUR = "#ff3df5"  # missing-label candidates: magenta, outside the red–yellow–green of the scores and the cool/magma maps
 
 
 
@@ -136,6 +137,24 @@ def _add_scale_bar(ax: Any, view: tuple[float, float, float, float], colour: str
     ax.plot([x1 - length, x1], [y, y], color=colour, linewidth=3, solid_capstyle="butt", zorder=9)
     ax.text(x1 - length / 2, y + 0.015 * span_y, f"{length:g} m", color=colour, fontsize=8, ha="center", va="bottom", zorder=9)
     return length
+
+
+def _colour_bar(fig: Figure, mappable: Any, rect: tuple[float, float, float, float], label: str) -> None:
+    """A labelled colour bar in its own axes at ``rect`` (figure fractions), small type."""
+    cb = fig.colorbar(mappable, cax=fig.add_axes(rect))
+    cb.set_label(label, fontsize=7)
+    cb.ax.tick_params(labelsize=6)
+
+
+def _add_sensor_arrow(ax: Any, view: tuple[float, float, float, float], direction: FloatArray, distance: float) -> None:
+    """An arrow near the upper-left corner pointing to the sensor (data coordinates keep its angle), with the distance."""
+    span_x, span_y = view[1] - view[0], view[3] - view[2]
+    start = np.array([view[0] + 0.16 * span_x, view[3] - 0.16 * span_y])
+    tip = start + 0.08 * span_x * direction
+    ax.annotate("", xy=tuple(tip), xytext=tuple(start - 0.08 * span_x * direction), arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.4}, zorder=8)
+    label_at = start - 0.15 * span_x * direction  # behind the arrow's tail, whichever way it points
+    label_at = np.clip(label_at, [view[0] + 0.08 * span_x, view[2] + 0.05 * span_y], [view[1] - 0.08 * span_x, view[3] - 0.05 * span_y])
+    ax.text(label_at[0], label_at[1], f"to sensor\n{distance:.1f} m", color="white", fontsize=7, ha="center", va="center", zorder=8)
 
 
 # --------------------------------------------------------------------------- one object
@@ -301,15 +320,7 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     out = centres[0] / max(float(np.linalg.norm(centres[0])), 1e-9)
     ax.annotate("C1", xy=tuple(centres[0]), xytext=tuple(out * 14), textcoords="offset points", color=ELLIPSE_COLOUR, fontsize=9, fontweight="bold", ha="center", va="center", zorder=8)
 
-    # Direction to the sensor: an arrow in the upper-left corner of the axes.
-    # Direction to the sensor: an arrow near the upper-left corner (data coordinates keep its angle).
-    span_x, span_y = view[1] - view[0], view[3] - view[2]
-    start = np.array([view[0] + 0.16 * span_x, view[3] - 0.16 * span_y])
-    tip = start + 0.08 * span_x * sensor_dir
-    ax.annotate("", xy=tuple(tip), xytext=tuple(start - 0.08 * span_x * sensor_dir), arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.4}, zorder=8)
-    label_at = start - 0.15 * span_x * sensor_dir  # behind the arrow's tail, whichever way it points
-    label_at = np.clip(label_at, [view[0] + 0.08 * span_x, view[2] + 0.05 * span_y], [view[1] - 0.08 * span_x, view[3] - 0.05 * span_y])
-    ax.text(label_at[0], label_at[1], f"to sensor\n{np.hypot(*to_sensor):.1f} m", color="white", fontsize=7, ha="center", va="center", zorder=8)
+    _add_sensor_arrow(ax, view, sensor_dir, float(np.hypot(*to_sensor)))
     _add_scale_bar(ax, view, "white")
 
     if compact:  # the scale bar gives the metres and the report prints the numbers beside the picture: ticks and glyphs cost most of the drawing
@@ -320,15 +331,9 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     ax.tick_params(labelsize=7)
     ax.set_xlabel("along the label's length (m)", fontsize=8)
     ax.set_ylabel("across (m)", fontsize=8)
-    cax1 = fig.add_axes((0.855, 0.52, 0.025, 0.35))
-    cb1 = fig.colorbar(heat, cax=cax1)
-    cb1.set_label("p_G × l·w (1 = certain box)", fontsize=7)
-    cb1.ax.tick_params(labelsize=6)
+    _colour_bar(fig, heat, (0.855, 0.52, 0.025, 0.35), "p_G × l·w (1 = certain box)")
     if pts_art is not None:
-        cax2 = fig.add_axes((0.855, 0.13, 0.025, 0.33))
-        cb2 = fig.colorbar(pts_art, cax=cax2)
-        cb2.set_label("point height above box bottom (m)", fontsize=7)
-        cb2.ax.tick_params(labelsize=6)
+        _colour_bar(fig, pts_art, (0.855, 0.13, 0.025, 0.33), "point height above box bottom (m)")
     handles = [
         Line2D([], [], color=LABEL_COLOUR, lw=1.6, label="label"),
         Line2D([], [], color=FIT_COLOUR, lw=1.4, ls=(0, (4, 2)), label="suggested box (fit)"),
@@ -365,8 +370,8 @@ class FramePicture:
     numbered : object_index of the numbered boxes, worst first (number 1 = worst)
     view : (x0, x1, y0, y1) axes limits
     caption : the caption text
-    track_corners : (T, 4, 2) the object's labels in the neighbouring frames of its track (box frame)
-    expected_corners : (4, 2) the box the rest of the track expects in this frame (box frame), or (0, 2)
+    candidate_indices : (M,) candidate_index of every drawn missing-label candidate
+    candidate_corners : (M, 4, 2) their BEV corners
     """
 
     png: bytes
@@ -377,6 +382,8 @@ class FramePicture:
     numbered: list[int]
     view: tuple[float, float, float, float]
     caption: str
+    candidate_indices: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    candidate_corners: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 2)))
 
 
 def worst_order(scores: FloatArray, by: str) -> NDArray[np.int64]:
@@ -394,8 +401,10 @@ def render_frame(
     size: tuple[int, int] = C.SHOW_FRAME_SIZE,
     worst: int = C.SHOW_FRAME_WORST,
     sensor_origin: FloatArray | None = None,
+    candidates: Sequence[Mapping[str, Any]] = (),
 ) -> FramePicture:
-    """Draw every audited box of a frame over its points, coloured by ``by``, the ``worst`` numbered.
+    """Draw every audited box of a frame over its points, coloured by ``by``, the ``worst`` numbered;
+    missing-label candidates in their own style (magenta, dashed, ``M<candidate_index>``) with a legend.
 
     Parameters
     ----------
@@ -406,6 +415,7 @@ def render_frame(
     size : (width, height) pixels
     worst : how many of the worst boxes get a number
     sensor_origin : (3,) sensor position (drawn as a marker)
+    candidates : the frame's missing-label candidate rows to draw (box columns, candidate_index, score, class_name)
     """
     if by not in SCORES:
         raise ValueError(f"by must be one of {', '.join(SCORES)}, got {by!r}")
@@ -421,8 +431,12 @@ def render_frame(
     order = worst_order(scores, by)[:worst]
     numbered = [int(indices[k]) for k in order]
 
+    cand_boxes = np.array([[r[c] for c in g.BOX_FIELDS] for r in candidates], dtype=float).reshape(-1, 7)
+    cand_corners = np.array([g.box_corners(b, "bev") for b in cand_boxes]).reshape(-1, 4, 2)
+    cand_indices = np.array([int(r["candidate_index"]) for r in candidates], dtype=np.int64)
+
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float).reshape(3)
-    reach = np.vstack([corners.reshape(-1, 2), origin[None, :2]])
+    reach = np.vstack([corners.reshape(-1, 2), cand_corners.reshape(-1, 2), origin[None, :2]])
     lo, hi = reach.min(axis=0) - C.SHOW_FRAME_MARGIN, reach.max(axis=0) + C.SHOW_FRAME_MARGIN
     fig = _figure(size)
     ax_rect = (0.07, 0.08, 0.8, 0.84)
@@ -448,6 +462,8 @@ def render_frame(
     for n, k in enumerate(order, start=1):
         ax.text(boxes[k, 0], boxes[k, 1], str(n), color="white", fontsize=9, fontweight="bold", ha="center", va="center", zorder=5,
                 bbox={"boxstyle": "circle,pad=0.2", "facecolor": "black", "edgecolor": cmap(norm(scores[k])), "linewidth": 1.2})
+    for k, r in enumerate(candidates):
+        _draw_candidate(ax, cand_boxes[k, :2], cand_corners[k], f"M{int(r['candidate_index'])} {float(r['score']):.2f}")
     ax.scatter([origin[0]], [origin[1]], marker="^", s=60, c="#00e5ff", edgecolors="black", zorder=6)
     ax.annotate("sensor", xy=(origin[0], origin[1]), xytext=(6, -10), textcoords="offset points", color="#00e5ff", fontsize=8, zorder=6)
     ax.set_xlim(view[0], view[1])
@@ -457,12 +473,169 @@ def render_frame(
     ax.set_xlabel("x (m, forward)", fontsize=8)
     ax.set_ylabel("y (m, left)", fontsize=8)
     _add_scale_bar(ax, view, "white")
-    cax = fig.add_axes((0.89, 0.08, 0.02, 0.84))
-    cb = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax)
-    cb.set_label(f"{SCORES[by]} ({'low' if by == 'jiou_gt' else 'high'} = worse; grey dotted: not audited)", fontsize=7)
-    cb.ax.tick_params(labelsize=6)
+    _colour_bar(fig, ScalarMappable(norm=norm, cmap=cmap), (0.89, 0.08, 0.02, 0.84), f"{SCORES[by]} ({'low' if by == 'jiou_gt' else 'high'} = worse; grey dotted: not audited)")
     listed = "  ".join(f"{n}: #{i} ({_fmt(scores[k], '.2f')})" for n, (i, k) in enumerate(zip(numbered, order), start=1))
     caption = f"frame {frame_id} · {len(boxes)} boxes coloured by {SCORES[by]} · worst numbered\n{listed or 'no scored boxes'}"
+    if len(candidates):
+        caption += f"\n{len(candidates)} possibly missing label(s): " + "  ".join(f"M{int(r['candidate_index'])} {r['class_name']} ({float(r['score']):.2f})" for r in candidates)
+        handles = [
+            Line2D([], [], color=colormaps[SCORE_CMAP[by]](0.8), lw=1.5, label=f"label (colour: {SCORES[by]})"),
+            Line2D([], [], color=CANDIDATE_COLOUR, lw=1.8, ls=(0, (4, 2)), label="possibly missing label (M<candidate>, score)"),
+        ]
+        leg = ax.legend(handles=handles, loc="lower left", fontsize=7, labelcolor="white", framealpha=0.75)
+        leg.get_frame().set_facecolor("#111111")
+        leg.set_zorder(10)
     fig.text(0.07, 0.985, caption, ha="left", va="top", fontsize=9)
     png = _png(fig)
-    return FramePicture(png, size, indices, corners, scores, numbered, view, caption)
+    return FramePicture(png, size, indices, corners, scores, numbered, view, caption, cand_indices, cand_corners)
+
+
+def _draw_candidate(ax: Any, centre: FloatArray, corners: FloatArray, text: str | None) -> None:
+    """A missing-label candidate (centre (2,), BEV corners (4, 2)): dashed magenta outline over a faint fill, its heading tick and a tag."""
+    ax.add_patch(Polygon(corners, closed=True, facecolor=CANDIDATE_COLOUR, alpha=0.15, edgecolor="none", zorder=3))
+    ax.add_patch(Polygon(corners, closed=True, fill=False, edgecolor=CANDIDATE_COLOUR, linewidth=1.8, linestyle=(0, (4, 2)), zorder=4))
+    front = corners[[0, 3]].mean(axis=0)
+    ax.plot([centre[0], front[0]], [centre[1], front[1]], color=CANDIDATE_COLOUR, linewidth=1.0, zorder=4)
+    if text:
+        top = corners[np.argmax(corners[:, 1])]
+        ax.annotate(text, xy=tuple(top), xytext=(0, 6), textcoords="offset points", color=CANDIDATE_COLOUR, fontsize=8, fontweight="bold",
+                    ha="center", va="bottom", zorder=6, bbox={"boxstyle": "round,pad=0.15", "facecolor": "#111111", "edgecolor": "none", "alpha": 0.7})
+
+
+# --------------------------------------------------------------------------- one missing-label candidate
+
+
+@dataclass(frozen=True)
+class CandidatePicture:
+    """A rendered missing-label candidate and what it shows (the candidate's frame: x along its length, metres).
+
+    Attributes
+    ----------
+    png : PNG bytes; size : (width, height) pixels
+    box_corners : (4, 2) the candidate's BEV corners
+    points_xy : (N, 2) points inside the candidate (BEV, up to its top); point_height : (N,) their height above its bottom (m)
+    context_xy : (K, 2) other points in view
+    label_corners : (L, 4, 2) labels of the frame in view; label_classes : their classes
+    sensor_direction : (2,) unit vector towards the sensor
+    view : (x0, x1, y0, y1) axes limits
+    caption : the caption text
+    """
+
+    png: bytes
+    size: tuple[int, int]
+    box_corners: FloatArray
+    points_xy: FloatArray
+    point_height: FloatArray
+    context_xy: FloatArray
+    label_corners: FloatArray
+    label_classes: list[str]
+    sensor_direction: FloatArray
+    view: tuple[float, float, float, float]
+    caption: str
+
+
+EVIDENCE_COLUMNS = ("size_score", "shape_score", "density_score", "free_space_score", "free_rays", "detection_score")
+"""Evidence of a candidate named in its caption when the table has them."""
+
+
+def _candidate_caption(frame_id: str, row: Mapping[str, Any]) -> str:
+    first = (f"possibly missing label · frame {frame_id} · candidate {row['candidate_index']} · looks like {row['class_name']} · "
+             f"{float(row['distance']):.1f} m · {row['num_points']} points")  # fmt: skip
+    evidence = "   ".join(f"{c.replace('_score', '')} {_fmt(row[c], '.2f') if isinstance(row[c], float) else row[c]}" for c in EVIDENCE_COLUMNS if row.get(c) is not None)
+    return f"{first}\nscore {_fmt(row['score'], '.3f')}   source {row['source']}" + (f"   {evidence}" if evidence else "")
+
+
+def render_candidate(
+    frame_id: str,
+    points: FloatArray,
+    candidate: Mapping[str, Any],
+    rows: Sequence[Mapping[str, Any]] = (),
+    size: tuple[int, int] = C.SHOW_SIZE,
+    sensor_origin: FloatArray | None = None,
+    *,
+    compact: bool = False,
+) -> CandidatePicture:
+    """Draw one missing-label candidate over the frame's points, close up, in its own frame.
+
+    Parameters
+    ----------
+    frame_id : for the caption
+    points : (N, ≥3) the frame's points
+    candidate : the candidate's row of the missing-label table
+    rows : the frame's label rows (their boxes are drawn when in view: a label next to the candidate)
+    size : (width, height) pixels
+    sensor_origin : (3,) sensor position
+    compact : no legend, ticks or caption (the report prints the numbers beside the picture)
+    """
+    box = np.array([candidate[c] for c in g.BOX_FIELDS], dtype=float)
+    corners = _to_box_frame(g.box_corners(box, "bev"), box)
+    lo = corners.min(axis=0) - C.SHOW_CANDIDATE_MARGIN
+    hi = corners.max(axis=0) + C.SHOW_CANDIDATE_MARGIN
+    fig = _figure(size)
+    ax_rect = (0.01, 0.01, 0.98, 0.98) if compact else (0.1, 0.13, 0.8, 0.74)
+    ax = fig.add_axes(ax_rect)
+    view = fit_view(lo, hi, ax_rect, size)
+
+    pts = np.asarray(points, dtype=float).reshape(len(points), -1)
+    xy = _to_box_frame(pts[:, :2], box) if len(pts) else np.zeros((0, 2))
+    in_view = (xy[:, 0] >= view[0]) & (xy[:, 0] <= view[1]) & (xy[:, 1] >= view[2]) & (xy[:, 1] <= view[3])
+    bottom, top = box[2] - box[5] / 2, box[2] + box[5] / 2
+    inside = in_view & (np.abs(xy[:, 0]) <= box[3] / 2) & (np.abs(xy[:, 1]) <= box[4] / 2) & (pts[:, 2] >= bottom) & (pts[:, 2] <= top)
+    context = in_view & ~inside
+    points_xy, height, context_xy = xy[inside], pts[inside, 2] - bottom, xy[context]
+
+    ax.set_facecolor("#111111")
+    if len(context_xy):
+        ax.plot(context_xy[:, 0], context_xy[:, 1], ls="", marker="o", markersize=1.4, markerfacecolor=CONTEXT_COLOUR, markeredgewidth=0, zorder=2)
+    step = max(1, -(-len(points_xy) // C.SHOW_MAX_POINTS_DRAWN))
+    pts_art = ax.scatter(points_xy[::step, 0], points_xy[::step, 1], s=9, c=height[::step], cmap=HEIGHT_CMAP, vmin=0.0, vmax=max(float(box[5]), 0.5),
+                         edgecolors="black", linewidths=0.3, zorder=4) if len(points_xy) else None  # fmt: skip
+    label_corners, label_classes = [], []
+    for r in rows:
+        lb = np.array([r[c] for c in g.BOX_FIELDS], dtype=float)
+        if not np.isfinite(lb).all():
+            continue
+        lc = _to_box_frame(g.box_corners(lb, "bev"), box)
+        if (lc[:, 0].max() < view[0]) or (lc[:, 0].min() > view[1]) or (lc[:, 1].max() < view[2]) or (lc[:, 1].min() > view[3]):
+            continue
+        label_corners.append(lc)
+        label_classes.append(str(r["class_name"]))
+        ax.add_patch(Polygon(lc, closed=True, fill=False, edgecolor=LABEL_COLOUR, linewidth=1.4, zorder=5))
+        mid = lc.mean(axis=0)
+        if view[0] < mid[0] < view[1] and view[2] < mid[1] < view[3]:  # the tag kept whole inside the axes
+            inset = 0.1 * (view[1] - view[0])
+            at = np.clip(mid, [view[0] + inset, view[2] + inset], [view[1] - inset, view[3] - inset])
+            ax.text(at[0], at[1], f"label #{r['object_index']}", color=LABEL_COLOUR, fontsize=7, ha="center", va="center", zorder=6)
+    _draw_candidate(ax, np.zeros(2), corners, None if compact else f"M{candidate['candidate_index']} {float(candidate['score']):.2f}")
+
+    origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float).reshape(3)
+    sensor_dir = _to_box_frame(origin[None, :2], box)[0]
+    distance = float(np.linalg.norm(sensor_dir))
+    sensor_dir = sensor_dir / max(distance, 1e-12)
+    _add_sensor_arrow(ax, view, sensor_dir, distance)
+    _add_scale_bar(ax, view, "white")
+    ax.set_xlim(view[0], view[1])
+    ax.set_ylim(view[2], view[3])
+    ax.set_aspect("equal")
+    caption = _candidate_caption(frame_id, candidate)
+    label_arr = np.array(label_corners).reshape(-1, 4, 2)
+    if compact:
+        ax.set_xticks([])
+        ax.set_yticks([])
+        return CandidatePicture(_png(fig), size, corners, points_xy, height, context_xy, label_arr, label_classes, sensor_dir, view, caption)
+    fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=8.5)
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("along the candidate's length (m)", fontsize=8)
+    ax.set_ylabel("across (m)", fontsize=8)
+    if pts_art is not None:
+        _colour_bar(fig, pts_art, (0.915, 0.13, 0.022, 0.74), "point height above the candidate's bottom (m)")
+    handles = [
+        Line2D([], [], color=CANDIDATE_COLOUR, lw=1.8, ls=(0, (4, 2)), label="possibly missing label (no label here)"),
+        Line2D([], [], color=LABEL_COLOUR, lw=1.4, label="labels of the frame"),
+        Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="#8f70ff", markeredgecolor="black", label="points in the candidate"),
+        Line2D([], [], ls="", marker="o", markersize=3, markerfacecolor=CONTEXT_COLOUR, markeredgecolor="none", label="other points"),
+    ]
+    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06, 0.0), ncol=2, fontsize=6.5, frameon=True, labelcolor="white")
+    leg.get_frame().set_facecolor("#111111")
+    leg.get_frame().set_edgecolor("none")
+    return CandidatePicture(_png(fig), size, corners, points_xy, height, context_xy, label_arr, label_classes, sensor_dir, view, caption)
