@@ -169,34 +169,26 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
 
 # --------------------------------------------------------------------------- missing labels
 
-MISSING_COLUMNS_FIRST = (
-    "frame_id", "candidate_index", "class_name", "cx", "cy", "cz", "length", "width", "height", "yaw",
-    "num_points", "distance", "score", "source",
-)  # fmt: skip
-"""The contract columns of the ``missing/`` table, in the order output shows them (evidence after)."""
-MISSING_SOURCES = ("points", "detections", "both")
+MISSING_SOURCES = R.MISSING_SOURCES
 """Values of the candidates' ``source`` column."""
 
 
 def read_candidates(results: Results) -> pa.Table | None:
-    """The ``missing/`` table of a results folder (every candidate row), or None when the run did
-    not search for missing labels (``infer --no-missing``, or results of an older labelaudit).
+    """The ``missing/`` table of a results folder (every candidate row, :func:`labelaudit.results.read_missing`),
+    or None when the run did not search for missing labels (``infer --no-missing``, or results of
+    an older labelaudit): an empty table means the search ran and found nothing.
 
     Raises
     ------
     ResultsError
-        The table exists but cannot be read (the message names the folder).
+        A shard of the table cannot be read (the message names it).
     """
-    folder = results.root / "missing"
-    if results.root.is_file() or not folder.is_dir():
+    params = results.manifest.get("params")
+    search = params.get("missing") if isinstance(params, dict) else None
+    enabled = bool(search.get("enabled")) if isinstance(search, dict) else False
+    if results.root.is_file() or not (enabled or (results.root / R.MISSING_DIR).is_dir()):
         return None
-    files = sorted(str(p) for p in folder.glob("*.parquet") if not p.name.startswith((".", "_")))
-    try:
-        if not files:
-            return None
-        return pads.dataset(files, format="parquet").to_table()
-    except (pa.ArrowException, OSError) as exc:
-        raise ResultsError(f"{folder}: unreadable missing-label table ({exc}); rerun `labelaudit infer --overwrite`") from None
+    return R.read_missing(results.root)
 
 
 def require_candidates(results: Results) -> pa.Table:
@@ -270,9 +262,9 @@ def rank_missing(results: Results, query: MissingQuery) -> MissingResult:
 
 
 def missing_column_order(table: pa.Table) -> list[str]:
-    """The contract columns of a candidates table first, then its evidence columns in file order."""
+    """The columns of a candidates table in the order of :data:`labelaudit.results.MISSING_SCHEMA`, then any others."""
     names = table.schema.names
-    return [c for c in MISSING_COLUMNS_FIRST if c in names] + [c for c in names if c not in MISSING_COLUMNS_FIRST]
+    return [c for c in R.MISSING_COLUMN_NAMES if c in names] + [c for c in names if c not in R.MISSING_COLUMN_NAMES]
 
 
 # --------------------------------------------------------------------------- output

@@ -62,28 +62,6 @@ def make_results(
 
 # --------------------------------------------------------------------------- the missing-label table
 
-import pyarrow as pa  # noqa: E402
-
-MISSING_FACTORY_SCHEMA = pa.schema(
-    [
-        pa.field("frame_id", pa.string(), nullable=False),
-        pa.field("candidate_index", pa.int32(), nullable=False),
-        pa.field("class_name", pa.string(), nullable=False),
-        *(pa.field(c, pa.float64(), nullable=False) for c in ("cx", "cy", "cz", "length", "width", "height", "yaw")),
-        pa.field("num_points", pa.int32(), nullable=False),
-        pa.field("distance", pa.float64(), nullable=False),
-        pa.field("score", pa.float64(), nullable=False),
-        pa.field("source", pa.string(), nullable=False),
-        pa.field("dataset", pa.string(), nullable=False),
-        pa.field("size_score", pa.float64()),
-        pa.field("shape_score", pa.float64()),
-        pa.field("free_rays", pa.int32()),
-        pa.field("detection_score", pa.float64()),
-    ]
-)
-"""The ``missing/`` table's contract columns and a few evidence columns, as ``infer`` writes them."""
-
-
 def make_candidate(frame_id: str, index: int, score: float = 0.8, class_name: str = "Car", source: str = "points", **kw: Any) -> dict[str, Any]:
     """One plausible missing-label candidate row; ``kw`` overrides any column."""
     cx, cy = 15.0 + 3.0 * index, -4.0
@@ -106,6 +84,7 @@ def make_candidate(frame_id: str, index: int, score: float = 0.8, class_name: st
         "size_score": 0.9,
         "shape_score": 0.8,
         "free_rays": 0,
+        "max_label_iou": 0.0,
         "detection_score": 0.7 if source != "points" else None,
     }
     row.update(kw)
@@ -115,6 +94,5 @@ def make_candidate(frame_id: str, index: int, score: float = 0.8, class_name: st
 def add_missing(root: Path, shards: Sequence[Sequence[dict[str, Any]]]) -> Path:
     """Add a ``missing/`` table (one shard per row list, empty lists give empty shards) to a results folder."""
     for i, rows in enumerate(shards):
-        table = pa.Table.from_pylist([{f.name: r.get(f.name) for f in MISSING_FACTORY_SCHEMA} for r in rows], schema=MISSING_FACTORY_SCHEMA)
-        R.write_parquet_atomic(table, root / "missing" / f"part-{i:04d}.parquet")
+        R.write_parquet_atomic(R.missing_rows_to_table(rows), root / R.MISSING_DIR / f"part-{i:04d}.parquet")
     return root

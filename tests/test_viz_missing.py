@@ -127,10 +127,12 @@ def test_report_has_a_possibly_missing_labels_section(dropped, tmp_path):
 def test_report_section_without_search_or_without_strong_candidates(tmp_path):
     import shutil
 
-    _, results = simulate_and_infer(tmp_path, frames=1)
-    shutil.rmtree(results / "missing", ignore_errors=True)
-    build_report(results, tmp_path / "a.html", top=1)
+    data, results = simulate_and_infer(tmp_path, frames=1)
+    plain = tmp_path / "plain"
+    assert invoke("infer", data, "-o", plain, "--no-missing", "--quiet").exit_code == 0
+    build_report(plain, tmp_path / "a.html", top=1)
     assert "did not search for objects without a label" in (tmp_path / "a.html").read_text()
+    shutil.rmtree(results / "missing", ignore_errors=True)
     add_missing(results, [[make_candidate("000000", 0, 0.2)]])
     summary = build_report(results, tmp_path / "b.html", top=1)
     html = (tmp_path / "b.html").read_text()
