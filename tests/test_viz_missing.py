@@ -137,3 +137,11 @@ def test_report_section_without_search_or_without_strong_candidates(tmp_path):
     summary = build_report(results, tmp_path / "b.html", top=1)
     html = (tmp_path / "b.html").read_text()
     assert "No candidate with a score of at least 0.5 (1 below it)" in html and summary.missing_pictures == 0
+
+
+def test_report_command_names_the_missing_labels(dropped, tmp_path):
+    _, results, _ = dropped
+    result = invoke("report", results, "-o", tmp_path / "r.html", "--top", "1")
+    assert result.exit_code == 0, result.output
+    assert "2 possibly missing labels (1 pictured)" in result.stderr.replace("\n", " ")
+    assert result.stdout.strip() == str(tmp_path / "r.html")

@@ -22,7 +22,7 @@ def check(
 ) -> None:
     """CI gate: evaluate label-quality thresholds per class; exit 0 pass, 1 fail, 2 cannot evaluate.
 
-    Rules (docs/ci-gate.md): minimum median JIoU-GT, maximum fraction below a JIoU-GT threshold, maximum fraction/count of boxes without points, maximum fraction over a label_error threshold, maximum failed objects and frames, per class with [class.X] overrides. Exit 2 for unreadable, empty or incomplete results, unknown config keys or a rule that could not be evaluated: never 0 when nothing was evaluated.
+    Rules (docs/ci-gate.md): minimum median JIoU-GT, maximum fraction below a JIoU-GT threshold, maximum fraction/count of boxes without points, maximum fraction over a label_error threshold, maximum failed objects and frames, per class with [class.X] overrides; and, dataset-wide, at most max_missing_per_frame missing-label candidates (objects nobody labelled) with a score of at least missing_score_threshold per frame (skipped for results of infer --no-missing). Exit 2 for unreadable, empty or incomplete results, unknown config keys or a rule that could not be evaluated: never 0 when nothing was evaluated.
 
     [bold]Examples[/bold]
 
