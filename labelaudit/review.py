@@ -50,6 +50,7 @@ from labelaudit.datasets.kitti import (
     read_label,
     read_text_lines,
 )
+from labelaudit.core.geometry import normalize_angle
 from labelaudit.errors import DatasetError, ExportError
 from labelaudit.rank import read_candidates
 
@@ -126,8 +127,8 @@ class ReviewSummary:
 
 
 def suggested_boxes(rows: pa.Table) -> FloatArray:
-    """(N, 7) suggested boxes of result rows: the fit's centre, size and yaw; a BEV fit leaves the
-    label's cz and height (its fit_cz / fit_height are null)."""
+    """(N, 7) suggested boxes of result rows: the fit's centre, size and yaw (in [-π, π), as every box
+    of the results); a BEV fit leaves the label's cz and height (its fit_cz / fit_height are null)."""
     def col(name: str, fallback: str | None = None) -> FloatArray:
         v = np.asarray(rows.column(name).to_numpy(zero_copy_only=False), dtype=float)
         if fallback is not None:
@@ -135,7 +136,10 @@ def suggested_boxes(rows: pa.Table) -> FloatArray:
             v = np.where(np.isfinite(v), v, label)
         return v
 
-    return np.stack([col("fit_cx"), col("fit_cy"), col("fit_cz", "cz"), col("fit_length"), col("fit_width"), col("fit_height", "height"), col("fit_yaw")], axis=1).reshape(-1, 7)
+    yaw = col("fit_yaw")
+    with np.errstate(invalid="ignore"):  # the fit may leave its yaw just outside [-π, π); an angle inside is kept bit for bit
+        yaw = np.where((yaw >= -np.pi) & (yaw < np.pi), yaw, normalize_angle(yaw))
+    return np.stack([col("fit_cx"), col("fit_cy"), col("fit_cz", "cz"), col("fit_length"), col("fit_width"), col("fit_height", "height"), yaw], axis=1).reshape(-1, 7)
 
 
 def _selected(results: R.Results, min_score: float) -> tuple[pa.Table, pa.Table | None]:

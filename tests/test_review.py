@@ -195,3 +195,29 @@ def test_png_size_reads_the_header(tmp_path):
         assert png_size(REAL_KITTI / "image_2" / "000001.png") == (1242, 375)
     (tmp_path / "x.png").write_bytes(b"not a png")
     assert png_size(tmp_path / "x.png") is None and png_size(tmp_path / "none.png") is None
+
+
+def test_kitti_labels_on_real_frames(realdata, tmp_path):
+    """Real KITTI frames: every suggestion (threshold 0: all fitted labels) reads back as its fit, originals untouched."""
+    from labelaudit.config import resolve_config
+    from labelaudit.executors import SerialExecutor
+    from labelaudit.infer.run import InferRequest, run_infer
+
+    root = realdata / "openpcdet-pr653-kitti"
+    run_infer(InferRequest(root, tmp_path / "res", "kitti", limit=3), resolve_config(None, "kitti"), executor=SerialExecutor())
+    out = tmp_path / "review"
+    result = invoke("export", tmp_path / "res", "--format", "kitti-labels", "-o", out, "--min-label-error", "0", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    changes = [c for c in csv.DictReader((out / "changes.csv").open()) if c["change"] == "suggested_box"]
+    assert summary["suggested"] == len(changes) > 0
+    reader = KittiReader(out)
+    for c in changes:
+        fid = c["frame_id"]
+        original = (root / "training" / "label_2" / f"{fid}.txt").read_text().splitlines()
+        written = (out / "label_2" / f"{fid}.txt").read_text().splitlines()
+        assert written[: len(original)] == original
+        frame = reader.load_frame(fid)  # the review folder reads as KITTI: real points through the links
+        k = list(frame.extras["label_line"]).index(int(c["line"]))
+        np.testing.assert_allclose(frame.boxes[k], [float(c[n]) for n in R.BOX_COLUMNS], rtol=0, atol=1e-9)
+        assert frame.extras["score"][k] == float(c["score"]) and len(frame.points) > 10000
