@@ -145,3 +145,23 @@ def test_report_command_names_the_missing_labels(dropped, tmp_path):
     assert result.exit_code == 0, result.output
     assert "2 possibly missing labels (1 pictured)" in result.stderr.replace("\n", " ")
     assert result.stdout.strip() == str(tmp_path / "r.html")
+
+
+def test_a_frame_without_labels_but_with_a_candidate_is_drawn(tmp_path):
+    import shutil
+
+    from labelaudit.sim.dataset import simulate_dataset
+
+    data = tmp_path / "sim"
+    simulate_dataset(data, frames=2, seed=4, progress=False)
+    split = data / "training" if (data / "training").is_dir() else data
+    (split / "label_2" / "000000.txt").write_text("")  # nobody labelled this frame
+    assert invoke("infer", data, "-o", tmp_path / "res", "--quiet").exit_code == 0
+    shutil.rmtree(tmp_path / "res" / "missing", ignore_errors=True)
+    add_missing(tmp_path / "res", [[make_candidate("000000", 0, 0.8)]])
+    result = invoke("show", tmp_path / "res", "000000", "-o", tmp_path / "f.png")
+    assert result.exit_code == 0, result.output
+    assert _magenta_pixels((tmp_path / "f.png").read_bytes()) > 100
+    assert invoke("show", tmp_path / "res", "000000", "--candidate", "0", "-o", tmp_path / "c.png").exit_code == 0
+    result = invoke("show", tmp_path / "res", "000000", "0", "-o", tmp_path / "o.png")  # an object: there is none
+    assert result.exit_code == 2 and "000000" in result.stderr
