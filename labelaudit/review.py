@@ -13,7 +13,7 @@ plus a sidecar listing every added box.
 - Every other format (Waymo, …): ``review/boxes.parquet``, the same boxes in the LiDAR/vehicle frame
   (``kind`` = label / suggested / missing).
 - Both: ``review/changes.csv`` (one row per added box: where it was written and why) and
-  ``review/review.json`` (thresholds, counts, frames not written and why).
+  ``review/review.json`` (thresholds, counts, frames written without additions and why).
 
 Every file is written under a temporary name and renamed; a label folder of an earlier export is
 replaced only once the new one is complete. Computes no score; prints nothing.
@@ -104,7 +104,8 @@ class ReviewSummary:
     frames_changed : frames with at least one added box
     min_label_error, min_score : the thresholds used
     missing_searched : False when the results have no missing-label table (``infer --no-missing``)
-    skipped_frames : frame id → why it was not written (unreadable label file, labels edited since infer)
+    unreviewed_frames : frame id → why nothing was added to it (its label file unreadable, or edited since
+        infer: written as it is, so an import loses nothing; a frame of the results not in the dataset: not written)
     """
 
     output: str
@@ -117,7 +118,7 @@ class ReviewSummary:
     min_label_error: float
     min_score: float
     missing_searched: bool
-    skipped_frames: dict[str, str] = field(default_factory=dict)
+    unreviewed_frames: dict[str, str] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -246,55 +247,26 @@ def _export_kitti(dataset: Path, split: str | None, output: Path, labels: pa.Tab
     frame_ids = [ref.key for ref in reader.list_units()]
     unknown = sorted((set(by_frame) | set(cand_by_frame)) - set(frame_ids))
     for fid in unknown:
-        summary.skipped_frames[fid] = f"{dataset}: frame {fid} of the results is not in this dataset (pass --dataset with the dataset of the run)"
+        summary.unreviewed_frames[fid] = f"{dataset}: frame {fid} of the results is not in this dataset, nothing written (pass --dataset with the dataset of the run)"
     try:
         for fid in frame_ids:
-            label_path, calib_path = reader.label_path(fid), reader.calib_path(fid)
+            label_path = reader.label_path(fid)
             rows = sorted(by_frame.get(fid, []), key=lambda r: r["object_index"])
             cands = sorted(cand_by_frame.get(fid, []), key=lambda r: r["candidate_index"])
             try:
                 lines = read_text_lines(label_path, "label file")
-                parsed = read_label(label_path)
-                calib = read_calib(calib_path) if rows or cands else None
-            except DatasetError as exc:
-                summary.skipped_frames[fid] = str(exc)
+                added = _review_frame(reader, fid, lines, rows, cands, labels.schema, changes, summary) if rows or cands else []
+            except DatasetError as exc:  # an unreadable label or calibration file: the frame as it is, nothing added
+                summary.unreviewed_frames[fid] = str(exc)
+                if label_path.is_file():
+                    shutil.copyfile(label_path, staging / f"{fid}.txt")
+                    summary.frames_written += 1
                 continue
-            out_lines = list(lines)
-            if calib is not None:
-                file_boxes = boxes_camera_to_lidar(parsed.location, parsed.dims_hwl, parsed.rotation_y, calib)
-                why = _stale(rows, file_boxes, parsed.line, label_path)
-                if why is not None:
-                    summary.skipped_frames[fid] = why
-                    continue
-                image_size = png_size(reader.data_dir / "image_2" / f"{fid}.png") or C.EXPORT_REVIEW_IMAGE_SIZE
-                picked = [r for r in rows if r["_suggest"]]
-                where = {int(n): k for k, n in enumerate(parsed.line)}
-                if picked:
-                    boxes = suggested_boxes(pa.Table.from_pylist(picked, schema=labels.schema.append(pa.field("_suggest", pa.bool_()))))
-                    src = [where[int(r["label_line"])] for r in picked]
-                    new = kitti_lines(boxes, [r["class_name"] for r in picked], np.array([r["label_error"] for r in picked], dtype=float),
-                                      parsed.truncated[src], parsed.occluded[src], calib, image_size)  # fmt: skip
-                    for r, box, text in zip(picked, boxes, new):
-                        out_lines.append(text)
-                        changes.append(_change(fid, f"{LABEL_DIR}/{fid}.txt", len(out_lines), "suggested_box", r["class_name"], r["label_error"], box,
-                                               object_index=r["object_index"], original_line=r["label_line"], label_error=r["label_error"], fit_offset_m=r["fit_offset_m"]))  # fmt: skip
-                    summary.suggested += len(picked)
-                if cands:
-                    boxes = np.array([[c[n] for n in R.BOX_COLUMNS] for c in cands], dtype=float)
-                    # A candidate has no annotator's truncation or occlusion: 0 and 3 (KITTI's "unknown").
-                    new = kitti_lines(boxes, [c["class_name"] for c in cands], np.array([c["score"] for c in cands], dtype=float),
-                                      np.zeros(len(cands)), np.full(len(cands), 3, dtype=np.int64), calib, image_size)  # fmt: skip
-                    for c, box, text in zip(cands, boxes, new):
-                        out_lines.append(text)
-                        changes.append(_change(fid, f"{LABEL_DIR}/{fid}.txt", len(out_lines), "missing_label", c["class_name"], c["score"], box,
-                                               candidate_index=c["candidate_index"], source=c["source"]))  # fmt: skip
-                    summary.missing += len(cands)
-                summary.frames_changed += bool(picked or cands)
-            summary.labels += sum(1 for t in lines if t.split() and not t.split()[0] == "DontCare")
-            (staging / f"{fid}.txt").write_text("".join(t + "\n" for t in out_lines), encoding="utf-8")
+            summary.labels += sum(1 for t in lines if t.split() and t.split()[0] != "DontCare")
+            (staging / f"{fid}.txt").write_text("".join(t + "\n" for t in [*lines, *added]), encoding="utf-8")
             summary.frames_written += 1
         if summary.frames_written == 0:
-            raise ExportError(f"{dataset}: no label file could be written ({len(summary.skipped_frames)} frames skipped: {_first(summary.skipped_frames)})")
+            raise ExportError(f"{dataset}: no label file could be written ({len(frame_ids)} frames in the dataset; {_first(summary.unreviewed_frames)})")
         final = output / LABEL_DIR
         old = output / f".{LABEL_DIR}.old{R.TMP_MARKER}{os.getpid()}"
         if os.path.lexists(final):
@@ -306,6 +278,50 @@ def _export_kitti(dataset: Path, split: str | None, output: Path, labels: pa.Tab
         if os.path.lexists(staging):
             shutil.rmtree(staging)
     _link_dataset(reader.data_dir, output)
+
+
+def _review_frame(reader: Any, fid: str, lines: list[str], rows: list[dict[str, Any]], cands: list[dict[str, Any]], schema: pa.Schema,
+                  changes: list[dict[str, Any]], summary: ReviewSummary) -> list[str]:  # fmt: skip
+    """The lines to append to one frame's label file (its ``lines`` as read): suggested boxes, then candidates.
+
+    A frame whose labels no longer match its result rows gets none (it is listed in
+    ``summary.unreviewed_frames``). Raises :class:`DatasetError` for an unreadable label or calibration file.
+    """
+    label_path = reader.label_path(fid)
+    parsed = read_label(label_path)
+    calib = read_calib(reader.calib_path(fid))
+    file_boxes = boxes_camera_to_lidar(parsed.location, parsed.dims_hwl, parsed.rotation_y, calib)
+    why = _stale(rows, file_boxes, parsed.line, label_path)
+    if why is not None:
+        summary.unreviewed_frames[fid] = why
+        return []
+    image_size = png_size(reader.data_dir / "image_2" / f"{fid}.png") or C.EXPORT_REVIEW_IMAGE_SIZE
+    file = f"{LABEL_DIR}/{fid}.txt"
+    added: list[str] = []
+    picked = [r for r in rows if r["_suggest"]]
+    if picked:
+        boxes = suggested_boxes(pa.Table.from_pylist(picked, schema=schema.append(pa.field("_suggest", pa.bool_()))))
+        where = {int(n): k for k, n in enumerate(parsed.line)}
+        src = [where[int(r["label_line"])] for r in picked]
+        lerr = np.array([r["label_error"] for r in picked], dtype=float)
+        new = kitti_lines(boxes, [r["class_name"] for r in picked], lerr, parsed.truncated[src], parsed.occluded[src], calib, image_size)
+        for r, box, text in zip(picked, boxes, new):
+            added.append(text)
+            changes.append(_change(fid, file, len(lines) + len(added), "suggested_box", r["class_name"], r["label_error"], box,
+                                   object_index=r["object_index"], original_line=r["label_line"], label_error=r["label_error"], fit_offset_m=r["fit_offset_m"]))  # fmt: skip
+    if cands:
+        boxes = np.array([[c[n] for n in R.BOX_COLUMNS] for c in cands], dtype=float)
+        scores = np.array([c["score"] for c in cands], dtype=float)
+        # A candidate has no annotator's truncation or occlusion: 0 and 3 (KITTI's "unknown").
+        new = kitti_lines(boxes, [c["class_name"] for c in cands], scores, np.zeros(len(cands)), np.full(len(cands), 3, dtype=np.int64), calib, image_size)
+        for c, box, text in zip(cands, boxes, new):
+            added.append(text)
+            changes.append(_change(fid, file, len(lines) + len(added), "missing_label", c["class_name"], c["score"], box,
+                                   candidate_index=c["candidate_index"], source=c["source"]))  # fmt: skip
+    summary.suggested += len(picked)
+    summary.missing += len(cands)
+    summary.frames_changed += bool(added)
+    return added
 
 
 def _first(reasons: Mapping[str, str]) -> str:

@@ -58,7 +58,7 @@ def test_kitti_labels_keep_the_originals_and_add_suggestions_and_candidates(audi
     expected_suggestions = int(np.sum(lerr > 0.5))
     assert expected_suggestions > 0  # the simulator injected label errors: some must be suggested
     assert summary["suggested"] == expected_suggestions and summary["missing"] == 2
-    assert summary["frames_written"] == 3 and summary["skipped_frames"] == {}
+    assert summary["frames_written"] == 3 and summary["unreviewed_frames"] == {}
     assert "suggested boxes" in result.stderr and "changes.csv" in result.stderr
 
     changes = list(csv.DictReader((out / "changes.csv").open()))
@@ -128,7 +128,7 @@ def test_kitti_labels_thresholds_rewrite_and_refusals(audited, tmp_path):
     assert (tmp_path / "busy" / "notes.txt").read_text() == "mine"
 
 
-def test_kitti_labels_skip_a_frame_whose_labels_changed_since_infer(audited, tmp_path):
+def test_kitti_labels_leave_a_frame_whose_labels_changed_since_infer_as_it_is(audited, tmp_path):
     data, results = audited
     moved = tmp_path / "moved"
     shutil.copytree(data, moved)
@@ -143,10 +143,20 @@ def test_kitti_labels_skip_a_frame_whose_labels_changed_since_infer(audited, tmp
     result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json")
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
-    assert summary["frames_written"] == 2 and list(summary["skipped_frames"]) == ["000001"]
-    assert "labels edited since infer" in summary["skipped_frames"]["000001"] and "000001.txt" in summary["skipped_frames"]["000001"]
-    assert "warning: frame 000001 not written" in result.stderr
-    assert not (tmp_path / "review" / "label_2" / "000001.txt").exists()
+    assert summary["frames_written"] == 3 and list(summary["unreviewed_frames"]) == ["000001"]
+    why = summary["unreviewed_frames"]["000001"]
+    assert "labels edited since infer" in why and "000001.txt" in why
+    assert "warning: frame 000001 not reviewed" in result.stderr
+    # Written as it is now: an import loses nothing, and nothing computed for the old labels is added.
+    assert (tmp_path / "review" / "label_2" / "000001.txt").read_text() == label.read_text()
+    assert {c["frame_id"] for c in csv.DictReader((tmp_path / "review" / "changes.csv").open())} <= {"000000", "000002"}
+    # An unreadable label file is copied as it is and named.
+    (sim_root / "label_2" / "000002.txt").write_bytes(b"Car 0 0 \xff\n")
+    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert "not UTF-8" in summary["unreviewed_frames"]["000002"] and summary["frames_written"] == 3
+    assert (tmp_path / "review" / "label_2" / "000002.txt").read_bytes() == b"Car 0 0 \xff\n"
 
 
 def test_waymo_results_get_a_parquet_of_boxes(tmp_path):

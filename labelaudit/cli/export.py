@@ -142,8 +142,8 @@ def _export_review(results: Path, output: Path, min_label_error: float, min_scor
     )
     if not summary.missing_searched:
         console.print("note: the results have no missing-label table (infer --no-missing): no candidates added", soft_wrap=True)
-    for fid, why in list(summary.skipped_frames.items())[:10]:
-        console.print(f"warning: frame {escape(fid)} not written: {escape(why)}", soft_wrap=True)
-    if len(summary.skipped_frames) > 10:
-        console.print(f"warning: … {len(summary.skipped_frames) - 10} more frames not written (review.json lists them)", soft_wrap=True)
+    for fid, why in list(summary.unreviewed_frames.items())[:10]:
+        console.print(f"warning: frame {escape(fid)} not reviewed: {escape(why)}", soft_wrap=True)
+    if len(summary.unreviewed_frames) > 10:
+        console.print(f"warning: … {len(summary.unreviewed_frames) - 10} more frames not reviewed (review.json lists them)", soft_wrap=True)
     console.print(f"wrote {escape(summary.output)} (changes.csv lists every added box)", soft_wrap=True)
