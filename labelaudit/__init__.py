@@ -60,11 +60,14 @@ _EXPORTS: dict[str, str] = {
     "read_missing": "labelaudit.results",
     "RankQuery": "labelaudit.rank",
     "rank_results": "labelaudit.rank",
+    "MissingQuery": "labelaudit.rank",
+    "rank_missing": "labelaudit.rank",
     "summarize": "labelaudit.summary",
     "load_gate": "labelaudit.gate",
     "evaluate_gate": "labelaudit.gate",
     # training targets (σ_p) and the KLD loss
     "export_results": "labelaudit.export",
+    "export_review": "labelaudit.review",
     "kld_loss": "labelaudit.training",
     # simulation
     "NoiseSpec": "labelaudit.sim.noise",
