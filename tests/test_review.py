@@ -121,6 +121,13 @@ def test_kitti_labels_thresholds_rewrite_and_refusals(audited, tmp_path):
     ):
         result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "x", *args)
         assert result.exit_code == 2 and needle in result.stderr, result.output
+    for args, needle in (
+        (("--format", "kitti-labels", "--infos", tmp_path / "x.pkl"), "--infos"),
+        (("--format", "kitti-labels", "--encoding", "pixor"), "--encoding"),
+        (("--min-score", "0.7"), "only with --format kitti-labels"),
+    ):
+        result = invoke("export", results, "-o", tmp_path / "y", *args)
+        assert result.exit_code == 2 and needle in result.stderr, (args, result.output)
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "notes.txt").write_text("mine")
     result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "busy")
