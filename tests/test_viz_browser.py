@@ -90,12 +90,12 @@ def test_missing_labels_section_renders_in_chromium(report, browser, tmp_path):
     page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
     page.goto(f"{out.as_uri()}#missing-000001-0", wait_until="load")
     assert page.evaluate("document.querySelector(':target').dataset.candidate") == "missing-000001-0"
-    section = page.locator("section[data-gallery=missing]")
-    assert section.locator("article.entry").count() == MISSING
+    section = page.locator("section#missing")
+    assert section.locator("article.candidate").count() == MISSING
     widths = page.evaluate("Promise.all(Array.from(document.querySelectorAll('section#missing img')).map(i => i.decode().then(() => i.naturalWidth)))")
     assert widths == [520] * MISSING
     assert section.locator("table#missing-counts").inner_text().count("Car") == 1
-    box = section.locator("article.entry img").first.bounding_box()
+    box = section.locator("article.candidate img").first.bounding_box()
     assert box is not None and box["width"] > 300 and box["y"] < 900  # the target's picture is on screen
     shot = page.screenshot(full_page=False)
     (tmp_path / "missing.png").write_bytes(shot)

@@ -117,7 +117,7 @@ def test_report_has_a_possibly_missing_labels_section(dropped, tmp_path):
     section = html[html.index('<section id="missing"'):]
     section = section[: section.index("</section>")]
     assert "Possibly missing labels" in section and "<strong>2</strong> candidate(s)" in section
-    anchors = re.findall(r'<article class="entry" id="([^"]+)" data-candidate', section)
+    anchors = re.findall(r'<article class="candidate" id="([^"]+)" data-candidate', section)
     assert anchors == [missing_anchor(FRAME, 0), missing_anchor(FRAME, 1)] == ["missing-000001-0", "missing-000001-1"]
     assert section.count('src="data:image/png;base64,') == 2
     assert f"--candidate 0 -o missing-{FRAME}-0.png" in section
