@@ -81,9 +81,10 @@ def export(
 
     with handle_errors(debug):
         if out_format is ExportFormat.kitti_labels:
-            for option, given in (("--infos", infos is not None), ("--anchor-size", bool(anchor_size)), ("--encoding", encoding is not Encoding.box), ("--source", source != "model")):
-                if given:
-                    raise typer.BadParameter("is for the training targets (parquet, openpcdet, mmdet3d), not --format kitti-labels", param_hint=option)
+            given = (("--infos", infos is not None), ("--dbinfos", dbinfos is not None), ("--anchor-size", bool(anchor_size)), ("--encoding", encoding is not None), ("--source", source != "model"))
+            for option, used in given:
+                if used:
+                    raise typer.BadParameter("is for the training targets (parquet, openpcdet, mmdet3d, glenet), not --format kitti-labels", param_hint=option)
             _export_review(results, output, min_label_error, min_score, dataset, as_json)
             return
         for option, given in (("--min-label-error", min_label_error != C.EXPORT_REVIEW_LABEL_ERROR), ("--min-score", min_score != C.EXPORT_REVIEW_MIN_SCORE), ("--dataset", dataset is not None)):
