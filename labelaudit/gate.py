@@ -32,8 +32,8 @@ from typing import Any, Mapping
 import numpy as np
 import pyarrow as pa
 
-from labelaudit.config import CONFIG_DIR, ConfigError, check_keys, read_toml
 from labelaudit import constants as C
+from labelaudit.config import CONFIG_DIR, ConfigError, check_keys, read_toml
 from labelaudit.results import Results, ResultsError
 
 DEFAULT_GATE_PATH = CONFIG_DIR / C.DEFAULT_GATE_CONFIG

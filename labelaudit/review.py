@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit import results as R
+from labelaudit.core.geometry import normalize_angle
 from labelaudit.datasets import open_dataset
 from labelaudit.datasets.kitti import (
     Calibration,
@@ -50,7 +51,6 @@ from labelaudit.datasets.kitti import (
     read_label,
     read_text_lines,
 )
-from labelaudit.core.geometry import normalize_angle
 from labelaudit.errors import DatasetError, ExportError
 from labelaudit.rank import read_candidates
 

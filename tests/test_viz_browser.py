@@ -13,9 +13,9 @@ import shutil
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from viz_data import make_eval_dir, simulate_with_a_dropped_label
 
 from labelaudit.viz.report import build_report
+from viz_data import make_eval_dir, simulate_with_a_dropped_label
 
 CHROMIUM = os.environ.get("LABELAUDIT_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync"]

@@ -9,7 +9,6 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 from typer.testing import CliRunner
-from viz_data import simulate_and_infer, simulate_with_a_dropped_label
 
 from labelaudit.cli import app
 from labelaudit.core import geometry as g
@@ -18,6 +17,7 @@ from labelaudit.viz.objects import frame_candidates, frame_rows, load_frame, ope
 from labelaudit.viz.report import build_report, missing_anchor
 from labelaudit.viz.show import CANDIDATE_COLOUR, render_candidate, render_frame
 from results_factory import add_missing, make_candidate
+from viz_data import simulate_and_infer, simulate_with_a_dropped_label
 
 runner = CliRunner()
 FRAME = "000001"

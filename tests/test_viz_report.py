@@ -10,9 +10,7 @@ from html.parser import HTMLParser
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from results_factory import make_results, make_row
 from typer.testing import CliRunner
-from viz_data import eval_summary, make_eval_dir, simulate_and_infer
 
 from labelaudit import results as R
 from labelaudit.cli import app
@@ -20,6 +18,8 @@ from labelaudit.viz.evalsection import read_eval_dir, usual_threshold
 from labelaudit.viz.objects import ViewError
 from labelaudit.viz.plots import binned_means, corner_variance_plot, distribution_plot
 from labelaudit.viz.report import anchor_of, build_report
+from results_factory import make_results, make_row
+from viz_data import eval_summary, make_eval_dir, simulate_and_infer
 
 runner = CliRunner()
 

@@ -29,8 +29,8 @@ from numpy.typing import NDArray
 
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
-from labelaudit.datasets.base import box_problems
 from labelaudit.core.posterior import corner_covariances as corner_cov
+from labelaudit.datasets.base import box_problems
 from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit, TrackView
 
 FloatArray = NDArray[np.float64]
