@@ -3,7 +3,10 @@
 Simulates a small KITTI-format dataset with injected label errors, audits it with ``infer``, then
 runs the real commands: ``labelaudit show`` on one object and on its frame, and ``labelaudit
 report``, whose page is screenshot in headless Chromium (Playwright driving /usr/bin/chromium).
-Writes docs/img/review-show.png, review-frame.png, review-report.png (the gallery) and review-plots.png.
+The simulator leaves out 15 % of the vehicle labels (their points kept), so the search of ``infer``
+finds objects nobody labelled: ``show --candidate`` draws the likeliest and the report's section
+is screenshot too. Writes docs/img/review-show.png, review-frame.png, review-report.png (the
+gallery), review-plots.png, review-missing.png and review-missing-report.png.
 
     python scripts/make_review_figures.py [--frames 8] [--seed 5]
 """
@@ -39,6 +42,17 @@ def pick_object(results: Path) -> dict:
     return min(wrong, key=lambda r: r["jiou_gt"]) if wrong else max(rows, key=lambda r: r["label_error"])
 
 
+def pick_candidate(results: Path) -> dict:
+    """The likeliest missing-label candidate with a few hundred points at most (its L-shape shows)."""
+    from labelaudit.results import read_missing
+
+    rows = read_missing(results).to_pylist()
+    if not rows:
+        sys.exit("the search found no candidate: no missing-label figure")
+    near = [r for r in rows if 40 <= r["num_points"] <= 600] or rows
+    return max(near, key=lambda r: (r["score"], r["num_points"]))
+
+
 def screenshot(html: Path, anchor: str, out: Path) -> None:
     from playwright.sync_api import sync_playwright
 
@@ -61,7 +75,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="review-figures-") as tmp:
         work = Path(tmp)
         data, results = work / "sim", work / "results"
-        cli("simulate", data, "--frames", args.frames, "--seed", args.seed, "--gross-fraction", "0.08", "--quiet")
+        cli("simulate", data, "--frames", args.frames, "--seed", args.seed, "--gross-fraction", "0.08", "--drop-fraction", "0.15", "--quiet")
         cli("infer", data, "-o", results, "--workers", "2", "--quiet")
         row = pick_object(results)
         frame, index = row["frame_id"], row["object_index"]
@@ -71,7 +85,11 @@ def main() -> None:
         html = Path(cli("report", results, "-o", work / "report.html", "--top", "6", "--gate", "default", "--quiet"))
         screenshot(html, "by-label_error", IMG / "review-report.png")
         screenshot(html, "plots", IMG / "review-plots.png")
-    for name in ("review-show.png", "review-frame.png", "review-report.png", "review-plots.png"):
+        screenshot(html, "missing", IMG / "review-missing-report.png")
+        cand = pick_candidate(results)
+        print(f"candidate: frame {cand['frame_id']} candidate {cand['candidate_index']} ({cand['class_name']}, {cand['num_points']} points, score {cand['score']:.3f})")
+        cli("show", results, cand["frame_id"], "--candidate", cand["candidate_index"], "-o", IMG / "review-missing.png")
+    for name in ("review-show.png", "review-frame.png", "review-report.png", "review-plots.png", "review-missing.png", "review-missing-report.png"):
         print(f"wrote {IMG / name} ({(IMG / name).stat().st_size / 1e3:.0f} kB)")
 
 

@@ -75,12 +75,14 @@ def test_report_holds_summary_gate_plots_gallery_and_eval(sim, tmp_path):
     page = _page(out)
     html = out.read_text()
     assert s.objects == s.evaluated > 0 and s.gallery == {"label_error": 4, "jiou_gt": 4} and s.gate_verdict in ("PASS", "FAIL")
-    assert calls and calls[-1][0] == calls[-1][1] == s.pictures and 4 <= s.pictures <= 8
+    # One progress bar over the gallery pictures and then the missing-label candidates' pictures.
+    assert calls and calls[-1][0] == calls[-1][1] == s.pictures + s.missing_pictures and 4 <= s.pictures <= 8
     for section in ("summary", "gate", "plots", "by-label_error", "by-jiou_gt", "eval", "ap", "overlap", "counts"):
         assert section in page.ids
     assert page.external == []  # self-contained: no script, no stylesheet link, no remote src/href
     assert all(src.startswith("data:image/png;base64,") for src in page.imgs)
-    assert len(page.imgs) == 5 + sum(len(g) for g in page.entries.values()) + 2  # 5 plots, one per gallery entry, 2 eval PNGs
+    # 5 plots, one per gallery entry, one per pictured missing-label candidate, 2 eval PNGs
+    assert len(page.imgs) == 5 + sum(len(g) for g in page.entries.values()) + s.missing_pictures + 2
     # Galleries: worst by label_error / JIoU-GT in rank order, anchors unique and stable.
     opened = R.open_results(results)
     rows = opened.read().to_pylist()
