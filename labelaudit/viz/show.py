@@ -439,7 +439,8 @@ def render_frame(
     reach = np.vstack([corners.reshape(-1, 2), cand_corners.reshape(-1, 2), origin[None, :2]])
     lo, hi = reach.min(axis=0) - C.SHOW_FRAME_MARGIN, reach.max(axis=0) + C.SHOW_FRAME_MARGIN
     fig = _figure(size)
-    ax_rect = (0.07, 0.08, 0.8, 0.84)
+    # The caption has a third line when candidates are listed: the axes give it room (≈15 px a line).
+    ax_rect = (0.07, 0.08, 0.8, 0.84 - (15.0 / size[1] if len(candidates) else 0.0))
     ax = fig.add_axes(ax_rect)
     view = fit_view(lo, hi, ax_rect, size)
 
