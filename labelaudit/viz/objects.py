@@ -13,8 +13,8 @@ nothing (:mod:`labelaudit.viz.show` does).
 from __future__ import annotations
 
 import bisect
-import json
 import difflib
+import json
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
