@@ -326,36 +326,53 @@ def registration_information(reg: Registration, model: ModelKind) -> tuple[Float
     """Σ_km r_km J_kmᵀJ_km (p, p) and Σ_km r_km J_kmᵀ x_k (p,) of a registration (σ not applied).
 
     J is linear in v*, so both follow from the weighted moments of ṽ = (1, v*): no per-point
-    design matrices are formed. Equals the sums over :func:`labelaudit.core.geometry.design_matrix`.
+    design matrices are formed. Equals the sums over :func:`labelaudit.core.geometry.design_matrix`
+    up to rounding (one compiled pass; the products are summed in its own order, not BLAS's).
     """
     B, BB = _BASIS[model]
-    n, m, d = reg.vstar.shape
-    vt, rv, rv_sum = _weighted_unit_coords(reg.vstar, reg.resp)
-    moments = rv.reshape(n * m, d + 1).T @ vt.reshape(n * m, d + 1)  # (d+1, d+1)
-    cross = rv_sum.T @ reg.points  # (d+1, d): Σ_k (Σ_m r ṽ_a) x — x does not depend on m
-    p = B.shape[-1]
-    return (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), cross.reshape(-1) @ B.reshape(-1, p)
+    return _information_kernel(reg.vstar, reg.resp, reg.points, B, BB)
 
 
 @kernel
-def _weighted_unit_coords(vstar, resp):  # pragma: no cover - compiled
-    """ṽ = (1, v*) (N, M, d+1), r·ṽ and its sum over the M candidates (N, d+1); M ≤ 6 < 8, so the
-    sum is sequential as NumPy's ``sum(axis=1)``."""
+def _information_kernel(vstar, resp, points, B, BB):  # pragma: no cover - compiled
+    """With ṽ = (1, v*): moments Σ_km r ṽ ṽᵀ (d+1, d+1) and cross Σ_k (Σ_m r ṽ) x_kᵀ (d+1, d),
+    then contracted with the design basis: info = Σ_ab moments_ab BB_ab (p, p), eta = Σ_ab
+    cross_ab B_ab (p,). Sums run in point, candidate order."""
     n, m, d = vstar.shape
-    vt = np.empty((n, m, d + 1))
-    rv = np.empty((n, m, d + 1))
-    rv_sum = np.zeros((n, d + 1))
+    p = B.shape[2]
+    moments = np.zeros((d + 1, d + 1))
+    cross = np.zeros((d + 1, d))
+    vt = np.empty(d + 1)
+    rsum = np.empty(d + 1)
     for k in range(n):
+        for a in range(d + 1):
+            rsum[a] = 0.0
         for j in range(m):
             r = resp[k, j]
-            vt[k, j, 0] = 1.0
-            rv[k, j, 0] = r  # 1 · r
+            vt[0] = 1.0
             for a in range(d):
-                vt[k, j, a + 1] = vstar[k, j, a]
-                rv[k, j, a + 1] = vstar[k, j, a] * r
+                vt[a + 1] = vstar[k, j, a]
             for a in range(d + 1):
-                rv_sum[k, a] += rv[k, j, a]
-    return vt, rv, rv_sum
+                ra = vt[a] * r
+                rsum[a] += ra
+                for b in range(d + 1):
+                    moments[a, b] += ra * vt[b]
+        for a in range(d + 1):
+            for b in range(d):
+                cross[a, b] += rsum[a] * points[k, b]
+    info = np.zeros((p, p))
+    eta = np.zeros(p)
+    for a in range(d + 1):
+        for b in range(d + 1):
+            w = moments[a, b]
+            for i in range(p):
+                for j in range(p):
+                    info[i, j] += w * BB[a, b, i, j]
+        for b in range(d):
+            w = cross[a, b]
+            for i in range(p):
+                eta[i] += w * B[a, b, i]
+    return info, eta
 
 
 # ----------------------------------------------------------------------------------------------
@@ -870,15 +887,17 @@ def infer_label_valid(
             reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
 
     data_precision, data_eta = registration_information(reg, model)
-    precision = P0 + data_precision / sigma**2
-    cov = spd_inverse(0.5 * (precision + precision.T))
-    fit_mean = cov @ (terms.eta0 + data_eta / sigma**2)
+    ok, cov, fit_mean, S0 = _posterior_kernel(P0, terms.eta0, data_precision, data_eta, sigma, G,
+                                              prior_cov_extended_cached(prior, model), float(params.prior_weight))
+    if not ok:  # not positive definite to the compiled factorisation: LAPACK's verdict and message
+        precision = P0 + data_precision / sigma**2
+        cov = spd_inverse(0.5 * (precision + precision.T))
+        fit_mean = cov @ (terms.eta0 + data_eta / sigma**2)
     tv, order = _corner_tv(y, cov, model, sensor_origin)
     p = phi.size
     K = np.empty((p - 1, p))  # as geometry.box_param_jacobian
     K[: p - 2] = E[: p - 2]
     K[p - 2] = 0.5 * (E[p - 2] + E[p - 1])
-    S0 = G @ (prior_cov_extended_cached(prior, model) / params.prior_weight) @ G.T
     return LabelPosterior(
         model=model,
         box=y,
@@ -889,10 +908,76 @@ def infer_label_valid(
         std_box=_std_from_K(K, cov, model),
         corner_tv=tv,
         sigma_hat=sigma_hat,
-        prior_cov=0.5 * (S0 + S0.T),
+        prior_cov=S0,
         corner_order=order,
         class_name=class_name,
         fit_mean=fit_mean,
     )
 
 
+@kernel
+def _posterior_kernel(P0, eta0, info, eta, sigma, G, S_ext, weight):  # pragma: no cover - compiled
+    """The posterior of :func:`infer_label_valid` from the prior and data terms, in one pass:
+    Λ = sym(P0 + info/σ²), its inverse Σ by Cholesky (Λ = L Lᵀ, Σ = L⁻ᵀ L⁻¹, symmetrised), the
+    mean Σ (η0 + η/σ²) and the prior covariance sym(G (Σ_ỹ / w) Gᵀ). Returns (ok, Σ, mean, Σ0);
+    ok is False when a Cholesky pivot is not positive (the caller then asks LAPACK, which raises)."""
+    p = P0.shape[0]
+    s2 = sigma * sigma
+    lam = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            lam[i, j] = 0.5 * ((P0[i, j] + info[i, j] / s2) + (P0[j, i] + info[j, i] / s2))
+    L = np.zeros((p, p))
+    cov = np.zeros((p, p))
+    mean = np.zeros(p)
+    S0 = np.zeros((p, p))
+    for j in range(p):
+        acc = lam[j, j]
+        for k in range(j):
+            acc -= L[j, k] * L[j, k]
+        if not acc > 0.0:
+            return False, cov, mean, S0
+        L[j, j] = math.sqrt(acc)
+        for i in range(j + 1, p):
+            acc = lam[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / L[j, j]
+    Li = np.zeros((p, p))  # L⁻¹, lower triangular, by forward substitution
+    for c in range(p):
+        Li[c, c] = 1.0 / L[c, c]
+        for i in range(c + 1, p):
+            acc = 0.0
+            for k in range(c, i):
+                acc -= L[i, k] * Li[k, c]
+            Li[i, c] = acc / L[i, i]
+    for i in range(p):
+        for j in range(i, p):
+            acc = 0.0
+            for k in range(j, p):  # (L⁻ᵀ L⁻¹)_ij = Σ_k Li_ki Li_kj, Li_kj = 0 for k < j
+                acc += Li[k, i] * Li[k, j]
+            cov[i, j] = acc
+            cov[j, i] = acc
+    rhs = np.empty(p)
+    for i in range(p):
+        rhs[i] = eta0[i] + eta[i] / s2
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += cov[i, j] * rhs[j]
+        mean[i] = acc
+    GS = np.zeros((p, p))
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += G[i, k] * (S_ext[k, j] / weight)
+            GS[i, j] = acc
+    for i in range(p):
+        for j in range(i, p):
+            acc = 0.0
+            for k in range(p):
+                acc += GS[i, k] * G[j, k]
+            S0[i, j] = acc
+            S0[j, i] = acc
+    return True, cov, mean, S0
