@@ -343,3 +343,12 @@ def test_detections_need_the_search_and_an_existing_path(sim_kitti, tmp_path):
         infer_dataset(InferRequest(sim_kitti, tmp_path / "a", missing=False, detections=sim_kitti))
     with pytest.raises(InferError, match="nowhere: --detections path does not exist"):
         infer_dataset(InferRequest(sim_kitti, tmp_path / "b", detections=tmp_path / "nowhere"))
+
+
+def test_a_label_shifted_off_its_car_is_a_wrong_label_not_a_missing_one():
+    cfg = RunConfig()
+    shifted = [16.2, 3.4, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]  # 1.2 m off: the returns at its rear and side are outside it
+    rows = find_missing(_frame(_car_points(15.0, 3.0), boxes=[shifted], names=["Car"]), cfg)
+    assert _best(rows, 15.0, 3.0) == 0.0
+    far = [30.0, -8.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]
+    assert _best(find_missing(_frame(_car_points(15.0, 3.0), boxes=[far], names=["Car"]), cfg), 15.0, 3.0) >= 0.5

@@ -795,7 +795,7 @@ def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | Non
     -------
     One dict per candidate with the columns of :data:`labelaudit.results.MISSING_SCHEMA`, nearest
     to the sensor first (``candidate_index``). Clusters of the points (``source`` "points") and
-    detections overlapping no label (BEV IoU < ``MISSING_LABEL_IOU``; "detections") that overlap
+    detections (``"detections"``) overlapping no label (BEV IoU < ``MISSING_LABEL_IOU``) that overlap
     each other (BEV IoU ≥ ``MISSING_MERGE_IOU``) are one candidate, ``source`` "both", with the
     detection's box.
     """
@@ -813,7 +813,10 @@ def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | Non
         clusters = with_free_space(frame, clusters, cfg)
     rows: list[dict[str, Any]] = []
     for c in clusters:
-        rows.append(_row(frame, cfg, c.box, c.class_name, c.num_points, c.score, "points", c, _max_iou(c.box, regions)))
+        iou = _max_iou(c.box, regions)
+        if iou >= C.MISSING_LABEL_IOU:  # a label covers it, only not where its returns are: a wrong label (label_error), not a missing one
+            continue
+        rows.append(_row(frame, cfg, c.box, c.class_name, c.num_points, c.score, "points", c, iou))
     if detections is not None and len(detections.scores):
         inside = in_labelled_region(detections.boxes, frame, cfg.missing.max_range)
         for k in np.flatnonzero(inside):
