@@ -91,8 +91,8 @@ def ours(dataset: Path, dets: Path, view: str) -> dict[tuple[str, str, float, st
     import numpy as np
 
     from labelaudit.config import RunConfig
-    from labelaudit.evaluate.detections import read_detections
-    from labelaudit.evaluate.gt import load_ground_truth
+    from labelaudit.datasets.detections import read_detections
+    from labelaudit.datasets.gt import load_ground_truth
     from labelaudit.evaluate.labels import LabelSet
     from labelaudit.evaluate.run import evaluate
 

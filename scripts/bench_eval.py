@@ -110,8 +110,8 @@ def main() -> None:
     import numpy as np
 
     from labelaudit.config import RunConfig
-    from labelaudit.evaluate.detections import read_detections
-    from labelaudit.evaluate.gt import load_ground_truth
+    from labelaudit.datasets.detections import read_detections
+    from labelaudit.datasets.gt import load_ground_truth
     from labelaudit.evaluate.labels import LabelSet
     from labelaudit.evaluate.run import evaluate
 

@@ -13,9 +13,9 @@ from typer.testing import CliRunner
 
 from labelaudit.cli import app
 from labelaudit.datasets import open_dataset
+from labelaudit.datasets.detections import detect_detections_format, read_detections, write_av2_detections
+from labelaudit.datasets.gt import load_ground_truth
 from labelaudit.errors import DetectionsError
-from labelaudit.evaluate.detections import detect_detections_format, read_detections, write_av2_detections
-from labelaudit.evaluate.gt import load_ground_truth
 from tests.test_av2 import _trimmed_real, make_log
 
 

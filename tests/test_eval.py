@@ -19,16 +19,22 @@ from typer.testing import CliRunner
 from labelaudit import constants as C
 from labelaudit.cli import app
 from labelaudit.config import RunConfig
+from labelaudit.core.iou import bev_iou_exact
+from labelaudit.core.posterior import infer_label
+from labelaudit.core.spatial import BoxDistribution, jiou, jiou_gt
+from labelaudit.datasets.detections import (
+    DETECTIONS_COLUMNS,
+    DETECTIONS_SCHEMA,
+    Detections,
+    read_detections,
+    write_waymo_objects,
+)
+from labelaudit.datasets.gt import GroundTruth, GroundTruthFrame, load_ground_truth
 from labelaudit.datasets.kitti import Calibration, boxes_lidar_to_camera, format_calib, format_label_line
-from labelaudit.evaluate.detections import DETECTIONS_COLUMNS, DETECTIONS_SCHEMA, Detections, read_detections, write_waymo_objects
-from labelaudit.evaluate.gt import GroundTruth, GroundTruthFrame, load_ground_truth
 from labelaudit.evaluate.jiou import pair_jious
 from labelaudit.evaluate.labels import LabelSet
 from labelaudit.evaluate.overlap import pair_overlaps
 from labelaudit.evaluate.run import evaluate, thresholds_for
-from labelaudit.core.iou import bev_iou_exact
-from labelaudit.core.posterior import infer_label
-from labelaudit.core.spatial import BoxDistribution, jiou, jiou_gt
 
 runner = CliRunner()
 CFG = RunConfig()
@@ -576,8 +582,8 @@ def test_kitti_ground_truth_equals_the_reader(tiny_kitti):
 
 
 def test_synthetic_detector_is_deterministic_and_scores_follow_quality(tmp_path):
-    from labelaudit.sim.detector import DetectorSpec, simulate_detections
     from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.detector import DetectorSpec, simulate_detections
 
     root = tmp_path / "sim"
     simulate_dataset(root, frames=6, seed=2, progress=False)

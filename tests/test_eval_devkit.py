@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from labelaudit.config import RunConfig
+from labelaudit.datasets.detections import read_detections
+from labelaudit.datasets.gt import load_ground_truth
 from labelaudit.datasets.kitti import Calibration, boxes_camera_to_lidar, format_calib, format_label_line
-from labelaudit.evaluate.detections import read_detections
-from labelaudit.evaluate.gt import load_ground_truth
 from labelaudit.evaluate.labels import LabelSet
 from labelaudit.evaluate.overlap import camera_frame_boxes, kitti_devkit_boxes, pair_overlaps
 from labelaudit.evaluate.run import evaluate, overlap_geometry
@@ -151,7 +151,7 @@ def test_eval_bev_is_the_camera_x_z_rectangle(tmp_path):
 
 
 def test_waymo_keeps_its_vehicle_frame_boxes():
-    from labelaudit.evaluate.gt import GroundTruth, GroundTruthFrame
+    from labelaudit.datasets.gt import GroundTruth, GroundTruthFrame
 
     box = np.array([[10.0, 1.0, 0.5, 4.5, 2.0, 1.6, 0.2]])
     f = GroundTruthFrame("seg:1", box, ["Vehicle"], np.arange(1), np.full(1, np.nan), np.full(1, -1), np.full(1, np.nan),

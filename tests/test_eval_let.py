@@ -18,9 +18,9 @@ from typer.testing import CliRunner
 from labelaudit import constants as C
 from labelaudit.cli import app
 from labelaudit.config import RunConfig
+from labelaudit.datasets.detections import Detections, read_detections
+from labelaudit.datasets.gt import GroundTruth, GroundTruthFrame, load_ground_truth
 from labelaudit.datasets.kitti import Calibration, boxes_lidar_to_camera, format_calib, format_label_line
-from labelaudit.evaluate.detections import Detections, read_detections
-from labelaudit.evaluate.gt import GroundTruth, GroundTruthFrame, load_ground_truth
 from labelaudit.evaluate.labels import LabelSet
 from labelaudit.evaluate.let import (
     camera_centre,

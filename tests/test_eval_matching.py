@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from labelaudit import constants as C
+from labelaudit.datasets.waymo_common import waymo_level
 from labelaudit.evaluate.ap import ap_r11, ap_r40, precision_curve
 from labelaudit.evaluate.matching import (
     FrameBlocks,
@@ -19,7 +20,6 @@ from labelaudit.evaluate.matching import (
     recall_thresholds,
     second_pass,
     waymo_ignored_gt,
-    waymo_level,
 )
 from labelaudit.evaluate.overlap import pair_overlaps
 

@@ -1,5 +1,7 @@
 """Dataset readers (KITTI, Waymo v2 Parquet, Waymo v1 TFRecord, Argoverse 2 Feather) behind one entry point.
-Readers turn files into :class:`Frame` s (LiDAR frame, one box type) and raise :class:`~labelaudit.errors.DatasetError` naming file and line; they never audit or write."""
+Readers turn files into :class:`Frame` s (LiDAR frame, one box type) and raise :class:`~labelaudit.errors.DatasetError` naming file and line; they never audit or write.
+The labels without points (:mod:`.gt`) and detectors' outputs (:mod:`.detections`) are read here too, for ``eval`` and
+the missing-label search alike."""
 
 from __future__ import annotations
 

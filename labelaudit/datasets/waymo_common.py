@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from labelaudit import constants as C
 from labelaudit.datasets.base import Frame, box_problems
 
 # Waymo label.proto Label.Type; names as the Waymo tools print them without the TYPE_ prefix.
@@ -34,6 +35,14 @@ TOP = 1
 def class_name(label_type: int) -> str:
     """Class name of a Waymo label type (unknown numbers become ``"Type<n>"``)."""
     return CLASS_NAMES.get(int(label_type), f"Type{int(label_type)}")
+
+
+def waymo_level(detection_difficulty: NDArray[np.integer], num_points: NDArray[np.integer]) -> NDArray[np.int8]:
+    """Waymo difficulty level of each GT box: 2 when labelled LEVEL_2 or with at most
+    ``EVAL_WAYMO_LEVEL2_MAX_POINTS`` points, else 1 (unknown levels count as LEVEL_1, like Waymo)."""
+    lvl = np.asarray(detection_difficulty)
+    pts = np.asarray(num_points)
+    return np.where((lvl == 2) | (pts <= C.EVAL_WAYMO_LEVEL2_MAX_POINTS), 2, 1).astype(np.int8)
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ The KITTI object devkit's matching and AP (:mod:`~labelaudit.evaluate.matching`,
 :mod:`~labelaudit.evaluate.ap`), run with three overlap measures: the IoU of the boxes
 (:mod:`~labelaudit.evaluate.overlap`), the JIoU of the detection and the uncertain label
 (:mod:`~labelaudit.evaluate.jiou`), and JIoU / JIoU-GT. Labels come from
-:mod:`~labelaudit.evaluate.gt`, detections from :mod:`~labelaudit.evaluate.detections`, label
+:mod:`~labelaudit.datasets.gt`, detections from :mod:`~labelaudit.datasets.detections`, label
 covariances from an ``infer`` results folder (:mod:`~labelaudit.evaluate.labels`);
 :mod:`~labelaudit.evaluate.run` ties them together and :mod:`~labelaudit.evaluate.output` writes
 EVAL_DIR. Nothing here prints; the CLI is :mod:`labelaudit.cli_eval`.

@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from labelaudit import results as R
 from labelaudit.config import RunConfig, hash_inputs
+from labelaudit.datasets.gt import GroundTruth
 from labelaudit.errors import EvalError
-from labelaudit.evaluate.gt import GroundTruth
 
 FloatArray = NDArray[np.float64]
 

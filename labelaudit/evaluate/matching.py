@@ -52,7 +52,6 @@ __all__ = [
     "second_pass",
     "assign",
     "waymo_ignored_gt",
-    "waymo_level",
 ]
 
 NO_DETECTION = -10000000.0  # the devkit's "no candidate" marker (a score below it is never a candidate)
@@ -110,14 +109,6 @@ def kitti_ignored_det(class_names: Sequence[str], height: FloatArray, current: s
     out = np.where(names == current.lower(), 0, -1).astype(np.int8) if len(names) else np.zeros(0, np.int8)
     out[h < C.KITTI_MIN_HEIGHT[difficulty]] = 1
     return out
-
-
-def waymo_level(detection_difficulty: NDArray[np.integer], num_points: NDArray[np.integer]) -> NDArray[np.int8]:
-    """Waymo difficulty level of each GT box: 2 when labelled LEVEL_2 or with at most
-    ``EVAL_WAYMO_LEVEL2_MAX_POINTS`` points, else 1 (unknown levels count as LEVEL_1, like Waymo)."""
-    lvl = np.asarray(detection_difficulty)
-    pts = np.asarray(num_points)
-    return np.where((lvl == 2) | (pts <= C.EVAL_WAYMO_LEVEL2_MAX_POINTS), 2, 1).astype(np.int8)
 
 
 def waymo_ignored_gt(class_names: Sequence[str], level: NDArray[np.integer], num_points: NDArray[np.integer], current: str, difficulty: int) -> NDArray[np.int8]:

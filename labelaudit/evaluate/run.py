@@ -1,7 +1,7 @@
 """``labelaudit eval`` end to end: labels + detections + label uncertainty → AP tables, overlaps, EVAL_DIR.
 
-Steps (docs/eval.md): read the GT labels (:mod:`~labelaudit.evaluate.gt`) and the detections
-(:mod:`~labelaudit.evaluate.detections`); get the labels' posterior covariances from an ``infer``
+Steps (docs/eval.md): read the GT labels (:mod:`~labelaudit.datasets.gt`) and the detections
+(:mod:`~labelaudit.datasets.detections`); get the labels' posterior covariances from an ``infer``
 results folder, or infer them (:mod:`~labelaudit.evaluate.labels`); compute, once per
 (detection, GT) pair of a frame, the IoU (BEV or 3D, :mod:`~labelaudit.evaluate.overlap`) and,
 for the pairs whose distributions can touch, the JIoU (:mod:`~labelaudit.evaluate.jiou`); then
@@ -26,11 +26,11 @@ from numpy.typing import NDArray
 from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit.config import RunConfig
+from labelaudit.datasets.detections import Detections, read_detections
+from labelaudit.datasets.gt import GroundTruth, load_ground_truth
 from labelaudit.errors import EvalError
 from labelaudit.evaluate.ap import PrecisionCurve, precision_curve
 from labelaudit.evaluate.cells import DIFFICULTIES, INTERPS, LET_METRICS, METRICS, family, usual_threshold
-from labelaudit.evaluate.detections import Detections, read_detections
-from labelaudit.evaluate.gt import GroundTruth, load_ground_truth
 from labelaudit.evaluate.jiou import pair_jious
 from labelaudit.evaluate.labels import LabelSet, check_results_match, infer_labels, label_uncertainty, needed_rows
 from labelaudit.evaluate.let import let_curves, let_min_iou, let_origins, let_records

@@ -22,9 +22,9 @@ from typing import Any, Mapping, Protocol, Sequence
 import pyarrow as pa
 
 from labelaudit import constants as C
+from labelaudit import results as R
 from labelaudit.config import RunConfig, hash_inputs, resolve_config, validate_config
 from labelaudit.datasets import DatasetError, FrameFailure, FrameRef, open_dataset, resolve_format
-from labelaudit import results as R
 from labelaudit.errors import InferError, ResultsError, StrictError, one_line
 from labelaudit.executors import Executor, make_executor
 
@@ -433,8 +433,8 @@ def read_missing_detections(cfg: RunConfig, fmt: str, dataset: str, split: str |
     KITTI boxes converted with each frame's calibration); a frame whose detections cannot be read
     is an error of the whole run (:class:`InferError` naming the file), as a wrong path is.
     """
-    from labelaudit.evaluate.detections import read_detections
-    from labelaudit.evaluate.gt import load_ground_truth
+    from labelaudit.datasets.detections import read_detections
+    from labelaudit.datasets.gt import load_ground_truth
     from labelaudit.infer.missing import FrameDetections
 
     path = Path(str(cfg.missing.detections))

@@ -376,7 +376,7 @@ def simulate_av2_detections(logs: Sequence[SimAv2Log], path: str | Path, spec: D
     misses it). Its background false positives stand on the ground (z = 0 in the egovehicle frame)
     in the sector ahead. Frame ``f`` of log ``i`` draws from ``SeedSequence(seed, (i, f, 1000))``.
     """
-    from labelaudit.evaluate.detections import write_av2_detections
+    from labelaudit.datasets.detections import write_av2_detections
     from labelaudit.sim.detector import detect_frame
 
     spec = spec or DetectorSpec()

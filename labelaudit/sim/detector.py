@@ -33,8 +33,14 @@ import pyarrow as pa
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.datasets.kitti import Calibration, alpha_from_location, boxes_lidar_to_camera, format_label_line, read_calib
 from labelaudit.core.geometry import normalize_angle
+from labelaudit.datasets.kitti import (
+    Calibration,
+    alpha_from_location,
+    boxes_lidar_to_camera,
+    format_label_line,
+    read_calib,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -250,7 +256,7 @@ def simulate_detections(dataset: str | Path, spec: DetectorSpec = DetectorSpec()
             rows["score"] += scores.tolist()
     parquet = None
     if spec.probabilistic:
-        from labelaudit.evaluate.detections import DETECTIONS_SCHEMA, write_parquet_detections
+        from labelaudit.datasets.detections import DETECTIONS_SCHEMA, write_parquet_detections
 
         schema = pa.schema([DETECTIONS_SCHEMA.field(n) for n in rows])
         table = pa.table(rows, schema=schema).replace_schema_metadata({"labelaudit.detector": str(asdict(spec)), "labelaudit.seed": str(seed)})

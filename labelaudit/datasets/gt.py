@@ -1,4 +1,4 @@
-"""Ground truth for detector evaluation: the labels of a dataset without its point clouds.
+"""Ground truth for detector evaluation (and the frames detections are aligned to): the labels of a dataset without its point clouds.
 
 ``eval`` needs every label (DontCare rows and the devkit's difficulty fields included) but no
 LiDAR points, so this module reads label files only — the same files, conversions and object
@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from labelaudit.datasets import DatasetError, FrameRef, open_dataset
 from labelaudit.datasets.kitti import Calibration, boxes_camera_to_lidar, kitti_difficulty, read_calib, read_label
-from labelaudit.datasets.waymo_common import FrameLabels
+from labelaudit.datasets.waymo_common import FrameLabels, waymo_level
 from labelaudit.datasets.waymo_common import class_name as waymo_class_name
 
 FloatArray = NDArray[np.float64]
@@ -186,8 +186,6 @@ def kitti_frame(label_path: Path, calib_path: Path, frame_id: str) -> GroundTrut
 
 
 def _waymo_frame(labels: FrameLabels) -> GroundTruthFrame:
-    from labelaudit.evaluate.matching import waymo_level
-
     k = len(labels.boxes)
     return GroundTruthFrame(
         frame_id=labels.frame_id,

@@ -1,4 +1,4 @@
-"""Detector outputs for ``labelaudit eval``: four input formats, one in-memory form, the Parquet schema.
+"""Detector outputs for ``labelaudit eval`` (and ``infer --detections``): four input formats, one in-memory form, the Parquet schema.
 
 Formats (docs/eval.md has the full table):
 
@@ -35,8 +35,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
+from labelaudit.datasets.gt import GroundTruth
 from labelaudit.errors import DatasetError, DetectionsError
-from labelaudit.evaluate.gt import GroundTruth
 
 FloatArray = NDArray[np.float64]
 
@@ -86,7 +86,7 @@ DETECTIONS_SCHEMA = pa.schema([pa.field(n, t, nullable=not req) for n, t, req, _
 
 @dataclass
 class Detections:
-    """All detections aligned with the frames of a :class:`~labelaudit.evaluate.gt.GroundTruth`.
+    """All detections aligned with the frames of a :class:`~labelaudit.datasets.gt.GroundTruth`.
 
     Attributes
     ----------
