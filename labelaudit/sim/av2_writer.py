@@ -33,10 +33,7 @@ from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import SceneSpec, sample_scene
 from labelaudit.sim.tracknoise import TrackNoiseSpec, perturb_track_labels
-from labelaudit.sim.waymo_writer import _motions as vehicle_motions
-from labelaudit.sim.waymo_writer import _scene_at as scene_at
-from labelaudit.sim.waymo_writer import _scene_in_vehicle as scene_in_vehicle
-from labelaudit.sim.waymo_writer import planar_motion, planar_pose
+from labelaudit.sim.waymo_writer import planar_motion, planar_pose, scene_at, scene_in_vehicle, vehicle_motions
 
 FloatArray = NDArray[np.float64]
 

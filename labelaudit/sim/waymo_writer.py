@@ -34,16 +34,16 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
+from labelaudit import constants as C
 from labelaudit.datasets import waymo_proto as wp
 from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
-from labelaudit import constants as C
+from labelaudit.infer.crop import points_in_boxes_numpy
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
-from labelaudit.sim.tracknoise import TrackNoiseSpec, perturb_track_labels
 from labelaudit.sim.raycast import LidarSpec, ray_directions, render_range_image
 from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, SimObject, sample_scene
-from labelaudit.infer.crop import points_in_boxes_numpy
+from labelaudit.sim.tracknoise import TrackNoiseSpec, perturb_track_labels
 
 FloatArray = NDArray[np.float64]
 
@@ -147,7 +147,7 @@ class SimWaymoSegment:
     frames: list[SimWaymoFrame] = field(default_factory=list)
 
 
-def _scene_in_vehicle(scene: Scene, pose: FloatArray) -> Scene:
+def scene_in_vehicle(scene: Scene, pose: FloatArray) -> Scene:
     """The world scene seen from a vehicle at planar ``pose`` (boxes moved and turned)."""
     inv = np.linalg.inv(pose)
     yaw = np.arctan2(pose[1, 0], pose[0, 0])
@@ -162,7 +162,7 @@ def _scene_in_vehicle(scene: Scene, pose: FloatArray) -> Scene:
     return Scene(objects=objs, ground_z=scene.ground_z, ground_reflectivity=scene.ground_reflectivity)
 
 
-def _motions(rng: np.random.Generator, scene: Scene, fraction: float) -> list[tuple[float, float] | None]:
+def vehicle_motions(rng: np.random.Generator, scene: Scene, fraction: float) -> list[tuple[float, float] | None]:
     """(speed, yaw rate) of each object that drives (vehicles only, a ``fraction`` of them), None for parked ones."""
     out: list[tuple[float, float] | None] = []
     for o in scene.objects:
@@ -175,7 +175,7 @@ def _motions(rng: np.random.Generator, scene: Scene, fraction: float) -> list[tu
     return out
 
 
-def _scene_at(world: Scene, motions: list[tuple[float, float] | None], t: float) -> Scene:
+def scene_at(world: Scene, motions: list[tuple[float, float] | None], t: float) -> Scene:
     """The world scene at time ``t``: each driving object moved along its arc (constant speed and yaw rate)."""
     if not any(motions):
         return world
@@ -268,8 +268,8 @@ def simulate_waymo_segment(
     ox, oy = world_offset
     start = planar_pose(ox, oy, 0.0)
     # the scene was drawn around the vehicle at t = 0: move it to the world
-    world = _scene_in_vehicle(scene_v, np.linalg.inv(start))
-    motions = _motions(np.random.default_rng([seed, 13]), world, moving_fraction) if moving_fraction > 0 else [None] * len(world.objects)
+    world = scene_in_vehicle(scene_v, np.linalg.inv(start))
+    motions = vehicle_motions(np.random.default_rng([seed, 13]), world, moving_fraction) if moving_fraction > 0 else [None] * len(world.objects)
     calibs = waymo_calibrations(size)
     seg = SimWaymoSegment(name or f"{seed:019d}_0000_000_0020_000", calibs)
     ids = [f"sim{seed}-{i:04d}" for i in range(len(world.objects))]
@@ -302,7 +302,7 @@ def simulate_waymo_segment(
                 # column j is captured at (j + ½)/W of the sweep, centred on the frame time
                 t_c = t_f + ((j0 + j1) / 2.0 / w - 0.5) * SWEEP_SECONDS if n_chunks > 1 else t_f
                 pose_c = pose_at(t_c)
-                local = _scene_in_vehicle(_scene_at(world, motions, t_c), pose_c)
+                local = scene_in_vehicle(scene_at(world, motions, t_c), pose_c)
                 img = render_range_image(local, spec, calib.extrinsic, rng if noise else None)
                 ground = render_range_image(Scene([], local.ground_z, local.ground_reflectivity), spec, calib.extrinsic, None)
                 cols = np.zeros((h, w), dtype=bool)
@@ -323,7 +323,7 @@ def simulate_waymo_segment(
                 yaw_c = np.arctan2(pose_c[1, 0], pose_c[0, 0])
                 ppose[:, j0:j1] = (0.0, 0.0, yaw_c, pose_c[0, 3], pose_c[1, 3], pose_c[2, 3])
             lidars[name_] = SimLidarFrame([r1, r2], ppose if name_ == 1 else None)
-        true_boxes = _scene_in_vehicle(_scene_at(world, motions, t_f), pose_f).boxes
+        true_boxes = scene_in_vehicle(scene_at(world, motions, t_f), pose_f).boxes
         classes = [o.class_name for o in world.objects]
         if label_noise is not None:
             boxes, kinds = perturb_boxes(true_boxes, classes, label_noise, np.random.default_rng([seed, f, 7]))
