@@ -598,7 +598,7 @@ def test_synthetic_detector_is_deterministic_and_scores_follow_quality(tmp_path)
     assert d.num == p.num == a.detections and p.probabilistic and not d.probabilistic
     np.testing.assert_allclose(d.boxes, p.boxes, atol=1e-9)  # the KITTI files convert back to the same boxes
     # better boxes get higher scores: IoU with the nearest true box vs score
-    from labelaudit.sim.dataset import read_manifest
+    from labelaudit.sim.manifest import read_manifest
 
     m = read_manifest(root).to_pydict()
     true = np.stack([np.asarray(m[f"true_{n}"]) for n in ("cx", "cy", "cz", "length", "width", "height", "yaw")], axis=1)

@@ -266,7 +266,8 @@ def test_no_missing_turns_the_search_off():
 
 
 def test_simulated_dropped_labels_keep_their_points_and_are_in_the_manifest(tmp_path):
-    from labelaudit.sim.dataset import read_manifest, simulate_dataset, simulate_frame
+    from labelaudit.sim.dataset import simulate_dataset, simulate_frame
+    from labelaudit.sim.manifest import read_manifest
     from labelaudit.sim.scene import SceneSpec
 
     kept = simulate_frame(2, seed=4)

@@ -9,12 +9,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from labelaudit.datasets.kitti import KittiReader, read_label, read_velodyne
 from labelaudit.core.params import BOX_FIELDS
+from labelaudit.datasets.kitti import KittiReader, read_label, read_velodyne
+from labelaudit.sim.dataset import frame_generators, simulate_dataset, simulate_frame
+from labelaudit.sim.manifest import read_manifest
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import HIT_GROUND, HIT_NOTHING, LidarSpec, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, make_object, sample_scene
-from labelaudit.sim.dataset import frame_generators, read_manifest, simulate_dataset, simulate_frame
 
 COARSE = LidarSpec.coarse()
 GROUND_Z = -1.73

@@ -31,15 +31,16 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from labelaudit import constants as C
-from labelaudit.datasets.kitti import Calibration
 from labelaudit.core.geometry import normalize_angle
 from labelaudit.core.params import BOX_FIELDS
+from labelaudit.datasets.kitti import Calibration
+from labelaudit.errors import OutputExistsError, UsageError
+from labelaudit.executors import make_executor
 from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calibration, write_kitti_frame
+from labelaudit.sim.manifest import MANIFEST_NAME
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
 from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, sample_scene
-from labelaudit.errors import OutputExistsError, UsageError
-from labelaudit.executors import make_executor
 
 __all__ = [
     "LidarSpec",
@@ -57,7 +58,6 @@ __all__ = [
     "write_manifest",
 ]
 
-MANIFEST_NAME = "manifest.parquet"
 MANIFEST_VERSION = "1"
 _STREAMS = ("scene", "lidar", "calib", "noise", "drop")
 _SPLIT_KEY = 0xFFFFFFFF  # spawn key of the train/val split generator (no frame index reaches it)
@@ -493,13 +493,3 @@ def _write_imagesets(out: Path, frames: int, seed: int) -> None:
     sets.mkdir(parents=True, exist_ok=True)
     for name, ids in (("train", train), ("val", val)):
         (sets / f"{name}.txt").write_text("".join(f"{i:06d}\n" for i in ids))
-
-
-def read_manifest(path: str | Path) -> pa.Table:
-    """Read a simulator manifest (a dataset folder or the parquet file itself)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / MANIFEST_NAME
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: simulator manifest not found (written by `labelaudit simulate`)")
-    return pq.read_table(path)

@@ -220,7 +220,7 @@ def simulate_detections(dataset: str | Path, spec: DetectorSpec = DetectorSpec()
     FileNotFoundError
         No simulator manifest in ``dataset``.
     """
-    from labelaudit.sim.dataset import read_manifest
+    from labelaudit.sim.manifest import read_manifest
 
     if seed < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")

@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.sim.scene import corners_of
 from labelaudit.datasets.kitti import (
     Calibration,
     alpha_from_location,
@@ -25,6 +24,7 @@ from labelaudit.datasets.kitti import (
     format_label_line,
     write_velodyne,
 )
+from labelaudit.sim.scene import corners_of
 
 FloatArray = NDArray[np.float64]
 
