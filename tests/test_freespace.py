@@ -168,7 +168,7 @@ def test_ray_candidates_equal_brute_force_across_the_azimuth_seam():
                       [0.5, 0.0, -1.0, 4, 2, 1.5, 0.0], [30, -0.5, -1, 10, 2.5, 3, 0.05]])
     ground = np.c_[np.full(len(boxes), GROUND), np.zeros(len(boxes)), np.zeros(len(boxes))]
     slabs = np.array([[0.25, 0.6]] * len(boxes))
-    got = F.ray_candidates(pts, np.zeros(3), boxes, ground, slabs, reach=1.0, nbins=256)
+    got, _ = F.ray_candidates(pts, np.zeros(3), boxes, ground, slabs, reach=1.0, nbins=256)
     for j, box in enumerate(boxes):
         grown = box.copy()
         grown[3:5] += 2.0

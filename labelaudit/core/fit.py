@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
-from labelaudit.core.freespace import FreeSpace, _displacement, _free_rows_kernel, _ray_bounds
+from labelaudit.core.freespace import FreeSpace, displacement, free_rows_kernel, ray_bounds
 from labelaudit.core.geometry import FloatArray
 from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
 from labelaudit.core.posterior import (
@@ -398,15 +398,15 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, out
     bounds = np.empty(m)
     reach = 2.0  # m; rays further outside the label than this are not tracked (the candidates reach 1 m)
     if m:
-        _ray_bounds(label, ends_t, ox, oy, hz, reach, bounds)
+        ray_bounds(label, ends_t, ox, oy, hz, reach, bounds)
     phi_prev = phi.copy()
     it = 0
     for it in range(1, max_iter + 1):
         _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), a, b, sqd, True)
         ata, atb, _ = _gram_kernel(a, b, phi, False)
         if m:
-            slack = _displacement(y_cur, label, reach)
-            k = _free_rows_kernel(y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack)
+            slack = displacement(y_cur, label, reach)
+            k = free_rows_kernel(y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack)
             if k:
                 ata_r, atb_r, _ = _gram_kernel(a_r[:, :k], b_r[:k], phi, False)
                 ata += ata_r
@@ -431,7 +431,7 @@ def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, 
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
     b = np.empty(m)
-    active = _free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf)
+    active = free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf)
     ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
     return ata, atb, rr, active
 
@@ -463,7 +463,7 @@ _NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0)
 
 def _ray_inputs(free_space: FreeSpace | None, sigma: float) -> tuple[FloatArray, float, float, FloatArray, float, float, float, float]:
     """(ends_t (3, M), sensor x, sensor y, hz (5,) = (sensor height, slab bottom, slab top, object height, σ), τ,
-    τ inside, √weight, slit probability) of the fit's ray rows (:func:`~labelaudit.core.freespace._free_rows_kernel`)."""
+    τ inside, √weight, slit probability) of the fit's ray rows (:func:`~labelaudit.core.freespace.free_rows_kernel`)."""
     if free_space is None or free_space.num_rays == 0:
         return _NO_RAYS
     ends_t, ox, oy, hz = free_space.kernel_inputs()
@@ -555,7 +555,7 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     inverse of the (cx, cy, l·cos, l·sin, w·cos, w·sin) block of S: the fit is 3D so roof points
     register to the top face, but its cz and height are not what a BEV audit judges, and they are
     the least reliable parameters of the fit (the ground cut removes every point of the bottom
-    face; near the sensor the roof of tall vehicles is above the top beam). On the issue-6
+    face; near the sensor the roof of tall vehicles is above the top beam). On the label-error
     benchmark scoring them raised false alarms on correct labels (docs/label-error.md).
     """
     if fit_model == scored:

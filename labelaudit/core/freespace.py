@@ -15,7 +15,7 @@ This module owns
   boxes' azimuth windows only);
 - a box's evidence (:class:`FreeSpace`) and its counts (:func:`ray_counts`: rays through the slab
   that end behind the box, rays that end on or in it);
-- the hinge rows the label-error fit adds per ray (:func:`_free_rows_kernel`, called inside the
+- the hinge rows the label-error fit adds per ray (:func:`free_rows_kernel`, called inside the
   compiled fit loop of :mod:`labelaudit.core.fit`).
 
 No I/O; the ground plane under a box comes from the caller (:mod:`labelaudit.infer.evidence`).
@@ -204,10 +204,10 @@ def _signed_deepest(ox, oy, oh, px, py, ph, hl, hw, reach, zlo, zhi):  # pragma:
 
 
 @kernel
-def _ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compiled
+def ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compiled
     """Per ray, the largest signed depth m of its empty part in the slab of box ``y`` (−inf beyond ``reach``).
 
-    m moves by at most the boundary displacement H of the rectangle (:func:`_displacement`), so a
+    m moves by at most the boundary displacement H of the rectangle (:func:`displacement`), so a
     ray with m + H below the smallest tolerance cannot be active for a box within H of ``y``: the
     fit skips it, exactly.
     """
@@ -222,7 +222,7 @@ def _ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compil
 
 
 @kernel
-def _displacement(y, y0, reach):  # pragma: no cover - compiled
+def displacement(y, y0, reach):  # pragma: no cover - compiled
     """Upper bound on how far any point's m moves between rectangles y0 and y, for points within
     ``reach`` of y0: centre shift + half the size changes + turn × (distance of such points from the
     centre); inf when that reaches ``reach`` (the bound no longer holds there)."""
@@ -248,7 +248,7 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
 
 
 @kernel
-def _free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack):  # pragma: no cover - compiled
+def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack):  # pragma: no cover - compiled
     """Hinge rows of the box fit, one per ray: a (p, M) transposed like the point rows, b (M,).
 
     A ray whose empty part reaches depth d* > τ inside the slab of the current box ``y`` gives the
@@ -258,7 +258,7 @@ def _free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d,
     on the object, not on the road under it) proves less — real surfaces lie up to a few decimetres
     inside a correct label (bumpers, rounded corners, loose annotation) — and gets the looser
     ``tau_in``. The rows of the active rays are written to the first columns of a and b; returns
-    their number. Rays whose bound (:func:`_ray_bounds`) plus ``slack`` stays below the smaller
+    their number. Rays whose bound (:func:`ray_bounds`) plus ``slack`` stays below the smaller
     tolerance are not evaluated (``slack`` = inf evaluates all).
 
     Robust: a ray through the slab of a *right* box is possible — a gap between a truck's cab and
@@ -554,16 +554,8 @@ def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reac
     return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
 
 
-def ray_candidates(
-    points: ArrayLike,
-    origin: ArrayLike,
-    boxes: ArrayLike,
-    ground: ArrayLike,
-    slabs: ArrayLike,
-    reach: float,
-    nbins: int = C.FREE_SPACE_AZIMUTH_BINS,
-    buckets: AzimuthBuckets | None = None,
-) -> list[IndexArray]:
+def ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, ground: ArrayLike, slabs: ArrayLike, reach: float,
+                   nbins: int = C.FREE_SPACE_AZIMUTH_BINS, buckets: AzimuthBuckets | None = None) -> tuple[list[IndexArray], list[FloatArray]]:
     """Indices of the points whose ray (sensor → point) passes through each box's reach prism.
 
     The reach prism of a box is its rectangle grown by ``reach`` on every side, between the heights
@@ -583,14 +575,9 @@ def ray_candidates(
 
     Returns
     -------
-    K sorted int64 index arrays into ``points``
+    K sorted int64 index arrays into ``points`` (views of one buffer: copy one to keep it alone),
+    and the xyz (M_j, 3) float64 of each box's candidates
     """
-    return [idx.copy() for idx in _ray_candidates(points, origin, boxes, ground, slabs, reach, nbins, buckets)[0]]
-
-
-def _ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, ground: ArrayLike, slabs: ArrayLike, reach: float,
-                    nbins: int = C.FREE_SPACE_AZIMUTH_BINS, buckets: AzimuthBuckets | None = None) -> tuple[list[IndexArray], list[FloatArray]]:
-    """:func:`ray_candidates` (as views of one buffer) and the returns' xyz (M_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     k = len(b)
@@ -644,16 +631,12 @@ def _gather_xyz(pts, idx):  # pragma: no cover - compiled
     return out
 
 
-def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> list[IndexArray]:
+def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> tuple[list[IndexArray], list[FloatArray]]:
     """Indices (sorted) of the points in each box grown by ``margin`` in BEV, from ``below`` under its
     bottom to ``above`` over its top, taken from the boxes' azimuth windows (``buckets`` must reach
     at least ``margin``): one compiled pass over the windows instead of a test of every point of
-    the frame per box."""
-    return [idx.copy() for idx in _neighbourhoods(buckets, boxes, margin, below, above)[0]]
-
-
-def _neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> tuple[list[IndexArray], list[FloatArray]]:
-    """:func:`neighbourhoods` (as views of one buffer) and the points' xyz (n_j, 3) float64 of each box."""
+    the frame per box. Returns the indices (views of one buffer: copy one to keep it alone) and the points'
+    xyz (n_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     if buckets.reach < margin:
         raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")

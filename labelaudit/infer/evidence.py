@@ -41,8 +41,8 @@ from labelaudit import constants as C
 from labelaudit.config import CropParams
 from labelaudit.core.freespace import (
     FreeSpace,
-    _neighbourhoods,
-    _ray_candidates,
+    neighbourhoods,
+    ray_candidates,
     azimuth_buckets,
 )
 from labelaudit.core.geometry import rotation_z
@@ -143,7 +143,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
     buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
     # each neighbourhood's indices and its points as float64 (converted exactly), gathered once
-    near, near_xyz = _neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
+    near, near_xyz = neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
     sel = selection_boxes(b, crop.margin, crop.ground_cut)  # the model's crop regions, as Open3D sees them
     rotations = rotation_z(sel[:, 6])
     grounds = np.empty((len(b), 3))
@@ -156,7 +156,7 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
             grounds[j] = plane
             ground_z[j] = plane[0]
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
-    ray_idx, ray_ends = _ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
+    ray_idx, ray_ends = ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
     if ray_mask is not None:  # e.g. Waymo: other lidars and second returns are no rays from the origin
         mask = np.asarray(ray_mask, dtype=bool)
         ray_ends = [ends[mask[idx]] for idx, ends in zip(ray_idx, ray_ends)]
