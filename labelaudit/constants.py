@@ -83,6 +83,7 @@ GROUND_INLIER = 0.08  # m; a point within this of the plane is ground (LiDAR noi
 GROUND_MIN_POINTS = 15  # fewer ground inliers than this: the fixed cut above the box bottom is used
 GROUND_MAX_SLOPE = 0.10  # steeper planes (rise over run) are not ground (roads stay below ~8 %; car sides, kerbs)
 GROUND_HYPOTHESES = 24  # RANSAC plane hypotheses per box, drawn from a fixed seed (reproducible rows)
+GROUND_SCORED = 512  # RANSAC hypotheses are scored on at most this many ground candidates (an even stride)
 SCENERY_VOXEL = 0.2  # m; BEV cell of the connectivity test for unlabelled surfaces (walls, hedges): a gap wider than two cells separates
 NEIGHBOUR_MARGIN = 0.1  # m; points within this of another label (BEV) and outside the box itself are that label's, not evidence
 

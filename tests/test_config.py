@@ -147,3 +147,15 @@ def test_param_hash_tracks_parameters(tmp_path):
     assert b.model.sigma == 0.25
     assert a.param_hash() != b.param_hash()
     assert isinstance(RunConfig().param_hash(), str)
+
+
+def test_the_ground_fits_scored_candidates_enter_the_hash(monkeypatch):
+    """GROUND_SCORED caps the candidates each RANSAC hypothesis is scored on: it can change a
+    row, so the parameter hash covers it."""
+    from labelaudit import constants as C
+    from labelaudit.config import constants_digest, is_unhashed
+
+    assert not is_unhashed("GROUND_SCORED")
+    before = constants_digest()
+    monkeypatch.setattr(C, "GROUND_SCORED", C.GROUND_SCORED + 1)
+    assert constants_digest() != before

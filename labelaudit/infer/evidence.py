@@ -379,18 +379,17 @@ def ground_plane(xyz: FloatArray, box: FloatArray) -> FloatArray | None:
     call (:func:`_ground_kernel`), ~0.05 ms.
     """
     out = np.empty(3)
-    ok = _ground_kernel(np.ascontiguousarray(xyz, dtype=np.float64), np.asarray(box, dtype=float), _GROUND_DRAWS,
+    ok = _ground_kernel(np.ascontiguousarray(xyz, dtype=np.float64), np.asarray(box, dtype=float), _GROUND_DRAWS, C.GROUND_SCORED,
                         C.GROUND_MARGIN, C.GROUND_WINDOW, C.GROUND_INLIER, C.GROUND_MIN_POINTS, C.GROUND_MAX_SLOPE, out)
     return out if ok else None
 
 
 _GROUND_DRAWS = np.random.default_rng(0).random((C.GROUND_HYPOTHESES, 4))
 """Fixed uniform numbers of the RANSAC draws: three points and one level plane per hypothesis."""
-_GROUND_SCORED = 512  # hypotheses are scored on at most this many candidates (a fixed stride)
 
 
 @kernel
-def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slope, out):  # pragma: no cover - compiled
+def _ground_kernel(xyz, box, draws, scored, margin, window, inlier, min_points, max_slope, out):  # pragma: no cover - compiled
     c, s = math.cos(box[6]), math.sin(box[6])
     hl, hw = 0.5 * box[3], 0.5 * box[4]
     bottom = box[2] - 0.5 * box[5]
@@ -407,7 +406,7 @@ def _ground_kernel(xyz, box, draws, margin, window, inlier, min_points, max_slop
         n += 1
     if n < min_points:
         return False
-    stride = max(1, n // 512)
+    stride = max(1, n // scored)
     ns = (n + stride - 1) // stride  # the scored candidates, copied contiguous so the count loops vectorise (integer counts: exact)
     sx, sy, sz = np.empty(ns), np.empty(ns), np.empty(ns)
     for t in range(ns):
