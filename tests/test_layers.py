@@ -10,7 +10,7 @@ literal name. The layers, bottom to top (docs/architecture.md):
  1    kernels     ``kernels`` (the compiled-loop decorator: imports NumPy only)
  2    core        ``core/`` (the science: arrays in, arrays out)
  3    io          ``config``, ``datasets/``, ``results``, ``executors``
- 4    jobs        ``infer/``, ``evaluate/``, ``training``, ``export``, ``rank``, ``gate``, ``summary``
+ 4    jobs        ``infer/``, ``evaluate/``, ``training``, ``export``, ``rank``, ``gate``, ``summary``, ``review``
  5    views       ``viz/``, ``sim/``, ``demo``
  6    cli         ``cli/``
  7    programs    every ``__main__.py`` (run, never imported)
@@ -49,7 +49,7 @@ LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
     ("kernels", frozenset({"kernels"})),
     ("core", frozenset({"core"})),
     ("io", frozenset({"config", "datasets", "results", "executors"})),
-    ("jobs", frozenset({"infer", "evaluate", "training", "export", "rank", "gate", "summary"})),
+    ("jobs", frozenset({"infer", "evaluate", "training", "export", "rank", "gate", "summary", "review"})),
     ("views", frozenset({"viz", "sim", "demo"})),
     ("cli", frozenset({"cli"})),
     ("programs", frozenset()),  # every __main__ module, whatever its package
