@@ -22,7 +22,6 @@ from labelaudit import constants as C
 from labelaudit.core.params import SAMPLE_TABLE, ClassPrior, CropParams, ModelParams, SpatialParams, default_priors
 from labelaudit.errors import ConfigError
 
-
 CONFIG_DIR = Path(__file__).parent / "configs"
 """Where the built-in per-dataset configs live (``configs/`` at the repository root links here)."""
 

@@ -15,7 +15,6 @@ from typing import Any, Callable
 
 import pyarrow as pa
 import pyarrow.parquet as pq
-
 from rich.markup import escape
 
 from labelaudit import constants as C

@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from labelaudit.core import geometry as g
 from labelaudit.config import ModelParams, SpatialParams, load_config
+from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label
 from labelaudit.core.posterior import infer_label
 from labelaudit.core.spatial import jiou_gt

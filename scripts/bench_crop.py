@@ -16,8 +16,8 @@ from typing import Callable
 import numpy as np
 
 from labelaudit.config import CropParams
-from labelaudit.infer.crop import crop_frame, points_in_boxes_numpy
 from labelaudit.datasets.kitti import KittiReader
+from labelaudit.infer.crop import crop_frame, points_in_boxes_numpy
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "openpcdet-pr653-kitti"
 

@@ -140,9 +140,9 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
     import pyarrow.parquet as pq
 
     from labelaudit import results as R
+    from labelaudit.config import resolve_config
     from labelaudit.datasets import open_dataset
     from labelaudit.infer import rows as rows_mod
-    from labelaudit.config import resolve_config
     from labelaudit.infer.missing import find_missing
     from labelaudit.infer.run import chunk_size_for
 
@@ -226,9 +226,9 @@ def lean_floor(data: Path, refs: list, cfg: object) -> tuple[float, int, int]:
     import open3d as o3d
 
     from labelaudit.core.geometry import rotation_z
+    from labelaudit.datasets import open_dataset
     from labelaudit.infer.crop import selection_boxes
     from labelaudit.infer.rows import wants_class
-    from labelaudit.datasets import open_dataset
 
     reader = open_dataset(data, "kitti")
     jobs = []

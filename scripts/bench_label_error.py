@@ -42,10 +42,10 @@ import numpy as np
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
-from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
-from labelaudit.infer.rows import process_frame
 from labelaudit.config import resolve_config
+from labelaudit.infer.rows import process_frame
 from labelaudit.infer.run import InferRequest, run_infer
+from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
 from labelaudit.sim.dataset import NoiseSpec, SceneSpec, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]

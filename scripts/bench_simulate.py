@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from labelaudit.sim.dataset import NoiseSpec, frame_generators, simulate_dataset
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import SceneSpec, sample_scene
-from labelaudit.sim.dataset import NoiseSpec, frame_generators, simulate_dataset
 
 
 def bench_raycast(frames: int, lidar: LidarSpec) -> None:

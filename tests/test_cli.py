@@ -238,8 +238,8 @@ def test_the_console_script_starts_infers_fork_server_only_when_a_pool_will_run(
     import sys
 
     from labelaudit import __main__ as launch
-    from labelaudit.executors import fork_server_preload, local_cluster_preload
     from labelaudit import constants as C
+    from labelaudit.executors import fork_server_preload, local_cluster_preload
 
     assert fork_server_preload(2) == tuple(C.WORKER_PRELOAD)
     assert fork_server_preload(None) == (tuple(C.WORKER_PRELOAD) if (os.cpu_count() or 1) > 1 else None)

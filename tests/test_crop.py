@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from labelaudit.config import CropParams
-from labelaudit.infer.crop import crop_frame, crop_frame_pair, points_in_boxes_numpy, refine_crop, selection_boxes
 from labelaudit.datasets.kitti import KittiReader, read_velodyne
+from labelaudit.infer.crop import crop_frame, crop_frame_pair, points_in_boxes_numpy, refine_crop, selection_boxes
 
 
 def _face_distance(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:

@@ -340,7 +340,7 @@ def check_kitti_batch(root: Path, out: Path, batch_cases: list[Case], good_rows:
     run = H.run_cli("infer", root, "-o", out, "--workers", "1", "-q", "--classes", "all")
     try:
         H.check_output(run, allowed=(0,))
-    except AssertionError as exc:  # name the case that breaks the run
+    except AssertionError:  # name the case that breaks the run
         for case in batch_cases:
             alone = root.parent / f"{root.name}-alone-{case.number}"
             _only(root, alone, case.unit)

@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from labelaudit.core.geometry import rotation_z
 from labelaudit.datasets import DatasetError, detect_format, open_dataset
 from labelaudit.datasets.kitti import (
-    Calibration,
     LABEL_COLUMNS,
+    Calibration,
     KittiReader,
     alpha_from_location,
     box_camera_to_lidar,
@@ -25,7 +26,6 @@ from labelaudit.datasets.kitti import (
     read_velodyne,
     write_velodyne,
 )
-from labelaudit.core.geometry import rotation_z
 
 # Ideal KITTI-like mounting: camera x = −LiDAR y, camera y = −LiDAR z, camera z = LiDAR x, plus an
 # offset (the camera sits 0.27 m behind and 0.08 m below the LiDAR origin in camera coordinates).

@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from labelaudit.core import fit as LF
-from labelaudit.config import ModelParams
-
 from _core_synth import face_points
+from labelaudit.config import ModelParams
+from labelaudit.core import fit as LF
 
 CAR = np.array([15.0, 5.0, 0.75, 4.2, 1.7, 1.5, 0.0])
 

@@ -8,14 +8,13 @@ import math
 import numpy as np
 import pytest
 
+from _core_synth import face_points, rigid_motion
 from labelaudit import constants as C
-from labelaudit.core import geometry as g
+from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core import fit as LF
+from labelaudit.core import geometry as g
 from labelaudit.core import iou as IOU
 from labelaudit.core import posterior as M
-from labelaudit.config import ClassPrior, ModelParams
-
-from _core_synth import face_points, rigid_motion
 
 CAR = np.array([15.0, 5.0, 0.75, 4.2, 1.7, 1.5, 0.0])  # near faces seen from the origin: −x and −y
 
@@ -324,9 +323,9 @@ def test_unknown_class_uses_the_default_prior():
 # audit_object (the per-object entry point of the pipeline)
 # ---------------------------------------------------------------------------------------------
 
+from labelaudit.config import load_config  # noqa: E402
 from labelaudit.infer.rows import audit_object  # noqa: E402
 from labelaudit.results import MODEL_COLUMNS  # noqa: E402
-from labelaudit.config import load_config  # noqa: E402
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])

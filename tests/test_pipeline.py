@@ -15,14 +15,12 @@ import pyarrow.parquet as pq
 import pytest
 
 from labelaudit import results as R
-from labelaudit.config import RunConfig
+from labelaudit.config import ALL_CLASSES, RunConfig, resolve_config
 from labelaudit.datasets import Frame, FrameRef
 from labelaudit.errors import DatasetError, InferError, StrictError
 from labelaudit.executors import SerialExecutor
-from labelaudit.config import ALL_CLASSES, resolve_config
 from labelaudit.infer.rows import process_frame
-from labelaudit.infer.run import chunk_name, InferRequest, plan_chunks, run_infer
-
+from labelaudit.infer.run import InferRequest, chunk_name, plan_chunks, run_infer
 
 
 def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None):
@@ -129,8 +127,8 @@ def test_chunks_do_not_depend_on_anything_but_the_unit_list():
 
 @pytest.fixture(scope="module")
 def sim_kitti(tmp_path_factory) -> Path:
-    from labelaudit.sim.noise import NoiseSpec
     from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.noise import NoiseSpec
 
     root = tmp_path_factory.mktemp("sim") / "kitti"
     simulate_dataset(root, frames=5, seed=3, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False)

@@ -7,14 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from _core_synth import face_points, rigid_motion
 from labelaudit import constants as C
+from labelaudit.config import ModelParams, SpatialParams
 from labelaudit.core import geometry as g
 from labelaudit.core import iou as IOU
 from labelaudit.core import posterior as M
 from labelaudit.core import spatial as sp
-from labelaudit.config import ModelParams, SpatialParams
-
-from _core_synth import face_points, rigid_motion
 
 NEAR = np.array([15.0, 5.0, 0.75, 4.2, 1.7, 1.5, 0.0])  # sensor at the origin sees −x and −y
 FAR = np.array([40.0, 12.0, 0.75, 4.2, 1.7, 1.5, 0.0])

@@ -14,7 +14,6 @@ from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.core import track as T
 from labelaudit.infer.tracks import TRACKS_SCHEMA, log_of, run_tracks_pass, score_table
-
 from results_factory import make_row
 
 P = T.default_params()

@@ -8,13 +8,12 @@ import numpy as np
 import pytest
 from scipy import integrate
 
+from _core_synth import face_points
 from labelaudit import constants as C
-from labelaudit.core import geometry as g
 from labelaudit import training as T
 from labelaudit.config import ClassPrior, ModelParams
+from labelaudit.core import geometry as g
 from labelaudit.core.posterior import infer_label, prior_covariance
-
-from _core_synth import face_points
 
 ENCODINGS = ("box", "log-size", "pixor", "residual")
 ANCHOR = np.array([3.9, 1.6, 1.56])

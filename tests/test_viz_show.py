@@ -9,11 +9,10 @@ import shutil
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from _core_synth import face_points
 from matplotlib import colormaps
 from matplotlib.colors import Normalize
-from viz_data import simulate_and_infer
 
+from _core_synth import face_points
 from labelaudit.config import config_from_params, load_config
 from labelaudit.results import open_results
 from labelaudit.viz.objects import (
@@ -33,6 +32,7 @@ from labelaudit.viz.show import (
     render_object,
     worst_order,
 )
+from viz_data import simulate_and_infer
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,11 @@ with Rich (:mod:`labelaudit.cli.display`). Heavy modules are imported inside the
 from __future__ import annotations
 
 from labelaudit.cli.app import app
+
 # Importing a command module registers its command; the order here is the order of `--help`.
-from labelaudit.cli import infer, rank, check, show, report, export, eval, simulate, demo  # noqa: F401,I001
+# isort: off
+from labelaudit.cli import infer, rank, check, show, report, export, eval, simulate, demo  # noqa: F401
+# isort: on
 
 __all__ = ["app", "main"]
 

@@ -25,6 +25,7 @@ where ``a`` is the direction of the length axis and ``b`` that of the width axis
 from __future__ import annotations
 
 import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 

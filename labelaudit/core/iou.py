@@ -17,6 +17,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core.geometry import FloatArray
 from labelaudit.kernels import kernel
 
+
 def hull_iou(box: ArrayLike, points: ArrayLike | None) -> float:
     """BEV IoU between a box and the convex hull of its points (a baseline label-quality score).
 

@@ -30,10 +30,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
-from labelaudit.datasets.base import Frame, FrameRef, ImageView, box_problems
-from labelaudit.errors import DatasetError
 from labelaudit.core.geometry import box_corners, normalize_angle
 from labelaudit.core.params import BOX_FIELDS
+from labelaudit.datasets.base import Frame, FrameRef, ImageView, box_problems
+from labelaudit.errors import DatasetError
 
 FloatArray = NDArray[np.float64]
 

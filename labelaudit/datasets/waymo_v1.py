@@ -28,7 +28,6 @@ from numpy.typing import NDArray
 
 from labelaudit.datasets import waymo_proto as wp
 from labelaudit.datasets.base import Frame, FrameFailure, FrameRef
-from labelaudit.errors import DatasetError, one_line
 from labelaudit.datasets.waymo_common import (
     TOP,
     FrameLabels,
@@ -40,6 +39,7 @@ from labelaudit.datasets.waymo_common import (
     no_lidar_warning,
     sensor_origin,
 )
+from labelaudit.errors import DatasetError, one_line
 
 FORMAT = "waymo-v1"
 _MASK_DELTA = 0xA282EAD8

@@ -32,7 +32,6 @@ import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
 from labelaudit.datasets.base import Frame, FrameFailure, FrameRef
-from labelaudit.errors import DatasetError, one_line
 from labelaudit.datasets.waymo_common import (
     TOP,
     FrameLabels,
@@ -44,6 +43,7 @@ from labelaudit.datasets.waymo_common import (
     no_lidar_warning,
     sensor_origin,
 )
+from labelaudit.errors import DatasetError, one_line
 
 FORMAT = "waymo-v2"
 COMPONENTS = ("lidar_box", "lidar", "lidar_calibration", "lidar_pose", "vehicle_pose")

@@ -41,9 +41,9 @@ from labelaudit import constants as C
 from labelaudit.config import CropParams
 from labelaudit.core.freespace import (
     FreeSpace,
+    azimuth_buckets,
     neighbourhoods,
     ray_candidates,
-    azimuth_buckets,
 )
 from labelaudit.core.geometry import rotation_z
 from labelaudit.infer.crop import selection_boxes

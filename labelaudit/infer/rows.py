@@ -13,18 +13,17 @@ import math
 from typing import Any
 
 import numpy as np
-
 from numpy.typing import ArrayLike
 
 from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
+from labelaudit.core.freespace import ray_counts
 from labelaudit.core.iou import hull_iou_valid
 from labelaudit.core.posterior import box_prior_terms, infer_label_valid
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
-from labelaudit.core.freespace import ray_counts
 from labelaudit.errors import one_line
 from labelaudit.infer.evidence import ObjectEvidence, fit_free_space, frame_evidence, label_boxes
 

@@ -193,7 +193,7 @@ def scene_at(world: Scene, motions: list[tuple[float, float] | None], t: float) 
         turn = rate * t
         rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
 
-        def move(b: FloatArray) -> FloatArray:
+        def move(b: FloatArray, c0: FloatArray = c0, rot: FloatArray = rot, shift: FloatArray = shift, turn: float = turn) -> FloatArray:
             out = b.copy()
             out[..., :2] = (b[..., :2] - c0) @ rot.T + c0 + shift
             out[..., 6] = np.arctan2(np.sin(b[..., 6] + turn), np.cos(b[..., 6] + turn))
