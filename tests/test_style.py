@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import doctest
 import importlib
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -56,3 +57,30 @@ def test_public_modules_have_examples_that_run(module: str) -> None:
     examples = [ex for t in tests for ex in t.examples]
     assert examples, f"{module}: no docstring example"
     assert not [ex.source for ex in examples if ex.options.get(doctest.SKIP)], f"{module}: a skipped example"
+
+
+ISSUE_NUMBER = re.compile(r"\bissues? ?#?\d+|\bissue-\d+", re.IGNORECASE)
+
+
+def test_code_names_no_issue_numbers() -> None:
+    """Comments and docstrings say why, not which ticket: an issue number in code is history that the
+    reader cannot follow (the git log keeps it)."""
+    hits = []
+    for folder in ("labelaudit", "scripts", "tests"):
+        for path in sorted((REPO / folder).rglob("*")):
+            if path.suffix not in (".py", ".toml", ".j2", ".sh") or path == Path(__file__).resolve():
+                continue
+            for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+                if ISSUE_NUMBER.search(line):
+                    hits.append(f"{path.relative_to(REPO)}:{n}: {line.strip()}")
+    assert not hits, "issue numbers in code (say what the code holds instead):\n" + "\n".join(hits)
+
+
+def test_the_issue_number_pattern_finds_them() -> None:
+    found = [
+        t
+        for t in ("# issue 15: a NaN box", "(issues 4 and 13)", "the issue-6 benchmark", "see Issue #12")
+        if ISSUE_NUMBER.search(t)
+    ]
+    assert len(found) == 4
+    assert not ISSUE_NUMBER.search("# an issue with 3 frames") and not ISSUE_NUMBER.search("tissue 5")
