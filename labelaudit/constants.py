@@ -18,6 +18,7 @@ PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (par
 
 # --- label-error model (docs/label-error.md) ---
 FIT_MAX_ITERATIONS = 30  # cap on EM iterations of the box fit (suggested box)
+FIT_STEP_HALVINGS = 16  # box fit: a step that raises the fit's cost is halved back up to this many times (a descent: real scans made plain EM steps overshoot and oscillate)
 FIT_TOLERANCE = 1e-3  # m; the box fit stops when no entry of φ moves by more than this
 FIT_SWAP_RESIDUAL = 0.5  # try an l/w-swapped start when the fit's RMS point-to-surface residual exceeds this × σ
 FIT_INSIDE_SIGMA_RATIO = 3.0  # box fit: points deep inside the box count with σ × this, for the orientation of their face only (they never pull it in)
@@ -28,6 +29,7 @@ FREE_SPACE_CLASSES = (
     "Car", "Van", "Truck", "Vehicle",
     "REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "ARTICULATED_BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB",
 )  # classes with a solid lower body (KITTI, Waymo, Argoverse 2 names): their fit uses free-space rays (legs, bikes, trailers and Misc are open)
+LABEL_ERROR_CLASSES = FREE_SPACE_CLASSES  # label_error is written for vehicles only (validated on real KITTI and simulated vehicles); null for other classes (real KITTI pedestrians: AUROC 0.64, docs/label-error.md)
 FREE_SPACE_SLAB = (0.25, 0.4)  # solid lower body of a vehicle: from this height (m) above the local ground to this fraction of the box height
 FREE_SPACE_TOLERANCE = 0.1  # m; τ: a ray counts as free space only where it passes deeper than this inside the box rectangle (rounded corners of real vehicles)
 FREE_SPACE_INSIDE_TOLERANCE = 0.3  # m; τ of rays that end inside the box (on the object): real surfaces lie up to this far inside a right label (bumpers, loose boxes)

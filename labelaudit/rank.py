@@ -13,7 +13,7 @@ import io
 import json
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import pyarrow as pa
@@ -59,11 +59,16 @@ class RankResult:
     table: pa.Table
     matched: int
     query: RankQuery
+    unscored: dict[str, int] = field(default_factory=dict)
+    """Sorting by ``label_error``: audited objects matching the filters whose score is null, per
+    class — classes the score is not validated for (docs/label-error.md); they are not ranked."""
 
 
 def _numeric_columns(schema: pa.Schema) -> list[str]:
     return [f.name for f in schema if pa.types.is_integer(f.type) or pa.types.is_floating(f.type)]
 
+
+_AUDITED = ("ok", "few_points", "no_points")  # statuses whose rows carry the model's columns
 
 _OPS = {">=": pc.greater_equal, "<=": pc.less_equal, "!=": pc.not_equal, "==": pc.equal, ">": pc.greater, "<": pc.less, "=": pc.equal}
 _WHERE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(>=|<=|!=|==|>|<|=)\s*(.+?)\s*$")
@@ -144,13 +149,22 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
 
     conditions = [parse_where(w, schema) for w in query.where]
     needed = ["frame_id", "object_index", query.by]
-    for c, used in (("class_name", query.classes), ("status", query.statuses), ("num_points", query.min_points is not None), ("distance", query.max_distance is not None)):
+    scored_only = query.by == "label_error" and {"class_name", "status"} <= set(schema.names)
+    for c, used in (("class_name", query.classes or scored_only), ("status", query.statuses or scored_only), ("num_points", query.min_points is not None), ("distance", query.max_distance is not None)):
         if used and c not in needed:
             needed.append(c)
     needed += [c for c, _, _ in conditions if c not in needed]
     table = results.read(needed)
     one_of = {"class_name": query.classes, "status": query.statuses}
-    kept = table.filter(_mask(table, query.by, one_of, {"num_points": query.min_points}, {"distance": query.max_distance}, conditions))
+    bounds = ({"num_points": query.min_points}, {"distance": query.max_distance})
+    kept = table.filter(_mask(table, query.by, one_of, *bounds, conditions))
+    unscored: dict[str, int] = {}
+    if scored_only:  # audited rows that pass every filter but have no score: their class is not validated
+        passing = _mask(table, "object_index", one_of, *bounds, conditions)  # the filters alone (object_index is never null)
+        missing = pc.invert(_mask(table, query.by, {}, {}, {}, []))
+        audited = pc.is_in(table.column("status"), value_set=pa.array(list(_AUDITED)))
+        for name in table.filter(pc.and_(pc.and_(missing, audited), passing)).column("class_name").to_pylist():
+            unscored[name] = unscored.get(name, 0) + 1
     order = "descending" if query.is_descending else "ascending"
     idx = pc.sort_indices(kept, sort_keys=[(query.by, order), ("frame_id", "ascending"), ("object_index", "ascending")])
     top = kept.take(idx[: query.top])
@@ -164,7 +178,7 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
         full = full.take(pa.array([pos[k] for k in keys], type=pa.int64()))
     else:
         full = schema.empty_table()
-    return RankResult(full, kept.num_rows, query)
+    return RankResult(full, kept.num_rows, query, dict(sorted(unscored.items())))
 
 
 # --------------------------------------------------------------------------- missing labels

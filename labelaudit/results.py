@@ -108,7 +108,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("message", pa.string(), True, "", "why the status is skipped or error; null otherwise", "row"),
     Column("sigma", pa.float64(), True, "m", "LiDAR noise std σ used by the model", "model"),
     Column("jiou_gt", pa.float64(), True, "", "JIoU between the labeled box and its spatial distribution; 1 = no uncertainty", "model"),
-    Column("label_error", pa.float64(), True, "", "how likely the label is wrong (higher = worse); null until computed", "model"),
+    Column("label_error", pa.float64(), True, "", "how likely the label is wrong (higher = worse); null for classes it is not validated for (constants.LABEL_ERROR_CLASSES, docs/label-error.md)", "model"),
     Column("sigma_hat", pa.float64(), True, "m", "per-object RMS fit residual of the points to the box (EM σ̂); null with < 2 points", "model"),
     Column("fit_offset_m", pa.float64(), True, "m", "distance between the labeled box and the model's fitted box; null until computed", "model"),
     Column("corner_tv", pa.list_(pa.float64()), True, "m²", "total variance of the 4 BEV corners, nearest to the sensor first (C1..C4)", "model"),

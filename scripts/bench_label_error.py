@@ -282,7 +282,8 @@ def audit_real(frames: dict[str, Any], cases: list[RealCase], cfg: Any) -> dict[
     """Every case audited by the pipeline (``process_frame``) in its own copy of its frame: the
     frame's other labels unchanged (they stay neighbours) but not audited."""
     cfg = dataclasses.replace(cfg, classes=tuple(sorted({c.class_name for c in cases})))
-    keys = ("label_error", "jiou_gt", "hull_iou", "num_points", "distance", "status", "free_rays", "end_rays", "fit_offset_m")
+    keys = ("label_error", "jiou_gt", "hull_iou", "num_points", "distance", "status", "free_rays", "end_rays", "fit_offset_m", "fit_free_rays",
+            "fit_cx", "fit_cy", "fit_length", "fit_width", "fit_yaw")
     cols: dict[str, list[Any]] = {k: [] for k in keys}
     for case in cases:
         frame = frames[case.frame_id]
@@ -359,6 +360,8 @@ def objective(m: dict[str, float]) -> float:
 
 
 def real(args: argparse.Namespace) -> str:
+    from labelaudit import constants as LC
+
     frames = load_real(args.realdata)
     if not frames:
         return ""
@@ -373,8 +376,10 @@ def real(args: argparse.Namespace) -> str:
             continue
         t0 = time.perf_counter()
         runs = []
+        unvalidated = [c for c in classes if c not in LC.LABEL_ERROR_CLASSES]
         for combo in grid:
-            old = _set_constants(combo)
+            # classes the score is not written for (null in the rows): measured here with it switched on
+            old = _set_constants({**combo, **({"LABEL_ERROR_CLASSES": tuple(LC.LABEL_ERROR_CLASSES) + tuple(unvalidated)} if unvalidated else {})})
             try:
                 runs.append(audit_real(frames, cases, cfg))
             finally:
@@ -406,7 +411,8 @@ def real(args: argparse.Namespace) -> str:
                 t[k][rows] = runs[chosen[f]][k][rows]
         n_obj = len(orig_pts)
         n_dense = sum(v >= REAL_MIN_POINTS for v in orig_pts.values())
-        head = (f"Real KITTI, {title}: {n_obj} labels ({n_dense} with ≥ {REAL_MIN_POINTS} points) in {len(set(fid))} frames, "
+        head = (("NOT VALIDATED — label_error is written null for " + ", ".join(unvalidated) + "; the score computed anyway: " if unvalidated else "")
+                + f"Real KITTI, {title}: {n_obj} labels ({n_dense} with ≥ {REAL_MIN_POINTS} points) in {len(set(fid))} frames, "
                 f"each perturbed {args.real_copies} times (seed {args.seed}; {', '.join(REAL_KINDS)} in turn: shift {REAL_SHIFT[0]}–{REAL_SHIFT[1]} m, "
                 f"length or width ±{REAL_SIZE[0]}–{REAL_SIZE[1]} m, yaw ±{REAL_YAW[0]}–{REAL_YAW[1]} rad), each version in its own copy of its frame; "
                 f"{len(cases) * len(grid)} audits in {wall:.0f} s")
@@ -414,6 +420,12 @@ def real(args: argparse.Namespace) -> str:
             head += f"; leave-one-frame-out over {len(grid)} settings, chosen per held-out frame: " + "; ".join(f"{f}: {grid[i]}" for f, i in chosen.items())
         print(head, flush=True)
         md.append(head + "\n")
+        if args.dump:
+            import pyarrow as pa
+            import pyarrow.csv as pacsv
+
+            cols = {"key": key, "kind": kinds, "what": np.array([c.what for c in cases]), **t}
+            pacsv.write_csv(pa.table({k: pa.array(v.tolist()) for k, v in cols.items()}), args.dump.with_name(f"{args.dump.stem}-{title}{args.dump.suffix}"))
         scores = score_columns(t)
         pos = kinds != "none"
         sub = {f"≥ {REAL_MIN_POINTS} points (headline)": dense & audited, "all": audited,
@@ -464,6 +476,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real", action="store_true", help="only the real-data part (no simulation)")
     ap.add_argument("--real-other-classes", action="store_true", help=f"also perturb and audit the real {', '.join(REAL_OTHER_CLASSES)} labels")
     ap.add_argument("--grid", action="append", default=[], metavar="NAME=v1,v2", help="real data: a constant to choose by leave-one-frame-out (repeatable; tuples as a/b)")
+    ap.add_argument("--dump", type=Path, default=None, help="real data: write every audited version's columns to this CSV (one file per class group)")
     ap.add_argument("--verbose", action="store_true", help="real data: per-label table and the missed copies")
     ap.add_argument("--reuse", action="store_true", help="reuse a simulated dataset / complete results already in --out")
     ap.add_argument("--clutter", action="store_true", help=f"add {CLUTTER[0]}–{CLUTTER[1]} unlabelled clutter objects per frame (not the issue's setting)")

@@ -264,3 +264,17 @@ def test_dataset_format_choices_are_the_readers():
     from labelaudit.datasets import FORMATS
 
     assert [f.value for f in DatasetFormat] == ["auto", *FORMATS]
+
+
+def test_rank_by_label_error_notes_classes_without_a_score(tmp_path):
+    """label_error is null for classes it is not validated for: sorting by it says so (stderr) and
+    ranks the others; sorting by another column says nothing."""
+    rows = [make_row("000001", 0, label_error=0.7), make_row("000001", 1, "Pedestrian", label_error=None),
+            make_row("000001", 2, "Cyclist", label_error=None), make_row("000001", 3, "Pedestrian", label_error=None)]
+    res = make_results(tmp_path / "classes", [rows])
+    r = invoke("rank", res, "--by", "label_error", "--format", "json")
+    assert r.exit_code == 0, r.output
+    assert [x["class_name"] for x in json.loads(r.stdout)] == ["Car"]
+    assert "label_error is null for Cyclist: 1, Pedestrian: 2" in r.stderr and "not validated" in r.stderr
+    assert "null" not in invoke("rank", res, "--format", "json").stderr
+    assert "Pedestrian" not in invoke("rank", res, "--by", "label_error", "--class", "Car").stderr

@@ -45,3 +45,20 @@ def test_a_centre_shift_outweighs_the_same_size_change():
     size = LF.fit_label(_moved(length=0.15), pts, "Car", ModelParams())
     exact = LF.fit_label(CAR, pts, "Car", ModelParams())
     assert exact.label_error < size.label_error < centre.label_error
+
+
+def test_label_error_is_written_only_for_classes_it_is_validated_for():
+    """Vehicles get a score; a pedestrian, a cyclist or a Misc box gets null (on real KITTI the
+    score ranks perturbed pedestrians no better than chance), while its suggested box is still written."""
+    from labelaudit import constants as C
+    from labelaudit.config import load_config
+    from labelaudit.infer.rows import audit_object
+
+    cfg = load_config(None, "kitti")
+    pts = face_points(CAR, ["-x", "-y"], 80, 0.03)
+    car = audit_object(CAR, pts, "Car", cfg)
+    assert isinstance(car["label_error"], float)
+    for name in ("Pedestrian", "Cyclist", "Misc"):
+        assert name not in C.LABEL_ERROR_CLASSES
+        row = audit_object(CAR, pts, name, cfg)
+        assert row["label_error"] is None and np.isfinite(row["fit_cx"]) and row["status"] == "ok"

@@ -984,11 +984,11 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
     fs = FreeSpace(np.array([0.0, 0.0, 1.7]), ends, np.array([0.0, 0.0, 0.0, 0.0]), CAR[:2].copy(), (0.25, 0.6), 0.1)
     terms = M.box_prior_terms(g.validate_box(CAR), ModelParams().prior_for("Car"), 1.0, model)
     phi, sigma = g.phi_of_valid_box(y, model), 0.05
-    for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma)):
+    for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma, g.validate_box(CAR))):
         got, rr, ss, sw = LF._fit_precision_kernel(y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays)
         ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._fit_point_constants(), sigma, phi)
         if rays[0].shape[1]:
-            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays, three_d, phi)
+            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays[:8], three_d, phi, rays[8])
             assert active > 0  # the rays do add rows
             ata = ata + ata_r
             rr_want += rr_r

@@ -44,7 +44,7 @@ def rank(
 ) -> None:
     """List the worst labels first, by JIoU-GT (lowest first) or any numeric column; with --missing, the objects nobody labelled.
 
-    json and csv print every column of the matching rows to stdout, for pipes (csv: list columns as JSON arrays). Rows whose --by value is null (skipped or failed objects) are left out; --where takes any column with ==, !=, >=, <=, > or <. Only the needed columns are read to sort; full rows are fetched for the top N only.
+    json and csv print every column of the matching rows to stdout, for pipes (csv: list columns as JSON arrays). Rows whose --by value is null (skipped or failed objects; label_error of classes it is not validated for, with a note on stderr) are left out; --where takes any column with ==, !=, >=, <=, > or <. Only the needed columns are read to sort; full rows are fetched for the top N only.
 
     --missing lists the candidates of the missing/ table (docs/results-schema.md), highest score first: frame_id and candidate_index name one (`labelaudit show RESULTS FRAME --candidate K` draws it); --class, --min-score, --source, --min-points, --max-distance and --where filter them. Exit 2 when the run did not search (infer --no-missing).
 
@@ -87,6 +87,9 @@ def rank(
         query = RankQuery(by, top, descending, split_list(class_), statuses, min_points, max_distance, tuple(where or ()))
         result = rank_results(_open(results), query)
         _print(out_format, result.table, lambda: print_rank_table(out(), result))
+        if result.unscored:
+            listed = ", ".join(f"{c}: {n}" for c, n in result.unscored.items())
+            err().print(f"note: label_error is null for {listed} (a class the score is not validated for, docs/label-error.md): not ranked", soft_wrap=True)
         if result.matched == 0:
             err().print("no objects match the filters")
 

@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
-from labelaudit.core.freespace import FreeSpace, displacement, free_rows_kernel, ray_bounds
+from labelaudit.core.freespace import FreeSpace, displacement, free_rows_kernel, label_ray_weights, ray_bounds
 from labelaudit.core.geometry import FloatArray
 from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
 from labelaudit.core.posterior import (
@@ -385,8 +385,8 @@ def _solve_spd(M, rhs):  # pragma: no cover - compiled
 
 
 @kernel
-def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, outlier, tol, P0, prior_eta, label, inv_s2, floor, max_iter,
-                        ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
+def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, outlier, tol, P0, prior_eta, label, inv_s2, floor, max_iter, halvings,
+                        ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, wfloor):  # pragma: no cover - compiled
     d = 3 if three_d else 2
     p, n = phi.shape[0], pts_t.shape[1]
     m = ends_t.shape[1]
@@ -400,17 +400,37 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, out
     if m:
         ray_bounds(label, ends_t, ox, oy, hz, reach, bounds)
     phi_prev = phi.copy()
+    descent = halvings > 0 and m > 0  # only rays made plain steps overshoot (points alone: EM converges)
+    e_prev = math.inf
+    halved = 0
     it = 0
     for it in range(1, max_iter + 1):
         _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), a, b, sqd, True)
-        ata, atb, _ = _gram_kernel(a, b, phi, False)
+        ata, atb, rr = _gram_kernel(a, b, phi, descent)
         if m:
             slack = displacement(y_cur, label, reach)
-            k = free_rows_kernel(y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack)
+            k = free_rows_kernel(y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack, wfloor)
             if k:
-                ata_r, atb_r, _ = _gram_kernel(a_r[:, :k], b_r[:k], phi, False)
+                ata_r, atb_r, rr_r = _gram_kernel(a_r[:, :k], b_r[:k], phi, descent)
                 ata += ata_r
                 atb += atb_r
+                rr += rr_r
+        if descent:
+            # the cost at this box (rows and robust weights of this box, prior); a step that raised it
+            # overshot (into free space the rays forbid, past the points): go half way back instead
+            e_cur = rr * inv_s2
+            for i in range(p):  # + φᵀP0φ − 2φᵀη, in scalars (a BLAS dot would load scipy.linalg in the workers)
+                acc = -2.0 * prior_eta[i]
+                for j in range(p):
+                    acc += P0[i, j] * phi[j]
+                e_cur += phi[i] * acc
+            if e_cur > e_prev * (1.0 + 1e-12) + 1e-12 and halved < halvings:
+                halved += 1
+                phi = 0.5 * (phi_prev + phi)
+                y_cur = _rect_from_phi(phi, three_d, label, floor)
+                continue
+            halved = 0
+            e_prev = e_cur
         precision = P0 + ata * inv_s2
         new = _solve_spd(0.5 * (precision + precision.T), prior_eta + atb * inv_s2)
         step = np.max(np.abs(new - phi))
@@ -427,25 +447,26 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, out
 
 
 @kernel
-def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi):  # pragma: no cover - compiled
+def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor):  # pragma: no cover - compiled
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
     b = np.empty(m)
-    active = free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf)
+    active = free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf, wfloor)
     ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
     return ata, atb, rr, active
 
 
+
 @kernel
 def _fit_precision_kernel(y, pts_t, three_d, free_depth, deep_weight, outlier, sigma, phi, P0, inv_s2,
-                          ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit):  # pragma: no cover - compiled
+                          ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, wfloor):  # pragma: no cover - compiled
     """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
     + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
     Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
     operations in NumPy's order (no fast-math)."""
     ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
     if ends_t.shape[1]:
-        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi)
+        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor)
         ata = ata + ata_r
         rr += rr_r
     p = ata.shape[0]
@@ -457,21 +478,25 @@ def _fit_precision_kernel(y, pts_t, three_d, free_depth, deep_weight, outlier, s
     return out, rr, ss, sw
 
 
-_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0)
+_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0, np.empty(0))
 """Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
 
 
-def _ray_inputs(free_space: FreeSpace | None, sigma: float) -> tuple[FloatArray, float, float, FloatArray, float, float, float, float]:
+def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray | None = None) -> tuple:
     """(ends_t (3, M), sensor x, sensor y, hz (5,) = (sensor height, slab bottom, slab top, object height, σ), τ,
-    τ inside, √weight, slit probability) of the fit's ray rows (:func:`~labelaudit.core.freespace.free_rows_kernel`)."""
+    τ inside, √weight, slit probability, the rays' √weight at the label (M,; empty without ``label``))
+    of the fit's ray rows (:func:`~labelaudit.core.freespace.free_rows_kernel`)."""
     if free_space is None or free_space.num_rays == 0:
         return _NO_RAYS
     ends_t, ox, oy, hz = free_space.kernel_inputs()
     hz5 = np.empty(5)
     hz5[:4] = hz
     hz5[4] = sigma
-    return (ends_t, ox, oy, hz5, float(free_space.tolerance), float(free_space.inside_tolerance),
-            float(C.FREE_SPACE_WEIGHT), float(C.FREE_SPACE_SLIT_PROB))
+    tau, tau_in, weight, slit = float(free_space.tolerance), float(free_space.inside_tolerance), float(C.FREE_SPACE_WEIGHT), float(C.FREE_SPACE_SLIT_PROB)
+    floor = np.empty(ends_t.shape[1] if label is not None else 0)
+    if len(floor):
+        label_ray_weights(label, ends_t, ox, oy, hz5, tau, tau_in, weight, slit, floor)
+    return (ends_t, ox, oy, hz5, tau, tau_in, weight, slit, floor)
 
 
 def _fit_iterate(
@@ -499,7 +524,7 @@ def _fit_iterate(
     """
     phi, y_cur, it, converged = _fit_iterate_kernel(
         y_cur, phi, pts, model == "3d", *_fit_point_constants(), float(tol), P0, prior_eta,
-        label, float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, *rays,
+        label, float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, int(C.FIT_STEP_HALVINGS), *rays,
     )
     return phi, y_cur, int(it), bool(converged)
 
@@ -669,7 +694,7 @@ def fit_label_valid(
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
     pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_normal_eq_kernel)
-    rays = _ray_inputs(free_space, sigma)
+    rays = _ray_inputs(free_space, sigma, y)
     prior_eta = terms.eta0  # P0 φ_label
     best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
     # A second start with length and width swapped, when the first fit leaves the points far from

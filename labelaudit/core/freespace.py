@@ -36,7 +36,7 @@ from labelaudit.kernels import kernel
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
 
-__all__ = ["AzimuthBuckets", "FreeSpace", "azimuth_buckets", "ground_heights", "neighbourhoods", "ray_candidates", "ray_counts", "ray_depths"]
+__all__ = ["AzimuthBuckets", "FreeSpace", "azimuth_buckets", "ground_heights", "label_ray_weights", "neighbourhoods", "ray_candidates", "ray_counts", "ray_depths"]
 
 
 @dataclass(frozen=True)
@@ -248,7 +248,7 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
 
 
 @kernel
-def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack):  # pragma: no cover - compiled
+def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack, floor):  # pragma: no cover - compiled
     """Hinge rows of the box fit, one per ray: a (p, M) transposed like the point rows, b (M,).
 
     A ray whose empty part reaches depth d* > τ inside the slab of the current box ``y`` gives the
@@ -266,7 +266,10 @@ def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, 
     crosses it from side to side). Each ray is therefore a mixture of the Gaussian hinge (σ) and a
     "slit" of prior probability ``slit``; its row is weighted by the responsibility of the hinge,
     (1 − slit)·e^(−r²/2σ²) / ((1 − slit)·e^(−r²/2σ²) + slit) with r = d* − τ and σ = ``hz[4]``
-    (iteratively reweighted: as the fit moves, deep rays become shallow and count again).
+    (iteratively reweighted: as the fit moves, deep rays become shallow and count again). A ray's
+    weight is never below ``floor[k]``, its weight at the label (:func:`label_ray_weights`): a ray
+    the label respects is no slit, and the fit cannot slide through it (without the floor a fit
+    that had jumped past a ray, into free space, stopped counting it).
     """
     c, s = math.cos(y[6]), math.sin(y[6])
     rx, ry = ox - y[0], oy - y[1]
@@ -291,6 +294,8 @@ def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, 
         r = dep - tk
         g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
         wk = weight * math.sqrt(g / (g + slit)) if slit > 0.0 else weight
+        if floor.shape[0] and floor[k] > wk:
+            wk = floor[k]
         lx, ly = bx + t * (px - bx), by + t * (py - by)  # deepest point, box frame
         if hl - abs(lx) <= hw - abs(ly):  # the ±length face is nearest
             q0 = 1.0 if lx >= 0.0 else -1.0
@@ -314,6 +319,28 @@ def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, 
         a[d + 3, j] = -wk * v1 * n0
         b[j] = wk * (n0 * wx + n1 * wy + tk)
     return active
+
+
+@kernel
+def label_ray_weights(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, out):  # pragma: no cover - compiled
+    """Per ray (M,), the √weight the fit's hinge row (:func:`free_rows_kernel`) has at the label ``y``:
+    the slit mixture's responsibility of the hinge at the ray's depth in the label's slab beyond its
+    tolerance (0 beyond: the full ``weight`` (1 − slit)^½ at the surface, ``weight`` when the slit is off)."""
+    c, s = math.cos(y[6]), math.sin(y[6])
+    rx, ry = ox - y[0], oy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry
+    hl, hw = 0.5 * y[3], 0.5 * y[4]
+    for k in range(ends_t.shape[1]):
+        qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        dep, _ = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
+        ends_in = abs(px) <= hl and abs(py) <= hw and ends_t[2, k] >= hz[3]
+        r = max(dep - (tau_in if ends_in else tau), 0.0)
+        if slit > 0.0:
+            g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
+            out[k] = weight * math.sqrt(g / (g + slit))
+        else:
+            out[k] = weight
 
 
 def ray_depths(box: ArrayLike, fs: FreeSpace) -> tuple[FloatArray, FloatArray]:

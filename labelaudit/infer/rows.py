@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
@@ -248,7 +249,7 @@ def audit_object(
         "num_points": int(n),
         "sigma": float(post.sigma),
         "jiou_gt": float(jiou_gt(post, cfg.spatial)),
-        "label_error": float(fit.label_error),
+        "label_error": float(fit.label_error) if class_name in C.LABEL_ERROR_CLASSES else None,  # null: not validated for the class
         "sigma_hat": float(post.sigma_hat),
         "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
         "corner_tv": post.corner_tv.tolist(),
