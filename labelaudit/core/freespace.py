@@ -326,16 +326,14 @@ def label_ray_weights(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, out):  #
     """Per ray (M,), the √weight the fit's hinge row (:func:`free_rows_kernel`) has at the label ``y``:
     the slit mixture's responsibility of the hinge at the ray's depth in the label's slab beyond its
     tolerance (0 beyond: the full ``weight`` (1 − slit)^½ at the surface, ``weight`` when the slit is off)."""
+    m = ends_t.shape[1]
+    dep = np.empty(m)
+    _depths_kernel(y, ends_t, ox, oy, hz, dep, np.empty(m))
     c, s = math.cos(y[6]), math.sin(y[6])
-    rx, ry = ox - y[0], oy - y[1]
-    bx, by = c * rx + s * ry, -s * rx + c * ry
-    hl, hw = 0.5 * y[3], 0.5 * y[4]
-    for k in range(ends_t.shape[1]):
+    for k in range(m):
         qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
-        px, py = c * qx + s * qy, -s * qx + c * qy
-        dep, _ = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
-        ends_in = abs(px) <= hl and abs(py) <= hw and ends_t[2, k] >= hz[3]
-        r = max(dep - (tau_in if ends_in else tau), 0.0)
+        ends_in = abs(c * qx + s * qy) <= 0.5 * y[3] and abs(-s * qx + c * qy) <= 0.5 * y[4] and ends_t[2, k] >= hz[3]
+        r = max(dep[k] - (tau_in if ends_in else tau), 0.0)
         if slit > 0.0:
             g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
             out[k] = weight * math.sqrt(g / (g + slit))
