@@ -303,6 +303,7 @@ EXPORT_GLENET_MISSING = -1.0  # GLENet value of an object without label variance
 EXPORT_GLENET_MIN_VARIANCE = 1e-10  # floor of an exported GLENet variance: its loss takes log(v + 1e-10), so a value is never below that offset
 INFOS_DIMENSION_TOLERANCE = 1e-3  # m; an infos object whose l/w/h differ from the result row's by more is a mismatch
 EXPORT_REVIEW_LABEL_ERROR = 0.5  # `export --format kitti-labels`: labels with label_error above this get their suggested box (a reviewer dismisses a wrong one in seconds, so lower than the gate's 0.9)
+EXPORT_REVIEW_TRACK_ERROR = 0.5  # `export --format kitti-labels` (Waymo, AV2): labels with track_error above this get the box their track expects (where the label is likelier wrong than right; lower than the gate's TRACK_FLAG for the same reason as EXPORT_REVIEW_LABEL_ERROR)
 EXPORT_REVIEW_MIN_SCORE = 0.5  # `export --format kitti-labels`: missing-label candidates with a score of at least this are added (the score where a missed object is likelier than not)
 EXPORT_REVIEW_IMAGE_SIZE = (1242, 375)  # pixels; the image_2 size the 2D boxes of added lines are clipped to when the frame's PNG is not there (KITTI's usual size)
 INFOS_PICKLE_PROTOCOL = 4  # pickle protocol of written infos copies: loads on every Python 3 that OpenPCDet/mmdet3d support

@@ -1,17 +1,19 @@
 """The review loop: ``labelaudit export RESULTS --format kitti-labels -o review/`` (docs/review.md).
 
 Writes what a labelling tool imports to fix the labels: per frame, the original labels, the
-suggested box of the label-error fit for each label whose ``label_error`` is above a threshold, and
-the missing-label candidates (objects nobody labelled) whose ``score`` is at least a threshold,
-plus a sidecar listing every added box.
+suggested box of the label-error fit for each label whose ``label_error`` is above a threshold, the
+box its track expects for each tracked label (Waymo, Argoverse 2) whose ``track_error`` is above a
+threshold, and the missing-label candidates (objects nobody labelled) whose ``score`` is at least a
+threshold, plus a sidecar listing every added box.
 
 - KITTI: ``review/label_2/<frame>.txt`` for every frame of the dataset (split) — the original file's
   lines unchanged, then one line per added box in the rectified camera frame, the review score in
   the 16th column (label_error of a suggestion, score of a candidate), every float written in its
   shortest exact form so the file reads back to the same LiDAR box —, beside symbolic links to the
   dataset's ``velodyne``, ``calib`` and ``image_2``, so ``review/`` is itself a KITTI folder.
-- Every other format (Waymo, …): ``review/boxes.parquet``, the same boxes in the LiDAR/vehicle frame
-  (``kind`` = label / suggested / missing).
+- Every other format (Waymo, Argoverse 2, …): ``review/boxes.parquet``, the same boxes in the
+  LiDAR/vehicle frame (``kind`` = label / suggested / missing; a suggestion's ``source`` = fit or
+  track — a label may get both).
 - Both: ``review/changes.csv`` (one row per added box: where it was written and why) and
   ``review/review.json`` (thresholds, counts, frames written without additions and why).
 
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import os
 import shutil
@@ -38,6 +41,7 @@ from numpy.typing import NDArray
 from labelaudit import __version__
 from labelaudit import constants as C
 from labelaudit import results as R
+from labelaudit.config import config_from_params
 from labelaudit.core.geometry import normalize_angle
 from labelaudit.datasets import open_dataset
 from labelaudit.datasets.kitti import (
@@ -51,7 +55,9 @@ from labelaudit.datasets.kitti import (
     read_label,
     read_text_lines,
 )
-from labelaudit.errors import DatasetError, ExportError
+from labelaudit.errors import ConfigError, DatasetError, ExportError
+from labelaudit.infer.tracks import NEEDED_COLUMNS as TRACK_INPUT_COLUMNS
+from labelaudit.infer.tracks import expected_boxes
 from labelaudit.rank import read_candidates
 
 FloatArray = NDArray[np.float64]
@@ -71,10 +77,11 @@ MATCH_TOLERANCE = 1e-6
 
 CHANGE_COLUMNS = (
     "frame_id", "file", "line", "change", "class_name", "score", "object_index", "original_line", "label_error",
-    "fit_offset_m", "candidate_index", "source", "cx", "cy", "cz", "length", "width", "height", "yaw",
+    "fit_offset_m", "candidate_index", "source", "track_error", "track_issue", "cx", "cy", "cz", "length", "width", "height", "yaw",
 )  # fmt: skip
-"""Columns of ``changes.csv``: one row per added box. ``change`` is ``suggested_box`` (the fit of
-label ``object_index``, written at ``line`` of ``file``; ``original_line`` is the label's own line)
+"""Columns of ``changes.csv``: one row per added box. ``change`` is ``suggested_box`` (for label
+``object_index``, written at ``line`` of ``file``; ``original_line`` is the label's own line;
+``source`` fit: the label-error fit, track: the box its track expects, with its ``track_issue``)
 or ``missing_label`` (candidate ``candidate_index``); the box in the LiDAR/vehicle frame."""
 
 BOXES_SCHEMA = pa.schema([
@@ -82,12 +89,14 @@ BOXES_SCHEMA = pa.schema([
     pa.field("kind", pa.string(), nullable=False),  # label | suggested | missing
     pa.field("class_name", pa.string(), nullable=False),
     *(pa.field(c, pa.float64(), nullable=False) for c in R.BOX_COLUMNS),
-    pa.field("score", pa.float64()),  # label_error of a suggestion, score of a candidate, null for a label
+    pa.field("score", pa.float64()),  # label_error of a fit suggestion, track_error of a track suggestion, score of a candidate, null for a label
     pa.field("object_index", pa.int32()),  # the label (label, suggested)
     pa.field("object_id", pa.string()),
     pa.field("label_error", pa.float64()),
     pa.field("candidate_index", pa.int32()),  # the candidate (missing)
-    pa.field("source", pa.string()),  # points | detections | both (missing)
+    pa.field("source", pa.string()),  # fit | track (suggested); points | detections | both (missing)
+    pa.field("track_error", pa.float64()),  # the label's (label, suggested); null without a track
+    pa.field("track_issue", pa.string()),  # size | heading | position | none
 ])  # fmt: skip
 """Schema of ``boxes.parquet`` (formats other than KITTI): every label, suggestion and candidate."""
 
@@ -100,9 +109,10 @@ class ReviewSummary:
     ----------
     output : the review folder; format : "kitti-labels" (label_2 files) or "parquet" (boxes.parquet)
     frames_written : label files written (KITTI) or frames with a box in boxes.parquet
-    labels : original labels written; suggested : suggested boxes added; missing : candidates added
+    labels : original labels written; suggested : suggested boxes of the label-error fit added;
+    track_suggested : boxes a track expects added; missing : candidates added
     frames_changed : frames with at least one added box
-    min_label_error, min_score : the thresholds used
+    min_label_error, min_track_error, min_score : the thresholds used
     missing_searched : False when the results have no missing-label table (``infer --no-missing``)
     unreviewed_frames : frame id → why nothing was added to it (its label file unreadable, or edited since
         infer: written as it is, so an import loses nothing; a frame of the results not in the dataset: not written)
@@ -118,6 +128,8 @@ class ReviewSummary:
     min_label_error: float
     min_score: float
     missing_searched: bool
+    track_suggested: int = 0
+    min_track_error: float = C.EXPORT_REVIEW_TRACK_ERROR
     unreviewed_frames: dict[str, str] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -148,8 +160,8 @@ def _selected(results: R.Results, min_score: float) -> tuple[pa.Table, pa.Table 
     import pyarrow.compute as pc
 
     columns = ["frame_id", "object_index", "object_id", "class_name", "status", *R.BOX_COLUMNS, "label_error", "fit_offset_m", "label_line",
-               "fit_cx", "fit_cy", "fit_cz", "fit_length", "fit_width", "fit_height", "fit_yaw"]  # fmt: skip
-    labels = results.read(columns)
+               "fit_cx", "fit_cy", "fit_cz", "fit_length", "fit_width", "fit_height", "fit_yaw", *R.TRACK_COLUMNS, *TRACK_INPUT_COLUMNS]  # fmt: skip
+    labels = results.read(list(dict.fromkeys(columns)))
     candidates = read_candidates(results)
     if candidates is not None:
         candidates = candidates.filter(pc.fill_null(pc.greater_equal(candidates.column("score"), min_score), False))
@@ -162,6 +174,30 @@ def _suggest_mask(labels: pa.Table, min_label_error: float) -> NDArray[np.bool_]
     fit = suggested_boxes(labels)
     with np.errstate(invalid="ignore"):
         return np.isin(status, AUDITED_STATUSES) & (lerr > min_label_error) & np.isfinite(fit).all(axis=1) & (fit[:, 3:6] > 0).all(axis=1)
+
+
+def _track_suggestions(results: R.Results, labels: pa.Table, min_track_error: float) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Which labels get the box their track expects (``track_error`` above the threshold), and those boxes (N, 7).
+
+    The boxes are recomputed with the run's own configuration and per-class label noise (the
+    metadata of ``tracks.parquet``), so they are the predictions the label's ``track_error`` judged it by.
+    """
+    err = np.asarray(labels.column("track_error").to_numpy(zero_copy_only=False), dtype=float)
+    with np.errstate(invalid="ignore"):
+        mask = err > min_track_error
+    if not mask.any():
+        return mask, np.full((labels.num_rows, 7), np.nan)
+    try:
+        cfg = config_from_params(results.manifest["params"], source=f"{results.root / R.MANIFEST_NAME} params")
+    except (ConfigError, KeyError) as exc:
+        raise ExportError(f"{results.root}: the run's parameters cannot be read ({exc}); rerun `labelaudit infer` with this labelaudit for track suggestions, or pass --min-track-error 1") from None
+    tracks = results.tracks()
+    used = (tracks.schema.metadata or {}).get(b"labelaudit") if tracks is not None else None
+    noise = json.loads(used).get("track_noise") if used else None
+    boxes = expected_boxes(labels, cfg, noise, only=mask)
+    with np.errstate(invalid="ignore"):
+        mask &= np.isfinite(boxes).all(axis=1) & (boxes[:, 3:6] > 0).all(axis=1)
+    return mask, boxes
 
 
 # --------------------------------------------------------------------------- KITTI
@@ -307,8 +343,8 @@ def _review_frame(reader: Any, fid: str, lines: list[str], rows: list[dict[str, 
         new = kitti_lines(boxes, [r["class_name"] for r in picked], lerr, parsed.truncated[src], parsed.occluded[src], calib, image_size)
         for r, box, text in zip(picked, boxes, new):
             added.append(text)
-            changes.append(_change(fid, file, len(lines) + len(added), "suggested_box", r["class_name"], r["label_error"], box,
-                                   object_index=r["object_index"], original_line=r["label_line"], label_error=r["label_error"], fit_offset_m=r["fit_offset_m"]))  # fmt: skip
+            changes.append(_change(fid, file, len(lines) + len(added), "suggested_box", r["class_name"], r["label_error"], box, object_index=r["object_index"],
+                                   original_line=r["label_line"], label_error=r["label_error"], fit_offset_m=r["fit_offset_m"], source="fit"))  # fmt: skip
     if cands:
         boxes = np.array([[c[n] for n in R.BOX_COLUMNS] for c in cands], dtype=float)
         scores = np.array([c["score"] for c in cands], dtype=float)
@@ -338,19 +374,24 @@ def _change(frame_id: str, file: str | None, line: int | None, change: str, clas
 # --------------------------------------------------------------------------- other formats
 
 
-def _export_parquet(output: Path, labels: pa.Table, suggest: NDArray[np.bool_], candidates: pa.Table | None,
-                    changes: list[dict[str, Any]], summary: ReviewSummary) -> None:  # fmt: skip
+def _export_parquet(output: Path, labels: pa.Table, suggest: NDArray[np.bool_], track: NDArray[np.bool_], track_boxes: FloatArray,
+                    candidates: pa.Table | None, changes: list[dict[str, Any]], summary: ReviewSummary) -> None:  # fmt: skip
     rows: list[dict[str, Any]] = []
     fits = suggested_boxes(labels)
     changed: set[str] = set()
     for k, r in enumerate(labels.to_pylist()):
         box = {c: r[c] for c in R.BOX_COLUMNS}
-        common = {"frame_id": r["frame_id"], "class_name": r["class_name"], "object_index": r["object_index"], "object_id": r["object_id"], "label_error": r["label_error"]}
+        common = {"frame_id": r["frame_id"], "class_name": r["class_name"], "object_index": r["object_index"], "object_id": r["object_id"],
+                  "label_error": r["label_error"], "track_error": r["track_error"], "track_issue": r["track_issue"]}  # fmt: skip
         rows.append({**common, **box, "kind": "label"})
-        if suggest[k]:
-            rows.append({**common, **dict(zip(R.BOX_COLUMNS, fits[k].tolist())), "kind": "suggested", "score": r["label_error"]})
-            changes.append(_change(r["frame_id"], None, None, "suggested_box", r["class_name"], r["label_error"], fits[k],
-                                   object_index=r["object_index"], label_error=r["label_error"], fit_offset_m=r["fit_offset_m"]))  # fmt: skip
+        # A label may get both: the fit says where its points put it, the track where its other frames do.
+        for source, on, new, score in (("fit", suggest, fits, r["label_error"]), ("track", track, track_boxes, r["track_error"])):
+            if not on[k]:
+                continue
+            rows.append({**common, **dict(zip(R.BOX_COLUMNS, new[k].tolist())), "kind": "suggested", "score": score, "source": source})
+            changes.append(_change(r["frame_id"], None, None, "suggested_box", r["class_name"], score, new[k], object_index=r["object_index"],
+                                   label_error=r["label_error"], fit_offset_m=r["fit_offset_m"] if source == "fit" else None, source=source,
+                                   track_error=r["track_error"], track_issue=r["track_issue"]))  # fmt: skip
             changed.add(r["frame_id"])
     for c in candidates.to_pylist() if candidates is not None else []:
         rows.append({"frame_id": c["frame_id"], "class_name": c["class_name"], **{n: c[n] for n in R.BOX_COLUMNS}, "kind": "missing",
@@ -359,12 +400,13 @@ def _export_parquet(output: Path, labels: pa.Table, suggest: NDArray[np.bool_], 
                                candidate_index=c["candidate_index"], source=c["source"]))  # fmt: skip
         changed.add(c["frame_id"])
     kind_order = {"label": 0, "suggested": 1, "missing": 2}
-    rows.sort(key=lambda r: (r["frame_id"], kind_order[r["kind"]], r.get("object_index") or 0, r.get("candidate_index") or 0))
+    rows.sort(key=lambda r: (r["frame_id"], kind_order[r["kind"]], r.get("object_index") or 0, r.get("candidate_index") or 0, r.get("source") or ""))
     table = pa.Table.from_pylist(rows, schema=BOXES_SCHEMA)
     R.write_parquet_atomic(table, output / BOXES_FILE)
     summary.frames_written = len({r["frame_id"] for r in rows})
     summary.labels = labels.num_rows
     summary.suggested = int(suggest.sum())
+    summary.track_suggested = int(track.sum())
     summary.missing = 0 if candidates is None else candidates.num_rows
     summary.frames_changed = len(changed)
 
@@ -388,6 +430,7 @@ def export_review(
     min_label_error: float = C.EXPORT_REVIEW_LABEL_ERROR,
     min_score: float = C.EXPORT_REVIEW_MIN_SCORE,
     dataset: str | Path | None = None,
+    min_track_error: float = C.EXPORT_REVIEW_TRACK_ERROR,
 ) -> ReviewSummary:
     """Write the review folder of a results folder (see the module docstring).
 
@@ -398,6 +441,8 @@ def export_review(
     min_label_error : labels with ``label_error`` above this get their suggested box
     min_score : missing-label candidates with ``score`` at least this are added
     dataset : the dataset's current location when it moved since ``infer`` (KITTI)
+    min_track_error : tracked labels (Waymo, Argoverse 2) with ``track_error`` above this get the box
+        their track expects (:func:`labelaudit.infer.tracks.expected_boxes`), beside any fit suggestion
 
     Raises
     ------
@@ -407,7 +452,7 @@ def export_review(
     ResultsError
         Not a results folder.
     """
-    for name, value in (("--min-label-error", min_label_error), ("--min-score", min_score)):
+    for name, value in (("--min-label-error", min_label_error), ("--min-score", min_score), ("--min-track-error", min_track_error)):
         if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
             raise ExportError(f"{name} must be in [0, 1], got {value!r}")
     results = R.open_results(results_path)
@@ -419,7 +464,8 @@ def export_review(
         raise ExportError(f"{results.root}: no run manifest with the dataset's format and path; the review export needs a results folder written by `labelaudit infer`")
     labels, candidates = _selected(results, min_score)
     suggest = _suggest_mask(labels, min_label_error)
-    summary = ReviewSummary(str(out), "kitti-labels" if fmt == "kitti" else "parquet", 0, 0, 0, 0, 0, float(min_label_error), float(min_score), candidates is not None)
+    summary = ReviewSummary(str(out), "kitti-labels" if fmt == "kitti" else "parquet", 0, 0, 0, 0, 0, float(min_label_error), float(min_score), candidates is not None,
+                            min_track_error=float(min_track_error))  # fmt: skip
     changes: list[dict[str, Any]] = []
     out.mkdir(parents=True, exist_ok=True)
     if fmt == "kitti":
@@ -428,8 +474,10 @@ def export_review(
             raise ExportError(f"{path}: the dataset of these results is not there (moved?); pass --dataset with its current location")
         _export_kitti(path, manifest.get("split"), out, labels, suggest, candidates, changes, summary)
     else:
-        _export_parquet(out, labels, suggest, candidates, changes, summary)
-    changes.sort(key=lambda c: (c["frame_id"], c["line"] or 0, c["change"], c["object_index"] or 0, c["candidate_index"] or 0))
+        # Tracks exist only where object ids are track ids (Waymo, Argoverse 2): never in KITTI's label files.
+        track, track_boxes = _track_suggestions(results, labels, min_track_error)
+        _export_parquet(out, labels, suggest, track, track_boxes, candidates, changes, summary)
+    changes.sort(key=lambda c: (c["frame_id"], c["line"] or 0, c["change"], c["object_index"] or 0, c["candidate_index"] or 0, c["source"] or ""))
     R.write_text_atomic(_changes_csv(changes), out / CHANGES_FILE)
     record = {"tool": "labelaudit", "tool_version": __version__, "results": str(results.root.resolve()), "dataset": str(Path(str(dataset or manifest.get("input"))).absolute()),
               "dataset_format": fmt, "param_hash": manifest.get("param_hash"), **summary.to_dict()}  # fmt: skip

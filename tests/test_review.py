@@ -238,3 +238,63 @@ def test_kitti_labels_on_real_frames(realdata, tmp_path):
         k = list(frame.extras["label_line"]).index(int(c["line"]))
         np.testing.assert_allclose(frame.boxes[k], [float(c[n]) for n in R.BOX_COLUMNS], rtol=0, atol=1e-9)
         assert frame.extras["score"][k] == float(c["score"]) and len(frame.points) > 10000
+
+
+@pytest.fixture(scope="module")
+def av2_tracks(tmp_path_factory):
+    """Simulated Argoverse 2 logs with annotator errors injected inside tracks, audited through the CLI."""
+    root = tmp_path_factory.mktemp("review-av2")
+    sim, results = root / "sim", root / "results"
+    r = invoke("simulate", sim, "--dataset-format", "av2", "--track-noise", "--moving", "0.5", "--noise-fraction", "0", "--gross-fraction", "0",
+               "--frames", "12", "--sequences", "2", "--size", "small", "--seed", "3", "-q")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    r = invoke("infer", sim, "-o", results, "--workers", "1")
+    assert r.exit_code == 0, r.output
+    return sim, results
+
+
+def test_track_suggestions_fix_the_injected_frames_and_leave_clean_ones_alone(av2_tracks, tmp_path):
+    from labelaudit.core.geometry import box_corners
+    from labelaudit.infer.tracks import log_of
+    from labelaudit.sim.tracknoise import ISSUE_OF_KIND
+
+    sim, results = av2_tracks
+    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert "boxes from tracks (track_error > 0.5)" in result.stderr
+    truth = {(m["frame_id"], m["object_id"]): m for m in pq.read_table(sim / "manifest.parquet").to_pylist()}
+    boxes = pq.read_table(tmp_path / "review" / "boxes.parquet").to_pylist()
+    labels = {(b["frame_id"], b["object_index"]): b for b in boxes if b["kind"] == "label"}
+    track = {(b["frame_id"], b["object_index"]): b for b in boxes if b["kind"] == "suggested" and b["source"] == "track"}
+    assert all(b["source"] in ("fit", "track") for b in boxes if b["kind"] == "suggested")
+    injected = {k for k, b in labels.items() if truth[(b["frame_id"], b["object_id"])]["track_error_kind"] != "none"}
+    assert len(injected) >= 10 and set(track) == injected  # every injected frame gets one, no clean frame does
+    assert summary["track_suggested"] == len(injected)
+    fused = {(t["log_id"], t["object_id"]): (t["length"], t["width"], t["height"]) for t in pq.read_table(results / R.TRACKS_FILE).to_pylist()}
+
+    def corner_error(b, true_box):  # mean distance of the 8 corners (in order: a flip counts)
+        return float(np.linalg.norm(box_corners([b[c] for c in R.BOX_COLUMNS]) - box_corners(true_box), axis=-1).mean())
+
+    errors = []
+    for key in injected:
+        label, fix = labels[key], track[key]
+        m = truth[(label["frame_id"], label["object_id"])]
+        assert fix["track_issue"] == ISSUE_OF_KIND[m["track_error_kind"]] and fix["score"] == fix["track_error"] == label["track_error"] > 0.5
+        errors.append((corner_error(fix, m["true_box"]), corner_error(label, m["true_box"])))
+        assert errors[-1][0] < errors[-1][1], (m["track_error_kind"], fix, label)  # closer to the true box than the label it fixes
+        assert [fix["length"], fix["width"], fix["height"]] == pytest.approx(fused[(log_of(label["frame_id"]), label["object_id"])], abs=1e-9)
+    assert np.median([f for f, _ in errors]) < 0.25 * np.median([lab for _, lab in errors])
+    # A label with both suggestions gets both rows, and both are in the sidecar, tagged.
+    fits = {(b["frame_id"], b["object_index"]) for b in boxes if b["kind"] == "suggested" and b["source"] == "fit"}
+    assert fits & injected
+    changes = list(csv.DictReader((tmp_path / "review" / "changes.csv").open()))
+    assert sorted((c["frame_id"], int(c["object_index"]), c["source"]) for c in changes) == sorted(
+        [(f, i, "fit") for f, i in fits] + [(f, i, "track") for f, i in track])
+    assert all(c["track_issue"] != "none" for c in changes if c["source"] == "track")
+    # The threshold moves them; bad values and misuse are refused.
+    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--json", "--min-track-error", "1")
+    assert result.exit_code == 0 and json.loads(result.stdout)["track_suggested"] == 0
+    assert not any(b["source"] == "track" for b in pq.read_table(tmp_path / "review" / "boxes.parquet").to_pylist())
+    assert invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "r2", "--min-track-error", "1.5").exit_code == 2
+    assert invoke("export", results, "-o", tmp_path / "x.parquet", "--min-track-error", "0.7").exit_code == 2

@@ -278,3 +278,13 @@ def test_simulated_segment_vehicles_drive_and_record_track_errors(tmp_path: Path
     plain = simulate_waymo_segment(seed=3, frames=1, size="small", chunks=1)
     still = simulate_waymo_segment(seed=3, frames=1, size="small", chunks=1, moving_fraction=0.0)
     assert np.array_equal(plain.frames[0].points, still.frames[0].points) and plain.frames[0].track_error_kind == []
+
+
+def test_to_frame_moves_world_boxes_into_a_labels_frame() -> None:
+    """The frame's pose from one label (frame rotated by π/2 in the world, origin at (10, 5, 2)): a known answer, and the label itself comes back."""
+    label = np.array([1.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0])
+    label_world = np.array([10.0, 6.0, 2.0, math.pi / 2])
+    world = np.array([[10.0, 8.0, 3.0, 4.5, 1.8, 1.6, math.pi], [10.0, 6.0, 2.0, 4.0, 2.0, 1.5, math.pi / 2]])
+    out = T.to_frame(world, label, label_world)
+    assert np.allclose(out[0], [3.0, 0.0, 1.0, 4.5, 1.8, 1.6, math.pi / 2], atol=1e-12)
+    assert np.allclose(out[1], label, atol=1e-12)

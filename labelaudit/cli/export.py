@@ -47,6 +47,7 @@ def export(
     anchor_size: Optional[list[str]] = typer.Option(None, "--anchor-size", help="CLASS=l,w,h anchor size for --encoding residual and --format glenet (repeat; adds to/overrides the KITTI or Waymo defaults)."),
     min_label_error: float = typer.Option(C.EXPORT_REVIEW_LABEL_ERROR, "--min-label-error", help="kitti-labels: add the suggested box (the label-error fit) of labels whose label_error is above this."),
     min_score: float = typer.Option(C.EXPORT_REVIEW_MIN_SCORE, "--min-score", help="kitti-labels: add the missing-label candidates whose score is at least this."),
+    min_track_error: float = typer.Option(C.EXPORT_REVIEW_TRACK_ERROR, "--min-track-error", help="kitti-labels on Waymo / Argoverse 2 results: add the box its track expects (source track) for labels whose track_error is above this."),
     dataset: Optional[Path] = typer.Option(None, "--dataset", help="kitti-labels: the dataset's current location, when it moved since `infer`."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
@@ -57,7 +58,7 @@ def export(
 
     --format glenet writes what GLENet's training reads instead of its CVAE's output: annos['uncertainty'] (K, 7) of every infos frame, DontCare included, and 'uncertainty' (7,) of every gt-database entry — variances of OpenPCDet's ResidualCoder targets at the class anchor (x, y, z, log l, log w, log h, sin of the heading difference), all > 0; objects without a posterior get -1, as GLENet writes them. A BEV posterior takes z and h from the class prior (counted; --model 3d infers them). How to train with them: docs/training.md.
 
-    --format kitti-labels writes the review loop into the folder -o (docs/review.md): per frame a KITTI label_2 file with the original lines unchanged, then the suggested box of every label whose label_error is above --min-label-error and every missing-label candidate whose score is at least --min-score, the score in the 16th column; changes.csv lists each added box, review.json the counts. Boxes are converted back to the rectified camera frame exactly (they read back to the same LiDAR boxes). Other datasets (Waymo …): the same boxes as boxes.parquet in the LiDAR frame.
+    --format kitti-labels writes the review loop into the folder -o (docs/review.md): per frame a KITTI label_2 file with the original lines unchanged, then the suggested box of every label whose label_error is above --min-label-error and every missing-label candidate whose score is at least --min-score, the score in the 16th column; changes.csv lists each added box, review.json the counts. Boxes are converted back to the rectified camera frame exactly (they read back to the same LiDAR boxes). Other datasets (Waymo, Argoverse 2 …): the same boxes as boxes.parquet in the LiDAR frame, plus, for every tracked label whose track_error is above --min-track-error, the box the rest of its track expects in that frame (predicted centre and heading, the track's fused size): a suggestion with source track and its track_issue, beside the fit's suggestion (source fit) when the label has both.
 
     Objects without targets (DontCare, classes not audited, rows without a posterior, frames missing from the results) get NaN and a False mask (-1 for glenet), never a neighbour's values; the summary (stderr, or --json on stdout) counts them by reason. Exit 2 for bad options, unreadable results, a pickle with a disallowed global, an infos file that does not match the results (the message names the first mismatching frame), or when no object got targets; nothing is written then.
 
@@ -76,6 +77,8 @@ def export(
       labelaudit export results/ --format glenet --infos waymo_processed_data_v0_5_0/ --dbinfos waymo_processed_data_v0_5_0_waymo_dbinfos_train_sampled_1.pkl -o glenet/
 
       labelaudit export results/ --format kitti-labels -o review/ --min-score 0.6
+
+      labelaudit export av2-results/ --format kitti-labels -o review/ --min-track-error 0.9
     """
     from labelaudit.export import export_results, parse_anchor_sizes
 
@@ -85,9 +88,10 @@ def export(
             for option, used in given:
                 if used:
                     raise typer.BadParameter("is for the training targets (parquet, openpcdet, mmdet3d, glenet), not --format kitti-labels", param_hint=option)
-            _export_review(results, output, min_label_error, min_score, dataset, as_json)
+            _export_review(results, output, min_label_error, min_score, min_track_error, dataset, as_json)
             return
-        for option, given in (("--min-label-error", min_label_error != C.EXPORT_REVIEW_LABEL_ERROR), ("--min-score", min_score != C.EXPORT_REVIEW_MIN_SCORE), ("--dataset", dataset is not None)):
+        for option, given in (("--min-label-error", min_label_error != C.EXPORT_REVIEW_LABEL_ERROR), ("--min-score", min_score != C.EXPORT_REVIEW_MIN_SCORE),
+                              ("--min-track-error", min_track_error != C.EXPORT_REVIEW_TRACK_ERROR), ("--dataset", dataset is not None)):  # fmt: skip
             if given:
                 raise typer.BadParameter("only with --format kitti-labels", param_hint=option)
         summary = export_results(
@@ -133,18 +137,20 @@ def export(
             console.print(f"wrote {escape(path)} ({summary.format})", soft_wrap=True)
 
 
-def _export_review(results: Path, output: Path, min_label_error: float, min_score: float, dataset: Optional[Path], as_json: bool) -> None:
+def _export_review(results: Path, output: Path, min_label_error: float, min_score: float, min_track_error: float, dataset: Optional[Path], as_json: bool) -> None:
     """``--format kitti-labels``: :func:`labelaudit.review.export_review`, its counts on stderr (or JSON on stdout)."""
     from labelaudit.review import export_review
 
-    summary = export_review(results, output, min_label_error=min_label_error, min_score=min_score, dataset=dataset)
+    summary = export_review(results, output, min_label_error=min_label_error, min_score=min_score, dataset=dataset, min_track_error=min_track_error)
     if as_json:
         sys.stdout.write(json.dumps(summary.to_dict(), indent=2, sort_keys=True) + "\n")
     console = err()
     what = "label_2 files" if summary.format == "kitti-labels" else "frames in boxes.parquet"
     console.print(
         f"review: {summary.frames_written} {what} ({summary.frames_changed} changed): {summary.labels} labels, "
-        f"{summary.suggested} suggested boxes (label_error > {summary.min_label_error:g}), {summary.missing} missing-label candidates (score ≥ {summary.min_score:g})",
+        f"{summary.suggested} suggested boxes (label_error > {summary.min_label_error:g}), "
+        + (f"{summary.track_suggested} boxes from tracks (track_error > {summary.min_track_error:g}), " if summary.format == "parquet" else "")
+        + f"{summary.missing} missing-label candidates (score ≥ {summary.min_score:g})",
         soft_wrap=True,
     )
     if not summary.missing_searched:

@@ -374,3 +374,36 @@ def issue_of(scores: FloatArray, threshold: float) -> list[str]:
     best = np.argmax(scores, axis=1)
     top = scores[np.arange(len(scores)), best]
     return [ISSUES[b] if s >= threshold else "none" for b, s in zip(best, top)]
+
+
+def to_frame(world_boxes: FloatArray, box: FloatArray, world_box: FloatArray) -> FloatArray:
+    """Boxes of the world frame moved into the LiDAR/vehicle frame of the frame a label belongs to.
+
+    The frame's pose comes from the label itself (the same box in both frames): heading
+    ψ = world_yaw − yaw, BEV shift t = world_c − R(ψ)·c, height shift world_cz − cz.
+
+    Parameters
+    ----------
+    world_boxes : (N, 7) boxes in the world frame (cx, cy, cz, length, width, height, yaw)
+    box : (N, 7) or (7,) the label in its frame (the objects table's ``cx … yaw``)
+    world_box : (N, 4) or (4,) the same label in the world frame (``world_cx, world_cy, world_cz, world_yaw``)
+
+    Returns
+    -------
+    (N, 7) the boxes in the label's frame, sizes unchanged, yaw in [-π, π)
+    """
+    w = np.atleast_2d(np.asarray(world_boxes, dtype=float))
+    b = np.broadcast_to(np.asarray(box, dtype=float), (len(w), 7))
+    wb = np.broadcast_to(np.asarray(world_box, dtype=float), (len(w), 4))
+    psi = wb[:, 3] - b[:, 6]
+    c, s = np.cos(psi), np.sin(psi)
+    # The label's world centre minus its frame centre rotated by ψ is the frame's origin in the world.
+    ox = wb[:, 0] - (c * b[:, 0] - s * b[:, 1])
+    oy = wb[:, 1] - (s * b[:, 0] + c * b[:, 1])
+    dx, dy = w[:, 0] - ox, w[:, 1] - oy
+    out = w.copy()
+    out[:, 0] = c * dx + s * dy
+    out[:, 1] = -s * dx + c * dy
+    out[:, 2] = w[:, 2] - (wb[:, 2] - b[:, 2])
+    out[:, 6] = normalize_angle(w[:, 6] - psi)
+    return out

@@ -300,6 +300,43 @@ def score_table(table: pa.Table, cfg: RunConfig | None = None, params: T.TrackPa
     return _score(tracks, noise, params)
 
 
+def expected_boxes(table: pa.Table, cfg: RunConfig | None = None, noise: Mapping[str, Mapping[str, float]] | None = None,
+                   params: T.TrackParams | None = None, only: np.ndarray | None = None) -> np.ndarray:
+    """Per row the box the rest of its track expects in this frame, in the row's own LiDAR/vehicle frame.
+
+    The centre and heading are those the track model predicts for the frame from its neighbouring
+    frames, the frame itself left out (the predictions its ``track_error`` judges the label by); the
+    size is the track's fused size (``tracks.parquet``'s length, width, height). Same tracks, noise
+    and model as :func:`score_table`.
+
+    Parameters
+    ----------
+    table : the objects table (at least :data:`NEEDED_COLUMNS` and the box ``cx … yaw``)
+    cfg, params, noise : as :func:`score_table` (``noise``: ``tracks.parquet``'s metadata ``track_noise``
+        to reproduce a run's scores; None: estimated from this table)
+    only : (R,) bool; when given, only the tracks holding at least one of these rows are computed
+
+    Returns
+    -------
+    (R, 7) cx, cy, cz, length, width, height, yaw; NaN for a row without a scored track (or not in ``only``'s tracks)
+    """
+    params = params or T.default_params()
+    tracks = _Tracks.of(table, cfg, params)
+    if noise is None:
+        noise = _noise_of(_noise_counts(tracks, params))
+    out = np.full((table.num_rows, 7), np.nan)
+    label = np.stack([_column(table, b) for b in R.BOX_COLUMNS], axis=1).reshape(-1, 7)
+    label_world = np.stack([tracks.rows.num[w] for w in ("world_cx", "world_cy", "world_cz", "world_yaw")], axis=1).reshape(-1, 4)
+    for k, (g, c) in enumerate(zip(tracks.groups, tracks.classes)):
+        if only is not None and not only[g].any():
+            continue
+        r = tracks.residuals(k, _noise_from(noise.get(c, C.TRACK_NOISE_FLOOR)), params)
+        world = r.expected.copy()
+        world[:, 3:6] = r.size_mean
+        out[g] = T.to_frame(world, label[g], label_world[g])
+    return out
+
+
 def tracks_table(scores: TrackScores, metadata: Mapping[str, Any] | None = None) -> pa.Table:
     """``tracks.parquet``'s table: one row per track, sorted by log and object id."""
     rows = sorted(scores.tracks, key=lambda r: (r["log_id"], r["object_id"]))

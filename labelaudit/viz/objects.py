@@ -466,20 +466,13 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
         return None
     i = here[0]
     chosen = mates[max(0, i - frames) : i] + mates[i + 1 : i + 1 + frames]
-    # this frame's pose from its own row: ψ = world_yaw − yaw, t = world_c − R(ψ)·c
-    psi = float(row["world_yaw"]) - float(row["yaw"])
-    rot = g.rotation_2d(psi)
-    shift = np.array([row["world_cx"], row["world_cy"]]) - rot @ np.array([row["cx"], row["cy"]])
-    dz = float(row["world_cz"]) - float(row["cz"])
+    label = np.array([row[c] for c in BOX_COLUMNS], dtype=float)
+    label_world = np.array([row["world_cx"], row["world_cy"], row["world_cz"], row["world_yaw"]], dtype=float)
 
-    def here(world_box: Sequence[float]) -> FloatArray:
-        out = np.asarray(world_box, dtype=float).copy()
-        out[:2] = rot.T @ (out[:2] - shift)
-        out[2] -= dz
-        out[6] = g.normalize_angle(float(out[6]) - psi)
-        return out
+    def here(world_boxes: Sequence[Sequence[float]]) -> FloatArray:  # into this frame (its pose from this row)
+        return T.to_frame(np.asarray(world_boxes, dtype=float).reshape(-1, 7), label, label_world)
 
-    boxes = np.array([here([r["world_cx"], r["world_cy"], r["world_cz"], r["length"], r["width"], r["height"], r["world_yaw"]]) for r in chosen]).reshape(-1, 7)
+    boxes = here([[r["world_cx"], r["world_cy"], r["world_cz"], r["length"], r["width"], r["height"], r["world_yaw"]] for r in chosen])
     size = None
     noise = T.TrackNoise.floor()
     tracks = results.tracks()
@@ -498,7 +491,7 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
             t - t[0], np.array([[r["world_cx"], r["world_cy"], r["world_cz"]] for r in mates]), np.array([r["world_yaw"] for r in mates]),
             np.array([[r["length"], r["width"], r["height"]] for r in mates]), noise, T.default_params(),
         )
-        expected = here(res.expected[i])
+        expected = here(res.expected[i])[0]
     return TrackView(
         np.array([r["timestamp"] - row["timestamp"] for r in chosen], dtype=float), boxes, [str(r["frame_id"]) for r in chosen],
         row.get("track_error"), row.get("track_issue"), size, expected,
