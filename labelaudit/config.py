@@ -45,7 +45,9 @@ class MissingParams:
     """The search for objects without a label (``missing/``, docs/missing.md)."""
 
     enabled: bool = True  # --no-missing: False
-    max_range: float = C.MISSING_MAX_RANGE  # m; candidates farther than this (BEV) from the sensor are not looked for (the dataset's labelled range)
+    max_range: float = (
+        C.MISSING_MAX_RANGE
+    )  # m; candidates farther than this (BEV) from the sensor are not looked for (the dataset's labelled range)
     min_points: int = C.MISSING_MIN_POINTS  # a cluster with fewer points above the ground is no candidate
     detections: str | None = None  # --detections: absolute path of a detector's output (the formats `eval` reads)
     detections_format: str = "auto"  # auto, kitti, waymo or parquet
@@ -159,7 +161,12 @@ def _build(cls: type, section: Mapping[str, Any], where: str, source: str, skip:
     return kw
 
 
-BUILTIN_CONFIGS: dict[str, str] = {"kitti": "kitti.toml", "waymo-v2": "waymo.toml", "waymo-v1": "waymo.toml", "av2": "av2.toml"}
+BUILTIN_CONFIGS: dict[str, str] = {
+    "kitti": "kitti.toml",
+    "waymo-v2": "waymo.toml",
+    "waymo-v1": "waymo.toml",
+    "av2": "av2.toml",
+}
 """The built-in config file (in :data:`CONFIG_DIR`) of each dataset format."""
 
 
@@ -226,7 +233,9 @@ def config_from_dict(data: Mapping[str, Any], *, source: str = "<config>", datas
     spatial = SpatialParams(**_build(SpatialParams, data.get("spatial", {}), "spatial", source))
     crop = CropParams(**_build(CropParams, data.get("crop", {}), "crop", source))
     # the detections are a run option (--detections), not a model setting
-    missing = MissingParams(**_build(MissingParams, data.get("missing", {}), "missing", source, skip={"detections", "detections_format"}))
+    missing = MissingParams(
+        **_build(MissingParams, data.get("missing", {}), "missing", source, skip={"detections", "detections_format"})
+    )
     lengths = {k: _typed(ds[k], float, f"[dataset] {k}", source) for k in ("min_length", "max_length") if k in ds}
     cfg = RunConfig(
         dataset_format=dataset_format,
@@ -247,24 +256,46 @@ def validate_config(cfg: RunConfig, source: str = "<config>") -> None:
     (and the length range), raising :class:`ConfigError` with the value and the accepted range."""
     lo, hi = cfg.min_length, cfg.max_length
     if not (math.isfinite(lo) and lo >= 0 and hi > lo):  # max_length = inf is the default: no upper cut
-        raise ConfigError(f"{source}: [dataset] min_length must be finite and ≥ 0 and max_length > min_length, got {lo} and {hi}")
+        raise ConfigError(
+            f"{source}: [dataset] min_length must be finite and ≥ 0 and max_length > min_length, got {lo} and {hi}"
+        )
     if not cfg.classes or not all(isinstance(c, str) and c for c in cfg.classes):
-        raise ConfigError(f"{source}: [dataset] classes must be a non-empty list of class names, got {list(cfg.classes)!r}")
+        raise ConfigError(
+            f"{source}: [dataset] classes must be a non-empty list of class names, got {list(cfg.classes)!r}"
+        )
     validate_params(cfg.model, cfg.spatial, cfg.crop, source, cfg.missing)
 
 
-def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams, source: str = "<config>", missing: MissingParams | None = None) -> None:
+def validate_params(
+    model: ModelParams,
+    spatial: SpatialParams,
+    crop: CropParams,
+    source: str = "<config>",
+    missing: MissingParams | None = None,
+) -> None:
     """Check every number against its sane range (:data:`~labelaudit.constants.PARAM_RANGES`).
 
     NaN, ±inf and values like ``sigma = 1e308`` (every object would fail, or every std would be
     the prior's) are refused; the message shows the key, the value and the accepted range.
     """
     values: list[tuple[str, str, Any]] = [
-        *((f"model.{f.name}", f"[model] {f.name}", getattr(model, f.name)) for f in fields(ModelParams) if f.name not in ("kind", "estimate_sigma", "priors")),
+        *(
+            (f"model.{f.name}", f"[model] {f.name}", getattr(model, f.name))
+            for f in fields(ModelParams)
+            if f.name not in ("kind", "estimate_sigma", "priors")
+        ),
         *((f"spatial.{f.name}", f"[spatial] {f.name}", getattr(spatial, f.name)) for f in fields(SpatialParams)),
         *((f"crop.{f.name}", f"[crop] {f.name}", getattr(crop, f.name)) for f in fields(CropParams)),
-        *((f"prior.{f.name}", f"[prior.{name}] {f.name}", getattr(prior, f.name)) for name, prior in model.priors.items() for f in fields(ClassPrior)),
-        *((f"missing.{name}", f"[missing] {name}", getattr(missing, name)) for name in ("max_range", "min_points", "detection_min_score") if missing is not None),
+        *(
+            (f"prior.{f.name}", f"[prior.{name}] {f.name}", getattr(prior, f.name))
+            for name, prior in model.priors.items()
+            for f in fields(ClassPrior)
+        ),
+        *(
+            (f"missing.{name}", f"[missing] {name}", getattr(missing, name))
+            for name in ("max_range", "min_points", "detection_min_score")
+            if missing is not None
+        ),
     ]
     for key, label, value in values:
         lo, hi, lo_open, hi_open = C.PARAM_RANGES[key]
@@ -274,12 +305,16 @@ def validate_params(model: ModelParams, spatial: SpatialParams, crop: CropParams
             accepted = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
             raise ConfigError(f"{source}: {label} must be in {accepted}, got {value!r}")
     if missing is not None and missing.detections_format not in ("auto", "kitti", "waymo", "parquet"):
-        raise ConfigError(f"{source}: detections format must be auto, kitti, waymo or parquet, got {missing.detections_format!r}")
+        raise ConfigError(
+            f"{source}: detections format must be auto, kitti, waymo or parquet, got {missing.detections_format!r}"
+        )
     if crop.fit_margin < crop.margin:
         raise ConfigError(f"{source}: [crop] fit_margin must be ≥ margin ({crop.margin}), got {crop.fit_margin}")
 
 
-def resolve_config(config_path: Path | None, dataset_format: str, classes: Sequence[str] | None = None, model: str | None = None) -> RunConfig:
+def resolve_config(
+    config_path: Path | None, dataset_format: str, classes: Sequence[str] | None = None, model: str | None = None
+) -> RunConfig:
     """Load the TOML config (or the built-in one of the format) and apply CLI overrides.
 
     Raises
@@ -289,7 +324,11 @@ def resolve_config(config_path: Path | None, dataset_format: str, classes: Seque
     """
     if config_path is None:
         name = builtin_config_name(dataset_format)
-        cfg = load_config(None, dataset_format) if (CONFIG_DIR / name).is_file() else RunConfig(dataset_format=dataset_format)
+        cfg = (
+            load_config(None, dataset_format)
+            if (CONFIG_DIR / name).is_file()
+            else RunConfig(dataset_format=dataset_format)
+        )
     else:
         cfg = load_config(config_path, dataset_format)
     if classes is not None:

@@ -12,7 +12,9 @@ DEFAULT_MIN_POINTS = 3  # boxes with fewer points get status "few_points" (still
 SIGMA_FLOOR = 0.01  # lower bound (m) on an EM noise estimate used as σ, so exact-fit points cannot give σ = 0
 EM_MAX_ITERATIONS = 50  # cap on EM iterations for the noise σ̂ (per object and per dataset)
 EM_TOLERANCE = 1e-3  # EM stops when σ̂ changes by less than this fraction (σ̂ is reported to ~mm)
-EM_RESIDUAL_DOF = 1.0  # noise components left in a residual to the nearest surface point (the normal); D would give σ/√D
+EM_RESIDUAL_DOF = (
+    1.0  # noise components left in a residual to the nearest surface point (the normal); D would give σ/√D
+)
 OUTLIER_REGION_MARGIN = 0.5  # m; the uniform outlier density is 1 / size of the box grown by this on every side
 PRIOR_SHEAR_STD_RATIO = 1.0  # prior std of the axis-angle difference a−b (parallelogram shear) / the yaw std
 
@@ -23,43 +25,93 @@ FIT_TOLERANCE = 1e-3  # m; the box fit stops when no entry of φ moves by more t
 FIT_SWAP_RESIDUAL = 0.5  # try an l/w-swapped start when the fit's RMS point-to-surface residual exceeds this × σ
 FIT_INSIDE_SIGMA_RATIO = 3.0  # box fit: points deep inside the box count with σ × this, for the orientation of their face only (they never pull it in)
 FIT_INSIDE_FREE_DEPTH = 0.05  # m; points less deep than this inside the box count fully (LiDAR noise, ~2σ)
-FIT_OUTLIER_PROB = 0.0  # box fit: prior probability that a point outside the box is an outlier (uniform mixture; 0 = off)
+FIT_OUTLIER_PROB = (
+    0.0  # box fit: prior probability that a point outside the box is an outlier (uniform mixture; 0 = off)
+)
 FIT_MIN_SIZE_FRACTION = 1e-3  # fitted sizes are kept ≥ this fraction of the label's (no collapse)
 FREE_SPACE_CLASSES = (
-    "Car", "Van", "Truck", "Vehicle",
-    "REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "ARTICULATED_BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB",
+    "Car",
+    "Van",
+    "Truck",
+    "Vehicle",
+    "REGULAR_VEHICLE",
+    "LARGE_VEHICLE",
+    "BUS",
+    "SCHOOL_BUS",
+    "ARTICULATED_BUS",
+    "BOX_TRUCK",
+    "TRUCK",
+    "TRUCK_CAB",
 )  # classes with a solid lower body (KITTI, Waymo, Argoverse 2 names): their fit uses free-space rays (legs, bikes, trailers and Misc are open)
 LABEL_ERROR_CLASSES = FREE_SPACE_CLASSES  # label_error is written for vehicles only (validated on real KITTI and simulated vehicles); null for other classes (real KITTI pedestrians: AUROC 0.64, docs/label-error.md)
-FREE_SPACE_SLAB = (0.25, 0.4)  # solid lower body of a vehicle: from this height (m) above the local ground to this fraction of the box height
+FREE_SPACE_SLAB = (
+    0.25,
+    0.4,
+)  # solid lower body of a vehicle: from this height (m) above the local ground to this fraction of the box height
 FREE_SPACE_TOLERANCE = 0.1  # m; τ: a ray counts as free space only where it passes deeper than this inside the box rectangle (rounded corners of real vehicles)
 FREE_SPACE_INSIDE_TOLERANCE = 0.3  # m; τ of rays that end inside the box (on the object): real surfaces lie up to this far inside a right label (bumpers, loose boxes)
-FREE_SPACE_REACH = 1.0  # m; rays are collected for the box grown by this, the furthest the fit may move and still see them
+FREE_SPACE_REACH = (
+    1.0  # m; rays are collected for the box grown by this, the furthest the fit may move and still see them
+)
 FREE_SPACE_WEIGHT = 1.0  # √weight of a free-space ray row relative to a point row in the box fit
 FREE_SPACE_SLIT_PROB = 0.1  # prior probability that a ray through a right box's slab is a slit (cab–cargo gap, glass): the fit's ray rows are a robust mixture
 FREE_SPACE_AZIMUTH_BINS = 2048  # azimuth buckets of the frame's points for the ray selection (speed only)
-LABEL_TOLERANCE = {"center": 0.10, "length": 0.20, "width": 0.20, "height": 0.10, "yaw": 0.02}  # offsets of about this std (m, rad) are not errors; sizes wider: the fit barely sees them (docs/label-error.md)
+LABEL_TOLERANCE = {
+    "center": 0.10,
+    "length": 0.20,
+    "width": 0.20,
+    "height": 0.10,
+    "yaw": 0.02,
+}  # offsets of about this std (m, rad) are not errors; sizes wider: the fit barely sees them (docs/label-error.md)
 
 # --- tracks: every label judged against its own track (labelaudit/core/track.py, docs/method.md "Tracks") ---
-TRACK_FORMATS = ("waymo-v1", "waymo-v2", "av2")  # dataset formats whose object ids are track ids (KITTI object: none, the columns stay null)
+TRACK_FORMATS = (
+    "waymo-v1",
+    "waymo-v2",
+    "av2",
+)  # dataset formats whose object ids are track ids (KITTI object: none, the columns stay null)
 TRACK_WINDOW = 1.05  # s; a frame's centre and heading are predicted from the frames nearest in time within this (10 Hz: ±0.5 s inside a track, 1 s on one side at its ends)
 TRACK_MAX_NEIGHBOURS = 5  # 2 × this many nearest frames (5 on each side inside a track)
 TRACK_MIN_FRAMES = 3  # a track with fewer labelled frames cannot tell which label is wrong: null scores
-TRACK_RATE_PRIOR = (40.0, 6.0, 1.5, 0.5)  # std of the local fit's ridge prior: centre velocity m/s, acceleration m/s², yaw rate rad/s, yaw acceleration rad/s²
-TRACK_NOISE_FLOOR = {"center": 0.03, "length": 0.03, "width": 0.02, "height": 0.03, "yaw": 0.015}  # m, rad; ordinary per-frame label noise is never taken below this (the run's own, pooled per class, when larger)
+TRACK_RATE_PRIOR = (
+    40.0,
+    6.0,
+    1.5,
+    0.5,
+)  # std of the local fit's ridge prior: centre velocity m/s, acceleration m/s², yaw rate rad/s, yaw acceleration rad/s²
+TRACK_NOISE_FLOOR = {
+    "center": 0.03,
+    "length": 0.03,
+    "width": 0.02,
+    "height": 0.03,
+    "yaw": 0.015,
+}  # m, rad; ordinary per-frame label noise is never taken below this (the run's own, pooled per class, when larger)
 TRACK_NOISE_MIN_SAMPLES = 30  # residuals of a class needed before its own noise scale replaces the floor
 TRACK_NOISE_BIN = 0.001  # the run's noise scale is the median of a histogram of |standardised residual| with bins this wide (memory independent of the run's size)
-TRACK_NOISE_RANGE = 20.0  # … up to this; larger residuals share the last bin (a median beyond it would mean noise 20 × the floor)
+TRACK_NOISE_RANGE = (
+    20.0  # … up to this; larger residuals share the last bin (a median beyond it would mean noise 20 × the floor)
+)
 TRACK_HUBER_K = 2.0  # Huber threshold of the first robust iterations (standardised residual)
-TRACK_IRLS_ITERATIONS = 5  # reweighting rounds of every robust fit of a track (the first TRACK_HUBER_ITERATIONS Huber, the rest biweight)
+TRACK_IRLS_ITERATIONS = (
+    5  # reweighting rounds of every robust fit of a track (the first TRACK_HUBER_ITERATIONS Huber, the rest biweight)
+)
 TRACK_HUBER_ITERATIONS = 2  # the convex Huber weights first: a safe start before the biweight can give a label weight 0
-TRACK_OUTLIER_ROUNDS = 4  # refits of a track's local fits, each leaving out one more frame that stands out among its neighbours
+TRACK_OUTLIER_ROUNDS = (
+    4  # refits of a track's local fits, each leaving out one more frame that stands out among its neighbours
+)
 TRACK_NO_NEIGHBOUR_PRECISION = 1e-9  # prior precision of a local fit's intercept: a frame without neighbours gets a finite, enormous prediction variance (residual ~0), not a singular fit
 TRACK_BIWEIGHT_C = 4.685  # Tukey biweight cut-off of the later iterations (95 % efficiency): gross outliers weigh 0
 TRACK_ERROR_PRIOR = 0.02  # π: prior probability that a label contradicts its track
-TRACK_ERROR_SCALE = 10.0  # k: a wrong label's residual is ~k times the ordinary noise (the broad component of the mixture)
+TRACK_ERROR_SCALE = (
+    10.0  # k: a wrong label's residual is ~k times the ordinary noise (the broad component of the mixture)
+)
 TRACK_ISSUE_MIN = 0.5  # track_issue names a kind when its probability reaches this, else "none"
-TRACK_FLAG = 0.9  # a frame with track_error at or above this counts as flagged in tracks.parquet (and the gate's default)
-TRACK_MOVING_SPEED = 1.0  # m/s; a track faster than this in a frame is moving there (heading vs motion in tracks.parquet)
+TRACK_FLAG = (
+    0.9  # a frame with track_error at or above this counts as flagged in tracks.parquet (and the gate's default)
+)
+TRACK_MOVING_SPEED = (
+    1.0  # m/s; a track faster than this in a frame is moving there (heading vs motion in tracks.parquet)
+)
 
 # --- spatial distribution p_G and JIoU (docs/method.md §6–7) ---
 DEFAULT_CELLS_PER_SIDE = 64  # grid cells across the longer box side; JIoU stable ±0.01 when doubled
@@ -75,19 +127,27 @@ CELL_STD_SPAN = 32.0  # cells_per_side spans max(box side, this × smallest edge
 DEFAULT_CROP_MARGIN = 0.1  # BEV margin in metres added around each box when selecting points
 DEFAULT_FIT_CROP_MARGIN = 0.5  # wider BEV margin (m) of the points given to the label-error fit: a shifted box must still see its object (docs/label-error.md)
 DEFAULT_GROUND_CUT = 0.1  # points within this height above the box bottom are ground, dropped
-CROP_GRID_MIN_BOXES = 64  # frames with this many boxes are cropped through a BEV grid (same indices; Open3D per box costs K·N)
+CROP_GRID_MIN_BOXES = (
+    64  # frames with this many boxes are cropped through a BEV grid (same indices; Open3D per box costs K·N)
+)
 CROP_GRID_CELL = 2.0  # m; BEV grid cell of that crop (a car touches ~10 cells: few extra candidates, few runs)
 CROP_GRID_BATCH = 256  # boxes per vectorised batch of that crop (bounds its temporary arrays)
-CROP_GRID_DENSE_CELLS = 8  # the grid is built by a counting sort when it has at most this many cells per point (8 B each), else by a sort
+CROP_GRID_DENSE_CELLS = (
+    8  # the grid is built by a counting sort when it has at most this many cells per point (8 B each), else by a sort
+)
 GROUND_MARGIN = 1.5  # m; the local ground plane is fitted to points within the box grown by this in BEV
-GROUND_WINDOW = 0.6  # m; … and within this height of the label's bottom (a wrong bottom by up to this still finds the ground)
+GROUND_WINDOW = (
+    0.6  # m; … and within this height of the label's bottom (a wrong bottom by up to this still finds the ground)
+)
 GROUND_INLIER = 0.08  # m; a point within this of the plane is ground (LiDAR noise and road roughness)
 GROUND_MIN_POINTS = 15  # fewer ground inliers than this: the fixed cut above the box bottom is used
 GROUND_MAX_SLOPE = 0.10  # steeper planes (rise over run) are not ground (roads stay below ~8 %; car sides, kerbs)
 GROUND_HYPOTHESES = 24  # RANSAC plane hypotheses per box, drawn from a fixed seed (reproducible rows)
 GROUND_SCORED = 512  # RANSAC hypotheses are scored on at most this many ground candidates (an even stride)
 SCENERY_VOXEL = 0.2  # m; BEV cell of the connectivity test for unlabelled surfaces (walls, hedges): a gap wider than two cells separates
-NEIGHBOUR_MARGIN = 0.1  # m; points within this of another label (BEV) and outside the box itself are that label's, not evidence
+NEIGHBOUR_MARGIN = (
+    0.1  # m; points within this of another label (BEV) and outside the box itself are that label's, not evidence
+)
 
 # --- missing labels: the search for unlabelled objects (labelaudit/infer/missing.py, docs/missing.md) ---
 MISSING_MAX_RANGE = 70.0  # m; default labelled range (KITTI labels to ~70 m; configs override per dataset)
@@ -97,18 +157,45 @@ MISSING_GROUND_CELL = 1.0  # m; cells of the ground estimate (a cell's ground co
 MISSING_CELL = 0.2  # m; BEV occupancy cells of the clustering (8-connected: a gap of two cells separates)
 MISSING_LABEL_MARGIN = 0.3  # m; returns within this of a label (BEV, any class) are explained by it
 MISSING_BAND = (0.3, 4.4)  # m above the ground: returns clustered (below: road, kerbs; above: signs, canopies)
-MISSING_TALL = 6.0  # m; returns above the band up to this height mark structures that go on upwards (walls, poles, trunks)
-MISSING_MAX_OVER_SHARE = 0.2  # a cluster with more returns above the band than this share of its band returns is a tall structure
-MISSING_EGO_RADIUS = 3.0  # m; nothing whose centre is this close to the sensor (BEV) is a candidate: the ego vehicle and its mounts
-MISSING_SIZE_SLACK = 0.5  # m; the size score falls from 1 to 0 over this much beyond a class's largest length, width or height
-MISSING_MIN_TOP = (0.8, 1.1)  # m; the size score rises from 0 to 1 as the highest return above the ground goes from the first to the second
-MISSING_MIN_EXTENT = (0.8, 1.2)  # m; … and as the longer visible side goes from the first to the second (poles, people, signs)
-MISSING_UNSEEN_TOP_FACTOR = 0.3  # size score × this when the returns reach as high as the beams go at that range (top not seen: a wall?)
-MISSING_TOP_CLEARANCE = 0.15  # m; the top is seen when the highest return is this far below the highest beam at the cluster's range
-MISSING_FACE_BAND = (0.3, 0.7)  # m above the ground: the lower body, whose returns lie on the vertical faces of a vehicle
+MISSING_TALL = (
+    6.0  # m; returns above the band up to this height mark structures that go on upwards (walls, poles, trunks)
+)
+MISSING_MAX_OVER_SHARE = (
+    0.2  # a cluster with more returns above the band than this share of its band returns is a tall structure
+)
+MISSING_EGO_RADIUS = (
+    3.0  # m; nothing whose centre is this close to the sensor (BEV) is a candidate: the ego vehicle and its mounts
+)
+MISSING_SIZE_SLACK = (
+    0.5  # m; the size score falls from 1 to 0 over this much beyond a class's largest length, width or height
+)
+MISSING_MIN_TOP = (
+    0.8,
+    1.1,
+)  # m; the size score rises from 0 to 1 as the highest return above the ground goes from the first to the second
+MISSING_MIN_EXTENT = (
+    0.8,
+    1.2,
+)  # m; … and as the longer visible side goes from the first to the second (poles, people, signs)
+MISSING_UNSEEN_TOP_FACTOR = (
+    0.3  # size score × this when the returns reach as high as the beams go at that range (top not seen: a wall?)
+)
+MISSING_TOP_CLEARANCE = (
+    0.15  # m; the top is seen when the highest return is this far below the highest beam at the cluster's range
+)
+MISSING_FACE_BAND = (
+    0.3,
+    0.7,
+)  # m above the ground: the lower body, whose returns lie on the vertical faces of a vehicle
 MISSING_FACE_WIDTH = 0.2  # m; slices across the box axes whose returns make a vertical face (LiDAR noise, bumpers)
-MISSING_FACE_SHARE = (0.6, 0.85)  # the shape score rises from 0 to 1 as the share of lower-body returns on vertical faces (two slices per axis) goes from the first to the second
-MISSING_FILL = (0.1, 0.3)  # the density score rises from 0 to 1 as returns per ray over the cluster's angular extent go from the first to the second
+MISSING_FACE_SHARE = (
+    0.6,
+    0.85,
+)  # the shape score rises from 0 to 1 as the share of lower-body returns on vertical faces (two slices per axis) goes from the first to the second
+MISSING_FILL = (
+    0.1,
+    0.3,
+)  # the density score rises from 0 to 1 as returns per ray over the cluster's angular extent go from the first to the second
 MISSING_HEADINGS = 90  # headings tried over [0, 90°) (1° steps)
 MISSING_RATE_SAMPLE = 4096  # returns sampled to estimate the sensor's rays per steradian (elevation quantiles)
 MISSING_MIN_DEPTH = 0.5  # m; KITTI: a candidate's centre must be this far in front of the camera
@@ -124,40 +211,82 @@ MISSING_CLASS_SIZES = {  # classes the search looks for: (mean, largest) length,
 }
 MISSING_IMAGE_SLACK = 100.0  # px; KITTI: clusters whose centroid projects this far outside image_2 are not boxed (a candidate's centre must project inside)
 MISSING_FRAGMENT_POINTS = 3  # components with fewer returns are not joined to others (noise)
-MISSING_MERGE_GAP = 2.5  # m; a fragment this far behind another (range) in the same direction is the same object (rear face and cabin)
+MISSING_MERGE_GAP = (
+    2.5  # m; a fragment this far behind another (range) in the same direction is the same object (rear face and cabin)
+)
 MISSING_MERGE_OVERLAP = 0.5  # … when their azimuth intervals overlap by this share of the narrower one
-MISSING_POINTS_RAMP = (12, 30)  # the density score also rises from 0 to 1 as the cluster's returns go from the first to the second (too few to tell)
+MISSING_POINTS_RAMP = (
+    12,
+    30,
+)  # the density score also rises from 0 to 1 as the cluster's returns go from the first to the second (too few to tell)
 MISSING_CONTINUATION = 3.0  # m; a face whose line goes on this far beyond the cluster through other unexplained returns is part of a longer structure (a wall)
 MISSING_CONTINUATION_CELLS = 3  # … when at least this many cells along that extension hold such returns
 MISSING_CONTINUATION_RUN = 1.0  # m; … spread along the extension over at least this length (a wall square to the face, behind it, crosses in less)
-MISSING_TALL_MARGIN = 0.2  # m; an unseen top counts against a class only where the beams would pass this much over its mean height
+MISSING_TALL_MARGIN = (
+    0.2  # m; an unseen top counts against a class only where the beams would pass this much over its mean height
+)
 MISSING_MERGE_SIDE_CELLS = 2  # fragments whose footprints come within this many cells of each other are one object too (a side broken by a dark panel or glass)
 MISSING_CORNER_DEPTH = 1.5  # m; a face is part of a larger structure too where other returns at one of its ends run this far away from the sensor, square to it (a building's corner)
 MISSING_REGION_SLACK = 3.0  # m; clusters whose centroid lies this far beyond the labelled range are not boxed (a box centre may lie farther than its returns)
-MISSING_CLASS_FIT = 0.5  # a candidate resembles the smallest class whose size score reaches this (else the best-scoring one)
-MISSING_FREE_SHARE = (0.1, 0.4)  # the free-space score falls from 1 to 0 as the share of rays passing through the box's lower body goes from the first to the second
+MISSING_CLASS_FIT = (
+    0.5  # a candidate resembles the smallest class whose size score reaches this (else the best-scoring one)
+)
+MISSING_FREE_SHARE = (
+    0.1,
+    0.4,
+)  # the free-space score falls from 1 to 0 as the share of rays passing through the box's lower body goes from the first to the second
 MISSING_REFINE = True  # the candidate's box is refined by the label-error fit (core/fit.py) before its rays are counted
-MISSING_GROUND_RANK = 3  # a ground cell's floor is its this-lowest return (fewer returns below the road than this are ignored)
-MISSING_GROUND_DROP = 1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
+MISSING_GROUND_RANK = (
+    3  # a ground cell's floor is its this-lowest return (fewer returns below the road than this are ignored)
+)
+MISSING_GROUND_DROP = (
+    1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
+)
 MISSING_CEILING_BINS = 360  # azimuth bins (1°) of the top beam's elevation (the sensor's tilt makes it vary around)
 MISSING_BEAM_GAP = 0.4  # deg; elevation between two beams (HDL-64E 0.4°, Waymo TOP 0.3°): a far vehicle's highest return may lie this far under its top
 MISSING_FORWARD_COS = 0.9  # a camera whose optical axis is this close to +x (cosine) looks forward: the search grid starts just behind the sensor
-MISSING_CEILING_FLOOR = -2.0  # deg; returns below this elevation are never a top beam's (the per-direction top beam looks only above it)
+MISSING_CEILING_FLOOR = (
+    -2.0
+)  # deg; returns below this elevation are never a top beam's (the per-direction top beam looks only above it)
 MISSING_CEILING_SPREAD = 1.5  # deg; the top beam in a direction is taken no lower than this under the frame's highest (a direction with open sky returns only lower beams)
-MISSING_FACE_TIE = 0.1  # headings whose face share is within this of the best one tie; the tightest rectangle among them wins
+MISSING_FACE_TIE = (
+    0.1  # headings whose face share is within this of the best one tie; the tightest rectangle among them wins
+)
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
-KITTI_IMAGE_SIZE = (1242, 375)  # px; image_2's usual width, height: the labelled field of view when image_2/<frame>.png cannot be read
+KITTI_IMAGE_SIZE = (
+    1242,
+    375,
+)  # px; image_2's usual width, height: the labelled field of view when image_2/<frame>.png cannot be read
 KITTI_MIN_HEIGHT = (40.0, 25.0, 25.0)  # Easy/Moderate/Hard: 2D box height must exceed this (pixels)
 KITTI_MAX_OCCLUSION = (0, 1, 2)  # Easy/Moderate/Hard: largest allowed occlusion level (3 = unknown)
 KITTI_MAX_TRUNCATION = (0.15, 0.30, 0.50)  # Easy/Moderate/Hard: largest allowed truncation fraction
 
 # --- detector evaluation (labelaudit/evaluate, docs/eval.md) ---
 EVAL_RECALL_POINTS = 41  # devkit N_SAMPLE_PTS: recall samples 0, 1/40, …, 1 (R40 averages the last 40, R11 every 4th)
-EVAL_MIN_OVERLAP = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5, "Vehicle": 0.7, "REGULAR_VEHICLE": 0.7}  # the usual threshold per class: devkit MIN_OVERLAP (KITTI), Waymo's 3D-detection thresholds (their vehicle value for AV2's cars)
+EVAL_MIN_OVERLAP = {
+    "Car": 0.7,
+    "Pedestrian": 0.5,
+    "Cyclist": 0.5,
+    "Vehicle": 0.7,
+    "REGULAR_VEHICLE": 0.7,
+}  # the usual threshold per class: devkit MIN_OVERLAP (KITTI), Waymo's 3D-detection thresholds (their vehicle value for AV2's cars)
 EVAL_DEFAULT_MIN_OVERLAP = 0.5  # usual threshold of a class not listed above
-EVAL_MAP_THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9)  # mAP over localisation thresholds 0.5:0.05:0.9 (the paper's Table II)
-EVAL_NEIGHBOUR_CLASSES = {"Car": ("Van",), "Pedestrian": ("Person_sitting",)}  # devkit: GT of these classes is ignored (neither TP nor FN) when evaluating the key
+EVAL_MAP_THRESHOLDS = (
+    0.5,
+    0.55,
+    0.6,
+    0.65,
+    0.7,
+    0.75,
+    0.8,
+    0.85,
+    0.9,
+)  # mAP over localisation thresholds 0.5:0.05:0.9 (the paper's Table II)
+EVAL_NEIGHBOUR_CLASSES = {
+    "Car": ("Van",),
+    "Pedestrian": ("Person_sitting",),
+}  # devkit: GT of these classes is ignored (neither TP nor FN) when evaluating the key
 EVAL_CLASSES = {
     "kitti": ("Car", "Pedestrian", "Cyclist"),
     "waymo": ("Vehicle", "Pedestrian", "Cyclist"),
@@ -165,36 +294,83 @@ EVAL_CLASSES = {
 }  # evaluated by default (those detected at least once, like the devkit)
 EVAL_DISTANCE_BINS = (20.0, 40.0)  # m; mean overlaps per GT distance bin 0–20, 20–40, ≥ 40 m (the paper's Figs. 10–11)
 EVAL_ASSOCIATION_MIN_IOU = 0.1  # a detection "localises" a GT (per-detection table, mean overlaps) when the devkit matching pairs them at IoU above this
-EVAL_WAYMO_LEVEL2_MAX_POINTS = 5  # Waymo: GT boxes with at most this many LiDAR points are LEVEL_2 whatever their label says
-EVAL_LET_WAYMO_CAMERA = (1.43, 0.0, 2.18)  # m, vehicle frame; Waymo's camera-only challenge measures range (LET) from here
-EVAL_LET_AV2_CAMERA = (1.635, 0.003, 1.398)  # m, ego frame; Argoverse 2 ring_front_center as its sensor calibration (egovehicle_SE3_sensor) places it
-EVAL_LET_TOLERANCE_FRACTION = 0.1  # LET: longitudinal tolerance as a fraction of the GT's range from the camera (Waymo's 10 %)
+EVAL_WAYMO_LEVEL2_MAX_POINTS = (
+    5  # Waymo: GT boxes with at most this many LiDAR points are LEVEL_2 whatever their label says
+)
+EVAL_LET_WAYMO_CAMERA = (
+    1.43,
+    0.0,
+    2.18,
+)  # m, vehicle frame; Waymo's camera-only challenge measures range (LET) from here
+EVAL_LET_AV2_CAMERA = (
+    1.635,
+    0.003,
+    1.398,
+)  # m, ego frame; Argoverse 2 ring_front_center as its sensor calibration (egovehicle_SE3_sensor) places it
+EVAL_LET_TOLERANCE_FRACTION = (
+    0.1  # LET: longitudinal tolerance as a fraction of the GT's range from the camera (Waymo's 10 %)
+)
 EVAL_LET_MIN_TOLERANCE = 0.5  # m; LET: the tolerance never falls below this (near objects)
-EVAL_LET_MIN_IOU = dict.fromkeys((
-    "Car", "Vehicle", "Van", "Truck", "Bus", "Tram",
-    "REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "SCHOOL_BUS", "ARTICULATED_BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB",
-), 0.5)  # LET-IoU a vehicle match needs (Waymo's camera-only challenge; KITTI, Waymo and Argoverse 2 vehicle names)
+EVAL_LET_MIN_IOU = dict.fromkeys(
+    (
+        "Car",
+        "Vehicle",
+        "Van",
+        "Truck",
+        "Bus",
+        "Tram",
+        "REGULAR_VEHICLE",
+        "LARGE_VEHICLE",
+        "BUS",
+        "SCHOOL_BUS",
+        "ARTICULATED_BUS",
+        "BOX_TRUCK",
+        "TRUCK",
+        "TRUCK_CAB",
+    ),
+    0.5,
+)  # LET-IoU a vehicle match needs (Waymo's camera-only challenge; KITTI, Waymo and Argoverse 2 vehicle names)
 EVAL_LET_DEFAULT_MIN_IOU = 0.3  # LET-IoU every other class (pedestrians, cyclists) needs
 EVAL_LET_SCORE_CUTOFFS = 101  # LET: score cut-offs 0, 0.01, …, 1 (a detection counts at cut-offs ≤ its score)
-EVAL_LET_RECALL_DELTA = 0.05  # LET: AP integration pads the PR curve with a point every 0.05 of recall (Waymo's desired_recall_delta)
+EVAL_LET_RECALL_DELTA = (
+    0.05  # LET: AP integration pads the PR curve with a point every 0.05 of recall (Waymo's desired_recall_delta)
+)
 EVAL_LET_EPSILON = 1e-6  # m; LET: smallest range (a centre at the camera) — Waymo's kEpsilon
-EVAL_LET_WEIGHT_SCALE = 1_000_000  # LET: Hungarian weights LET-IoU·a quantised to integers of 10⁻⁶, as Waymo's matcher (kMaxIoU)
-EVAL_WORKER_PRELOAD = ("labelaudit.evaluate.warmup",)  # eval's fork server: the JIoU kernels only (no Open3D), warmed once; several s less than WORKER_PRELOAD when the server starts
+EVAL_LET_WEIGHT_SCALE = (
+    1_000_000  # LET: Hungarian weights LET-IoU·a quantised to integers of 10⁻⁶, as Waymo's matcher (kMaxIoU)
+)
+EVAL_WORKER_PRELOAD = (
+    "labelaudit.evaluate.warmup",
+)  # eval's fork server: the JIoU kernels only (no Open3D), warmed once; several s less than WORKER_PRELOAD when the server starts
 
 # --- sane ranges of label values (readers: labelaudit/datasets/base.py box_problems) ---
-MIN_BOX_SIZE = 0.01  # m; a labeled length, width or height below this (0, negative, 1e-300) is corrupt input: an error row
-MAX_BOX_SIZE = 200.0  # m; a labeled length, width or height beyond this is corrupt input (the label becomes an error row)
+MIN_BOX_SIZE = (
+    0.01  # m; a labeled length, width or height below this (0, negative, 1e-300) is corrupt input: an error row
+)
+MAX_BOX_SIZE = (
+    200.0  # m; a labeled length, width or height beyond this is corrupt input (the label becomes an error row)
+)
 MAX_BOX_CENTRE = 1.0e4  # m; a box centre coordinate farther than this from the sensor is corrupt input
 MAX_BOX_ANGLE = 1.0e3  # rad; |yaw| beyond this is corrupt input, not an angle (wrapping it loses its digits)
 
 # --- Argoverse 2 (labelaudit/datasets/av2.py, docs/datasets.md) ---
-AV2_LIDAR_MOUNTS = {"up_lidar": (1.35018, 0.0, 1.64042), "down_lidar": (1.34676, 0.00457, 1.52550)}  # m; ego-frame lidar positions of the AV2 rig, used when a log has no calibration/ (the sensor origin is their midpoint)
-AV2_QUATERNION_TOLERANCE = 1e-3  # a cuboid or pose quaternion whose norm differs from 1 by more than this is corrupt input, not a rounding
+AV2_LIDAR_MOUNTS = {
+    "up_lidar": (1.35018, 0.0, 1.64042),
+    "down_lidar": (1.34676, 0.00457, 1.52550),
+}  # m; ego-frame lidar positions of the AV2 rig, used when a log has no calibration/ (the sensor origin is their midpoint)
+AV2_QUATERNION_TOLERANCE = (
+    1e-3  # a cuboid or pose quaternion whose norm differs from 1 by more than this is corrupt input, not a rounding
+)
 AV2_MAX_TILT = 0.01  # rad; a cuboid whose up axis leans more than this (roll/pitch) is audited upright with its heading, with a warning
 
 # --- accepted config values (labelaudit/config.py validate_params): key -> (low, high, low open?, high open?) ---
 PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
-    "model.sigma": (1e-4, 10.0, False, False),  # m; LiDAR noise: 0.1 mm … 10 m (1e308 made every object fail, inf made every std the prior's)
+    "model.sigma": (
+        1e-4,
+        10.0,
+        False,
+        False,
+    ),  # m; LiDAR noise: 0.1 mm … 10 m (1e308 made every object fail, inf made every std the prior's)
     "model.num_nearest": (1, 6, False, False),  # M: a box has at most 6 faces (the core uses min(M, 2·dim))
     "model.outlier_prob": (0.0, 1.0, False, True),  # a probability; 1 would make every point an outlier
     "model.prior_weight": (1e-6, 1e6, False, False),  # w: beyond this the prior is numerically gone or absolute
@@ -255,9 +431,21 @@ SIM_MAX_LABEL_OCCLUSION = 0.9  # objects with more of their LiDAR rays blocked t
 SIM_FOLIAGE_DEPTH = 0.3  # m; mean (exponential) depth a LiDAR ray enters simulated foliage before it returns
 SIM_FOLIAGE_GAP = 0.25  # share of the rays into simulated foliage that pass through its gaps (no return from it)
 SIM_CLUTTER = (4, 12)  # --clutter: unlabelled walls, poles and bushes per frame (min, max)
-SIM_TRACK_NOISE = (0.03, 0.03, 0.02, 0.02)  # ordinary per-frame label noise inside tracks (std): centre per axis (m), length (m), width (m), yaw (rad) — must not be flagged
-SIM_TRACK_ERROR_FRACTION = 0.05  # share of vehicle object-frames of a simulated sequence with one injected annotator error
-SIM_TRACK_ERRORS = {"length": (0.25, 0.5), "width": (0.15, 0.3), "yaw": (0.1, 0.25), "centre": (0.3, 0.6)}  # magnitude ranges (m, rad) of the injected errors (plus "flip": π)
+SIM_TRACK_NOISE = (
+    0.03,
+    0.03,
+    0.02,
+    0.02,
+)  # ordinary per-frame label noise inside tracks (std): centre per axis (m), length (m), width (m), yaw (rad) — must not be flagged
+SIM_TRACK_ERROR_FRACTION = (
+    0.05  # share of vehicle object-frames of a simulated sequence with one injected annotator error
+)
+SIM_TRACK_ERRORS = {
+    "length": (0.25, 0.5),
+    "width": (0.15, 0.3),
+    "yaw": (0.1, 0.25),
+    "centre": (0.3, 0.6),
+}  # magnitude ranges (m, rad) of the injected errors (plus "flip": π)
 SIM_MOVING_FRACTION = 0.5  # share of vehicles of a simulated sequence that drive (the rest are parked)
 SIM_MOVING_SPEED = (3.0, 12.0)  # m/s, speed of a driving vehicle, drawn uniformly
 SIM_MOVING_YAW_RATE = 0.25  # rad/s; a driving vehicle turns at a rate drawn uniformly in ± this
@@ -273,25 +461,49 @@ SIM_DET_VAN_AS_CAR = 0.3  # synthetic detector: probability that a Van is report
 
 # --- product loop: infer / results (labelaudit.infer) ---
 DEFAULT_RESULTS_DIR = "labelaudit-results"  # default -o/--output of `labelaudit infer`
-CHUNK_UNITS = {"kitti": 16, "waymo-v2": 1, "waymo-v1": 1, "av2": 1}  # most units per shard: 16 KITTI frames, 1 Waymo segment (~200 frames), 1 Argoverse 2 log (~150 frames)
+CHUNK_UNITS = {
+    "kitti": 16,
+    "waymo-v2": 1,
+    "waymo-v1": 1,
+    "av2": 1,
+}  # most units per shard: 16 KITTI frames, 1 Waymo segment (~200 frames), 1 Argoverse 2 log (~150 frames)
 TARGET_CHUNKS = 32  # small runs are cut into about this many chunks (≥ 1 unit each) so workers stay balanced
-MALLOC_MMAP_THRESHOLD = 32 * 2**20  # bytes (glibc's documented maximum on 64-bit); blocks below this come from the reused heap, not a fresh mmap each (per-box arrays of a few MB paid page faults on every box)
-MALLOC_TRIM_THRESHOLD = 64 * 2**20  # bytes; glibc: free heap kept for the next box up to this much, instead of returned to the system after each
+MALLOC_MMAP_THRESHOLD = (
+    32 * 2**20
+)  # bytes (glibc's documented maximum on 64-bit); blocks below this come from the reused heap, not a fresh mmap each (per-box arrays of a few MB paid page faults on every box)
+MALLOC_TRIM_THRESHOLD = (
+    64 * 2**20
+)  # bytes; glibc: free heap kept for the next box up to this much, instead of returned to the system after each
 POOL_START_METHOD = "forkserver"  # workers fork from a clean, single-threaded server (not from the busy main process)
-WORKER_PRELOAD = ("labelaudit.infer.run", "labelaudit.infer.crop", "labelaudit.infer.rows", "labelaudit.infer.warmup")  # imported once in the fork server (and by each Dask worker at start): the core, its compiled kernels (Open3D only loads where a crop asks it)
-DASK_LOCAL_CONFIG = {"distributed.worker.profile.enabled": False}  # a LocalCluster's workers run without Dask's statistical profiler (a stack sample of the task thread every 10 ms: 5–10 % of a `local:2` run here)
+WORKER_PRELOAD = (
+    "labelaudit.infer.run",
+    "labelaudit.infer.crop",
+    "labelaudit.infer.rows",
+    "labelaudit.infer.warmup",
+)  # imported once in the fork server (and by each Dask worker at start): the core, its compiled kernels (Open3D only loads where a crop asks it)
+DASK_LOCAL_CONFIG = {
+    "distributed.worker.profile.enabled": False
+}  # a LocalCluster's workers run without Dask's statistical profiler (a stack sample of the task thread every 10 ms: 5–10 % of a `local:2` run here)
 DASK_CONNECT_TIMEOUT = 10.0  # s; an unreachable --scheduler is reported after this long (exit 2)
 DASK_WORKER_WAIT = 60.0  # s; a scheduler without workers is reported after this long (a cluster that is still scaling up gets this much)
 DEFAULT_GATE_CONFIG = "gate.toml"  # built-in thresholds of `labelaudit check` (labelaudit/configs/)
 DEFAULT_RANK_TOP = 20  # rows shown by `labelaudit rank`
 DEMO_FRAMES = 12  # simulated frames of `labelaudit demo`: a few hundred objects, seconds on 2 cores
-DEMO_DROP_FRACTION = 0.1  # share of vehicle labels the demo's simulator leaves out: missing labels for the search to find
+DEMO_DROP_FRACTION = (
+    0.1  # share of vehicle labels the demo's simulator leaves out: missing labels for the search to find
+)
 DEMO_MISSING_SCORE = 0.5  # the demo lists missing-label candidates at or above this score
-DEMO_REPORT_NAME = "labelaudit-demo-report.html"  # where `labelaudit demo` without FOLDER writes its report (the current folder)
+DEMO_REPORT_NAME = (
+    "labelaudit-demo-report.html"  # where `labelaudit demo` without FOLDER writes its report (the current folder)
+)
 
 # --- export: training targets (labelaudit.training / labelaudit.export, docs/training.md) ---
-HEURISTIC_NUM_POINTS_HALF = 10.0  # "num points" source: the prior variance halves at this many points (var = prior · n0/(n0+n))
-HEURISTIC_HULL_IOU_FLOOR = 0.01  # "hull_iou" source: var = prior · max(1 − IoU, this), so a perfect hull never claims zero variance
+HEURISTIC_NUM_POINTS_HALF = (
+    10.0  # "num points" source: the prior variance halves at this many points (var = prior · n0/(n0+n))
+)
+HEURISTIC_HULL_IOU_FLOOR = (
+    0.01  # "hull_iou" source: var = prior · max(1 − IoU, this), so a perfect hull never claims zero variance
+)
 DEFAULT_ANCHOR_SIZES: dict[str, dict[str, tuple[float, float, float]]] = {
     # l, w, h (m) of the anchors OpenPCDet's KITTI configs (second.yaml, pointpillar.yaml) and
     # mmdetection3d's pointpillars_hv_secfpn_kitti ship; only the sizes enter the residual's variance.
@@ -299,14 +511,23 @@ DEFAULT_ANCHOR_SIZES: dict[str, dict[str, tuple[float, float, float]]] = {
     # OpenPCDet's waymo_models/second.yaml anchors.
     "waymo": {"Vehicle": (4.7, 2.1, 1.7), "Pedestrian": (0.91, 0.86, 1.73), "Cyclist": (1.78, 0.84, 1.78)},
 }
-EXPORT_GLENET_MISSING = -1.0  # GLENet value of an object without label variances (its own converter writes -1 for classes its CVAE did not see)
-EXPORT_GLENET_MIN_VARIANCE = 1e-10  # floor of an exported GLENet variance: its loss takes log(v + 1e-10), so a value is never below that offset
+EXPORT_GLENET_MISSING = (
+    -1.0
+)  # GLENet value of an object without label variances (its own converter writes -1 for classes its CVAE did not see)
+EXPORT_GLENET_MIN_VARIANCE = (
+    1e-10  # floor of an exported GLENet variance: its loss takes log(v + 1e-10), so a value is never below that offset
+)
 INFOS_DIMENSION_TOLERANCE = 1e-3  # m; an infos object whose l/w/h differ from the result row's by more is a mismatch
 EXPORT_REVIEW_LABEL_ERROR = 0.5  # `export --format kitti-labels`: labels with label_error above this get their suggested box (a reviewer dismisses a wrong one in seconds, so lower than the gate's 0.9)
 EXPORT_REVIEW_TRACK_ERROR = 0.5  # `export --format kitti-labels` (Waymo, AV2): labels with track_error above this get the box their track expects (where the label is likelier wrong than right; lower than the gate's TRACK_FLAG for the same reason as EXPORT_REVIEW_LABEL_ERROR)
 EXPORT_REVIEW_MIN_SCORE = 0.5  # `export --format kitti-labels`: missing-label candidates with a score of at least this are added (the score where a missed object is likelier than not)
-EXPORT_REVIEW_IMAGE_SIZE = (1242, 375)  # pixels; the image_2 size the 2D boxes of added lines are clipped to when the frame's PNG is not there (KITTI's usual size)
-INFOS_PICKLE_PROTOCOL = 4  # pickle protocol of written infos copies: loads on every Python 3 that OpenPCDet/mmdet3d support
+EXPORT_REVIEW_IMAGE_SIZE = (
+    1242,
+    375,
+)  # pixels; the image_2 size the 2D boxes of added lines are clipped to when the frame's PNG is not there (KITTI's usual size)
+INFOS_PICKLE_PROTOCOL = (
+    4  # pickle protocol of written infos copies: loads on every Python 3 that OpenPCDet/mmdet3d support
+)
 
 # --- pictures and the review report (labelaudit/viz, docs/review.md) ---
 VIZ_DPI = 100  # matplotlib dots per inch of every picture: figure size = pixels / this
@@ -317,11 +538,17 @@ SHOW_FRAME_SIZE = (1000, 800)  # default `show` picture of a whole frame, pixels
 SHOW_MAX_POINTS_DRAWN = 1500  # a denser crop is drawn with an even subsample (same look, bounded drawing time)
 SHOW_CONTEXT_MARGIN = 2.0  # m; points this far around the box are drawn (grey) for orientation
 SHOW_VIEW_MARGIN = 0.8  # m of free space around the label, suggested box and 2-σ corner ellipses
-SHOW_TRACK_FRAMES = 3  # `show` of a tracked object draws its labels in this many frames before and after (moved into this frame)
+SHOW_TRACK_FRAMES = (
+    3  # `show` of a tracked object draws its labels in this many frames before and after (moved into this frame)
+)
 SHOW_FRAME_WORST = 5  # `show` of a frame numbers this many worst boxes
 SHOW_FRAME_MARGIN = 6.0  # m around the frame's boxes (and the sensor) in the frame picture
-SHOW_CANDIDATE_MARGIN = 2.5  # m around a missing-label candidate in its close-up (enough to see a neighbouring label or wall)
-SHOW_MISSING_MIN_SCORE = 0.5  # `show` of a frame draws the missing-label candidates with at least this score (--min-score)
+SHOW_CANDIDATE_MARGIN = (
+    2.5  # m around a missing-label candidate in its close-up (enough to see a neighbouring label or wall)
+)
+SHOW_MISSING_MIN_SCORE = (
+    0.5  # `show` of a frame draws the missing-label candidates with at least this score (--min-score)
+)
 REPORT_TOP = 12  # default gallery size per ranking of `labelaudit report`
 REPORT_GALLERY_SIZE = (520, 480)  # gallery pictures, pixels (smaller than `show`'s: the HTML stays light)
 REPORT_PLOT_SIZE = (620, 400)  # aggregate plots, pixels
@@ -336,6 +563,35 @@ REPORT_AP_INTERP = "R40"  # AP interpolation shown in the report table (KITTI's 
 # Numbers that never change a row of `infer`: the simulator, pictures and reports, exports, detector
 # evaluation, CLI defaults and scheduling. Changing them never blocks `--resume`; every other
 # upper-case name of this module is hashed (a new one is hashed unless it is listed here).
-UNHASHED_PREFIXES = ("SIM_", "VIZ_", "SHOW_", "REPORT_", "EXPORT_", "EVAL_", "DEMO_", "HEURISTIC_", "INFOS_", "DEFAULT_ANCHOR_", "DASK_", "UNHASHED_")
-UNHASHED_NAMES = frozenset({"DEFAULT_RESULTS_DIR", "CHUNK_UNITS", "TARGET_CHUNKS", "POOL_START_METHOD", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "WORKER_PRELOAD", "DEFAULT_GATE_CONFIG", "DEFAULT_RANK_TOP",
-                            "PARAM_RANGES", "CROP_GRID_MIN_BOXES", "CROP_GRID_CELL", "CROP_GRID_BATCH", "CROP_GRID_DENSE_CELLS"})  # ranges only refuse a config; the grid crop gives Open3D's indices
+UNHASHED_PREFIXES = (
+    "SIM_",
+    "VIZ_",
+    "SHOW_",
+    "REPORT_",
+    "EXPORT_",
+    "EVAL_",
+    "DEMO_",
+    "HEURISTIC_",
+    "INFOS_",
+    "DEFAULT_ANCHOR_",
+    "DASK_",
+    "UNHASHED_",
+)
+UNHASHED_NAMES = frozenset(
+    {
+        "DEFAULT_RESULTS_DIR",
+        "CHUNK_UNITS",
+        "TARGET_CHUNKS",
+        "POOL_START_METHOD",
+        "MALLOC_MMAP_THRESHOLD",
+        "MALLOC_TRIM_THRESHOLD",
+        "WORKER_PRELOAD",
+        "DEFAULT_GATE_CONFIG",
+        "DEFAULT_RANK_TOP",
+        "PARAM_RANGES",
+        "CROP_GRID_MIN_BOXES",
+        "CROP_GRID_CELL",
+        "CROP_GRID_BATCH",
+        "CROP_GRID_DENSE_CELLS",
+    }
+)  # ranges only refuse a config; the grid crop gives Open3D's indices

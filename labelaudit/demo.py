@@ -30,7 +30,11 @@ from labelaudit.sim.noise import NoiseSpec
 from labelaudit.viz.report import build_report
 
 DEMO_NOISE = NoiseSpec(
-    fraction=0.2, center_std=C.SIM_BENCH_NOISE[0], size_std=C.SIM_BENCH_NOISE[1], yaw_std=C.SIM_BENCH_NOISE[2], gross_fraction=0.05
+    fraction=0.2,
+    center_std=C.SIM_BENCH_NOISE[0],
+    size_std=C.SIM_BENCH_NOISE[1],
+    yaw_std=C.SIM_BENCH_NOISE[2],
+    gross_fraction=0.05,
 )
 """The demo's label noise: the label-error benchmark's jitter on 20 % of vehicles, gross errors on 5 %."""
 
@@ -49,7 +53,9 @@ class DemoRun:
     evaluation: dict[str, Any] | None = None  # summary of the synthetic detector's evaluation (labelaudit eval)
     eval_dir: Path | None = None  # its EVAL_DIR
     report: Path | None = None  # the HTML review page
-    missing: list[dict[str, Any]] = field(default_factory=list)  # missing-label candidates (score ≥ DEMO_MISSING_SCORE), each with the dropped label it found (or None)
+    missing: list[dict[str, Any]] = field(
+        default_factory=list
+    )  # missing-label candidates (score ≥ DEMO_MISSING_SCORE), each with the dropped label it found (or None)
     dropped: int = 0  # vehicle labels the simulator left out (DEMO_DROP_FRACTION)
 
 
@@ -71,13 +77,19 @@ def missing_found(results: Path, manifest: Path) -> tuple[list[dict[str, Any]], 
     from labelaudit.results import read_missing
 
     try:
-        man = pq.read_table(manifest, columns=["frame_id", "scene_index", "class_name", "dropped", "true_cx", "true_cy"]).to_pylist()
+        man = pq.read_table(
+            manifest, columns=["frame_id", "scene_index", "class_name", "dropped", "true_cx", "true_cy"]
+        ).to_pylist()
     except (OSError, pa.ArrowInvalid, KeyError):
         man = []
     dropped = [m for m in man if m["dropped"]]
     rows = [r for r in read_missing(results).to_pylist() if r["score"] >= C.DEMO_MISSING_SCORE]
     for r in rows:
-        hit = [m for m in dropped if m["frame_id"] == r["frame_id"] and math.hypot(m["true_cx"] - r["cx"], m["true_cy"] - r["cy"]) <= 1.0]
+        hit = [
+            m
+            for m in dropped
+            if m["frame_id"] == r["frame_id"] and math.hypot(m["true_cx"] - r["cx"], m["true_cy"] - r["cy"]) <= 1.0
+        ]
         r["found"] = f"{hit[0]['class_name']} (scene object {hit[0]['scene_index']})" if hit else None
     return rows, len(dropped)
 
@@ -102,10 +114,20 @@ def run_demo(
     """
     data, results = folder / "sim-kitti", folder / "results"
     say(f"[bold]1/6 simulate[/bold] {frames} frames with injected label errors → {escape(str(data))}")
-    simulate_dataset(data, frames=frames, seed=0, noise=DEMO_NOISE, progress=progress is not None,
-                     workers=workers or os.cpu_count() or 1, overwrite=True, drop_fraction=C.DEMO_DROP_FRACTION)
+    simulate_dataset(
+        data,
+        frames=frames,
+        seed=0,
+        noise=DEMO_NOISE,
+        progress=progress is not None,
+        workers=workers or os.cpu_count() or 1,
+        overwrite=True,
+        drop_fraction=C.DEMO_DROP_FRACTION,
+    )
     say(f"[bold]2/6 infer[/bold] {escape(str(data))} → {escape(str(results))}")
-    after_infer(infer_dataset(InferRequest(data, results, "kitti", workers=workers, overwrite=True, debug=debug), progress))
+    after_infer(
+        infer_dataset(InferRequest(data, results, "kitti", workers=workers, overwrite=True, debug=debug), progress)
+    )
     run = DemoRun(data, results)
     run.missing, run.dropped = missing_found(results, data / "manifest.parquet")
     opened = open_results(results)
@@ -115,7 +137,10 @@ def run_demo(
     )
     truth = injected_by_object(data / "manifest.parquet")
     for query in DEMO_QUERIES:
-        if query.by not in opened.columns or opened.read([query.by]).column(query.by).null_count == opened.dataset.count_rows():
+        if (
+            query.by not in opened.columns
+            or opened.read([query.by]).column(query.by).null_count == opened.dataset.count_rows()
+        ):
             continue
         ranked = rank_results(opened, query)
         run.ranked.append((ranked, [truth.get(o, "?") for o in ranked.table.column("object_id").to_pylist()]))
@@ -127,10 +152,22 @@ def run_demo(
         f"[bold]5/6 eval[/bold] a synthetic detector ({det.detections} detections: localisation noise, misses, false positives) "
         f"against the labels and their uncertainty — IoU, JIoU and JIoU-ratio AP → {escape(str(run.eval_dir))}"
     )
-    evaluated = run_eval(EvalRequest(dataset=data, detections=det.folder, results=results, output=run.eval_dir, classes=("Car",), workers=workers, debug=debug))
+    evaluated = run_eval(
+        EvalRequest(
+            dataset=data,
+            detections=det.folder,
+            results=results,
+            output=run.eval_dir,
+            classes=("Car",),
+            workers=workers,
+            debug=debug,
+        )
+    )
     write_eval_dir(evaluated, run.eval_dir)
     run.evaluation = evaluated.summary
     run.report = Path(report) if report is not None else folder / "report.html"
-    say(f"[bold]6/6 report[/bold] the HTML review page (plots, the worst labels' pictures, the evaluation) → {escape(str(run.report))}")
+    say(
+        f"[bold]6/6 report[/bold] the HTML review page (plots, the worst labels' pictures, the evaluation) → {escape(str(run.report))}"
+    )
     build_report(results, run.report, gate="default", eval_dir=run.eval_dir)
     return run

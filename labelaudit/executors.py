@@ -36,8 +36,7 @@ class Executor(Protocol):
         """Begin start-up work early (optional; :func:`run` starts whatever is not running)."""
         ...
 
-    def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
-        ...
+    def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]: ...
 
     def close(self) -> None:
         """Stop workers early (after an error); a no-op when nothing runs."""
@@ -65,7 +64,9 @@ def tune_allocator() -> bool:
         mallopt = ctypes.CDLL(None).mallopt  # the process' own symbols: libc's, without find_library's `ldconfig -p`
     except (OSError, AttributeError, TypeError):  # not glibc (macOS, Windows, musl without mallopt)
         return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, C.MALLOC_MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, C.MALLOC_TRIM_THRESHOLD))
+    return bool(mallopt(_M_MMAP_THRESHOLD, C.MALLOC_MMAP_THRESHOLD)) and bool(
+        mallopt(_M_TRIM_THRESHOLD, C.MALLOC_TRIM_THRESHOLD)
+    )
 
 
 class SerialExecutor:
@@ -153,7 +154,9 @@ class PoolExecutor:
     :class:`WorkerCrashed` instead of hanging the run; finished shards are kept for ``--resume``.
     """
 
-    def __init__(self, workers: int, start_method: str = C.POOL_START_METHOD, preload: Sequence[str] = C.WORKER_PRELOAD):
+    def __init__(
+        self, workers: int, start_method: str = C.POOL_START_METHOD, preload: Sequence[str] = C.WORKER_PRELOAD
+    ):
         if workers < 1:
             raise ValueError(f"workers must be ≥ 1, got {workers}")
         self.workers = workers
@@ -162,7 +165,9 @@ class PoolExecutor:
         self._pool: ProcessPoolExecutor | None = None
 
     def _context(self) -> Any:
-        method = self.start_method if self.start_method in multiprocessing.get_all_start_methods() else "spawn"  # Windows
+        method = (
+            self.start_method if self.start_method in multiprocessing.get_all_start_methods() else "spawn"
+        )  # Windows
         ctx = multiprocessing.get_context(method)
         if method == "forkserver":
             ctx.set_forkserver_preload(list(self.preload))  # missing modules are skipped
@@ -292,7 +297,10 @@ class DaskExecutor:
     """
 
     def __init__(
-        self, scheduler: str | None = None, local_workers: int | None = None, connect_timeout: float = C.DASK_CONNECT_TIMEOUT,
+        self,
+        scheduler: str | None = None,
+        local_workers: int | None = None,
+        connect_timeout: float = C.DASK_CONNECT_TIMEOUT,
         preload: Sequence[str] = C.WORKER_PRELOAD,
     ):
         if (scheduler is None) == (local_workers is None):
@@ -337,8 +345,12 @@ class DaskExecutor:
         method = "forkserver" if start_fork_server(local_cluster_preload(self.preload)) else "spawn"
         with dask.config.set({"distributed.worker.multiprocessing-method": method, **C.DASK_LOCAL_CONFIG}):
             return distributed.LocalCluster(
-                n_workers=self.local_workers, threads_per_worker=1, processes=True, dashboard_address=":0",  # any free port: never a clash with 8787
-                silence_logs=logging.ERROR, preload=list(self.preload),  # a killed worker is handled, not news
+                n_workers=self.local_workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",  # any free port: never a clash with 8787
+                silence_logs=logging.ERROR,
+                preload=list(self.preload),  # a killed worker is handled, not news
             )
 
     def _connect(self, distributed: Any) -> None:
@@ -361,7 +373,9 @@ class DaskExecutor:
         try:
             client.wait_for_workers(1, timeout=C.DASK_WORKER_WAIT)
         except Exception:
-            raise ClusterError(f"the Dask scheduler at {self.address} has no workers after {C.DASK_WORKER_WAIT:g} s; start some with `dask worker {self.address}`") from None
+            raise ClusterError(
+                f"the Dask scheduler at {self.address} has no workers after {C.DASK_WORKER_WAIT:g} s; start some with `dask worker {self.address}`"
+            ) from None
         expected = code_fingerprint()
         try:
             found = client.run(code_fingerprint)
@@ -385,7 +399,9 @@ class DaskExecutor:
         token = uuid4().hex[:12]
         keys = [f"labelaudit-{i}-{token}" for i in range(len(units))]
         index = {k: i for i, k in enumerate(keys)}
-        self._futures = self._client.map(_checked_call, list(units), key=keys, pure=False, fn=fn, expected=code_fingerprint())
+        self._futures = self._client.map(
+            _checked_call, list(units), key=keys, pure=False, fn=fn, expected=code_fingerprint()
+        )
         returned: set[int] = set()
         try:
             for future in distributed.as_completed(self._futures, loop=self._client.loop):
@@ -401,12 +417,16 @@ class DaskExecutor:
                         "finished shards are kept — rerun the same command to resume"
                     ) from None
                 except distributed.client.FutureCancelledError:
-                    raise ClusterError(f"the Dask scheduler at {self.address} cancelled the run (restarted or lost); rerun the same command to resume") from None
+                    raise ClusterError(
+                        f"the Dask scheduler at {self.address} cancelled the run (restarted or lost); rerun the same command to resume"
+                    ) from None
                 returned.add(i)
                 future.release()
                 yield result
             if len(returned) != len(units):
-                raise WorkerCrashed(f"{len(units) - len(returned)} of {len(units)} tasks never came back from {self.address}; rerun the same command to resume")
+                raise WorkerCrashed(
+                    f"{len(units) - len(returned)} of {len(units)} tasks never came back from {self.address}; rerun the same command to resume"
+                )
         finally:
             self.close()
 
@@ -429,7 +449,9 @@ def local_cluster_preload(preload: Sequence[str] = C.WORKER_PRELOAD) -> tuple[st
     return ("distributed", *preload)
 
 
-def make_executor(workers: int | None, preload: Sequence[str] = C.WORKER_PRELOAD, scheduler: str | None = None) -> Executor:
+def make_executor(
+    workers: int | None, preload: Sequence[str] = C.WORKER_PRELOAD, scheduler: str | None = None
+) -> Executor:
     """The executor of ``--workers N`` / ``--scheduler ADDR``.
 
     No scheduler: serial for one worker, else a process pool (``None`` = every core) whose fork

@@ -53,21 +53,46 @@ KEYS: dict[str, tuple[str, str]] = {
     "label_error_threshold": ("param", "label_error above this counts as a likely wrong label"),
     "max_fraction_label_error_above": ("max", "fraction of objects with label_error above label_error_threshold"),
     "track_error_threshold": ("param", "track_error at or above this counts as a label that contradicts its track"),
-    "max_fraction_track_error_above": ("max", "fraction of tracked objects with track_error at or above track_error_threshold"),
+    "max_fraction_track_error_above": (
+        "max",
+        "fraction of tracked objects with track_error at or above track_error_threshold",
+    ),
     "max_failed_objects": ("max", "objects whose inference failed (status error)"),
     "min_objects": ("min", "objects evaluated (status ok, few_points or no_points)"),
     "max_failed_frames": ("max", "frames that could not be read or audited (dataset-wide)"),
-    "missing_score_threshold": ("param", "a missing-label candidate with a score at or above this counts (for max_missing_per_frame)"),
-    "max_missing_per_frame": ("max", "missing-label candidates with score ≥ missing_score_threshold per frame, on average over the frames (dataset-wide)"),
+    "missing_score_threshold": (
+        "param",
+        "a missing-label candidate with a score at or above this counts (for max_missing_per_frame)",
+    ),
+    "max_missing_per_frame": (
+        "max",
+        "missing-label candidates with score ≥ missing_score_threshold per frame, on average over the frames (dataset-wide)",
+    ),
 }
 GLOBAL_KEYS = frozenset({"max_failed_frames", "max_missing_per_frame", "missing_score_threshold"})
 COUNT_KEYS = frozenset({"max_count_no_points", "max_failed_objects", "min_objects", "max_failed_frames"})
-FRACTION_KEYS = frozenset({"max_fraction_jiou_gt_below", "max_fraction_no_points", "max_fraction_label_error_above", "max_fraction_track_error_above"})
-NEEDS = {"max_fraction_jiou_gt_below": "jiou_gt_threshold", "max_fraction_label_error_above": "label_error_threshold",
-         "max_fraction_track_error_above": "track_error_threshold", "max_missing_per_frame": "missing_score_threshold"}
+FRACTION_KEYS = frozenset(
+    {
+        "max_fraction_jiou_gt_below",
+        "max_fraction_no_points",
+        "max_fraction_label_error_above",
+        "max_fraction_track_error_above",
+    }
+)
+NEEDS = {
+    "max_fraction_jiou_gt_below": "jiou_gt_threshold",
+    "max_fraction_label_error_above": "label_error_threshold",
+    "max_fraction_track_error_above": "track_error_threshold",
+    "max_missing_per_frame": "missing_score_threshold",
+}
 _SCORE_RULES = {  # rule → (score column, its threshold key, counts values at the threshold, why inactive without values)
     "max_fraction_label_error_above": ("label_error", "label_error_threshold", False, "no label_error yet"),
-    "max_fraction_track_error_above": ("track_error", "track_error_threshold", True, "no track_error (no tracks: KITTI, or tracks of < 3 frames)"),
+    "max_fraction_track_error_above": (
+        "track_error",
+        "track_error_threshold",
+        True,
+        "no track_error (no tracks: KITTI, or tracks of < 3 frames)",
+    ),
 }
 # Order of rules in reports.
 RULE_ORDER = tuple(k for k, (kind, _) in KEYS.items() if kind != "param")
@@ -234,7 +259,9 @@ def _finite(values: np.ndarray) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
-def _evaluate_class(name: str, rules: Mapping[str, float], status: np.ndarray, jiou: np.ndarray, lerr: np.ndarray, terr: np.ndarray) -> list[RuleResult]:
+def _evaluate_class(
+    name: str, rules: Mapping[str, float], status: np.ndarray, jiou: np.ndarray, lerr: np.ndarray, terr: np.ndarray
+) -> list[RuleResult]:
     """Rules of one class over its rows (arrays of equal length; NaN = null)."""
     evaluated = np.isin(status, EVALUATED_STATUSES)
     n = int(evaluated.sum())
@@ -295,7 +322,15 @@ def _missing_rule(results: Results, objects: pa.Table, rules: Mapping[str, float
     thr, floor = rules["max_missing_per_frame"], rules["missing_score_threshold"]
     candidates = read_candidates(results)
     if candidates is None:
-        return RuleResult("dataset", "max_missing_per_frame", None, thr, "skip", 0, "inactive: the run did not search for missing labels (infer --no-missing)")
+        return RuleResult(
+            "dataset",
+            "max_missing_per_frame",
+            None,
+            thr,
+            "skip",
+            0,
+            "inactive: the run did not search for missing labels (infer --no-missing)",
+        )
     frames = set(objects.column("frame_id").to_pylist()) | set(candidates.column("frame_id").to_pylist())
     scores = np.asarray(candidates.column("score").to_numpy(zero_copy_only=False), dtype=float)
     counted = [f for f, s in zip(candidates.column("frame_id").to_pylist(), scores) if s >= floor]
@@ -305,7 +340,15 @@ def _missing_rule(results: Results, objects: pa.Table, rules: Mapping[str, float
         per_frame = Counter(counted)
         worst = min(per_frame, key=lambda f: (-per_frame[f], f))
         note += f"; most in frame {worst} ({per_frame[worst]})"
-    return RuleResult("dataset", "max_missing_per_frame", value, thr, _compare("max_missing_per_frame", value, thr), objects.num_rows, note)
+    return RuleResult(
+        "dataset",
+        "max_missing_per_frame",
+        value,
+        thr,
+        _compare("max_missing_per_frame", value, thr),
+        objects.num_rows,
+        note,
+    )
 
 
 def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
@@ -323,7 +366,9 @@ def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
         )
     table = results.read(["frame_id", "class_name", "status", "jiou_gt", "label_error", "track_error"])
     if table.num_rows == 0:
-        raise ResultsError(f"{results.root}: results hold no objects; nothing to check (wrong --classes, or an empty dataset?)")
+        raise ResultsError(
+            f"{results.root}: results hold no objects; nothing to check (wrong --classes, or an empty dataset?)"
+        )
     classes = np.asarray(table.column("class_name").to_pylist(), dtype=object)
     status = np.asarray(table.column("status").to_pylist(), dtype=object)
     jiou = table.column("jiou_gt").to_numpy(zero_copy_only=False).astype(float)
@@ -338,7 +383,16 @@ def evaluate_gate(results: Results, gate: GateConfig) -> GateReport:
     if "max_failed_frames" in gate.default:
         failed = results.failed_frames()
         thr = gate.default["max_failed_frames"]
-        out.append(RuleResult("dataset", "max_failed_frames", float(failed), thr, _compare("max_failed_frames", failed, thr), table.num_rows))
+        out.append(
+            RuleResult(
+                "dataset",
+                "max_failed_frames",
+                float(failed),
+                thr,
+                _compare("max_failed_frames", failed, thr),
+                table.num_rows,
+            )
+        )
     if "max_missing_per_frame" in gate.default:
         out.append(_missing_rule(results, table, gate.default))
     return GateReport(out, gate.source, table.num_rows, sorted(set(gate.classes) - set(names)))

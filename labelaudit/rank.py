@@ -70,7 +70,15 @@ def _numeric_columns(schema: pa.Schema) -> list[str]:
 
 _AUDITED = ("ok", "few_points", "no_points")  # statuses whose rows carry the model's columns
 
-_OPS = {">=": pc.greater_equal, "<=": pc.less_equal, "!=": pc.not_equal, "==": pc.equal, ">": pc.greater, "<": pc.less, "=": pc.equal}
+_OPS = {
+    ">=": pc.greater_equal,
+    "<=": pc.less_equal,
+    "!=": pc.not_equal,
+    "==": pc.equal,
+    ">": pc.greater,
+    "<": pc.less,
+    "=": pc.equal,
+}
 _WHERE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(>=|<=|!=|==|>|<|=)\s*(.+?)\s*$")
 
 
@@ -88,7 +96,9 @@ def parse_where(condition: str, schema: pa.Schema) -> tuple[str, Any, Any]:
     """
     m = _WHERE.match(condition)
     if not m:
-        raise ResultsError(f"--where {condition!r}: expected COLUMN OP VALUE with OP one of ==, !=, >=, <=, >, < (e.g. 'num_points>=10')")
+        raise ResultsError(
+            f"--where {condition!r}: expected COLUMN OP VALUE with OP one of ==, !=, >=, <=, >, < (e.g. 'num_points>=10')"
+        )
     column, op, raw = m.groups()
     if column not in schema.names:
         raise ResultsError(f"--where {condition!r}: unknown column {column!r}; columns: {', '.join(schema.names)}")
@@ -143,14 +153,21 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
     schema = results.dataset.schema
     numeric = _numeric_columns(schema)
     if query.by not in numeric:
-        raise ResultsError(f"--by {query.by!r}: not a numeric column of {results.root}; choose one of {', '.join(numeric)}")
+        raise ResultsError(
+            f"--by {query.by!r}: not a numeric column of {results.root}; choose one of {', '.join(numeric)}"
+        )
     if query.top < 1:
         raise ResultsError(f"--top must be ≥ 1, got {query.top}")
 
     conditions = [parse_where(w, schema) for w in query.where]
     needed = ["frame_id", "object_index", query.by]
     scored_only = query.by == "label_error" and {"class_name", "status"} <= set(schema.names)
-    for c, used in (("class_name", query.classes or scored_only), ("status", query.statuses or scored_only), ("num_points", query.min_points is not None), ("distance", query.max_distance is not None)):
+    for c, used in (
+        ("class_name", query.classes or scored_only),
+        ("status", query.statuses or scored_only),
+        ("num_points", query.min_points is not None),
+        ("distance", query.max_distance is not None),
+    ):
         if used and c not in needed:
             needed.append(c)
     needed += [c for c, _, _ in conditions if c not in needed]
@@ -160,7 +177,9 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
     kept = table.filter(_mask(table, query.by, one_of, *bounds, conditions))
     unscored: dict[str, int] = {}
     if scored_only:  # audited rows that pass every filter but have no score: their class is not validated
-        passing = _mask(table, "object_index", one_of, *bounds, conditions)  # the filters alone (object_index is never null)
+        passing = _mask(
+            table, "object_index", one_of, *bounds, conditions
+        )  # the filters alone (object_index is never null)
         missing = pc.invert(_mask(table, query.by, {}, {}, {}, []))
         audited = pc.is_in(table.column("status"), value_set=pa.array(list(_AUDITED)))
         for name in table.filter(pc.and_(pc.and_(missing, audited), passing)).column("class_name").to_pylist():
@@ -174,7 +193,10 @@ def rank_results(results: Results, query: RankQuery) -> RankResult:
     if keys:
         frames = pa.array(sorted({f for f, _ in keys}))
         full = results.dataset.to_table(filter=pads.field("frame_id").isin(frames))
-        pos = {k: i for i, k in enumerate(zip(full.column("frame_id").to_pylist(), full.column("object_index").to_pylist()))}
+        pos = {
+            k: i
+            for i, k in enumerate(zip(full.column("frame_id").to_pylist(), full.column("object_index").to_pylist()))
+        }
         full = full.take(pa.array([pos[k] for k in keys], type=pa.int64()))
     else:
         full = schema.empty_table()
@@ -265,13 +287,17 @@ def rank_missing(results: Results, query: MissingQuery) -> MissingResult:
     table = table.select(missing_column_order(table))
     numeric = _numeric_columns(table.schema)
     if query.by not in numeric:
-        raise ResultsError(f"--by {query.by!r}: not a numeric column of the missing-label table; choose one of {', '.join(numeric)}")
+        raise ResultsError(
+            f"--by {query.by!r}: not a numeric column of the missing-label table; choose one of {', '.join(numeric)}"
+        )
     conditions = [parse_where(w, table.schema) for w in query.where]
     one_of = {"class_name": query.classes, "source": query.sources}
     at_least = {"score": query.min_score, "num_points": query.min_points}
     kept = table.filter(_mask(table, query.by, one_of, at_least, {"distance": query.max_distance}, conditions))
     order = "descending" if query.is_descending else "ascending"
-    idx = pc.sort_indices(kept, sort_keys=[(query.by, order), ("frame_id", "ascending"), ("candidate_index", "ascending")])
+    idx = pc.sort_indices(
+        kept, sort_keys=[(query.by, order), ("frame_id", "ascending"), ("candidate_index", "ascending")]
+    )
     return MissingResult(kept.take(idx[: query.top]), kept.num_rows, table.num_rows, query)
 
 
@@ -316,7 +342,9 @@ def to_csv(table: pa.Table) -> str:
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
     for rec in to_records(table):
-        writer.writerow(["" if rec[c] is None else json.dumps(rec[c]) if isinstance(rec[c], list) else rec[c] for c in cols])
+        writer.writerow(
+            ["" if rec[c] is None else json.dumps(rec[c]) if isinstance(rec[c], list) else rec[c] for c in cols]
+        )
     return buf.getvalue()
 
 

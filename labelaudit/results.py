@@ -91,9 +91,30 @@ class Column(NamedTuple):
 # tests/test_results.py checks they agree.
 COLUMNS: tuple[Column, ...] = (
     Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2, waymo-v1 or av2", "identity"),
-    Column("frame_id", pa.string(), False, "", "frame id (KITTI '000123', Waymo '<segment>:<timestamp>', Argoverse 2 '<log_id>:<timestamp_ns>')", "identity"),
-    Column("object_index", pa.int32(), False, "", "position of the box among the frame's labels (0-based, DontCare excluded)", "identity"),
-    Column("object_id", pa.string(), False, "", "Waymo laser_object_id, Argoverse 2 track_uuid, else '<frame_id>:<object_index>'", "identity"),
+    Column(
+        "frame_id",
+        pa.string(),
+        False,
+        "",
+        "frame id (KITTI '000123', Waymo '<segment>:<timestamp>', Argoverse 2 '<log_id>:<timestamp_ns>')",
+        "identity",
+    ),
+    Column(
+        "object_index",
+        pa.int32(),
+        False,
+        "",
+        "position of the box among the frame's labels (0-based, DontCare excluded)",
+        "identity",
+    ),
+    Column(
+        "object_id",
+        pa.string(),
+        False,
+        "",
+        "Waymo laser_object_id, Argoverse 2 track_uuid, else '<frame_id>:<object_index>'",
+        "identity",
+    ),
     Column("class_name", pa.string(), False, "", "class as written by the dataset", "identity"),
     Column("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre)", "box"),
     Column("cy", pa.float64(), False, "m", "box centre y", "box"),
@@ -102,16 +123,65 @@ COLUMNS: tuple[Column, ...] = (
     Column("width", pa.float64(), False, "m", "box width", "box"),
     Column("height", pa.float64(), False, "m", "box height", "box"),
     Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
-    Column("distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre", "box"),
-    Column("num_points", pa.int32(), True, "", "LiDAR points cropped for the box (after margin and ground cut); null when skipped", "model"),
+    Column(
+        "distance",
+        pa.float64(),
+        False,
+        "m",
+        "horizontal (BEV) distance from the sensor origin to the box centre",
+        "box",
+    ),
+    Column(
+        "num_points",
+        pa.int32(),
+        True,
+        "",
+        "LiDAR points cropped for the box (after margin and ground cut); null when skipped",
+        "model",
+    ),
     Column("status", pa.string(), False, "", "ok | few_points | no_points | skipped | error", "model"),
     Column("message", pa.string(), True, "", "why the status is skipped or error; null otherwise", "row"),
     Column("sigma", pa.float64(), True, "m", "LiDAR noise std σ used by the model", "model"),
-    Column("jiou_gt", pa.float64(), True, "", "JIoU between the labeled box and its spatial distribution; 1 = no uncertainty", "model"),
-    Column("label_error", pa.float64(), True, "", "how likely the label is wrong (higher = worse); null for classes it is not validated for (constants.LABEL_ERROR_CLASSES, docs/label-error.md)", "model"),
-    Column("sigma_hat", pa.float64(), True, "m", "per-object RMS fit residual of the points to the box (EM σ̂); null with < 2 points", "model"),
-    Column("fit_offset_m", pa.float64(), True, "m", "distance between the labeled box and the model's fitted box; null until computed", "model"),
-    Column("corner_tv", pa.list_(pa.float64()), True, "m²", "total variance of the 4 BEV corners, nearest to the sensor first (C1..C4)", "model"),
+    Column(
+        "jiou_gt",
+        pa.float64(),
+        True,
+        "",
+        "JIoU between the labeled box and its spatial distribution; 1 = no uncertainty",
+        "model",
+    ),
+    Column(
+        "label_error",
+        pa.float64(),
+        True,
+        "",
+        "how likely the label is wrong (higher = worse); null for classes it is not validated for (constants.LABEL_ERROR_CLASSES, docs/label-error.md)",
+        "model",
+    ),
+    Column(
+        "sigma_hat",
+        pa.float64(),
+        True,
+        "m",
+        "per-object RMS fit residual of the points to the box (EM σ̂); null with < 2 points",
+        "model",
+    ),
+    Column(
+        "fit_offset_m",
+        pa.float64(),
+        True,
+        "m",
+        "distance between the labeled box and the model's fitted box; null until computed",
+        "model",
+    ),
+    Column(
+        "corner_tv",
+        pa.list_(pa.float64()),
+        True,
+        "m²",
+        "total variance of the 4 BEV corners, nearest to the sensor first (C1..C4)",
+        "model",
+    ),
     Column("std_cx", pa.float64(), True, "m", "posterior std of cx", "model"),
     Column("std_cy", pa.float64(), True, "m", "posterior std of cy", "model"),
     Column("std_cz", pa.float64(), True, "m", "posterior std of cz (null for the BEV model)", "model"),
@@ -119,46 +189,153 @@ COLUMNS: tuple[Column, ...] = (
     Column("std_width", pa.float64(), True, "m", "posterior std of the width", "model"),
     Column("std_height", pa.float64(), True, "m", "posterior std of the height (null for the BEV model)", "model"),
     Column("std_yaw", pa.float64(), True, "rad", "posterior std of the yaw", "model"),
-    Column("cov", pa.list_(pa.float64()), True, "SI", "posterior covariance of φ, row-major cov_dim × cov_dim", "model"),
+    Column(
+        "cov", pa.list_(pa.float64()), True, "SI", "posterior covariance of φ, row-major cov_dim × cov_dim", "model"
+    ),
     Column("cov_dim", pa.int32(), True, "", "dimension of φ: 6 (BEV) or 8 (3D)", "model"),
     Column("model", pa.string(), False, "", "bev or 3d", "model"),
     # Diagnostics of the core beyond the paper (docs/label-error.md); null when the core does not report them.
-    Column("fit_cx", pa.float64(), True, "m", "centre x of the box the model fits to the points (its suggested box)", "model"),
+    Column(
+        "fit_cx",
+        pa.float64(),
+        True,
+        "m",
+        "centre x of the box the model fits to the points (its suggested box)",
+        "model",
+    ),
     Column("fit_cy", pa.float64(), True, "m", "centre y of the suggested box", "model"),
     Column("fit_cz", pa.float64(), True, "m", "centre z of the suggested box (null when not fitted in 3D)", "model"),
     Column("fit_length", pa.float64(), True, "m", "length of the suggested box", "model"),
     Column("fit_width", pa.float64(), True, "m", "width of the suggested box", "model"),
     Column("fit_height", pa.float64(), True, "m", "height of the suggested box (null when not fitted in 3D)", "model"),
     Column("fit_yaw", pa.float64(), True, "rad", "yaw of the suggested box", "model"),
-    Column("mahalanobis", pa.float64(), True, "", "distance between the labeled and the suggested box in posterior std (Mahalanobis)", "model"),
-    Column("hull_iou", pa.float64(), True, "", "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)", "model"),
+    Column(
+        "mahalanobis",
+        pa.float64(),
+        True,
+        "",
+        "distance between the labeled and the suggested box in posterior std (Mahalanobis)",
+        "model",
+    ),
+    Column(
+        "hull_iou",
+        pa.float64(),
+        True,
+        "",
+        "BEV IoU between the box and the convex hull of its points (baseline; 0 below 3 points)",
+        "model",
+    ),
     # Free space, neighbours and ground (docs/label-error.md); null when audited without the frame around the box.
-    Column("free_rays", pa.int32(), True, "", "LiDAR rays that pass through the label's solid lower body (deeper than the tolerance) and end behind it: empty space inside the label (Waymo: rays of the TOP lidar's first returns only)", "model"),
-    Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the label (within the tolerance, above the ground cut) (Waymo: TOP first returns only)", "model"),
+    Column(
+        "free_rays",
+        pa.int32(),
+        True,
+        "",
+        "LiDAR rays that pass through the label's solid lower body (deeper than the tolerance) and end behind it: empty space inside the label (Waymo: rays of the TOP lidar's first returns only)",
+        "model",
+    ),
+    Column(
+        "end_rays",
+        pa.int32(),
+        True,
+        "",
+        "LiDAR rays that end on or in the label (within the tolerance, above the ground cut) (Waymo: TOP first returns only)",
+        "model",
+    ),
     Column("fit_free_rays", pa.int32(), True, "", "free_rays of the suggested box", "model"),
     Column("fit_end_rays", pa.int32(), True, "", "end_rays of the suggested box", "model"),
-    Column("neighbour_points", pa.int32(), True, "", "points of the fit crop dropped because they lie inside another label of the frame", "model"),
-    Column("scenery_points", pa.int32(), True, "", "points of the fit crop dropped because they belong to an unlabelled surface beside the label that runs out of the crop (wall, hedge)", "model"),
-    Column("ground_z", pa.float64(), True, "m", "height of the local ground plane under the box centre; null when too few ground points (fixed cut used)", "model"),
+    Column(
+        "neighbour_points",
+        pa.int32(),
+        True,
+        "",
+        "points of the fit crop dropped because they lie inside another label of the frame",
+        "model",
+    ),
+    Column(
+        "scenery_points",
+        pa.int32(),
+        True,
+        "",
+        "points of the fit crop dropped because they belong to an unlabelled surface beside the label that runs out of the crop (wall, hedge)",
+        "model",
+    ),
+    Column(
+        "ground_z",
+        pa.float64(),
+        True,
+        "m",
+        "height of the local ground plane under the box centre; null when too few ground points (fixed cut used)",
+        "model",
+    ),
     # KITTI extras (null for other formats)
     Column("truncated", pa.float64(), True, "", "KITTI truncation fraction in [0, 1]", "extra"),
     Column("occluded", pa.int32(), True, "", "KITTI occlusion level 0..3 (3 = unknown)", "extra"),
-    Column("difficulty", pa.string(), True, "", "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown", "extra"),
+    Column(
+        "difficulty",
+        pa.string(),
+        True,
+        "",
+        "KITTI difficulty (devkit definition): Easy, Moderate, Hard or unknown",
+        "extra",
+    ),
     Column("label_line", pa.int32(), True, "", "1-based line of the box in its KITTI label file", "extra"),
     # Waymo extras (null for KITTI)
-    Column("num_lidar_points_in_box", pa.int32(), True, "", "the dataset's own point count of the box (Waymo num_lidar_points_in_box, Argoverse 2 num_interior_pts; all lidars), to compare with num_points", "extra"),
-    Column("detection_difficulty", pa.int32(), True, "", "Waymo detection difficulty level (0 unknown, 1 LEVEL_1, 2 LEVEL_2)", "extra"),
+    Column(
+        "num_lidar_points_in_box",
+        pa.int32(),
+        True,
+        "",
+        "the dataset's own point count of the box (Waymo num_lidar_points_in_box, Argoverse 2 num_interior_pts; all lidars), to compare with num_points",
+        "extra",
+    ),
+    Column(
+        "detection_difficulty",
+        pa.int32(),
+        True,
+        "",
+        "Waymo detection difficulty level (0 unknown, 1 LEVEL_1, 2 LEVEL_2)",
+        "extra",
+    ),
     Column("tracking_difficulty", pa.int32(), True, "", "Waymo tracking difficulty level", "extra"),
     Column("speed_x", pa.float64(), True, "m/s", "Waymo object speed along x (vehicle frame)", "extra"),
     Column("speed_y", pa.float64(), True, "m/s", "Waymo object speed along y", "extra"),
     # Sequences (datasets with ego poses and track ids: Waymo, Argoverse 2); null for KITTI object.
-    Column("timestamp", pa.float64(), True, "s", "capture time of the frame (Waymo / Argoverse 2 timestamp in seconds); null without one", "box"),
-    Column("world_cx", pa.float64(), True, "m", "box centre x in the world frame (the dataset's ego pose applied); null without a pose", "box"),
+    Column(
+        "timestamp",
+        pa.float64(),
+        True,
+        "s",
+        "capture time of the frame (Waymo / Argoverse 2 timestamp in seconds); null without one",
+        "box",
+    ),
+    Column(
+        "world_cx",
+        pa.float64(),
+        True,
+        "m",
+        "box centre x in the world frame (the dataset's ego pose applied); null without a pose",
+        "box",
+    ),
     Column("world_cy", pa.float64(), True, "m", "box centre y in the world frame", "box"),
     Column("world_cz", pa.float64(), True, "m", "box centre z in the world frame", "box"),
     Column("world_yaw", pa.float64(), True, "rad", "heading about the world z axis, in [-π, π)", "box"),
-    Column("track_error", pa.float64(), True, "", "probability in [0, 1] that the label contradicts its own track (size, heading or trajectory of the object's other frames); null without a track of ≥ 3 frames", "track"),
-    Column("track_issue", pa.string(), True, "", "what the label contradicts most: size | heading | position | none (below 0.5); null where track_error is null", "track"),
+    Column(
+        "track_error",
+        pa.float64(),
+        True,
+        "",
+        "probability in [0, 1] that the label contradicts its own track (size, heading or trajectory of the object's other frames); null without a track of ≥ 3 frames",
+        "track",
+    ),
+    Column(
+        "track_issue",
+        pa.string(),
+        True,
+        "",
+        "what the label contradicts most: size | heading | position | none (below 0.5); null where track_error is null",
+        "track",
+    ),
 )
 
 SCHEMA = pa.schema([pa.field(c.name, c.type, nullable=c.nullable) for c in COLUMNS])
@@ -187,7 +364,9 @@ EXTRA_COLUMNS = KITTI_EXTRA_COLUMNS + WAYMO_EXTRA_COLUMNS
 
 ERRORS_SCHEMA = pa.schema(
     [
-        pa.field("unit", pa.string(), nullable=False),  # unit key (KITTI frame id, Waymo segment file, Argoverse 2 log folder)
+        pa.field(
+            "unit", pa.string(), nullable=False
+        ),  # unit key (KITTI frame id, Waymo segment file, Argoverse 2 log folder)
         pa.field("frame_id", pa.string()),  # null when the unit failed before a frame was read
         pa.field("file", pa.string()),  # offending file, when known
         pa.field("line", pa.int64()),  # 1-based line in a text file, when known
@@ -206,9 +385,30 @@ MISSING_SOURCES = ("points", "detections", "both")
 # the evidence behind ``score``. docs/results-schema.md documents the same list (a test checks it).
 MISSING_COLUMNS: tuple[Column, ...] = (
     Column("frame_id", pa.string(), False, "", "frame id, as in the objects table", "identity"),
-    Column("candidate_index", pa.int32(), False, "", "position of the candidate among the frame's candidates (0-based, nearest to the sensor first)", "identity"),
-    Column("class_name", pa.string(), False, "", "the audited class the candidate most resembles (by size; the detector's class for detections)", "identity"),
-    Column("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre), as in the objects table", "box"),
+    Column(
+        "candidate_index",
+        pa.int32(),
+        False,
+        "",
+        "position of the candidate among the frame's candidates (0-based, nearest to the sensor first)",
+        "identity",
+    ),
+    Column(
+        "class_name",
+        pa.string(),
+        False,
+        "",
+        "the audited class the candidate most resembles (by size; the detector's class for detections)",
+        "identity",
+    ),
+    Column(
+        "cx",
+        pa.float64(),
+        False,
+        "m",
+        "box centre x (LiDAR/vehicle frame, geometric centre), as in the objects table",
+        "box",
+    ),
     Column("cy", pa.float64(), False, "m", "box centre y", "box"),
     Column("cz", pa.float64(), False, "m", "box centre z", "box"),
     Column("length", pa.float64(), False, "m", "box length (along the heading)", "box"),
@@ -216,22 +416,89 @@ MISSING_COLUMNS: tuple[Column, ...] = (
     Column("height", pa.float64(), False, "m", "box height", "box"),
     Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
     Column("num_points", pa.int32(), False, "", "LiDAR points of the candidate (above the ground)", "model"),
-    Column("distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre", "box"),
-    Column("score", pa.float64(), False, "", "how likely an object of the audited classes is here without a label, in [0, 1] (higher = more likely)", "model"),
+    Column(
+        "distance",
+        pa.float64(),
+        False,
+        "m",
+        "horizontal (BEV) distance from the sensor origin to the box centre",
+        "box",
+    ),
+    Column(
+        "score",
+        pa.float64(),
+        False,
+        "",
+        "how likely an object of the audited classes is here without a label, in [0, 1] (higher = more likely)",
+        "model",
+    ),
     Column("source", pa.string(), False, "", "points | detections | both", "model"),
     # evidence
     Column("dataset", pa.string(), False, "", "dataset format: kitti, waymo-v2, waymo-v1 or av2", "identity"),
-    Column("points_score", pa.float64(), True, "", "score of the point-cloud evidence alone (product of the four factors below); null for a detection no cluster supports", "model"),
-    Column("size_score", pa.float64(), True, "", "how well the box size matches the class size prior, in [0, 1]", "model"),
-    Column("shape_score", pa.float64(), True, "", "how much of the points lie on one or two vertical faces (planar side / L-shape) of the box, in [0, 1]", "model"),
-    Column("density_score", pa.float64(), True, "", "points against what a car at this range returns, in [0, 1]", "model"),
-    Column("free_space_score", pa.float64(), True, "", "1 − share of the rays into the box's lower body that pass through it (a real car stops them), in [0, 1]", "model"),
-    Column("free_rays", pa.int32(), True, "", "LiDAR rays that pass through the candidate's lower body and end behind it", "model"),
+    Column(
+        "points_score",
+        pa.float64(),
+        True,
+        "",
+        "score of the point-cloud evidence alone (product of the four factors below); null for a detection no cluster supports",
+        "model",
+    ),
+    Column(
+        "size_score", pa.float64(), True, "", "how well the box size matches the class size prior, in [0, 1]", "model"
+    ),
+    Column(
+        "shape_score",
+        pa.float64(),
+        True,
+        "",
+        "how much of the points lie on one or two vertical faces (planar side / L-shape) of the box, in [0, 1]",
+        "model",
+    ),
+    Column(
+        "density_score", pa.float64(), True, "", "points against what a car at this range returns, in [0, 1]", "model"
+    ),
+    Column(
+        "free_space_score",
+        pa.float64(),
+        True,
+        "",
+        "1 − share of the rays into the box's lower body that pass through it (a real car stops them), in [0, 1]",
+        "model",
+    ),
+    Column(
+        "free_rays",
+        pa.int32(),
+        True,
+        "",
+        "LiDAR rays that pass through the candidate's lower body and end behind it",
+        "model",
+    ),
     Column("end_rays", pa.int32(), True, "", "LiDAR rays that end on or in the candidate", "model"),
     Column("ground_z", pa.float64(), True, "m", "height of the ground under the candidate", "model"),
-    Column("nearest_label_m", pa.float64(), True, "m", "BEV distance from the candidate's centre to the nearest label of the frame (any class); null when the frame has none", "model"),
-    Column("max_label_iou", pa.float64(), False, "", "largest BEV IoU between the candidate and any label of the frame (any class; KITTI's DontCare regions have no 3D box and are applied in the image)", "model"),
-    Column("detection_score", pa.float64(), True, "", "the detector's confidence (source detections / both); null for points-only candidates", "model"),
+    Column(
+        "nearest_label_m",
+        pa.float64(),
+        True,
+        "m",
+        "BEV distance from the candidate's centre to the nearest label of the frame (any class); null when the frame has none",
+        "model",
+    ),
+    Column(
+        "max_label_iou",
+        pa.float64(),
+        False,
+        "",
+        "largest BEV IoU between the candidate and any label of the frame (any class; KITTI's DontCare regions have no 3D box and are applied in the image)",
+        "model",
+    ),
+    Column(
+        "detection_score",
+        pa.float64(),
+        True,
+        "",
+        "the detector's confidence (source detections / both); null for points-only candidates",
+        "model",
+    ),
     Column("detection_class", pa.string(), True, "", "the detector's class (source detections / both)", "model"),
     Column("detection_source", pa.string(), True, "", "file and line (or row) of the detection", "model"),
 )
@@ -258,7 +525,15 @@ def _clean_list(value: Any) -> list[float | None] | None:
 
 
 _KIND_OF = {  # how normalize_row coerces each column, looked up once per column
-    n: "F" if n in REQUIRED_FLOAT_COLUMNS else "f" if n in FLOAT_COLUMNS else "i" if n in INT_COLUMNS else "l" if n in LIST_COLUMNS else "s"
+    n: "F"
+    if n in REQUIRED_FLOAT_COLUMNS
+    else "f"
+    if n in FLOAT_COLUMNS
+    else "i"
+    if n in INT_COLUMNS
+    else "l"
+    if n in LIST_COLUMNS
+    else "s"
     for n in COLUMN_NAMES
 }
 _KIND_OF_ITEMS = tuple(_KIND_OF.items())
@@ -293,13 +568,17 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None, *, normalized: bool = False) -> pa.Table:
+def rows_to_table(
+    rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None, *, normalized: bool = False
+) -> pa.Table:
     """Build the objects table from row dicts, sorted by (frame_id, object_index) for reproducibility.
 
     ``normalized=True``: the rows already come from :func:`normalize_row` (as
     ``pipeline.process_frame``'s do), so they are not coerced a second time.
     """
-    clean = sorted(rows if normalized else (normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"]))
+    clean = sorted(
+        rows if normalized else (normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"])
+    )
     try:
         table = pa.Table.from_pylist(clean, schema=SCHEMA)
     except (pa.ArrowException, UnicodeError, OverflowError, TypeError, ValueError):
@@ -398,7 +677,9 @@ def errors_to_table(errors: Iterable[Mapping[str, Any]], metadata: Mapping[str, 
 # --------------------------------------------------------------------------- metadata & atomic writes
 
 
-def run_metadata(params: Mapping[str, Any], param_hash: str, input_path: str, dataset_format: str, **extra: Any) -> dict[str, Any]:
+def run_metadata(
+    params: Mapping[str, Any], param_hash: str, input_path: str, dataset_format: str, **extra: Any
+) -> dict[str, Any]:
     """The metadata stored in the manifest and in every shard."""
     return {
         "tool": "labelaudit",
@@ -463,6 +744,7 @@ def with_metadata(table: pa.Table, metadata: Mapping[str, Any]) -> pa.Table:
 def shard_metadata(path: str | Path) -> dict[str, Any]:
     """The labelaudit metadata of one Parquet file (empty dict when absent)."""
     import pyarrow.parquet as pq
+
     meta = pq.read_schema(path).metadata or {}
     raw = meta.get(METADATA_KEY)
     return json.loads(raw) if raw else {}
@@ -478,6 +760,7 @@ def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
     A killed writer leaves at most a dot-file that readers ignore and the next run removes.
     """
     import pyarrow.parquet as pq
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_name(path)
@@ -613,6 +896,7 @@ class Results:
     def tracks(self) -> pa.Table | None:
         """``tracks.parquet`` (one row per track), or None when the run has none (KITTI, a bare file)."""
         import pyarrow.parquet as pq
+
         path = self.root / TRACKS_FILE
         if self.root.is_file() or not os.path.lexists(path):
             return None
@@ -624,6 +908,7 @@ class Results:
     def failed_frames(self) -> int:
         """Number of frames (or units) that failed as a whole."""
         import pyarrow.compute as pc
+
         errs = self.errors()
         return int(pc.sum(pc.equal(errs["level"], "error")).as_py() or 0) if errs.num_rows else 0
 
@@ -631,6 +916,7 @@ class Results:
 def read_error_tables(paths: Sequence[Path]) -> pa.Table:
     """The errors tables of ``paths`` as one table; a damaged file is a :class:`ResultsError` naming it."""
     import pyarrow.parquet as pq
+
     tables = []
     for p in paths:
         try:
@@ -658,6 +944,7 @@ def read_missing(results_dir: str | Path) -> pa.Table:
     An example that runs: the module's docstring.
     """
     import pyarrow.parquet as pq
+
     root = Path(results_dir)
     try:
         exists = root.exists()
@@ -699,6 +986,7 @@ def open_results(path: str | Path) -> Results:
     """
     import pyarrow.dataset as pads
     import pyarrow.parquet as pq
+
     root = Path(path)
     try:
         exists = root.exists()
@@ -711,7 +999,11 @@ def open_results(path: str | Path) -> Results:
             return Results(root, pads.dataset(root, format="parquet", schema=None), {})
         manifest = read_manifest(root) or {}
         shard_dir = root / OBJECTS_DIR
-        files = sorted(p for p in shard_dir.glob("*.parquet") if not p.name.startswith((".", "_"))) if shard_dir.is_dir() else []
+        files = (
+            sorted(p for p in shard_dir.glob("*.parquet") if not p.name.startswith((".", "_")))
+            if shard_dir.is_dir()
+            else []
+        )
         if not files:
             raise ResultsError(
                 f"{root}: no result shards in {shard_dir}; is this a labelaudit results folder? "
@@ -719,11 +1011,15 @@ def open_results(path: str | Path) -> Results:
             )
         # One schema for all shards: the current SCHEMA plus whatever columns the files add, so
         # shards of an older build (fewer columns) read as nulls instead of hiding columns.
-        schema = pa.unify_schemas([SCHEMA] + [pq.read_schema(f) for f in files]).with_metadata(pq.read_schema(files[0]).metadata)
+        schema = pa.unify_schemas([SCHEMA] + [pq.read_schema(f) for f in files]).with_metadata(
+            pq.read_schema(files[0]).metadata
+        )
         dataset = pads.dataset([str(f) for f in files], format="parquet", schema=schema)
         return Results(root, dataset, manifest)
     except (pa.ArrowException, OSError) as exc:
-        raise ResultsError(f"{root}: unreadable results ({one_line(str(exc))}); rerun `labelaudit infer --overwrite`") from None
+        raise ResultsError(
+            f"{root}: unreadable results ({one_line(str(exc))}); rerun `labelaudit infer --overwrite`"
+        ) from None
 
 
 # --------------------------------------------------------------------------- writing: lock and resume
@@ -732,6 +1028,7 @@ def open_results(path: str | Path) -> Results:
 def is_whole_parquet(path: Path) -> bool:
     """Whether ``path`` is a complete Parquet file (its footer reads)."""
     import pyarrow.parquet as pq
+
     try:
         pq.read_metadata(path)
         return True
@@ -751,7 +1048,9 @@ def check_output_folder(output: Path) -> None:
     """
     try:
         if output.is_symlink() and not output.exists():
-            raise InferError(f"{output}: is a symbolic link to {os.readlink(output)}, which does not exist; choose another -o/--output")
+            raise InferError(
+                f"{output}: is a symbolic link to {os.readlink(output)}, which does not exist; choose another -o/--output"
+            )
         if output.exists() and not output.is_dir():
             raise InferError(f"{output}: exists and is not a folder; choose another -o/--output")
         if output.is_dir():
@@ -767,7 +1066,9 @@ def check_output_folder(output: Path) -> None:
                     raise InferError(f"{output}: {parent} is not a folder; choose another -o/--output")
                 break
     except OSError as exc:
-        raise InferError(f"{output}: cannot use this results folder ({exc.strerror or exc}); choose another -o/--output") from None
+        raise InferError(
+            f"{output}: cannot use this results folder ({exc.strerror or exc}); choose another -o/--output"
+        ) from None
 
 
 def make_output_folder(output: Path) -> None:
@@ -775,7 +1076,9 @@ def make_output_folder(output: Path) -> None:
     try:
         output.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InferError(f"{output}: cannot create the results folder ({exc.strerror or exc}); choose another -o/--output") from None
+        raise InferError(
+            f"{output}: cannot create the results folder ({exc.strerror or exc}); choose another -o/--output"
+        ) from None
 
 
 def _pid_alive(pid: int) -> bool:
@@ -821,11 +1124,15 @@ def output_lock(output: Path, overwrite: bool = False) -> Iterator[None]:
             except (OSError, ValueError):
                 pid = 0
             if pid and pid != os.getpid() and _pid_alive(pid):
-                raise InferError(f"{output}: another labelaudit infer (pid {pid}) is writing to this folder; wait for it or choose another -o/--output") from None
+                raise InferError(
+                    f"{output}: another labelaudit infer (pid {pid}) is writing to this folder; wait for it or choose another -o/--output"
+                ) from None
             path.unlink(missing_ok=True)  # stale: its writer is gone
             continue
         except OSError as exc:
-            raise InferError(f"{path}: cannot take the lock ({exc.strerror or exc}); choose another -o/--output") from None
+            raise InferError(
+                f"{path}: cannot take the lock ({exc.strerror or exc}); choose another -o/--output"
+            ) from None
         with os.fdopen(fd, "w") as f:
             f.write(str(os.getpid()))
         break
@@ -859,7 +1166,9 @@ def check_layout(output: Path) -> None:
 def chunk_record(table: pa.Table, errors: Sequence[Mapping[str, Any]]) -> dict[str, int]:
     """What a chunk's object shard records about the chunk (key ``chunk`` of its metadata), so a
     resumed run can tell a clean chunk from one to run again without its errors part."""
-    failed_objects = table.column("status").to_pylist().count("error")  # (not pyarrow.compute: its import is 0.1 s of a short run)
+    failed_objects = (
+        table.column("status").to_pylist().count("error")
+    )  # (not pyarrow.compute: its import is 0.1 s of a short run)
     return {
         "notes": len(errors),
         "failed_frames": sum(1 for e in errors if e.get("level") == "error"),
@@ -879,6 +1188,7 @@ def chunk_state(shard: Path, error_part: Path, missing_part: Path | None = None)
     ``missing`` (the shard is written before the object shard, so this only follows damage).
     """
     import pyarrow.parquet as pq
+
     if missing_part is not None and not is_whole_parquet(missing_part):
         return "missing"
     try:
@@ -903,6 +1213,7 @@ def chunk_state(shard: Path, error_part: Path, missing_part: Path | None = None)
 def _chunk_state_from_rows(shard: Path, error_part: Path) -> str:
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
+
     if os.path.lexists(error_part):
         try:
             levels = pq.read_table(error_part, columns=["level"]).column("level")
@@ -943,7 +1254,9 @@ def prepare_output(output: Path, metadata: Mapping[str, Any], overwrite: bool) -
         if manifest is not None:
             why = resume_mismatch(manifest, metadata)
             if why is not None:
-                raise InferError(f"{output}: cannot resume: {why}; pass --overwrite to replace these results, or choose another -o/--output")
+                raise InferError(
+                    f"{output}: cannot resume: {why}; pass --overwrite to replace these results, or choose another -o/--output"
+                )
         if output.is_dir():
             check_layout(output)
     make_output_folder(output)

@@ -142,6 +142,7 @@ class ReviewSummary:
 def suggested_boxes(rows: pa.Table) -> FloatArray:
     """(N, 7) suggested boxes of result rows: the fit's centre, size and yaw (in [-π, π), as every box
     of the results); a BEV fit leaves the label's cz and height (its fit_cz / fit_height are null)."""
+
     def col(name: str, fallback: str | None = None) -> FloatArray:
         v = np.asarray(rows.column(name).to_numpy(zero_copy_only=False), dtype=float)
         if fallback is not None:
@@ -150,9 +151,22 @@ def suggested_boxes(rows: pa.Table) -> FloatArray:
         return v
 
     yaw = col("fit_yaw")
-    with np.errstate(invalid="ignore"):  # the fit may leave its yaw just outside [-π, π); an angle inside is kept bit for bit
+    with np.errstate(
+        invalid="ignore"
+    ):  # the fit may leave its yaw just outside [-π, π); an angle inside is kept bit for bit
         yaw = np.where((yaw >= -np.pi) & (yaw < np.pi), yaw, normalize_angle(yaw))
-    return np.stack([col("fit_cx"), col("fit_cy"), col("fit_cz", "cz"), col("fit_length"), col("fit_width"), col("fit_height", "height"), yaw], axis=1).reshape(-1, 7)
+    return np.stack(
+        [
+            col("fit_cx"),
+            col("fit_cy"),
+            col("fit_cz", "cz"),
+            col("fit_length"),
+            col("fit_width"),
+            col("fit_height", "height"),
+            yaw,
+        ],
+        axis=1,
+    ).reshape(-1, 7)
 
 
 def _selected(results: R.Results, min_score: float) -> tuple[pa.Table, pa.Table | None]:
@@ -173,10 +187,17 @@ def _suggest_mask(labels: pa.Table, min_label_error: float) -> NDArray[np.bool_]
     lerr = np.asarray(labels.column("label_error").to_numpy(zero_copy_only=False), dtype=float)
     fit = suggested_boxes(labels)
     with np.errstate(invalid="ignore"):
-        return np.isin(status, AUDITED_STATUSES) & (lerr > min_label_error) & np.isfinite(fit).all(axis=1) & (fit[:, 3:6] > 0).all(axis=1)
+        return (
+            np.isin(status, AUDITED_STATUSES)
+            & (lerr > min_label_error)
+            & np.isfinite(fit).all(axis=1)
+            & (fit[:, 3:6] > 0).all(axis=1)
+        )
 
 
-def _track_suggestions(results: R.Results, labels: pa.Table, min_track_error: float) -> tuple[NDArray[np.bool_], FloatArray]:
+def _track_suggestions(
+    results: R.Results, labels: pa.Table, min_track_error: float
+) -> tuple[NDArray[np.bool_], FloatArray]:
     """Which labels get the box their track expects (``track_error`` above the threshold), and those boxes (N, 7).
 
     The boxes are recomputed with the run's own configuration and per-class label noise (the
@@ -190,7 +211,9 @@ def _track_suggestions(results: R.Results, labels: pa.Table, min_track_error: fl
     try:
         cfg = config_from_params(results.manifest["params"], source=f"{results.root / R.MANIFEST_NAME} params")
     except (ConfigError, KeyError) as exc:
-        raise ExportError(f"{results.root}: the run's parameters cannot be read ({exc}); rerun `labelaudit infer` with this labelaudit for track suggestions, or pass --min-track-error 1") from None
+        raise ExportError(
+            f"{results.root}: the run's parameters cannot be read ({exc}); rerun `labelaudit infer` with this labelaudit for track suggestions, or pass --min-track-error 1"
+        ) from None
     tracks = results.tracks()
     used = (tracks.schema.metadata or {}).get(b"labelaudit") if tracks is not None else None
     noise = json.loads(used).get("track_noise") if used else None
@@ -230,11 +253,26 @@ def kitti_lines(boxes: FloatArray, class_names: Sequence[str], scores: FloatArra
     for k in range(len(boxes)):
         alpha = float(alpha_from_location(loc[k], ry[k]))
         bbox = project_box_to_image(boxes[k], calib, image_size)
-        out.append(format_label_line(class_names[k], truncated[k], int(occluded[k]), alpha, bbox, dims[k], loc[k], float(ry[k]), float(scores[k]), precision=None))
+        out.append(
+            format_label_line(
+                class_names[k],
+                truncated[k],
+                int(occluded[k]),
+                alpha,
+                bbox,
+                dims[k],
+                loc[k],
+                float(ry[k]),
+                float(scores[k]),
+                precision=None,
+            )
+        )
     return out
 
 
-def _stale(frame_rows: list[dict[str, Any]], file_boxes: FloatArray, file_lines: NDArray[np.int64], label_path: Path) -> str | None:
+def _stale(
+    frame_rows: list[dict[str, Any]], file_boxes: FloatArray, file_lines: NDArray[np.int64], label_path: Path
+) -> str | None:
     """Why a frame's label file no longer matches its result rows (None when it does)."""
     at = {int(n): k for k, n in enumerate(file_lines)}
     for row in frame_rows:
@@ -283,7 +321,9 @@ def _export_kitti(dataset: Path, split: str | None, output: Path, labels: pa.Tab
     frame_ids = [ref.key for ref in reader.list_units()]
     unknown = sorted((set(by_frame) | set(cand_by_frame)) - set(frame_ids))
     for fid in unknown:
-        summary.unreviewed_frames[fid] = f"{dataset}: frame {fid} of the results is not in this dataset, nothing written (pass --dataset with the dataset of the run)"
+        summary.unreviewed_frames[fid] = (
+            f"{dataset}: frame {fid} of the results is not in this dataset, nothing written (pass --dataset with the dataset of the run)"
+        )
     try:
         for fid in frame_ids:
             label_path = reader.label_path(fid)
@@ -291,7 +331,11 @@ def _export_kitti(dataset: Path, split: str | None, output: Path, labels: pa.Tab
             cands = sorted(cand_by_frame.get(fid, []), key=lambda r: r["candidate_index"])
             try:
                 lines = read_text_lines(label_path, "label file")
-                added = _review_frame(reader, fid, lines, rows, cands, labels.schema, changes, summary) if rows or cands else []
+                added = (
+                    _review_frame(reader, fid, lines, rows, cands, labels.schema, changes, summary)
+                    if rows or cands
+                    else []
+                )
             except DatasetError as exc:  # an unreadable label or calibration file: the frame as it is, nothing added
                 summary.unreviewed_frames[fid] = str(exc)
                 if label_path.is_file():
@@ -302,7 +346,9 @@ def _export_kitti(dataset: Path, split: str | None, output: Path, labels: pa.Tab
             (staging / f"{fid}.txt").write_text("".join(t + "\n" for t in [*lines, *added]), encoding="utf-8")
             summary.frames_written += 1
         if summary.frames_written == 0:
-            raise ExportError(f"{dataset}: no label file could be written ({len(frame_ids)} frames in the dataset; {_first(summary.unreviewed_frames)})")
+            raise ExportError(
+                f"{dataset}: no label file could be written ({len(frame_ids)} frames in the dataset; {_first(summary.unreviewed_frames)})"
+            )
         final = output / LABEL_DIR
         old = output / f".{LABEL_DIR}.old{R.TMP_MARKER}{os.getpid()}"
         if os.path.lexists(final):
@@ -340,7 +386,15 @@ def _review_frame(reader: Any, fid: str, lines: list[str], rows: list[dict[str, 
         where = {int(n): k for k, n in enumerate(parsed.line)}
         src = [where[int(r["label_line"])] for r in picked]
         lerr = np.array([r["label_error"] for r in picked], dtype=float)
-        new = kitti_lines(boxes, [r["class_name"] for r in picked], lerr, parsed.truncated[src], parsed.occluded[src], calib, image_size)
+        new = kitti_lines(
+            boxes,
+            [r["class_name"] for r in picked],
+            lerr,
+            parsed.truncated[src],
+            parsed.occluded[src],
+            calib,
+            image_size,
+        )
         for r, box, text in zip(picked, boxes, new):
             added.append(text)
             changes.append(_change(fid, file, len(lines) + len(added), "suggested_box", r["class_name"], r["label_error"], box, object_index=r["object_index"],
@@ -349,7 +403,15 @@ def _review_frame(reader: Any, fid: str, lines: list[str], rows: list[dict[str, 
         boxes = np.array([[c[n] for n in R.BOX_COLUMNS] for c in cands], dtype=float)
         scores = np.array([c["score"] for c in cands], dtype=float)
         # A candidate has no annotator's truncation or occlusion: 0 and 3 (KITTI's "unknown").
-        new = kitti_lines(boxes, [c["class_name"] for c in cands], scores, np.zeros(len(cands)), np.full(len(cands), 3, dtype=np.int64), calib, image_size)
+        new = kitti_lines(
+            boxes,
+            [c["class_name"] for c in cands],
+            scores,
+            np.zeros(len(cands)),
+            np.full(len(cands), 3, dtype=np.int64),
+            calib,
+            image_size,
+        )
         for c, box, text in zip(cands, boxes, new):
             added.append(text)
             changes.append(_change(fid, file, len(lines) + len(added), "missing_label", c["class_name"], c["score"], box,
@@ -364,7 +426,16 @@ def _first(reasons: Mapping[str, str]) -> str:
     return next(iter(reasons.values()), "none")
 
 
-def _change(frame_id: str, file: str | None, line: int | None, change: str, class_name: str, score: float, box: FloatArray, **kw: Any) -> dict[str, Any]:
+def _change(
+    frame_id: str,
+    file: str | None,
+    line: int | None,
+    change: str,
+    class_name: str,
+    score: float,
+    box: FloatArray,
+    **kw: Any,
+) -> dict[str, Any]:
     row: dict[str, Any] = dict.fromkeys(CHANGE_COLUMNS)
     row.update(frame_id=frame_id, file=file, line=line, change=change, class_name=class_name, score=score, **kw)
     row.update(zip(R.BOX_COLUMNS, (float(v) for v in box)))
@@ -385,10 +456,21 @@ def _export_parquet(output: Path, labels: pa.Table, suggest: NDArray[np.bool_], 
                   "label_error": r["label_error"], "track_error": r["track_error"], "track_issue": r["track_issue"]}  # fmt: skip
         rows.append({**common, **box, "kind": "label"})
         # A label may get both: the fit says where its points put it, the track where its other frames do.
-        for source, on, new, score in (("fit", suggest, fits, r["label_error"]), ("track", track, track_boxes, r["track_error"])):
+        for source, on, new, score in (
+            ("fit", suggest, fits, r["label_error"]),
+            ("track", track, track_boxes, r["track_error"]),
+        ):
             if not on[k]:
                 continue
-            rows.append({**common, **dict(zip(R.BOX_COLUMNS, new[k].tolist())), "kind": "suggested", "score": score, "source": source})
+            rows.append(
+                {
+                    **common,
+                    **dict(zip(R.BOX_COLUMNS, new[k].tolist())),
+                    "kind": "suggested",
+                    "score": score,
+                    "source": source,
+                }
+            )
             changes.append(_change(r["frame_id"], None, None, "suggested_box", r["class_name"], score, new[k], object_index=r["object_index"],
                                    label_error=r["label_error"], fit_offset_m=r["fit_offset_m"] if source == "fit" else None, source=source,
                                    track_error=r["track_error"], track_issue=r["track_issue"]))  # fmt: skip
@@ -400,7 +482,15 @@ def _export_parquet(output: Path, labels: pa.Table, suggest: NDArray[np.bool_], 
                                candidate_index=c["candidate_index"], source=c["source"]))  # fmt: skip
         changed.add(c["frame_id"])
     kind_order = {"label": 0, "suggested": 1, "missing": 2}
-    rows.sort(key=lambda r: (r["frame_id"], kind_order[r["kind"]], r.get("object_index") or 0, r.get("candidate_index") or 0, r.get("source") or ""))
+    rows.sort(
+        key=lambda r: (
+            r["frame_id"],
+            kind_order[r["kind"]],
+            r.get("object_index") or 0,
+            r.get("candidate_index") or 0,
+            r.get("source") or "",
+        )
+    )
     table = pa.Table.from_pylist(rows, schema=BOXES_SCHEMA)
     R.write_parquet_atomic(table, output / BOXES_FILE)
     summary.frames_written = len({r["frame_id"] for r in rows})
@@ -419,7 +509,12 @@ def _changes_csv(changes: Sequence[Mapping[str, Any]]) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CHANGE_COLUMNS)
     for c in changes:
-        w.writerow(["" if c[k] is None or (isinstance(c[k], float) and not math.isfinite(c[k])) else c[k] for k in CHANGE_COLUMNS])
+        w.writerow(
+            [
+                "" if c[k] is None or (isinstance(c[k], float) and not math.isfinite(c[k])) else c[k]
+                for k in CHANGE_COLUMNS
+            ]
+        )
     return buf.getvalue()
 
 
@@ -452,7 +547,11 @@ def export_review(
     ResultsError
         Not a results folder.
     """
-    for name, value in (("--min-label-error", min_label_error), ("--min-score", min_score), ("--min-track-error", min_track_error)):
+    for name, value in (
+        ("--min-label-error", min_label_error),
+        ("--min-score", min_score),
+        ("--min-track-error", min_track_error),
+    ):
         if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
             raise ExportError(f"{name} must be in [0, 1], got {value!r}")
     results = R.open_results(results_path)
@@ -461,7 +560,9 @@ def export_review(
     manifest = results.manifest
     fmt = manifest.get("format")
     if not fmt or "input" not in manifest:
-        raise ExportError(f"{results.root}: no run manifest with the dataset's format and path; the review export needs a results folder written by `labelaudit infer`")
+        raise ExportError(
+            f"{results.root}: no run manifest with the dataset's format and path; the review export needs a results folder written by `labelaudit infer`"
+        )
     labels, candidates = _selected(results, min_score)
     suggest = _suggest_mask(labels, min_label_error)
     summary = ReviewSummary(str(out), "kitti-labels" if fmt == "kitti" else "parquet", 0, 0, 0, 0, 0, float(min_label_error), float(min_score), candidates is not None,
@@ -471,13 +572,24 @@ def export_review(
     if fmt == "kitti":
         path = Path(dataset) if dataset is not None else Path(str(manifest["input"]))
         if not path.exists():
-            raise ExportError(f"{path}: the dataset of these results is not there (moved?); pass --dataset with its current location")
+            raise ExportError(
+                f"{path}: the dataset of these results is not there (moved?); pass --dataset with its current location"
+            )
         _export_kitti(path, manifest.get("split"), out, labels, suggest, candidates, changes, summary)
     else:
         # Tracks exist only where object ids are track ids (Waymo, Argoverse 2): never in KITTI's label files.
         track, track_boxes = _track_suggestions(results, labels, min_track_error)
         _export_parquet(out, labels, suggest, track, track_boxes, candidates, changes, summary)
-    changes.sort(key=lambda c: (c["frame_id"], c["line"] or 0, c["change"], c["object_index"] or 0, c["candidate_index"] or 0, c["source"] or ""))
+    changes.sort(
+        key=lambda c: (
+            c["frame_id"],
+            c["line"] or 0,
+            c["change"],
+            c["object_index"] or 0,
+            c["candidate_index"] or 0,
+            c["source"] or "",
+        )
+    )
     R.write_text_atomic(_changes_csv(changes), out / CHANGES_FILE)
     record = {"tool": "labelaudit", "tool_version": __version__, "results": str(results.root.resolve()), "dataset": str(Path(str(dataset or manifest.get("input"))).absolute()),
               "dataset_format": fmt, "param_hash": manifest.get("param_hash"), **summary.to_dict()}  # fmt: skip
@@ -490,4 +602,6 @@ def _check_output(out: Path) -> None:
     if os.path.lexists(out) and not out.is_dir():
         raise ExportError(f"{out}: exists and is not a folder; -o names the review folder to write")
     if out.is_dir() and not (out / SUMMARY_FILE).is_file() and any(not p.name.startswith(".") for p in out.iterdir()):
-        raise ExportError(f"{out}: folder is not empty and holds no {SUMMARY_FILE} (not a review folder); choose a new or empty -o")
+        raise ExportError(
+            f"{out}: folder is not empty and holds no {SUMMARY_FILE} (not a review folder); choose a new or empty -o"
+        )

@@ -24,5 +24,13 @@ def summarize(results: Results) -> dict[str, Any]:
     per_class = {}
     for name in sorted(set(classes.tolist())):
         v = jiou[(classes == name) & np.isfinite(jiou)]
-        per_class[name] = {"objects": int(np.sum(classes == name)), "median_jiou_gt": float(np.median(v)) if len(v) else None}
-    return {"objects": t.num_rows, "by_status": by_status, "classes": per_class, "failed_frames": results.failed_frames()}
+        per_class[name] = {
+            "objects": int(np.sum(classes == name)),
+            "median_jiou_gt": float(np.median(v)) if len(v) else None,
+        }
+    return {
+        "objects": t.num_rows,
+        "by_status": by_status,
+        "classes": per_class,
+        "failed_frames": results.failed_frames(),
+    }

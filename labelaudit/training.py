@@ -205,7 +205,8 @@ def encode(
     xa, ya, za, la, wa, ha, ra = a.T
     diag = np.hypot(la, wa)
     return np.stack(
-        [(x - xa) / diag, (y - ya) / diag, (z - za) / ha, np.log(l / la), np.log(w / wa), np.log(h / ha), yaw - ra], axis=1
+        [(x - xa) / diag, (y - ya) / diag, (z - za) / ha, np.log(l / la), np.log(w / wa), np.log(h / ha), yaw - ra],
+        axis=1,
     )
 
 
@@ -311,7 +312,9 @@ def box_covariance_from_phi(boxes: ArrayLike, cov_phi: ArrayLike, model: Literal
     K = box_jacobian(boxes, model)
     S = np.asarray(cov_phi, dtype=float)
     if S.shape != (len(K), K.shape[2], K.shape[2]):
-        raise ValueError(f"cov_phi must have shape ({len(K)}, {K.shape[2]}, {K.shape[2]}) for model {model!r}, got {S.shape}")
+        raise ValueError(
+            f"cov_phi must have shape ({len(K)}, {K.shape[2]}, {K.shape[2]}) for model {model!r}, got {S.shape}"
+        )
     out = K @ S @ np.swapaxes(K, 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
@@ -461,7 +464,7 @@ def prior_box_variance(prior_std: ArrayLike, weight: float = 1.0) -> FloatArray:
 
 
 def num_points_scale(num_points: ArrayLike, half: float = C.HEURISTIC_NUM_POINTS_HALF) -> FloatArray:
-    """"num points" heuristic: variance factor ``n0 / (n0 + n)`` — 1 without points, ∝ 1/n for many."""
+    """ "num points" heuristic: variance factor ``n0 / (n0 + n)`` — 1 without points, ∝ 1/n for many."""
     n = np.asarray(num_points, dtype=float)
     if np.any(n < 0):
         raise ValueError("num_points must be ≥ 0")
@@ -469,7 +472,7 @@ def num_points_scale(num_points: ArrayLike, half: float = C.HEURISTIC_NUM_POINTS
 
 
 def hull_iou_scale(hull_iou: ArrayLike, floor: float = C.HEURISTIC_HULL_IOU_FLOOR) -> FloatArray:
-    """"convex hull" heuristic: variance factor ``max(1 − IoU, floor)`` — 1 without a hull, small when the hull fills the box."""
+    """ "convex hull" heuristic: variance factor ``max(1 − IoU, floor)`` — 1 without a hull, small when the hull fills the box."""
     iou = np.asarray(hull_iou, dtype=float)
     if np.any((iou < 0) | (iou > 1)):
         raise ValueError("hull_iou must be in [0, 1]")

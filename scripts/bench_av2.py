@@ -36,7 +36,7 @@ def _time(root: Path, repeat: int, labels_only: bool) -> tuple[float, int, int, 
         t = time.perf_counter()
         frames = points = boxes = 0
         for unit in reader.list_units():
-            for f in (reader.labels(unit) if labels_only else reader.load_unit(unit)):
+            for f in reader.labels(unit) if labels_only else reader.load_unit(unit):
                 frames += 1
                 points += len(f.points)
                 boxes += f.num_objects
@@ -48,8 +48,10 @@ def _report(what: str, root: Path, repeat: int) -> None:
     for labels_only in (False, True):
         dt, frames, points, boxes = _time(root, repeat, labels_only)
         mode = "labels()   " if labels_only else "load_unit()"
-        print(f"{what} {mode}: {frames} frames in {dt:6.3f} s = {frames / dt:7.1f} frames/s, {1e3 * dt / frames:6.2f} ms/frame, "
-              f"{points / max(frames, 1):8.0f} points/frame, {boxes / max(frames, 1):5.1f} boxes/frame")
+        print(
+            f"{what} {mode}: {frames} frames in {dt:6.3f} s = {frames / dt:7.1f} frames/s, {1e3 * dt / frames:6.2f} ms/frame, "
+            f"{points / max(frames, 1):8.0f} points/frame, {boxes / max(frames, 1):5.1f} boxes/frame"
+        )
 
 
 def _auroc(scores: np.ndarray, positive: np.ndarray, negative: np.ndarray) -> float:
@@ -67,13 +69,30 @@ def rays(logs: int) -> None:
     cfg = resolve_config(None, "av2")
     mid = np.mean([C.AV2_LIDAR_MOUNTS[n] for n in ("up_lidar", "down_lidar")], axis=0)
     up = np.asarray(C.AV2_LIDAR_MOUNTS["up_lidar"], dtype=float)
-    scores: dict[str, list[tuple[float, str]]] = {"both lidars, midpoint": [], "up lidar, its position": [], "no rays": []}
+    scores: dict[str, list[tuple[float, str]]] = {
+        "both lidars, midpoint": [],
+        "up lidar, its position": [],
+        "no rays": [],
+    }
     for seed in range(logs):
-        log = simulate_av2_log(seed=100 + seed, frames=3, size="real", label_noise=NoiseSpec(fraction=0.3, gross_fraction=0.15))
+        log = simulate_av2_log(
+            seed=100 + seed, frames=3, size="real", label_noise=NoiseSpec(fraction=0.3, gross_fraction=0.15)
+        )
         for fr in log.frames:
-            for key, mask, origin in (("both lidars, midpoint", None, mid), ("up lidar, its position", fr.laser_number < 32, up),
-                                      ("no rays", np.zeros(len(fr.points), bool), mid)):
-                frame = Frame("bench", fr.points, fr.boxes, list(fr.categories), list(fr.track_ids), sensor_origin=origin, ray_mask=mask)
+            for key, mask, origin in (
+                ("both lidars, midpoint", None, mid),
+                ("up lidar, its position", fr.laser_number < 32, up),
+                ("no rays", np.zeros(len(fr.points), bool), mid),
+            ):
+                frame = Frame(
+                    "bench",
+                    fr.points,
+                    fr.boxes,
+                    list(fr.categories),
+                    list(fr.track_ids),
+                    sensor_origin=origin,
+                    ray_mask=mask,
+                )
                 for row, kind in zip(process_frame(frame, cfg)[0], fr.perturbation):
                     if row["status"] == "ok" and row["class_name"] in cfg.classes:
                         scores[key].append((float(row["label_error"]), kind))
@@ -83,8 +102,10 @@ def rays(logs: int) -> None:
         kind = np.array([p[1] for p in pairs])
         clean = kind == "none"
         gross = np.isin(kind, ["shift", "swap_lw", "yaw90"])
-        print(f"  {key:24s} jitter {_auroc(s, kind == 'jitter', clean):.3f} (n={int((kind == 'jitter').sum())})   "
-              f"gross {_auroc(s, gross, clean):.3f} (n={int(gross.sum())})   clean n={int(clean.sum())}, ≥ 0.9: {np.mean(s[clean] >= 0.9):.3f}")
+        print(
+            f"  {key:24s} jitter {_auroc(s, kind == 'jitter', clean):.3f} (n={int((kind == 'jitter').sum())})   "
+            f"gross {_auroc(s, gross, clean):.3f} (n={int(gross.sum())})   clean n={int(clean.sum())}, ≥ 0.9: {np.mean(s[clean] >= 0.9):.3f}"
+        )
 
 
 def main() -> None:
@@ -106,7 +127,9 @@ def main() -> None:
             write_av2_log(log, root / "val")
         t_write = time.perf_counter() - t
         n = args.logs * args.frames
-        print(f"simulated {args.logs} logs x {args.frames} frames: simulate {1e3 * t_sim / n:.1f} ms/frame, write {1e3 * t_write / n:.1f} ms/frame")
+        print(
+            f"simulated {args.logs} logs x {args.frames} frames: simulate {1e3 * t_sim / n:.1f} ms/frame, write {1e3 * t_write / n:.1f} ms/frame"
+        )
         _report("simulated", root, args.repeat)
     finally:
         shutil.rmtree(root, ignore_errors=True)

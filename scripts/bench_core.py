@@ -76,7 +76,9 @@ def main() -> None:
             post = infer_label(box, pts, "Car", params)
             t_j = median_ms(lambda: jiou_gt(post, spatial), args.repeat)
             t_fit = median_ms(lambda: fit_label(box, pts, "Car", params), args.repeat)  # label error
-            print(f"{name:<20} {model:<5} {t_inf:9.2f} {t_j:11.2f} {t_inf + t_j:9.2f} {jiou_gt(post, spatial):8.4f} {t_fit:7.2f}")
+            print(
+                f"{name:<20} {model:<5} {t_inf:9.2f} {t_j:11.2f} {t_inf + t_j:9.2f} {jiou_gt(post, spatial):8.4f} {t_fit:7.2f}"
+            )
 
 
 if __name__ == "__main__":

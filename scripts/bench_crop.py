@@ -84,7 +84,9 @@ def main() -> None:
 
     for name, data in cases:
         o3d_ms = _best_ms(lambda: [crop_frame(p, b, params) for p, b in data], args.repeat) / len(data)
-        np_ms = _best_ms(lambda: [points_in_boxes_numpy(p, b, params.margin, params.ground_cut) for p, b in data], args.repeat) / len(data)
+        np_ms = _best_ms(
+            lambda: [points_in_boxes_numpy(p, b, params.margin, params.ground_cut) for p, b in data], args.repeat
+        ) / len(data)
         k = np.mean([len(b) for _, b in data])
         print(f"  crop, {name} ({k:.1f}/frame): Open3D {o3d_ms:8.2f} ms/frame   NumPy reference {np_ms:8.2f} ms/frame")
 

@@ -78,7 +78,13 @@ def _port_worker(port: str, labels: str, dets: str, ids: list[int]) -> None:
 def port_precision(port: Path, labels: Path, dets: Path, ids: list[int]) -> dict[str, list]:
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
     code = f"import sys; sys.path.insert(0, {str(REPO / 'scripts')!r}); import bench_devkit as b; b._port_worker(*sys.argv[1:4], [int(x) for x in sys.argv[4:]])"
-    r = subprocess.run([sys.executable, "-c", code, str(port), str(labels), str(dets), *map(str, ids)], env=env, capture_output=True, text=True, check=False)
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(port), str(labels), str(dets), *map(str, ids)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if r.returncode:
         raise SystemExit(f"the devkit port failed:\n{r.stderr[-3000:]}")
     return json.loads(r.stdout)
@@ -118,7 +124,10 @@ def compare(name: str, port: Path, dataset: Path, labels: Path, dets: Path, ids:
         for c, cls in enumerate(CLASSES):
             for d, dname in enumerate(DIFFICULTIES):
                 for k, t in enumerate(THRESHOLDS):
-                    dev = {"R40": float(P[c, d, k, 1:41].sum() / 40 * 100), "R11": float(P[c, d, k, 0:41:4].sum() / 11 * 100)}
+                    dev = {
+                        "R40": float(P[c, d, k, 1:41].sum() / 40 * 100),
+                        "R11": float(P[c, d, k, 0:41:4].sum() / 11 * 100),
+                    }
                     for interp in ("R40", "R11"):
                         a = mine.get((cls, dname, t, interp))
                         if a is None:  # no GT of the class at this difficulty: the devkit divides by zero (NaN or 0)
@@ -128,13 +137,20 @@ def compare(name: str, port: Path, dataset: Path, labels: Path, dets: Path, ids:
                             head.append(f"{cls} {interp} {a:.2f}/{dev[interp]:.2f}")
         m = max(diffs) if diffs else 0.0
         worst = max(worst, m)
-        print(f"  {view}: {len(diffs)} AP cells, max |labelaudit − devkit| = {m:.4f} AP; moderate headline (labelaudit/devkit): {'; '.join(head)}")
+        print(
+            f"  {view}: {len(diffs)} AP cells, max |labelaudit − devkit| = {m:.4f} AP; moderate headline (labelaudit/devkit): {'; '.join(head)}"
+        )
     return worst
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--port", type=Path, required=True, help="checkout of traveller59/kitti-object-eval-python (outside the project)")
+    ap.add_argument(
+        "--port",
+        type=Path,
+        required=True,
+        help="checkout of traveller59/kitti-object-eval-python (outside the project)",
+    )
     ap.add_argument("--frames", type=int, default=40, help="simulated frames (0: real frames only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data", type=Path, default=Path("/tmp/labelaudit-bench-devkit"))
@@ -146,8 +162,24 @@ def main() -> None:
     if args.frames <= 0:
         sim = None
     if sim is not None and not (sim / "READY").is_file():
-        subprocess.run([sys.executable, "-m", "labelaudit", "simulate", str(sim), "--frames", str(args.frames), "--seed", str(args.seed), "--detections", "--overwrite", "-q"],
-                       check=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "labelaudit",
+                "simulate",
+                str(sim),
+                "--frames",
+                str(args.frames),
+                "--seed",
+                str(args.seed),
+                "--detections",
+                "--overwrite",
+                "-q",
+            ],
+            check=True,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )
         (sim / "READY").write_text("")
     if sim is not None:
         labels = sim / "training" / "label_2"
@@ -158,7 +190,17 @@ def main() -> None:
             for i in ids:  # the port reads one file per frame; a frame without detections gets an empty one
                 src = sim / "detections" / f"{i:06d}.txt"
                 (dets / src.name).write_text(src.read_text() if src.is_file() else "")
-            worst = max(worst, compare(f"simulated ({args.frames} frames, seed {args.seed}, synthetic detector)", args.port, sim, labels, dets, ids))
+            worst = max(
+                worst,
+                compare(
+                    f"simulated ({args.frames} frames, seed {args.seed}, synthetic detector)",
+                    args.port,
+                    sim,
+                    labels,
+                    dets,
+                    ids,
+                ),
+            )
 
     real = REALDATA / "openpcdet-pr653-kitti"
     pg = REALDATA / "pointgnn-kitti-results" / "results" / "data"
@@ -175,13 +217,27 @@ def main() -> None:
                     (ds / "training" / sub / f"{i:06d}.txt").symlink_to(real / "training" / sub / f"{i:06d}.txt")
             (ds / "training" / "velodyne").mkdir()
             for i in ids:
-                (ds / "training" / "velodyne" / f"{i:06d}.bin").symlink_to(real / "training" / "velodyne" / f"{i:06d}.bin")
+                (ds / "training" / "velodyne" / f"{i:06d}.bin").symlink_to(
+                    real / "training" / "velodyne" / f"{i:06d}.bin"
+                )
             dets = Path(tmp) / "dets"
             dets.mkdir()
             for i in ids:  # the port splits every line, a blank one included (000005.txt is one newline)
                 src = pg / f"{i:06d}.txt"
-                (dets / src.name).write_text("".join(line for line in src.read_text().splitlines(keepends=True) if line.strip()))
-            worst = max(worst, compare("real KITTI frames, real Point-GNN detections", args.port, ds, ds / "training" / "label_2", dets, ids))
+                (dets / src.name).write_text(
+                    "".join(line for line in src.read_text().splitlines(keepends=True) if line.strip())
+                )
+            worst = max(
+                worst,
+                compare(
+                    "real KITTI frames, real Point-GNN detections",
+                    args.port,
+                    ds,
+                    ds / "training" / "label_2",
+                    dets,
+                    ids,
+                ),
+            )
     else:
         print(f"(no {REALDATA}: real frames skipped)")
     print(f"largest |AP difference| over every scene, view, class, difficulty, threshold, R40/R11: {worst:.4f}")

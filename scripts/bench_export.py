@@ -93,18 +93,37 @@ def main() -> None:
         (tmp / "kitti_infos_train.pkl").write_bytes(pickle.dumps(kitti_infos))
         (tmp / "kitti_dbinfos_train.pkl").write_bytes(pickle.dumps(openpcdet_dbinfos(kitti_infos)))
         (tmp / "mmdet3d_infos_train.pkl").write_bytes(pickle.dumps(mmdet3d_kitti_infos(frames)))
-        print(f"synthesised {args.objects} objects in {len(frames)} frames ({args.model} model) in {time.perf_counter() - t0:.1f} s (not timed)")
+        print(
+            f"synthesised {args.objects} objects in {len(frames)} frames ({args.model} model) in {time.perf_counter() - t0:.1f} s (not timed)"
+        )
         cases = [("parquet", enc, "model") for enc in ("box", "log-size", "pixor", "residual")]
-        cases += [("parquet", "log-size", "num_points"), ("openpcdet", "residual", "model"), ("mmdet3d", "log-size", "model")]
+        cases += [
+            ("parquet", "log-size", "num_points"),
+            ("openpcdet", "residual", "model"),
+            ("mmdet3d", "log-size", "model"),
+        ]
         cases += [("glenet", None, "model")]
-        print(f"{'format':<10} {'encoding':<9} {'source':<11} {'objects':>8} {'wall s':>7} {'cpu s':>6} {'objects/s (wall)':>17}")
+        print(
+            f"{'format':<10} {'encoding':<9} {'source':<11} {'objects':>8} {'wall s':>7} {'cpu s':>6} {'objects/s (wall)':>17}"
+        )
         for fmt, enc, src in cases:
-            infos = None if fmt == "parquet" else tmp / ("mmdet3d_infos_train.pkl" if fmt == "mmdet3d" else "kitti_infos_train.pkl")
+            infos = (
+                None
+                if fmt == "parquet"
+                else tmp / ("mmdet3d_infos_train.pkl" if fmt == "mmdet3d" else "kitti_infos_train.pkl")
+            )
             dbinfos = tmp / "kitti_dbinfos_train.pkl" if fmt == "glenet" else None
-            out = tmp / (f"out-{fmt}" if fmt == "glenet" else f"out-{fmt}-{enc}.{'parquet' if fmt == 'parquet' else 'pkl'}")
-            run = lambda: export_results(tmp / "res", out, encoding=enc, source=src, fmt=fmt, infos=infos, dbinfos=dbinfos)  # noqa: B023, E731
+            out = tmp / (
+                f"out-{fmt}" if fmt == "glenet" else f"out-{fmt}-{enc}.{'parquet' if fmt == 'parquet' else 'pkl'}"
+            )
+
+            def run() -> object:
+                return export_results(tmp / "res", out, encoding=enc, source=src, fmt=fmt, infos=infos, dbinfos=dbinfos)
+
             wall, cpu = median_s(run, args.repeat)
-            print(f"{fmt:<10} {enc or '-':<9} {src:<11} {args.objects:>8} {wall:>7.2f} {cpu:>6.2f} {args.objects / wall:>17.0f}")
+            print(
+                f"{fmt:<10} {enc or '-':<9} {src:<11} {args.objects:>8} {wall:>7.2f} {cpu:>6.2f} {args.objects / wall:>17.0f}"
+            )
 
 
 if __name__ == "__main__":

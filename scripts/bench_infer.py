@@ -97,7 +97,13 @@ def run_tree(cmd: list[str], env: dict[str, str]) -> tuple[float, float, float]:
 
 
 def cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "labelaudit", "infer", *args]  # what the console script runs (it starts the fork server first)
+    return [
+        sys.executable,
+        "-m",
+        "labelaudit",
+        "infer",
+        *args,
+    ]  # what the console script runs (it starts the fork server first)
 
 
 def simulate(out: Path, frames: int, seed: int) -> Path:
@@ -106,7 +112,9 @@ def simulate(out: Path, frames: int, seed: int) -> Path:
 
         t = time.perf_counter()
         s = simulate_dataset(out, frames=frames, seed=seed, workers=2, progress=False)
-        print(f"simulated {s.frames} frames (seed {seed}): {s.num_points / s.frames:,.0f} points/frame in {time.perf_counter() - t:.1f} s")
+        print(
+            f"simulated {s.frames} frames (seed {seed}): {s.num_points / s.frames:,.0f} points/frame in {time.perf_counter() - t:.1f} s"
+        )
     return out
 
 
@@ -115,7 +123,10 @@ def simulate(out: Path, frames: int, seed: int) -> Path:
 
 def bench_startup(tmp: Path, seed: int, repeat: int, env: dict[str, str]) -> None:
     data = simulate(tmp / "one-frame", 1, seed)
-    rows = [run_tree(cli(str(data), "-o", str(tmp / "startup-out"), "--workers", "2", "--overwrite", "-q"), env) for _ in range(repeat)]
+    rows = [
+        run_tree(cli(str(data), "-o", str(tmp / "startup-out"), "--workers", "2", "--overwrite", "-q"), env)
+        for _ in range(repeat)
+    ]
     print(f"start-up, 1 frame, --workers 2 ({load()}):")
     print(f"  wall until exit        {spread([r[0] for r in rows])} s   (target ≤ 1.0 s)")
     print(f"  wall until pipes close {spread([r[1] for r in rows])} s   (target ≤ 1.0 s)")
@@ -127,7 +138,9 @@ def bench_startup(tmp: Path, seed: int, repeat: int, env: dict[str, str]) -> Non
 STAGES = ("read", "crop", "infer_label", "jiou_gt", "fit_label", "hull_iou", "rows", "missing", "arrow", "parquet")
 
 
-def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "kitti", classes: tuple[str, ...] | None = None) -> tuple[int, int, dict[str, float], float]:
+def warm_stages(
+    data: Path, frames: int, model: str | None = None, fmt: str = "kitti", classes: tuple[str, ...] | None = None
+) -> tuple[int, int, dict[str, float], float]:
     """CPU seconds per stage over ``frames`` frames, in this (warm) process; returns (frames, objects,
     seconds per stage, total seconds).
 
@@ -149,11 +162,20 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
     clock = time.process_time
     acc: dict[str, float] = defaultdict(float)
     originals = {}
-    crop_name = "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"  # crops, ground, neighbours, rays
+    crop_name = (
+        "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"
+    )  # crops, ground, neighbours, rays
+
     def called(name: str) -> str:  # the pipeline calls the *_valid forms on a box it validated once
         return f"{name}_valid" if hasattr(rows_mod, f"{name}_valid") else name
 
-    for name, stage in ((crop_name, "crop"), (called("infer_label"), "infer_label"), ("jiou_gt", "jiou_gt"), (called("fit_label"), "fit_label"), (called("hull_iou"), "hull_iou")):
+    for name, stage in (
+        (crop_name, "crop"),
+        (called("infer_label"), "infer_label"),
+        ("jiou_gt", "jiou_gt"),
+        (called("fit_label"), "fit_label"),
+        (called("hull_iou"), "hull_iou"),
+    ):
         f = originals[name] = getattr(rows_mod, name)
 
         def timed(*a, _f=f, _stage=stage, **k):
@@ -184,7 +206,9 @@ def warm_stages(data: Path, frames: int, model: str | None = None, fmt: str = "k
                         t = clock()
                         rows, _ = rows_mod.process_frame(frame, cfg)
                         acc["frame"] += clock() - t
-                        if cfg.missing.enabled:  # the search for unlabelled objects, as process_chunk runs it after the rows
+                        if (
+                            cfg.missing.enabled
+                        ):  # the search for unlabelled objects, as process_chunk runs it after the rows
                             t = clock()
                             find_missing(frame, cfg)
                             acc["missing"] += clock() - t
@@ -210,8 +234,12 @@ def bench_warm(data: Path, frames: int, repeat: int) -> None:
     n_frames, n_obj = runs[0][0], runs[0][1]
     per = lambda key: [r[2][key] / r[0] * 1e3 for r in runs]  # noqa: E731
     print(f"one warm process, {n_frames} frames, {n_obj / n_frames:.1f} boxes/frame, CPU ms per frame ({load()}):")
-    print(f"  total                  {spread([r[3] / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (target ≤ 10 ms without the missing-label search)")
-    print(f"  without `missing`      {spread([(r[3] - r[2]['missing']) / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (--no-missing; the search adds the `missing` line, target ≤ 5 ms)")
+    print(
+        f"  total                  {spread([r[3] / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (target ≤ 10 ms without the missing-label search)"
+    )
+    print(
+        f"  without `missing`      {spread([(r[3] - r[2]['missing']) / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (--no-missing; the search adds the `missing` line, target ≤ 5 ms)"
+    )
     for stage in STAGES:
         print(f"    {stage:20s} {spread(per(stage))} ms")
 
@@ -234,7 +262,11 @@ def lean_floor(data: Path, refs: list, cfg: object) -> tuple[float, int, int]:
     jobs = []
     for ref in refs:
         for frame in reader.load_unit(ref):
-            sel = selection_boxes(frame.boxes[[i for i, c in enumerate(frame.class_names) if wants_class(cfg, c)]], cfg.crop.margin, cfg.crop.ground_cut)  # type: ignore[attr-defined]
+            sel = selection_boxes(
+                frame.boxes[[i for i, c in enumerate(frame.class_names) if wants_class(cfg, c)]],
+                cfg.crop.margin,
+                cfg.crop.ground_cut,
+            )  # type: ignore[attr-defined]
             jobs.append((data / "training" / "velodyne" / f"{frame.frame_id}.bin", sel))
     boxes = 0
     t = time.perf_counter()
@@ -258,7 +290,9 @@ def bench_ratio(data: Path, tmp: Path, workers: int, repeat: int, env: dict[str,
     floors, walls, eofs, cpus = [], [], [], []
     for _ in range(repeat):
         floor, frames, boxes = lean_floor(data, refs, cfg)
-        w, e, c = run_tree(cli(str(data), "-o", str(tmp / "ratio-out"), "--workers", str(workers), "--overwrite", "-q"), env)
+        w, e, c = run_tree(
+            cli(str(data), "-o", str(tmp / "ratio-out"), "--workers", str(workers), "--overwrite", "-q"), env
+        )
         floors.append(floor)
         walls.append(w)
         eofs.append(e)
@@ -266,7 +300,9 @@ def bench_ratio(data: Path, tmp: Path, workers: int, repeat: int, env: dict[str,
     ratios = [w / f for w, f in zip(walls, floors)]
     print(f"ratio, {frames} frames, {boxes} audited boxes, --workers {workers} ({load()}):")
     print(f"  lean floor, 1 core     {spread(floors)} s   (np.fromfile + Open3D box query per label)")
-    print(f"  infer, wall incl. start-up {spread(walls)} s; until pipes close {spread(eofs)} s; CPU whole tree {spread(cpus)} s")
+    print(
+        f"  infer, wall incl. start-up {spread(walls)} s; until pipes close {spread(eofs)} s; CPU whole tree {spread(cpus)} s"
+    )
     print(f"  ratio infer / floor    {spread(ratios)}   (target ≤ 2.0)")
 
 

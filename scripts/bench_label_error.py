@@ -49,7 +49,9 @@ from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
 from labelaudit.sim.dataset import NoiseSpec, SceneSpec, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_REAL = tuple(REPO.parent / "shared" / "realdata" / name for name in ("openpcdet-pr653-kitti", "kitti-object-more"))
+DEFAULT_REAL = tuple(
+    REPO.parent / "shared" / "realdata" / name for name in ("openpcdet-pr653-kitti", "kitti-object-more")
+)
 POINT_EDGES = [1, 10, 50, np.inf]
 POINT_NAMES = ["1–9 points", "10–49 points", "≥ 50 points"]
 DIST_EDGES = [0.0, 20.0, 40.0, np.inf]
@@ -68,7 +70,12 @@ AUDITED = ("ok", "few_points", "no_points")
 def print_table(title: str, rows: list[RankingRow], note: str = "") -> str:
     """Print (and return, as Markdown) one table: n, positives, AUROC and P@5 % per score."""
     head = ["subset", "n", "pos"] + [f"AUROC {s}" for s in SCORES] + [f"P@5% {s}" for s in SCORES]
-    lines = [f"**{title}**" + (f" — {note}" if note else ""), "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = [
+        f"**{title}**" + (f" — {note}" if note else ""),
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
 
     def fmt(v: float) -> str:
         return "–" if not np.isfinite(v) else f"{v:.3f}"
@@ -111,7 +118,11 @@ def standard_subsets(num_points: np.ndarray, distance: np.ndarray) -> dict[str, 
 def kind_rows(scores: dict[str, np.ndarray], kinds: np.ndarray, base: np.ndarray) -> list[RankingRow]:
     """One row per perturbation kind: that kind's positives against all negatives (within ``base``)."""
     neg = kinds == "none"
-    subsets = {f"{k} vs none": base & (neg | (kinds == k)) for k in ("jitter", "shift", "swap_lw", "yaw90") if np.any(base & (kinds == k))}
+    subsets = {
+        f"{k} vs none": base & (neg | (kinds == k))
+        for k in ("jitter", "shift", "swap_lw", "yaw90")
+        if np.any(base & (kinds == k))
+    }
     return ranking_table(scores, ~neg, subsets, TOP)
 
 
@@ -124,14 +135,34 @@ def simulate(out: Path, frames: int, seed: int, workers: int, reuse: bool, clutt
     if reuse and manifest.is_file():
         meta = {k.decode(): v.decode() for k, v in (pq.read_schema(manifest).metadata or {}).items()}
         noise = json.loads(meta.get("labelaudit.noise", "{}"))
-        same_scene = json.loads(meta.get("labelaudit.scene", "{}")).get("num_clutter") == list(CLUTTER if clutter else SceneSpec().num_clutter)
-        if same_scene and meta.get("labelaudit.seed") == str(seed) and meta.get("labelaudit.frames") == str(frames) and noise == dataclasses.asdict(NoiseSpec.benchmark()) | {"gross_kinds": list(NoiseSpec.benchmark().gross_kinds), "classes": list(NoiseSpec.benchmark().classes)}:
+        same_scene = json.loads(meta.get("labelaudit.scene", "{}")).get("num_clutter") == list(
+            CLUTTER if clutter else SceneSpec().num_clutter
+        )
+        if (
+            same_scene
+            and meta.get("labelaudit.seed") == str(seed)
+            and meta.get("labelaudit.frames") == str(frames)
+            and noise
+            == dataclasses.asdict(NoiseSpec.benchmark())
+            | {"gross_kinds": list(NoiseSpec.benchmark().gross_kinds), "classes": list(NoiseSpec.benchmark().classes)}
+        ):
             print(f"reusing simulated dataset {sim} ({frames} frames, seed {seed})", flush=True)
             return sim
     t = time.perf_counter()
-    summary = simulate_dataset(sim, frames=frames, seed=seed, noise=NoiseSpec.benchmark(), workers=workers, progress=False, overwrite=True,
-                               scene=SceneSpec(num_clutter=CLUTTER) if clutter else SceneSpec())
-    print(f"simulated {summary.frames} frames in {time.perf_counter() - t:.0f} s: {summary.num_labels} labels, perturbations {summary.perturbations}", flush=True)
+    summary = simulate_dataset(
+        sim,
+        frames=frames,
+        seed=seed,
+        noise=NoiseSpec.benchmark(),
+        workers=workers,
+        progress=False,
+        overwrite=True,
+        scene=SceneSpec(num_clutter=CLUTTER) if clutter else SceneSpec(),
+    )
+    print(
+        f"simulated {summary.frames} frames in {time.perf_counter() - t:.0f} s: {summary.num_labels} labels, perturbations {summary.perturbations}",
+        flush=True,
+    )
     return sim
 
 
@@ -145,13 +176,27 @@ def infer(sim: Path, out: Path, workers: int, reuse: bool) -> Path:
     t = time.perf_counter()
     summary = run_infer(InferRequest(dataset=sim, output=res, workers=workers, overwrite=True), cfg)
     wall = time.perf_counter() - t
-    print(f"infer: {summary.objects} objects of {summary.frames} frames in {wall:.0f} s ({1000 * wall / max(summary.objects, 1):.0f} ms/object wall, {workers} workers)", flush=True)
+    print(
+        f"infer: {summary.objects} objects of {summary.frames} frames in {wall:.0f} s ({1000 * wall / max(summary.objects, 1):.0f} ms/object wall, {workers} workers)",
+        flush=True,
+    )
     return res
 
 
 def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
     """Result rows joined to the simulator's manifest on (frame_id, object_index)."""
-    cols = ["frame_id", "object_index", "status", "num_points", "distance", "label_error", "jiou_gt", "hull_iou", "fit_offset_m", "class_name"]
+    cols = [
+        "frame_id",
+        "object_index",
+        "status",
+        "num_points",
+        "distance",
+        "label_error",
+        "jiou_gt",
+        "hull_iou",
+        "fit_offset_m",
+        "class_name",
+    ]
     rows = pads.dataset(res / "objects", format="parquet").to_table(columns=cols).to_pydict()
     man = pq.read_table(sim / "manifest.parquet").to_pydict()
     lookup = {
@@ -165,10 +210,17 @@ def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
         raise SystemExit(f"{missing} result rows have no manifest row: join on (frame_id, object_index) failed")
     keep = np.array([s in AUDITED for s in rows["status"]])
     if (~keep).any():
-        print(f"note: {int((~keep).sum())} rows not audited (status {sorted(set(np.array(rows['status'])[~keep]))}) are left out", flush=True)
+        print(
+            f"note: {int((~keep).sum())} rows not audited (status {sorted(set(np.array(rows['status'])[~keep]))}) are left out",
+            flush=True,
+        )
     out: dict[str, np.ndarray] = {}
     for c in cols:
-        v = np.array([np.nan if x is None else x for x in rows[c]]) if c in ("label_error", "jiou_gt", "hull_iou", "fit_offset_m") else np.array(rows[c])
+        v = (
+            np.array([np.nan if x is None else x for x in rows[c]])
+            if c in ("label_error", "jiou_gt", "hull_iou", "fit_offset_m")
+            else np.array(rows[c])
+        )
         out[c] = v[keep]
     idx = np.array(take)[keep]
     for c in ("perturbation", "center_offset_m", "delta_yaw", "delta_length", "delta_width"):
@@ -186,36 +238,60 @@ def synthetic(args: argparse.Namespace) -> str:
     kinds = t["perturbation"]
     pos = kinds != "none"
     n_pts = t["num_points"]
-    md = [f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
-          f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))}).\n"]
+    md = [
+        f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
+        f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))}).\n"
+    ]
     rows = ranking_table(scores, pos, standard_subsets(n_pts, t["distance"]), TOP)
     md.append(print_table("Synthetic, benchmark definition (positive = any perturbation)", rows))
-    md.append(print_table("Synthetic, by perturbation kind", kind_rows(scores, kinds, np.ones(len(kinds), bool)),
-                          "each kind's positives against all unperturbed labels"))
+    md.append(
+        print_table(
+            "Synthetic, by perturbation kind",
+            kind_rows(scores, kinds, np.ones(len(kinds), bool)),
+            "each kind's positives against all unperturbed labels",
+        )
+    )
     md.append(print_table("Synthetic, by perturbation kind, ≥ 10 points", kind_rows(scores, kinds, n_pts >= 10)))
-    visible = (kinds == "none") | np.isin(kinds, ("shift", "swap_lw", "yaw90")) | (
-        (kinds == "jitter") & ((t["center_offset_m"] >= VISIBLE_CENTER) | (np.abs(t["delta_yaw"]) >= VISIBLE_YAW))
+    visible = (
+        (kinds == "none")
+        | np.isin(kinds, ("shift", "swap_lw", "yaw90"))
+        | ((kinds == "jitter") & ((t["center_offset_m"] >= VISIBLE_CENTER) | (np.abs(t["delta_yaw"]) >= VISIBLE_YAW)))
     )
     vis_sub = {k: v & visible for k, v in standard_subsets(n_pts, t["distance"]).items()}
-    md.append(print_table(
-        f"EXTRA VIEW (not the issue's definition): jitters with centre offset < {VISIBLE_CENTER} m and |yaw| < {VISIBLE_YAW} rad left out",
-        ranking_table(scores, pos, vis_sub, TOP),
-    ))
+    md.append(
+        print_table(
+            f"EXTRA VIEW (not the issue's definition): jitters with centre offset < {VISIBLE_CENTER} m and |yaw| < {VISIBLE_YAW} rad left out",
+            ranking_table(scores, pos, vis_sub, TOP),
+        )
+    )
     # The target: label_error finds the perturbed labels among those with ≥ 10 points.
     target = next(r for r in rows if r.name.startswith("≥ 10"))
-    verdicts = [f"label_error AUROC on ≥ 10 points = {target.auroc['label_error']:.3f} (target ≥ 0.95): {'PASS' if target.auroc['label_error'] >= 0.95 else 'FAIL'}"]
-    losing = [f"{r.name} (vs {b}: {r.auroc['label_error']:.3f} ≤ {r.auroc[b]:.3f})" for r in rows for b in SCORES[1:]
-              if np.isfinite(r.auroc["label_error"]) and np.isfinite(r.auroc[b]) and r.auroc["label_error"] <= r.auroc[b]]
-    verdicts.append("label_error better than every baseline in every bin: " + ("PASS" if not losing else "FAIL — " + "; ".join(losing)))
+    verdicts = [
+        f"label_error AUROC on ≥ 10 points = {target.auroc['label_error']:.3f} (target ≥ 0.95): {'PASS' if target.auroc['label_error'] >= 0.95 else 'FAIL'}"
+    ]
+    losing = [
+        f"{r.name} (vs {b}: {r.auroc['label_error']:.3f} ≤ {r.auroc[b]:.3f})"
+        for r in rows
+        for b in SCORES[1:]
+        if np.isfinite(r.auroc["label_error"]) and np.isfinite(r.auroc[b]) and r.auroc["label_error"] <= r.auroc[b]
+    ]
+    verdicts.append(
+        "label_error better than every baseline in every bin: "
+        + ("PASS" if not losing else "FAIL — " + "; ".join(losing))
+    )
     # Misses worth reading: positives with ≥ 10 points that label_error ranks among the negatives.
     le = scores["label_error"]
     thr = np.quantile(le[~pos & (n_pts >= 10)], 0.95) if np.any(~pos & (n_pts >= 10)) else 1.0
     miss = pos & (n_pts >= 10) & (le < thr)
-    verdicts.append(f"positives with ≥ 10 points below the 95th percentile of the negatives' label_error ({thr:.3f}): {int(miss.sum())} of {int((pos & (n_pts >= 10)).sum())}; "
-                    f"by kind: {', '.join(f'{k} {int(c)}' for k, c in zip(*np.unique(kinds[miss], return_counts=True))) or 'none'}; median centre offset {np.median(t['center_offset_m'][miss]) if miss.any() else float('nan'):.3f} m, "
-                    f"median |Δyaw| {np.median(np.abs(t['delta_yaw'][miss])) if miss.any() else float('nan'):.3f} rad")
+    verdicts.append(
+        f"positives with ≥ 10 points below the 95th percentile of the negatives' label_error ({thr:.3f}): {int(miss.sum())} of {int((pos & (n_pts >= 10)).sum())}; "
+        f"by kind: {', '.join(f'{k} {int(c)}' for k, c in zip(*np.unique(kinds[miss], return_counts=True))) or 'none'}; median centre offset {np.median(t['center_offset_m'][miss]) if miss.any() else float('nan'):.3f} m, "
+        f"median |Δyaw| {np.median(np.abs(t['delta_yaw'][miss])) if miss.any() else float('nan'):.3f} rad"
+    )
     fa = ~pos & (n_pts >= 10) & (le >= 0.9)
-    verdicts.append(f"unperturbed labels with ≥ 10 points and label_error ≥ 0.9: {int(fa.sum())} of {int((~pos & (n_pts >= 10)).sum())}")
+    verdicts.append(
+        f"unperturbed labels with ≥ 10 points and label_error ≥ 0.9: {int(fa.sum())} of {int((~pos & (n_pts >= 10)).sum())}"
+    )
     for v in verdicts:
         print(v, flush=True)
     md.append("\n".join(f"- {v}" for v in verdicts) + "\n")
@@ -282,8 +358,23 @@ def audit_real(frames: dict[str, Any], cases: list[RealCase], cfg: Any) -> dict[
     """Every case audited by the pipeline (``process_frame``) in its own copy of its frame: the
     frame's other labels unchanged (they stay neighbours) but not audited."""
     cfg = dataclasses.replace(cfg, classes=tuple(sorted({c.class_name for c in cases})))
-    keys = ("label_error", "jiou_gt", "hull_iou", "num_points", "distance", "status", "free_rays", "end_rays", "fit_offset_m", "fit_free_rays",
-            "fit_cx", "fit_cy", "fit_length", "fit_width", "fit_yaw")
+    keys = (
+        "label_error",
+        "jiou_gt",
+        "hull_iou",
+        "num_points",
+        "distance",
+        "status",
+        "free_rays",
+        "end_rays",
+        "fit_offset_m",
+        "fit_free_rays",
+        "fit_cx",
+        "fit_cy",
+        "fit_length",
+        "fit_width",
+        "fit_yaw",
+    )
     cols: dict[str, list[Any]] = {k: [] for k in keys}
     for case in cases:
         frame = frames[case.frame_id]
@@ -294,7 +385,9 @@ def audit_real(frames: dict[str, Any], cases: list[RealCase], cfg: Any) -> dict[
         (row,) = rows
         for k in keys:
             cols[k].append(row.get(k))
-    return {k: np.array([np.nan if x is None else x for x in v]) if k != "status" else np.array(v) for k, v in cols.items()}
+    return {
+        k: np.array([np.nan if x is None else x for x in v]) if k != "status" else np.array(v) for k, v in cols.items()
+    }
 
 
 def load_real(roots: list[Path]) -> dict[str, Any]:
@@ -379,7 +472,16 @@ def real(args: argparse.Namespace) -> str:
         unvalidated = [c for c in classes if c not in LC.LABEL_ERROR_CLASSES]
         for combo in grid:
             # classes the score is not written for (null in the rows): measured here with it switched on
-            old = _set_constants({**combo, **({"LABEL_ERROR_CLASSES": tuple(LC.LABEL_ERROR_CLASSES) + tuple(unvalidated)} if unvalidated else {})})
+            old = _set_constants(
+                {
+                    **combo,
+                    **(
+                        {"LABEL_ERROR_CLASSES": tuple(LC.LABEL_ERROR_CLASSES) + tuple(unvalidated)}
+                        if unvalidated
+                        else {}
+                    ),
+                }
+            )
             try:
                 runs.append(audit_real(frames, cases, cfg))
             finally:
@@ -395,8 +497,12 @@ def real(args: argparse.Namespace) -> str:
             for combo, r in zip(grid, runs):
                 m = real_metrics(r, kinds, dense & audited)
                 hi = int(((kinds == "none") & dense & (np.nan_to_num(r["label_error"]) >= 0.9)).sum())
-                print(f"  setting {combo}: AUROC all {m['all:label_error']:.3f} · " + " · ".join(f"{k} {m[k + ':label_error']:.3f}" for k in REAL_KINDS)
-                      + f"; originals ≥ 0.9: {hi}", flush=True)
+                print(
+                    f"  setting {combo}: AUROC all {m['all:label_error']:.3f} · "
+                    + " · ".join(f"{k} {m[k + ':label_error']:.3f}" for k in REAL_KINDS)
+                    + f"; originals ≥ 0.9: {hi}",
+                    flush=True,
+                )
         # leave one frame out: each frame's rows come from the setting that did best on the others
         chosen: dict[str, int] = {}
         t = {k: v.copy() for k, v in runs[0].items()}
@@ -411,13 +517,23 @@ def real(args: argparse.Namespace) -> str:
                 t[k][rows] = runs[chosen[f]][k][rows]
         n_obj = len(orig_pts)
         n_dense = sum(v >= REAL_MIN_POINTS for v in orig_pts.values())
-        head = (("NOT VALIDATED — label_error is written null for " + ", ".join(unvalidated) + "; the score computed anyway: " if unvalidated else "")
-                + f"Real KITTI, {title}: {n_obj} labels ({n_dense} with ≥ {REAL_MIN_POINTS} points) in {len(set(fid))} frames, "
-                f"each perturbed {args.real_copies} times (seed {args.seed}; {', '.join(REAL_KINDS)} in turn: shift {REAL_SHIFT[0]}–{REAL_SHIFT[1]} m, "
-                f"length or width ±{REAL_SIZE[0]}–{REAL_SIZE[1]} m, yaw ±{REAL_YAW[0]}–{REAL_YAW[1]} rad), each version in its own copy of its frame; "
-                f"{len(cases) * len(grid)} audits in {wall:.0f} s")
+        head = (
+            (
+                "NOT VALIDATED — label_error is written null for "
+                + ", ".join(unvalidated)
+                + "; the score computed anyway: "
+                if unvalidated
+                else ""
+            )
+            + f"Real KITTI, {title}: {n_obj} labels ({n_dense} with ≥ {REAL_MIN_POINTS} points) in {len(set(fid))} frames, "
+            f"each perturbed {args.real_copies} times (seed {args.seed}; {', '.join(REAL_KINDS)} in turn: shift {REAL_SHIFT[0]}–{REAL_SHIFT[1]} m, "
+            f"length or width ±{REAL_SIZE[0]}–{REAL_SIZE[1]} m, yaw ±{REAL_YAW[0]}–{REAL_YAW[1]} rad), each version in its own copy of its frame; "
+            f"{len(cases) * len(grid)} audits in {wall:.0f} s"
+        )
         if len(grid) > 1:
-            head += f"; leave-one-frame-out over {len(grid)} settings, chosen per held-out frame: " + "; ".join(f"{f}: {grid[i]}" for f, i in chosen.items())
+            head += f"; leave-one-frame-out over {len(grid)} settings, chosen per held-out frame: " + "; ".join(
+                f"{f}: {grid[i]}" for f, i in chosen.items()
+            )
         print(head, flush=True)
         md.append(head + "\n")
         if args.dump:
@@ -425,21 +541,33 @@ def real(args: argparse.Namespace) -> str:
             import pyarrow.csv as pacsv
 
             cols = {"key": key, "kind": kinds, "what": np.array([c.what for c in cases]), **t}
-            pacsv.write_csv(pa.table({k: pa.array(v.tolist()) for k, v in cols.items()}), args.dump.with_name(f"{args.dump.stem}-{title}{args.dump.suffix}"))
+            pacsv.write_csv(
+                pa.table({k: pa.array(v.tolist()) for k, v in cols.items()}),
+                args.dump.with_name(f"{args.dump.stem}-{title}{args.dump.suffix}"),
+            )
         scores = score_columns(t)
         pos = kinds != "none"
-        sub = {f"≥ {REAL_MIN_POINTS} points (headline)": dense & audited, "all": audited,
-               f"< {REAL_MIN_POINTS} points": ~dense & audited}
+        sub = {
+            f"≥ {REAL_MIN_POINTS} points (headline)": dense & audited,
+            "all": audited,
+            f"< {REAL_MIN_POINTS} points": ~dense & audited,
+        }
         for k in REAL_KINDS:
             sub[f"{k} vs originals, ≥ {REAL_MIN_POINTS} points"] = dense & audited & ((kinds == "none") | (kinds == k))
         size_what = np.array([c.what.split()[0] + (" +" if "+" in c.what else " −") for c in cases])
         for w in ("length +", "length −", "width +", "width −"):
-            sub[f"size: {w}, ≥ {REAL_MIN_POINTS} points"] = dense & audited & ((kinds == "none") | ((kinds == "size") & (size_what == w)))
+            sub[f"size: {w}, ≥ {REAL_MIN_POINTS} points"] = (
+                dense & audited & ((kinds == "none") | ((kinds == "size") & (size_what == w)))
+            )
         db = bin_index(t["distance"], DIST_EDGES)
         for i, name in enumerate(DIST_NAMES):
             sub[f"{name}, ≥ {REAL_MIN_POINTS} points"] = dense & audited & (db == i)
         note = "held out by frame" if len(grid) > 1 else "no setting chosen on these frames"
-        md.append(print_table(f"Real KITTI {title}: perturbed copies vs originals", ranking_table(scores, pos, sub, TOP), note))
+        md.append(
+            print_table(
+                f"Real KITTI {title}: perturbed copies vs originals", ranking_table(scores, pos, sub, TOP), note
+            )
+        )
         orig = ~pos & audited
         le = scores["label_error"]
         hi = orig & (le >= 0.9)
@@ -450,36 +578,85 @@ def real(args: argparse.Namespace) -> str:
         print(line, flush=True)
         md.append("- " + line + "\n")
         # per object: its original's score and how many of its copies rank above it
-        lines = ["| label | class | points | label_error of the original | copies above it (shift / size / yaw) |", "|---|---|---|---|---|"]
+        lines = [
+            "| label | class | points | label_error of the original | copies above it (shift / size / yaw) |",
+            "|---|---|---|---|---|",
+        ]
         for o in np.flatnonzero(~pos):
             mine = key == key[o]
-            above = [f"{int(((le > le[o]) & mine & (kinds == k)).sum())}/{int((mine & (kinds == k)).sum())}" for k in REAL_KINDS]
-            lines.append(f"| {key[o]} | {cases[o].class_name} | {int(t['num_points'][o])} | {le[o]:.3f} | {' · '.join(above)} |")
+            above = [
+                f"{int(((le > le[o]) & mine & (kinds == k)).sum())}/{int((mine & (kinds == k)).sum())}"
+                for k in REAL_KINDS
+            ]
+            lines.append(
+                f"| {key[o]} | {cases[o].class_name} | {int(t['num_points'][o])} | {le[o]:.3f} | {' · '.join(above)} |"
+            )
         text = "\n".join(lines) + "\n"
         if args.verbose:
             print(text, flush=True)
-            missed = pos & dense & audited & (le < np.quantile(le[orig & dense], 0.95) if (orig & dense).any() else False)
+            missed = (
+                pos & dense & audited & (le < np.quantile(le[orig & dense], 0.95) if (orig & dense).any() else False)
+            )
             for j in np.flatnonzero(missed):
-                print(f"  missed: {key[j]} {cases[j].what}: label_error {le[j]:.3f}, points {int(t['num_points'][j])}, free_rays {t['free_rays'][j]}, fit offset {t['fit_offset_m'][j]:.2f} m", flush=True)
+                print(
+                    f"  missed: {key[j]} {cases[j].what}: label_error {le[j]:.3f}, points {int(t['num_points'][j])}, free_rays {t['free_rays'][j]}, fit offset {t['fit_offset_m'][j]:.2f} m",
+                    flush=True,
+                )
         md.append(text)
     return "\n".join(md)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=300, help="simulated frames (default 300)")
     ap.add_argument("--seed", type=int, default=0, help="simulation and real-data perturbation seed")
     ap.add_argument("--workers", type=int, default=2, help="processes for simulation and infer")
-    ap.add_argument("--out", type=Path, default=Path("/tmp/labelaudit-bench-label-error"), help="work folder (simulated data, results)")
-    ap.add_argument("--realdata", type=Path, action="append", default=None, help="real KITTI root, repeatable (default: the two folders of ../shared/realdata; skipped when absent)")
-    ap.add_argument("--real-copies", type=int, default=12, help="perturbed copies of every real label (shift, size, yaw in turn)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=Path("/tmp/labelaudit-bench-label-error"),
+        help="work folder (simulated data, results)",
+    )
+    ap.add_argument(
+        "--realdata",
+        type=Path,
+        action="append",
+        default=None,
+        help="real KITTI root, repeatable (default: the two folders of ../shared/realdata; skipped when absent)",
+    )
+    ap.add_argument(
+        "--real-copies", type=int, default=12, help="perturbed copies of every real label (shift, size, yaw in turn)"
+    )
     ap.add_argument("--real", action="store_true", help="only the real-data part (no simulation)")
-    ap.add_argument("--real-other-classes", action="store_true", help=f"also perturb and audit the real {', '.join(REAL_OTHER_CLASSES)} labels")
-    ap.add_argument("--grid", action="append", default=[], metavar="NAME=v1,v2", help="real data: a constant to choose by leave-one-frame-out (repeatable; tuples as a/b)")
-    ap.add_argument("--dump", type=Path, default=None, help="real data: write every audited version's columns to this CSV (one file per class group)")
+    ap.add_argument(
+        "--real-other-classes",
+        action="store_true",
+        help=f"also perturb and audit the real {', '.join(REAL_OTHER_CLASSES)} labels",
+    )
+    ap.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="NAME=v1,v2",
+        help="real data: a constant to choose by leave-one-frame-out (repeatable; tuples as a/b)",
+    )
+    ap.add_argument(
+        "--dump",
+        type=Path,
+        default=None,
+        help="real data: write every audited version's columns to this CSV (one file per class group)",
+    )
     ap.add_argument("--verbose", action="store_true", help="real data: per-label table and the missed copies")
-    ap.add_argument("--reuse", action="store_true", help="reuse a simulated dataset / complete results already in --out")
-    ap.add_argument("--clutter", action="store_true", help=f"add {CLUTTER[0]}–{CLUTTER[1]} unlabelled clutter objects per frame (not the issue's setting)")
+    ap.add_argument(
+        "--reuse", action="store_true", help="reuse a simulated dataset / complete results already in --out"
+    )
+    ap.add_argument(
+        "--clutter",
+        action="store_true",
+        help=f"add {CLUTTER[0]}–{CLUTTER[1]} unlabelled clutter objects per frame (not the issue's setting)",
+    )
     ap.add_argument("--skip-real", action="store_true", help="leave out the real-data part")
     ap.add_argument("--markdown", type=Path, default=None, help="also write the tables as Markdown to this file")
     args = ap.parse_args(argv)

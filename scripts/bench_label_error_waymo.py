@@ -51,7 +51,15 @@ def simulate(out: Path, segments: int, frames: int, seed: int) -> Path:
         print(f"reusing {root} ({key})", flush=True)
         return root
     t = time.perf_counter()
-    simulate_waymo_dataset(out, segments=segments, frames=frames, seed=seed, size="real", formats=("waymo-v2",), label_noise=NoiseSpec.benchmark())
+    simulate_waymo_dataset(
+        out,
+        segments=segments,
+        frames=frames,
+        seed=seed,
+        size="real",
+        formats=("waymo-v2",),
+        label_noise=NoiseSpec.benchmark(),
+    )
     stamp.write_text(key)
     print(f"simulated {key} at the real sensor size in {time.perf_counter() - t:.0f} s", flush=True)
     return root
@@ -98,14 +106,20 @@ def main(argv: list[str] | None = None) -> int:
     rows = [r for r in rows if r["status"] in AUDITED]
     missing = [r for r in rows if (r["frame_id"], r["object_id"]) not in kind_of]
     if missing:
-        raise SystemExit(f"{len(missing)} rows have no manifest entry (first {missing[0]['frame_id']} {missing[0]['object_id']})")
+        raise SystemExit(
+            f"{len(missing)} rows have no manifest entry (first {missing[0]['frame_id']} {missing[0]['object_id']})"
+        )
     kinds = np.array([kind_of[(r["frame_id"], r["object_id"])] for r in rows])
     pos = kinds != "none"
     n_pts = np.array([r["num_points"] for r in rows], dtype=float)
     dist = np.array([r["distance"] for r in rows], dtype=float)
     val = lambda c: np.array([np.nan if r[c] is None else r[c] for r in rows], dtype=float)  # noqa: E731
-    scores = {"label_error": np.nan_to_num(val("label_error"), nan=0.0), "1 − jiou_gt": 1 - np.nan_to_num(val("jiou_gt"), nan=0.0),
-              "−num_points": -n_pts, "1 − hull_iou": 1 - np.nan_to_num(val("hull_iou"), nan=0.0)}
+    scores = {
+        "label_error": np.nan_to_num(val("label_error"), nan=0.0),
+        "1 − jiou_gt": 1 - np.nan_to_num(val("jiou_gt"), nan=0.0),
+        "−num_points": -n_pts,
+        "1 − hull_iou": 1 - np.nan_to_num(val("hull_iou"), nan=0.0),
+    }
     subsets = {"all": np.ones(len(rows), bool), "≥ 10 points": n_pts >= 10}
     for name, lo, hi in zip(POINT_NAMES, POINT_EDGES[:-1], POINT_EDGES[1:]):
         subsets[name] = (n_pts >= lo) & (n_pts < hi)
@@ -114,18 +128,24 @@ def main(argv: list[str] | None = None) -> int:
     for k in ("jitter", "shift", "swap_lw", "yaw90"):
         subsets[f"{k} vs none, ≥ 10 points"] = np.isin(kinds, (k, "none")) & (n_pts >= 10)
     at_cap = sum(1 for it, ok in fits if not ok)
-    print(f"{len(rows)} vehicle labels of {args.segments} × {args.frames} frames, {int(pos.sum())} perturbed "
-          f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))})")
-    print(f"label-error fits: {len(fits)}, not converged within {C.FIT_MAX_ITERATIONS} iterations: {at_cap} "
-          f"({100 * at_cap / max(len(fits), 1):.0f} %), median iterations {np.median([it for it, _ in fits]):.0f}, "
-          f"fit CPU {1e3 * fit_cpu / max(len(fits), 1):.2f} ms per box")
+    print(
+        f"{len(rows)} vehicle labels of {args.segments} × {args.frames} frames, {int(pos.sum())} perturbed "
+        f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))})"
+    )
+    print(
+        f"label-error fits: {len(fits)}, not converged within {C.FIT_MAX_ITERATIONS} iterations: {at_cap} "
+        f"({100 * at_cap / max(len(fits), 1):.0f} %), median iterations {np.median([it for it, _ in fits]):.0f}, "
+        f"fit CPU {1e3 * fit_cpu / max(len(fits), 1):.2f} ms per box"
+    )
     print("| subset | n | pos | " + " | ".join(f"AUROC {s}" for s in scores) + " | P@5% label_error |")
     print("|---|---|---|" + "---|" * (len(scores) + 1))
     for r in ranking_table(scores, pos, subsets, TOP):
         cells = " | ".join(f"{r.auroc[s]:.3f}" if np.isfinite(r.auroc[s]) else "–" for s in scores)
         print(f"| {r.name} | {r.n} | {r.n_pos} | {cells} | {r.precision['label_error']:.3f} |")
     fa = ~pos & (n_pts >= 10) & (scores["label_error"] >= 0.9)
-    print(f"unperturbed labels with ≥ 10 points and label_error ≥ 0.9: {int(fa.sum())} of {int((~pos & (n_pts >= 10)).sum())}")
+    print(
+        f"unperturbed labels with ≥ 10 points and label_error ≥ 0.9: {int(fa.sum())} of {int((~pos & (n_pts >= 10)).sum())}"
+    )
     return 0
 
 

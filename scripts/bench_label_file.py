@@ -49,7 +49,9 @@ def main() -> None:
         label = root / "training" / "label_2" / "000000.txt"
         base = [l for l in label.read_text().splitlines() if not l.startswith("DontCare")]
         rng = np.random.default_rng(0)
-        print(f"{'lines':>6} {'read s':>8} {'Open3D per box s':>17} {'BEV grid s':>11} {'ratio':>6}   (CROP_GRID_MIN_BOXES = {C.CROP_GRID_MIN_BOXES})")
+        print(
+            f"{'lines':>6} {'read s':>8} {'Open3D per box s':>17} {'BEV grid s':>11} {'ratio':>6}   (CROP_GRID_MIN_BOXES = {C.CROP_GRID_MIN_BOXES})"
+        )
         previous = None
         for n in counts:
             lines = []
@@ -71,7 +73,11 @@ def main() -> None:
 
             t_o3d = _median_s(open3d_per_box, args.repeat)
             t_grid = _median_s(lambda: crop._crop_pair_by_grid(frame.points, boxes, params), args.repeat)
-            grow = "" if previous is None else f"   ×{n / previous[0]:.0f} lines: read ×{t_read / previous[1]:.1f}, grid ×{t_grid / previous[2]:.1f}"
+            grow = (
+                ""
+                if previous is None
+                else f"   ×{n / previous[0]:.0f} lines: read ×{t_read / previous[1]:.1f}, grid ×{t_grid / previous[2]:.1f}"
+            )
             print(f"{n:>6} {t_read:>8.3f} {t_o3d:>17.3f} {t_grid:>11.3f} {t_o3d / t_grid:>6.1f}{grow}")
             previous = (n, t_read, t_grid)
         shutil.rmtree(root)

@@ -46,7 +46,9 @@ def _candidates(frame, cfg):
     return find_missing(frame, cfg)
 
 
-def bench_sim(frames: int, seed: int, drop: float, threshold: float, min_points: int, workers: int, keep: Path | None) -> None:
+def bench_sim(
+    frames: int, seed: int, drop: float, threshold: float, min_points: int, workers: int, keep: Path | None
+) -> None:
     import pyarrow.parquet as pq
 
     from labelaudit import constants as C
@@ -59,8 +61,18 @@ def bench_sim(frames: int, seed: int, drop: float, threshold: float, min_points:
     data = tmp / "sim"
     if not (data / "manifest.parquet").is_file():
         t = time.perf_counter()
-        simulate_dataset(data, frames=frames, seed=seed, scene=SceneSpec(num_clutter=C.SIM_CLUTTER), drop_fraction=drop, workers=workers, progress=False)
-        print(f"simulated {frames} frames with clutter, {drop:.0%} of vehicle labels dropped (seed {seed}) in {time.perf_counter() - t:.0f} s")
+        simulate_dataset(
+            data,
+            frames=frames,
+            seed=seed,
+            scene=SceneSpec(num_clutter=C.SIM_CLUTTER),
+            drop_fraction=drop,
+            workers=workers,
+            progress=False,
+        )
+        print(
+            f"simulated {frames} frames with clutter, {drop:.0%} of vehicle labels dropped (seed {seed}) in {time.perf_counter() - t:.0f} s"
+        )
     manifest = pq.read_table(data / "manifest.parquet").to_pylist()
     by_frame = defaultdict(list)
     for row in manifest:
@@ -84,7 +96,11 @@ def bench_sim(frames: int, seed: int, drop: float, threshold: float, min_points:
             if not o["dropped"] or o["num_points"] < min_points:
                 continue
             hit = any(math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]) <= 1.0 for c in cands)
-            for key in ("all", f"distance {_bin(o['distance'], DIST_BINS)} m", f"points {_bin(o['num_points'], POINT_BINS)}"):
+            for key in (
+                "all",
+                f"distance {_bin(o['distance'], DIST_BINS)} m",
+                f"points {_bin(o['num_points'], POINT_BINS)}",
+            ):
                 total[key] += 1
                 found[key] += hit
         for c in cands:
@@ -92,21 +108,32 @@ def bench_sim(frames: int, seed: int, drop: float, threshold: float, min_points:
                 n_false += 1
                 false_by[f"distance {_bin(c['distance'], DIST_BINS)} m"] += 1
                 false_by[f"points {_bin(c['num_points'], POINT_BINS)}"] += 1
-    print(f"simulated, clutter, {drop:.0%} dropped, score ≥ {threshold}: dropped vehicles with ≥ {min_points} points found within 1.0 m")
+    print(
+        f"simulated, clutter, {drop:.0%} dropped, score ≥ {threshold}: dropped vehicles with ≥ {min_points} points found within 1.0 m"
+    )
     for key in sorted(total, key=lambda k: (k != "all", k)):
         print(f"  recall {key:22s} {found[key]:4d} / {total[key]:4d} = {found[key] / total[key]:.3f}")
-    print(f"  false candidates (> 2 m from every vehicle): {n_false} in {n_frames} frames = {n_false / max(n_frames, 1):.3f} per frame")
+    print(
+        f"  false candidates (> 2 m from every vehicle): {n_false} in {n_frames} frames = {n_false / max(n_frames, 1):.3f} per frame"
+    )
     for key in sorted(false_by):
         print(f"    {key:22s} {false_by[key] / max(n_frames, 1):.3f} per frame")
-    print(f"  search CPU time: {seconds / max(n_frames - 2, 1) * 1e3:.1f} ms per frame after the first two (this process, load {os.getloadavg()[0]:.1f}; "
-          "frames with dropped labels and clutter: more clusters to box than a fully labelled frame)")
+    print(
+        f"  search CPU time: {seconds / max(n_frames - 2, 1) * 1e3:.1f} ms per frame after the first two (this process, load {os.getloadavg()[0]:.1f}; "
+        "frames with dropped labels and clutter: more clusters to box than a fully labelled frame)"
+    )
     if not keep:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _copy_frame(src: Path, dst: Path, fid: str, drop_line: int | None) -> None:
     for sub in ("velodyne", "calib", "image_2"):
-        f = src / "training" / sub / (f"{fid}.bin" if sub == "velodyne" else f"{fid}.png" if sub == "image_2" else f"{fid}.txt")
+        f = (
+            src
+            / "training"
+            / sub
+            / (f"{fid}.bin" if sub == "velodyne" else f"{fid}.png" if sub == "image_2" else f"{fid}.txt")
+        )
         if f.is_file():
             (dst / "training" / sub).mkdir(parents=True, exist_ok=True)
             os.symlink(f, dst / "training" / sub / f.name)
@@ -137,7 +164,9 @@ def bench_real(root: Path, threshold: float, min_points: int, verbose: bool) -> 
             n_cands += len(cands)
             n_frames += 1
             for c in cands:
-                lines_out.append(f"    {frame.frame_id} candidate {c['class_name']} at ({c['cx']:.1f}, {c['cy']:.1f}) {c['distance']:.0f} m, {c['num_points']} points, score {c['score']:.2f}")
+                lines_out.append(
+                    f"    {frame.frame_id} candidate {c['class_name']} at ({c['cx']:.1f}, {c['cy']:.1f}) {c['distance']:.0f} m, {c['num_points']} points, score {c['score']:.2f}"
+                )
             counts = [len(i) for i in crop_frame(frame.points, frame.boxes, cfg.crop)]
             for i, cls in enumerate(frame.class_names):
                 if cls not in VEHICLES or counts[i] < min_points:
@@ -150,9 +179,13 @@ def bench_real(root: Path, threshold: float, min_points: int, verbose: bool) -> 
                 hit = any(math.hypot(c["cx"] - b[0], c["cy"] - b[1]) <= 1.0 for c in got)
                 total += 1
                 found += hit
-                lines_out.append(f"    {frame.frame_id} removed {cls} line {int(frame.extras['label_line'][i])} at ({b[0]:.1f}, {b[1]:.1f}), {counts[i]} points: {'found' if hit else 'MISSED'}")
+                lines_out.append(
+                    f"    {frame.frame_id} removed {cls} line {int(frame.extras['label_line'][i])} at ({b[0]:.1f}, {b[1]:.1f}), {counts[i]} points: {'found' if hit else 'MISSED'}"
+                )
         print(f"real KITTI {name} ({role}, {n_frames} frames), score ≥ {threshold}:")
-        print(f"  recall of removed vehicles with ≥ {min_points} points: {found} / {total} = {found / max(total, 1):.3f}")
+        print(
+            f"  recall of removed vehicles with ≥ {min_points} points: {found} / {total} = {found / max(total, 1):.3f}"
+        )
         print(f"  candidates on the unmodified frames: {n_cands} = {n_cands / max(n_frames, 1):.2f} per frame")
         if verbose:
             print("\n".join(lines_out))
@@ -164,10 +197,19 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--drop-fraction", type=float, default=0.15)
     ap.add_argument("--threshold", type=float, default=0.5)
-    ap.add_argument("--min-points", type=int, default=30, help="simulated: dropped vehicles with at least this many returns count")
+    ap.add_argument(
+        "--min-points", type=int, default=30, help="simulated: dropped vehicles with at least this many returns count"
+    )
     ap.add_argument("--workers", type=int, default=2, help="simulator processes")
     ap.add_argument("--keep", type=Path, default=None, help="keep (or reuse) the simulated data in this folder")
-    ap.add_argument("--real", nargs="?", const=REALDATA, type=Path, default=None, help="also the real KITTI frames (default folder: ../shared/realdata)")
+    ap.add_argument(
+        "--real",
+        nargs="?",
+        const=REALDATA,
+        type=Path,
+        default=None,
+        help="also the real KITTI frames (default folder: ../shared/realdata)",
+    )
     ap.add_argument("--no-sim", action="store_true", help="only the real frames")
     ap.add_argument("-v", "--verbose", action="store_true", help="list every real candidate and removed vehicle")
     args = ap.parse_args()

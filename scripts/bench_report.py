@@ -57,7 +57,10 @@ def grow(src: Path, dst: Path, data: Path, objects: int) -> int:
         t = base
         for name, values in (
             ("frame_id", pa.array([new_ids[f] for f in frames])),
-            ("object_id", pa.array([f"{new_ids[f]}:{i}" for f, i in zip(frames, base.column("object_index").to_pylist())])),
+            (
+                "object_id",
+                pa.array([f"{new_ids[f]}:{i}" for f, i in zip(frames, base.column("object_index").to_pylist())]),
+            ),
         ):
             i = t.schema.get_field_index(name)
             t = t.set_column(i, t.schema.field(i), values)
@@ -66,7 +69,9 @@ def grow(src: Path, dst: Path, data: Path, objects: int) -> int:
     meta = opened.manifest
     shard = 4096
     for i in range(0, big.num_rows, shard):
-        R.write_parquet_atomic(R.with_metadata(big.slice(i, shard), meta), dst / R.OBJECTS_DIR / f"part-{i // shard:05d}.parquet")
+        R.write_parquet_atomic(
+            R.with_metadata(big.slice(i, shard), meta), dst / R.OBJECTS_DIR / f"part-{i // shard:05d}.parquet"
+        )
     R.write_parquet_atomic(R.with_metadata(opened.errors(), meta), dst / R.ERRORS_FILE)
     R.write_json_atomic(meta, dst / R.MANIFEST_NAME)
     return big.num_rows
@@ -104,7 +109,15 @@ def main() -> None:
     work = args.keep or Path(tmp.name)
     data, real, big = work / "sim", work / "results-real", work / "results-big"
     t0 = time.perf_counter()
-    simulate_dataset(data, frames=args.frames, seed=11, noise=NoiseSpec.benchmark(), progress=False, workers=args.workers, overwrite=True)
+    simulate_dataset(
+        data,
+        frames=args.frames,
+        seed=11,
+        noise=NoiseSpec.benchmark(),
+        progress=False,
+        workers=args.workers,
+        overwrite=True,
+    )
     executor = PoolExecutor(args.workers) if args.workers > 1 else SerialExecutor()
     run_infer(InferRequest(data, real, "kitti", overwrite=True), resolve_config(None, "kitti"), executor=executor)
     if big.exists():
@@ -113,13 +126,28 @@ def main() -> None:
         shutil.rmtree(big)
     rows = grow(real, big, data, args.objects)
     top, distinct = gallery_top(big, args.pictures)
-    print(f"setup: {args.frames} simulated frames, {R.open_results(real).dataset.count_rows()} real rows grown to {rows}; "
-          f"--top {top} gives {distinct} gallery pictures ({time.perf_counter() - t0:.1f} s)")
+    print(
+        f"setup: {args.frames} simulated frames, {R.open_results(real).dataset.count_rows()} real rows grown to {rows}; "
+        f"--top {top} gives {distinct} gallery pictures ({time.perf_counter() - t0:.1f} s)"
+    )
 
     out = work / "report.html"
     t = time.perf_counter()
     child_cpu = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cmd = [sys.executable, "-m", "labelaudit.cli", "report", str(big), "-o", str(out), "--top", str(top), "--gate", "default", "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "labelaudit.cli",
+        "report",
+        str(big),
+        "-o",
+        str(out),
+        "--top",
+        str(top),
+        "--gate",
+        "default",
+        "--quiet",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -127,7 +155,9 @@ def main() -> None:
     if proc.returncode != 0:
         sys.exit(f"report failed ({proc.returncode}): {proc.stderr}")
     size = out.stat().st_size
-    print(f"CLI `labelaudit report` (fresh process): {wall:.1f} s wall, {cli_cpu:.1f} s CPU, HTML {size / 1e6:.2f} MB  [targets ≤ 30 s, ≤ 10 MB]")
+    print(
+        f"CLI `labelaudit report` (fresh process): {wall:.1f} s wall, {cli_cpu:.1f} s CPU, HTML {size / 1e6:.2f} MB  [targets ≤ 30 s, ≤ 10 MB]"
+    )
 
     from labelaudit.viz.report import build_report
 
@@ -137,8 +167,12 @@ def main() -> None:
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in s.timings.items())
     per, per_cpu = s.timings["gallery"] / max(s.pictures, 1), s.cpu_timings["gallery"] / max(s.pictures, 1)
     print(f"in-process: {s.seconds:.1f} s wall, {cpu:.1f} s CPU (wall per stage: {stages})")
-    print(f"gallery: {s.pictures} pictures, {per:.3f} s wall / {per_cpu:.3f} s CPU per picture (frame read, crop, model, p_G, drawing)  [target ≤ 0.3 s]")
-    print(f"machine load average during the run: {' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores")
+    print(
+        f"gallery: {s.pictures} pictures, {per:.3f} s wall / {per_cpu:.3f} s CPU per picture (frame read, crop, model, p_G, drawing)  [target ≤ 0.3 s]"
+    )
+    print(
+        f"machine load average during the run: {' '.join(f'{v:.1f}' for v in os.getloadavg())} on {os.cpu_count()} cores"
+    )
     if tmp is not None:
         tmp.cleanup()
 

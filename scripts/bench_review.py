@@ -34,7 +34,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-review-") as tmp:
         root = Path(tmp)
         data, results = root / "sim", root / "results"
-        simulate_dataset(data, frames=args.frames, seed=11, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False)
+        simulate_dataset(
+            data, frames=args.frames, seed=11, noise=NoiseSpec(fraction=0.3, gross_fraction=0.1), progress=False
+        )
         run_infer(InferRequest(data, results, "kitti"), resolve_config(None, "kitti"), executor=SerialExecutor())
         walls, cpus = [], []
         summary = None

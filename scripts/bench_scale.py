@@ -111,7 +111,9 @@ def cli_run(data: Path, out: Path, env: dict[str, str], *opts: str) -> tuple[flo
     """``labelaudit infer`` as a subprocess: (wall s incl. start-up, CPU s of its process tree,
     start-up s until the first shard was written, span s from the first to the last shard)."""
     t0 = time.time()
-    wall, _, cpu = run_tree([sys.executable, "-m", "labelaudit", "infer", str(data), "-o", str(out), "--overwrite", "-q", *opts], env)
+    wall, _, cpu = run_tree(
+        [sys.executable, "-m", "labelaudit", "infer", str(data), "-o", str(out), "--overwrite", "-q", *opts], env
+    )
     stamps = sorted(p.stat().st_mtime for p in (out / "objects").glob("*.parquet"))
     return wall, cpu, stamps[0] - t0, stamps[-1] - stamps[0]
 
@@ -151,21 +153,29 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
                 memory.setdefault(f"{name}: {role}", []).extend(values)
     print(f"workers, {frames} frames, `labelaudit infer` subprocess ({load()}):")
     for name, rs in runs.items():
-        print(f"  {name:13s} wall {spread([r[0] for r in rs])} s (start-up to the first shard {spread([r[2] for r in rs])} s, "
-              f"then {spread([r[3] for r in rs])} s), CPU {spread([r[1] for r in rs])} s, {statistics.median(frames / r[0] for r in rs):.1f} frames/s")
+        print(
+            f"  {name:13s} wall {spread([r[0] for r in rs])} s (start-up to the first shard {spread([r[2] for r in rs])} s, "
+            f"then {spread([r[3] for r in rs])} s), CPU {spread([r[1] for r in rs])} s, {statistics.median(frames / r[0] for r in rs):.1f} frames/s"
+        )
     w1, w2 = [r[0] for r in runs["1 worker"]], [r[0] for r in runs["2 workers"]]
-    print(f"  speed-up 2 vs 1 workers, wall: {spread([a / b for a, b in zip(w1, w2)])}   (target ≥ 1.8; "
-          f"the machine's own for two busy loops, measured before each repeat: {spread(ceiling)})")
+    print(
+        f"  speed-up 2 vs 1 workers, wall: {spread([a / b for a, b in zip(w1, w2)])}   (target ≥ 1.8; "
+        f"the machine's own for two busy loops, measured before each repeat: {spread(ceiling)})"
+    )
     if with_dask:
         dk, pool = runs["dask local:2"], runs["2 workers"]
-        print(f"  dask local:2 / pool of 2, wall incl. start-up: {spread([d[0] / p[0] for d, p in zip(dk, pool)])}; "
-              f"first → last shard: {spread([d[3] / p[3] for d, p in zip(dk, pool)])}   (target ≤ 1.10)")
+        print(
+            f"  dask local:2 / pool of 2, wall incl. start-up: {spread([d[0] / p[0] for d, p in zip(dk, pool)])}; "
+            f"first → last shard: {spread([d[3] / p[3] for d, p in zip(dk, pool)])}   (target ≤ 1.10)"
+        )
     print("memory, peak per process (MiB):")
     for key, values in sorted(memory.items()):
         if key.endswith(("other", "tracker", "dask nanny")):
             continue
-        print(f"  {key:28s} RSS {max(v[0] for v in values):5.0f}   PSS {max(v[1] for v in values):5.0f}   "
-              f"({len(values)} processes)   (target ≤ 300 MiB per worker)")
+        print(
+            f"  {key:28s} RSS {max(v[0] for v in values):5.0f}   PSS {max(v[1] for v in values):5.0f}   "
+            f"({len(values)} processes)   (target ≤ 300 MiB per worker)"
+        )
 
 
 def bench_waymo(tmp: Path, frames: int, repeat: int) -> tuple[float, float] | None:
@@ -175,15 +185,19 @@ def bench_waymo(tmp: Path, frames: int, repeat: int) -> tuple[float, float] | No
     t = time.perf_counter()
     seg = simulate_waymo_segment(seed=0, frames=frames, size="real", chunks=32)
     write_waymo_v2(seg, root, rows_per_group=10)
-    print(f"waymo: simulated a real-size v2 segment of {frames} frames in {time.perf_counter() - t:.1f} s "
-          f"({sum(len(f.points) for f in seg.frames) / frames:,.0f} points/frame)")
+    print(
+        f"waymo: simulated a real-size v2 segment of {frames} frames in {time.perf_counter() - t:.1f} s "
+        f"({sum(len(f.points) for f in seg.frames) / frames:,.0f} points/frame)"
+    )
     runs = [warm_stages(root, frames, fmt="waymo-v2", classes=("all",)) for _ in range(repeat)]
     n_frames, n_obj = runs[0][0], runs[0][1]
     per_frame = [r[2]["read"] / r[0] for r in runs]
     per_box = [(r[3] - r[2]["read"]) / r[1] for r in runs]
     print(f"  one warm process, {n_frames} frames, {n_obj / n_frames:.1f} boxes/frame (all classes), CPU ({load()}):")
-    print(f"    total {spread([r[3] / r[0] * 1e3 for r in runs], '{:.0f}')} ms/frame = read {spread([p * 1e3 for p in per_frame], '{:.0f}')} ms/frame "
-          f"+ {spread([b * 1e3 for b in per_box], '{:.2f}')} ms per box (crop, model, rows, Arrow, Parquet)")
+    print(
+        f"    total {spread([r[3] / r[0] * 1e3 for r in runs], '{:.0f}')} ms/frame = read {spread([p * 1e3 for p in per_frame], '{:.0f}')} ms/frame "
+        f"+ {spread([b * 1e3 for b in per_box], '{:.2f}')} ms per box (crop, model, rows, Arrow, Parquet)"
+    )
     for stage in ("read", "crop", "infer_label", "jiou_gt", "fit_label", "hull_iou", "rows", "arrow", "parquet"):
         print(f"      {stage:14s} {spread([r[2][stage] / r[0] * 1e3 for r in runs], '{:.1f}')} ms/frame")
     return statistics.median(per_frame), statistics.median(per_box)
@@ -197,9 +211,11 @@ def project(per_frame: float, per_box: float) -> None:
     for what, share in (("all classes", 1.0), ("vehicles only, the default (≈ 60 % of the boxes, assumed)", 0.6)):
         sec = per_frame + share * boxes_per_frame * per_box
         hours = WAYMO_FRAMES * sec / 3600
-        print(f"projection to Waymo, {what}: {WAYMO_FRAMES:,} frames × ({per_frame * 1e3:.0f} ms + {share * boxes_per_frame:.0f} boxes × "
-              f"{per_box * 1e3:.2f} ms) = {sec * 1e3:.0f} ms CPU per frame → {1 / sec:.2f} frames/s per worker, "
-              f"{hours:,.0f} worker-hours, {math.ceil(hours)} workers for ≤ 1 h (at perfect scaling)")
+        print(
+            f"projection to Waymo, {what}: {WAYMO_FRAMES:,} frames × ({per_frame * 1e3:.0f} ms + {share * boxes_per_frame:.0f} boxes × "
+            f"{per_box * 1e3:.2f} ms) = {sec * 1e3:.0f} ms CPU per frame → {1 / sec:.2f} frames/s per worker, "
+            f"{hours:,.0f} worker-hours, {math.ceil(hours)} workers for ≤ 1 h (at perfect scaling)"
+        )
 
 
 def main() -> None:

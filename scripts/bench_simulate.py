@@ -46,8 +46,16 @@ def bench_dataset(frames: int, workers: int, lidar: LidarSpec, keep: Path | None
     """simulate_dataset end to end (KITTI files + manifest)."""
     root = Path(tempfile.mkdtemp(prefix="labelaudit-bench-sim-")) if keep is None else keep
     try:
-        s = simulate_dataset(root / "ds", frames=frames, seed=0, noise=NoiseSpec.benchmark(), lidar=lidar,
-                             workers=workers, progress=False, overwrite=True)
+        s = simulate_dataset(
+            root / "ds",
+            frames=frames,
+            seed=0,
+            noise=NoiseSpec.benchmark(),
+            lidar=lidar,
+            workers=workers,
+            progress=False,
+            overwrite=True,
+        )
         size = sum(p.stat().st_size for p in (root / "ds").rglob("*") if p.is_file()) / 1e9
         print(
             f"simulate_dataset workers={workers}: {frames} frames in {s.seconds:6.2f} s = {s.frames_per_second:6.1f} frames/s, "
@@ -62,7 +70,9 @@ def _points_in_box(points: np.ndarray, box: np.ndarray) -> int:
     d = points[:, :3] - box[:3]
     c, s = np.cos(box[6]), np.sin(box[6])
     u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-    return int(np.count_nonzero((np.abs(u) <= box[3] / 2) & (np.abs(v) <= box[4] / 2) & (np.abs(d[:, 2]) <= box[5] / 2)))
+    return int(
+        np.count_nonzero((np.abs(u) <= box[3] / 2) & (np.abs(v) <= box[4] / 2) & (np.abs(d[:, 2]) <= box[5] / 2))
+    )
 
 
 def realism(realdata: Path, frames: int) -> None:
@@ -94,7 +104,11 @@ def _print_by_distance(rows: dict[str, list[tuple[float, int]]]) -> None:
         cells = []
         for name in ("real", "sim"):
             a = np.array([n for d, n in rows[name] if lo <= d < hi])
-            cells.append(f"{name} {np.median(a):6.0f} [{a.min():.0f}, {a.max():.0f}] n={len(a)}" if len(a) else f"{name} {'-':>6s}")
+            cells.append(
+                f"{name} {np.median(a):6.0f} [{a.min():.0f}, {a.max():.0f}] n={len(a)}"
+                if len(a)
+                else f"{name} {'-':>6s}"
+            )
         print(f"  {lo:2d}-{hi:2d} m: " + "   ".join(cells))
 
 
@@ -104,7 +118,16 @@ def bench_sequences(fmt: str, sequences: int, frames: int) -> None:
 
     root = Path(tempfile.mkdtemp(prefix="labelaudit-bench-seq-"))
     try:
-        s = simulate_sequences(root / "ds", fmt, sequences=sequences, frames=frames, seed=0, noise=NoiseSpec.benchmark(), size="real", progress=False)
+        s = simulate_sequences(
+            root / "ds",
+            fmt,
+            sequences=sequences,
+            frames=frames,
+            seed=0,
+            noise=NoiseSpec.benchmark(),
+            size="real",
+            progress=False,
+        )
         size = sum(p.stat().st_size for p in (root / "ds").rglob("*") if p.is_file()) / 1e9
         print(
             f"simulate {fmt:8s}: {sequences} x {frames} frames in {s.seconds:6.2f} s = {s.frames_per_second:6.1f} frames/s, "
@@ -128,11 +151,19 @@ def realism_av2(realdata: Path, frames: int) -> None:
             for f in reader.load_unit(ref):
                 if len(f.points):
                     sweeps["real"].append(len(f.points))
-                    rows["real"] += [(float(np.hypot(b[0], b[1])), int(n)) for b, c, n in zip(f.boxes, f.class_names, f.extras["num_lidar_points_in_box"]) if c == "REGULAR_VEHICLE"]
+                    rows["real"] += [
+                        (float(np.hypot(b[0], b[1])), int(n))
+                        for b, c, n in zip(f.boxes, f.class_names, f.extras["num_lidar_points_in_box"])
+                        if c == "REGULAR_VEHICLE"
+                    ]
     log = simulate_av2_log(seed=0, frames=frames, size="real")
     for fr in log.frames:
         sweeps["sim"].append(len(fr.points))
-        rows["sim"] += [(float(np.hypot(b[0], b[1])), int(n)) for b, c, n in zip(fr.boxes, fr.categories, fr.num_interior_pts) if c == "REGULAR_VEHICLE"]
+        rows["sim"] += [
+            (float(np.hypot(b[0], b[1])), int(n))
+            for b, c, n in zip(fr.boxes, fr.categories, fr.num_interior_pts)
+            if c == "REGULAR_VEHICLE"
+        ]
     print("AV2 points per sweep: " + "   ".join(f"{k} {np.median(v):.0f} (n={len(v)})" for k, v in sweeps.items() if v))
     print("AV2 points in REGULAR_VEHICLE boxes (median [min, max], count) by distance (all boxes, occluded included):")
     _print_by_distance(rows)
@@ -146,12 +177,18 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None, help="write the dataset here and keep it")
     ap.add_argument("--sequences", type=int, default=2, help="Waymo v2 segments / AV2 logs simulated")
     ap.add_argument("--sequence-frames", type=int, default=20, help="frames per simulated sequence")
-    ap.add_argument("--realdata", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "realdata",
-                    help="real KITTI frames to compare point densities with (skipped when absent)")
+    ap.add_argument(
+        "--realdata",
+        type=Path,
+        default=Path(__file__).resolve().parents[1].parent / "shared" / "realdata",
+        help="real KITTI frames to compare point densities with (skipped when absent)",
+    )
     args = ap.parse_args()
     lidar = LidarSpec()
-    print(f"sensor: {lidar.beams} beams, {lidar.columns} columns ({lidar.azimuth_step_deg:.3f}° step), "
-          f"{lidar.max_range:.0f} m; numpy {np.__version__}")
+    print(
+        f"sensor: {lidar.beams} beams, {lidar.columns} columns ({lidar.azimuth_step_deg:.3f}° step), "
+        f"{lidar.max_range:.0f} m; numpy {np.__version__}"
+    )
     bench_raycast(args.raycast_frames, lidar)
     realism(args.realdata, 30)
     for w in args.workers:

@@ -53,9 +53,22 @@ from labelaudit.sim.benchmark import auroc
 from labelaudit.sim.tracknoise import ISSUE_OF_KIND, TRACK_ERROR_KINDS, TrackNoiseSpec, perturb_track_labels
 
 FLAG = C.TRACK_FLAG
-AV2_VEHICLES = ("REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER",
-                "ARTICULATED_BUS", "SCHOOL_BUS", "MESSAGE_BOARD_TRAILER")
-REALDATA = Path(os.environ.get("LABELAUDIT_REALDATA", Path(__file__).resolve().parents[2] / "shared" / "realdata")) / "av2-sensor"
+AV2_VEHICLES = (
+    "REGULAR_VEHICLE",
+    "LARGE_VEHICLE",
+    "BUS",
+    "BOX_TRUCK",
+    "TRUCK",
+    "TRUCK_CAB",
+    "VEHICULAR_TRAILER",
+    "ARTICULATED_BUS",
+    "SCHOOL_BUS",
+    "MESSAGE_BOARD_TRAILER",
+)
+REALDATA = (
+    Path(os.environ.get("LABELAUDIT_REALDATA", Path(__file__).resolve().parents[2] / "shared" / "realdata"))
+    / "av2-sensor"
+)
 
 
 # --------------------------------------------------------------------------- scoring
@@ -89,16 +102,28 @@ def naive_scores(rows: list[dict[str, Any]]) -> np.ndarray:
     return out
 
 
-def report(title: str, kinds: list[str], score: np.ndarray, issues: list[str | None], naive: np.ndarray,
-           per_frame: np.ndarray | None = None) -> dict[str, float]:
+def report(
+    title: str,
+    kinds: list[str],
+    score: np.ndarray,
+    issues: list[str | None],
+    naive: np.ndarray,
+    per_frame: np.ndarray | None = None,
+) -> dict[str, float]:
     """Print the figures; returns them (overall AUROC, worst per-kind AUROC, clean false-alarm share)."""
     kinds_a = np.array(kinds)
     ok = np.isfinite(score)
     pos = (kinds_a != "none") & ok
     neg = (kinds_a == "none") & ok
-    print(f"\n== {title}: {int(ok.sum())} judged object-frames ({int(pos.sum())} with an injected error, "
-          f"{int((~ok).sum())} not judged: tracks of < {C.TRACK_MIN_FRAMES} frames)")
-    head = f"{'':16s} {'n':>5s} {'AUROC':>7s} {'naive':>7s}" + (f" {'label_error':>11s}" if per_frame is not None else "") + f" {'≥ 0.9':>7s} {'issue ok':>8s}"
+    print(
+        f"\n== {title}: {int(ok.sum())} judged object-frames ({int(pos.sum())} with an injected error, "
+        f"{int((~ok).sum())} not judged: tracks of < {C.TRACK_MIN_FRAMES} frames)"
+    )
+    head = (
+        f"{'':16s} {'n':>5s} {'AUROC':>7s} {'naive':>7s}"
+        + (f" {'label_error':>11s}" if per_frame is not None else "")
+        + f" {'≥ 0.9':>7s} {'issue ok':>8s}"
+    )
     print(head)
     out: dict[str, float] = {}
 
@@ -110,7 +135,11 @@ def report(title: str, kinds: list[str], score: np.ndarray, issues: list[str | N
         if per_frame is not None:
             pf = np.r_[per_frame[sel], per_frame[neg]]
             good = np.isfinite(pf)
-            extra = f" {auroc(pf[good], lab[good]):11.3f}" if good.any() and 0 < lab[good].sum() < good.sum() else f" {'–':>11s}"
+            extra = (
+                f" {auroc(pf[good], lab[good]):11.3f}"
+                if good.any() and 0 < lab[good].sum() < good.sum()
+                else f" {'–':>11s}"
+            )
         hit = np.mean(score[sel] >= FLAG)
         right = np.mean([issues[i] == ISSUE_OF_KIND.get(str(kinds_a[i]), "none") for i in np.flatnonzero(sel)])
         print(f"{name:16s} {int(sel.sum()):5d} {a:7.4f} {b:7.4f}{extra} {hit:7.1%} {right:8.1%}")
@@ -126,7 +155,9 @@ def report(title: str, kinds: list[str], score: np.ndarray, issues: list[str | N
     false_alarm = float(np.mean(score[neg] >= FLAG))
     out["clean_flagged"] = false_alarm
     q = np.quantile(score[neg], [0.5, 0.99]) if neg.any() else [np.nan, np.nan]
-    print(f"{'clean':16s} {int(neg.sum()):5d}   track_error ≥ {FLAG}: {false_alarm:.2%}   median {q[0]:.4f}, 99th percentile {q[1]:.4f}")
+    print(
+        f"{'clean':16s} {int(neg.sum()):5d}   track_error ≥ {FLAG}: {false_alarm:.2%}   median {q[0]:.4f}, 99th percentile {q[1]:.4f}"
+    )
     return out
 
 
@@ -143,8 +174,16 @@ def run_sim(args: argparse.Namespace) -> dict[str, float]:
     if not (stamp.is_file() and stamp.read_text() == key):
         shutil.rmtree(out, ignore_errors=True)
         t = time.perf_counter()
-        simulate_waymo_dataset(out, segments=args.segments, frames=args.frames, seed=args.seed, size="small", formats=("waymo-v2",),
-                               track_noise=TrackNoiseSpec(), moving_fraction=C.SIM_MOVING_FRACTION)
+        simulate_waymo_dataset(
+            out,
+            segments=args.segments,
+            frames=args.frames,
+            seed=args.seed,
+            size="small",
+            formats=("waymo-v2",),
+            track_noise=TrackNoiseSpec(),
+            moving_fraction=C.SIM_MOVING_FRACTION,
+        )
         stamp.write_text(key)
         print(f"simulated {key} in {time.perf_counter() - t:.0f} s", flush=True)
     t = time.perf_counter()
@@ -155,7 +194,9 @@ def run_sim(args: argparse.Namespace) -> dict[str, float]:
     kinds = [truth[(r["frame_id"], r["object_id"])]["track_error_kind"] for r in rows]
     score = np.array([np.nan if r["track_error"] is None else r["track_error"] for r in rows])
     per_frame = np.array([np.nan if r["label_error"] is None else r["label_error"] for r in rows])
-    figures = report("simulated Waymo v2 segments", kinds, score, [r["track_issue"] for r in rows], naive_scores(rows), per_frame)
+    figures = report(
+        "simulated Waymo v2 segments", kinds, score, [r["track_issue"] for r in rows], naive_scores(rows), per_frame
+    )
     # the points' say in the size posterior: the same rows scored from the labels alone
     from labelaudit.config import resolve_config
     from labelaudit.infer.tracks import score_table
@@ -166,8 +207,10 @@ def run_sim(args: argparse.Namespace) -> dict[str, float]:
     k = np.array(kinds)
     for name, sel in (("length", k == "length"), ("width", k == "width")):
         lab = np.r_[np.ones(int(sel.sum())), np.zeros(int((k == "none").sum()))]
-        print(f"size posterior, {name}: AUROC with the points' evidence {auroc(np.r_[with_points[sel], with_points[k == 'none']], lab):.4f}, "
-              f"labels only {auroc(np.r_[labels_only[sel], labels_only[k == 'none']], lab):.4f}")
+        print(
+            f"size posterior, {name}: AUROC with the points' evidence {auroc(np.r_[with_points[sel], with_points[k == 'none']], lab):.4f}, "
+            f"labels only {auroc(np.r_[labels_only[sel], labels_only[k == 'none']], lab):.4f}"
+        )
     moved = np.abs(with_points - labels_only)
     print(f"the points move track_error by more than 0.01 on {np.mean(moved > 0.01):.2%} of the labels")
     return figures
@@ -181,11 +224,13 @@ def _yaw_of(qw: np.ndarray, qx: np.ndarray, qy: np.ndarray, qz: np.ndarray) -> n
 
 
 def _rotation(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
-    return np.array([
-        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
-        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
-        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+            [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+            [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
+        ]
+    )
 
 
 def noisy_logs(realdata: Path, seed: int) -> list[tuple[str, pa.Table, pa.Table, list[str], list[float]]]:
@@ -200,20 +245,40 @@ def noisy_logs(realdata: Path, seed: int) -> list[tuple[str, pa.Table, pa.Table,
         cols = {c: ann.column(c).to_numpy() for c in ann.column_names if c not in ("track_uuid", "category")}
         cats = ann.column("category").to_pylist()
         ts = cols["timestamp_ns"]
-        boxes = np.stack([cols["tx_m"], cols["ty_m"], cols["tz_m"], cols["length_m"], cols["width_m"], cols["height_m"],
-                          _yaw_of(cols["qw"], cols["qx"], cols["qy"], cols["qz"])], axis=1)
+        boxes = np.stack(
+            [
+                cols["tx_m"],
+                cols["ty_m"],
+                cols["tz_m"],
+                cols["length_m"],
+                cols["width_m"],
+                cols["height_m"],
+                _yaw_of(cols["qw"], cols["qx"], cols["qy"], cols["qz"]),
+            ],
+            axis=1,
+        )
         kinds = ["none"] * len(ts)
         sizes = [0.0] * len(ts)
         for f, t in enumerate(np.unique(ts)):
             sel = np.flatnonzero(ts == t)
-            written, k, m = perturb_track_labels(boxes[sel], [cats[i] for i in sel], spec, np.random.default_rng([seed, n, f]))
+            written, k, m = perturb_track_labels(
+                boxes[sel], [cats[i] for i in sel], spec, np.random.default_rng([seed, n, f])
+            )
             boxes[sel] = written
             for j, i in enumerate(sel):
                 kinds[i], sizes[i] = k[j], float(m[j])
         half = boxes[:, 6] / 2
         new = ann
-        for name, values in (("tx_m", boxes[:, 0]), ("ty_m", boxes[:, 1]), ("length_m", boxes[:, 3]), ("width_m", boxes[:, 4]),
-                             ("qw", np.cos(half)), ("qx", np.zeros(len(ts))), ("qy", np.zeros(len(ts))), ("qz", np.sin(half))):
+        for name, values in (
+            ("tx_m", boxes[:, 0]),
+            ("ty_m", boxes[:, 1]),
+            ("length_m", boxes[:, 3]),
+            ("width_m", boxes[:, 4]),
+            ("qw", np.cos(half)),
+            ("qx", np.zeros(len(ts))),
+            ("qy", np.zeros(len(ts))),
+            ("qz", np.sin(half)),
+        ):
             new = new.set_column(new.schema.get_field_index(name), name, pa.array(values, pa.float64()))
         out.append((log_dir.name, new, poses, kinds, sizes))
     return out
@@ -232,13 +297,30 @@ def rows_of_annotations(log: str, ann: pa.Table, poses: pa.Table) -> list[dict[s
         yaw = float(_yaw_of(np.float64(r["qw"]), np.float64(r["qx"]), np.float64(r["qy"]), np.float64(r["qz"])))
         index = counters[t]
         counters[t] += 1
-        rows.append({
-            "dataset": "av2", "frame_id": f"{log}:{t}", "object_index": index, "object_id": r["track_uuid"], "class_name": r["category"],
-            "cx": r["tx_m"], "cy": r["ty_m"], "cz": r["tz_m"], "length": r["length_m"], "width": r["width_m"], "height": r["height_m"],
-            "yaw": yaw, "distance": math.hypot(r["tx_m"], r["ty_m"]), "status": "no_points", "model": "bev",
-            "timestamp": t / 1e9, "world_cx": float(c[0]), "world_cy": float(c[1]), "world_cz": float(c[2]),
-            "world_yaw": float(np.angle(np.exp(1j * (yaw + math.atan2(rot[1, 0], rot[0, 0]))))),
-        })
+        rows.append(
+            {
+                "dataset": "av2",
+                "frame_id": f"{log}:{t}",
+                "object_index": index,
+                "object_id": r["track_uuid"],
+                "class_name": r["category"],
+                "cx": r["tx_m"],
+                "cy": r["ty_m"],
+                "cz": r["tz_m"],
+                "length": r["length_m"],
+                "width": r["width_m"],
+                "height": r["height_m"],
+                "yaw": yaw,
+                "distance": math.hypot(r["tx_m"], r["ty_m"]),
+                "status": "no_points",
+                "model": "bev",
+                "timestamp": t / 1e9,
+                "world_cx": float(c[0]),
+                "world_cy": float(c[1]),
+                "world_cz": float(c[2]),
+                "world_yaw": float(np.angle(np.exp(1j * (yaw + math.atan2(rot[1, 0], rot[0, 0]))))),
+            }
+        )
     return rows
 
 
@@ -254,7 +336,9 @@ def write_av2(dest: Path, realdata: Path, logs: list[tuple[str, pa.Table, pa.Tab
         feather.write_feather(poses, d / "city_SE3_egovehicle.feather")
         if (src / "calibration").is_dir():
             shutil.copytree(src / "calibration", d / "calibration")
-        for sweep in (src / "sensors" / "lidar").glob("*.feather"):  # the reader makes a 0-point frame of every other annotated timestamp
+        for sweep in (src / "sensors" / "lidar").glob(
+            "*.feather"
+        ):  # the reader makes a 0-point frame of every other annotated timestamp
             shutil.copy(sweep, d / "sensors" / "lidar" / sweep.name)
     return dest
 
@@ -280,7 +364,12 @@ def run_real(args: argparse.Namespace) -> dict[str, float]:
             from labelaudit.config import resolve_config
 
             audited = tuple(resolve_config(None, "av2").classes)
-        rows = [r for log, ann, poses, _, _ in logs for r in rows_of_annotations(log, ann, poses) if r["class_name"] in audited]
+        rows = [
+            r
+            for log, ann, poses, _, _ in logs
+            for r in rows_of_annotations(log, ann, poses)
+            if r["class_name"] in audited
+        ]
         table = R.rows_to_table(rows)  # sorted by (frame_id, object_index): the order of the scores
         t = time.perf_counter()
         s = score_table(table)
@@ -295,14 +384,22 @@ def run_real(args: argparse.Namespace) -> dict[str, float]:
         out = Path(args.out)
         root = write_av2(out / "av2", realdata, logs)
         t = time.perf_counter()
-        infer_dataset(InferRequest(root, out / "results", dataset_format="av2", workers=args.workers, overwrite=True))  # the built-in config's vehicles
+        infer_dataset(
+            InferRequest(root, out / "results", dataset_format="av2", workers=args.workers, overwrite=True)
+        )  # the built-in config's vehicles
         print(f"infer (av2 reader, tracks pass) in {time.perf_counter() - t:.0f} s")
         rows = R.read_results(out / "results").to_pylist()
         score = np.array([np.nan if r["track_error"] is None else r["track_error"] for r in rows])
         issues = [r["track_issue"] for r in rows]
         how = "through the av2 reader and infer"
     kinds = [truth[(r["frame_id"], r["object_id"])] for r in rows]
-    return report(f"real Argoverse 2 annotations ({how}), vehicles", kinds, np.asarray(score, dtype=float), issues, naive_scores(rows))
+    return report(
+        f"real Argoverse 2 annotations ({how}), vehicles",
+        kinds,
+        np.asarray(score, dtype=float),
+        issues,
+        naive_scores(rows),
+    )
 
 
 def run_cost(args: argparse.Namespace) -> None:
@@ -315,8 +412,16 @@ def run_cost(args: argparse.Namespace) -> None:
 
     out = Path(args.out) / "cost"
     shutil.rmtree(out, ignore_errors=True)
-    simulate_waymo_dataset(out, segments=1, frames=args.cost_frames, seed=args.seed, size="real", formats=("waymo-v2",),
-                           track_noise=TrackNoiseSpec(), moving_fraction=C.SIM_MOVING_FRACTION)
+    simulate_waymo_dataset(
+        out,
+        segments=1,
+        frames=args.cost_frames,
+        seed=args.seed,
+        size="real",
+        formats=("waymo-v2",),
+        track_noise=TrackNoiseSpec(),
+        moving_fraction=C.SIM_MOVING_FRACTION,
+    )
     t = time.perf_counter()
     infer_dataset(InferRequest(out / "waymo_v2", out / "results", workers=1))
     infer_wall = time.perf_counter() - t
@@ -333,10 +438,30 @@ def run_cost(args: argparse.Namespace) -> None:
         for k in range(n_tracks):
             x = 100 + k * 7 + speed[k] * f * 0.1 * np.cos(heading[k]) + rng.normal(0, 0.03)
             y = -50 + speed[k] * f * 0.1 * np.sin(heading[k]) + rng.normal(0, 0.03)
-            seg_rows.append({"dataset": "waymo-v2", "frame_id": f"seg:{ts}", "object_index": k, "object_id": f"trk{k}", "class_name": "Vehicle",
-                             "cx": x, "cy": y, "cz": 1.0, "length": 4.5 + rng.normal(0, 0.03), "width": 1.9 + rng.normal(0, 0.02), "height": 1.6,
-                             "yaw": heading[k], "distance": 10.0, "status": "ok", "model": "bev", "timestamp": ts / 1e6,
-                             "world_cx": x, "world_cy": y, "world_cz": 1.0, "world_yaw": heading[k] + rng.normal(0, 0.02)})
+            seg_rows.append(
+                {
+                    "dataset": "waymo-v2",
+                    "frame_id": f"seg:{ts}",
+                    "object_index": k,
+                    "object_id": f"trk{k}",
+                    "class_name": "Vehicle",
+                    "cx": x,
+                    "cy": y,
+                    "cz": 1.0,
+                    "length": 4.5 + rng.normal(0, 0.03),
+                    "width": 1.9 + rng.normal(0, 0.02),
+                    "height": 1.6,
+                    "yaw": heading[k],
+                    "distance": 10.0,
+                    "status": "ok",
+                    "model": "bev",
+                    "timestamp": ts / 1e6,
+                    "world_cx": x,
+                    "world_cy": y,
+                    "world_cz": 1.0,
+                    "world_yaw": heading[k] + rng.normal(0, 0.02),
+                }
+            )
     seg = Path(args.out) / "cost-pass"
     shutil.rmtree(seg, ignore_errors=True)
     meta = R.run_metadata({}, "0" * 16, "/seg", "waymo-v2")
@@ -347,32 +472,44 @@ def run_cost(args: argparse.Namespace) -> None:
     pass_wall = time.perf_counter() - t
     per_row = pass_wall / len(seg_rows)
     infer_frame = infer_wall / args.cost_frames
-    print(f"infer at Waymo's real sensor size: {args.cost_frames} frames, {per_frame_rows:.1f} labels per frame, "
-          f"{infer_frame * 1e3:.0f} ms per frame (wall, one worker, start-up included)")
-    print(f"tracks pass over a 200-frame segment of {n_tracks} tracks ({len(seg_rows)} rows): {pass_wall:.2f} s, "
-          f"{per_row * 1e3:.3f} ms per row = {per_row * per_frame_rows * 1e3:.1f} ms per frame")
+    print(
+        f"infer at Waymo's real sensor size: {args.cost_frames} frames, {per_frame_rows:.1f} labels per frame, "
+        f"{infer_frame * 1e3:.0f} ms per frame (wall, one worker, start-up included)"
+    )
+    print(
+        f"tracks pass over a 200-frame segment of {n_tracks} tracks ({len(seg_rows)} rows): {pass_wall:.2f} s, "
+        f"{per_row * 1e3:.3f} ms per row = {per_row * per_frame_rows * 1e3:.1f} ms per frame"
+    )
     print(f"the tracks pass adds {per_row * per_frame_rows / infer_frame:.1%} to a Waymo-size run (must hold: ≤ 10 %)")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--segments", type=int, default=4)
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default="/tmp/labelaudit-bench-tracks")
-    ap.add_argument("--real", action="store_true", help="the real Argoverse 2 annotations instead of simulated segments")
+    ap.add_argument(
+        "--real", action="store_true", help="the real Argoverse 2 annotations instead of simulated segments"
+    )
     ap.add_argument("--direct", action="store_true", help="--real: score the annotations without the av2 reader")
     ap.add_argument("--realdata", default=str(REALDATA))
-    ap.add_argument("--cost", action="store_true", help="what the tracks pass adds to a Waymo-size run (real sensor size)")
+    ap.add_argument(
+        "--cost", action="store_true", help="what the tracks pass adds to a Waymo-size run (real sensor size)"
+    )
     ap.add_argument("--cost-frames", type=int, default=4)
     args = ap.parse_args()
     if args.cost:
         run_cost(args)
         return
     figures = run_real(args) if args.real else run_sim(args)
-    print(f"\nmust hold: AUROC ≥ 0.97 → {figures['auroc']:.4f}; per kind ≥ 0.95 → {figures['worst_kind_auroc']:.4f}; "
-          f"clean ≥ 0.9 ≤ 1 % → {figures['clean_flagged']:.2%}")
+    print(
+        f"\nmust hold: AUROC ≥ 0.97 → {figures['auroc']:.4f}; per kind ≥ 0.95 → {figures['worst_kind_auroc']:.4f}; "
+        f"clean ≥ 0.9 ≤ 1 % → {figures['clean_flagged']:.2%}"
+    )
 
 
 if __name__ == "__main__":

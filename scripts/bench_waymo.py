@@ -57,9 +57,13 @@ def main() -> None:
 
     pixels = sum(h * w * 2 for h, w in SIZES["real"].values())
     pts = np.mean([len(f.points) for f in seg.frames])
-    print(f"segment: {args.frames} frames, {pixels:,} range-image pixels per frame (2 returns), "
-          f"{pts:,.0f} points per frame")
-    print(f"simulate {t_sim:.1f} s; write v2 {t_w2:.2f} s ({size_v2 / 1e6:.1f} MB), v1 {t_w1:.2f} s ({size_v1 / 1e6:.1f} MB)")
+    print(
+        f"segment: {args.frames} frames, {pixels:,} range-image pixels per frame (2 returns), "
+        f"{pts:,.0f} points per frame"
+    )
+    print(
+        f"simulate {t_sim:.1f} s; write v2 {t_w2:.2f} s ({size_v2 / 1e6:.1f} MB), v1 {t_w1:.2f} s ({size_v1 / 1e6:.1f} MB)"
+    )
 
     # conversion only (shared by both readers)
     best = float("inf")
@@ -73,8 +77,10 @@ def main() -> None:
 
     for fmt, root in (("waymo-v2", out / "v2"), ("waymo-v1", out / "v1")):
         sec, frames, points = _time_reader(root, fmt, args.repeat)
-        print(f"{fmt} decode -> Frame: {frames / sec:6.2f} frames/s ({sec / frames * 1e3:.0f} ms/frame, "
-              f"{points / sec / 1e6:.2f} M points/s)")
+        print(
+            f"{fmt} decode -> Frame: {frames / sec:6.2f} frames/s ({sec / frames * 1e3:.0f} ms/frame, "
+            f"{points / sec / 1e6:.2f} M points/s)"
+        )
     if args.out is None:
         import shutil
 

@@ -95,7 +95,9 @@ def _metavar(annotation: Any) -> str:
     args = getattr(annotation, "__args__", None)  # Optional[X], list[X]
     if args:
         return _metavar(next(a for a in args if a is not type(None)))
-    return {Path: "PATH", str: "TEXT", int: "N", float: "X"}.get(annotation, str(getattr(annotation, "__name__", annotation)).upper())
+    return {Path: "PATH", str: "TEXT", int: "N", float: "X"}.get(
+        annotation, str(getattr(annotation, "__name__", annotation)).upper()
+    )
 
 
 def command_section(name: str, cmd: Any) -> str:
@@ -109,7 +111,9 @@ def command_section(name: str, cmd: Any) -> str:
         if getattr(p, "hidden", False):
             continue
         help_text = (getattr(p, "help", None) or "").replace("|", "\\|").replace("\n", " ")
-        lines.append(f"| {_names(p).replace('|', chr(92) + '|')} | {'required' if _is_argument(p) and p.required else _default(p)} | {help_text} |")
+        lines.append(
+            f"| {_names(p).replace('|', chr(92) + '|')} | {'required' if _is_argument(p) and p.required else _default(p)} | {help_text} |"
+        )
     if examples:
         lines += ["", "Examples:", "", "```bash", *examples, "```"]
     return "\n".join(lines) + "\n"

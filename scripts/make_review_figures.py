@@ -22,11 +22,22 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 IMG = REPO / "docs" / "img"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 
 def cli(*args: str) -> str:
-    proc = subprocess.run([sys.executable, "-m", "labelaudit.cli", *map(str, args)], capture_output=True, text=True, cwd=REPO)
+    proc = subprocess.run(
+        [sys.executable, "-m", "labelaudit.cli", *map(str, args)], capture_output=True, text=True, cwd=REPO
+    )
     if proc.returncode not in (0, 1):
         sys.exit(f"labelaudit {' '.join(map(str, args))} failed ({proc.returncode}):\n{proc.stderr}")
     return proc.stdout.strip()
@@ -75,11 +86,25 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="review-figures-") as tmp:
         work = Path(tmp)
         data, results = work / "sim", work / "results"
-        cli("simulate", data, "--frames", args.frames, "--seed", args.seed, "--gross-fraction", "0.08", "--drop-fraction", "0.15", "--quiet")
+        cli(
+            "simulate",
+            data,
+            "--frames",
+            args.frames,
+            "--seed",
+            args.seed,
+            "--gross-fraction",
+            "0.08",
+            "--drop-fraction",
+            "0.15",
+            "--quiet",
+        )
         cli("infer", data, "-o", results, "--workers", "2", "--quiet")
         row = pick_object(results)
         frame, index = row["frame_id"], row["object_index"]
-        print(f"object: frame {frame} object {index} ({row['class_name']}, {row['num_points']} points, label_error {row['label_error']:.3f})")
+        print(
+            f"object: frame {frame} object {index} ({row['class_name']}, {row['num_points']} points, label_error {row['label_error']:.3f})"
+        )
         cli("show", results, frame, index, "-o", IMG / "review-show.png")
         cli("show", results, frame, "--by", "label_error", "-o", IMG / "review-frame.png", "--size", "1000x640")
         html = Path(cli("report", results, "-o", work / "report.html", "--top", "6", "--gate", "default", "--quiet"))
@@ -87,9 +112,18 @@ def main() -> None:
         screenshot(html, "plots", IMG / "review-plots.png")
         screenshot(html, "missing", IMG / "review-missing-report.png")
         cand = pick_candidate(results)
-        print(f"candidate: frame {cand['frame_id']} candidate {cand['candidate_index']} ({cand['class_name']}, {cand['num_points']} points, score {cand['score']:.3f})")
+        print(
+            f"candidate: frame {cand['frame_id']} candidate {cand['candidate_index']} ({cand['class_name']}, {cand['num_points']} points, score {cand['score']:.3f})"
+        )
         cli("show", results, cand["frame_id"], "--candidate", cand["candidate_index"], "-o", IMG / "review-missing.png")
-    for name in ("review-show.png", "review-frame.png", "review-report.png", "review-plots.png", "review-missing.png", "review-missing-report.png"):
+    for name in (
+        "review-show.png",
+        "review-frame.png",
+        "review-report.png",
+        "review-plots.png",
+        "review-missing.png",
+        "review-missing-report.png",
+    ):
         print(f"wrote {IMG / name} ({(IMG / name).stat().st_size / 1e3:.0f} kB)")
 
 

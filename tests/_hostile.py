@@ -54,7 +54,9 @@ def tiny_frame(seed: int, cars: int = 3, points_per_car: int = 60) -> tuple[np.n
         pts.append(np.c_[xyz + rng.normal(0, 0.02, xyz.shape), rng.uniform(0, 1, len(xyz))])
         loc, dims, ry = box_lidar_to_camera(box, CALIB)
         bbox = project_box_to_image(box, CALIB)
-        lines.append(format_label_line("Car", 0.0, int(k % 3), float(alpha_from_location(loc, ry)), bbox, dims, loc, ry))
+        lines.append(
+            format_label_line("Car", 0.0, int(k % 3), float(alpha_from_location(loc, ry)), bbox, dims, loc, ry)
+        )
     return np.concatenate(pts).astype(np.float32), lines
 
 
@@ -108,7 +110,14 @@ def run_cli(*args: object) -> CliRun:
             r = runner.invoke(app, argv)
     finally:
         typer.testing._get_command = build
-    return CliRun(argv, r.exit_code, r.stdout, r.stderr, r.exception, [f"{w.category.__name__}: {w.message} ({w.filename}:{w.lineno})" for w in caught])
+    return CliRun(
+        argv,
+        r.exit_code,
+        r.stdout,
+        r.stderr,
+        r.exception,
+        [f"{w.category.__name__}: {w.message} ({w.filename}:{w.lineno})" for w in caught],
+    )
 
 
 _PY_WARNING = re.compile(r"\b\w*Warning: ")
@@ -119,7 +128,9 @@ def check_output(run: CliRun, allowed: Sequence[int] = (0, 1, 2)) -> None:
     crash), no traceback, no Python warning on stderr, and exactly one line on exit 2."""
     where = f"labelaudit {' '.join(run.args)!r}"
     assert run.exit_code != 3, f"{where}: internal error\n{run.stderr}"
-    assert run.exit_code in allowed, f"{where}: exit {run.exit_code}, expected {allowed}\n{run.stderr}\n{run.exception!r}"
+    assert run.exit_code in allowed, (
+        f"{where}: exit {run.exit_code}, expected {allowed}\n{run.stderr}\n{run.exception!r}"
+    )
     if run.exception is not None and not isinstance(run.exception, SystemExit):
         raise AssertionError(f"{where}: raised {run.exception!r}")
     assert "Traceback" not in run.stderr + run.stdout, f"{where}: traceback\n{run.stderr}"
@@ -127,7 +138,9 @@ def check_output(run: CliRun, allowed: Sequence[int] = (0, 1, 2)) -> None:
     assert not run.warnings, f"{where}: Python warnings (a user sees them on stderr): {run.warnings}"
     if run.exit_code == 2:
         lines = run.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("error: "), f"{where}: exit 2 must print one line 'error: …'\n{run.stderr}"
+        assert len(lines) == 1 and lines[0].startswith("error: "), (
+            f"{where}: exit 2 must print one line 'error: …'\n{run.stderr}"
+        )
 
 
 def rows_by_frame(out: Path) -> dict[str, list[dict]]:
@@ -161,10 +174,19 @@ def quick_audit(box, points, class_name, cfg, sensor_origin=(0.0, 0.0, 0.0), *, 
     n = len(pts)
     status = "no_points" if n == 0 else ("few_points" if n < cfg.model.min_points else "ok")
     row = {
-        "status": status, "num_points": n, "sigma": cfg.model.sigma, "jiou_gt": 1.0 - 1.0 / (n + 2.0),
-        "label_error": 0.1, "sigma_hat": float("nan") if n < 2 else 0.05, "fit_offset_m": 0.0,
-        "corner_tv": [0.1, 0.2, 0.3, 0.4], "cov": list(np.eye(6).ravel()), "cov_dim": 6, "model": cfg.model.kind,
-        "mahalanobis": 0.0, "hull_iou": 0.5,
+        "status": status,
+        "num_points": n,
+        "sigma": cfg.model.sigma,
+        "jiou_gt": 1.0 - 1.0 / (n + 2.0),
+        "label_error": 0.1,
+        "sigma_hat": float("nan") if n < 2 else 0.05,
+        "fit_offset_m": 0.0,
+        "corner_tv": [0.1, 0.2, 0.3, 0.4],
+        "cov": list(np.eye(6).ravel()),
+        "cov_dim": 6,
+        "model": cfg.model.kind,
+        "mahalanobis": 0.0,
+        "hull_iou": 0.5,
     }
     for name, value in zip(R.BOX_COLUMNS, y):
         row[f"std_{name}"] = 0.1

@@ -62,7 +62,9 @@ def openpcdet_kitti_infos(frames: dict[str, Sequence[Obj]]) -> list[dict[str, An
     for fid, objs in frames.items():
         names = np.array([o[0] for o in objs])
         dc = names == "DontCare"
-        dims = np.array([[o[1], o[3], o[2]] if not d else [-1.0, -1.0, -1.0] for o, d in zip(objs, dc)], dtype=float).reshape(-1, 3)
+        dims = np.array(
+            [[o[1], o[3], o[2]] if not d else [-1.0, -1.0, -1.0] for o, d in zip(objs, dc)], dtype=float
+        ).reshape(-1, 3)
         n_obj = int((~dc).sum())
         annos = {
             "name": names,
@@ -77,7 +79,9 @@ def openpcdet_kitti_infos(frames: dict[str, Sequence[Obj]]) -> list[dict[str, An
             "difficulty": np.zeros(len(objs), np.int32),
             "index": np.array(list(range(n_obj)) + [-1] * (len(objs) - n_obj), dtype=np.int32),
             # l, w, h of the non-DontCare rows (position and heading do not enter the export)
-            "gt_boxes_lidar": np.array([[0.0, 0.0, 0.0, o[1], o[2], o[3], 0.0] for o, d in zip(objs, dc) if not d]).reshape(-1, 7),
+            "gt_boxes_lidar": np.array(
+                [[0.0, 0.0, 0.0, o[1], o[2], o[3], 0.0] for o, d in zip(objs, dc) if not d]
+            ).reshape(-1, 7),
             "num_points_in_gt": -np.ones(len(objs), dtype=np.int32),
         }
         infos.append(
@@ -113,8 +117,17 @@ def mmdet3d_kitti_infos(frames: dict[str, Sequence[Obj]]) -> dict[str, Any]:
                     "difficulty": 0,
                 }
             )
-        data_list.append({"sample_idx": int(fid), "lidar_points": {"num_pts_feats": 4, "lidar_path": f"{fid}.bin"}, "instances": instances})
-    return {"metainfo": {"categories": {**cats, "DontCare": -1}, "dataset": "kitti", "info_version": "1.1"}, "data_list": data_list}
+        data_list.append(
+            {
+                "sample_idx": int(fid),
+                "lidar_points": {"num_pts_feats": 4, "lidar_path": f"{fid}.bin"},
+                "instances": instances,
+            }
+        )
+    return {
+        "metainfo": {"categories": {**cats, "DontCare": -1}, "dataset": "kitti", "info_version": "1.1"},
+        "data_list": data_list,
+    }
 
 
 def openpcdet_waymo_infos(frames: dict[str, Sequence[tuple[str, str, float, float, float]]]) -> list[dict[str, Any]]:
@@ -124,7 +137,11 @@ def openpcdet_waymo_infos(frames: dict[str, Sequence[tuple[str, str, float, floa
         segment, ts = fid.split(":")
         infos.append(
             {
-                "point_cloud": {"num_features": 5, "lidar_sequence": f"segment-{segment}_with_camera_labels", "sample_idx": cnt},
+                "point_cloud": {
+                    "num_features": 5,
+                    "lidar_sequence": f"segment-{segment}_with_camera_labels",
+                    "sample_idx": cnt,
+                },
                 "frame_id": f"segment-{segment}_with_camera_labels_{cnt:03d}",
                 "metadata": {"context_name": segment, "timestamp_micros": int(ts)},
                 "pose": np.eye(4, dtype=np.float32),
@@ -136,7 +153,9 @@ def openpcdet_waymo_infos(frames: dict[str, Sequence[tuple[str, str, float, floa
                     "heading_angles": np.zeros(len(objs)),
                     "obj_ids": np.array([o[0] for o in objs]),
                     "num_points_in_gt": np.full(len(objs), 50),
-                    "gt_boxes_lidar": np.array([[0.0, 0.0, 0.0, o[2], o[3], o[4], 0.0, 0.0, 0.0] for o in objs]).reshape(-1, 9),
+                    "gt_boxes_lidar": np.array(
+                        [[0.0, 0.0, 0.0, o[2], o[3], o[4], 0.0, 0.0, 0.0] for o in objs]
+                    ).reshape(-1, 9),
                 },
             }
         )
@@ -160,7 +179,9 @@ def openpcdet_kitti_infos_from_labels(root: Path) -> list[dict[str, Any]]:
         annos["rotation_y"] = lab.rotation_y.copy()
         annos["bbox"] = lab.bbox2d.astype(np.float32)
         calib = read_calib(root / "training" / "calib" / f"{p.stem}.txt")
-        annos["gt_boxes_lidar"] = boxes_camera_to_lidar(lab.location[~dc], lab.dims_hwl[~dc], lab.rotation_y[~dc], calib)
+        annos["gt_boxes_lidar"] = boxes_camera_to_lidar(
+            lab.location[~dc], lab.dims_hwl[~dc], lab.rotation_y[~dc], calib
+        )
         infos.append(info)
     return infos
 

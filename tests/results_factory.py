@@ -8,7 +8,9 @@ from typing import Any, Sequence
 from labelaudit import results as R
 
 
-def make_row(frame_id: str, index: int, class_name: str = "Car", status: str = "ok", jiou_gt: float | None = 0.8, **kw: Any) -> dict[str, Any]:
+def make_row(
+    frame_id: str, index: int, class_name: str = "Car", status: str = "ok", jiou_gt: float | None = 0.8, **kw: Any
+) -> dict[str, Any]:
     """One plausible result row; ``kw`` overrides any column."""
     row: dict[str, Any] = {
         "dataset": "kitti",
@@ -62,7 +64,10 @@ def make_results(
 
 # --------------------------------------------------------------------------- the missing-label table
 
-def make_candidate(frame_id: str, index: int, score: float = 0.8, class_name: str = "Car", source: str = "points", **kw: Any) -> dict[str, Any]:
+
+def make_candidate(
+    frame_id: str, index: int, score: float = 0.8, class_name: str = "Car", source: str = "points", **kw: Any
+) -> dict[str, Any]:
     """One plausible missing-label candidate row; ``kw`` overrides any column."""
     cx, cy = 15.0 + 3.0 * index, -4.0
     row: dict[str, Any] = {

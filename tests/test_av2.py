@@ -60,7 +60,14 @@ def _car_points(box: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray
     return np.concatenate([xyz, np.full((n, 1), 40.0)], axis=1)
 
 
-def make_log(root: Path, *, sweeps: tuple[int, ...] = (0, 1), empty: tuple[int, ...] = (), calibration: bool = True, log_id: str = LOG) -> Path:
+def make_log(
+    root: Path,
+    *,
+    sweeps: tuple[int, ...] = (0, 1),
+    empty: tuple[int, ...] = (),
+    calibration: bool = True,
+    log_id: str = LOG,
+) -> Path:
     """A log with 3 annotated timestamps (2 tracks), sweeps at the given frame indices, poses."""
     rng = np.random.default_rng(0)
     log = root / "val" / log_id
@@ -79,8 +86,17 @@ def make_log(root: Path, *, sweeps: tuple[int, ...] = (0, 1), empty: tuple[int, 
     counts = np.zeros(len(ts), dtype=np.int64)
     for f in sweeps:
         rows = [i for i, t in enumerate(ts) if t == T0 + f * DT]
-        pts = np.zeros((0, 4)) if f in empty else np.concatenate([_car_points(boxes_a[i], 50 + 10 * i, rng) for i in rows])
-        path = write_sweep(log / SWEEP_DIR / f"{T0 + f * DT}.feather", pts, rng.integers(0, 64, len(pts)), rng.integers(0, 10**8, len(pts)))
+        pts = (
+            np.zeros((0, 4))
+            if f in empty
+            else np.concatenate([_car_points(boxes_a[i], 50 + 10 * i, rng) for i in rows])
+        )
+        path = write_sweep(
+            log / SWEEP_DIR / f"{T0 + f * DT}.feather",
+            pts,
+            rng.integers(0, 64, len(pts)),
+            rng.integers(0, 10**8, len(pts)),
+        )
         written = feather.read_table(path)
         xyz = np.stack([written.column(c).to_numpy().astype(np.float32) for c in "xyz"], axis=1)
         for i, idx in zip(rows, points_in_boxes_numpy(xyz, boxes_a[rows])):
@@ -95,8 +111,10 @@ def make_log(root: Path, *, sweeps: tuple[int, ...] = (0, 1), empty: tuple[int, 
         poses.append(m)
     write_poses(log / POSES, pose_ts, poses)
     if calibration:
-        write_calibration(log / "calibration" / "egovehicle_SE3_sensor.feather",
-                          {"up_lidar": (1.3, 0.0, 1.7), "down_lidar": (1.3, 0.0, 1.5), "ring_front_center": (1.6, 0, 1.4)})
+        write_calibration(
+            log / "calibration" / "egovehicle_SE3_sensor.feather",
+            {"up_lidar": (1.3, 0.0, 1.7), "down_lidar": (1.3, 0.0, 1.5), "ring_front_center": (1.6, 0, 1.4)},
+        )
     return log
 
 
@@ -275,7 +293,9 @@ def test_unlabelled_logs_are_not_units(tmp_path: Path) -> None:
     make_log(tmp_path)
     test_log = tmp_path / "test" / "f00dcafe-0000-4000-8000-000000000000"
     write_sweep(test_log / SWEEP_DIR / f"{T0}.feather", np.array([[1.0, 2.0, 3.0, 4.0]]))
-    assert [Path(u.key).name for u in Av2Reader(tmp_path).list_units()] == [LOG]  # the test split's sweeps have no label
+    assert [Path(u.key).name for u in Av2Reader(tmp_path).list_units()] == [
+        LOG
+    ]  # the test split's sweeps have no label
     with pytest.raises(DatasetError, match=r"1 Argoverse 2 log\(s\) but none with annotations.feather"):
         Av2Reader(tmp_path, split="test").list_units()
 

@@ -47,7 +47,9 @@ def test_bad_label_fails_the_log_naming_the_row(tmp_path: Path) -> None:
     t = feather.read_table(log / "annotations.feather")
     w = t.column("width_m").to_pylist()
     w[2] = 0.0
-    feather.write_feather(t.set_column(t.schema.get_field_index("width_m"), "width_m", pa.array(w)), log / "annotations.feather")
+    feather.write_feather(
+        t.set_column(t.schema.get_field_index("width_m"), "width_m", pa.array(w)), log / "annotations.feather"
+    )
     with pytest.raises(Exception, match=r"annotations.feather: row 2: width_m = 0"):
         load_ground_truth(tmp_path, "av2")
     gt = load_ground_truth(tmp_path, "av2", strict=False)
@@ -59,7 +61,13 @@ def _gt_detections(gt, path: Path, shift: float = 0.0, drop: int = 0) -> Path:
     boxes[:, 0] += shift
     fids = [gt.frame_ids[f] for f in gt.frame_of_row]
     keep = np.arange(len(boxes)) >= drop
-    return write_av2_detections(path, [f for f, k in zip(fids, keep) if k], boxes[keep], [c for c, k in zip(gt.class_names, keep) if k], np.linspace(0.9, 0.5, keep.sum()))
+    return write_av2_detections(
+        path,
+        [f for f, k in zip(fids, keep) if k],
+        boxes[keep],
+        [c for c, k in zip(gt.class_names, keep) if k],
+        np.linspace(0.9, 0.5, keep.sum()),
+    )
 
 
 def test_detections_round_trip_and_bad_rows(tmp_path: Path) -> None:
@@ -76,7 +84,9 @@ def test_detections_round_trip_and_bad_rows(tmp_path: Path) -> None:
     qw = t.column("qw").to_pylist()
     qw[3] = 0.1
     feather.write_feather(t.set_column(t.schema.get_field_index("qw"), "qw", pa.array(qw)), path)
-    with pytest.raises(DetectionsError, match=r"dets.feather: row 3: fields qw, qx, qy, qz = \(0.1, .*expected a unit quaternion"):
+    with pytest.raises(
+        DetectionsError, match=r"dets.feather: row 3: fields qw, qx, qy, qz = \(0.1, .*expected a unit quaternion"
+    ):
         read_detections(path, gt)
     lenient = read_detections(path, gt, strict=False)
     assert len(lenient.errors) == 1 and lenient.errors[0]["frame_id"] == gt.frame_ids[gt.frame_of_row[3]]
@@ -91,7 +101,9 @@ def test_eval_perfect_beats_shifted_beats_badly_off(tmp_path: Path) -> None:
     ap: dict[tuple[str, float], float] = {}
     for name, shift in (("perfect", 0.0), ("slight", 0.3), ("bad", 2.5)):  # a 4.5 m car: BEV IoU 1, 0.88, 0.29
         det = _gt_detections(gt, tmp_path / f"{name}.feather", shift=shift)
-        r = invoke("eval", tmp_path / "data", det, "--format", "json", "--workers", "1", "--classes", "REGULAR_VEHICLE,BUS")
+        r = invoke(
+            "eval", tmp_path / "data", det, "--format", "json", "--workers", "1", "--classes", "REGULAR_VEHICLE,BUS"
+        )
         assert r.exit_code == 0, r.output
         doc = json.loads(r.stdout)
         assert doc["metric"]["difficulties"] == ["all"]
@@ -114,8 +126,12 @@ def test_eval_on_the_real_logs(realdata: Path, tmp_path: Path) -> None:
     noisy = gt.boxes.copy()
     noisy[:, :2] += rng.normal(0, 0.1, (len(noisy), 2))
     fids = [gt.frame_ids[f] for f in gt.frame_of_row]
-    det = write_av2_detections(tmp_path / "dets.feather", fids, noisy, gt.class_names, rng.uniform(0.3, 1.0, len(noisy)))
-    r = invoke("eval", root, det, "--format", "json", "--workers", "1", "--metric", "bev", "--classes", "REGULAR_VEHICLE")
+    det = write_av2_detections(
+        tmp_path / "dets.feather", fids, noisy, gt.class_names, rng.uniform(0.3, 1.0, len(noisy))
+    )
+    r = invoke(
+        "eval", root, det, "--format", "json", "--workers", "1", "--metric", "bev", "--classes", "REGULAR_VEHICLE"
+    )
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
     rec = {x["metric"]: x for x in doc["ap"] if x["interp"] == "R40" and x["threshold"] == 0.5}

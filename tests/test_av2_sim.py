@@ -75,7 +75,21 @@ def test_same_seed_same_log_and_labels_only(tmp_path: Path) -> None:
 @pytest.mark.parametrize("fmt", ["av2", "waymo-v2", "waymo-v1"])
 def test_cli_simulates_sequences_that_the_readers_detect(tmp_path: Path, fmt: str) -> None:
     out = tmp_path / "sim"
-    r = invoke("simulate", out, "--dataset-format", fmt, "--sequences", "2", "--frames", "2", "--size", "small", "--gross-fraction", "0.2", "-q")
+    r = invoke(
+        "simulate",
+        out,
+        "--dataset-format",
+        fmt,
+        "--sequences",
+        "2",
+        "--frames",
+        "2",
+        "--size",
+        "small",
+        "--gross-fraction",
+        "0.2",
+        "-q",
+    )
     assert r.exit_code == 0, r.output
     assert detect_format(out) == fmt
     frames = _frames(out, fmt)
@@ -92,7 +106,23 @@ def test_cli_simulates_sequences_that_the_readers_detect(tmp_path: Path, fmt: st
     # a second run does not overwrite without being asked
     again = invoke("simulate", out, "--dataset-format", fmt, "--frames", "1", "--size", "small", "-q")
     assert again.exit_code == 2 and "--overwrite" in again.output
-    assert invoke("simulate", out, "--dataset-format", fmt, "--frames", "1", "--sequences", "1", "--size", "small", "-q", "--overwrite").exit_code == 0
+    assert (
+        invoke(
+            "simulate",
+            out,
+            "--dataset-format",
+            fmt,
+            "--frames",
+            "1",
+            "--sequences",
+            "1",
+            "--size",
+            "small",
+            "-q",
+            "--overwrite",
+        ).exit_code
+        == 0
+    )
     assert len(_frames(out, fmt)) == 1
 
 
@@ -131,11 +161,41 @@ def test_simulated_av2_detections_evaluate(tmp_path: Path) -> None:
     import json
 
     out = tmp_path / "sim"
-    r = invoke("simulate", out, "--dataset-format", "av2", "--sequences", "2", "--frames", "3", "--size", "small", "--detections", "-q")
+    r = invoke(
+        "simulate",
+        out,
+        "--dataset-format",
+        "av2",
+        "--sequences",
+        "2",
+        "--frames",
+        "3",
+        "--size",
+        "small",
+        "--detections",
+        "-q",
+    )
     assert r.exit_code == 0, r.output
     det = out / "detections.feather"
     first = det.read_bytes()
-    assert invoke("simulate", out, "--dataset-format", "av2", "--sequences", "2", "--frames", "3", "--size", "small", "--detections", "-q", "--overwrite").exit_code == 0
+    assert (
+        invoke(
+            "simulate",
+            out,
+            "--dataset-format",
+            "av2",
+            "--sequences",
+            "2",
+            "--frames",
+            "3",
+            "--size",
+            "small",
+            "--detections",
+            "-q",
+            "--overwrite",
+        ).exit_code
+        == 0
+    )
     assert det.read_bytes() == first  # same seed, same detections
     r = invoke("eval", out, det, "--format", "json", "--workers", "1", "--classes", "REGULAR_VEHICLE")
     assert r.exit_code == 0, r.output

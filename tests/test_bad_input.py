@@ -60,7 +60,13 @@ def _waymo_segment():
     from labelaudit.sim.scene import SceneSpec
     from labelaudit.sim.waymo_writer import simulate_waymo_segment
 
-    return simulate_waymo_segment(seed=2, frames=1, size="small", name="seg", scene_spec=SceneSpec(num_vehicles=(2, 2), num_vru=(0, 0), distance=(6.0, 20.0)))
+    return simulate_waymo_segment(
+        seed=2,
+        frames=1,
+        size="small",
+        name="seg",
+        scene_spec=SceneSpec(num_vehicles=(2, 2), num_vru=(0, 0), distance=(6.0, 20.0)),
+    )
 
 
 def test_a_nan_waymo_v1_box_field_is_an_error_row(tmp_path):
@@ -184,7 +190,11 @@ def test_unusable_output_paths_are_one_line_exit_2(kitti, tmp_path):
         "": "-o/--output is empty",
     }
     for output, message in cases.items():
-        run = _infer(kitti, Path(output) if output else "", allowed=(2,)) if output else H.run_cli("infer", kitti, "-o", "", *INFER)
+        run = (
+            _infer(kitti, Path(output) if output else "", allowed=(2,))
+            if output
+            else H.run_cli("infer", kitti, "-o", "", *INFER)
+        )
         H.check_output(run, allowed=(2,))
         assert message in run.stderr, run.stderr
         if output:
@@ -212,7 +222,10 @@ DAMAGE = {
     'manifest "hello"': (lambda o: _manifest(o, '"hello"'), R.MANIFEST_NAME),
     "manifest not UTF-8": (lambda o: _manifest(o, "bytes"), R.MANIFEST_NAME),
     "lock a folder": (lambda o: (o / R.LOCK_NAME).mkdir(), R.LOCK_NAME),
-    "objects a file": (lambda o: (shutil.rmtree(o / R.OBJECTS_DIR), (o / R.OBJECTS_DIR).write_text("x")), R.OBJECTS_DIR),
+    "objects a file": (
+        lambda o: (shutil.rmtree(o / R.OBJECTS_DIR), (o / R.OBJECTS_DIR).write_text("x")),
+        R.OBJECTS_DIR,
+    ),
     "errors.parquet a folder": (lambda o: ((o / R.ERRORS_FILE).unlink(), (o / R.ERRORS_FILE).mkdir()), R.ERRORS_FILE),
 }
 
@@ -248,7 +261,9 @@ def test_non_utf8_split_list_and_config_name_the_file(kitti, tmp_path):
     (kitti / "ImageSets" / "val.txt").write_bytes(b"000000\n\xff\xfe000001\n")
     run = _infer(kitti, tmp_path / "out", "--split", "val", allowed=(2,))
     assert f"{kitti / 'ImageSets' / 'val.txt'}:2: split list is not UTF-8 text" in run.stderr
-    run = _infer(kitti, tmp_path / "out", "--split", "x" * 300, allowed=(2,))  # fuzz seed 16: exit 3 (File name too long)
+    run = _infer(
+        kitti, tmp_path / "out", "--split", "x" * 300, allowed=(2,)
+    )  # fuzz seed 16: exit 3 (File name too long)
     assert "cannot list the dataset (File name too long)" in run.stderr
     cfg = tmp_path / "model.toml"
     cfg.write_bytes(b"[model]\nsigma = 0.2 # \xe9\n")

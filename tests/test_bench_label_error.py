@@ -22,7 +22,23 @@ def _load():
 def test_bench_runs_on_a_tiny_dataset(tmp_path, capsys):
     bench = _load()
     md = tmp_path / "tables.md"
-    assert bench.main(["--frames", "3", "--workers", "1", "--out", str(tmp_path / "work"), "--realdata", str(tmp_path / "absent"), "--markdown", str(md)]) == 0
+    assert (
+        bench.main(
+            [
+                "--frames",
+                "3",
+                "--workers",
+                "1",
+                "--out",
+                str(tmp_path / "work"),
+                "--realdata",
+                str(tmp_path / "absent"),
+                "--markdown",
+                str(md),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "Synthetic, benchmark definition" in out and "AUROC label_error" in out
     assert "label_error AUROC on ≥ 10 points" in out

@@ -100,7 +100,9 @@ def test_check_uses_a_custom_gate(bad, tmp_path):
 
 @pytest.fixture()
 def mixed(tmp_path) -> Path:
-    rows = [make_row("000001", i, jiou_gt=j, label_error=e) for i, (j, e) in enumerate([(0.9, 0.1), (0.3, 0.8), (0.6, 0.4)])]
+    rows = [
+        make_row("000001", i, jiou_gt=j, label_error=e) for i, (j, e) in enumerate([(0.9, 0.1), (0.3, 0.8), (0.6, 0.4)])
+    ]
     rows.append(make_row("000002", 0, "Pedestrian", jiou_gt=0.1, label_error=0.2))
     return make_results(tmp_path / "mixed", [rows])
 
@@ -243,13 +245,25 @@ def test_the_console_script_starts_infers_fork_server_only_when_a_pool_will_run(
 
     assert fork_server_preload(2) == tuple(C.WORKER_PRELOAD)
     assert fork_server_preload(None) == (tuple(C.WORKER_PRELOAD) if (os.cpu_count() or 1) > 1 else None)
-    assert fork_server_preload(1) is None and fork_server_preload(0) is None  # serial; a bad count is the command's to report
+    assert (
+        fork_server_preload(1) is None and fork_server_preload(0) is None
+    )  # serial; a bad count is the command's to report
     assert fork_server_preload(None, "local:2") == local_cluster_preload()
-    assert fork_server_preload(None, "tcp://h:8786") is None and fork_server_preload(3, "tcp://h:8786") is None  # a usage error, reported later
-    for argv in (["labelaudit", "rank", "r/"], ["labelaudit", "infer", "d", "--workers", "1"], ["labelaudit", "infer", "d", "--workers=x"],
-                 ["labelaudit", "infer", "d", "--workers", "2", "--help"], ["labelaudit", "infer", "d", "--scheduler", "tcp://h:1"], ["labelaudit"]):
+    assert (
+        fork_server_preload(None, "tcp://h:8786") is None and fork_server_preload(3, "tcp://h:8786") is None
+    )  # a usage error, reported later
+    for argv in (
+        ["labelaudit", "rank", "r/"],
+        ["labelaudit", "infer", "d", "--workers", "1"],
+        ["labelaudit", "infer", "d", "--workers=x"],
+        ["labelaudit", "infer", "d", "--workers", "2", "--help"],
+        ["labelaudit", "infer", "d", "--scheduler", "tcp://h:1"],
+        ["labelaudit"],
+    ):
         assert launch.start_infer_fork_server(argv) is False, argv
-    assert launch.start_infer_fork_server(["labelaudit", "infer", "d", "--workers=2", "-o", "out"]) is True  # the pool's own preload
+    assert (
+        launch.start_infer_fork_server(["labelaudit", "infer", "d", "--workers=2", "-o", "out"]) is True
+    )  # the pool's own preload
     done = subprocess.run([sys.executable, "-m", "labelaudit", "--help"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "infer" in done.stdout
     from importlib.metadata import entry_points
@@ -269,8 +283,12 @@ def test_dataset_format_choices_are_the_readers():
 def test_rank_by_label_error_notes_classes_without_a_score(tmp_path):
     """label_error is null for classes it is not validated for: sorting by it says so (stderr) and
     ranks the others; sorting by another column says nothing."""
-    rows = [make_row("000001", 0, label_error=0.7), make_row("000001", 1, "Pedestrian", label_error=None),
-            make_row("000001", 2, "Cyclist", label_error=None), make_row("000001", 3, "Pedestrian", label_error=None)]
+    rows = [
+        make_row("000001", 0, label_error=0.7),
+        make_row("000001", 1, "Pedestrian", label_error=None),
+        make_row("000001", 2, "Cyclist", label_error=None),
+        make_row("000001", 3, "Pedestrian", label_error=None),
+    ]
     res = make_results(tmp_path / "classes", [rows])
     r = invoke("rank", res, "--by", "label_error", "--format", "json")
     assert r.exit_code == 0, r.output

@@ -28,7 +28,9 @@ def test_command_has_help_examples_and_a_docs_section(name):
     cmd = typer.main.get_command(app).commands[name]  # type: ignore[attr-defined]
     paragraphs, examples = gen.split_help(cmd.help or "")
     assert paragraphs and len(paragraphs[0]) > 20, f"{name}: no help text"
-    assert examples and all(e.startswith(f"labelaudit {name}") for e in examples), f"{name}: no Examples block of `labelaudit {name} …` lines"
+    assert examples and all(e.startswith(f"labelaudit {name}") for e in examples), (
+        f"{name}: no Examples block of `labelaudit {name} …` lines"
+    )
     for p in cmd.params:
         assert (getattr(p, "help", None) or "").strip(), f"{name}: parameter {p.name} has no help"
     assert f"## `labelaudit {name}" in (ROOT / "docs" / "cli.md").read_text(), f"docs/cli.md has no section for {name}"
@@ -37,7 +39,9 @@ def test_command_has_help_examples_and_a_docs_section(name):
 
 
 def test_docs_cli_md_is_generated_from_the_help():
-    assert (ROOT / "docs" / "cli.md").read_text() == gen.render(), "docs/cli.md is stale: run python scripts/gen_cli_docs.py"
+    assert (ROOT / "docs" / "cli.md").read_text() == gen.render(), (
+        "docs/cli.md is stale: run python scripts/gen_cli_docs.py"
+    )
 
 
 def test_split_help_finds_examples():
@@ -46,4 +50,3 @@ def test_split_help_finds_examples():
         ["labelaudit x a", "labelaudit x b"],
     )
     assert gen.split_help("Only text.") == (["Only text."], [])
-

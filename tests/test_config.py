@@ -58,8 +58,10 @@ def test_every_setting_is_documented(path):
     lines = path.read_text().splitlines()
     for i, line in enumerate(lines):
         if re.match(r"^\s*[A-Za-z_]+\s*=", line):
-            documented = "#" in line or (i > 0 and lines[i - 1].lstrip().startswith("#")) or (
-                i > 0 and lines[i - 1].lstrip().startswith("[") and "#" in lines[i - 1]
+            documented = (
+                "#" in line
+                or (i > 0 and lines[i - 1].lstrip().startswith("#"))
+                or (i > 0 and lines[i - 1].lstrip().startswith("[") and "#" in lines[i - 1])
             )
             assert documented, f"{path.name}:{i + 1} has no comment: {line!r}"
 

@@ -54,7 +54,10 @@ def test_margin_widens_only_bev_and_ground_cut_raises_bottom() -> None:
             [12.15, 5.0, 1.0],  # 6 15 cm beyond the front
         ]
     )
-    for fn in (lambda m, g: crop_frame(pts, box, CropParams(m, g))[0], lambda m, g: points_in_boxes_numpy(pts, box, m, g)[0]):
+    for fn in (
+        lambda m, g: crop_frame(pts, box, CropParams(m, g))[0],
+        lambda m, g: points_in_boxes_numpy(pts, box, m, g)[0],
+    ):
         assert fn(0.0, 0.0).tolist() == [0, 4, 5]
         assert fn(0.1, 0.0).tolist() == [0, 1, 2, 4, 5]  # top gets no margin
         assert fn(0.1, 0.1).tolist() == [0, 1, 2, 5]
@@ -106,7 +109,11 @@ def test_refined_crop_equals_open3d_crop(ground_cut: float) -> None:
     boxes = np.c_[rng.uniform(-8, 8, (30, 3)), rng.uniform(0.4, 6.0, (30, 3)), rng.uniform(-np.pi, np.pi, 30)]
     boxes[3:6, 6] = [np.pi / 2, -np.pi, 1e-12]
     # Dyadic boxes at yaw 0: faces exact in floating point, so points land exactly on them (ties).
-    boxes[:3] = [[1.5, -2.25, 0.5, 4.0, 2.0, 1.5, 0.0], [-3.0, 4.5, 0.25, 1.75, 0.75, 2.0, 0.0], [6.0, 6.0, -1.0, 3.5, 1.5, 1.0, 0.0]]
+    boxes[:3] = [
+        [1.5, -2.25, 0.5, 4.0, 2.0, 1.5, 0.0],
+        [-3.0, 4.5, 0.25, 1.75, 0.75, 2.0, 0.0],
+        [6.0, 6.0, -1.0, 3.5, 1.5, 1.0, 0.0],
+    ]
     params = CropParams(margin=0.125, ground_cut=ground_cut, fit_margin=0.5)
     random = rng.uniform(-12, 12, (40_000, 3)).astype(np.float32)
     edges = _boundary_points(boxes, params, rng, 400)  # on the narrow faces: ties decide
@@ -142,11 +149,17 @@ def test_real_refined_crop_equals_open3d_crop(realdata: Path) -> None:
     boxes_seen = 0
     for ref in reader.list_units():
         frame = reader.load_frame(ref.key)
-        for params in (CropParams(), CropParams(margin=0.0, ground_cut=0.0, fit_margin=0.3), CropParams(margin=0.05, ground_cut=0.3, fit_margin=1.0)):
+        for params in (
+            CropParams(),
+            CropParams(margin=0.0, ground_cut=0.0, fit_margin=0.3),
+            CropParams(margin=0.05, ground_cut=0.3, fit_margin=1.0),
+        ):
             narrow, wide = crop_frame_pair(frame.points, frame.boxes, params)
             for a, b in zip(narrow, crop_frame(frame.points, frame.boxes, params)):
                 np.testing.assert_array_equal(a, b)
-            for a, b in zip(wide, crop_frame(frame.points, frame.boxes, CropParams(params.fit_margin, params.ground_cut))):
+            for a, b in zip(
+                wide, crop_frame(frame.points, frame.boxes, CropParams(params.fit_margin, params.ground_cut))
+            ):
                 np.testing.assert_array_equal(a, b)
         boxes_seen += len(frame.boxes)
     assert boxes_seen >= 10
@@ -205,19 +218,33 @@ def test_frames_with_many_boxes_crop_through_the_grid_to_identical_indices():
     for seed in range(6):
         rng = np.random.default_rng(seed)
         k = C.CROP_GRID_MIN_BOXES + 16
-        pts = np.c_[rng.uniform(-60, 60, (20000, 2)), rng.uniform(-2, 2, 20000), rng.uniform(0, 1, 20000)].astype(np.float32)
-        boxes = np.c_[rng.uniform(-50, 50, (k, 2)), rng.uniform(-1, 0.5, k), rng.uniform(0.3, 8, (k, 1)),
-                      rng.uniform(0.3, 3, (k, 1)), rng.uniform(0.05, 3, k), rng.uniform(-4, 4, k)]
+        pts = np.c_[rng.uniform(-60, 60, (20000, 2)), rng.uniform(-2, 2, 20000), rng.uniform(0, 1, 20000)].astype(
+            np.float32
+        )
+        boxes = np.c_[
+            rng.uniform(-50, 50, (k, 2)),
+            rng.uniform(-1, 0.5, k),
+            rng.uniform(0.3, 8, (k, 1)),
+            rng.uniform(0.3, 3, (k, 1)),
+            rng.uniform(0.05, 3, k),
+            rng.uniform(-4, 4, k),
+        ]
         for margin in (params.margin, params.fit_margin):  # points exactly on the corners of both crops
             sel = selection_boxes(boxes, margin, params.ground_cut)
             corners = np.concatenate([box_corners(b, "3d") for b in sel[:30] if b[5] > 0])
             pts = np.r_[pts, np.c_[corners, np.zeros(len(corners))].astype(np.float32)]
-        pts = np.r_[pts, np.array([[np.nan, 0, 0, 0], [np.inf, 1, 1, 0], [1e38, 1e38, 0, 0], [0, 0, np.nan, 0]], np.float32)]
+        pts = np.r_[
+            pts, np.array([[np.nan, 0, 0, 0], [np.inf, 1, 1, 0], [1e38, 1e38, 0, 0], [0, 0, np.nan, 0]], np.float32)
+        ]
         narrow, wide = crop_frame_pair(pts, boxes, params)
         assert all(np.array_equal(a, b) for a, b in zip(narrow, crop_frame(pts, boxes, params), strict=True))
-        assert all(np.array_equal(a, b) for a, b in zip(wide, crop_frame(pts, boxes, replace(params, margin=params.fit_margin)), strict=True))
+        assert all(
+            np.array_equal(a, b)
+            for a, b in zip(wide, crop_frame(pts, boxes, replace(params, margin=params.fit_margin)), strict=True)
+        )
         sel = selection_boxes(boxes, params.fit_margin, params.ground_cut)
         assert all(np.isin(w, c).all() for w, c in zip(wide, bev_candidates(pts, sel), strict=True))  # a superset
+
 
 def _open3d_whole_frame(points: np.ndarray, boxes: np.ndarray, params: CropParams) -> list[np.ndarray]:
     """Open3D asked about every point of the frame (what crop_frame did before its BEV index)."""
@@ -243,7 +270,11 @@ def test_indexed_crop_equals_open3d_on_the_whole_frame(spread: float) -> None:
     also for points on the faces, points far outside, non-finite points and empty selections."""
     rng = np.random.default_rng(int(spread))
     boxes = np.c_[rng.uniform(-8, 8, (30, 3)), rng.uniform(0.4, 6.0, (30, 3)), rng.uniform(-np.pi, np.pi, 30)]
-    boxes[:3] = [[1.5, -2.25, 0.5, 4.0, 2.0, 1.5, 0.0], [-3.0, 4.5, 0.25, 1.75, 0.75, 2.0, np.pi / 2], [6.0, 6.0, -1.0, 3.5, 1.5, 0.05, 0.0]]
+    boxes[:3] = [
+        [1.5, -2.25, 0.5, 4.0, 2.0, 1.5, 0.0],
+        [-3.0, 4.5, 0.25, 1.75, 0.75, 2.0, np.pi / 2],
+        [6.0, 6.0, -1.0, 3.5, 1.5, 0.05, 0.0],
+    ]
     boxes[-1, :2] = spread  # one box far from the others
     params = CropParams(margin=0.125, ground_cut=0.1, fit_margin=0.5)
     random = rng.uniform(-12, 12, (40_000, 3)).astype(np.float32)
@@ -263,7 +294,9 @@ def test_real_indexed_crop_equals_open3d_on_the_whole_frame(realdata: Path) -> N
     for ref in reader.list_units():
         frame = reader.load_frame(ref.key)
         for p in (CropParams(), CropParams(margin=0.5, ground_cut=0.1)):
-            for a, b in zip(crop_frame(frame.points, frame.boxes, p), _open3d_whole_frame(frame.points, frame.boxes, p)):
+            for a, b in zip(
+                crop_frame(frame.points, frame.boxes, p), _open3d_whole_frame(frame.points, frame.boxes, p)
+            ):
                 np.testing.assert_array_equal(a, b)
 
 
@@ -281,6 +314,10 @@ def test_grid_index_counting_sort_equals_the_numpy_sort(monkeypatch) -> None:
     dense = CR._BevIndex(pts, sel, C.CROP_GRID_CELL)
     monkeypatch.setattr(C, "CROP_GRID_DENSE_CELLS", 0)
     sparse = CR._BevIndex(pts, sel, C.CROP_GRID_CELL)
-    assert np.array_equal(dense.keys, sparse.keys) and np.array_equal(dense.index, sparse.index) and len(dense.index) > 1000
+    assert (
+        np.array_equal(dense.keys, sparse.keys)
+        and np.array_equal(dense.index, sparse.index)
+        and len(dense.index) > 1000
+    )
     for a, b in zip(dense.candidates(slice(None)), sparse.candidates(slice(None))):
         assert np.array_equal(a, b)

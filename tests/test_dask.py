@@ -46,7 +46,9 @@ def test_parse_scheduler_addresses_and_worker_counts():
         parse_scheduler("local:2", workers=3)
     with pytest.raises(UsageError, match="drop --workers"):
         parse_scheduler("tcp://h:8786", workers=2)
-    assert isinstance(make_executor(None, scheduler="local:2"), DaskExecutor) and isinstance(make_executor(2, scheduler="local"), DaskExecutor)
+    assert isinstance(make_executor(None, scheduler="local:2"), DaskExecutor) and isinstance(
+        make_executor(2, scheduler="local"), DaskExecutor
+    )
 
 
 def test_run_module_keeps_the_core_out_of_the_main_process():
@@ -77,8 +79,21 @@ def test_unreachable_scheduler_is_exit_2_naming_the_address(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     t = time.perf_counter()
     done = subprocess.run(
-        [sys.executable, "-m", "labelaudit.cli", "infer", str(data), "-o", str(tmp_path / "res"), "--scheduler", address],
-        env=env, capture_output=True, text=True, timeout=60,
+        [
+            sys.executable,
+            "-m",
+            "labelaudit.cli",
+            "infer",
+            str(data),
+            "-o",
+            str(tmp_path / "res"),
+            "--scheduler",
+            address,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     elapsed = time.perf_counter() - t
     assert done.returncode == 2, done.stderr
@@ -94,9 +109,12 @@ def test_unreachable_scheduler_is_exit_2_naming_the_address(tmp_path):
 def cluster():
     from labelaudit import constants as C
 
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", preload=list(C.WORKER_PRELOAD)
-    ) as cl, distributed.Client(cl, set_as_default=False) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", preload=list(C.WORKER_PRELOAD)
+        ) as cl,
+        distributed.Client(cl, set_as_default=False) as client,
+    ):
         client.wait_for_workers(2, timeout=120)
         yield cl, client
 
@@ -114,7 +132,9 @@ def sim_data(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def pool_rows(sim_data, tmp_path_factory) -> list[dict]:
     out = tmp_path_factory.mktemp("pool") / "res"
-    run_infer(InferRequest(sim_data, out, chunk_units=1), resolve_config(None, "kitti", ["all"]), executor=PoolExecutor(2))
+    run_infer(
+        InferRequest(sim_data, out, chunk_units=1), resolve_config(None, "kitti", ["all"]), executor=PoolExecutor(2)
+    )
     return _rows(out)
 
 
@@ -126,7 +146,9 @@ def _rows(out: Path) -> list[dict]:
 def test_dask_rows_equal_the_pool_rows(cluster, sim_data, pool_rows, tmp_path):
     cl, _ = cluster
     cfg = resolve_config(None, "kitti", ["all"])
-    summary = run_infer(InferRequest(sim_data, tmp_path / "res", chunk_units=1), cfg, executor=DaskExecutor(cl.scheduler_address))
+    summary = run_infer(
+        InferRequest(sim_data, tmp_path / "res", chunk_units=1), cfg, executor=DaskExecutor(cl.scheduler_address)
+    )
     assert summary.chunks == 10 and summary.frames == 10 and summary.failed_frames == 0
     assert _rows(tmp_path / "res") == pool_rows and len(pool_rows) > 50
     assert len(list((tmp_path / "res" / R.OBJECTS_DIR).glob("*.parquet"))) == 10
@@ -139,11 +161,16 @@ def test_dask_rows_equal_the_pool_rows_on_argoverse2_logs(cluster, tmp_path):
     from labelaudit.sim.noise import NoiseSpec
 
     for seed in (0, 1):
-        write_av2_log(simulate_av2_log(seed=seed, frames=2, label_noise=NoiseSpec(fraction=0.3, gross_fraction=0.1)), tmp_path / "av2" / "val")
+        write_av2_log(
+            simulate_av2_log(seed=seed, frames=2, label_noise=NoiseSpec(fraction=0.3, gross_fraction=0.1)),
+            tmp_path / "av2" / "val",
+        )
     cl, _ = cluster
     cfg = resolve_config(None, "av2")
     run_infer(InferRequest(tmp_path / "av2", tmp_path / "pool"), cfg, executor=PoolExecutor(2))
-    summary = run_infer(InferRequest(tmp_path / "av2", tmp_path / "dask"), cfg, executor=DaskExecutor(cl.scheduler_address))
+    summary = run_infer(
+        InferRequest(tmp_path / "av2", tmp_path / "dask"), cfg, executor=DaskExecutor(cl.scheduler_address)
+    )
     assert summary.chunks == 2 and summary.frames == 4 and summary.failed_frames == 0
     rows = _rows(tmp_path / "dask")
     assert rows == _rows(tmp_path / "pool") and len(rows) > 10 and {r["dataset"] for r in rows} == {"av2"}
@@ -186,7 +213,12 @@ def test_a_worker_killed_mid_run_changes_no_row(cluster, sim_data, pool_rows, tm
     cl, client = cluster
     killer = _KillOneWorker(client)
     cfg = resolve_config(None, "kitti", ["all"])
-    summary = run_infer(InferRequest(sim_data, tmp_path / "res", chunk_units=1), cfg, killer, executor=DaskExecutor(cl.scheduler_address))
+    summary = run_infer(
+        InferRequest(sim_data, tmp_path / "res", chunk_units=1),
+        cfg,
+        killer,
+        executor=DaskExecutor(cl.scheduler_address),
+    )
     assert killer.killed is not None and killer.results == 10  # every chunk came back once
     assert summary.chunks == 10 and summary.frames == 10
     assert _rows(tmp_path / "res") == pool_rows
@@ -200,7 +232,20 @@ def test_resume_after_a_killed_client(cluster, sim_data, pool_rows, tmp_path):
     cl, _ = cluster
     out = tmp_path / "res"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    cmd = [sys.executable, "-m", "labelaudit.cli", "infer", str(sim_data), "-o", str(out), "--classes", "all", "--scheduler", cl.scheduler_address, "-q"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "labelaudit.cli",
+        "infer",
+        str(sim_data),
+        "-o",
+        str(out),
+        "--classes",
+        "all",
+        "--scheduler",
+        cl.scheduler_address,
+        "-q",
+    ]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     shards = out / R.OBJECTS_DIR
     deadline = time.monotonic() + 180
@@ -237,7 +282,10 @@ def test_workers_of_another_labelaudit_are_refused_naming_both_versions(cluster,
     client.run(_set_worker_version, "9.9.9")
     try:
         ex = DaskExecutor(cl.scheduler_address)
-        with pytest.raises(ClusterError, match=r"labelaudit 9\.9\.9.*this client labelaudit " + labelaudit.__version__.replace(".", r"\.")):
+        with pytest.raises(
+            ClusterError,
+            match=r"labelaudit 9\.9\.9.*this client labelaudit " + labelaudit.__version__.replace(".", r"\."),
+        ):
             ex.start()
         ex.close()
         # a worker that changes after the connect-time check is caught by the task itself
@@ -291,7 +339,9 @@ def test_local_cluster_workers_fork_from_the_preloaded_fork_server():
     ex.start()
     try:
         parents = ex._client.run(os.getppid)
-        loaded = ex._client.run(lambda: "labelaudit.core.posterior" in sys.modules and "multiprocessing.forkserver" in sys.modules)
+        loaded = ex._client.run(
+            lambda: "labelaudit.core.posterior" in sys.modules and "multiprocessing.forkserver" in sys.modules
+        )
         profiling = ex._client.run(lambda: __import__("dask").config.get("distributed.worker.profile.enabled"))
     finally:
         ex.close()
@@ -311,7 +361,9 @@ def test_open3d_loads_on_first_use_without_its_plotting_chain_and_still_plots():
         "fig = o3d.visualization.get_plotly_fig([pc]);"
         "assert type(fig).__name__ == 'Figure' and 'plotly' in sys.modules"
     )
-    done = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True
+    )
     assert done.returncode == 0, done.stderr
 
 
@@ -322,7 +374,9 @@ def test_fork_server_marker_skips_the_teardown_only_in_the_marked_server():
 
     code = "import sys, multiprocessing.forkserver, labelaudit.infer.warmup; sys.exit(3)"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    marked = subprocess.run([sys.executable, "-c", code], env={**env, FORK_SERVER_ENV: str(os.getpid())}, capture_output=True)
+    marked = subprocess.run(
+        [sys.executable, "-c", code], env={**env, FORK_SERVER_ENV: str(os.getpid())}, capture_output=True
+    )
     other = subprocess.run([sys.executable, "-c", code], env={**env, FORK_SERVER_ENV: "1"}, capture_output=True)
     plain = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True)
     assert (marked.returncode, other.returncode, plain.returncode) == (0, 3, 3)

@@ -51,9 +51,22 @@ def kitti_calib() -> Calibration:
     return Calibration(P2=np.c_[K, np.zeros(3)], R0_rect=np.eye(3), Tr_velo_to_cam=np.c_[swap, [0.0, 0.08, -0.27]])
 
 
-def label_line(cls: str, box, height_px: float = 60.0, occ: int = 0, trunc: float = 0.0, score: float | None = None, calib=None) -> str:
+def label_line(
+    cls: str, box, height_px: float = 60.0, occ: int = 0, trunc: float = 0.0, score: float | None = None, calib=None
+) -> str:
     loc, dims, ry = boxes_lidar_to_camera(np.asarray(box, float)[None], calib or kitti_calib())
-    return format_label_line(cls, trunc, occ, 0.0, [100.0, 100.0, 150.0, 100.0 + height_px], dims[0], loc[0], ry[0], score=score, precision=None)
+    return format_label_line(
+        cls,
+        trunc,
+        occ,
+        0.0,
+        [100.0, 100.0, 150.0, 100.0 + height_px],
+        dims[0],
+        loc[0],
+        ry[0],
+        score=score,
+        precision=None,
+    )
 
 
 def write_kitti(root: Path, frames: dict[str, list[str]], calib: Calibration | None = None) -> Path:
@@ -86,9 +99,15 @@ def posterior(box, n_points: int, seed: int = 0, model: str = "bev"):
     rng = np.random.default_rng(seed)
     box = np.asarray(box, float)
     cfg = CFG.with_overrides(model=replace(CFG.model, kind=model))
-    local = np.c_[rng.uniform(-0.5, 0.5, n_points) * box[3], rng.choice([-0.5, 0.5], n_points) * box[4], rng.uniform(-0.5, 0.5, n_points) * box[5]]
+    local = np.c_[
+        rng.uniform(-0.5, 0.5, n_points) * box[3],
+        rng.choice([-0.5, 0.5], n_points) * box[4],
+        rng.uniform(-0.5, 0.5, n_points) * box[5],
+    ]
     c, s = np.cos(box[6]), np.sin(box[6])
-    pts = np.c_[box[0] + c * local[:, 0] - s * local[:, 1], box[1] + s * local[:, 0] + c * local[:, 1], box[2] + local[:, 2]]
+    pts = np.c_[
+        box[0] + c * local[:, 0] - s * local[:, 1], box[1] + s * local[:, 0] + c * local[:, 1], box[2] + local[:, 2]
+    ]
     return infer_label(box, pts, "Car", cfg.model)
 
 
@@ -101,7 +120,16 @@ def random_pairs(n_labels: int, model: str, seed: int = 0):
         gts.append(box)
         covs.append(post.cov)
         for _ in range(2):
-            dets.append(box + np.r_[rng.normal(0, 0.3, 2), rng.normal(0, 0.1), rng.normal(0, 0.2, 2), rng.normal(0, 0.1), rng.normal(0, 0.05)])
+            dets.append(
+                box
+                + np.r_[
+                    rng.normal(0, 0.3, 2),
+                    rng.normal(0, 0.1),
+                    rng.normal(0, 0.2, 2),
+                    rng.normal(0, 0.1),
+                    rng.normal(0, 0.05),
+                ]
+            )
             pg.append(g)
             pd.append(len(dets) - 1)
     return np.array(gts), np.array(covs), np.array(dets), np.array(pg), np.array(pd)
@@ -116,7 +144,9 @@ def test_jiou_of_a_deterministic_detection_and_a_certain_label_is_the_iou(model)
     np.testing.assert_allclose(J, iou, atol=0.01)
     # no covariance at all: the exact IoU
     none = np.full_like(covs, np.nan)
-    np.testing.assert_array_equal(pair_jious(model, CFG.spatial, gts, none, dets, None, "phi", pg, pd, iou, workers=1), iou)
+    np.testing.assert_array_equal(
+        pair_jious(model, CFG.spatial, gts, none, dets, None, "phi", pg, pd, iou, workers=1), iou
+    )
 
 
 def test_pair_jious_agree_with_spatial_jiou_on_a_finer_grid():
@@ -124,13 +154,23 @@ def test_pair_jious_agree_with_spatial_jiou_on_a_finer_grid():
     _, iou, _ = pair_overlaps(dets, gts, pd, pg, "bev")
     J = pair_jious("bev", CFG.spatial, gts, covs, dets, None, "phi", pg, pd, iou, workers=1)
     fine = replace(CFG.spatial, cells_per_side=192)
-    ref = np.array([jiou(BoxDistribution.deterministic(dets[j], "bev"), BoxDistribution(gts[g], "bev", covs[g]), fine) for g, j in zip(pg, pd)])
+    ref = np.array(
+        [
+            jiou(BoxDistribution.deterministic(dets[j], "bev"), BoxDistribution(gts[g], "bev", covs[g]), fine)
+            for g, j in zip(pg, pd)
+        ]
+    )
     np.testing.assert_allclose(J, ref, atol=0.01)
     assert np.all(J <= iou + 0.01)  # a label's blur only lowers the overlap of a deterministic box
     # a probabilistic detection: the detection's own p_G
     dcov = np.repeat(np.diag([0.04, 0.04, 0.01, 0.01, 0.01, 0.01])[None], len(dets), axis=0)
     Jp = pair_jious("bev", CFG.spatial, gts, covs, dets, dcov, "phi", pg, pd, iou, workers=1)
-    refp = np.array([jiou(BoxDistribution(dets[j], "bev", dcov[j]), BoxDistribution(gts[g], "bev", covs[g]), fine) for g, j in zip(pg, pd)])
+    refp = np.array(
+        [
+            jiou(BoxDistribution(dets[j], "bev", dcov[j]), BoxDistribution(gts[g], "bev", covs[g]), fine)
+            for g, j in zip(pg, pd)
+        ]
+    )
     np.testing.assert_allclose(Jp, refp, atol=0.015)
 
 
@@ -164,9 +204,11 @@ def test_jiou_falls_faster_towards_the_labels_uncertain_side():
     dets = np.concatenate([np.c_[box[0] + s * shifts, np.repeat(box[None, 1:], len(shifts), 0)] for s in (+1, -1)])
     k = len(dets)
     _, iou, _ = pair_overlaps(dets, box[None], np.arange(k), np.zeros(k, int), "bev")
-    J = pair_jious("bev", CFG.spatial, box[None], post.cov[None], dets, None, "phi", np.zeros(k, int), np.arange(k), iou, workers=1)
-    front, back = J[: len(shifts)], J[len(shifts):]
-    np.testing.assert_allclose(iou[: len(shifts)], iou[len(shifts):])
+    J = pair_jious(
+        "bev", CFG.spatial, box[None], post.cov[None], dets, None, "phi", np.zeros(k, int), np.arange(k), iou, workers=1
+    )
+    front, back = J[: len(shifts)], J[len(shifts) :]
+    np.testing.assert_allclose(iou[: len(shifts)], iou[len(shifts) :])
     assert np.all(front < back)
     assert np.all(J < iou)
     assert np.all(np.diff(front) < 0) and np.all(np.diff(back) < 0)
@@ -175,8 +217,12 @@ def test_jiou_falls_faster_towards_the_labels_uncertain_side():
 def test_jiou_of_the_label_box_itself_is_its_jiou_gt():
     gts, covs, _, _, _ = random_pairs(10, "bev", seed=5)
     k = len(gts)
-    J = pair_jious("bev", CFG.spatial, gts, covs, gts.copy(), None, "phi", np.arange(k), np.arange(k), np.ones(k), workers=1)
-    ref = np.array([jiou_gt(type("P", (), {"box": b, "model": "bev", "cov": c})(), CFG.spatial) for b, c in zip(gts, covs)])
+    J = pair_jious(
+        "bev", CFG.spatial, gts, covs, gts.copy(), None, "phi", np.arange(k), np.arange(k), np.ones(k), workers=1
+    )
+    ref = np.array(
+        [jiou_gt(type("P", (), {"box": b, "model": "bev", "cov": c})(), CFG.spatial) for b, c in zip(gts, covs)]
+    )
     np.testing.assert_allclose(J, ref, atol=0.01)
 
 
@@ -191,15 +237,38 @@ def _gt_frame(fid: str, boxes, classes, heights, occ=None, trunc=None) -> Ground
     occ = np.zeros(k, int) if occ is None else np.asarray(occ)
     trunc = np.zeros(k) if trunc is None else np.asarray(trunc, float)
     bbox = np.c_[np.zeros(k), np.zeros(k), np.zeros(k), heights]
-    return GroundTruthFrame(fid, np.asarray(boxes, float).reshape(k, 7), list(classes), np.arange(k), heights, occ, trunc,
-                            kitti_difficulty(bbox, occ, trunc), np.full(k, -1), np.zeros((0, 7)), 0, kitti_calib(), np.zeros(3), f"{fid}.txt")
+    return GroundTruthFrame(
+        fid,
+        np.asarray(boxes, float).reshape(k, 7),
+        list(classes),
+        np.arange(k),
+        heights,
+        occ,
+        trunc,
+        kitti_difficulty(bbox, occ, trunc),
+        np.full(k, -1),
+        np.zeros((0, 7)),
+        0,
+        kitti_calib(),
+        np.zeros(3),
+        f"{fid}.txt",
+    )
 
 
 def _dets_like(gt: GroundTruth, boxes, classes, scores, heights, cov=None) -> Detections:
     n = len(scores)
-    return Detections(gt.gt_off.copy() if n == len(gt.boxes) else np.array([0, n]), np.asarray(boxes, float).reshape(n, 7), list(classes),
-                      np.asarray(scores, float), np.asarray(heights, float), cov, "phi", np.zeros(n, bool) if cov is None else ~np.isnan(cov).any(axis=(1, 2)),
-                      [f"det {i}" for i in range(n)], "kitti")
+    return Detections(
+        gt.gt_off.copy() if n == len(gt.boxes) else np.array([0, n]),
+        np.asarray(boxes, float).reshape(n, 7),
+        list(classes),
+        np.asarray(scores, float),
+        np.asarray(heights, float),
+        cov,
+        "phi",
+        np.zeros(n, bool) if cov is None else ~np.isnan(cov).any(axis=(1, 2)),
+        [f"det {i}" for i in range(n)],
+        "kitti",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -220,7 +289,9 @@ def fed_back():
         frames.append(_gt_frame(f"{f:06d}", boxes, classes, heights, occ))
     gt = GroundTruth.from_frames("kitti", frames)
     covs = np.stack([posterior(b, int(rng.integers(3, 60)), seed=i).cov for i, b in enumerate(gt.boxes)])
-    jg = np.array([jiou_gt(type("P", (), {"box": b, "model": "bev", "cov": c})(), CFG.spatial) for b, c in zip(gt.boxes, covs)])
+    jg = np.array(
+        [jiou_gt(type("P", (), {"box": b, "model": "bev", "cov": c})(), CFG.spatial) for b, c in zip(gt.boxes, covs)]
+    )
     labels = LabelSet(covs, jg, ["ok"] * len(jg), np.ones(len(jg), bool), "bev", "results", Path("mem"))
     dets = _dets_like(gt, gt.boxes, gt.class_names, np.ones(len(gt.boxes)), gt.height)
     return gt, dets, labels, evaluate(gt, dets, labels, ("Car", "Pedestrian", "Cyclist"), "bev", CFG, workers=1)
@@ -249,9 +320,17 @@ def test_ground_truth_fed_back_gives_ap_100(fed_back):
 
 def test_map_is_the_mean_over_the_thresholds(fed_back):
     result = fed_back[3]
-    recs = [r for r in result.summary["ap"] if r["class"] == "Car" and r["difficulty"] == "moderate" and r["metric"] == "jiou" and r["interp"] == "R40"]
+    recs = [
+        r
+        for r in result.summary["ap"]
+        if r["class"] == "Car" and r["difficulty"] == "moderate" and r["metric"] == "jiou" and r["interp"] == "R40"
+    ]
     want = np.mean([r["ap"] for r in recs if r["threshold"] in C.EVAL_MAP_THRESHOLDS])
-    got = next(m for m in result.summary["map"] if m["class"] == "Car" and m["difficulty"] == "moderate" and m["metric"] == "jiou" and m["interp"] == "R40")
+    got = next(
+        m
+        for m in result.summary["map"]
+        if m["class"] == "Car" and m["difficulty"] == "moderate" and m["metric"] == "jiou" and m["interp"] == "R40"
+    )
     assert got["map"] == pytest.approx(want, abs=1e-3)
     assert thresholds_for("Car") == list(C.EVAL_MAP_THRESHOLDS)
 
@@ -299,7 +378,9 @@ def test_eval_dir_is_read_by_the_report(fed_back, tmp_path):
     section = read_eval_dir(tmp_path / "ev")
     assert section.ap_columns == ["easy", "moderate", "hard"]
     assert {row["metric"] for row in section.ap_rows} == {"iou", "jiou", "jiou_ratio"}
-    assert all(c["ap"] == pytest.approx(100.0) for row in section.ap_rows if row["metric"] == "iou" for c in row["cells"])
+    assert all(
+        c["ap"] == pytest.approx(100.0) for row in section.ap_rows if row["metric"] == "iou" for c in row["cells"]
+    )
     assert {name for name, _ in section.plots} >= {"ap_vs_threshold.png", "pr_curves.png", "mean_overlap_distance.png"}
 
 
@@ -313,12 +394,18 @@ def test_localisation_noise_lowers_iou_ap_and_jiou_ratio_recovers_part_of_it():
         frames.append(_gt_frame(f"{f:06d}", boxes, ["Car"] * 4, [60.0] * 4))
     gt = GroundTruth.from_frames("kitti", frames)
     covs = np.stack([posterior(b, 5, seed=i).cov for i, b in enumerate(gt.boxes)])
-    jg = np.array([jiou_gt(type("P", (), {"box": b, "model": "bev", "cov": c})(), CFG.spatial) for b, c in zip(gt.boxes, covs)])
+    jg = np.array(
+        [jiou_gt(type("P", (), {"box": b, "model": "bev", "cov": c})(), CFG.spatial) for b, c in zip(gt.boxes, covs)]
+    )
     labels = LabelSet(covs, jg, ["ok"] * len(jg), np.ones(len(jg), bool), "bev", "results", Path("mem"))
     noisy = gt.boxes + np.c_[rng.normal(0, 0.25, (len(gt.boxes), 2)), np.zeros((len(gt.boxes), 5))]
     dets = _dets_like(gt, noisy, gt.class_names, rng.uniform(0.5, 1, len(noisy)), gt.height)
     s = evaluate(gt, dets, labels, ("Car",), "bev", CFG, workers=1).summary
-    ap = {(r["metric"], r["threshold"]): r["ap"] for r in s["ap"] if r["difficulty"] == "moderate" and r["interp"] == "R40"}
+    ap = {
+        (r["metric"], r["threshold"]): r["ap"]
+        for r in s["ap"]
+        if r["difficulty"] == "moderate" and r["interp"] == "R40"
+    }
     assert ap[("iou", 0.7)] < 100
     for t in C.EVAL_MAP_THRESHOLDS:
         assert ap[("jiou_ratio", t)] >= ap[("jiou", t)]
@@ -331,19 +418,39 @@ def test_localisation_noise_lowers_iou_ap_and_jiou_ratio_recovers_part_of_it():
 @pytest.fixture()
 def tiny_kitti(tmp_path) -> tuple[Path, Path]:
     calib = kitti_calib()
-    dontcare_real = label_line("DontCare", [40.0, 10.0, -0.9, 6.0, 6.0, 2.0, 0.0]).replace("DontCare 0.0 0", "DontCare -1 -1")
-    data = write_kitti(tmp_path / "kitti", {
-        "000000": [label_line("Car", CAR), label_line("Van", VAN), "DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10"],
-        "000001": [label_line("Car", CAR2), label_line("Pedestrian", [9.0, -3.0, -0.9, 0.8, 0.6, 1.7, 1.0]), dontcare_real],
-        "000002": [label_line("Car", CAR, height_px=20.0)],
-    }, calib)
+    dontcare_real = label_line("DontCare", [40.0, 10.0, -0.9, 6.0, 6.0, 2.0, 0.0]).replace(
+        "DontCare 0.0 0", "DontCare -1 -1"
+    )
+    data = write_kitti(
+        tmp_path / "kitti",
+        {
+            "000000": [
+                label_line("Car", CAR),
+                label_line("Van", VAN),
+                "DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10",
+            ],
+            "000001": [
+                label_line("Car", CAR2),
+                label_line("Pedestrian", [9.0, -3.0, -0.9, 0.8, 0.6, 1.7, 1.0]),
+                dontcare_real,
+            ],
+            "000002": [label_line("Car", CAR, height_px=20.0)],
+        },
+        calib,
+    )
     moved = np.array(CAR2) + [0.15, 0.05, 0, 0, 0, 0, 0.02]
-    dets = write_dets(tmp_path / "dets", {
-        "000000": [label_line("Car", CAR, score=9.5), label_line("Car", VAN, score=3.0)],
-        "000001": [label_line("Car", moved, score=4.0), label_line("Car", [40.0, 10.0, -0.9, 4.0, 1.8, 1.5, 0.3], score=2.0),
-                   label_line("Pedestrian", [9.05, -3.0, -0.9, 0.8, 0.6, 1.7, 1.0], score=0.8)],
-        "000002": [],
-    })
+    dets = write_dets(
+        tmp_path / "dets",
+        {
+            "000000": [label_line("Car", CAR, score=9.5), label_line("Car", VAN, score=3.0)],
+            "000001": [
+                label_line("Car", moved, score=4.0),
+                label_line("Car", [40.0, 10.0, -0.9, 4.0, 1.8, 1.5, 0.3], score=2.0),
+                label_line("Pedestrian", [9.05, -3.0, -0.9, 0.8, 0.6, 1.7, 1.0], score=0.8),
+            ],
+            "000002": [],
+        },
+    )
     return data, dets
 
 
@@ -361,11 +468,24 @@ def test_cli_eval_writes_eval_dir_and_json_equals_summary(tiny_kitti, tmp_path):
         assert (out / name).stat().st_size > 10_000
     t = pq.read_table(out / "detections.parquet")
     assert t.num_rows == 5
-    for col in ("frame_id", "class_name", "score", "matched_object_index", "iou", "jiou", "jiou_ratio", "jiou_gt", "outcome_iou_moderate", "outcome_jiou_ratio_hard"):
+    for col in (
+        "frame_id",
+        "class_name",
+        "score",
+        "matched_object_index",
+        "iou",
+        "jiou",
+        "jiou_ratio",
+        "jiou_gt",
+        "outcome_iou_moderate",
+        "outcome_jiou_ratio_hard",
+    ):
         assert col in t.column_names
     rows = t.to_pylist()
     assert rows[0]["outcome_iou_moderate"] == "tp" and rows[0]["iou"] == pytest.approx(1.0)
-    assert rows[1]["outcome_iou_moderate"] == "ignored" and rows[1]["matched_class"] == "Van"  # Car on a Van: neighbour class
+    assert (
+        rows[1]["outcome_iou_moderate"] == "ignored" and rows[1]["matched_class"] == "Van"
+    )  # Car on a Van: neighbour class
     assert rows[3]["outcome_iou_moderate"] == "dontcare"  # inside the DontCare region with a 3D box
     assert doc["counts"]["dontcare_rows"] == 2 and doc["counts"]["dontcare_regions_3d"] == 1
     assert doc["counts"]["frames"] == 3 and doc["counts"]["detections"] == 5
@@ -448,7 +568,9 @@ def test_missing_score_and_bad_size(tiny_kitti):
     (dets / "000002.txt").write_text(label_line("Car", CAR) + "\n")  # 15 columns: no score
     r = invoke("eval", data, dets)
     assert r.exit_code == 2 and "000002.txt:1: field 'score': missing" in r.stderr
-    (dets / "000002.txt").write_text(label_line("Car", CAR, score=1.0).replace(" 1.5 1.7 4.0 ", " 1.5 -1.7 4.0 ") + "\n")
+    (dets / "000002.txt").write_text(
+        label_line("Car", CAR, score=1.0).replace(" 1.5 1.7 4.0 ", " 1.5 -1.7 4.0 ") + "\n"
+    )
     r = invoke("eval", data, dets)
     assert r.exit_code == 2 and "000002.txt:1: field 'width': expected a box size > 0" in r.stderr
 
@@ -456,7 +578,9 @@ def test_missing_score_and_bad_size(tiny_kitti):
 def test_missing_files_and_unknown_frames_are_counted(tiny_kitti):
     data, dets = tiny_kitti
     (dets / "000002.txt").unlink()
-    (dets / "000777.txt").write_text(label_line("Car", CAR, score=1.0) + "\n" + label_line("Car", CAR2, score=1.0) + "\n")
+    (dets / "000777.txt").write_text(
+        label_line("Car", CAR, score=1.0) + "\n" + label_line("Car", CAR2, score=1.0) + "\n"
+    )
     r = invoke("eval", data, dets, "--format", "json", "--workers", "1")
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
@@ -553,13 +677,20 @@ def test_waymo_ground_truth_equals_the_readers_and_objects_round_trip(tmp_path):
         assert gt.frame_ids == [f.frame_id for f in frames]
         np.testing.assert_array_equal(gt.boxes, np.concatenate([f.boxes for f in frames]))
         assert gt.class_names == [n for f in frames for n in f.class_names]
-        np.testing.assert_allclose(gt.distance, np.concatenate([np.hypot(f.boxes[:, 0] - f.sensor_origin[0], f.boxes[:, 1] - f.sensor_origin[1]) for f in frames]))
+        np.testing.assert_allclose(
+            gt.distance,
+            np.concatenate(
+                [np.hypot(f.boxes[:, 0] - f.sensor_origin[0], f.boxes[:, 1] - f.sensor_origin[1]) for f in frames]
+            ),
+        )
     gt = gts["waymo-v2"]
     np.testing.assert_array_equal(gt.boxes, gts["waymo-v1"].boxes)
     types = {"Vehicle": 1, "Pedestrian": 2, "Cyclist": 4}
     keep = [i for i, n in enumerate(gt.class_names) if n in types]
     fids = [gt.frame_ids[f] for f in gt.frame_of_row[keep]]
-    path = write_waymo_objects(tmp_path / "preds.bin", fids, gt.boxes[keep], [types[gt.class_names[i]] for i in keep], np.full(len(keep), 0.9))
+    path = write_waymo_objects(
+        tmp_path / "preds.bin", fids, gt.boxes[keep], [types[gt.class_names[i]] for i in keep], np.full(len(keep), 0.9)
+    )
     d = read_detections(path, gt)
     assert d.format == "waymo" and d.num == len(keep) > 0
     np.testing.assert_allclose(d.boxes, gt.boxes[keep], atol=1e-12)
@@ -574,7 +705,9 @@ def test_kitti_ground_truth_equals_the_reader(tiny_kitti):
     reader = open_dataset(data, "kitti")
     frames = [reader.load_frame(fid) for fid in gt.frame_ids]
     np.testing.assert_array_equal(gt.boxes, np.concatenate([f.boxes for f in frames]))
-    assert [f"{gt.frame_ids[f]}:{i}" for f, i in zip(gt.frame_of_row, gt.object_index)] == [o for f in frames for o in f.object_ids]
+    assert [f"{gt.frame_ids[f]}:{i}" for f, i in zip(gt.frame_of_row, gt.object_index)] == [
+        o for f in frames for o in f.object_ids
+    ]
     np.testing.assert_array_equal(gt.difficulty, np.concatenate([f.extras["difficulty"] for f in frames]))
 
 
@@ -601,7 +734,9 @@ def test_synthetic_detector_is_deterministic_and_scores_follow_quality(tmp_path)
     from labelaudit.sim.manifest import read_manifest
 
     m = read_manifest(root).to_pydict()
-    true = np.stack([np.asarray(m[f"true_{n}"]) for n in ("cx", "cy", "cz", "length", "width", "height", "yaw")], axis=1)
+    true = np.stack(
+        [np.asarray(m[f"true_{n}"]) for n in ("cx", "cy", "cz", "length", "width", "height", "yaw")], axis=1
+    )
     best = []
     for i in range(d.num):
         fid = gt.frame_ids[d.frame_of_row[i]]
@@ -615,13 +750,31 @@ def test_cli_simulate_with_detections_then_eval(tmp_path):
     root = tmp_path / "sim"
     r = invoke("simulate", root, "--frames", "4", "--detections", "--detections-cov", "-q")
     assert r.exit_code == 0, r.output
-    assert (root / "detections" / "000003.txt").is_file() and (root / "detections.parquet").is_file() and "labelaudit eval" in r.stderr
+    assert (
+        (root / "detections" / "000003.txt").is_file()
+        and (root / "detections.parquet").is_file()
+        and "labelaudit eval" in r.stderr
+    )
     r = invoke("simulate", tmp_path / "x", "--frames", "2", "--detections-cov", "-q")
     assert r.exit_code == 2 and "--detections" in r.stderr
     # a probabilistic detector: its own distributions against the same boxes as deterministic ones
     assert invoke("infer", root, "-o", tmp_path / "res", "-q", "--workers", "1").exit_code == 0
     out = tmp_path / "ev"
-    r = invoke("eval", root, root / "detections.parquet", "--results", tmp_path / "res", "--classes", "Car", "-o", out, "--format", "json", "--workers", "1")
+    r = invoke(
+        "eval",
+        root,
+        root / "detections.parquet",
+        "--results",
+        tmp_path / "res",
+        "--classes",
+        "Car",
+        "-o",
+        out,
+        "--format",
+        "json",
+        "--workers",
+        "1",
+    )
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
     assert doc["counts"]["probabilistic_detections"] == doc["counts"]["detections"] > 0
@@ -653,13 +806,16 @@ def test_real_pointgnn_detections_on_kitti(realdata, tmp_path):
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
     c = doc["counts"]
-    assert c["frames"] == 6 and c["detections"] == 6 and c["missing_detection_files"] == 2  # 000000, 000003 have no results
+    assert (
+        c["frames"] == 6 and c["detections"] == 6 and c["missing_detection_files"] == 2
+    )  # 000000, 000003 have no results
     assert doc["classes"] == ["Car"]
     t = pq.read_table(out / "detections.parquet").to_pylist()
     matched = [row for row in t if row["matched_object_index"] is not None]
     assert len(matched) == 4  # 000001, 000002 and both cars of 000004
     unmatched = {(row["frame_id"], round(row["score"], 2)) for row in t if row["matched_object_index"] is None}
     assert unmatched == {("000001", 18.88), ("000004", 0.62)}
+
     # IoU against the matched GT, as the devkit computes it: in the camera frame's x–z plane
     def polygon(l, w, x, z, ry):
         c, s = np.cos(ry), np.sin(ry)
@@ -677,7 +833,11 @@ def test_real_pointgnn_detections_on_kitti(realdata, tmp_path):
         assert row["iou"] == pytest.approx(inter / (pg.area + pd_.area - inter), abs=2e-3)
         assert 0 < row["jiou"] <= row["iou"] + 0.01
     # devkit: 3 Cars count at Moderate (000002, 000003, and the near car of 000004), 2 are found
-    mod = next(x for x in doc["ap"] if x["metric"] == "iou" and x["difficulty"] == "moderate" and x["threshold"] == 0.7 and x["interp"] == "R40")
+    mod = next(
+        x
+        for x in doc["ap"]
+        if x["metric"] == "iou" and x["difficulty"] == "moderate" and x["threshold"] == 0.7 and x["interp"] == "R40"
+    )
     assert mod["num_gt"] == 3 and mod["max_recall"] == pytest.approx(2 / 3) and mod["ap"] == pytest.approx(2.5)
 
 
@@ -689,11 +849,25 @@ def test_real_waymo_objects_file(realdata, tmp_path):
     assert d.num == 1 and d.class_names == ["Vehicle"] and d.scores[0] == pytest.approx(0.8)
     v = gt.class_names.index("Vehicle")
     assert bev_iou_exact(d.boxes[0], gt.boxes[v]) > 0.95
-    r = invoke("eval", base / "validation" / "val.tfrecord", base / "gt.bin", "--format", "json", "--workers", "1", "-o", tmp_path / "ev")
+    r = invoke(
+        "eval",
+        base / "validation" / "val.tfrecord",
+        base / "gt.bin",
+        "--format",
+        "json",
+        "--workers",
+        "1",
+        "-o",
+        tmp_path / "ev",
+    )
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
     assert doc["metric"]["difficulties"] == ["level_1", "level_2"] and doc["classes"] == ["Vehicle"]
-    rec = next(x for x in doc["ap"] if x["metric"] == "iou" and x["difficulty"] == "level_2" and x["interp"] == "R40" and x["threshold"] == 0.7)
+    rec = next(
+        x
+        for x in doc["ap"]
+        if x["metric"] == "iou" and x["difficulty"] == "level_2" and x["interp"] == "R40" and x["threshold"] == 0.7
+    )
     assert rec["num_gt"] == 1 and rec["max_recall"] == 1.0
 
 

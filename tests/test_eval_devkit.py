@@ -33,7 +33,9 @@ def pitched_calib(pitch: float = PITCH) -> Calibration:
 
 
 def line(loc, hwl, ry, score=None) -> str:
-    return format_label_line("Car", 0.0, 0, 0.0, [100.0, 100.0, 200.0, 200.0], hwl, loc, ry, score=score, precision=None)
+    return format_label_line(
+        "Car", 0.0, 0, 0.0, [100.0, 100.0, 200.0, 200.0], hwl, loc, ry, score=score, precision=None
+    )
 
 
 def write_frame(root: Path, gt_lines: list[str], det_lines: list[str], calib: Calibration) -> tuple[Path, Path]:
@@ -92,7 +94,9 @@ def test_lidar_and_camera_frames_disagree_and_the_camera_frame_is_the_devkits():
     ry = np.array([-np.pi / 2] * 2)
     lidar = boxes_camera_to_lidar(loc, hwl, ry, calib)
     devkit = kitti_devkit_boxes(lidar, [0, 0], [calib])
-    np.testing.assert_allclose(devkit, camera_frame_boxes(loc, hwl, ry), atol=1e-9)  # exact inverse of the label conversion
+    np.testing.assert_allclose(
+        devkit, camera_frame_boxes(loc, hwl, ry), atol=1e-9
+    )  # exact inverse of the label conversion
     _, cam3, _ = pair_overlaps(devkit, devkit, [1], [0], "3d")
     _, lid3, _ = pair_overlaps(lidar, lidar, [1], [0], "3d")
     assert cam3[0] == pytest.approx(3.3 / 4.7, abs=1e-9)
@@ -107,7 +111,7 @@ def test_kitti_devkit_boxes_use_each_frames_calibration_and_refuse_a_missing_one
     loc, hwl, ry = np.array([[1.0, 1.6, 15.0]]), np.array([[1.5, 1.6, 4.0]]), np.array([0.4])
     boxes = np.r_[boxes_camera_to_lidar(loc, hwl, ry, a), boxes_camera_to_lidar(loc, hwl, ry, b)]
     out = kitti_devkit_boxes(boxes[::-1], [1, 0], [a, b])  # rows of frames out of order
-    np.testing.assert_allclose(out, np.r_[camera_frame_boxes(loc, hwl, ry)] .repeat(2, axis=0), atol=1e-9)
+    np.testing.assert_allclose(out, np.r_[camera_frame_boxes(loc, hwl, ry)].repeat(2, axis=0), atol=1e-9)
     with pytest.raises(ValueError, match="no KITTI calibration"):
         kitti_devkit_boxes(boxes, [0, 1], [a, None])
 
@@ -119,14 +123,21 @@ def test_eval_3d_takes_the_height_overlap_along_camera_y(tmp_path):
     # The case above as files: the devkit counts the detection at Car 0.7 (3D IoU 0.702); heights
     # compared on LiDAR z (0.6966) would make it a false positive and the AP 0.
     calib = pitched_calib()
-    root, dets = write_frame(tmp_path, [line([0.0, 1.6, 20.0], [1.5, 1.6, 4.0], -np.pi / 2)],
-                             [line([0.0, 1.6, 20.7], [1.5, 1.6, 4.0], -np.pi / 2, score=0.9)], calib)
+    root, dets = write_frame(
+        tmp_path,
+        [line([0.0, 1.6, 20.0], [1.5, 1.6, 4.0], -np.pi / 2)],
+        [line([0.0, 1.6, 20.7], [1.5, 1.6, 4.0], -np.pi / 2, score=0.9)],
+        calib,
+    )
     gt, d, res = iou_only(root, dets, "3d")
     table = res.detections_table.to_pylist()
     assert table[0]["iou"] == pytest.approx(3.3 / 4.7, abs=1e-9)
     rec = {(r["difficulty"], r["threshold"], r["interp"]): r for r in res.summary["ap"]}
     # one GT: the devkit's 41 recall samples hold one point (precision 1 at sample 0), so R11 is 100/11
-    assert rec[("easy", 0.7, "R11")]["ap"] == pytest.approx(100.0 / 11, abs=1e-3) and rec[("easy", 0.7, "R11")]["max_recall"] == 1.0
+    assert (
+        rec[("easy", 0.7, "R11")]["ap"] == pytest.approx(100.0 / 11, abs=1e-3)
+        and rec[("easy", 0.7, "R11")]["max_recall"] == 1.0
+    )
     assert rec[("easy", 0.75, "R11")]["ap"] == 0.0
     # the LiDAR-frame boxes of the same run disagree (what the 3D AP used to be computed on)
     _, lid3, _ = pair_overlaps(d.boxes, gt.boxes, [0], [0], "3d")
@@ -154,8 +165,22 @@ def test_waymo_keeps_its_vehicle_frame_boxes():
     from labelaudit.datasets.gt import GroundTruth, GroundTruthFrame
 
     box = np.array([[10.0, 1.0, 0.5, 4.5, 2.0, 1.6, 0.2]])
-    f = GroundTruthFrame("seg:1", box, ["Vehicle"], np.arange(1), np.full(1, np.nan), np.full(1, -1), np.full(1, np.nan),
-                         np.ones(1, np.int8), np.full(1, 50), np.zeros((0, 7)), 0, None, np.zeros(3), "x")
+    f = GroundTruthFrame(
+        "seg:1",
+        box,
+        ["Vehicle"],
+        np.arange(1),
+        np.full(1, np.nan),
+        np.full(1, -1),
+        np.full(1, np.nan),
+        np.ones(1, np.int8),
+        np.full(1, 50),
+        np.zeros((0, 7)),
+        0,
+        None,
+        np.zeros(3),
+        "x",
+    )
     gt = GroundTruth.from_frames("waymo-v2", [f])
 
     class _D:

@@ -42,7 +42,9 @@ def kitti_calib(p2_tx: float = 0.0) -> Calibration:
     """LiDAR → camera as KITTI (camera 0.27 m ahead of and 0.08 m below the LiDAR); image_2 offset ``p2_tx`` m along camera x."""
     K = np.array([[720.0, 0, 610.0], [0, 720.0, 175.0], [0, 0, 1]])
     swap = np.array([[0.0, -1, 0], [0, 0, -1], [1, 0, 0]])
-    return Calibration(P2=np.c_[K, K @ [p2_tx, 0.0, 0.0]], R0_rect=np.eye(3), Tr_velo_to_cam=np.c_[swap, [0.0, 0.08, -0.27]])
+    return Calibration(
+        P2=np.c_[K, K @ [p2_tx, 0.0, 0.0]], R0_rect=np.eye(3), Tr_velo_to_cam=np.c_[swap, [0.0, 0.08, -0.27]]
+    )
 
 
 # --------------------------------------------------------------------------- the camera
@@ -71,18 +73,24 @@ def test_waymo_and_av2_cameras_are_constants_and_kitti_needs_calibration():
 
 
 def test_longitudinal_affinity_by_hand():
-    G = np.array([[10.0, 0, 0], [10.0, 0, 0], [10.0, 0, 0], [3.0, 0, 0], [3.0, 0, 0], [10.0, 0, 0], [10.0, 0, 0], [0.0, 0, 0]])
-    P = np.array([
-        [10.0, 0, 0],     # exact: a = 1
-        [10.5, 0, 0],     # 0.5 m long of 1.0 m tolerance (10 % of 10 m): a = 0.5
-        [10.0, 3.0, 0],   # lateral error only: G·P/r = 10, a = 1
-        [3.25, 0, 0],     # near: tolerance is the 0.5 m floor, 0.25 m error: a = 0.5
-        [2.0, 0, 0],      # 1 m short of a 0.5 m tolerance: a = 0
-        [-10.0, 0, 0],    # behind the camera: e = 20 m, a = 0
-        [9.2, 0, 0],      # 0.8 m short: a = 0.2
-        [0.2, 0, 0],      # GT at the camera: r = ε, tolerance 0.5 m, e ≈ 0: a = 1
-    ])
-    np.testing.assert_allclose(longitudinal_affinity(G, P), [1.0, 0.5, 1.0, 0.5, 0.0, 0.0, 0.2, 1.0 - 1e-6 / 0.5], atol=1e-9)
+    G = np.array(
+        [[10.0, 0, 0], [10.0, 0, 0], [10.0, 0, 0], [3.0, 0, 0], [3.0, 0, 0], [10.0, 0, 0], [10.0, 0, 0], [0.0, 0, 0]]
+    )
+    P = np.array(
+        [
+            [10.0, 0, 0],  # exact: a = 1
+            [10.5, 0, 0],  # 0.5 m long of 1.0 m tolerance (10 % of 10 m): a = 0.5
+            [10.0, 3.0, 0],  # lateral error only: G·P/r = 10, a = 1
+            [3.25, 0, 0],  # near: tolerance is the 0.5 m floor, 0.25 m error: a = 0.5
+            [2.0, 0, 0],  # 1 m short of a 0.5 m tolerance: a = 0
+            [-10.0, 0, 0],  # behind the camera: e = 20 m, a = 0
+            [9.2, 0, 0],  # 0.8 m short: a = 0.2
+            [0.2, 0, 0],  # GT at the camera: r = ε, tolerance 0.5 m, e ≈ 0: a = 1
+        ]
+    )
+    np.testing.assert_allclose(
+        longitudinal_affinity(G, P), [1.0, 0.5, 1.0, 0.5, 0.0, 0.0, 0.2, 1.0 - 1e-6 / 0.5], atol=1e-9
+    )
 
 
 def test_affinity_falls_with_the_longitudinal_error_and_is_symmetric():
@@ -149,10 +157,16 @@ def test_waymo_average_precision_by_hand():
 def test_waymo_average_precision_gives_the_answers_waymo_tests_its_own_with():
     # the cases of waymo-open-dataset's metrics_utils_test (ComputeMeanAveragePrecision), as numbers
     assert waymo_average_precision([0.1], [0.2], 0.05) == pytest.approx(0.2 * 0.1, abs=1e-6)
-    assert waymo_average_precision([0.1, 0.05], [0.2, 1.0], 0.05) == pytest.approx(0.05 * 0.8 + 0.1 * 0.2 + (0.1 - 0.05) * 0.5 * 0.05, abs=1e-6)
-    assert waymo_average_precision([0.1, 0.05], [0.2, 1.0], 1.0) == pytest.approx(0.2 * 0.1 + 0.5 * (0.1 + 0.05) * 0.8, abs=1e-6)
+    assert waymo_average_precision([0.1, 0.05], [0.2, 1.0], 0.05) == pytest.approx(
+        0.05 * 0.8 + 0.1 * 0.2 + (0.1 - 0.05) * 0.5 * 0.05, abs=1e-6
+    )
+    assert waymo_average_precision([0.1, 0.05], [0.2, 1.0], 1.0) == pytest.approx(
+        0.2 * 0.1 + 0.5 * (0.1 + 0.05) * 0.8, abs=1e-6
+    )
     # a lower precision at recall 0.4 changes nothing (the running maximum from recall 1 down)
-    assert waymo_average_precision([0.1, 0.0, 0.05], [0.2, 0.4, 1.0], 0.05) == pytest.approx(0.05 * 0.8 + 0.1 * 0.2 + (0.1 - 0.05) * 0.5 * 0.05, abs=1e-6)
+    assert waymo_average_precision([0.1, 0.0, 0.05], [0.2, 0.4, 1.0], 0.05) == pytest.approx(
+        0.05 * 0.8 + 0.1 * 0.2 + (0.1 - 0.05) * 0.5 * 0.05, abs=1e-6
+    )
 
 
 def test_score_cutoffs_are_hundredths():
@@ -163,14 +177,27 @@ def test_score_cutoffs_are_hundredths():
 # --------------------------------------------------------------------------- matching
 
 
-def _curves(gt_boxes, gt_cls, det_boxes, det_cls, scores, origin=(0.0, 0.0, 0.0), frames=None, det_frames=None, counted=None):
+def _curves(
+    gt_boxes, gt_cls, det_boxes, det_cls, scores, origin=(0.0, 0.0, 0.0), frames=None, det_frames=None, counted=None
+):
     n, m = len(gt_boxes), len(det_boxes)
     gf = np.zeros(n, np.int64) if frames is None else np.asarray(frames)
     df = np.zeros(m, np.int64) if det_frames is None else np.asarray(det_frames)
     nf = int(max(gf.max(initial=0), df.max(initial=0))) + 1
     cnt = np.ones((1, n), bool) if counted is None else np.asarray(counted)
-    return let_curves(np.asarray(gt_boxes, float), gf, gt_cls, cnt, np.ones(n, bool), np.asarray(det_boxes, float), df, det_cls,
-                      np.asarray(scores, float), np.tile(np.asarray(origin, float), (nf, 1)), sorted(set(gt_cls) | set(det_cls)))
+    return let_curves(
+        np.asarray(gt_boxes, float),
+        gf,
+        gt_cls,
+        cnt,
+        np.ones(n, bool),
+        np.asarray(det_boxes, float),
+        df,
+        det_cls,
+        np.asarray(scores, float),
+        np.tile(np.asarray(origin, float), (nf, 1)),
+        sorted(set(gt_cls) | set(det_cls)),
+    )
 
 
 def test_hungarian_maximises_the_sum_where_greedy_by_score_would_not():
@@ -209,7 +236,9 @@ def test_no_match_below_the_let_iou_threshold_or_without_affinity_or_across_clas
 
 def test_matching_is_per_frame_and_score_cutoffs_drop_low_scores():
     g = [20.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0]
-    cur = _curves([g, g], ["Car", "Car"], [g, g], ["Car", "Car"], [0.25, 0.75], frames=[0, 1], det_frames=[1, 0])[("Car", 0)]
+    cur = _curves([g, g], ["Car", "Car"], [g, g], ["Car", "Car"], [0.25, 0.75], frames=[0, 1], det_frames=[1, 0])[
+        ("Car", 0)
+    ]
     cut = score_cutoffs()
     np.testing.assert_array_equal(cur.tp, np.where(cut <= 0.25, 2, np.where(cut <= 0.75, 1, 0)))
     np.testing.assert_array_equal(cur.fn, 2 - cur.tp)
@@ -244,7 +273,17 @@ def _scene(rng: np.random.Generator, n_frames: int, origin: np.ndarray) -> list[
         k = int(rng.integers(3, 7))
         xs = rng.uniform(8, 60, k)
         ys = np.linspace(-25, 25, k) + rng.uniform(-1, 1, k)  # apart: no two boxes touch
-        frames.append(np.c_[xs, ys, np.full(k, -0.8), rng.uniform(3.8, 4.8, k), rng.uniform(1.6, 2.0, k), rng.uniform(1.4, 1.7, k), rng.uniform(-np.pi, np.pi, k)])
+        frames.append(
+            np.c_[
+                xs,
+                ys,
+                np.full(k, -0.8),
+                rng.uniform(3.8, 4.8, k),
+                rng.uniform(1.6, 2.0, k),
+                rng.uniform(1.4, 1.7, k),
+                rng.uniform(-np.pi, np.pi, k),
+            ]
+        )
     return frames
 
 
@@ -258,8 +297,24 @@ def _waymo_gt(frames: list[np.ndarray], fmt: str = "waymo-v2", cls: str = "Vehic
     fs = []
     for i, b in enumerate(frames):
         k = len(b)
-        fs.append(GroundTruthFrame(f"seg:{i}", b, [cls] * k, np.arange(k), np.full(k, np.nan), np.full(k, -1), np.full(k, np.nan),
-                                   np.ones(k, np.int8), np.full(k, 100), np.zeros((0, 7)), 0, None, np.zeros(3), "mem"))
+        fs.append(
+            GroundTruthFrame(
+                f"seg:{i}",
+                b,
+                [cls] * k,
+                np.arange(k),
+                np.full(k, np.nan),
+                np.full(k, -1),
+                np.full(k, np.nan),
+                np.ones(k, np.int8),
+                np.full(k, 100),
+                np.zeros((0, 7)),
+                0,
+                None,
+                np.zeros(3),
+                "mem",
+            )
+        )
     return GroundTruth.from_frames(fmt, fs)
 
 
@@ -267,8 +322,18 @@ def _dets(gt: GroundTruth, frames: list[np.ndarray], cls: str) -> Detections:
     boxes = np.concatenate(frames)
     n = len(boxes)
     off = np.concatenate([[0], np.cumsum([len(b) for b in frames])]).astype(np.int64)
-    return Detections(det_off=off, boxes=boxes, class_names=[cls] * n, scores=np.full(n, 0.9), height=np.full(n, np.nan),
-                      cov=None, cov_on="phi", has_cov=np.zeros(n, bool), source=["mem"] * n, format="parquet")
+    return Detections(
+        det_off=off,
+        boxes=boxes,
+        class_names=[cls] * n,
+        scores=np.full(n, 0.9),
+        height=np.full(n, np.nan),
+        cov=None,
+        cov_on="phi",
+        has_cov=np.zeros(n, bool),
+        source=["mem"] * n,
+        format="parquet",
+    )
 
 
 def _labels(gt: GroundTruth) -> LabelSet:
@@ -277,8 +342,15 @@ def _labels(gt: GroundTruth) -> LabelSet:
 
 
 def _ap(summary, metric, cls, diff, threshold=None):
-    rec = [r for r in summary["ap"] if r["metric"] == metric and r["class"] == cls and r["difficulty"] == diff
-           and (threshold is None or r["threshold"] == threshold) and r["interp"] in ("waymo", "R40")]
+    rec = [
+        r
+        for r in summary["ap"]
+        if r["metric"] == metric
+        and r["class"] == cls
+        and r["difficulty"] == diff
+        and (threshold is None or r["threshold"] == threshold)
+        and r["interp"] in ("waymo", "R40")
+    ]
     assert len(rec) == 1, rec
     return rec[0]["ap"]
 
@@ -288,15 +360,36 @@ def test_waymo_gt_fed_back_then_pushed_five_percent_along_the_line_of_sight():
     frames = _scene(np.random.default_rng(0), 60, origin)
     gt = _waymo_gt(frames)
     assert len(gt.boxes) > C.EVAL_RECALL_POINTS  # enough boxes for the devkit's R40 to reach 100
-    same = evaluate(gt, _dets(gt, frames, "Vehicle"), _labels(gt), ("Vehicle",), "3d", RunConfig(), metrics=("iou",), workers=1, let=True).summary
-    pushed = evaluate(gt, _dets(gt, [_push(b, origin, 1.05) for b in frames], "Vehicle"), _labels(gt), ("Vehicle",), "3d", RunConfig(),
-                      metrics=("iou",), workers=1, let=True).summary
+    same = evaluate(
+        gt,
+        _dets(gt, frames, "Vehicle"),
+        _labels(gt),
+        ("Vehicle",),
+        "3d",
+        RunConfig(),
+        metrics=("iou",),
+        workers=1,
+        let=True,
+    ).summary
+    pushed = evaluate(
+        gt,
+        _dets(gt, [_push(b, origin, 1.05) for b in frames], "Vehicle"),
+        _labels(gt),
+        ("Vehicle",),
+        "3d",
+        RunConfig(),
+        metrics=("iou",),
+        workers=1,
+        let=True,
+    ).summary
     for lvl in ("level_1", "level_2"):
         assert _ap(same, "let", "Vehicle", lvl) == pytest.approx(100.0)
         assert _ap(same, "let_apl", "Vehicle", lvl) == pytest.approx(100.0)
         assert _ap(same, "iou", "Vehicle", lvl, 0.7) == pytest.approx(100.0)
         assert _ap(pushed, "let", "Vehicle", lvl) == pytest.approx(100.0)
-        assert _ap(pushed, "let_apl", "Vehicle", lvl) == pytest.approx(50.0, abs=1.0)  # a = 0.5 beyond 5 m (≥ 0.5 nearer)
+        assert _ap(pushed, "let_apl", "Vehicle", lvl) == pytest.approx(
+            50.0, abs=1.0
+        )  # a = 0.5 beyond 5 m (≥ 0.5 nearer)
         assert _ap(pushed, "iou", "Vehicle", lvl, 0.7) < 5.0
     meta = pushed["metric"]["let"]
     assert meta["camera"] == list(C.EVAL_LET_WAYMO_CAMERA) and meta["min_let_iou"] == {"Vehicle": 0.5}
@@ -307,11 +400,22 @@ def test_argoverse2_ground_truth_uses_its_front_camera():
     origin = np.asarray(C.EVAL_LET_AV2_CAMERA)
     frames = _scene(np.random.default_rng(5), 45, origin)
     gt = _waymo_gt(frames, "av2", "REGULAR_VEHICLE")
-    s = evaluate(gt, _dets(gt, [_push(b, origin, 1.05) for b in frames], "REGULAR_VEHICLE"), _labels(gt), ("REGULAR_VEHICLE",), "3d", RunConfig(),
-                 metrics=("iou",), workers=1, let=True).summary
+    s = evaluate(
+        gt,
+        _dets(gt, [_push(b, origin, 1.05) for b in frames], "REGULAR_VEHICLE"),
+        _labels(gt),
+        ("REGULAR_VEHICLE",),
+        "3d",
+        RunConfig(),
+        metrics=("iou",),
+        workers=1,
+        let=True,
+    ).summary
     assert _ap(s, "let", "REGULAR_VEHICLE", "all") == pytest.approx(100.0)
     assert _ap(s, "let_apl", "REGULAR_VEHICLE", "all") == pytest.approx(50.0, abs=1.0)
-    assert s["metric"]["let"]["camera"] == list(C.EVAL_LET_AV2_CAMERA) and s["metric"]["let"]["min_let_iou"] == {"REGULAR_VEHICLE": 0.5}
+    assert s["metric"]["let"]["camera"] == list(C.EVAL_LET_AV2_CAMERA) and s["metric"]["let"]["min_let_iou"] == {
+        "REGULAR_VEHICLE": 0.5
+    }
 
 
 def test_the_camera_position_matters():
@@ -320,9 +424,31 @@ def test_the_camera_position_matters():
     origin = np.asarray(C.EVAL_LET_WAYMO_CAMERA)
     frames = _scene(np.random.default_rng(1), 10, origin)
     gt = _waymo_gt(frames)
-    on_ray = evaluate(gt, _dets(gt, [_push(b, origin, 1.05) for b in frames], "Vehicle"), _labels(gt), ("Vehicle",), "3d", RunConfig(), metrics=("iou",), workers=1, let=True).summary
-    off_ray = evaluate(gt, _dets(gt, [_push(b, np.zeros(3), 1.05) for b in frames], "Vehicle"), _labels(gt), ("Vehicle",), "3d", RunConfig(), metrics=("iou",), workers=1, let=True).summary
-    assert _ap(on_ray, "let_apl", "Vehicle", "level_2") != pytest.approx(_ap(off_ray, "let_apl", "Vehicle", "level_2"), abs=0.5)
+    on_ray = evaluate(
+        gt,
+        _dets(gt, [_push(b, origin, 1.05) for b in frames], "Vehicle"),
+        _labels(gt),
+        ("Vehicle",),
+        "3d",
+        RunConfig(),
+        metrics=("iou",),
+        workers=1,
+        let=True,
+    ).summary
+    off_ray = evaluate(
+        gt,
+        _dets(gt, [_push(b, np.zeros(3), 1.05) for b in frames], "Vehicle"),
+        _labels(gt),
+        ("Vehicle",),
+        "3d",
+        RunConfig(),
+        metrics=("iou",),
+        workers=1,
+        let=True,
+    ).summary
+    assert _ap(on_ray, "let_apl", "Vehicle", "level_2") != pytest.approx(
+        _ap(off_ray, "let_apl", "Vehicle", "level_2"), abs=0.5
+    )
 
 
 def _write_kitti(root: Path, frames: list[np.ndarray], calib: Calibration) -> Path:
@@ -330,7 +456,10 @@ def _write_kitti(root: Path, frames: list[np.ndarray], calib: Calibration) -> Pa
         (root / "training" / sub).mkdir(parents=True, exist_ok=True)
     for i, b in enumerate(frames):
         loc, dims, ry = boxes_lidar_to_camera(b, calib)
-        lines = [format_label_line("Car", 0.0, 0, 0.0, [100.0, 100.0, 200.0, 200.0], dims[k], loc[k], ry[k], precision=None) for k in range(len(b))]
+        lines = [
+            format_label_line("Car", 0.0, 0, 0.0, [100.0, 100.0, 200.0, 200.0], dims[k], loc[k], ry[k], precision=None)
+            for k in range(len(b))
+        ]
         (root / "training" / "label_2" / f"{i:06d}.txt").write_text("".join(x + "\n" for x in lines))
         (root / "training" / "calib" / f"{i:06d}.txt").write_text(format_calib(calib))
         (root / "training" / "velodyne" / f"{i:06d}.bin").write_bytes(b"")
@@ -341,7 +470,12 @@ def _write_dets(folder: Path, frames: list[np.ndarray], calib: Calibration) -> P
     folder.mkdir(parents=True, exist_ok=True)
     for i, b in enumerate(frames):
         loc, dims, ry = boxes_lidar_to_camera(b, calib)
-        lines = [format_label_line("Car", 0.0, 0, 0.0, [100.0, 100.0, 200.0, 200.0], dims[k], loc[k], ry[k], score=0.9, precision=None) for k in range(len(b))]
+        lines = [
+            format_label_line(
+                "Car", 0.0, 0, 0.0, [100.0, 100.0, 200.0, 200.0], dims[k], loc[k], ry[k], score=0.9, precision=None
+            )
+            for k in range(len(b))
+        ]
         (folder / f"{i:06d}.txt").write_text("".join(x + "\n" for x in lines))
     return folder
 
@@ -353,12 +487,16 @@ def test_kitti_files_fed_back_then_pushed_from_the_image_2_camera(tmp_path):
     root = _write_kitti(tmp_path / "kitti", frames, calib)
     gt = load_ground_truth(root, "kitti")
     for name, factor in (("same", 1.0), ("pushed", 1.05)):
-        dets = read_detections(_write_dets(tmp_path / name, [_push(b, cam, factor) for b in frames], calib), gt, view="3d")
+        dets = read_detections(
+            _write_dets(tmp_path / name, [_push(b, cam, factor) for b in frames], calib), gt, view="3d"
+        )
         s = evaluate(gt, dets, _labels(gt), ("Car",), "3d", RunConfig(), metrics=("iou",), workers=1, let=True).summary
         for diff in ("easy", "moderate", "hard"):
             assert _ap(s, "let", "Car", diff) == pytest.approx(100.0)
             assert _ap(s, "let_apl", "Car", diff) == pytest.approx(100.0 if factor == 1.0 else 50.0, abs=1.0)
-            assert (_ap(s, "iou", "Car", diff, 0.7) > 99.0) if factor == 1.0 else (_ap(s, "iou", "Car", diff, 0.7) < 5.0)
+            assert (
+                (_ap(s, "iou", "Car", diff, 0.7) > 99.0) if factor == 1.0 else (_ap(s, "iou", "Car", diff, 0.7) < 5.0)
+            )
 
 
 def _kitti_pushed(tmp_path: Path, seed: int, n_frames: int) -> tuple[Path, Path]:
@@ -366,16 +504,22 @@ def _kitti_pushed(tmp_path: Path, seed: int, n_frames: int) -> tuple[Path, Path]
     calib = kitti_calib()
     cam = camera_centre(calib)
     frames = _scene(np.random.default_rng(seed), n_frames, cam)
-    return _write_kitti(tmp_path / "kitti", frames, calib), _write_dets(tmp_path / "dets", [_push(b, cam, 1.05) for b in frames], calib)
+    return _write_kitti(tmp_path / "kitti", frames, calib), _write_dets(
+        tmp_path / "dets", [_push(b, cam, 1.05) for b in frames], calib
+    )
 
 
 def test_cli_eval_let_json_and_table(tmp_path):
     root, dets = _kitti_pushed(tmp_path, 3, 8)
-    r = runner.invoke(app, ["eval", str(root), str(dets), "--let", "--format", "json", "--workers", "1", "--classes", "Car"])
+    r = runner.invoke(
+        app, ["eval", str(root), str(dets), "--let", "--format", "json", "--workers", "1", "--classes", "Car"]
+    )
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout)
     let = [x for x in doc["ap"] if x["metric"] in ("let", "let_apl")]
-    assert {(x["metric"], x["difficulty"]) for x in let} == {(m, d) for m in ("let", "let_apl") for d in ("easy", "moderate", "hard")}
+    assert {(x["metric"], x["difficulty"]) for x in let} == {
+        (m, d) for m in ("let", "let_apl") for d in ("easy", "moderate", "hard")
+    }
     assert all(x["interp"] == "waymo" and x["threshold"] == 0.5 and x["view"] == "3d" for x in let)
     r2 = runner.invoke(app, ["eval", str(root), str(dets), "--let", "--workers", "1", "--classes", "Car", "-q"])
     assert r2.exit_code == 0, r2.output
@@ -390,12 +534,16 @@ def test_eval_dir_with_let_is_read_by_the_report(tmp_path):
 
     root, dets = _kitti_pushed(tmp_path, 4, 6)
     out = tmp_path / "ev"
-    r = runner.invoke(app, ["eval", str(root), str(dets), "--let", "-o", str(out), "--workers", "1", "--classes", "Car", "-q"])
+    r = runner.invoke(
+        app, ["eval", str(root), str(dets), "--let", "-o", str(out), "--workers", "1", "--classes", "Car", "-q"]
+    )
     assert r.exit_code == 0, r.output
     sec = read_eval_dir(out)
     rows = {r["metric"]: r for r in sec.ap_rows if r["class"] == "Car"}
     assert rows["let"]["threshold"] == 0.5 and rows["iou"]["threshold"] == 0.7
-    assert [c["ap"] for c in rows["let"]["cells"]] == [100.0] * 3 and [c["ap"] for c in rows["let_apl"]["cells"]] == [pytest.approx(50.0, abs=1.0)] * 3
+    assert [c["ap"] for c in rows["let"]["cells"]] == [100.0] * 3 and [c["ap"] for c in rows["let_apl"]["cells"]] == [
+        pytest.approx(50.0, abs=1.0)
+    ] * 3
     doc = json.loads((out / "summary.json").read_text())
     next(x for x in doc["ap"] if x["metric"] == "let")["interp"] = "R40"  # LET is not sampled like the devkit
     (out / "summary.json").write_text(json.dumps(doc))

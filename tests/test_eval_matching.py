@@ -33,8 +33,12 @@ def evaluate_cell(frames, min_overlap=0.7):
     di = np.concatenate([np.asarray(f["det_ign"], np.int8) for f in frames])
     sc = np.concatenate([np.asarray(f["score"], float) for f in frames])
     dcs = [np.asarray(f.get("dc", np.zeros((len(f["score"]), 0))), float) for f in frames]
-    blocks = FrameBlocks.build([len(f["gt_ign"]) for f in frames], [len(f["score"]) for f in frames], [d.shape[1] for d in dcs],
-                               np.concatenate([d.reshape(-1) for d in dcs]) if dcs else np.zeros(0))
+    blocks = FrameBlocks.build(
+        [len(f["gt_ign"]) for f in frames],
+        [len(f["score"]) for f in frames],
+        [d.shape[1] for d in dcs],
+        np.concatenate([d.reshape(-1) for d in dcs]) if dcs else np.zeros(0),
+    )
     v, n_gt = first_pass(blocks, ov, gi, di, sc, min_overlap)
     ths = recall_thresholds(v, n_gt)
     tp, fp, fn = second_pass(blocks, ov, gi, di, sc, min_overlap, ths)
@@ -45,8 +49,12 @@ def evaluate_cell(frames, min_overlap=0.7):
 def frame(ov, gt_ign=None, det_ign=None, score=None, dc=None):
     ov = np.asarray(ov, float)
     d, k = ov.shape
-    f = {"ov": ov, "gt_ign": np.zeros(k) if gt_ign is None else gt_ign, "det_ign": np.zeros(d) if det_ign is None else det_ign,
-         "score": np.linspace(1.0, 0.5, d) if score is None else score}
+    f = {
+        "ov": ov,
+        "gt_ign": np.zeros(k) if gt_ign is None else gt_ign,
+        "det_ign": np.zeros(d) if det_ign is None else det_ign,
+        "score": np.linspace(1.0, 0.5, d) if score is None else score,
+    }
     if dc is not None:
         f["dc"] = np.asarray(dc, float)
     return f
@@ -172,7 +180,9 @@ def test_rule_ignored_gt_absorbs_a_detection():
 
 def test_rule_other_classes_are_not_evaluated():
     # gt_ign −1 (other class) cannot take a detection; det_ign −1 (other class) is never FP.
-    curve, n_gt, outcome, _ = evaluate_cell([frame([[0.9, 0.0], [0.0, 0.9]], gt_ign=[-1, 0], det_ign=[0, -1], score=[0.95, 0.9])])
+    curve, n_gt, outcome, _ = evaluate_cell(
+        [frame([[0.9, 0.0], [0.0, 0.9]], gt_ign=[-1, 0], det_ign=[0, -1], score=[0.95, 0.9])]
+    )
     assert n_gt == 1 and outcome.tolist() == [0, 4]
     assert curve.max_recall == 0.0
 
@@ -249,7 +259,12 @@ def test_rule_waymo_levels():
     pts = np.array([10, 3, 0, 100])
     names = ["Vehicle", "Vehicle", "Vehicle", "Pedestrian"]
     assert waymo_ignored_gt(names, lvl, pts, "Vehicle", 0).tolist() == [0, 1, 1, -1]  # LEVEL_1
-    assert waymo_ignored_gt(names, lvl, pts, "Vehicle", 1).tolist() == [0, 0, 1, -1]  # LEVEL_2: no-point boxes still ignored
+    assert waymo_ignored_gt(names, lvl, pts, "Vehicle", 1).tolist() == [
+        0,
+        0,
+        1,
+        -1,
+    ]  # LEVEL_2: no-point boxes still ignored
 
 
 def test_frames_are_independent():

@@ -27,7 +27,13 @@ runner = CliRunner()
 # Label order of label_2 files: DontCare last (KITTI's files) and one frame with a DontCare in the
 # middle, classes that are not audited (Pedestrian, Cyclist), an empty frame.
 FRAMES = {
-    "000001": [("Truck", 8.0, 2.5, 3.2), ("Car", 4.1, 1.7, 1.5), ("Cyclist", 1.8, 0.6, 1.7), ("DontCare", -1, -1, -1), ("DontCare", -1, -1, -1)],
+    "000001": [
+        ("Truck", 8.0, 2.5, 3.2),
+        ("Car", 4.1, 1.7, 1.5),
+        ("Cyclist", 1.8, 0.6, 1.7),
+        ("DontCare", -1, -1, -1),
+        ("DontCare", -1, -1, -1),
+    ],
     "000002": [("Car", 3.9, 1.6, 1.5), ("DontCare", -1, -1, -1), ("Pedestrian", 0.8, 0.6, 1.7), ("Van", 4.8, 1.9, 2.1)],
     "000003": [],
     "000004": [("Car", 4.4, 1.8, 1.4), ("Car", 3.7, 1.6, 1.5), ("DontCare", -1, -1, -1)],
@@ -60,7 +66,9 @@ def kitti(tmp_path):
 def expected_by_key(res, encoding="box", source="model", anchors=None):
     arrays = E.read_result_arrays(res)
     t = E.compute_targets(arrays, encoding, source, anchors)
-    return {(f, int(i)): (t.std[k], t.valid[k]) for k, (f, i) in enumerate(zip(arrays.frame_id, arrays.object_index))}, t
+    return {
+        (f, int(i)): (t.std[k], t.valid[k]) for k, (f, i) in enumerate(zip(arrays.frame_id, arrays.object_index))
+    }, t
 
 
 # ----------------------------------------------------------------------------- Parquet
@@ -113,7 +121,15 @@ def test_box_encoding_std_equals_the_results_std_columns(tmp_path):
     out = {r["frame_id"]: r for r in pq.read_table(tmp_path / "t.parquet").to_pylist()}
     for r in rows:
         e = out[r["frame_id"]]
-        for ours, theirs in (("x", "cx"), ("y", "cy"), ("z", "cz"), ("l", "length"), ("w", "width"), ("h", "height"), ("yaw", "yaw")):
+        for ours, theirs in (
+            ("x", "cx"),
+            ("y", "cy"),
+            ("z", "cz"),
+            ("l", "length"),
+            ("w", "width"),
+            ("h", "height"),
+            ("yaw", "yaw"),
+        ):
             if np.isnan(r[f"std_{theirs}"]):
                 assert e[f"std_{ours}"] is None
             else:
@@ -197,7 +213,11 @@ def test_openpcdet_round_trip_keeps_the_file_order(kitti, tmp_path, encoding):
     audited = sum(1 for r in rows if (encoding != "residual" or r["class_name"] in ("Car", "Van")))
     assert summary.infos_objects_with_targets == audited
     reasons = summary.infos_objects_without_targets
-    assert reasons["DontCare"] == 4 and reasons["class Pedestrian not audited"] == 1 and reasons["class Cyclist not audited"] == 1
+    assert (
+        reasons["DontCare"] == 4
+        and reasons["class Pedestrian not audited"] == 1
+        and reasons["class Cyclist not audited"] == 1
+    )
 
 
 def test_openpcdet_missing_results_are_nan_with_a_count(kitti, tmp_path):
@@ -273,8 +293,28 @@ def test_openpcdet_waymo_infos_align_by_laser_object_id(tmp_path):
     fid = f"{seg}:{ts}"
     objs = [("idA", "Vehicle", 4.4, 2.0, 1.5), ("idB", "Sign", 0.1, 0.6, 0.6), ("idC", "Vehicle", 4.9, 2.1, 1.8)]
     rows = [
-        make_row(fid, 2, object_id="idC", class_name="Vehicle", length=4.9, width=2.1, height=1.8, dataset="waymo-v1", cov=(np.eye(6) * 2e-3).ravel().tolist()),
-        make_row(fid, 0, object_id="idA", class_name="Vehicle", length=4.4, width=2.0, height=1.5, dataset="waymo-v1", cov=(np.eye(6) * 1e-3).ravel().tolist()),
+        make_row(
+            fid,
+            2,
+            object_id="idC",
+            class_name="Vehicle",
+            length=4.9,
+            width=2.1,
+            height=1.8,
+            dataset="waymo-v1",
+            cov=(np.eye(6) * 2e-3).ravel().tolist(),
+        ),
+        make_row(
+            fid,
+            0,
+            object_id="idA",
+            class_name="Vehicle",
+            length=4.4,
+            width=2.0,
+            height=1.5,
+            dataset="waymo-v1",
+            cov=(np.eye(6) * 1e-3).ravel().tolist(),
+        ),
     ]
     res = make_results(tmp_path / "res", [rows])
     infos = tmp_path / "waymo_infos.pkl"
@@ -417,7 +457,11 @@ def test_real_kitti_frames_into_openpcdet_infos(realdata, tmp_path):
     out = tmp_path / "o.pkl"
     summary = E.export_results(tmp_path / "res", out, fmt="openpcdet", infos=infos, encoding="residual")
     assert summary.infos_objects == 25 and summary.infos_objects_without_targets["DontCare"] == 15
-    assert summary.infos_objects_without_targets == {"DontCare": 15, "class Truck not audited": 1, "class Misc not audited": 1}
+    assert summary.infos_objects_without_targets == {
+        "DontCare": 15,
+        "class Truck not audited": 1,
+        "class Misc not audited": 1,
+    }
     assert summary.infos_objects_with_targets == 8
     new = pickle.loads(out.read_bytes())
     expected, _ = expected_by_key(tmp_path / "res", "residual")

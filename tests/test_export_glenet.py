@@ -34,7 +34,13 @@ KITTI_ANCHORS = C.DEFAULT_ANCHOR_SIZES["kitti"]
 
 # KITTI label order: DontCare last; classes GLENet has no anchor for (Van, Truck) and one not audited (Misc).
 FRAMES = {
-    "000010": [("Car", 4.1, 1.7, 1.5), ("Pedestrian", 0.8, 0.6, 1.75), ("Van", 4.8, 1.9, 2.1), ("DontCare", -1, -1, -1), ("DontCare", -1, -1, -1)],
+    "000010": [
+        ("Car", 4.1, 1.7, 1.5),
+        ("Pedestrian", 0.8, 0.6, 1.75),
+        ("Van", 4.8, 1.9, 2.1),
+        ("DontCare", -1, -1, -1),
+        ("DontCare", -1, -1, -1),
+    ],
     "000011": [("Misc", 2.0, 1.0, 1.0), ("Cyclist", 1.8, 0.6, 1.7), ("Car", 3.9, 1.6, 1.5)],
     "000012": [],
     "000013": [("Car", 4.4, 1.8, 1.4), ("Car", 3.7, 1.6, 1.5), ("Truck", 8.0, 2.5, 3.2), ("DontCare", -1, -1, -1)],
@@ -115,7 +121,15 @@ def test_glenet_variances_known_answer_and_first_order():
     anchor = np.array([3.9, 1.6, 1.56])
     v = T.glenet_variances(box, cov, anchor)[0]
     d2 = 3.9**2 + 1.6**2
-    want = [0.04 / d2, 0.01 / d2, 0.0025 / 1.56**2, (0.3 / 4.0) ** 2, (0.08 / 1.8) ** 2, (0.04 / 1.6) ** 2, 0.5 * (1 - np.exp(-0.02))]
+    want = [
+        0.04 / d2,
+        0.01 / d2,
+        0.0025 / 1.56**2,
+        (0.3 / 4.0) ** 2,
+        (0.08 / 1.8) ** 2,
+        (0.04 / 1.6) ** 2,
+        0.5 * (1 - np.exp(-0.02)),
+    ]
     assert v == pytest.approx(want, rel=1e-12)
     # Var(sin Δθ) of a Gaussian Δθ: first order (= Σ_θθ) for small std, below it, and never above ½
     for s in (1e-3, 0.1, 0.5, 3.0):
@@ -152,7 +166,11 @@ def test_kitti_round_trip_aligned_with_annos_and_dbinfos(tmp_path, model):
     res, ip, dp, rows = write_kitti(tmp_path, model, skip={("000013", 1)})
     out = tmp_path / "glenet"
     summary = E.export_results(res, out, fmt="glenet", infos=ip, dbinfos=dp)
-    assert sorted(p.name for p in out.iterdir()) == ["kitti_dbinfos_train.pkl", "kitti_infos_train.pkl", G.GLENET_META_NAME]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "kitti_dbinfos_train.pkl",
+        "kitti_infos_train.pkl",
+        G.GLENET_META_NAME,
+    ]
     infos = pickle.loads((out / "kitti_infos_train.pkl").read_bytes())
     db = pickle.loads((out / "kitti_dbinfos_train.pkl").read_bytes())
     original = pickle.loads(ip.read_bytes())
@@ -172,7 +190,9 @@ def test_kitti_round_trip_aligned_with_annos_and_dbinfos(tmp_path, model):
                 # the must-hold: Var(log l) = (std_length/length)², Var(x)/diag² = std_cx²/diag² (to first order, within 5 %)
                 want = expected_values(row, KITTI_ANCHORS[name], model)
                 assert u[j] == pytest.approx(want, rel=0.05)
-                assert u[j][[0, 3]] == pytest.approx(want[[0, 3]], rel=1e-5)  # the same linear algebra: float32 rounding only
+                assert u[j][[0, 3]] == pytest.approx(
+                    want[[0, 3]], rel=1e-5
+                )  # the same linear algebra: float32 rounding only
                 n_values += 1
             else:  # DontCare, Misc (not audited), Van/Truck (no GLENet anchor), the skipped Car
                 assert np.all(u[j] == -1.0), (fid, j, name)
@@ -184,7 +204,9 @@ def test_kitti_round_trip_aligned_with_annos_and_dbinfos(tmp_path, model):
         "DontCare": 3, "class Misc not audited": 1, "status skipped": 1,
         "no anchor size for class Van (--anchor-size Van=l,w,h)": 1, "no anchor size for class Truck (--anchor-size Truck=l,w,h)": 1,
     }  # fmt: skip
-    assert summary.objects_z_h_from_prior == (5 if model == "bev" else 0)  # the rows exported (Van, Truck have no anchor)
+    assert summary.objects_z_h_from_prior == (
+        5 if model == "bev" else 0
+    )  # the rows exported (Van, Truck have no anchor)
     # every gt-database entry carries its frame's row
     frame_of = {info["point_cloud"]["lidar_idx"]: info for info in infos}
     n_db = 0
@@ -228,7 +250,9 @@ def test_anchor_size_option_gives_van_values_and_fewer_points_give_larger_values
     db = pickle.loads(dp.read_bytes())
     db["Car"].append({**db["Car"][0], "image_idx": "000777"})  # a gt-database entry of a frame the infos do not hold
     dp.write_bytes(pickle.dumps(db))
-    summary = E.export_results(res, tmp_path / "g", fmt="glenet", infos=ip, dbinfos=dp, anchor_sizes={"Van": (5.0, 2.0, 2.0)})
+    summary = E.export_results(
+        res, tmp_path / "g", fmt="glenet", infos=ip, dbinfos=dp, anchor_sizes={"Van": (5.0, 2.0, 2.0)}
+    )
     assert summary.dbinfos_objects_without_targets["frame not in the infos"] == 1
     assert np.all(pickle.loads((tmp_path / "g" / dp.name).read_bytes())["Car"][-1][G.GLENET_KEY] == -1)
     infos = pickle.loads((tmp_path / "g" / "kitti_infos_train.pkl").read_bytes())
@@ -269,7 +293,12 @@ def pickle_globals(raw: bytes) -> tuple[int, set[tuple[str, str]]]:
     return protocol, found
 
 
-NUMPY1_GLOBALS = {("numpy.core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "scalar"), ("numpy", "ndarray"), ("numpy", "dtype")}
+NUMPY1_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+}
 
 
 def test_written_pickles_import_only_names_numpy_1_has(tmp_path):
@@ -287,7 +316,9 @@ def test_written_pickles_import_only_names_numpy_1_has(tmp_path):
         assert b"numpy._core" not in raw
         assert E.load_infos(tmp_path / "g" / name)  # and our restricted reader takes it back
     # the opcode reader itself sees a numpy._core global where there is one
-    assert ("numpy._core.multiarray", "_reconstruct") in pickle_globals(pickle.dumps(np.zeros(2), protocol=4))[1] or not np.__version__.startswith("2.")
+    assert ("numpy._core.multiarray", "_reconstruct") in pickle_globals(pickle.dumps(np.zeros(2), protocol=4))[
+        1
+    ] or not np.__version__.startswith("2.")
     assert [p.name for p in (tmp_path / "g").iterdir() if ".tmp-" in p.name] == []
 
 
@@ -314,7 +345,9 @@ def test_a_failed_write_leaves_the_previous_files_whole_and_no_temporaries(tmp_p
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # both old files, no temporaries
 
 
-@pytest.mark.skipif(not os.environ.get("LABELAUDIT_NUMPY1_PYTHON"), reason="set LABELAUDIT_NUMPY1_PYTHON to a Python with NumPy 1.x")
+@pytest.mark.skipif(
+    not os.environ.get("LABELAUDIT_NUMPY1_PYTHON"), reason="set LABELAUDIT_NUMPY1_PYTHON to a Python with NumPy 1.x"
+)
 def test_written_pickles_load_in_a_real_numpy_1(tmp_path):
     """The files load in a NumPy 1.x interpreter, the NumPy-2 inputs do not (numpy._core)."""
     res, ip, dp, _ = write_kitti(tmp_path, "3d")
@@ -325,7 +358,9 @@ def test_written_pickles_load_in_a_real_numpy_1(tmp_path):
         "print(float(i[0]['annos']['uncertainty'][0][3]), float(d['Car'][0]['uncertainty'][3]))"
     )
     py = os.environ["LABELAUDIT_NUMPY1_PYTHON"]
-    out = subprocess.run([py, "-c", code, tmp_path / "g" / ip.name, tmp_path / "g" / dp.name], capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [py, "-c", code, tmp_path / "g" / ip.name, tmp_path / "g" / dp.name], capture_output=True, text=True, check=True
+    )
     a, b = map(float, out.stdout.split())
     assert a == b > 0
     bad = subprocess.run([py, "-c", code, ip, dp], capture_output=True, text=True)
@@ -336,9 +371,17 @@ def test_written_pickles_load_in_a_real_numpy_1(tmp_path):
 
 
 def test_waymo_per_sequence_infos_folder_and_vehicle_dbinfos(tmp_path):
-    segs = ["1071392229495085036_1844_790_1864_790", "10017090168044687777_6380_000_6400_000", "9999999999999999999_0_000_20_000"]
+    segs = [
+        "1071392229495085036_1844_790_1864_790",
+        "10017090168044687777_6380_000_6400_000",
+        "9999999999999999999_0_000_20_000",
+    ]
     frames = {
-        f"{segs[0]}:1507315488219118": [("idA", "Vehicle", 4.4, 2.0, 1.5), ("idB", "Sign", 0.1, 0.6, 0.6), ("idC", "Vehicle", 4.9, 2.1, 1.8)],
+        f"{segs[0]}:1507315488219118": [
+            ("idA", "Vehicle", 4.4, 2.0, 1.5),
+            ("idB", "Sign", 0.1, 0.6, 0.6),
+            ("idC", "Vehicle", 4.9, 2.1, 1.8),
+        ],
         f"{segs[0]}:1507315488319118": [("idA", "Vehicle", 4.4, 2.0, 1.5), ("idD", "Pedestrian", 0.9, 0.8, 1.8)],
         f"{segs[1]}:1510593600000000": [],
         f"{segs[2]}:1510593700000000": [("idZ", "Vehicle", 4.0, 1.9, 1.6)],  # a sequence not audited
@@ -366,7 +409,9 @@ def test_waymo_per_sequence_infos_folder_and_vehicle_dbinfos(tmp_path):
     out = tmp_path / "g"
     summary = E.export_results(res, out, fmt="glenet", infos=root, dbinfos=dp)
     written = sorted(str(p.relative_to(out)) for p in out.rglob("*.pkl"))
-    assert written == sorted([f"segment-{s}_with_camera_labels/segment-{s}_with_camera_labels.pkl" for s in segs] + [dp.name])
+    assert written == sorted(
+        [f"segment-{s}_with_camera_labels/segment-{s}_with_camera_labels.pkl" for s in segs] + [dp.name]
+    )
     seq0 = f"segment-{segs[0]}_with_camera_labels"
     infos0 = pickle.loads((out / seq0 / f"{seq0}.pkl").read_bytes())
     u = infos0[0]["annos"][G.GLENET_KEY]
@@ -375,7 +420,9 @@ def test_waymo_per_sequence_infos_folder_and_vehicle_dbinfos(tmp_path):
     assert u[0, 0] == pytest.approx(4e-3 / (4.7**2 + 2.1**2), rel=1e-5)
     assert u[2, 2] == pytest.approx(3 * 2e-3 / 1.7**2, rel=1e-5)  # the third object's covariance is 3×
     assert infos0[1]["annos"][G.GLENET_KEY][1][0] > 0  # the Pedestrian with its own anchor
-    empty = pickle.loads((out / f"segment-{segs[1]}_with_camera_labels" / f"segment-{segs[1]}_with_camera_labels.pkl").read_bytes())
+    empty = pickle.loads(
+        (out / f"segment-{segs[1]}_with_camera_labels" / f"segment-{segs[1]}_with_camera_labels.pkl").read_bytes()
+    )
     assert empty[0]["annos"][G.GLENET_KEY].shape == (0, 7)
     new_db = pickle.loads((out / dp.name).read_bytes())
     annos_of = {}
@@ -384,7 +431,9 @@ def test_waymo_per_sequence_infos_folder_and_vehicle_dbinfos(tmp_path):
             annos_of[(info["point_cloud"]["lidar_sequence"], info["point_cloud"]["sample_idx"])] = info["annos"]
     for entries in new_db.values():
         for e in entries:  # every entry carries its frame's row (gt_idx = the annos row for Waymo)
-            assert np.array_equal(e[G.GLENET_KEY], annos_of[(e["sequence_name"], e["sample_idx"])][G.GLENET_KEY][e["gt_idx"]])
+            assert np.array_equal(
+                e[G.GLENET_KEY], annos_of[(e["sequence_name"], e["sample_idx"])][G.GLENET_KEY][e["gt_idx"]]
+            )
     zed = [e for e in new_db["Vehicle"] if e["sequence_name"].startswith(f"segment-{segs[2]}")]
     assert len(zed) == 1 and np.all(zed[0][G.GLENET_KEY] == -1)  # its sequence was not audited
     assert summary.dbinfos_objects == 6 and summary.dbinfos_objects_with_targets == 4
@@ -463,7 +512,10 @@ def real_round_trip(root: Path, tmp_path: Path, model: str):
             anchor = KITTI_ANCHORS[name]
             assert u[j] == pytest.approx(expected_values(row, anchor, model), rel=0.05)
             # the must-hold: Var(log l) = (std_length/length)², Var(x)/diag² = std_cx²/diag², within 5 %
-            for got, want in ((u[j][3], (row["std_length"] / row["length"]) ** 2), (u[j][0], row["std_cx"] ** 2 / (anchor[0] ** 2 + anchor[1] ** 2))):
+            for got, want in (
+                (u[j][3], (row["std_length"] / row["length"]) ** 2),
+                (u[j][0], row["std_cx"] ** 2 / (anchor[0] ** 2 + anchor[1] ** 2)),
+            ):
                 assert got == pytest.approx(want, rel=0.05)
                 dev = max(dev, abs(float(got) / want - 1))
             checked += 1
@@ -489,11 +541,21 @@ def test_real_kitti_frames_round_trip_3d(realdata, tmp_path):
     root = realdata / "openpcdet-pr653-kitti"
     # our gt_idx convention is OpenPCDet's: its real gt_database files are named <image_idx>_<name>_<gt_idx>.bin
     real_db = sorted(p.name for p in (root / "gt_database").glob("*.bin"))
-    ours = sorted(Path(e["path"]).name for entries in openpcdet_dbinfos(openpcdet_kitti_infos_from_labels(root)).values() for e in entries)
+    ours = sorted(
+        Path(e["path"]).name
+        for entries in openpcdet_dbinfos(openpcdet_kitti_infos_from_labels(root)).values()
+        for e in entries
+    )
     assert real_db == ours
     summary, dev = real_round_trip(root, tmp_path, "3d")
-    assert summary.infos_objects == 25 and summary.infos_objects_with_targets == 8 and summary.objects_z_h_from_prior == 0
-    assert summary.infos_objects_without_targets == {"DontCare": 15, "class Truck not audited": 1, "class Misc not audited": 1}
+    assert (
+        summary.infos_objects == 25 and summary.infos_objects_with_targets == 8 and summary.objects_z_h_from_prior == 0
+    )
+    assert summary.infos_objects_without_targets == {
+        "DontCare": 15,
+        "class Truck not audited": 1,
+        "class Misc not audited": 1,
+    }
     assert summary.dbinfos_objects == 10 and dev < 1e-5
 
 

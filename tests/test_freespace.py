@@ -60,10 +60,12 @@ def _moved(box: np.ndarray, **delta: float) -> np.ndarray:
 def test_box_over_empty_road_gets_see_through_rays_and_is_an_error():
     points = _points(Scene())  # the road only
     box = np.array([12.0, 2.0, GROUND + 0.75, 4.2, 1.7, 1.5, 0.2])
-    (free, end), = _counts(points, box[None])
+    ((free, end),) = _counts(points, box[None])
     assert free > 50 and end == 0
     ev = frame_evidence(points, box[None], np.zeros(3), CFG.crop)[0]
-    row = audit_object(box, points[ev.model_idx], "Car", CFG, fit_points=points[ev.fit_idx], evidence=ev.for_object(points))
+    row = audit_object(
+        box, points[ev.model_idx], "Car", CFG, fit_points=points[ev.fit_idx], evidence=ev.for_object(points)
+    )
     assert row["status"] == "no_points" and row["free_rays"] == free
     assert row["label_error"] > 0.99  # an empty label is wrong, not merely uncertain
     assert row["fit_free_rays"] < free  # the suggested box leaves the free space
@@ -88,7 +90,7 @@ def test_correct_box_behind_an_occluder_gets_no_free_rays():
 def test_correct_box_with_points_on_two_faces_gets_no_free_rays_and_a_shift_does():
     car = _car(12.0, 5.0, yaw=0.6)
     points = _points(Scene(objects=[car]))
-    (free, end), = _counts(points, car.box[None])
+    ((free, end),) = _counts(points, car.box[None])
     assert free == 0 and end > 200
     for delta in ({"cy": 0.5}, {"cx": -0.5}, {"yaw": 0.3}):
         assert _counts(points, _moved(car.box, **delta)[None])[0][0] > 0, delta
@@ -104,15 +106,21 @@ def test_points_that_end_no_ray_from_the_origin_give_no_free_space():
     first = _points(Scene(objects=[car]))
     on_car = first[(np.abs(first[:, 0] - 12.0) < 3) & (np.abs(first[:, 1] - 5.0) < 3) & (first[:, 2] > GROUND + 0.3)]
     behind = on_car.copy()
-    behind[:, :3] *= 1.0 + 2.5 / np.linalg.norm(on_car[:, :3], axis=1, keepdims=True)  # 2.5 m further along the same ray
+    behind[:, :3] *= 1.0 + 2.5 / np.linalg.norm(
+        on_car[:, :3], axis=1, keepdims=True
+    )  # 2.5 m further along the same ray
     points = np.vstack([first, behind]).astype(np.float32)
     box = car.box[None]
     ev = frame_evidence(points, box, np.zeros(3), CFG.crop)[0]
-    assert F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] > 20  # taken for rays, the second returns cross the car
+    assert (
+        F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] > 20
+    )  # taken for rays, the second returns cross the car
     mask = np.r_[np.ones(len(first), bool), np.zeros(len(behind), bool)]
     ev = frame_evidence(points, box, np.zeros(3), CFG.crop, ray_mask=mask)[0]
     assert F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] == 0
-    assert len(ev.fit_idx) > len(frame_evidence(first, box, np.zeros(3), CFG.crop)[0].fit_idx)  # the points themselves still count
+    assert len(ev.fit_idx) > len(
+        frame_evidence(first, box, np.zeros(3), CFG.crop)[0].fit_idx
+    )  # the points themselves still count
     assert process_frame(Frame("f", points, box, ["Car"], ["f:0"], ray_mask=mask), CFG)[0][0]["free_rays"] == 0
 
 
@@ -128,7 +136,9 @@ def test_free_space_raises_label_error_of_a_shifted_box_only():
     without = fit_label(shifted, points[ev.fit_idx], "Car", CFG.model)
     assert with_rays.label_error > without.label_error + 0.05
     free_label = F.ray_counts(shifted, ev.free_space, points[ev.near_idx])[0]
-    assert F.ray_counts(with_rays.box, ev.free_space, points[ev.near_idx])[0] < free_label / 2  # the fit leaves the free space
+    assert (
+        F.ray_counts(with_rays.box, ev.free_space, points[ev.near_idx])[0] < free_label / 2
+    )  # the fit leaves the free space
 
 
 # ------------------------------------------------------------------------------------ kernels
@@ -164,8 +174,15 @@ def test_ray_candidates_equal_brute_force_across_the_azimuth_seam():
     rng = np.random.default_rng(5)
     pts = np.c_[rng.uniform(-40, 40, (30_000, 2)), rng.uniform(-1.8, 0.5, 30_000)]
     # boxes behind, beside, across the +x axis (where the azimuth wraps) and around the sensor
-    boxes = np.array([[15, 0.2, -1.0, 4, 1.8, 1.5, 0.1], [-12, 3, -1.0, 4.5, 2, 1.6, 2.0], [6, -9, -1, 4, 1.7, 1.5, -1.2],
-                      [0.5, 0.0, -1.0, 4, 2, 1.5, 0.0], [30, -0.5, -1, 10, 2.5, 3, 0.05]])
+    boxes = np.array(
+        [
+            [15, 0.2, -1.0, 4, 1.8, 1.5, 0.1],
+            [-12, 3, -1.0, 4.5, 2, 1.6, 2.0],
+            [6, -9, -1, 4, 1.7, 1.5, -1.2],
+            [0.5, 0.0, -1.0, 4, 2, 1.5, 0.0],
+            [30, -0.5, -1, 10, 2.5, 3, 0.05],
+        ]
+    )
     ground = np.c_[np.full(len(boxes), GROUND), np.zeros(len(boxes)), np.zeros(len(boxes))]
     slabs = np.array([[0.25, 0.6]] * len(boxes))
     got, _ = F.ray_candidates(pts, np.zeros(3), boxes, ground, slabs, reach=1.0, nbins=256)
@@ -238,7 +255,9 @@ def test_a_wall_beside_the_label_is_dropped_but_a_shifted_label_keeps_its_object
     shifted = _moved(car.box, cy=-0.45)
     ev = frame_evidence(points, shifted[None], np.zeros(3), CFG.crop)[0]
     xyz = points[:, :3].astype(float)
-    in_crop = (np.abs(xyz[:, 0] - shifted[0]) <= shifted[3] / 2 + 0.5) & (np.abs(xyz[:, 1] - shifted[1]) <= shifted[4] / 2 + 0.5)
+    in_crop = (np.abs(xyz[:, 0] - shifted[0]) <= shifted[3] / 2 + 0.5) & (
+        np.abs(xyz[:, 1] - shifted[1]) <= shifted[4] / 2 + 0.5
+    )
     in_crop &= (xyz[:, 2] >= GROUND + 0.15) & (xyz[:, 2] <= shifted[2] + shifted[5] / 2)
     car_in_crop = np.flatnonzero(in_crop & (hit == 0))
     assert len(car_in_crop) > 30 and np.isin(car_in_crop, ev.fit_idx).all()
@@ -275,7 +294,9 @@ def test_label_ray_weights_are_the_slit_mixture_at_the_label():
     r = np.maximum(dep - fs.tolerance, 0.0)
     g = (1 - slit) * np.exp(-0.5 * r**2 / sigma**2)
     assert np.allclose(out, np.sqrt(g / (g + slit)), rtol=0, atol=1e-12)
-    assert out[0] == pytest.approx(np.sqrt(1 - slit)) and out[1] == pytest.approx(np.sqrt(1 - slit))  # no crossing / within τ
+    assert out[0] == pytest.approx(np.sqrt(1 - slit)) and out[1] == pytest.approx(
+        np.sqrt(1 - slit)
+    )  # no crossing / within τ
     assert out[0] > out[2] > out[3] > out[4]  # deeper: less weight
     F.label_ray_weights(box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, 0.0, out)
     assert np.all(out == 1.0)  # no slit: every ray counts fully
@@ -309,4 +330,6 @@ def test_a_correct_real_label_with_rays_past_its_round_corner_is_not_turned(real
     moved = _moved(box, cy=0.5)
     ev = frame_evidence(frame.points, moved[None], np.zeros(3), CFG.crop, others=frame.boxes[[0, 2, 3, 4, 5, 6, 7]])[0]
     monkeypatch.setattr(C, "FIT_STEP_HALVINGS", 16)
-    assert fit_label(moved, frame.points[ev.fit_idx][:, :3], "Car", CFG.model, free_space=ev.free_space).label_error > 0.9
+    assert (
+        fit_label(moved, frame.points[ev.fit_idx][:, :3], "Car", CFG.model, free_space=ev.free_space).label_error > 0.9
+    )

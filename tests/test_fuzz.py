@@ -83,7 +83,9 @@ def _few_shards_and_quick_core(monkeypatch, request):
     from labelaudit.infer import rows
 
     monkeypatch.setattr(C, "TARGET_CHUNKS", 4)
-    request.node.quick = lambda on: monkeypatch.setattr(rows, "audit_object", H.quick_audit if on and not REAL_CORE else _REAL_AUDIT)
+    request.node.quick = lambda on: monkeypatch.setattr(
+        rows, "audit_object", H.quick_audit if on and not REAL_CORE else _REAL_AUDIT
+    )
 
 
 from labelaudit.infer.rows import audit_object as _REAL_AUDIT  # noqa: E402
@@ -96,11 +98,61 @@ def teardown_module() -> None:
 # --------------------------------------------------------------------------- values that break parsers
 
 NUMBERS = [
-    "nan", "-nan", "NaN", "inf", "-inf", "Infinity", "1e300", "-1e300", "1e-300", "0", "-0", "-1", "0.0",
-    "3000000000", "2147483648", "-2147483649", "1e10", "9" * 400, "1_000", "0x10", "1e", ".", "+", "", "abc",
-    "[/]", "\ufeff1", "١", "1.5", "2", "3", "4.2", "1e3", "1e4", "1e5", "-1e5", "7",
+    "nan",
+    "-nan",
+    "NaN",
+    "inf",
+    "-inf",
+    "Infinity",
+    "1e300",
+    "-1e300",
+    "1e-300",
+    "0",
+    "-0",
+    "-1",
+    "0.0",
+    "3000000000",
+    "2147483648",
+    "-2147483649",
+    "1e10",
+    "9" * 400,
+    "1_000",
+    "0x10",
+    "1e",
+    ".",
+    "+",
+    "",
+    "abc",
+    "[/]",
+    "\ufeff1",
+    "١",
+    "1.5",
+    "2",
+    "3",
+    "4.2",
+    "1e3",
+    "1e4",
+    "1e5",
+    "-1e5",
+    "7",
 ]
-WORDS = ["[/]", "[bold]x", "\\", "Car\x00", "Ca r", "ДЖ", "\ufeffCar", "\u200bCar", "Car\r", "", "DontCare", "Van", "x" * 300, "%s%n", "Car;rm"]
+WORDS = [
+    "[/]",
+    "[bold]x",
+    "\\",
+    "Car\x00",
+    "Ca r",
+    "ДЖ",
+    "\ufeffCar",
+    "\u200bCar",
+    "Car\r",
+    "",
+    "DontCare",
+    "Van",
+    "x" * 300,
+    "%s%n",
+    "Car;rm",
+]
 
 
 def pick(rng: random.Random, pool: list[str]) -> str:
@@ -132,10 +184,10 @@ def mutate_text(rng: random.Random, text: str, what: list[str], line_words: bool
         elif op == 6:
             k = rng.choice([2, 10, 70, 300])
             what.append(f"line {i + 1} repeated ×{k}")
-            lines[i:i + 1] = [lines[i]] * k
+            lines[i : i + 1] = [lines[i]] * k
         elif op == 7:
             what.append(f"line {i + 1} deleted")
-            lines[i:i + 1] = []
+            lines[i : i + 1] = []
         elif op == 8:
             junk = rng.choice(["", "   ", "\t", "\x0c", "\x0b", "\x00", "\x1c", "#comment", "\u2028", "\x85"])
             what.append(f"junk line {junk!r} before line {i + 1}")
@@ -184,7 +236,11 @@ def baseline_rows(tmp: Path, template: Path, quick: Callable[[bool], None], real
 
 def kitti_paths(root: Path, fid: str) -> dict[str, Path]:
     base = root / "training"
-    return {"label": base / "label_2" / f"{fid}.txt", "calib": base / "calib" / f"{fid}.txt", "velo": base / "velodyne" / f"{fid}.bin"}
+    return {
+        "label": base / "label_2" / f"{fid}.txt",
+        "calib": base / "calib" / f"{fid}.txt",
+        "velo": base / "velodyne" / f"{fid}.bin",
+    }
 
 
 def copy_case_frame(template: Path, root: Path, fid: str) -> dict[str, Path]:
@@ -223,12 +279,18 @@ def mutate_calib(rng: random.Random, case: Case, paths: dict[str, Path]) -> None
         return
     if op == 2:
         case.what.append("translation of Tr_velo_to_cam := 1e9")
-        lines = [l if not l.startswith("Tr_velo_to_cam:") else " ".join(l.split()[:4] + ["1e9"] + l.split()[5:]) for l in p.read_text().split("\n")]
+        lines = [
+            l if not l.startswith("Tr_velo_to_cam:") else " ".join(l.split()[:4] + ["1e9"] + l.split()[5:])
+            for l in p.read_text().split("\n")
+        ]
         p.write_text("\n".join(lines))
         return
     if op == 3:
         case.what.append("a key spelled differently / duplicated / unknown")
-        p.write_text(p.read_text().replace("R0_rect", rng.choice(["R_rect", "R0_rect_x", "r0_rect"])) + rng.choice(["", "P2: 1 2 3\n", "Foo: bar\n"]))
+        p.write_text(
+            p.read_text().replace("R0_rect", rng.choice(["R_rect", "R0_rect_x", "r0_rect"]))
+            + rng.choice(["", "P2: 1 2 3\n", "Foo: bar\n"])
+        )
         return
     p.write_bytes(mutate_text(rng, p.read_text(), case.what, line_words=False))
 
@@ -279,7 +341,21 @@ def mutate_velodyne(rng: random.Random, case: Case, paths: dict[str, Path]) -> N
     p.write_bytes(bytes(raw))
 
 
-NAMES = [b"\xff1", b"a b", b"[bold]x", b"[red]x[", b"-rf", b"x" * 200, "é".encode(), "e\u0301".encode(), b".hidden", b"\xc3\x28", b"000000 ", b"tab\tname", b"%d"]
+NAMES = [
+    b"\xff1",
+    b"a b",
+    b"[bold]x",
+    b"[red]x[",
+    b"-rf",
+    b"x" * 200,
+    "é".encode(),
+    "e\u0301".encode(),
+    b".hidden",
+    b"\xc3\x28",
+    b"000000 ",
+    b"tab\tname",
+    b"%d",
+]
 
 
 def mutate_names(rng: random.Random, case: Case, paths: dict[str, Path]) -> str:
@@ -363,7 +439,9 @@ def check_kitti_batch(root: Path, out: Path, batch_cases: list[Case], good_rows:
             frame_rows = rows.get(shown, [])
             if not unit_errors:  # read: one row per non-DontCare line, none lost
                 expected = expected_labels(kitti_paths(root, unit)["label"])
-                assert len(frame_rows) == expected, f"{case}: frame {shown!r}: {len(frame_rows)} rows for {expected} labels (silently lost?)"
+                assert len(frame_rows) == expected, (
+                    f"{case}: frame {shown!r}: {len(frame_rows)} rows for {expected} labels (silently lost?)"
+                )
             check_object_rows(case, frame_rows, root)
 
 
@@ -394,18 +472,24 @@ def _only(root: Path, alone: Path, unit: str) -> None:
 def check_error_table(errors: list[dict], root: Path) -> None:
     for e in errors:
         assert e["file"], f"error without a file: {e}"
-        assert str(root) in e["file"] or e["file"].startswith(safe_text(str(root))), f"error names a file outside the dataset: {e}"
+        assert str(root) in e["file"] or e["file"].startswith(safe_text(str(root))), (
+            f"error names a file outside the dataset: {e}"
+        )
         if e["line"] is not None:
             assert f":{e['line']}:" in e["message"], f"line {e['line']} not in the message: {e}"
         assert "\n" not in e["message"], f"multi-line error message: {e}"
 
 
 def check_object_rows(case: Case, rows: list[dict], root: Path) -> None:
-    assert [r["object_index"] for r in rows] == list(range(len(rows))), f"{case}: objects numbered with a gap (one dropped?)"
+    assert [r["object_index"] for r in rows] == list(range(len(rows))), (
+        f"{case}: objects numbered with a gap (one dropped?)"
+    )
     for r in rows:
         assert r["status"] in R.STATUSES
         if r["status"] == "error":
-            assert r["message"] and safe_text(str(root)) in r["message"], f"{case}: an object error that names no file: {r['message']!r}"
+            assert r["message"] and safe_text(str(root)) in r["message"], (
+                f"{case}: an object error that names no file: {r['message']!r}"
+            )
             assert "\n" not in r["message"]
 
 
@@ -421,7 +505,9 @@ def check_strict_alone(root: Path, work: Path, case: Case, template: Path, kind:
     strict = H.run_cli("infer", alone, "-o", work / "strict", "--workers", "1", "-q", "--classes", "all", "--strict")
     H.check_output(strict, allowed=(2,) if failed else (0,))
     if failed:
-        assert "--strict" in strict.stderr and safe_text(str(alone)) in strict.stderr, f"{case}: --strict names no file: {strict.stderr}"
+        assert "--strict" in strict.stderr and safe_text(str(alone)) in strict.stderr, (
+            f"{case}: --strict names no file: {strict.stderr}"
+        )
 
 
 def test_fuzz_kitti_labels(tmp_path, request):
@@ -456,8 +542,13 @@ def waymo_segment():
 
     ww.SIZES["fuzz"] = {1: (16, 180), 2: (12, 30), 3: (12, 30), 4: (12, 30), 5: (12, 30)}
     try:
-        return ww.simulate_waymo_segment(seed=1, frames=2, size="fuzz", name="tmpl",
-                                         scene_spec=SceneSpec(num_vehicles=(3, 3), num_vru=(0, 1), distance=(6.0, 20.0)))
+        return ww.simulate_waymo_segment(
+            seed=1,
+            frames=2,
+            size="fuzz",
+            name="tmpl",
+            scene_spec=SceneSpec(num_vehicles=(3, 3), num_vru=(0, 1), distance=(6.0, 20.0)),
+        )
     finally:
         del ww.SIZES["fuzz"]
 
@@ -468,8 +559,18 @@ def _fuzz_config(tmp: Path) -> Path:
     return cfg
 
 
-def run_waymo_batch(tmp: Path, request, kind: str, fmt: str, root: Path, good_rows: dict, batch_cases: list[Case],
-                    expected: dict[str, int | None], damaged: dict[str, str], real: bool) -> None:
+def run_waymo_batch(
+    tmp: Path,
+    request,
+    kind: str,
+    fmt: str,
+    root: Path,
+    good_rows: dict,
+    batch_cases: list[Case],
+    expected: dict[str, int | None],
+    damaged: dict[str, str],
+    real: bool,
+) -> None:
     request.node.quick(not real)
     out = tmp / f"{root.name}-out"
     args = ("--workers", "1", "-q", "--dataset-format", fmt, "--config", _fuzz_config(tmp))
@@ -496,12 +597,16 @@ def run_waymo_batch(tmp: Path, request, kind: str, fmt: str, root: Path, good_ro
         unit_errors = [e for e in errors if e["unit"] == case.unit and e["level"] == "error"]
         unit_rows = [r for fid, rs in rows.items() if fid.startswith(case.prefix + ":") for r in rs]
         if not unit_errors and expected.get(case.unit) is not None:
-            assert len(unit_rows) == expected[case.unit], f"{case}: {len(unit_rows)} rows for {expected[case.unit]} labels (silently lost?)"
+            assert len(unit_rows) == expected[case.unit], (
+                f"{case}: {len(unit_rows)} rows for {expected[case.unit]} labels (silently lost?)"
+            )
         for fid in {r["frame_id"] for r in unit_rows}:
             check_object_rows(case, rows[fid], root)
         if case.unit in damaged and unit_errors:
             named = {e["file"] for e in unit_errors}
-            assert damaged[case.unit] in named, f"{case}: the damaged file {damaged[case.unit]} is not named; errors name {named}"
+            assert damaged[case.unit] in named, (
+                f"{case}: the damaged file {damaged[case.unit]} is not named; errors name {named}"
+            )
     FOUND[kind] = FOUND.get(kind, 0) + len(batch_cases)
 
 
@@ -539,7 +644,15 @@ def mutate_v1_fields(rng: random.Random, case: Case, msgs: list) -> None:
             setattr(lab.box, f, v)
         elif op == 3 and len(labels):
             lab = labels[rng.randrange(len(labels))]
-            f = rng.choice(["type", "num_lidar_points_in_box", "num_top_lidar_points_in_box", "detection_difficulty_level", "tracking_difficulty_level"])
+            f = rng.choice(
+                [
+                    "type",
+                    "num_lidar_points_in_box",
+                    "num_top_lidar_points_in_box",
+                    "detection_difficulty_level",
+                    "tracking_difficulty_level",
+                ]
+            )
             v = rng.choice([x for x in INTS if -(2**31) <= x < 2**31])
             case.what.append(f"label {f} := {v}")
             setattr(lab, f, v)
@@ -561,8 +674,10 @@ def mutate_v1_fields(rng: random.Random, case: Case, msgs: list) -> None:
             case.what.append(f"laser {laser.name} range image: {how}")
             blob = laser.ri_return1.range_image_compressed
             laser.ri_return1.range_image_compressed = {
-                "garbage": bytes(rng.randrange(256) for _ in range(50)), "truncated": blob[: len(blob) // 2],
-                "zlib of garbage": zlib.compress(bytes(rng.randrange(256) for _ in range(64))), "empty": b"",
+                "garbage": bytes(rng.randrange(256) for _ in range(50)),
+                "truncated": blob[: len(blob) // 2],
+                "zlib of garbage": zlib.compress(bytes(rng.randrange(256) for _ in range(64))),
+                "empty": b"",
             }[how]
         elif op == 7 and len(msg.context.laser_calibrations):
             cal = msg.context.laser_calibrations[rng.randrange(len(msg.context.laser_calibrations))]
@@ -697,7 +812,22 @@ def _good_rows(tmp: Path, request, fmt: str, good: Path) -> dict:
         for real in (True, False):
             request.node.quick(not real)
             o = tmp / f"good-{fmt}-out-{real}"
-            H.check_output(H.run_cli("infer", alone, "-o", o, "--workers", "1", "-q", "--dataset-format", fmt, "--config", _fuzz_config(tmp)), allowed=(0,))
+            H.check_output(
+                H.run_cli(
+                    "infer",
+                    alone,
+                    "-o",
+                    o,
+                    "--workers",
+                    "1",
+                    "-q",
+                    "--dataset-format",
+                    fmt,
+                    "--config",
+                    _fuzz_config(tmp),
+                ),
+                allowed=(0,),
+            )
             out[real] = H.rows_by_frame(o)
         cache[key] = out
     return cache[key]
@@ -782,7 +912,9 @@ def mutate_v2_columns(rng: random.Random, case: Case, tables: dict[str, pa.Table
         elif op == 3:
             case.what.append(f"{comp}: column {col} as strings")
             i = t.schema.get_field_index(col)
-            tables[comp] = t.set_column(i, col, pa.array([None if v is None else str(v)[:50] for v in t.column(col).to_pylist()], pa.string()))
+            tables[comp] = t.set_column(
+                i, col, pa.array([None if v is None else str(v)[:50] for v in t.column(col).to_pylist()], pa.string())
+            )
         elif op == 4 and (pa.types.is_list(typ) or pa.types.is_fixed_size_list(typ)):
             how = rng.choice(["shorter", "empty", "nan", "other shape"])
             case.what.append(f"{comp} {col}: rows {rows} list {how}")
@@ -791,7 +923,12 @@ def mutate_v2_columns(rng: random.Random, case: Case, tables: dict[str, pa.Table
                 v = values[r]
                 if v is None:
                     continue
-                values[r] = {"shorter": v[: len(v) // 2], "empty": [], "nan": [math.nan] * len(v), "other shape": [1, 2][: len(v)] + [-1] * max(0, len(v) - 2)}[how]
+                values[r] = {
+                    "shorter": v[: len(v) // 2],
+                    "empty": [],
+                    "nan": [math.nan] * len(v),
+                    "other shape": [1, 2][: len(v)] + [-1] * max(0, len(v) - 2),
+                }[how]
             arr = None
             for target in (typ, pa.list_(typ.value_type), pa.list_(pa.float64()), None):
                 try:
@@ -867,7 +1004,11 @@ def run_v2_kind(tmp: Path, request, waymo_segment, kind: str, n: int, batch: int
                 _v2_write(root, name, tables)
                 box = tables["lidar_box"]
                 col = BOX_COLUMNS["type"]
-                ok = col in box.schema.names and K_TS in box.schema.names and pa.types.is_integer(box.schema.field(col).type)
+                ok = (
+                    col in box.schema.names
+                    and K_TS in box.schema.names
+                    and pa.types.is_integer(box.schema.field(col).type)
+                )
                 expected[case.unit] = box.num_rows - box.column(col).null_count if ok else None
             else:
                 damaged[case.unit] = mutate_v2_files(rng, case, _v2_write(root, name, tables))
@@ -896,7 +1037,22 @@ def _damage_folder(rng: random.Random, case: Case, out: Path) -> None:
         target = rng.choice(["manifest", "lock", "objects", "shard", "errors", "errors.parquet", "tmp", "foreign"])
         man, lock = out / "manifest.json", out / ".labelaudit.lock"
         if target == "manifest":
-            how = rng.choice(["folder", "[1, 2]", '"hello"', "bytes", "{", "", "null", "{}", "other hash", "incomplete", "deleted", "dangling link"])
+            how = rng.choice(
+                [
+                    "folder",
+                    "[1, 2]",
+                    '"hello"',
+                    "bytes",
+                    "{",
+                    "",
+                    "null",
+                    "{}",
+                    "other hash",
+                    "incomplete",
+                    "deleted",
+                    "dangling link",
+                ]
+            )
             case.what.append(f"manifest: {how}")
             if how in ("other hash", "incomplete") and man.is_file():
                 try:
@@ -918,7 +1074,9 @@ def _damage_folder(rng: random.Random, case: Case, out: Path) -> None:
             elif how != "deleted":
                 man.write_text(how)
         elif target == "lock":
-            how = rng.choice(["folder", "garbage", "-1", "99999999999999999999", str(os.getpid()), "0", "dangling link", b"\xff"])
+            how = rng.choice(
+                ["folder", "garbage", "-1", "99999999999999999999", str(os.getpid()), "0", "dangling link", b"\xff"]
+            )
             case.what.append(f"lock: {how!r}")
             R._remove(lock)
             if how == "folder":
@@ -1016,10 +1174,14 @@ def test_fuzz_results_folder_states(tmp_path, request):
             raise AssertionError(f"{case}\n{exc}") from None
         if resumed.exit_code == 0:
             assert H.rows_by_frame(out) == baseline, f"{case}: resumed into a damaged folder, the rows changed"
-            assert R.read_manifest(out)["complete"] and len(H.errors_of(out)) == 1, f"{case}: incomplete results after the resume"
+            assert R.read_manifest(out)["complete"] and len(H.errors_of(out)) == 1, (
+                f"{case}: incomplete results after the resume"
+            )
             continue
         assert str(out) in resumed.stderr, f"{case}: the refusal does not name the folder: {resumed.stderr}"
-        assert "--overwrite" in resumed.stderr or "choose" in resumed.stderr, f"{case}: no fix offered: {resumed.stderr}"
+        assert "--overwrite" in resumed.stderr or "choose" in resumed.stderr, (
+            f"{case}: no fix offered: {resumed.stderr}"
+        )
         again = H.run_cli("infer", data, "-o", out, "--workers", "1", "-q", "--overwrite")
         H.check_output(again, allowed=(0, 2))
         if again.exit_code == 0:
@@ -1031,7 +1193,26 @@ def test_fuzz_results_folder_states(tmp_path, request):
 
 # --------------------------------------------------------------------------- command-line values
 
-ODD = ["", " ", "-", "--", "[/]", "[bold]", "\\", "x" * 300, "ДЖ", "a\nb", "-1", "0", "nan", "inf", "1e400", "2147483648", "9" * 40, "--nope"]
+ODD = [
+    "",
+    " ",
+    "-",
+    "--",
+    "[/]",
+    "[bold]",
+    "\\",
+    "x" * 300,
+    "ДЖ",
+    "a\nb",
+    "-1",
+    "0",
+    "nan",
+    "inf",
+    "1e400",
+    "2147483648",
+    "9" * 40,
+    "--nope",
+]
 
 
 def _cli_case(rng: random.Random, env: dict[str, Path]) -> list[str]:
@@ -1039,27 +1220,85 @@ def _cli_case(rng: random.Random, env: dict[str, Path]) -> list[str]:
     cmd = rng.choice(["infer"] * 4 + ["rank"] * 3 + ["check"] * 2 + ["simulate"])
     pool = {
         "infer": {
-            "--workers": ["1", "0", "-3", "x", "", "1.5"], "--limit": ["1", "0", "-1", "x", "10000000000", ""],
-            "--model": ["bev", "3d", "4d", "", "BEV"], "--dataset-format": ["auto", "kitti", "waymo-v2", "waymo-v1", "foo", ""],
-            "--classes": ["all", "Car", "", ",", "[/]", "Car,,Van", " ", "Nope"], "--split": ["val", "train", "", "../x", "a/b", "[/]", "\n"],
-            "--config": [str(env["cfg"]), str(env["bad_cfg"]), str(env["bytes_cfg"]), str(env["data"]), str(env["data"] / "nope.toml"), ""],
-            "-o": [str(env["tmp"] / f"out-{rng.randrange(10**6)}"), str(env["results"]), "", str(env["dangling"]), str(env["file"] / "sub"), str(env["tmp"] / ("y" * 300)), str(env["data"]), str(env["tmp"] / "[bold]o")],
-            "--strict": None, "--overwrite": None, "--resume": None,
+            "--workers": ["1", "0", "-3", "x", "", "1.5"],
+            "--limit": ["1", "0", "-1", "x", "10000000000", ""],
+            "--model": ["bev", "3d", "4d", "", "BEV"],
+            "--dataset-format": ["auto", "kitti", "waymo-v2", "waymo-v1", "foo", ""],
+            "--classes": ["all", "Car", "", ",", "[/]", "Car,,Van", " ", "Nope"],
+            "--split": ["val", "train", "", "../x", "a/b", "[/]", "\n"],
+            "--config": [
+                str(env["cfg"]),
+                str(env["bad_cfg"]),
+                str(env["bytes_cfg"]),
+                str(env["data"]),
+                str(env["data"] / "nope.toml"),
+                "",
+            ],
+            "-o": [
+                str(env["tmp"] / f"out-{rng.randrange(10**6)}"),
+                str(env["results"]),
+                "",
+                str(env["dangling"]),
+                str(env["file"] / "sub"),
+                str(env["tmp"] / ("y" * 300)),
+                str(env["data"]),
+                str(env["tmp"] / "[bold]o"),
+            ],
+            "--strict": None,
+            "--overwrite": None,
+            "--resume": None,
         },
         "rank": {
-            "--by": ["jiou_gt", "label_error", "class_name", "nope", "", "[/]"], "--top": ["0", "-1", "5", "1000000000000", "x"],
-            "--class": ["Car", "", "[/]"], "--status": ["ok", "fine", "", "error"], "--min-points": ["-1", "x", "1000000000000", "3"],
-            "--max-distance": ["nan", "inf", "-1", "x", "1e400"], "--format": ["table", "json", "csv", "xml", ""],
-            "--where": ["jiou_gt>0.5", "oops", "jiou_gt>=nan", "class_name==[/]", "", "a==b==c", "num_points>1e400", "cx<inf", "status==ok"],
-            "--asc": None, "--desc": None,
+            "--by": ["jiou_gt", "label_error", "class_name", "nope", "", "[/]"],
+            "--top": ["0", "-1", "5", "1000000000000", "x"],
+            "--class": ["Car", "", "[/]"],
+            "--status": ["ok", "fine", "", "error"],
+            "--min-points": ["-1", "x", "1000000000000", "3"],
+            "--max-distance": ["nan", "inf", "-1", "x", "1e400"],
+            "--format": ["table", "json", "csv", "xml", ""],
+            "--where": [
+                "jiou_gt>0.5",
+                "oops",
+                "jiou_gt>=nan",
+                "class_name==[/]",
+                "",
+                "a==b==c",
+                "num_points>1e400",
+                "cx<inf",
+                "status==ok",
+            ],
+            "--asc": None,
+            "--desc": None,
         },
-        "check": {"--config": [str(env["gate"]), str(env["bad_cfg"]), str(env["bytes_cfg"]), str(env["data"]), ""], "--json": None,
-                  "--junit": [str(env["tmp"] / "j.xml"), str(env["data"]), str(env["file"] / "sub"), "", str(env["tmp"] / ("z" * 300))]},
-        "simulate": {"--frames": ["0", "-1", "x", ""], "--seed": ["-1", "x", "99999999999999999999"], "--noise-fraction": ["nan", "2", "-1", "x"],
-                     "--workers": ["0", "x"], "--noise-center-std": ["inf", "-1"], "--overwrite": None},
+        "check": {
+            "--config": [str(env["gate"]), str(env["bad_cfg"]), str(env["bytes_cfg"]), str(env["data"]), ""],
+            "--json": None,
+            "--junit": [
+                str(env["tmp"] / "j.xml"),
+                str(env["data"]),
+                str(env["file"] / "sub"),
+                "",
+                str(env["tmp"] / ("z" * 300)),
+            ],
+        },
+        "simulate": {
+            "--frames": ["0", "-1", "x", ""],
+            "--seed": ["-1", "x", "99999999999999999999"],
+            "--noise-fraction": ["nan", "2", "-1", "x"],
+            "--workers": ["0", "x"],
+            "--noise-center-std": ["inf", "-1"],
+            "--overwrite": None,
+        },
     }[cmd]
     first = {
-        "infer": [str(env["data"]), str(env["data"] / "nope"), str(env["file"]), "", str(env["tmp"] / ("w" * 300)), "[/]"],
+        "infer": [
+            str(env["data"]),
+            str(env["data"] / "nope"),
+            str(env["file"]),
+            "",
+            str(env["tmp"] / ("w" * 300)),
+            "[/]",
+        ],
         "rank": [str(env["results"]), str(env["data"]), str(env["file"]), "", str(env["tmp"] / "none")],
         "check": [str(env["results"]), str(env["data"]), str(env["file"]), ""],
         "simulate": [str(env["tmp"] / f"sim-{rng.randrange(10**6)}"), str(env["file"]), "", str(env["dangling"])],
@@ -1086,8 +1325,17 @@ def test_fuzz_command_line_values(tmp_path, request, monkeypatch):
     data = H.write_kitti(tmp_path / "data", [GOOD])
     results = tmp_path / "results"
     H.check_output(H.run_cli("infer", data, "-o", results, "--workers", "1", "-q"), allowed=(0,))
-    env = {"tmp": tmp_path, "data": data, "results": results, "file": tmp_path / "a-file", "dangling": tmp_path / "dangling",
-           "cfg": _fuzz_config(tmp_path), "bad_cfg": tmp_path / "bad.toml", "bytes_cfg": tmp_path / "bytes.toml", "gate": tmp_path / "gate.toml"}
+    env = {
+        "tmp": tmp_path,
+        "data": data,
+        "results": results,
+        "file": tmp_path / "a-file",
+        "dangling": tmp_path / "dangling",
+        "cfg": _fuzz_config(tmp_path),
+        "bad_cfg": tmp_path / "bad.toml",
+        "bytes_cfg": tmp_path / "bytes.toml",
+        "gate": tmp_path / "gate.toml",
+    }
     env["file"].write_text("x")
     env["dangling"].symlink_to(tmp_path / "nowhere")
     env["bad_cfg"].write_text("[model]\nsigma = inf\n[spatial\n")

@@ -119,7 +119,16 @@ def test_label_error_rule_becomes_active_with_values(tmp_path):
 
 def test_no_points_and_failed_frames(tmp_path):
     rows = _cars(8, 0.8) + [make_row("000002", i, status="no_points", jiou_gt=0.7) for i in range(2)]
-    errors = [{"unit": "000003", "frame_id": None, "file": "x.bin", "line": None, "level": "error", "message": "size not a multiple of 16"}]
+    errors = [
+        {
+            "unit": "000003",
+            "frame_id": None,
+            "file": "x.bin",
+            "line": None,
+            "level": "error",
+            "message": "size not a multiple of 16",
+        }
+    ]
     report = evaluate_gate(open_results(make_results(tmp_path, [rows], errors)), gate_from_dict(ISSUE_EXAMPLE))
     assert _outcome(report, "Car", "max_fraction_no_points").value == pytest.approx(0.2)
     assert _outcome(report, "Car", "max_fraction_no_points").status == "fail"
@@ -130,12 +139,16 @@ def test_no_points_and_failed_frames(tmp_path):
 
 def test_nothing_evaluable_is_exit_2_never_0(tmp_path):
     skipped = [make_row("000001", i, status="skipped", message="too long") for i in range(5)]
-    report = evaluate_gate(open_results(make_results(tmp_path, [skipped])), gate_from_dict({"default": {"min_median_jiou_gt": 0.5}}))
+    report = evaluate_gate(
+        open_results(make_results(tmp_path, [skipped])), gate_from_dict({"default": {"min_median_jiou_gt": 0.5}})
+    )
     assert report.exit_code == 2
     assert _outcome(report, "Car", "min_median_jiou_gt").status == "error"
     # only inactive rules → nothing evaluated → 2
     only_label_error = {"default": {"label_error_threshold": 0.5, "max_fraction_label_error_above": 0.1}}
-    report = evaluate_gate(open_results(make_results(tmp_path / "b", [_cars(5, 0.9)])), gate_from_dict(only_label_error))
+    report = evaluate_gate(
+        open_results(make_results(tmp_path / "b", [_cars(5, 0.9)])), gate_from_dict(only_label_error)
+    )
     assert {r.status for r in report.results} == {"skip"} and report.exit_code == 2
 
 
@@ -172,10 +185,17 @@ def test_track_error_rule_counts_labels_at_or_above_the_threshold_and_is_inactiv
     kitti = evaluate_gate(open_results(make_results(tmp_path / "k", [_cars(20, 0.8)])), gate)
     assert _outcome(kitti, "Car", "max_fraction_track_error_above").status == "skip" and kitti.exit_code == 2
     rows = _cars(49, 0.8, track_error=0.1) + [make_row("000002", 0, jiou_gt=0.8, track_error=0.9)]
-    r = _outcome(evaluate_gate(open_results(make_results(tmp_path / "a", [rows])), gate), "Car", "max_fraction_track_error_above")
+    r = _outcome(
+        evaluate_gate(open_results(make_results(tmp_path / "a", [rows])), gate), "Car", "max_fraction_track_error_above"
+    )
     assert r.status == "pass" and r.value == pytest.approx(0.02) and r.objects == 50
-    rows += [make_row("000003", 0, jiou_gt=0.8, track_error=0.95), make_row("000004", 0, jiou_gt=0.8)]  # a row without a track does not count
-    r = _outcome(evaluate_gate(open_results(make_results(tmp_path / "b", [rows])), gate), "Car", "max_fraction_track_error_above")
+    rows += [
+        make_row("000003", 0, jiou_gt=0.8, track_error=0.95),
+        make_row("000004", 0, jiou_gt=0.8),
+    ]  # a row without a track does not count
+    r = _outcome(
+        evaluate_gate(open_results(make_results(tmp_path / "b", [rows])), gate), "Car", "max_fraction_track_error_above"
+    )
     assert r.status == "fail" and r.objects == 51
     with pytest.raises(ConfigError, match="track_error_threshold"):
         gate_from_dict({"default": {"max_fraction_track_error_above": 0.02}})
@@ -194,10 +214,16 @@ def test_missing_rule_counts_candidates_above_the_score_per_frame(tmp_path):
     for n in (0, 1, 2, 3):  # candidates scoring ≥ 0.5, always in frame 000001, plus one below the threshold
         cands = [make_candidate("000001", k, 0.9) for k in range(n)] + [make_candidate("000002", 0, 0.49)]
         root = add_missing(make_results(tmp_path / str(n), [rows]), [cands])
-        values.append(_outcome(evaluate_gate(open_results(root), gate_from_dict(MISSING_GATE)), "dataset", "max_missing_per_frame"))
+        values.append(
+            _outcome(
+                evaluate_gate(open_results(root), gate_from_dict(MISSING_GATE)), "dataset", "max_missing_per_frame"
+            )
+        )
     assert [v.value for v in values] == [0.0, 0.25, 0.5, 0.75]
     assert [v.status for v in values] == ["pass", "pass", "pass", "fail"]
-    assert "3 candidates with score ≥ 0.5 in 4 frames" in values[3].note and "most in frame 000001 (3)" in values[3].note
+    assert (
+        "3 candidates with score ≥ 0.5 in 4 frames" in values[3].note and "most in frame 000001 (3)" in values[3].note
+    )
     # A frame with a candidate but no label counts as a frame.
     root = add_missing(make_results(tmp_path / "extra", [rows]), [[make_candidate("000009", 0, 0.9)]])
     r = _outcome(evaluate_gate(open_results(root), gate_from_dict(MISSING_GATE)), "dataset", "max_missing_per_frame")

@@ -42,7 +42,9 @@ def test_design_matrix_maps_unit_corners_to_box_corners(model):
         if d == 2:
             unit = g.BEV_CORNERS_UNIT
         else:
-            unit = np.vstack([np.c_[g.BEV_CORNERS_UNIT, -0.5 * np.ones(4)], np.c_[g.BEV_CORNERS_UNIT, 0.5 * np.ones(4)]])
+            unit = np.vstack(
+                [np.c_[g.BEV_CORNERS_UNIT, -0.5 * np.ones(4)], np.c_[g.BEV_CORNERS_UNIT, 0.5 * np.ones(4)]]
+            )
         expected = (unit * box[3 : 3 + d]) @ R.T + box[:d]
         J = g.design_matrix(unit, model)
         assert np.allclose(J @ g.box_to_phi(box, model), expected)

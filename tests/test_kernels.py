@@ -27,9 +27,29 @@ def _samples() -> list[object]:
     base = np.arange(24, dtype=np.float64).reshape(4, 6)
     ro = base.copy()
     ro.flags.writeable = False
-    return [base, base.astype(np.float32), base.T, base[:, ::2], base[:, 2], base[:1, 2], base[0], ro, base.astype(np.int64),
-            base > 3, np.zeros((2, 3, 4)), np.zeros(0), 1.5, 3, True, np.float64(2.0), np.float32(2.0), np.int64(4), np.int32(4),
-            (1.0, 2.0), (base, 2)]
+    return [
+        base,
+        base.astype(np.float32),
+        base.T,
+        base[:, ::2],
+        base[:, 2],
+        base[:1, 2],
+        base[0],
+        ro,
+        base.astype(np.int64),
+        base > 3,
+        np.zeros((2, 3, 4)),
+        np.zeros(0),
+        1.5,
+        3,
+        True,
+        np.float64(2.0),
+        np.float32(2.0),
+        np.int64(4),
+        np.int32(4),
+        (1.0, 2.0),
+        (base, 2),
+    ]
 
 
 def test_the_argument_key_is_the_type_numba_gives():
@@ -71,7 +91,12 @@ def test_the_dispatch_calls_the_signature_numba_would_pick_and_jit_for_the_rest(
     assert k.dispatch(f8[:1], 2.0) == ("compiled", 0, 2.0)  # contiguous, whatever it was cut from
     ro = f8.copy()
     ro.flags.writeable = False
-    for a, s in ((ro, 2.0), (f8, 2), (f8.astype(np.int64), 2.0), (np.arange(6.0).reshape(2, 3), 2.0)):  # not compiled: numba's JIT
+    for a, s in (
+        (ro, 2.0),
+        (f8, 2),
+        (f8.astype(np.int64), 2.0),
+        (np.arange(6.0).reshape(2, 3), 2.0),
+    ):  # not compiled: numba's JIT
         got = k.dispatch(a, s)
         np.testing.assert_array_equal(got, _scale(np.asarray(a), s))
         assert got.dtype == np.asarray(a).dtype
@@ -87,7 +112,9 @@ def test_the_quick_tests_take_equal_dtypes_that_are_other_objects():
     numba = pytest.importorskip("numba")
     module = types.SimpleNamespace(k0=lambda a, s: ("compiled", 0, s))
     k = _QuickOnly(_scale, {}, module, [["k0", [K._type_key(numba.typeof(np.zeros(2))), "float64"]]])
-    other = pickle.loads(pickle.dumps(np.dtype("<f8")))  # equal to float64, another object (arrays read from files have such)
+    other = pickle.loads(
+        pickle.dumps(np.dtype("<f8"))
+    )  # equal to float64, another object (arrays read from files have such)
     assert other is not np.dtype("<f8")
     assert k.dispatch(np.zeros(4, dtype=other), 1.0) == ("compiled", 0, 1.0)
     assert k.dispatch(np.zeros(4), np.float64(1.0)) == ("compiled", 0, 1.0)
@@ -174,7 +201,9 @@ _ROWS = textwrap.dedent("""
 
 def _rows(mode: str) -> dict:
     env = {**os.environ, K.MODE_ENV: mode}
-    done = subprocess.run([sys.executable, "-c", _ROWS], capture_output=True, env=env, cwd=REPO, timeout=600, check=True)
+    done = subprocess.run(
+        [sys.executable, "-c", _ROWS], capture_output=True, env=env, cwd=REPO, timeout=600, check=True
+    )
     return pickle.loads(done.stdout)
 
 
@@ -190,13 +219,24 @@ def test_ahead_of_time_and_jit_rows_are_bit_identical():
 
 @needs_aot
 def test_a_worker_on_the_ahead_of_time_path_never_imports_numba():
-    code = ("import sys; from labelaudit.constants import WORKER_PRELOAD; import importlib; "
-            "[importlib.import_module(m) for m in WORKER_PRELOAD]; "
-            "print(sorted(m for m in ('numba', 'llvmlite', 'scipy.linalg') if m in sys.modules))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120, check=True)
+    code = (
+        "import sys; from labelaudit.constants import WORKER_PRELOAD; import importlib; "
+        "[importlib.import_module(m) for m in WORKER_PRELOAD]; "
+        "print(sorted(m for m in ('numba', 'llvmlite', 'scipy.linalg') if m in sys.modules))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120, check=True
+    )
     assert done.stdout.strip() == "[]"
 
 
 def test_the_status_command_names_the_path():
-    done = subprocess.run([sys.executable, "-m", "labelaudit.kernels", "status"], capture_output=True, text=True, cwd=REPO, timeout=120, check=True)
+    done = subprocess.run(
+        [sys.executable, "-m", "labelaudit.kernels", "status"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+        check=True,
+    )
     assert done.stdout.split(":")[0] in ("aot", "jit")

@@ -181,7 +181,9 @@ def test_format_label_line_matches_official_text(realdata: Path) -> None:
 def test_format_label_line_exact_round_trip(tmp_path: Path) -> None:
     rng = np.random.default_rng(5)
     vals = rng.normal(size=13)
-    line = format_label_line("Van", 0.25, 1, vals[0], vals[1:5], np.abs(vals[5:8]) + 1, vals[8:11], vals[11], score=3.5, precision=None)
+    line = format_label_line(
+        "Van", 0.25, 1, vals[0], vals[1:5], np.abs(vals[5:8]) + 1, vals[8:11], vals[11], score=3.5, precision=None
+    )
     path = tmp_path / "l.txt"
     path.write_text(line + "\n")
     lab = read_label(path)
@@ -205,7 +207,9 @@ def test_written_dataset_reads_back_same_boxes(tmp_path: Path) -> None:
     for box, name in zip(boxes, ["Car", "Pedestrian"]):
         loc, dims, ry = box_lidar_to_camera(box, calib)
         bbox = project_box_to_image(box, calib)
-        lines.append(format_label_line(name, 0.0, 0, float(alpha_from_location(loc, ry)), bbox, dims, loc, ry, precision=None))
+        lines.append(
+            format_label_line(name, 0.0, 0, float(alpha_from_location(loc, ry)), bbox, dims, loc, ry, precision=None)
+        )
     lines.insert(1, "DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10")
     write_frame(tmp_path, "000007", random_points(), lines, calib)
     assert detect_format(tmp_path) == "kitti"
@@ -265,10 +269,18 @@ def _load_all(reader: KittiReader) -> tuple[dict[str, object], dict[str, Dataset
     [
         ("Car 0.00 0 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0", "expected 15 columns .* got 14", 2),
         (GOOD_LINE + " 0.9 7", "expected 15 columns .* got 17", 2),
-        ("Car 0.00 0 -1.57 600 150 700 220 1.5 abc 4.0 1.0 1.5 10.0 0.0", "column 'width': expected a number, got 'abc'", 2),
+        (
+            "Car 0.00 0 -1.57 600 150 700 220 1.5 abc 4.0 1.0 1.5 10.0 0.0",
+            "column 'width': expected a number, got 'abc'",
+            2,
+        ),
         ("Car 0.00 0.5 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
         # an occlusion an int column cannot hold is an object error, not an ArrowInvalid that ends the run
-        ("Car 0.00 3000000000 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'.*'3000000000'", 2),
+        (
+            "Car 0.00 3000000000 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0",
+            "column 'occluded'.*'3000000000'",
+            2,
+        ),
         ("Car 0.00 1e300 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'.*'1e300'", 2),
         ("Car 0.00 7 -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
         ("Car 0.00 nan -1.57 600 150 700 220 1.5 1.6 4.0 1.0 1.5 10.0 0.0", "column 'occluded'", 2),
@@ -445,7 +457,14 @@ def test_not_a_kitti_folder(tmp_path: Path) -> None:
 # Real KITTI files
 # --------------------------------------------------------------------------------------------
 
-REAL_COUNTS = {"000000": 115384, "000001": 120268, "000002": 126891, "000003": 113110, "000004": 115976, "000005": 125086}
+REAL_COUNTS = {
+    "000000": 115384,
+    "000001": 120268,
+    "000002": 126891,
+    "000003": 113110,
+    "000004": 115976,
+    "000005": 125086,
+}
 
 
 def test_real_frames_read(realdata: Path) -> None:

@@ -21,13 +21,43 @@ from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_
 from labelaudit.infer.run import InferRequest, run_infer
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
-CONTRACT = ("frame_id", "candidate_index", "class_name", "cx", "cy", "cz", "length", "width", "height", "yaw", "num_points", "distance", "score", "source")
+CONTRACT = (
+    "frame_id",
+    "candidate_index",
+    "class_name",
+    "cx",
+    "cy",
+    "cz",
+    "length",
+    "width",
+    "height",
+    "yaw",
+    "num_points",
+    "distance",
+    "score",
+    "source",
+)
 
 
 def _candidate(frame_id: str, index: int, **kw) -> dict:
-    row = {"frame_id": frame_id, "candidate_index": index, "class_name": "Car", "cx": 12.0, "cy": 3.0, "cz": -0.9,
-           "length": 4.1, "width": 1.7, "height": 1.5, "yaw": 0.2, "num_points": 240, "distance": 12.4, "score": 0.8,
-           "source": "points", "dataset": "kitti", "max_label_iou": 0.0}
+    row = {
+        "frame_id": frame_id,
+        "candidate_index": index,
+        "class_name": "Car",
+        "cx": 12.0,
+        "cy": 3.0,
+        "cz": -0.9,
+        "length": 4.1,
+        "width": 1.7,
+        "height": 1.5,
+        "yaw": 0.2,
+        "num_points": 240,
+        "distance": 12.4,
+        "score": 0.8,
+        "source": "points",
+        "dataset": "kitti",
+        "max_label_iou": 0.0,
+    }
     row.update(kw)
     return row
 
@@ -35,8 +65,14 @@ def _candidate(frame_id: str, index: int, **kw) -> dict:
 def test_the_contract_columns_come_first_with_their_types():
     assert R.MISSING_COLUMN_NAMES[: len(CONTRACT)] == CONTRACT
     types = {f.name: f.type for f in R.MISSING_SCHEMA}
-    assert types["frame_id"] == pa.string() and types["candidate_index"] == pa.int32() and types["num_points"] == pa.int32()
-    assert all(types[c] == pa.float64() for c in ("cx", "cy", "cz", "length", "width", "height", "yaw", "distance", "score"))
+    assert (
+        types["frame_id"] == pa.string()
+        and types["candidate_index"] == pa.int32()
+        and types["num_points"] == pa.int32()
+    )
+    assert all(
+        types[c] == pa.float64() for c in ("cx", "cy", "cz", "length", "width", "height", "yaw", "distance", "score")
+    )
     assert types["source"] == pa.string() and types["class_name"] == pa.string()
 
 
@@ -55,15 +91,27 @@ def test_read_missing_of_a_folder_without_candidates_is_empty_with_the_schema(tm
 
 def test_read_missing_gathers_shards_sorted_and_fills_absent_columns(tmp_path):
     root = tmp_path / "res"
-    R.write_parquet_atomic(R.missing_rows_to_table([_candidate("000002", 0), _candidate("000001", 1), _candidate("000001", 0, detection_score=float("nan"))]), root / R.MISSING_DIR / "part-a.parquet")
+    R.write_parquet_atomic(
+        R.missing_rows_to_table(
+            [_candidate("000002", 0), _candidate("000001", 1), _candidate("000001", 0, detection_score=float("nan"))]
+        ),
+        root / R.MISSING_DIR / "part-a.parquet",
+    )
     # a shard of an older build without the evidence columns
     old = pa.table({"frame_id": ["000000"], "candidate_index": pa.array([0], pa.int32()), "score": [0.3]})
     pq.write_table(old, root / R.MISSING_DIR / "part-b.parquet")
     (root / R.MISSING_DIR / f".part-c.parquet{R.TMP_MARKER}1").write_bytes(b"half")
     t = R.read_missing(root)
     assert t.schema.equals(R.MISSING_SCHEMA)
-    assert list(zip(t["frame_id"].to_pylist(), t["candidate_index"].to_pylist())) == [("000000", 0), ("000001", 0), ("000001", 1), ("000002", 0)]
-    assert t["class_name"].to_pylist()[0] is None and t["detection_score"].to_pylist()[1] is None  # NaN in an evidence column is no value
+    assert list(zip(t["frame_id"].to_pylist(), t["candidate_index"].to_pylist())) == [
+        ("000000", 0),
+        ("000001", 0),
+        ("000001", 1),
+        ("000002", 0),
+    ]
+    assert (
+        t["class_name"].to_pylist()[0] is None and t["detection_score"].to_pylist()[1] is None
+    )  # NaN in an evidence column is no value
     bad = root / R.MISSING_DIR / "part-d.parquet"
     bad.write_bytes(b"not parquet")
     with pytest.raises(ResultsError, match="part-d.parquet.*damaged"):
@@ -80,7 +128,9 @@ def sim_kitti(tmp_path_factory) -> Path:
 
 
 def _run(dataset: Path, out: Path, cfg: RunConfig | None = None, **kw):
-    return run_infer(InferRequest(dataset, out, "auto", chunk_units=2, **kw), cfg or RunConfig(), executor=SerialExecutor())
+    return run_infer(
+        InferRequest(dataset, out, "auto", chunk_units=2, **kw), cfg or RunConfig(), executor=SerialExecutor()
+    )
 
 
 def test_infer_writes_one_missing_shard_per_chunk_and_none_with_no_missing(sim_kitti, tmp_path):
@@ -143,8 +193,12 @@ def _face(p0, p1, z0, z1, step):
 def _car_points(cx, cy, length=4.2, width=1.8, height=1.5, step=0.08):
     """The two faces a sensor at the origin sees of an axis-aligned car ahead and to the left."""
     x0, y0 = cx - length / 2, cy - width / 2
-    return np.vstack([_face((x0, y0), (x0, y0 + width), GROUND + 0.2, GROUND + height, step),  # rear
-                      _face((x0, y0), (x0 + length, y0), GROUND + 0.2, GROUND + height, step)])  # right side
+    return np.vstack(
+        [
+            _face((x0, y0), (x0, y0 + width), GROUND + 0.2, GROUND + height, step),  # rear
+            _face((x0, y0), (x0 + length, y0), GROUND + 0.2, GROUND + height, step),
+        ]
+    )  # right side
 
 
 def _unshadowed(ground, objects):
@@ -163,8 +217,14 @@ def _unshadowed(ground, objects):
 def _frame(*objects, boxes=None, names=(), view=None):
     pts = np.vstack([_unshadowed(_ground(), objects), *objects])
     boxes = np.zeros((0, 7)) if boxes is None else np.asarray(boxes, dtype=float).reshape(-1, 7)
-    return Frame("000001", np.c_[pts, np.zeros(len(pts))].astype(np.float32), boxes, list(names),
-                 [f"000001:{i}" for i in range(len(boxes))], image_view=view)
+    return Frame(
+        "000001",
+        np.c_[pts, np.zeros(len(pts))].astype(np.float32),
+        boxes,
+        list(names),
+        [f"000001:{i}" for i in range(len(boxes))],
+        image_view=view,
+    )
 
 
 def _best(rows, x, y, radius=1.5):
@@ -177,9 +237,13 @@ def test_an_unlabelled_car_is_found_where_it_stands_and_a_labelled_one_is_not():
     rows = find_missing(_frame(_car_points(15.0, 3.0)), cfg)
     assert _best(rows, 15.0, 3.0) >= 0.5
     top = max(rows, key=lambda r: r["score"])
-    assert math.hypot(top["cx"] - 15.0, top["cy"] - 3.0) < 1.0 and top["class_name"] == "Car" and top["source"] == "points"
+    assert (
+        math.hypot(top["cx"] - 15.0, top["cy"] - 3.0) < 1.0 and top["class_name"] == "Car" and top["source"] == "points"
+    )
     assert 3.0 <= top["length"] <= 5.3 and 1.4 <= top["width"] <= 2.2
-    labelled = find_missing(_frame(_car_points(15.0, 3.0), boxes=[[15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]], names=["Car"]), cfg)
+    labelled = find_missing(
+        _frame(_car_points(15.0, 3.0), boxes=[[15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]], names=["Car"]), cfg
+    )
     assert _best(labelled, 15.0, 3.0) == 0.0  # its label explains its returns
 
 
@@ -188,8 +252,15 @@ def test_a_car_scores_higher_than_a_wall_a_pole_a_bush_and_a_kerb():
     rng = np.random.default_rng(0)
     car = _car_points(20.0, 4.0)
     wall = _face((14.0, -8.0), (34.0, -8.0), GROUND + 0.1, GROUND + 4.0, 0.1)  # 20 m of building front
-    pole = np.vstack([_face((25.0, 10.0), (25.3, 10.0), GROUND, GROUND + 6.0, 0.05), _face((25.0, 10.0), (25.0, 10.3), GROUND, GROUND + 6.0, 0.05)])
-    bush = np.array([28.0, -3.0, GROUND + 0.9]) + rng.normal(0.0, [1.0, 0.8, 0.45], (1500, 3))  # foliage: returns scattered in depth
+    pole = np.vstack(
+        [
+            _face((25.0, 10.0), (25.3, 10.0), GROUND, GROUND + 6.0, 0.05),
+            _face((25.0, 10.0), (25.0, 10.3), GROUND, GROUND + 6.0, 0.05),
+        ]
+    )
+    bush = np.array([28.0, -3.0, GROUND + 0.9]) + rng.normal(
+        0.0, [1.0, 0.8, 0.45], (1500, 3)
+    )  # foliage: returns scattered in depth
     kerb = _face((10.0, -5.0), (30.0, -5.0), GROUND, GROUND + 0.15, 0.05)
     rows = find_missing(_frame(car, wall, pole, bush, kerb), cfg)
     car_score = _best(rows, 20.0, 4.0)
@@ -229,7 +300,11 @@ def test_kitti_only_in_the_camera_view_and_not_in_dontcare_waymo_all_around():
     assert _best(find_missing(_frame(ahead, behind, view=covered), cfg), 15.0, 3.0) == 0.0  # inside a DontCare region
     elsewhere = ImageView(view.projection, view.size, np.array([[0.0, 0.0, 50.0, 50.0]]))
     assert _best(find_missing(_frame(ahead, behind, view=elsewhere), cfg), 15.0, 3.0) >= 0.5
-    inside = in_labelled_region(np.array([[15.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0], [-15.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0]]), _frame(view=view), 70.0)
+    inside = in_labelled_region(
+        np.array([[15.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0], [-15.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0]]),
+        _frame(view=view),
+        70.0,
+    )
     assert inside.tolist() == [True, False]
 
 
@@ -237,10 +312,17 @@ def test_detections_without_a_label_are_candidates_and_one_found_both_ways_is_on
     cfg = RunConfig()
     label = [30.0, -6.0, GROUND + 0.75, 4.0, 1.7, 1.5, 0.0]
     dets = FrameDetections(
-        boxes=np.array([[15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0],  # on the unlabelled car: both
-                        [40.0, 10.0, GROUND + 0.75, 4.0, 1.7, 1.5, 0.3],  # no label, no cluster: detections
-                        [30.2, -6.1, GROUND + 0.75, 4.0, 1.7, 1.5, 0.0]]),  # on the label: not a candidate
-        scores=np.array([0.9, 0.8, 0.95]), class_names=["Car", "Car", "Car"], sources=["d.txt:1", "d.txt:2", "d.txt:3"])
+        boxes=np.array(
+            [
+                [15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0],  # on the unlabelled car: both
+                [40.0, 10.0, GROUND + 0.75, 4.0, 1.7, 1.5, 0.3],  # no label, no cluster: detections
+                [30.2, -6.1, GROUND + 0.75, 4.0, 1.7, 1.5, 0.0],
+            ]
+        ),  # on the label: not a candidate
+        scores=np.array([0.9, 0.8, 0.95]),
+        class_names=["Car", "Car", "Car"],
+        sources=["d.txt:1", "d.txt:2", "d.txt:3"],
+    )
     rows = find_missing(_frame(_car_points(15.0, 3.0), boxes=[label], names=["Car"]), cfg, dets)
     by_source = {r["source"]: r for r in rows if r["score"] >= 0.5}
     assert set(by_source) == {"both", "detections"}
@@ -277,7 +359,9 @@ def test_simulated_dropped_labels_keep_their_points_and_are_in_the_manifest(tmp_
     vehicles = np.array([c in ("Car", "Van", "Truck") for c in kept.scene.class_names])
     assert np.array_equal(dropped.labels.dropped, (kept.labels.object_index >= 0) & vehicles)
     assert np.all(dropped.labels.object_index[dropped.labels.dropped] < 0)
-    simulate_dataset(tmp_path / "sim", frames=2, seed=4, scene=SceneSpec(num_clutter=(3, 3)), drop_fraction=0.5, progress=False)
+    simulate_dataset(
+        tmp_path / "sim", frames=2, seed=4, scene=SceneSpec(num_clutter=(3, 3)), drop_fraction=0.5, progress=False
+    )
     man = read_manifest(tmp_path / "sim")
     assert "dropped" in man.column_names and man.schema.metadata[b"labelaudit.drop_fraction"] == b"0.5"
     rows = man.to_pylist()
@@ -348,7 +432,15 @@ def test_detections_need_the_search_and_an_existing_path(sim_kitti, tmp_path):
 
 def test_a_label_shifted_off_its_car_is_a_wrong_label_not_a_missing_one():
     cfg = RunConfig()
-    shifted = [16.2, 3.4, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]  # 1.2 m off: the returns at its rear and side are outside it
+    shifted = [
+        16.2,
+        3.4,
+        GROUND + 0.75,
+        4.2,
+        1.8,
+        1.5,
+        0.0,
+    ]  # 1.2 m off: the returns at its rear and side are outside it
     rows = find_missing(_frame(_car_points(15.0, 3.0), boxes=[shifted], names=["Car"]), cfg)
     assert _best(rows, 15.0, 3.0) == 0.0
     far = [30.0, -8.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]

@@ -201,7 +201,10 @@ def test_covariances_are_spd_and_finite_for_degenerate_inputs(model):
         "far outside": (CAR, np.array([[100.0, -50.0, 3.0], [-80.0, 40.0, -2.0], [15.0, 5.0, 40.0]])),
         "single point": (CAR, np.array([[13.0, 5.0, 0.7]])),
         "tiny box": (np.array([1.0, 1.0, 0.0, 1e-3, 1e-3, 1e-3, 0.2]), np.array([[1.0, 1.0, 0.0], [1.0005, 1.0, 0.0]])),
-        "huge box": (np.array([0.0, 0.0, 0.0, 1e3, 5e2, 1e2, 1.0]), face_points([0, 0, 0, 1e3, 5e2, 1e2, 1.0], ["+x"], 50)),
+        "huge box": (
+            np.array([0.0, 0.0, 0.0, 1e3, 5e2, 1e2, 1.0]),
+            face_points([0, 0, 0, 1e3, 5e2, 1e2, 1.0], ["+x"], 50),
+        ),
         "nan rows": (CAR, np.array([[13.0, 4.0, 0.8], [np.nan, 1.0, 1.0], [13.0, 5.0, np.inf]])),
     }
     for name, (box, pts) in cases.items():
@@ -213,7 +216,9 @@ def test_covariances_are_spd_and_finite_for_degenerate_inputs(model):
     assert M.infer_label(CAR, cases["nan rows"][1], "Car", params).num_points == (2 if model == "bev" else 1)
 
 
-@pytest.mark.parametrize("bad", [[0, 0, 0, 0.0, 1, 1, 0], [0, 0, 0, 4, -1, 1, 0], [0, np.nan, 0, 4, 2, 1, 0], [0, 0, 0, 4, 2, 1, np.inf]])
+@pytest.mark.parametrize(
+    "bad", [[0, 0, 0, 0.0, 1, 1, 0], [0, 0, 0, 4, -1, 1, 0], [0, np.nan, 0, 4, 2, 1, 0], [0, 0, 0, 4, 2, 1, np.inf]]
+)
 def test_invalid_box_raises(bad):
     with pytest.raises(ValueError):
         M.infer_label(bad, np.zeros((3, 3)), "Car", ModelParams())
@@ -403,7 +408,10 @@ def _shifted(box, **delta):
 def test_label_error_orders_exact_slight_bad(model):
     pts = face_points(CAR, ["-x", "-y"], 150, 0.03)
     params = ModelParams(kind=model)
-    scores = [LF.fit_label(b, pts, "Car", params).label_error for b in (CAR, _shifted(CAR, cx=0.15), _shifted(CAR, cx=0.5, cy=0.3))]
+    scores = [
+        LF.fit_label(b, pts, "Car", params).label_error
+        for b in (CAR, _shifted(CAR, cx=0.15), _shifted(CAR, cx=0.5, cy=0.3))
+    ]
     assert scores[0] < scores[1] < scores[2]
     assert scores[0] < 0.05 and scores[2] > 0.99
     for bad in (_shifted(CAR, yaw=0.15), _shifted(CAR, cy=0.4)):
@@ -498,7 +506,17 @@ def test_hull_iou_equals_qhull_and_shapely():
 
     rng = np.random.default_rng(11)
     for trial in range(200):
-        box = np.array([rng.uniform(-40, 40), rng.uniform(-40, 40), 0.8, rng.uniform(1, 8), rng.uniform(0.5, 3), 1.5, rng.uniform(-4, 4)])
+        box = np.array(
+            [
+                rng.uniform(-40, 40),
+                rng.uniform(-40, 40),
+                0.8,
+                rng.uniform(1, 8),
+                rng.uniform(0.5, 3),
+                1.5,
+                rng.uniform(-4, 4),
+            ]
+        )
         n = int(rng.integers(3, 150))
         spread = [0.5, 0.7, 1.5][trial % 3]  # inside, around, mostly outside the box
         pts = g.unit_to_world(rng.uniform(-spread, spread, (n, 3)) + [0.4 * (trial % 2), 0, 0], box, "3d")
@@ -514,7 +532,11 @@ def test_hull_iou_baseline():
     rng = np.random.default_rng(0)
     inside = g.unit_to_world(rng.uniform(-0.5, 0.5, (500, 2)), CAR, "bev")
     assert IOU.hull_iou(CAR, inside) > 0.95
-    assert IOU.hull_iou(_shifted(CAR, cx=1.0), inside) < IOU.hull_iou(_shifted(CAR, cx=0.2), inside) < IOU.hull_iou(CAR, inside)
+    assert (
+        IOU.hull_iou(_shifted(CAR, cx=1.0), inside)
+        < IOU.hull_iou(_shifted(CAR, cx=0.2), inside)
+        < IOU.hull_iou(CAR, inside)
+    )
     assert IOU.hull_iou(CAR, inside[:2]) == 0.0
     assert IOU.hull_iou(CAR, np.c_[np.linspace(13, 17, 5), np.full(5, 5.0)]) == 0.0  # collinear
     assert IOU.hull_iou(CAR, None) == 0.0
@@ -576,7 +598,9 @@ def _surface_candidates(local: np.ndarray, half: np.ndarray) -> tuple[np.ndarray
     return cand, sqdist
 
 
-def _nearest_distinct(local: np.ndarray, half: np.ndarray, cand: np.ndarray, sqdist: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+def _nearest_distinct(
+    local: np.ndarray, half: np.ndarray, cand: np.ndarray, sqdist: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Keep the m nearest *distinct* face candidates per point (reference for ``model._nearest_faces``).
 
     Two faces give the same candidate exactly when the point lies outside (or on) both of them:
@@ -662,7 +686,9 @@ def test_hull_iou_valid_equals_hull_iou():
     for n in (0, 2, 5, 60):
         pts = g.unit_to_world(rng.uniform(-0.6, 0.6, (n, 2)), CAR, "bev") if n else np.zeros((0, 2))
         for arr in (pts, pts.astype(np.float32), None, pts.tolist()):
-            assert IOU.hull_iou_valid(g.validate_box(CAR), arr) == IOU.hull_iou(CAR, None if arr is None else np.asarray(arr, dtype=float).tolist())  # a list takes the NumPy path
+            assert IOU.hull_iou_valid(g.validate_box(CAR), arr) == IOU.hull_iou(
+                CAR, None if arr is None else np.asarray(arr, dtype=float).tolist()
+            )  # a list takes the NumPy path
 
 
 def test_closest_form_phi_equals_argmin_over_equivalent_boxes():
@@ -703,15 +729,17 @@ def test_plane_rows_break_ties_like_the_nearest_face_registration(model):
     d = g.point_dim(model)
     half = CAR[3:6] / 2
     t = 0.3
-    local = np.array([
-        [half[0] - t, half[1] - t, 0.0],  # +x and +y faces equally near
-        [-half[0] + t, -half[1] + t, 0.0],
-        [half[0] - t, 0.0, half[2] - t],
-        [0.0, -half[1] + t, -half[2] + t],
-        [half[0] - 0.2, half[1] - 0.2, half[2] - 0.2],
-        [0.0, 0.0, 0.0],  # the centre
-        [-half[0] - 0.1, half[1] + 0.1, 0.0],  # beyond a corner
-    ])[:, :d]
+    local = np.array(
+        [
+            [half[0] - t, half[1] - t, 0.0],  # +x and +y faces equally near
+            [-half[0] + t, -half[1] + t, 0.0],
+            [half[0] - t, 0.0, half[2] - t],
+            [0.0, -half[1] + t, -half[2] + t],
+            [half[0] - 0.2, half[1] - 0.2, half[2] - 0.2],
+            [0.0, 0.0, 0.0],  # the centre
+            [-half[0] - 0.1, half[1] + 0.1, 0.0],  # beyond a corner
+        ]
+    )[:, :d]
     pts = local.copy()
     pts[:, :2] = local[:, :2] @ g.rotation_z(CAR[6])[:2, :2].T + CAR[:2]
     if d == 3:
@@ -820,17 +848,26 @@ def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
     """register_validated and the per-object EM give their NumPy forms' arrays bit for bit;
     registration_information (compiled, its own summation order) within 1e-13 of the BLAS form
     (points around, on and inside rotated boxes; 1 to 3 candidates)."""
-    assert (C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, C.EM_RESIDUAL_DOF) == (0.01, 1e-3, 50, 1.0)  # as _em_numpy
+    assert (C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, C.EM_RESIDUAL_DOF) == (
+        0.01,
+        1e-3,
+        50,
+        1.0,
+    )  # as _em_numpy
     rng = np.random.default_rng(21)
     d = g.point_dim(model)
     B, BB = M._BASIS[model]
     for trial in range(24):
         y = np.array([*rng.normal(0, 30, 3), *rng.uniform(0.5, 10, 3), rng.uniform(-4, 4)])
-        pts = face_points(y, ["-x", "-y", "+x", "+z"], int(rng.integers(2, 300)), 10 ** rng.uniform(-3, -0.5), seed=trial)[:, :d].copy()
+        pts = face_points(
+            y, ["-x", "-y", "+x", "+z"], int(rng.integers(2, 300)), 10 ** rng.uniform(-3, -0.5), seed=trial
+        )[:, :d].copy()
         m, sigma = int(rng.integers(1, 4)), float(rng.uniform(0.02, 0.5))
         reg = M.register_validated(y, pts, d, m, sigma, 0.0)
         vstar, sqd, resp = _registration_numpy(y, pts, d, m, sigma)
-        assert np.array_equal(reg.vstar, vstar) and np.array_equal(reg.sqdist, sqd) and np.array_equal(reg.resp, resp), trial
+        assert (
+            np.array_equal(reg.vstar, vstar) and np.array_equal(reg.sqdist, sqd) and np.array_equal(reg.resp, resp)
+        ), trial
         if trial < 8:
             assert M.em_sigma([(sqd, 0.0)], d, sigma, 0.0) == _em_numpy(sqd), trial
             h = len(sqd) // 2  # pooled over two registrations
@@ -842,7 +879,10 @@ def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
         rv = vt * resp[..., None]
         moments = rv.reshape(n * m, d + 1).T @ vt.reshape(n * m, d + 1)
         p = B.shape[-1]
-        want = ((moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p), (rv.sum(axis=1).T @ pts).reshape(-1) @ B.reshape(-1, p))
+        want = (
+            (moments.reshape(-1) @ BB.reshape(-1, p * p)).reshape(p, p),
+            (rv.sum(axis=1).T @ pts).reshape(-1) @ B.reshape(-1, p),
+        )
         got = M.registration_information(reg, model)
         assert np.allclose(got[0], want[0], rtol=1e-13, atol=1e-13 * np.abs(want[0]).max()), trial
         assert np.allclose(got[1], want[1], rtol=1e-13, atol=1e-13 * np.abs(want[1]).max()), trial
@@ -858,7 +898,9 @@ def test_compiled_quadratic_forms_equal_einsum(model):
         L = rng.normal(size=(p, p)) * 10.0 ** rng.uniform(-4, 1)
         cov = L @ L.T
         cov = 0.5 * (cov + cov.T)
-        K, _ = g.box_param_jacobian(np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 10, 3), rng.uniform(-4, 4)]), model)
+        K, _ = g.box_param_jacobian(
+            np.array([*rng.normal(0, 20, 3), *rng.uniform(0.3, 10, 3), rng.uniform(-4, 4)]), model
+        )
         assert np.array_equal(M._quad_forms(K, cov), np.einsum("ip,pq,iq->i", K, cov, K))
         assert np.array_equal(M._corner_quad_forms(J, cov), np.einsum("cdp,pq,cdq->c", J, cov, J))
 
@@ -947,7 +989,9 @@ def test_box_prior_terms_equal_each_functions_own_set_up(model):
         E = np.linalg.inv(G)
         P0 = M.prior_precision_from(E, prior, params.prior_weight, model)
         assert np.array_equal(t.phi, g.box_to_phi(y, model)) and np.array_equal(t.G, G) and np.array_equal(t.Ginv, E)
-        assert np.array_equal(t.P0, P0) and np.array_equal(t.P0, M.prior_precision(y, prior, params.prior_weight, model))
+        assert np.array_equal(t.P0, P0) and np.array_equal(
+            t.P0, M.prior_precision(y, prior, params.prior_weight, model)
+        )
         assert np.array_equal(t.eta0, P0 @ t.phi)
         assert t.matches(model, prior, params.prior_weight) and not t.matches(model, prior, 2 * params.prior_weight)
 
@@ -964,7 +1008,12 @@ def test_fit_label_with_shared_terms_equals_its_own(model):
         got = LF.fit_label_valid(y, pts, "Car", params, prior_terms=terms)
         for f in ("box", "phi", "cov"):
             assert np.array_equal(getattr(got, f), getattr(want, f)), f
-        assert (got.model, got.label_error, got.mahalanobis, got.iterations) == (want.model, want.label_error, want.mahalanobis, want.iterations)
+        assert (got.model, got.label_error, got.mahalanobis, got.iterations) == (
+            want.model,
+            want.label_error,
+            want.mahalanobis,
+            want.iterations,
+        )
         assert np.array_equal(list(got.offsets.values()), list(want.offsets.values()), equal_nan=True)
 
 
@@ -980,12 +1029,16 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
     y = CAR + np.r_[rng.normal(0, 0.2, 3), 0.0, 0.0, 0.0, 0.1]
     pts = face_points(CAR, ["-x", "-y", "+z"], 40, noise=0.03, seed=21)
     pts_t = np.ascontiguousarray(np.asarray(pts, dtype=float)[:, :d].T)
-    ends = np.c_[rng.uniform(12, 22, 300), rng.uniform(2, 9, 300), rng.uniform(0.3, 0.5, 300)]  # returns low behind and in the box
+    ends = np.c_[
+        rng.uniform(12, 22, 300), rng.uniform(2, 9, 300), rng.uniform(0.3, 0.5, 300)
+    ]  # returns low behind and in the box
     fs = FreeSpace(np.array([0.0, 0.0, 1.7]), ends, np.array([0.0, 0.0, 0.0, 0.0]), CAR[:2].copy(), (0.25, 0.6), 0.1)
     terms = M.box_prior_terms(g.validate_box(CAR), ModelParams().prior_for("Car"), 1.0, model)
     phi, sigma = g.phi_of_valid_box(y, model), 0.05
     for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma, g.validate_box(CAR))):
-        got, rr, ss, sw = LF._fit_precision_kernel(y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays)
+        got, rr, ss, sw = LF._fit_precision_kernel(
+            y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays
+        )
         ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._fit_point_constants(), sigma, phi)
         if rays[0].shape[1]:
             ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays[:8], three_d, phi, rays[8])
@@ -1014,4 +1067,6 @@ def test_corner_covariances_known_answer_and_one_formula():
         for k in range(3):
             tv, order = M.corner_total_variance(box, covs[k], model)
             np.testing.assert_allclose(tv, stacked[k][order], rtol=1e-13)
-            np.testing.assert_allclose(np.trace(M.corner_covariances(covs[k], model), axis1=1, axis2=2), stacked[k], rtol=1e-13)
+            np.testing.assert_allclose(
+                np.trace(M.corner_covariances(covs[k], model), axis1=1, axis2=2), stacked[k], rtol=1e-13
+            )

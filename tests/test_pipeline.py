@@ -76,7 +76,11 @@ def _frame() -> Frame:
         boxes=boxes,
         class_names=["Car", "Car", "Pedestrian", "Truck", "Boom"],
         object_ids=[f"000007:{i}" for i in range(5)],
-        extras={"difficulty": np.array([0, 1, 2, -1, 0], dtype=np.int8), "truncated": np.zeros(5), "label_line": np.arange(1, 6)},
+        extras={
+            "difficulty": np.array([0, 1, 2, -1, 0], dtype=np.int8),
+            "truncated": np.zeros(5),
+            "label_line": np.arange(1, 6),
+        },
         warnings=["dropped 2 points with NaN coordinates"],
     )
 
@@ -206,7 +210,10 @@ def test_resume_refuses_a_changed_model_constant(fake_core, sim_kitti, tmp_path,
         _run(sim_kitti, out)
 
 
-@pytest.mark.parametrize("key, value, what", [("tool_version", "0.0.1", "labelaudit version"), ("schema_version", "0", "results schema version")])
+@pytest.mark.parametrize(
+    "key, value, what",
+    [("tool_version", "0.0.1", "labelaudit version"), ("schema_version", "0", "results schema version")],
+)
 def test_resume_refuses_another_version_whatever_the_hash(fake_core, sim_kitti, tmp_path, key, value, what):
     out = tmp_path / "res"
     _run(sim_kitti, out)
@@ -239,7 +246,15 @@ def test_unhashed_constants_are_only_those_that_cannot_change_a_row():
     from labelaudit.config import is_unhashed
 
     hashed = {n for n in dir(C) if n.isupper() and not is_unhashed(n)}
-    for name in ("FIT_TOLERANCE", "LABEL_TOLERANCE", "EM_TOLERANCE", "DEFAULT_GROUND_CUT", "KITTI_MIN_HEIGHT", "DEFAULT_PRIORS", "MAX_CELLS_PER_AXIS"):
+    for name in (
+        "FIT_TOLERANCE",
+        "LABEL_TOLERANCE",
+        "EM_TOLERANCE",
+        "DEFAULT_GROUND_CUT",
+        "KITTI_MIN_HEIGHT",
+        "DEFAULT_PRIORS",
+        "MAX_CELLS_PER_AXIS",
+    ):
         assert name in hashed, name
 
 
@@ -367,10 +382,14 @@ def test_waymo_v1_and_v2_give_the_same_rows(fake_core, tmp_path):
     drop = {"dataset"}
     strip = lambda rows: [{k: v for k, v in r.items() if k not in drop} for r in rows]  # noqa: E731
     a, b = strip(v1), strip(v2)
-    assert [(r["frame_id"], r["object_id"], r["class_name"]) for r in a] == [(r["frame_id"], r["object_id"], r["class_name"]) for r in b]
+    assert [(r["frame_id"], r["object_id"], r["class_name"]) for r in a] == [
+        (r["frame_id"], r["object_id"], r["class_name"]) for r in b
+    ]
     assert [r["num_points"] for r in a] == [r["num_points"] for r in b]
     # --limit N on Waymo: first N segments, at most N frames each
-    summary = run_infer(InferRequest(roots["waymo-v2"], tmp_path / "lim", "waymo-v2", limit=1), cfg, executor=SerialExecutor())
+    summary = run_infer(
+        InferRequest(roots["waymo-v2"], tmp_path / "lim", "waymo-v2", limit=1), cfg, executor=SerialExecutor()
+    )
     assert summary.units == 1 and summary.frames == 1
 
 
@@ -431,7 +450,9 @@ def test_a_second_writer_is_refused_and_a_stale_lock_taken_over(fake_core, sim_k
 def test_every_column_the_core_returns_has_a_place_in_the_schema():
     from labelaudit.infer.rows import audit_object
 
-    assert set(R.MODEL_COLUMNS) <= set(R.COLUMN_NAMES), "add new model columns to labelaudit/results.py COLUMNS and docs"
+    assert set(R.MODEL_COLUMNS) <= set(R.COLUMN_NAMES), (
+        "add new model columns to labelaudit/results.py COLUMNS and docs"
+    )
     rng = np.random.default_rng(1)
     pts = np.c_[rng.uniform(-2, 2, 50), rng.uniform(-0.9, 0.9, 50), rng.uniform(-0.7, 0.7, 50)]
     for model in ("bev", "3d"):

@@ -59,7 +59,9 @@ def test_rows_to_table_sorts_by_frame_then_index_and_keeps_the_schema():
 
 def test_atomic_write_leaves_no_temp_file_and_keeps_metadata(tmp_path):
     meta = R.run_metadata({"a": 1}, "feedbeef", "/in", "kitti")
-    path = R.write_parquet_atomic(R.rows_to_table([make_row("000001", 0)], meta), tmp_path / "objects" / "part-x.parquet")
+    path = R.write_parquet_atomic(
+        R.rows_to_table([make_row("000001", 0)], meta), tmp_path / "objects" / "part-x.parquet"
+    )
     assert [p.name for p in path.parent.iterdir()] == ["part-x.parquet"]
     got = R.shard_metadata(path)
     assert got["param_hash"] == "feedbeef" and got["params"] == {"a": 1} and got["schema_version"] == R.SCHEMA_VERSION
@@ -104,8 +106,22 @@ def test_reader_does_not_depend_on_column_order_and_fills_missing_optional_colum
 
 def test_failed_frames_count_errors_not_warnings(tmp_path):
     errors = [
-        {"unit": "000003", "frame_id": None, "file": "/d/label_2/000003.txt", "line": 2, "level": "error", "message": "bad"},
-        {"unit": "000004", "frame_id": "000004", "file": None, "line": None, "level": "warning", "message": "dropped 3 NaN points"},
+        {
+            "unit": "000003",
+            "frame_id": None,
+            "file": "/d/label_2/000003.txt",
+            "line": 2,
+            "level": "error",
+            "message": "bad",
+        },
+        {
+            "unit": "000004",
+            "frame_id": "000004",
+            "file": None,
+            "line": None,
+            "level": "warning",
+            "message": "dropped 3 NaN points",
+        },
     ]
     res = R.open_results(make_results(tmp_path, [[make_row("000001", 0)]], errors))
     assert res.failed_frames() == 1
@@ -117,7 +133,10 @@ def test_failed_frames_count_errors_not_warnings(tmp_path):
 
 @pytest.fixture()
 def ranked_results(tmp_path):
-    rows_a = [make_row("000001", i, jiou_gt=j, label_error=e) for i, (j, e) in enumerate([(0.9, 0.1), (0.2, 0.7), (0.5, None)])]
+    rows_a = [
+        make_row("000001", i, jiou_gt=j, label_error=e)
+        for i, (j, e) in enumerate([(0.9, 0.1), (0.2, 0.7), (0.5, None)])
+    ]
     rows_b = [
         make_row("000002", 0, "Pedestrian", jiou_gt=0.1, label_error=0.9, num_points=5, distance=50.0),
         make_row("000002", 1, status="skipped", message="length 9.00 m outside [3, 6.5] m"),
@@ -188,7 +207,13 @@ def test_rank_where_conditions(ranked_results):
     assert res.table.column("jiou_gt").to_pylist() == [0.3, 0.5, 0.9]
     res = rank_results(ranked_results, RankQuery(where=("distance > 20",)))
     assert _keys(res.table) == [("000002", 0)]
-    for bad, match in [("num_points>>3", "numeric"), ("jiou_gt 0.3", "expected COLUMN"), ("nope==1", "unknown column"), ("num_points>=many", "numeric"), ("cov==1", "cannot compare")]:
+    for bad, match in [
+        ("num_points>>3", "numeric"),
+        ("jiou_gt 0.3", "expected COLUMN"),
+        ("nope==1", "unknown column"),
+        ("num_points>=many", "numeric"),
+        ("cov==1", "cannot compare"),
+    ]:
         with pytest.raises(R.ResultsError, match=match):
             rank_results(ranked_results, RankQuery(where=(bad,)))
 
@@ -199,5 +224,8 @@ def test_shards_with_fewer_columns_read_as_nulls(tmp_path):
     pq.write_table(old, root / R.OBJECTS_DIR / "part-0000-old.parquet")  # sorts first
     res = R.open_results(root)
     t = res.read(["frame_id", "hull_iou"])
-    assert sorted(zip(t.column("frame_id").to_pylist(), t.column("hull_iou").to_pylist())) == [("000001", None), ("000002", 0.5)]
+    assert sorted(zip(t.column("frame_id").to_pylist(), t.column("hull_iou").to_pylist())) == [
+        ("000001", None),
+        ("000002", 0.5),
+    ]
     assert "label_line" in res.read().schema.names

@@ -34,11 +34,28 @@ def audited(tmp_path_factory):
     root = tmp_path_factory.mktemp("review")
     data, results = simulate_and_infer(root)
     shutil.rmtree(results / "missing", ignore_errors=True)  # the test's own candidates, whatever the search found
-    add_missing(results, [[
-        make_candidate("000000", 0, 0.9, cx=18.0, cy=2.5, yaw=0.4),
-        make_candidate("000000", 1, 0.3, cx=25.0, cy=-3.0),  # below the default score threshold
-        make_candidate("000001", 0, 0.6, class_name="Van", cx=12.0, cy=-1.0, cz=-0.6, length=5.1, width=2.0, height=2.1, yaw=-2.9),
-    ]])
+    add_missing(
+        results,
+        [
+            [
+                make_candidate("000000", 0, 0.9, cx=18.0, cy=2.5, yaw=0.4),
+                make_candidate("000000", 1, 0.3, cx=25.0, cy=-3.0),  # below the default score threshold
+                make_candidate(
+                    "000001",
+                    0,
+                    0.6,
+                    class_name="Van",
+                    cx=12.0,
+                    cy=-1.0,
+                    cz=-0.6,
+                    length=5.1,
+                    width=2.0,
+                    height=2.1,
+                    yaw=-2.9,
+                ),
+            ]
+        ],
+    )
     return data, results
 
 
@@ -68,7 +85,7 @@ def test_kitti_labels_keep_the_originals_and_add_suggestions_and_candidates(audi
         original = (sim_root / "label_2" / f"{fid}.txt").read_text().splitlines()
         written = (out / "label_2" / f"{fid}.txt").read_text().splitlines()
         assert written[: len(original)] == original  # the original labels, byte for byte
-        added = written[len(original):]
+        added = written[len(original) :]
         mine = [c for c in changes if c["frame_id"] == fid]
         assert len(added) == len(mine)
         boxes, labels = _file_boxes(out / "label_2" / f"{fid}.txt", sim_root / "calib" / f"{fid}.txt")
@@ -84,12 +101,21 @@ def test_kitti_labels_keep_the_originals_and_add_suggestions_and_candidates(audi
                 (r,) = [r for r in row if r["object_index"] == int(c["object_index"])]
                 assert r["label_error"] > 0.5 and float(c["score"]) == r["label_error"]
                 assert int(c["original_line"]) == r["label_line"] and labels.class_names[k] == r["class_name"]
-                fit = suggested_boxes(rows.filter(np.asarray([x["frame_id"] == fid and x["object_index"] == r["object_index"] for x in rows.to_pylist()])))[0]
+                fit = suggested_boxes(
+                    rows.filter(
+                        np.asarray(
+                            [x["frame_id"] == fid and x["object_index"] == r["object_index"] for x in rows.to_pylist()]
+                        )
+                    )
+                )[0]
                 np.testing.assert_allclose(boxes[k], fit, rtol=0, atol=1e-9)
             else:
                 assert c["change"] == "missing_label" and float(c["score"]) >= 0.5 and c["source"] == "points"
     cand = [c for c in changes if c["change"] == "missing_label"]
-    assert {(c["frame_id"], c["candidate_index"], c["class_name"]) for c in cand} == {("000000", "0", "Car"), ("000001", "0", "Van")}
+    assert {(c["frame_id"], c["candidate_index"], c["class_name"]) for c in cand} == {
+        ("000000", "0", "Car"),
+        ("000001", "0", "Van"),
+    }
 
     # review/ is a KITTI folder of its own: the reader loads it, the added boxes included.
     reader = KittiReader(out)
@@ -106,7 +132,19 @@ def test_kitti_labels_thresholds_rewrite_and_refusals(audited, tmp_path):
     out = tmp_path / "review"
     assert invoke("export", results, "--format", "kitti-labels", "-o", out).exit_code == 0
     # Stricter thresholds, same folder: the earlier export is replaced, not added to.
-    result = invoke("export", results, "--format", "kitti-labels", "-o", out, "--min-score", "0.95", "--min-label-error", "1.0", "--json")
+    result = invoke(
+        "export",
+        results,
+        "--format",
+        "kitti-labels",
+        "-o",
+        out,
+        "--min-score",
+        "0.95",
+        "--min-label-error",
+        "1.0",
+        "--json",
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["suggested"] == 0 and summary["missing"] == 0 and summary["frames_changed"] == 0
@@ -147,7 +185,9 @@ def test_kitti_labels_leave_a_frame_whose_labels_changed_since_infer_as_it_is(au
     parts[11] = f"{float(parts[11]) + 0.5:.2f}"  # x of the location moved by half a metre
     lines[first] = " ".join(parts)
     label.write_text("\n".join(lines) + "\n")
-    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json")
+    result = invoke(
+        "export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json"
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["frames_written"] == 3 and list(summary["unreviewed_frames"]) == ["000001"]
@@ -159,7 +199,9 @@ def test_kitti_labels_leave_a_frame_whose_labels_changed_since_infer_as_it_is(au
     assert {c["frame_id"] for c in csv.DictReader((tmp_path / "review" / "changes.csv").open())} <= {"000000", "000002"}
     # An unreadable label file is copied as it is and named.
     (sim_root / "label_2" / "000002.txt").write_bytes(b"Car 0 0 \xff\n")
-    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json")
+    result = invoke(
+        "export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--dataset", moved, "--json"
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert "not UTF-8" in summary["unreviewed_frames"]["000002"] and summary["frames_written"] == 3
@@ -167,24 +209,45 @@ def test_kitti_labels_leave_a_frame_whose_labels_changed_since_infer_as_it_is(au
 
 
 def test_waymo_results_get_a_parquet_of_boxes(tmp_path):
-    fit = {"fit_cx": 11.0, "fit_cy": 2.5, "fit_cz": None, "fit_length": 4.4, "fit_width": 1.8, "fit_height": None, "fit_yaw": 0.2}
-    rows = [make_row("seg:1", 0, dataset="waymo-v2", label_error=0.95, **fit), make_row("seg:1", 1, dataset="waymo-v2", label_error=0.1, **fit),
-            make_row("seg:2", 0, dataset="waymo-v2", label_error=None)]
+    fit = {
+        "fit_cx": 11.0,
+        "fit_cy": 2.5,
+        "fit_cz": None,
+        "fit_length": 4.4,
+        "fit_width": 1.8,
+        "fit_height": None,
+        "fit_yaw": 0.2,
+    }
+    rows = [
+        make_row("seg:1", 0, dataset="waymo-v2", label_error=0.95, **fit),
+        make_row("seg:1", 1, dataset="waymo-v2", label_error=0.1, **fit),
+        make_row("seg:2", 0, dataset="waymo-v2", label_error=None),
+    ]
     root = make_results(tmp_path / "r", [rows])
     manifest = json.loads((root / "manifest.json").read_text())
     R.write_json_atomic({**manifest, "format": "waymo-v2", "input": "/data/waymo"}, root / "manifest.json")
-    add_missing(root, [[make_candidate("seg:2", 0, 0.7, dataset="waymo-v2"), make_candidate("seg:2", 1, 0.2, dataset="waymo-v2")]])
+    add_missing(
+        root,
+        [[make_candidate("seg:2", 0, 0.7, dataset="waymo-v2"), make_candidate("seg:2", 1, 0.2, dataset="waymo-v2")]],
+    )
     result = invoke("export", root, "--format", "kitti-labels", "-o", tmp_path / "review", "--json")
     assert result.exit_code == 0, result.output
     table = pq.read_table(tmp_path / "review" / "boxes.parquet").to_pylist()
     assert [(b["frame_id"], b["kind"], b["object_index"], b["candidate_index"]) for b in table] == [
-        ("seg:1", "label", 0, None), ("seg:1", "label", 1, None), ("seg:1", "suggested", 0, None), ("seg:2", "label", 0, None), ("seg:2", "missing", None, 0),
+        ("seg:1", "label", 0, None),
+        ("seg:1", "label", 1, None),
+        ("seg:1", "suggested", 0, None),
+        ("seg:2", "label", 0, None),
+        ("seg:2", "missing", None, 0),
     ]
     suggested = table[2]
     # A BEV fit keeps the label's cz and height.
     assert [suggested[c] for c in R.BOX_COLUMNS] == [11.0, 2.5, -0.8, 4.4, 1.8, 1.5, 0.2] and suggested["score"] == 0.95
     changes = list(csv.DictReader((tmp_path / "review" / "changes.csv").open()))
-    assert [(c["frame_id"], c["change"], c["file"]) for c in changes] == [("seg:1", "suggested_box", ""), ("seg:2", "missing_label", "")]
+    assert [(c["frame_id"], c["change"], c["file"]) for c in changes] == [
+        ("seg:1", "suggested_box", ""),
+        ("seg:2", "missing_label", ""),
+    ]
     assert json.loads(result.stdout)["format"] == "parquet"
 
 
@@ -198,7 +261,15 @@ def test_kitti_lines_round_trip_on_real_calibrations():
         calib = read_calib(path)
         boxes = np.c_[rng.uniform(2, 60, 20), rng.uniform(-20, 20, 20), rng.uniform(-2, 0.5, 20), rng.uniform(0.5, 12, 20),
                       rng.uniform(0.4, 3, 20), rng.uniform(1, 4, 20), rng.uniform(-np.pi, np.pi, 20)]  # fmt: skip
-        lines = kitti_lines(boxes, ["Car"] * 20, rng.uniform(0, 1, 20), np.zeros(20), np.full(20, 3), calib, png_size(REAL_KITTI / "image_2" / f"{path.stem}.png") or (1242, 375))
+        lines = kitti_lines(
+            boxes,
+            ["Car"] * 20,
+            rng.uniform(0, 1, 20),
+            np.zeros(20),
+            np.full(20, 3),
+            calib,
+            png_size(REAL_KITTI / "image_2" / f"{path.stem}.png") or (1242, 375),
+        )
         parsed = np.array([[float(v) for v in line.split()[1:]] for line in lines])
         assert parsed.shape == (20, len(LABEL_COLUMNS) - 1)
         back = boxes_camera_to_lidar(parsed[:, 10:13], parsed[:, 7:10], parsed[:, 13], calib)
@@ -221,9 +292,13 @@ def test_kitti_labels_on_real_frames(realdata, tmp_path):
     from labelaudit.infer.run import InferRequest, run_infer
 
     root = realdata / "openpcdet-pr653-kitti"
-    run_infer(InferRequest(root, tmp_path / "res", "kitti", limit=3), resolve_config(None, "kitti"), executor=SerialExecutor())
+    run_infer(
+        InferRequest(root, tmp_path / "res", "kitti", limit=3), resolve_config(None, "kitti"), executor=SerialExecutor()
+    )
     out = tmp_path / "review"
-    result = invoke("export", tmp_path / "res", "--format", "kitti-labels", "-o", out, "--min-label-error", "0", "--json")
+    result = invoke(
+        "export", tmp_path / "res", "--format", "kitti-labels", "-o", out, "--min-label-error", "0", "--json"
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     changes = [c for c in csv.DictReader((out / "changes.csv").open()) if c["change"] == "suggested_box"]
@@ -266,12 +341,17 @@ def test_track_suggestions_fix_the_injected_frames_and_leave_clean_ones_alone(av
     truth = {(m["frame_id"], m["object_id"]): m for m in pq.read_table(sim / "manifest.parquet").to_pylist()}
     boxes = pq.read_table(tmp_path / "review" / "boxes.parquet").to_pylist()
     labels = {(b["frame_id"], b["object_index"]): b for b in boxes if b["kind"] == "label"}
-    track = {(b["frame_id"], b["object_index"]): b for b in boxes if b["kind"] == "suggested" and b["source"] == "track"}
+    track = {
+        (b["frame_id"], b["object_index"]): b for b in boxes if b["kind"] == "suggested" and b["source"] == "track"
+    }
     assert all(b["source"] in ("fit", "track") for b in boxes if b["kind"] == "suggested")
     injected = {k for k, b in labels.items() if truth[(b["frame_id"], b["object_id"])]["track_error_kind"] != "none"}
     assert len(injected) >= 10 and set(track) == injected  # every injected frame gets one, no clean frame does
     assert summary["track_suggested"] == len(injected)
-    fused = {(t["log_id"], t["object_id"]): (t["length"], t["width"], t["height"]) for t in pq.read_table(results / R.TRACKS_FILE).to_pylist()}
+    fused = {
+        (t["log_id"], t["object_id"]): (t["length"], t["width"], t["height"])
+        for t in pq.read_table(results / R.TRACKS_FILE).to_pylist()
+    }
 
     def corner_error(b, true_box):  # mean distance of the 8 corners (in order: a flip counts)
         return float(np.linalg.norm(box_corners([b[c] for c in R.BOX_COLUMNS]) - box_corners(true_box), axis=-1).mean())
@@ -280,21 +360,38 @@ def test_track_suggestions_fix_the_injected_frames_and_leave_clean_ones_alone(av
     for key in injected:
         label, fix = labels[key], track[key]
         m = truth[(label["frame_id"], label["object_id"])]
-        assert fix["track_issue"] == ISSUE_OF_KIND[m["track_error_kind"]] and fix["score"] == fix["track_error"] == label["track_error"] > 0.5
+        assert (
+            fix["track_issue"] == ISSUE_OF_KIND[m["track_error_kind"]]
+            and fix["score"] == fix["track_error"] == label["track_error"] > 0.5
+        )
         errors.append((corner_error(fix, m["true_box"]), corner_error(label, m["true_box"])))
-        assert errors[-1][0] < errors[-1][1], (m["track_error_kind"], fix, label)  # closer to the true box than the label it fixes
-        assert [fix["length"], fix["width"], fix["height"]] == pytest.approx(fused[(log_of(label["frame_id"]), label["object_id"])], abs=1e-9)
+        assert errors[-1][0] < errors[-1][1], (
+            m["track_error_kind"],
+            fix,
+            label,
+        )  # closer to the true box than the label it fixes
+        assert [fix["length"], fix["width"], fix["height"]] == pytest.approx(
+            fused[(log_of(label["frame_id"]), label["object_id"])], abs=1e-9
+        )
     assert np.median([f for f, _ in errors]) < 0.25 * np.median([lab for _, lab in errors])
     # A label with both suggestions gets both rows, and both are in the sidecar, tagged.
     fits = {(b["frame_id"], b["object_index"]) for b in boxes if b["kind"] == "suggested" and b["source"] == "fit"}
     assert fits & injected
     changes = list(csv.DictReader((tmp_path / "review" / "changes.csv").open()))
     assert sorted((c["frame_id"], int(c["object_index"]), c["source"]) for c in changes) == sorted(
-        [(f, i, "fit") for f, i in fits] + [(f, i, "track") for f, i in track])
+        [(f, i, "fit") for f, i in fits] + [(f, i, "track") for f, i in track]
+    )
     assert all(c["track_issue"] != "none" for c in changes if c["source"] == "track")
     # The threshold moves them; bad values and misuse are refused.
-    result = invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--json", "--min-track-error", "1")
+    result = invoke(
+        "export", results, "--format", "kitti-labels", "-o", tmp_path / "review", "--json", "--min-track-error", "1"
+    )
     assert result.exit_code == 0 and json.loads(result.stdout)["track_suggested"] == 0
     assert not any(b["source"] == "track" for b in pq.read_table(tmp_path / "review" / "boxes.parquet").to_pylist())
-    assert invoke("export", results, "--format", "kitti-labels", "-o", tmp_path / "r2", "--min-track-error", "1.5").exit_code == 2
+    assert (
+        invoke(
+            "export", results, "--format", "kitti-labels", "-o", tmp_path / "r2", "--min-track-error", "1.5"
+        ).exit_code
+        == 2
+    )
     assert invoke("export", results, "-o", tmp_path / "x.parquet", "--min-track-error", "0.7").exit_code == 2

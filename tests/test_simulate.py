@@ -41,7 +41,11 @@ def _surface_distance(points: np.ndarray, parts: np.ndarray) -> np.ndarray:
 
 
 def _tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 # --- range image layout and known answers ---------------------------------------------------------
@@ -111,12 +115,14 @@ def test_extrinsic_pose_equals_moving_the_scene():
     T[2, 3] = 1.73
     objs = []
     for o in scene_a.objects:
+
         def move(b):
             out = b.copy()
             out[..., 0], out[..., 1] = c * b[..., 0] - s * b[..., 1], s * b[..., 0] + c * b[..., 1]
             out[..., 2] += 1.73
             out[..., 6] += psi
             return out
+
         objs.append(type(o)(o.class_name, move(o.box), move(o.parts), o.reflectivity))
     scene_b = Scene(objs, 0.0, scene_a.ground_reflectivity)
     a = render_range_image(scene_a, COARSE)
@@ -208,7 +214,13 @@ def test_no_noise_by_default():
 
 def test_perturbation_statistics_match_the_spec():
     spec = NoiseSpec.benchmark()
-    assert (spec.fraction, spec.gross_fraction, spec.center_std, spec.size_std, spec.yaw_std) == (0.2, 0.02, 0.3, 0.2, 0.1)
+    assert (spec.fraction, spec.gross_fraction, spec.center_std, spec.size_std, spec.yaw_std) == (
+        0.2,
+        0.02,
+        0.3,
+        0.2,
+        0.1,
+    )
     n = 40_000
     boxes, names = _many_boxes(n)
     names[:1000] = ["Pedestrian"] * 1000
@@ -228,7 +240,7 @@ def test_perturbation_statistics_match_the_spec():
     assert np.all(d[k == "none"] == 0.0)
     shift = d[k == "shift"]
     assert np.allclose(np.hypot(shift[:, 0], shift[:, 1]), 1.0) and np.all(shift[:, 3:] == 0)
-    sw = (kinds == "swap_lw")
+    sw = kinds == "swap_lw"
     assert np.allclose(written[sw][:, [3, 4]], boxes[sw][:, [4, 3]])
     y90 = d[k == "yaw90"]
     assert np.allclose(np.abs(y90[:, 6]), np.pi / 2) and np.all(y90[:, :6] == 0)
@@ -331,7 +343,9 @@ def test_same_seed_same_bytes_and_noise_leaves_points_alone(tmp_path, small_data
 @pytest.mark.slow
 def test_worker_count_does_not_change_the_files(tmp_path, small_dataset):
     out, _ = small_dataset
-    simulate_dataset(tmp_path / "w2", frames=4, seed=7, noise=NoiseSpec.benchmark(), lidar=COARSE, workers=2, progress=False)
+    simulate_dataset(
+        tmp_path / "w2", frames=4, seed=7, noise=NoiseSpec.benchmark(), lidar=COARSE, workers=2, progress=False
+    )
     assert _tree_digest(tmp_path / "w2") == _tree_digest(out)
 
 

@@ -98,8 +98,22 @@ def _random_pairs(n, seed):
     rng = np.random.default_rng(seed)
     pairs = []
     for i in range(n):
-        a = np.r_[rng.uniform(-2, 2, 2), rng.uniform(-0.6, 0.6), rng.uniform(1, 5), rng.uniform(0.5, 2.5), rng.uniform(0.5, 2), rng.uniform(-np.pi, np.pi)]
-        b = np.r_[rng.uniform(-2, 2, 2), rng.uniform(-0.6, 0.6), rng.uniform(1, 5), rng.uniform(0.5, 2.5), rng.uniform(0.5, 2), rng.uniform(-np.pi, np.pi)]
+        a = np.r_[
+            rng.uniform(-2, 2, 2),
+            rng.uniform(-0.6, 0.6),
+            rng.uniform(1, 5),
+            rng.uniform(0.5, 2.5),
+            rng.uniform(0.5, 2),
+            rng.uniform(-np.pi, np.pi),
+        ]
+        b = np.r_[
+            rng.uniform(-2, 2, 2),
+            rng.uniform(-0.6, 0.6),
+            rng.uniform(1, 5),
+            rng.uniform(0.5, 2.5),
+            rng.uniform(0.5, 2),
+            rng.uniform(-np.pi, np.pi),
+        ]
         if i % 10 == 0:
             b[:2] = a[:2] + 8.0  # far apart: IoU 0
         pairs.append((a, b))
@@ -307,7 +321,9 @@ def test_spatial_distribution_is_a_probability_on_the_grid(model):
     det_grid, det_mass = sp.spatial_distribution(sp.BoxDistribution.deterministic(NEAR, model), SP)
     assert det_mass.sum() == pytest.approx(1.0, abs=1e-9)
     centres = det_grid.cell_centres_world()
-    inside = np.all(np.abs(g.world_to_unit(centres.reshape(-1, 2), NEAR, "bev")) < 0.5, axis=1).reshape(centres.shape[:2])
+    inside = np.all(np.abs(g.world_to_unit(centres.reshape(-1, 2), NEAR, "bev")) < 0.5, axis=1).reshape(
+        centres.shape[:2]
+    )
     bev_mass = det_mass if model == "bev" else det_mass.sum(axis=2)
     assert np.all(bev_mass[~inside] == 0)
 
@@ -366,7 +382,9 @@ def test_compiled_raster_equals_the_bincount_form():
         i_lo, i_hi = e.i_lo.ravel(), e.i_hi.ravel()
         wdx = (w * e.dx).ravel()
         steps = np.bincount(i_lo, weights=wdx, minlength=nb) - np.bincount(i_hi, weights=wdx, minlength=nb)
-        direct = np.bincount(i_hi, weights=(w * e.f_hi).ravel(), minlength=nb) - np.bincount(i_lo, weights=(w * e.f_lo).ravel(), minlength=nb)
+        direct = np.bincount(i_hi, weights=(w * e.f_hi).ravel(), minlength=nb) - np.bincount(
+            i_lo, weights=(w * e.f_lo).ravel(), minlength=nb
+        )
         want = (np.cumsum(steps.reshape(e.ny, e.nx + 1), axis=-1) + direct.reshape(e.ny, e.nx + 1))[:, : e.nx] * e.dy
         got = sp._raster_bev(s, xe, ye)
         assert got.shape == want.shape and np.array_equal(got, want) and got.sum() > 0.5
@@ -401,7 +419,17 @@ def _sample_stats_numpy(phis: np.ndarray, d: int):
     if zint is not None:
         z_mean, z_std = zint.mean(axis=0), zint.std(axis=0)
         blur[2] = float(z_std.min())
-    return centre[:, :2], A, zint, weights, mean[:, :4].T, float(np.sqrt(var[:4].sum(axis=1).max())), blur, z_mean, z_std
+    return (
+        centre[:, :2],
+        A,
+        zint,
+        weights,
+        mean[:, :4].T,
+        float(np.sqrt(var[:4].sum(axis=1).max())),
+        blur,
+        z_mean,
+        z_std,
+    )
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
@@ -420,10 +448,21 @@ def test_compiled_sample_statistics_equal_the_numpy_form(model):
             phis[:, 3 + (d - 2)] *= phis[:, 2 + (d - 2)] != 0
         centres, A, zint, _, weights, corner_mean, corner_std, blur, z_mean, z_std = sp._sample_kernel(phis, d)
         want = _sample_stats_numpy(phis, d)
-        got = (centres, A, zint if d == 3 else None, weights, corner_mean, corner_std, blur, z_mean if d == 3 else None, z_std if d == 3 else None)
-        for name, a, b in zip(("centres", "A", "z", "weights", "corner_mean", "corner_std", "blur", "z_mean", "z_std"), got, want):
+        got = (
+            centres,
+            A,
+            zint if d == 3 else None,
+            weights,
+            corner_mean,
+            corner_std,
+            blur,
+            z_mean if d == 3 else None,
+            z_std if d == 3 else None,
+        )
+        for name, a, b in zip(
+            ("centres", "A", "z", "weights", "corner_mean", "corner_std", "blur", "z_mean", "z_std"), got, want
+        ):
             assert (a is None and b is None) or np.array_equal(np.asarray(a), np.asarray(b)), (trial, name)
-
 
 
 def _jaccard_numpy(p, q, c, p_outside=0.0, q_outside=0.0):
@@ -465,8 +504,17 @@ def test_compiled_aligned_raster_and_clean_equal_the_numpy_form():
         return np.clip(np.minimum(hi, edges[1:]) - np.maximum(lo, edges[:-1]), 0.0, None)
 
     for _ in range(30):
-        xe, ye = np.sort(rng.normal(0, 3, int(rng.integers(2, 90)))), np.sort(rng.normal(0, 2, int(rng.integers(2, 60))))
-        cx, cy, hx, hy, w = rng.normal(0, 1), rng.normal(0, 1), rng.uniform(0.1, 3), rng.uniform(0.1, 2), rng.uniform(0.1, 5)
+        xe, ye = (
+            np.sort(rng.normal(0, 3, int(rng.integers(2, 90)))),
+            np.sort(rng.normal(0, 2, int(rng.integers(2, 60)))),
+        )
+        cx, cy, hx, hy, w = (
+            rng.normal(0, 1),
+            rng.normal(0, 1),
+            rng.uniform(0.1, 3),
+            rng.uniform(0.1, 2),
+            rng.uniform(0.1, 5),
+        )
         want = np.outer(overlap(cy - hy, cy + hy, ye), overlap(cx - hx, cx + hx, xe)) * w
         assert np.array_equal(sp._aligned_kernel(cx, cy, hx, hy, xe, ye, w), want)
         mass = want * (1.0 + rng.normal(0, 1e-11, want.shape)) - 1e-13 * want.max() * rng.random(want.shape)
@@ -489,7 +537,7 @@ def _raster_3d_sparse(s, xe, ye, zw):
     vals = np.concatenate([np.full(n, e.dx), np.full(n, -e.dx), e.f_hi[e.valid], -e.f_lo[e.valid]])
     M = coo_matrix((vals, (rows, np.concatenate([sidx] * 4))), shape=(2 * nb, S)).tocsr()
     out = np.asarray(M @ zw).reshape(2, e.ny, e.nx + 1, zw.shape[1])
-    return ((np.cumsum(out[0], axis=1) + out[1])[:, : e.nx] * e.dy)
+    return (np.cumsum(out[0], axis=1) + out[1])[:, : e.nx] * e.dy
 
 
 def test_compiled_3d_raster_equals_the_sparse_form():
@@ -498,10 +546,14 @@ def test_compiled_3d_raster_equals_the_sparse_form():
     assert C.SUBROWS_PER_CELL == 1  # the kernel's case
     rng = np.random.default_rng(12)
     for trial in range(30):
-        box = np.array([*rng.normal(0, 2, 3), rng.uniform(0.3, 8), rng.uniform(0.05, 3), rng.uniform(0.5, 3), rng.uniform(-4, 4)])
+        box = np.array(
+            [*rng.normal(0, 2, 3), rng.uniform(0.3, 8), rng.uniform(0.05, 3), rng.uniform(0.5, 3), rng.uniform(-4, 4)]
+        )
         ref = np.array([*box[:3], *box[3:6], box[6] + rng.normal(0, 0.3)])
         L = rng.normal(size=(8, 8)) * 10.0 ** rng.uniform(-3, -0.5)
-        s = sp.sample_boxes(sp.BoxDistribution(box, "3d", L @ L.T), ref, SpatialParams(num_samples=int(rng.choice([16, 128]))))
+        s = sp.sample_boxes(
+            sp.BoxDistribution(box, "3d", L @ L.T), ref, SpatialParams(num_samples=int(rng.choice([16, 128])))
+        )
         n = int(rng.integers(4, 90))
         xe = np.linspace(-0.6 * box[3] - 0.3, 0.6 * box[3] + 0.3, n + 1)
         ye = np.linspace(-0.6 * box[4] - 0.3, 0.6 * box[4] + 0.3, int(rng.integers(2, 60)) + 1)

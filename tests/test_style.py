@@ -1,5 +1,6 @@
-"""Habits the suite holds: the tree passes ``ruff check`` with the rules of pyproject.toml, and the
-public modules' docstring examples are there to run (pytest collects them: ``--doctest-modules``)."""
+"""Habits the suite holds: the tree passes ``ruff check`` with the rules of pyproject.toml and is in
+``ruff format``'s layout, and the public modules' docstring examples are there to run (pytest collects
+them: ``--doctest-modules``)."""
 
 from __future__ import annotations
 
@@ -28,6 +29,19 @@ def test_ruff_check_passes_on_the_tree() -> None:
     assert done.returncode == 0, (
         f"ruff check found problems (fix them, or `ruff check --fix` for import order):\n{done.stdout}{done.stderr}"
     )
+
+
+def test_ruff_format_holds_on_the_tree() -> None:
+    done = ruff("format", "--check", "--no-cache", ".")
+    assert done.returncode == 0, f"files not in ruff's format (run `ruff format .`):\n{done.stdout}{done.stderr}"
+
+
+def test_ruff_format_check_finds_an_unformatted_file(tmp_path: Path) -> None:
+    """The format check can fail: a planted file in another layout is reported."""
+    bad = tmp_path / "planted.py"
+    bad.write_text("x = {  'a':1,'b' :2 }\n", encoding="utf-8")
+    done = ruff("format", "--check", "--no-cache", "--config", str(REPO / "pyproject.toml"), str(bad), cwd=tmp_path)
+    assert done.returncode == 1 and "planted.py" in done.stdout, done.stdout
 
 
 def test_ruff_rules_catch_what_they_are_chosen_for(tmp_path: Path) -> None:

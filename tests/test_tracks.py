@@ -19,8 +19,13 @@ from results_factory import make_row
 P = T.default_params()
 
 
-def drive(n: int = 40, rng: np.random.Generator | None = None, speed: float = 10.0, yaw_rate: float = 0.3,
-          noise: tuple[float, float, float, float] = (0.03, 0.03, 0.02, 0.02)) -> dict[str, np.ndarray]:
+def drive(
+    n: int = 40,
+    rng: np.random.Generator | None = None,
+    speed: float = 10.0,
+    yaw_rate: float = 0.3,
+    noise: tuple[float, float, float, float] = (0.03, 0.03, 0.02, 0.02),
+) -> dict[str, np.ndarray]:
     """A car turning at constant speed, 10 Hz, with ordinary per-frame label noise (centre, length, width, yaw)."""
     rng = rng or np.random.default_rng(0)
     t = np.arange(n) * 0.1
@@ -34,7 +39,14 @@ def drive(n: int = 40, rng: np.random.Generator | None = None, speed: float = 10
 
 
 def scores_of(tr: dict[str, np.ndarray], noise: T.TrackNoise | None = None) -> tuple[np.ndarray, list[str]]:
-    res = T.track_residuals(tr["t"], tr["centre"], np.asarray(normalize(tr["yaw"])), tr["size"], noise or T.TrackNoise(np.full(3, 0.03), np.array([0.03, 0.02, 0.03]), 0.02), P)
+    res = T.track_residuals(
+        tr["t"],
+        tr["centre"],
+        np.asarray(normalize(tr["yaw"])),
+        tr["size"],
+        noise or T.TrackNoise(np.full(3, 0.03), np.array([0.03, 0.02, 0.03]), 0.02),
+        P,
+    )
     s = T.kind_scores(res, P)
     return s.max(axis=1), T.issue_of(s, C.TRACK_ISSUE_MIN)
 
@@ -50,12 +62,18 @@ def normalize(a: np.ndarray) -> np.ndarray:
         ("length", -0.25, "size"),
         ("width", 0.17, "size"),
         ("flip", math.pi, "heading"),
-        ("yaw", 0.2, "heading"),  # 10 σ; 0.1 rad (5 σ) reaches 0.9 inside a track, not always at its ends (extrapolated)
+        (
+            "yaw",
+            0.2,
+            "heading",
+        ),  # 10 σ; 0.1 rad (5 σ) reaches 0.9 inside a track, not always at its ends (extrapolated)
         ("centre", 0.35, "position"),
     ],
 )
 @pytest.mark.parametrize("frame", [1, 17, 38])
-def test_an_annotator_error_inside_a_track_is_flagged_with_its_kind(kind: str, change: float, issue: str, frame: int) -> None:
+def test_an_annotator_error_inside_a_track_is_flagged_with_its_kind(
+    kind: str, change: float, issue: str, frame: int
+) -> None:
     tr = drive()
     if kind == "length":
         tr["size"][frame, 0] += change
@@ -74,7 +92,12 @@ def test_an_annotator_error_inside_a_track_is_flagged_with_its_kind(kind: str, c
 
 def test_ordinary_per_frame_noise_is_not_flagged() -> None:
     rng = np.random.default_rng(1)
-    errs = np.concatenate([scores_of(drive(60, rng, speed=s, yaw_rate=w))[0] for s, w in [(0.0, 0.0), (5.0, 0.0), (12.0, 0.4), (20.0, -0.1)] * 10])
+    errs = np.concatenate(
+        [
+            scores_of(drive(60, rng, speed=s, yaw_rate=w))[0]
+            for s, w in [(0.0, 0.0), (5.0, 0.0), (12.0, 0.4), (20.0, -0.1)] * 10
+        ]
+    )
     assert np.mean(errs >= 0.9) <= 0.01
     assert np.median(errs) < 0.05
 
@@ -111,7 +134,9 @@ def test_the_size_posterior_is_the_rigid_size_and_narrows_with_frames() -> None:
     labels["size"][:, 0] += 0.2
     fit = np.tile([4.5, 1.9, np.nan], (30, 1))
     prec = np.tile([1 / 0.01**2, 1 / 0.01**2, 0.0], (30, 1))
-    r_pts = T.track_residuals(labels["t"], labels["centre"], normalize(labels["yaw"]), labels["size"], noise, P, (fit, prec))
+    r_pts = T.track_residuals(
+        labels["t"], labels["centre"], normalize(labels["yaw"]), labels["size"], noise, P, (fit, prec)
+    )
     r_lab = T.track_residuals(labels["t"], labels["centre"], normalize(labels["yaw"]), labels["size"], noise, P)
     assert abs(r_lab.size_mean[0] - 4.7) < 0.02 and abs(r_pts.size_mean[0] - 4.5) < 0.05
 
@@ -136,25 +161,46 @@ def test_a_lone_frame_and_a_gap_get_a_wide_prediction_not_an_alarm() -> None:
 # --------------------------------------------------------------------------- the pass over results rows
 
 
-def track_rows(log: str, obj: str, tr: dict[str, np.ndarray], dataset: str = "waymo-v2", index: int = 0, t0: int = 1_600_000_000_000_000) -> list[dict[str, Any]]:
+def track_rows(
+    log: str,
+    obj: str,
+    tr: dict[str, np.ndarray],
+    dataset: str = "waymo-v2",
+    index: int = 0,
+    t0: int = 1_600_000_000_000_000,
+) -> list[dict[str, Any]]:
     rows = []
     for i in range(len(tr["t"])):
         ts = t0 + int(round(tr["t"][i] * 1e6))
         fid = f"{log}:{ts}"
         l, w, h = tr["size"][i]
-        rows.append(make_row(
-            fid, index, "Vehicle", dataset=dataset, object_id=obj, length=float(l), width=float(w), height=float(h),
-            timestamp=ts / 1e6, world_cx=float(tr["centre"][i, 0]), world_cy=float(tr["centre"][i, 1]),
-            world_cz=float(tr["centre"][i, 2]), world_yaw=float(normalize(tr["yaw"][i])),
-        ))
+        rows.append(
+            make_row(
+                fid,
+                index,
+                "Vehicle",
+                dataset=dataset,
+                object_id=obj,
+                length=float(l),
+                width=float(w),
+                height=float(h),
+                timestamp=ts / 1e6,
+                world_cx=float(tr["centre"][i, 0]),
+                world_cy=float(tr["centre"][i, 1]),
+                world_cz=float(tr["centre"][i, 2]),
+                world_yaw=float(normalize(tr["yaw"][i])),
+            )
+        )
     return rows
 
 
 def write_folder(root: Path, shards: list[list[dict[str, Any]]], fmt: str = "waymo-v2") -> dict[str, Any]:
     meta = R.run_metadata({"model": "bev"}, "0123456789abcdef", "/data/x", fmt)
     for i, rows in enumerate(shards):
-        R.write_parquet_atomic(R.rows_to_table(rows, {**meta, "chunk": {"notes": 0, "failed_frames": 0, "failed_objects": 0}}),
-                               root / R.OBJECTS_DIR / f"part-{i:04d}.parquet")
+        R.write_parquet_atomic(
+            R.rows_to_table(rows, {**meta, "chunk": {"notes": 0, "failed_frames": 0, "failed_objects": 0}}),
+            root / R.OBJECTS_DIR / f"part-{i:04d}.parquet",
+        )
     R.write_json_atomic({**meta, "complete": True}, root / R.MANIFEST_NAME)
     return meta
 
@@ -164,7 +210,11 @@ def some_tracks() -> list[list[dict[str, Any]]]:
     a, b, c = drive(30, rng), drive(30, rng, speed=0.0, yaw_rate=0.0), drive(2, rng)
     a["size"][12, 0] += 0.4
     b["yaw"][7] += math.pi
-    return [track_rows("segA", "car-a", a, index=0), track_rows("segA", "car-b", b, index=1), track_rows("segB", "car-c", c, index=0)]
+    return [
+        track_rows("segA", "car-a", a, index=0),
+        track_rows("segA", "car-b", b, index=1),
+        track_rows("segB", "car-c", c, index=0),
+    ]
 
 
 def test_a_track_split_across_shards_is_judged_whole(tmp_path: Path) -> None:
@@ -215,6 +265,7 @@ def test_kitti_rows_have_no_tracks(tmp_path: Path) -> None:
     for r in a:
         r["object_id"] = f"{r['frame_id']}:{r['object_index']}"
     from labelaudit.results import rows_to_table
+
     s = score_table(rows_to_table(a))
     assert np.isnan(s.track_error).all() and s.tracks == []
 
@@ -261,7 +312,9 @@ def test_simulated_segment_vehicles_drive_and_record_track_errors(tmp_path: Path
     from labelaudit.sim.tracknoise import TrackNoiseSpec
     from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_manifest
 
-    seg = simulate_waymo_segment(seed=3, frames=3, size="small", chunks=1, moving_fraction=1.0, track_noise=TrackNoiseSpec(error_fraction=0.3))
+    seg = simulate_waymo_segment(
+        seed=3, frames=3, size="small", chunks=1, moving_fraction=1.0, track_noise=TrackNoiseSpec(error_fraction=0.3)
+    )
     f0, f2 = seg.frames[0], seg.frames[2]
 
     def world(fr: Any) -> np.ndarray:

@@ -21,8 +21,14 @@ from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_manifest, 
 def segments(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Any]]:
     root = tmp_path_factory.mktemp("tracks")
     segs = [
-        simulate_waymo_segment(seed=21 + i, frames=9, size="small", chunks=2, moving_fraction=0.5,
-                               track_noise=TrackNoiseSpec(error_fraction=0.12, kinds=("length", "flip", "centre")))
+        simulate_waymo_segment(
+            seed=21 + i,
+            frames=9,
+            size="small",
+            chunks=2,
+            moving_fraction=0.5,
+            track_noise=TrackNoiseSpec(error_fraction=0.12, kinds=("length", "flip", "centre")),
+        )
         for i in range(2)
     ]
     for s in segs:
@@ -45,14 +51,19 @@ def _objects(path: Path) -> Any:
 
 def test_injected_errors_are_found_and_named(segments: tuple[Path, list[Any]], run1: Path) -> None:
     root, _ = segments
-    truth = {(r["frame_id"], r["object_id"]): r["track_error_kind"] for r in pq.read_table(root / "manifest.parquet").to_pylist()}
+    truth = {
+        (r["frame_id"], r["object_id"]): r["track_error_kind"]
+        for r in pq.read_table(root / "manifest.parquet").to_pylist()
+    }
     rows = _objects(run1).to_pylist()
     judged = [r for r in rows if r["track_error"] is not None]
     assert len(judged) == len(rows)  # every label of these 9-frame tracks is judged
     bad = [r for r in judged if truth[(r["frame_id"], r["object_id"])] != "none"]
     clean = [r for r in judged if truth[(r["frame_id"], r["object_id"])] == "none"]
     assert len(bad) >= 5
-    assert min(r["track_error"] for r in bad) > max(r["track_error"] for r in clean)  # every injected error ranks above every clean label
+    assert min(r["track_error"] for r in bad) > max(
+        r["track_error"] for r in clean
+    )  # every injected error ranks above every clean label
     assert all(r["track_issue"] == ISSUE_OF_KIND[truth[(r["frame_id"], r["object_id"])]] for r in bad)
     assert all(r["world_cx"] is not None and r["timestamp"] is not None for r in rows)
     tracks = R.open_results(run1).tracks()
@@ -60,7 +71,9 @@ def test_injected_errors_are_found_and_named(segments: tuple[Path, list[Any]], r
     assert sum(tracks.column("flagged").to_pylist()) == sum(r["track_error"] >= 0.9 for r in rows)
 
 
-def test_pool_and_resume_after_a_killed_tracks_pass_give_the_same_rows(segments: tuple[Path, list[Any]], run1: Path, tmp_path: Path) -> None:
+def test_pool_and_resume_after_a_killed_tracks_pass_give_the_same_rows(
+    segments: tuple[Path, list[Any]], run1: Path, tmp_path: Path
+) -> None:
     root, _ = segments
     out = tmp_path / "r2"
     infer_dataset(InferRequest(root / "waymo_v2", out, workers=2))
@@ -75,7 +88,11 @@ def test_pool_and_resume_after_a_killed_tracks_pass_give_the_same_rows(segments:
     t = pq.read_table(shard)
     meta = t.schema.metadata
     for c in R.TRACK_COLUMNS:
-        t = t.set_column(t.schema.get_field_index(c), R.SCHEMA.field(c), __import__("pyarrow").nulls(t.num_rows, R.SCHEMA.field(c).type))
+        t = t.set_column(
+            t.schema.get_field_index(c),
+            R.SCHEMA.field(c),
+            __import__("pyarrow").nulls(t.num_rows, R.SCHEMA.field(c).type),
+        )
     R.write_parquet_atomic(t.replace_schema_metadata(meta), shard)
     (out / R.TRACKS_FILE).unlink()
     manifest = json.loads((out / R.MANIFEST_NAME).read_text())
@@ -136,10 +153,31 @@ def test_simulate_and_rank_from_the_command_line(tmp_path: Path) -> None:
     import _hostile as H
 
     sim, out = tmp_path / "sim", tmp_path / "res"
-    run = H.run_cli("simulate", sim, "--dataset-format", "av2", "--sequences", "1", "--frames", "12", "--size", "small",
-                    "--track-noise", "--moving", "0.5", "--noise-fraction", "0", "--gross-fraction", "0", "-q")
+    run = H.run_cli(
+        "simulate",
+        sim,
+        "--dataset-format",
+        "av2",
+        "--sequences",
+        "1",
+        "--frames",
+        "12",
+        "--size",
+        "small",
+        "--track-noise",
+        "--moving",
+        "0.5",
+        "--noise-fraction",
+        "0",
+        "--gross-fraction",
+        "0",
+        "-q",
+    )
     assert run.exit_code == 0, run.stderr
-    truth = {(r["frame_id"], r["object_id"]): r["track_error_kind"] for r in pq.read_table(sim / "manifest.parquet").to_pylist()}
+    truth = {
+        (r["frame_id"], r["object_id"]): r["track_error_kind"]
+        for r in pq.read_table(sim / "manifest.parquet").to_pylist()
+    }
     assert set(truth.values()) - {"none"}  # errors were injected and recorded
     assert H.run_cli("infer", sim, "-o", out, "--workers", "1", "-q").exit_code == 0
     ranked = json.loads(H.run_cli("rank", out, "--by", "track_error", "--top", "3", "--format", "json").stdout)

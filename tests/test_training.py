@@ -276,12 +276,20 @@ def _kl_numeric(mu_p, var_p, mu_q, var_q):
         lq = -0.5 * (x - mu_q) ** 2 / var_q - 0.5 * math.log(2 * math.pi * var_q)
         return math.exp(lp) * (lp - lq)
 
-    val, err = integrate.quad(f, mu_p - 40 * sp, mu_p + 40 * sp, points=[mu_p, mu_q], limit=400, epsabs=1e-13, epsrel=1e-12)
+    val, err = integrate.quad(
+        f, mu_p - 40 * sp, mu_p + 40 * sp, points=[mu_p, mu_q], limit=400, epsabs=1e-13, epsrel=1e-12
+    )
     assert err < 1e-9
     return val
 
 
-CASES = [(0.0, 0.04, 0.1, 0.09), (1.5, 0.5, -0.5, 0.01), (-2.0, 1e-4, -2.001, 2e-4), (0.3, 2.0, 0.3, 2.0), (10.0, 0.25, 9.0, 4.0)]
+CASES = [
+    (0.0, 0.04, 0.1, 0.09),
+    (1.5, 0.5, -0.5, 0.01),
+    (-2.0, 1e-4, -2.001, 2e-4),
+    (0.3, 2.0, 0.3, 2.0),
+    (10.0, 0.25, 9.0, 4.0),
+]
 
 
 @pytest.mark.parametrize("mu_p,var_p,mu_q,var_q", CASES)
@@ -307,7 +315,10 @@ def test_kld_gradient_matches_finite_differences(mu_p, var_p, mu_q, var_q):
     assert float(g_mu) == pytest.approx(float(fd_mu), rel=1e-6, abs=1e-6)
     assert float(g_s) == pytest.approx(float(fd_s), rel=1e-6, abs=1e-6)
     # the constant dropped by include_constant=False does not change the gradient
-    fd_mu0 = (T.kld_loss(mu_q + h, s, mu_p, var_p, include_constant=False) - T.kld_loss(mu_q - h, s, mu_p, var_p, include_constant=False)) / (2 * h)
+    fd_mu0 = (
+        T.kld_loss(mu_q + h, s, mu_p, var_p, include_constant=False)
+        - T.kld_loss(mu_q - h, s, mu_p, var_p, include_constant=False)
+    ) / (2 * h)
     assert float(fd_mu0) == pytest.approx(float(g_mu), rel=1e-6, abs=1e-6)
 
 
@@ -333,7 +344,12 @@ def test_kld_variance_optimum_is_the_label_variance_plus_the_error():
     from scipy.optimize import minimize_scalar
 
     for delta, var_p in ((0.0, 0.01), (0.2, 0.05), (1.0, 0.3)):
-        best = minimize_scalar(lambda s, d=delta, v=var_p: float(T.kld_loss(d, s, 0.0, v)), bounds=(-20, 5), method="bounded", options={"xatol": 1e-10})
+        best = minimize_scalar(
+            lambda s, d=delta, v=var_p: float(T.kld_loss(d, s, 0.0, v)),
+            bounds=(-20, 5),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
         assert math.exp(best.x) == pytest.approx(var_p + delta**2, rel=1e-5)
         assert float(T.kld_loss_grad(delta, math.log(var_p + delta**2), 0.0, var_p)[1]) == pytest.approx(0.0, abs=1e-12)
     # NLL at the target: the log-variance gradient stays +½, pushing σ_q² to zero without bound

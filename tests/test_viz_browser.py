@@ -18,7 +18,16 @@ from labelaudit.viz.report import build_report
 from viz_data import make_eval_dir, simulate_with_a_dropped_label
 
 CHROMIUM = os.environ.get("LABELAUDIT_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 TOP = 3
 
 pytestmark = pytest.mark.skipif(
@@ -41,7 +50,9 @@ def report(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser():
-    playwright = pytest.importorskip("playwright.sync_api", reason="Playwright (test dependency, `pip install -e .[test]`) is not installed")
+    playwright = pytest.importorskip(
+        "playwright.sync_api", reason="Playwright (test dependency, `pip install -e .[test]`) is not installed"
+    )
     with playwright.sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
         yield b
@@ -52,7 +63,9 @@ def test_report_renders_in_chromium(report, browser, tmp_path):
     out, summary = report
     page = browser.new_page(viewport={"width": 1280, "height": 900})
     problems, requests = [], []
-    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type in ("error", "warning") else None)
+    page.on(
+        "console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type in ("error", "warning") else None
+    )
     page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
     page.on("requestfailed", lambda r: problems.append(f"request failed: {r.url}"))
     page.on("request", lambda r: requests.append(r.url))
@@ -86,13 +99,17 @@ def test_missing_labels_section_renders_in_chromium(report, browser, tmp_path):
     assert summary.missing_pictures == MISSING
     page = browser.new_page(viewport={"width": 1280, "height": 900})
     problems = []
-    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type in ("error", "warning") else None)
+    page.on(
+        "console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type in ("error", "warning") else None
+    )
     page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
     page.goto(f"{out.as_uri()}#missing-000001-0", wait_until="load")
     assert page.evaluate("document.querySelector(':target').dataset.candidate") == "missing-000001-0"
     section = page.locator("section#missing")
     assert section.locator("article.candidate").count() == MISSING
-    widths = page.evaluate("Promise.all(Array.from(document.querySelectorAll('section#missing img')).map(i => i.decode().then(() => i.naturalWidth)))")
+    widths = page.evaluate(
+        "Promise.all(Array.from(document.querySelectorAll('section#missing img')).map(i => i.decode().then(() => i.naturalWidth)))"
+    )
     assert widths == [520] * MISSING
     assert section.locator("table#missing-counts").inner_text().count("Car") == 1
     box = section.locator("article.candidate img").first.bounding_box()

@@ -44,7 +44,12 @@ def _magenta_pixels(png: bytes) -> int:
 def _frame(results):
     """The opened results, the frame, its label rows and its candidates."""
     opened = open_results(results)
-    return opened, load_frame(open_source(opened), FRAME), frame_rows(opened, FRAME).to_pylist(), frame_candidates(opened, FRAME)
+    return (
+        opened,
+        load_frame(open_source(opened), FRAME),
+        frame_rows(opened, FRAME).to_pylist(),
+        frame_candidates(opened, FRAME),
+    )
 
 
 def test_frame_picture_draws_candidates_in_their_own_style(dropped):
@@ -62,7 +67,12 @@ def test_frame_picture_draws_candidates_in_their_own_style(dropped):
     # The view reaches every candidate.
     x0, x1, y0, y1 = with_c.view
     corners = with_c.candidate_corners.reshape(-1, 2)
-    assert (corners[:, 0] > x0).all() and (corners[:, 0] < x1).all() and (corners[:, 1] > y0).all() and (corners[:, 1] < y1).all()
+    assert (
+        (corners[:, 0] > x0).all()
+        and (corners[:, 0] < x1).all()
+        and (corners[:, 1] > y0).all()
+        and (corners[:, 1] < y1).all()
+    )
 
 
 def test_candidate_close_up_holds_the_dropped_cars_points(dropped):
@@ -74,7 +84,12 @@ def test_candidate_close_up_holds_the_dropped_cars_points(dropped):
     c, s = np.cos(box[6]), np.sin(box[6])
     d = pts[:, :2] - box[:2]
     u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-    inside = (np.abs(u) <= box[3] / 2) & (np.abs(v) <= box[4] / 2) & (pts[:, 2] >= box[2] - box[5] / 2) & (pts[:, 2] <= box[2] + box[5] / 2)
+    inside = (
+        (np.abs(u) <= box[3] / 2)
+        & (np.abs(v) <= box[4] / 2)
+        & (pts[:, 2] >= box[2] - box[5] / 2)
+        & (pts[:, 2] <= box[2] + box[5] / 2)
+    )
     assert inside.sum() >= 30  # the nearest car of the frame: a real object the label file no longer has
     assert len(pic.points_xy) == int(inside.sum())
     assert (np.abs(pic.points_xy[:, 0]) <= box[3] / 2 + 1e-9).all() and (pic.point_height >= 0).all()
@@ -114,7 +129,7 @@ def test_report_has_a_possibly_missing_labels_section(dropped, tmp_path):
     summary = build_report(results, out, top=3)
     html = out.read_text()
     assert summary.missing_pictures == 2 and summary.missing_counted == 2
-    section = html[html.index('<section id="missing"'):]
+    section = html[html.index('<section id="missing"') :]
     section = section[: section.index("</section>")]
     assert "Possibly missing labels" in section and "<strong>2</strong> candidate(s)" in section
     anchors = re.findall(r'<article class="candidate" id="([^"]+)" data-candidate', section)

@@ -74,7 +74,11 @@ def test_report_holds_summary_gate_plots_gallery_and_eval(sim, tmp_path):
     s = build_report(results, out, gate="default", top=4, eval_dir=ev, progress=lambda d, n: calls.append((d, n)))
     page = _page(out)
     html = out.read_text()
-    assert s.objects == s.evaluated > 0 and s.gallery == {"label_error": 4, "jiou_gt": 4} and s.gate_verdict in ("PASS", "FAIL")
+    assert (
+        s.objects == s.evaluated > 0
+        and s.gallery == {"label_error": 4, "jiou_gt": 4}
+        and s.gate_verdict in ("PASS", "FAIL")
+    )
     # One progress bar over the gallery pictures and then the missing-label candidates' pictures.
     assert calls and calls[-1][0] == calls[-1][1] == s.pictures + s.missing_pictures and 4 <= s.pictures <= 8
     for section in ("summary", "gate", "plots", "by-label_error", "by-jiou_gt", "eval", "ap", "overlap", "counts"):
@@ -86,14 +90,22 @@ def test_report_holds_summary_gate_plots_gallery_and_eval(sim, tmp_path):
     # Galleries: worst by label_error / JIoU-GT in rank order, anchors unique and stable.
     opened = R.open_results(results)
     rows = opened.read().to_pylist()
-    by_le = [anchor_of(r["frame_id"], r["object_index"]) for r in sorted(rows, key=lambda r: (-r["label_error"], r["frame_id"], r["object_index"]))[:4]]
-    by_j = [anchor_of(r["frame_id"], r["object_index"]) for r in sorted((r for r in rows if r["num_points"] >= 1), key=lambda r: (r["jiou_gt"], r["frame_id"], r["object_index"]))[:4]]
+    by_le = [
+        anchor_of(r["frame_id"], r["object_index"])
+        for r in sorted(rows, key=lambda r: (-r["label_error"], r["frame_id"], r["object_index"]))[:4]
+    ]
+    by_j = [
+        anchor_of(r["frame_id"], r["object_index"])
+        for r in sorted(
+            (r for r in rows if r["num_points"] >= 1), key=lambda r: (r["jiou_gt"], r["frame_id"], r["object_index"])
+        )[:4]
+    ]
     assert page.entries == {"label_error": by_le, "jiou_gt": by_j}
     assert len(page.ids) == len(set(page.ids))
     assert set(by_le + by_j) <= set(page.ids)
     assert re.search(r'id="\d{6}-\d+"', html)
     # Eval: Car at 0.7, Pedestrian at 0.5, R40 only.
-    assert "Car</td><td class=\"n\">0.7" in html and "Pedestrian</td><td class=\"n\">0.5" in html
+    assert 'Car</td><td class="n">0.7' in html and 'Pedestrian</td><td class="n">0.5' in html
     assert "0.6000" in html  # Car iou Easy, R40 at 0.7 (0.80 − 0.2)
     assert "0.5900" not in html and "0.8000" not in html  # …not its R11 value, not Car at 0.5
     assert "pr_curve.png" in html and "jiou_vs_distance.png" in html
@@ -112,21 +124,80 @@ def test_report_escapes_user_strings(tmp_path):
     out = tmp_path / "r2.html"
     from labelaudit.viz import report as rep
 
-    text = rep.render_report({
-        "title": evil, "results_root": evil, "generated": "now", "version": "x", "gate": None, "plots": [], "top": 1,
-        "gallery_size": (10, 10), "eval": None, "galleries": [],
-        "tracks": {"tracks": 1, "judged": 3, "flagged": 1, "threshold": 0.9, "by_issue": [("size", 1)], "tracks_flagged": 1,
-                   "noise": [(evil, "center 0.030")],
-                   "worst": [{"log_id": evil, "object_id": evil, "class_name": evil, "frames": 3, "size": evil, "speed": 1.0, "flagged": 1,
-                              "max_track_error": 0.99, "worst_frame_id": evil, "worst_object_index": 0, "worst_issue": "size", "anchor": evil}]},
-        "missing": {"searched": True, "total": 1, "counted": 1, "frames": 1, "min_score": 0.5,
-                    "by_class": [{"name": evil, "counted": 1, "total": 1, "sources": [1, 0, 0]}],
-                    "entries": [{"rank": 1, "anchor": f"missing-{evil}-0", "frame_id": evil, "candidate_index": 0, "class_name": evil,
-                                 "numbers": [("source", evil)], "command": evil, "src": "", "error": evil}]},
-        "summary": {"objects": 1, "evaluated": 1, "complete": True, "run": [("dataset", evil)], "statuses": ["ok"], "status_totals": [1],
-                    "by_class": [{"name": evil, "total": 1, "statuses": [1], "median_jiou_gt": 0.5, "median_label_error": None}],
-                    "failed_frames": [], "failed_total": 0, "warnings_total": 0},
-    })
+    text = rep.render_report(
+        {
+            "title": evil,
+            "results_root": evil,
+            "generated": "now",
+            "version": "x",
+            "gate": None,
+            "plots": [],
+            "top": 1,
+            "gallery_size": (10, 10),
+            "eval": None,
+            "galleries": [],
+            "tracks": {
+                "tracks": 1,
+                "judged": 3,
+                "flagged": 1,
+                "threshold": 0.9,
+                "by_issue": [("size", 1)],
+                "tracks_flagged": 1,
+                "noise": [(evil, "center 0.030")],
+                "worst": [
+                    {
+                        "log_id": evil,
+                        "object_id": evil,
+                        "class_name": evil,
+                        "frames": 3,
+                        "size": evil,
+                        "speed": 1.0,
+                        "flagged": 1,
+                        "max_track_error": 0.99,
+                        "worst_frame_id": evil,
+                        "worst_object_index": 0,
+                        "worst_issue": "size",
+                        "anchor": evil,
+                    }
+                ],
+            },
+            "missing": {
+                "searched": True,
+                "total": 1,
+                "counted": 1,
+                "frames": 1,
+                "min_score": 0.5,
+                "by_class": [{"name": evil, "counted": 1, "total": 1, "sources": [1, 0, 0]}],
+                "entries": [
+                    {
+                        "rank": 1,
+                        "anchor": f"missing-{evil}-0",
+                        "frame_id": evil,
+                        "candidate_index": 0,
+                        "class_name": evil,
+                        "numbers": [("source", evil)],
+                        "command": evil,
+                        "src": "",
+                        "error": evil,
+                    }
+                ],
+            },
+            "summary": {
+                "objects": 1,
+                "evaluated": 1,
+                "complete": True,
+                "run": [("dataset", evil)],
+                "statuses": ["ok"],
+                "status_totals": [1],
+                "by_class": [
+                    {"name": evil, "total": 1, "statuses": [1], "median_jiou_gt": 0.5, "median_label_error": None}
+                ],
+                "failed_frames": [],
+                "failed_total": 0,
+                "warnings_total": 0,
+            },
+        }
+    )
     out.write_text(text)
     assert evil not in text and "&lt;script&gt;" in text
     assert _page(out).external == []
@@ -246,7 +317,11 @@ def test_eval_dir_contract_is_checked(tmp_path):
 
 
 def test_plot_numbers():
-    centres, means, counts = binned_means(np.array([1.0, 2.0, 3.0, 11.0, 12.0, 13.0, 25.0]), np.array([0.9, 0.8, 0.7, 0.5, 0.6, 0.7, 0.1]), np.array([0.0, 10.0, 20.0, 30.0]))
+    centres, means, counts = binned_means(
+        np.array([1.0, 2.0, 3.0, 11.0, 12.0, 13.0, 25.0]),
+        np.array([0.9, 0.8, 0.7, 0.5, 0.6, 0.7, 0.1]),
+        np.array([0.0, 10.0, 20.0, 30.0]),
+    )
     np.testing.assert_allclose(centres, [5, 15, 25])
     np.testing.assert_allclose(means[:2], [0.8, 0.6]) and np.testing.assert_array_equal(counts, [3, 3, 1])
     assert np.isnan(means[2])  # one object: below REPORT_MIN_BIN_COUNT

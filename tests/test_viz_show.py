@@ -64,7 +64,9 @@ def test_recomputed_objects_equal_their_rows(sim):
         assert audit.jiou_gt == row["jiou_gt"]
         assert audit.label_error == row["label_error"]
         assert (np.isnan(audit.sigma_hat) and row["sigma_hat"] is None) or audit.sigma_hat == row["sigma_hat"]
-        np.testing.assert_array_equal(audit.fit.box[[0, 1, 3, 4, 6]], [row[c] for c in ("fit_cx", "fit_cy", "fit_length", "fit_width", "fit_yaw")])
+        np.testing.assert_array_equal(
+            audit.fit.box[[0, 1, 3, 4, 6]], [row[c] for c in ("fit_cx", "fit_cy", "fit_length", "fit_width", "fit_yaw")]
+        )
         np.testing.assert_allclose(np.trace(corner_covariances(audit), axis1=1, axis2=2), row["corner_tv"], rtol=1e-12)
         assert audit.matches_row and audit.mismatches(rtol=0.0) == {}
 
@@ -86,7 +88,11 @@ def test_object_picture_has_the_requested_size_and_shows_p_g(sim):
     sensor_local = pic.sensor_direction * np.hypot(*(audit.sensor_origin[:2] - audit.box[:2]))
     d = np.linalg.norm(pic.ellipse_centres - sensor_local, axis=1)
     assert np.argmin(d) == 0
-    assert pic.caption.startswith(row["class_name"]) and f"{row['jiou_gt']:.3f}" in pic.caption and f"{row['label_error']:.3f}" in pic.caption
+    assert (
+        pic.caption.startswith(row["class_name"])
+        and f"{row['jiou_gt']:.3f}" in pic.caption
+        and f"{row['label_error']:.3f}" in pic.caption
+    )
     # The suggested box is the fit's.
     assert np.allclose(pic.fit_corners.mean(axis=0), _local(audit.fit.box[:2], audit.box))
 
@@ -155,7 +161,7 @@ def test_a_one_face_object_is_sharp_on_the_observed_side():
     w = BOX[4]
     near_out, far_out = mass[yc < -w / 2].sum(), mass[yc > w / 2].sum()
     assert far_out > 3 * near_out
-    inside = (np.abs(yc) < w / 2)
+    inside = np.abs(yc) < w / 2
     near_in, far_in = mass[inside & (yc < 0)].sum(), mass[inside & (yc > 0)].sum()
     assert near_in > far_in
     # The corners on the observed face are the best constrained; C1 is one of them.
@@ -226,7 +232,9 @@ def test_edited_labels_are_refused(sim, tmp_path):
 
 
 def test_parse_size():
-    assert parse_size("640x480") == (640, 480) and parse_size("300") == (300, 300) and parse_size("200×100") == (200, 100)
+    assert (
+        parse_size("640x480") == (640, 480) and parse_size("300") == (300, 300) and parse_size("200×100") == (200, 100)
+    )
     for bad in ("x", "10x10", "abc", "640x480x2", "99999"):
         with pytest.raises(ValueError, match="WIDTHxHEIGHT"):
             parse_size(bad)
@@ -239,7 +247,9 @@ def test_real_kitti_pictures_match_their_rows(realdata, tmp_path):
     from labelaudit.infer.run import InferRequest, run_infer
 
     root = realdata / "openpcdet-pr653-kitti"
-    run_infer(InferRequest(root, tmp_path / "res", "kitti", limit=2), resolve_config(None, "kitti"), executor=SerialExecutor())
+    run_infer(
+        InferRequest(root, tmp_path / "res", "kitti", limit=2), resolve_config(None, "kitti"), executor=SerialExecutor()
+    )
     opened = open_results(tmp_path / "res")
     source = open_source(opened)
     rows = [r for r in opened.read().to_pylist() if r["status"] in ("ok", "few_points", "no_points")]

@@ -45,7 +45,11 @@ def test_mmdet3d_frame_labels(realdata: Path) -> None:
     # TOP lidar position from the calibration; no lidar → 0 points and a clear, non-fatal note
     np.testing.assert_allclose(f.sensor_origin, [1.43, 0.0, 2.184])
     assert f.points.shape == (0, 4)
-    assert len(f.warnings) == 1 and "no lidar range images" in f.warnings[0] and MMDET_FRAME.split("/")[-1] in f.warnings[0]
+    assert (
+        len(f.warnings) == 1
+        and "no lidar range images" in f.warnings[0]
+        and MMDET_FRAME.split("/")[-1] in f.warnings[0]
+    )
 
 
 @pytest.mark.realdata
@@ -86,7 +90,12 @@ def test_real_frames_match_official_protos(realdata: Path) -> None:
         payload = next(iter_records(realdata / rel))
         ref = dataset_pb2.Frame.FromString(payload)
         f = _one_frame(realdata / rel)
-        want = np.array([[l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading] for l in ref.laser_labels])
+        want = np.array(
+            [
+                [l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading]
+                for l in ref.laser_labels
+            ]
+        )
         np.testing.assert_array_equal(f.boxes, want)
         assert f.object_ids == [l.id for l in ref.laser_labels]
 
@@ -190,7 +199,9 @@ def test_crc_mismatch_names_file(tmp_path: Path, segment) -> None:
     a.write_bytes(bytes(raw))
     done, errors = _read_all(WaymoV1Reader(tmp_path))
     assert done == {"a.tfrecord": 1, "b.tfrecord": 2}  # the framing is intact: record 1 still reads
-    assert str(a) in errors["a.tfrecord"] and "CRC mismatch" in errors["a.tfrecord"] and "record 0" in errors["a.tfrecord"]
+    assert (
+        str(a) in errors["a.tfrecord"] and "CRC mismatch" in errors["a.tfrecord"] and "record 0" in errors["a.tfrecord"]
+    )
 
 
 def test_a_forged_length_is_named_before_reading(tmp_path: Path) -> None:
@@ -200,7 +211,9 @@ def test_a_forged_length_is_named_before_reading(tmp_path: Path) -> None:
     length = struct.pack("<Q", 2**60)
     path.write_bytes(good + length + struct.pack("<I", masked_crc32c(length)) + b"rest")
     WaymoV1Reader(path)  # opening the file is fine: the forged length is met while reading
-    with pytest.raises(DatasetError, match=r"record 1 at byte 21 declares 1152921504606846976 payload bytes .* has 4 bytes left"):
+    with pytest.raises(
+        DatasetError, match=r"record 1 at byte 21 declares 1152921504606846976 payload bytes .* has 4 bytes left"
+    ):
         list(iter_records(path))
 
 

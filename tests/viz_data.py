@@ -47,17 +47,44 @@ def eval_summary() -> dict:
             for interp in ("R40", "R11"):
                 for metric, base in (("iou", 0.80), ("jiou", 0.70), ("jiou_ratio", 0.75)):
                     for k, diff in enumerate(("Easy", "Moderate", "Hard")):
-                        value = base - 0.1 * k - (0.2 if thr == 0.7 else 0.0) - (0.01 if interp == "R11" else 0.0) - (0.05 if cls == "Pedestrian" else 0.0)
-                        ap.append({"class": cls, "difficulty": diff, "view": "bev", "metric": metric, "threshold": thr, "interp": interp,
-                                   "ap": round(value, 4), "num_gt": 40 - 5 * k, "num_det": 55})
+                        value = (
+                            base
+                            - 0.1 * k
+                            - (0.2 if thr == 0.7 else 0.0)
+                            - (0.01 if interp == "R11" else 0.0)
+                            - (0.05 if cls == "Pedestrian" else 0.0)
+                        )
+                        ap.append(
+                            {
+                                "class": cls,
+                                "difficulty": diff,
+                                "view": "bev",
+                                "metric": metric,
+                                "threshold": thr,
+                                "interp": interp,
+                                "ap": round(value, 4),
+                                "num_gt": 40 - 5 * k,
+                                "num_det": 55,
+                            }
+                        )
     overlap = [
         {"difficulty": diff, "distance_bin": b, "metric": m, "mean": 0.7 - 0.05 * i, "count": 10 + i}
-        for m in ("iou", "jiou") for diff in ("Easy", "Moderate") for i, b in enumerate(("0-20 m", "20-40 m", "40+ m"))
+        for m in ("iou", "jiou")
+        for diff in ("Easy", "Moderate")
+        for i, b in enumerate(("0-20 m", "20-40 m", "40+ m"))
     ]
-    return {"ap": ap, "mean_overlap": overlap, "counts": {"labels": 120, "detections": 160, "frames": 3}, "dataset": "sim-kitti", "metric": "jiou"}
+    return {
+        "ap": ap,
+        "mean_overlap": overlap,
+        "counts": {"labels": 120, "detections": 160, "frames": 3},
+        "dataset": "sim-kitti",
+        "metric": "jiou",
+    }
 
 
-def make_eval_dir(path: Path, summary: dict | None = None, plots: tuple[str, ...] = ("pr_curve.png", "jiou_vs_distance.png")) -> Path:
+def make_eval_dir(
+    path: Path, summary: dict | None = None, plots: tuple[str, ...] = ("pr_curve.png", "jiou_vs_distance.png")
+) -> Path:
     """Write an EVAL_DIR fixture: summary.json and real PNG plots."""
     path.mkdir(parents=True, exist_ok=True)
     (path / "summary.json").write_text(json.dumps(summary if summary is not None else eval_summary(), indent=1))
@@ -85,7 +112,9 @@ def simulate_with_a_dropped_label(root: Path, frame_id: str = "000001") -> tuple
     split = data / "training" if (data / "training").is_dir() else data
     label = split / "label_2" / f"{frame_id}.txt"
     labels = read_label(label)
-    boxes = boxes_camera_to_lidar(labels.location, labels.dims_hwl, labels.rotation_y, read_calib(split / "calib" / f"{frame_id}.txt"))
+    boxes = boxes_camera_to_lidar(
+        labels.location, labels.dims_hwl, labels.rotation_y, read_calib(split / "calib" / f"{frame_id}.txt")
+    )
     cars = [k for k, n in enumerate(labels.class_names) if n == "Car"]
     k = min(cars, key=lambda j: float(np.hypot(*boxes[j, :2])))
     lines = label.read_text().splitlines()
@@ -93,8 +122,27 @@ def simulate_with_a_dropped_label(root: Path, frame_id: str = "000001") -> tuple
     run_infer(InferRequest(data, results, "kitti"), resolve_config(None, "kitti"), executor=SerialExecutor())
     shutil.rmtree(results / "missing", ignore_errors=True)
     b = boxes[k]
-    add_missing(results, [[
-        make_candidate(frame_id, 0, 0.93, cx=b[0], cy=b[1], cz=b[2], length=b[3], width=b[4], height=b[5], yaw=b[6], distance=float(np.hypot(b[0], b[1]))),
-        make_candidate(frame_id, 1, 0.55, cx=20.0, cy=14.0, distance=float(np.hypot(20.0, 14.0)), num_points=35),
-    ]])
+    add_missing(
+        results,
+        [
+            [
+                make_candidate(
+                    frame_id,
+                    0,
+                    0.93,
+                    cx=b[0],
+                    cy=b[1],
+                    cz=b[2],
+                    length=b[3],
+                    width=b[4],
+                    height=b[5],
+                    yaw=b[6],
+                    distance=float(np.hypot(b[0], b[1])),
+                ),
+                make_candidate(
+                    frame_id, 1, 0.55, cx=20.0, cy=14.0, distance=float(np.hypot(20.0, 14.0)), num_points=35
+                ),
+            ]
+        ],
+    )
     return data, results, b

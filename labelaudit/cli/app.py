@@ -101,7 +101,10 @@ def handle_errors(debug: bool) -> Iterator[None]:
     except Exception as exc:
         if debug:
             raise
-        err().print(f"[red]internal error:[/red] {type(exc).__name__}: {escape(one_line(str(exc)))} (rerun with --debug for the traceback)", soft_wrap=True)
+        err().print(
+            f"[red]internal error:[/red] {type(exc).__name__}: {escape(one_line(str(exc)))} (rerun with --debug for the traceback)",
+            soft_wrap=True,
+        )
         raise typer.Exit(EXIT_INTERNAL) from None
 
 
@@ -132,6 +135,8 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version and exit."
+    ),
 ) -> None:
     """Audit 3D LiDAR box labels from the point cloud itself."""

@@ -15,7 +15,9 @@ from labelaudit.errors import UsageError
 @app.command()
 def check(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
-    config: Optional[Path] = typer.Option(None, "--config", help="Gate thresholds TOML (default: the built-in configs/gate.toml)."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", help="Gate thresholds TOML (default: the built-in configs/gate.toml)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the rule outcomes as JSON on stdout instead of a table."),
     junit: Optional[Path] = typer.Option(None, "--junit", help="Also write the outcomes as JUnit XML to this file."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),

@@ -18,17 +18,25 @@ def print_missing_found(run: object) -> None:
     rows, dropped = getattr(run, "missing", []), getattr(run, "dropped", 0)
     found = sum(1 for r in rows if r["found"])
     o = out()
-    o.print(f"missing labels: the simulator dropped {dropped} vehicle label(s); {len(rows)} candidate(s) with score ≥ {C.DEMO_MISSING_SCORE:g}, "
-            f"{found} of them at a dropped label (RESULTS/missing/, docs/missing.md)", soft_wrap=True)
+    o.print(
+        f"missing labels: the simulator dropped {dropped} vehicle label(s); {len(rows)} candidate(s) with score ≥ {C.DEMO_MISSING_SCORE:g}, "
+        f"{found} of them at a dropped label (RESULTS/missing/, docs/missing.md)",
+        soft_wrap=True,
+    )
     for r in rows[:10]:
         what = f"the dropped {r['found']}" if r["found"] else "no dropped label"
-        o.print(f"  frame {escape(r['frame_id'])} candidate {r['candidate_index']}: {r['class_name']} at ({r['cx']:.1f}, {r['cy']:.1f}) m, "
-                f"{r['num_points']} points, score {r['score']:.2f}, source {r['source']} → {what}", soft_wrap=True)
+        o.print(
+            f"  frame {escape(r['frame_id'])} candidate {r['candidate_index']}: {r['class_name']} at ({r['cx']:.1f}, {r['cy']:.1f}) m, "
+            f"{r['num_points']} points, score {r['score']:.2f}, source {r['source']} → {what}",
+            soft_wrap=True,
+        )
 
 
 @app.command()
 def demo(
-    folder: Optional[Path] = typer.Argument(None, help="Where to put the simulated data and results (default: a temporary folder)."),
+    folder: Optional[Path] = typer.Argument(
+        None, help="Where to put the simulated data and results (default: a temporary folder)."
+    ),
     frames: int = typer.Option(C.DEMO_FRAMES, "--frames", help="Simulated frames."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
@@ -60,8 +68,16 @@ def demo(
             # A temporary folder is deleted at the end: its report goes to the current folder instead.
             page = Path(C.DEMO_REPORT_NAME).resolve() if tmp is not None else None
             run = run_demo(
-                root, frames, workers, say=console.print, progress=RichProgress(console), debug=debug, report=page,
-                after_infer=lambda summary: print_run_summary(console, summary, summarize(open_results(summary.output))),
+                root,
+                frames,
+                workers,
+                say=console.print,
+                progress=RichProgress(console),
+                debug=debug,
+                report=page,
+                after_infer=lambda summary: print_run_summary(
+                    console, summary, summarize(open_results(summary.output))
+                ),
             )
             for ranked, injected in run.ranked:
                 print_rank_table(out(), ranked, {"injected": injected})
@@ -78,7 +94,10 @@ def demo(
                     soft_wrap=True,
                 )
             else:
-                console.print("run `labelaudit demo DIR` to keep the data, the results and the simulator's ground truth", soft_wrap=True)
+                console.print(
+                    "run `labelaudit demo DIR` to keep the data, the results and the simulator's ground truth",
+                    soft_wrap=True,
+                )
         finally:
             if tmp is not None:
                 tmp.cleanup()

@@ -48,7 +48,9 @@ class RichProgress:
         self.frames += result.frames
         self.objects += result.objects
         dt = max(time.perf_counter() - self.t0, 1e-9)
-        self.bar.update(self.task, advance=result.units, rate=f"{self.frames / dt:.1f} frames/s  {self.objects / dt:.0f} objects/s")
+        self.bar.update(
+            self.task, advance=result.units, rate=f"{self.frames / dt:.1f} frames/s  {self.objects / dt:.0f} objects/s"
+        )
 
     def stop(self) -> None:
         self.bar.stop()
@@ -81,9 +83,25 @@ def print_run_summary(console: Console, summary: RunSummary, stats: dict[str, An
 
 def display_columns(table: pa.Table, by: str) -> list[str]:
     """Columns shown in the Rich table of ``rank`` (``by`` always included; empty optional ones dropped)."""
-    base = ["frame_id", "object_index", "class_name", "status", "num_points", "distance", "jiou_gt", "label_error", "sigma_hat"]
+    base = [
+        "frame_id",
+        "object_index",
+        "class_name",
+        "status",
+        "num_points",
+        "distance",
+        "jiou_gt",
+        "label_error",
+        "sigma_hat",
+    ]
     cols = [c for c in base if c in table.schema.names]
-    cols = [c for c in cols if c in ("frame_id", "object_index", "class_name", "status") or c == by or table.column(c).null_count < table.num_rows]
+    cols = [
+        c
+        for c in cols
+        if c in ("frame_id", "object_index", "class_name", "status")
+        or c == by
+        or table.column(c).null_count < table.num_rows
+    ]
     if by not in cols:
         cols.append(by)
     if by == "track_error":  # which track, and what the label contradicts in it
@@ -100,6 +118,7 @@ def format_cell(value: Any) -> str:
         return f"{value:.3f}"
     return str(value)
 
+
 def print_rank_table(console: Console, result: RankResult, extra: dict[str, list[str]] | None = None) -> None:
     """Rich table of a :class:`~labelaudit.rank.RankResult`; ``extra`` adds display-only columns."""
     q = result.query
@@ -109,16 +128,34 @@ def print_rank_table(console: Console, result: RankResult, extra: dict[str, list
     cols = display_columns(table, q.by) + list(extra or {})
     order = "highest" if q.is_descending else "lowest"
     scope = f" with ≥ {q.min_points} points" if q.min_points else ""
-    t = Table(title=f"worst {table.num_rows} of {result.matched} objects{scope} by {escape(q.by)} ({order} first)", title_justify="left")
+    t = Table(
+        title=f"worst {table.num_rows} of {result.matched} objects{scope} by {escape(q.by)} ({order} first)",
+        title_justify="left",
+    )
     t.add_column("#", justify="right")
     for c in cols:
-        t.add_column(escape(c), justify="left" if c in ("frame_id", "class_name", "status") or c in (extra or {}) else "right")
+        t.add_column(
+            escape(c), justify="left" if c in ("frame_id", "class_name", "status") or c in (extra or {}) else "right"
+        )
     for i, row in enumerate(table.select(cols).to_pylist(), start=1):
         t.add_row(str(i), *(escape(format_cell(row[c])) for c in cols))
     console.print(t)
 
 
-MISSING_DISPLAY_COLUMNS = ("frame_id", "candidate_index", "class_name", "source", "score", "num_points", "distance", "cx", "cy", "length", "width", "yaw")
+MISSING_DISPLAY_COLUMNS = (
+    "frame_id",
+    "candidate_index",
+    "class_name",
+    "source",
+    "score",
+    "num_points",
+    "distance",
+    "cx",
+    "cy",
+    "length",
+    "width",
+    "yaw",
+)
 """Columns of the Rich table of ``rank --missing`` (JSON and CSV carry every column)."""
 
 
@@ -131,7 +168,10 @@ def print_missing_table(console: Console, result: MissingResult) -> None:
         cols.append(q.by)
     order = "highest" if q.is_descending else "lowest"
     floor = f" with score ≥ {q.min_score:g}" if q.min_score is not None else ""
-    t = Table(title=f"{table.num_rows} of {result.matched} missing-label candidates{floor} by {escape(q.by)} ({order} first; {result.total} in the results)", title_justify="left")
+    t = Table(
+        title=f"{table.num_rows} of {result.matched} missing-label candidates{floor} by {escape(q.by)} ({order} first; {result.total} in the results)",
+        title_justify="left",
+    )
     t.add_column("#", justify="right")
     for c in cols:
         t.add_column(escape(c), justify="left" if c in ("frame_id", "class_name", "source") else "right")
@@ -150,11 +190,18 @@ def print_gate_table(console: Console, report: GateReport) -> None:
         t.add_column(c, justify="right" if c in ("value", "threshold", "objects") else "left", no_wrap=c != "note")
     for r in report.results:
         t.add_row(
-            escape(r.scope), escape(r.rule), format_number(r.value), f"{r.comparison} {format_number(r.threshold)}", str(r.objects),
-            f"[{colour[r.status]}]{r.status}[/]", escape(r.note),
+            escape(r.scope),
+            escape(r.rule),
+            format_number(r.value),
+            f"{r.comparison} {format_number(r.threshold)}",
+            str(r.objects),
+            f"[{colour[r.status]}]{r.status}[/]",
+            escape(r.note),
         )
     console.print(t)
     if report.absent_classes:
         console.print(f"not in the results, not evaluated: {escape(', '.join(report.absent_classes))}")
     v = report.verdict
-    console.print(f"[bold {'green' if v == 'PASS' else 'red'}]{v}[/] ({report.total_objects} objects; exit {report.exit_code})")
+    console.print(
+        f"[bold {'green' if v == 'PASS' else 'red'}]{v}[/] ({report.total_objects} objects; exit {report.exit_code})"
+    )

@@ -47,8 +47,6 @@ class Interp(str, Enum):
     r11 = "R11"
 
 
-
-
 class StderrProgress:
     """Stage messages and a JIoU pair counter on stderr."""
 
@@ -87,11 +85,18 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
     meta = summary["metric"]
     ap_all = summary["ap"] + (summary.get("probabilistic_ap") or [])
     metrics = [m for m in METRIC_NAMES if m not in LET_METRICS and any(r["metric"] == m for r in ap_all)]
-    let = {(r["class"], r["difficulty"], r["metric"]): r for r in ap_all if r["metric"] in LET_METRICS and r["interp"] == LET_INTERP}
+    let = {
+        (r["class"], r["difficulty"], r["metric"]): r
+        for r in ap_all
+        if r["metric"] in LET_METRICS and r["interp"] == LET_INTERP
+    }
     ap = {(r["class"], r["difficulty"], r["metric"], r["threshold"], r["interp"]): r for r in ap_all}
     mp = {(r["class"], r["difficulty"], r["metric"], r["interp"]): r for r in summary["map"]}
     lo, hi = meta["map_thresholds"][0], meta["map_thresholds"][-1]
-    t = Table(title=f"AP|{interp} (%), {meta['view'].upper()} — at the usual threshold and mean over {lo:g}:{meta['map_thresholds'][1] - lo:.2g}:{hi:g}", title_justify="left")
+    t = Table(
+        title=f"AP|{interp} (%), {meta['view'].upper()} — at the usual threshold and mean over {lo:g}:{meta['map_thresholds'][1] - lo:.2g}:{hi:g}",
+        title_justify="left",
+    )
     for c in ("class", "difficulty", "GT", "det"):
         t.add_column(c, justify="left" if c in ("class", "difficulty") else "right")
     for m in metrics:
@@ -114,13 +119,21 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
     if let_metrics:
         lm = meta.get("let", {})
         iou = ", ".join(f"{escape(c)} {v:g}" for c, v in lm.get("min_let_iou", {}).items())
-        console.print(f"LET-AP / LET-APL: Waymo's longitudinal-error-tolerant AP (3D, LET-IoU ≥ {iou}; range from the camera, tolerance "
-                      f"max({lm.get('tolerance_fraction', C.EVAL_LET_TOLERANCE_FRACTION):g}·r, {lm.get('min_tolerance_m', C.EVAL_LET_MIN_TOLERANCE):g} m); "
-                      "Waymo's AP integration, not R40/R11; docs/eval.md)", soft_wrap=True)
-    few = sorted({(r["class"], r["difficulty"]) for r in summary["ap"] if r["num_gt"] and r["num_gt"] < C.EVAL_RECALL_POINTS - 1})
+        console.print(
+            f"LET-AP / LET-APL: Waymo's longitudinal-error-tolerant AP (3D, LET-IoU ≥ {iou}; range from the camera, tolerance "
+            f"max({lm.get('tolerance_fraction', C.EVAL_LET_TOLERANCE_FRACTION):g}·r, {lm.get('min_tolerance_m', C.EVAL_LET_MIN_TOLERANCE):g} m); "
+            "Waymo's AP integration, not R40/R11; docs/eval.md)",
+            soft_wrap=True,
+        )
+    few = sorted(
+        {(r["class"], r["difficulty"]) for r in summary["ap"] if r["num_gt"] and r["num_gt"] < C.EVAL_RECALL_POINTS - 1}
+    )
     if few:
         cells = ", ".join(f"{c} {d}" for c, d in few)
-        console.print(f"note: fewer than {C.EVAL_RECALL_POINTS - 1} GT boxes in {escape(cells)}: the devkit then samples recall per true positive, so AP there is coarse (docs/eval.md)", soft_wrap=True)
+        console.print(
+            f"note: fewer than {C.EVAL_RECALL_POINTS - 1} GT boxes in {escape(cells)}: the devkit then samples recall per true positive, so AP there is coarse (docs/eval.md)",
+            soft_wrap=True,
+        )
     if brief:
         for note in summary["notes"]:
             console.print(f"note: {escape(note)}", soft_wrap=True)
@@ -129,7 +142,10 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
     bins = ["all", *meta["distance_bins"]]
     mo = {(r["class"], r["difficulty"], r["distance_bin"], r["metric"]): r for r in summary["mean_overlap_by_class"]}
     metrics = [m for m in metrics if any(r["metric"] == m for r in summary["mean_overlap_by_class"])]
-    t2 = Table(title=f"mean overlap of matched detections (IoU > {meta['association_min_iou']:g}) by GT distance (m)", title_justify="left")
+    t2 = Table(
+        title=f"mean overlap of matched detections (IoU > {meta['association_min_iou']:g}) by GT distance (m)",
+        title_justify="left",
+    )
     for c in ("class", "difficulty", "metric", *bins):
         t2.add_column(c, justify="left" if c in ("class", "difficulty", "metric") else "right")
     for cls in summary["classes"]:
@@ -143,14 +159,25 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
     console.print(t2)
 
     if summary.get("probabilistic"):
-        t3 = Table(title="probabilistic detections: recall at JIoU thresholds, own distribution vs as deterministic", title_justify="left")
+        t3 = Table(
+            title="probabilistic detections: recall at JIoU thresholds, own distribution vs as deterministic",
+            title_justify="left",
+        )
         for c in ("class", "difficulty", "threshold", "recall (own)", "recall (det.)", "gain", "AP (own)", "AP (det.)"):
             t3.add_column(c, justify="left" if c in ("class", "difficulty") else "right")
         for r in summary["probabilistic"]:
             if r["difficulty"] != meta["headline_difficulty"]:
                 continue
-            t3.add_row(escape(r["class"]), r["difficulty"], f"{r['threshold']:g}", f"{r['recall_probabilistic']:.3f}", f"{r['recall_deterministic']:.3f}",
-                       f"{r['recall_gain']:+.3f}", _fmt(r["ap_probabilistic"]), _fmt(r["ap_deterministic"]))
+            t3.add_row(
+                escape(r["class"]),
+                r["difficulty"],
+                f"{r['threshold']:g}",
+                f"{r['recall_probabilistic']:.3f}",
+                f"{r['recall_deterministic']:.3f}",
+                f"{r['recall_gain']:+.3f}",
+                _fmt(r["ap_probabilistic"]),
+                _fmt(r["ap_deterministic"]),
+            )
         console.print(t3)
     c = summary["counts"]
     console.print(
@@ -164,22 +191,64 @@ def print_eval_tables(console: Console, summary: dict[str, Any], interp: str = "
 
 @app.command("eval")
 def eval_command(
-    dataset: Path = typer.Argument(..., help="Labelled dataset as `infer` reads it (KITTI root, Waymo v2 folder, Waymo v1 .tfrecord, Argoverse 2 folder)."),
-    detections: Path = typer.Argument(..., help="Detections: KITTI result folder (<frame>.txt), Waymo Objects .bin, Argoverse 2 .feather, or labelaudit Parquet."),
-    results: Optional[Path] = typer.Option(None, "--results", help="`infer` results folder with the labels' covariances (default: infer them now)."),
-    output: Optional[Path] = typer.Option(None, "-o", "--output", help="EVAL_DIR: summary.json, detections.parquet, PNG plots."),
-    classes: Optional[list[str]] = typer.Option(None, "--classes", help="Classes to evaluate (comma-separate or repeat; default: Car, Pedestrian, Cyclist — Waymo Vehicle, …; AV2 REGULAR_VEHICLE, … — those detected at least once)."),
-    view: View = typer.Option(View.bev, "--metric", help="Overlap in bird's-eye view (bev) or 3D; the label covariances must come from the same model."),
-    out_format: EvalOutput = typer.Option(EvalOutput.table, "--format", help="table (Rich) or json (the summary document, one flat record per AP cell)."),
-    interp: Interp = typer.Option(Interp.r40, "--interp", help="AP interpolation shown in the table (JSON always has both)."),
-    dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
-    detections_format: DetFormat = typer.Option(DetFormat.auto, "--detections-format", help="Detections format; auto detects it."),
-    config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML (as for infer; default: the built-in one of the format)."),
-    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (val, …) / Waymo or Argoverse 2 split folder."),
-    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for JIoU and label inference (default: all cores)."),
-    let: bool = typer.Option(False, "--let", help="Also Waymo's LET-3D-AP and LET-3D-APL (longitudinal-error-tolerant: depth errors along the camera's line of sight forgiven up to max(10 % of range, 0.5 m); APL charges them); records with metric let / let_apl."),
-    lenient: bool = typer.Option(False, "--lenient", help="Leave out (and report) frames with an unreadable label or detection, instead of stopping."),
+    dataset: Path = typer.Argument(
+        ...,
+        help="Labelled dataset as `infer` reads it (KITTI root, Waymo v2 folder, Waymo v1 .tfrecord, Argoverse 2 folder).",
+    ),
+    detections: Path = typer.Argument(
+        ...,
+        help="Detections: KITTI result folder (<frame>.txt), Waymo Objects .bin, Argoverse 2 .feather, or labelaudit Parquet.",
+    ),
+    results: Optional[Path] = typer.Option(
+        None, "--results", help="`infer` results folder with the labels' covariances (default: infer them now)."
+    ),
+    output: Optional[Path] = typer.Option(
+        None, "-o", "--output", help="EVAL_DIR: summary.json, detections.parquet, PNG plots."
+    ),
+    classes: Optional[list[str]] = typer.Option(
+        None,
+        "--classes",
+        help="Classes to evaluate (comma-separate or repeat; default: Car, Pedestrian, Cyclist — Waymo Vehicle, …; AV2 REGULAR_VEHICLE, … — those detected at least once).",
+    ),
+    view: View = typer.Option(
+        View.bev,
+        "--metric",
+        help="Overlap in bird's-eye view (bev) or 3D; the label covariances must come from the same model.",
+    ),
+    out_format: EvalOutput = typer.Option(
+        EvalOutput.table, "--format", help="table (Rich) or json (the summary document, one flat record per AP cell)."
+    ),
+    interp: Interp = typer.Option(
+        Interp.r40, "--interp", help="AP interpolation shown in the table (JSON always has both)."
+    ),
+    dataset_format: DatasetFormat = typer.Option(
+        DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."
+    ),
+    detections_format: DetFormat = typer.Option(
+        DetFormat.auto, "--detections-format", help="Detections format; auto detects it."
+    ),
+    config: Optional[Path] = typer.Option(
+        None, "--config", help="Model config TOML (as for infer; default: the built-in one of the format)."
+    ),
+    split: Optional[str] = typer.Option(
+        None, "--split", help="KITTI ImageSets split (val, …) / Waymo or Argoverse 2 split folder."
+    ),
+    limit: Optional[int] = typer.Option(
+        None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Worker processes for JIoU and label inference (default: all cores)."
+    ),
+    let: bool = typer.Option(
+        False,
+        "--let",
+        help="Also Waymo's LET-3D-AP and LET-3D-APL (longitudinal-error-tolerant: depth errors along the camera's line of sight forgiven up to max(10 % of range, 0.5 m); APL charges them); records with metric let / let_apl.",
+    ),
+    lenient: bool = typer.Option(
+        False,
+        "--lenient",
+        help="Leave out (and report) frames with an unreadable label or detection, instead of stopping.",
+    ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress messages."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
@@ -206,9 +275,21 @@ def eval_command(
         if limit is not None and limit < 1:
             raise typer.BadParameter(f"must be ≥ 1, got {limit}", param_hint="--limit")
         request = EvalRequest(
-            dataset=dataset, detections=detections, results=results, output=output, dataset_format=dataset_format.value,
-            detections_format=detections_format.value, classes=split_list(classes) or None, view=view.value, config=config,
-            split=split, limit=limit, workers=workers, strict=not lenient, debug=debug, let=let,
+            dataset=dataset,
+            detections=detections,
+            results=results,
+            output=output,
+            dataset_format=dataset_format.value,
+            detections_format=detections_format.value,
+            classes=split_list(classes) or None,
+            view=view.value,
+            config=config,
+            split=split,
+            limit=limit,
+            workers=workers,
+            strict=not lenient,
+            debug=debug,
+            let=let,
         )
         console = err()
         result = run_eval(request, StderrProgress(console, quiet))
@@ -219,11 +300,17 @@ def eval_command(
             except OSError as exc:
                 raise UsageError(f"{output}: cannot write the evaluation ({exc.strerror})") from None
             if not quiet:
-                console.print(f"wrote {len(files)} files to {escape(str(output))}: " + ", ".join(escape(p.name) for p in files), soft_wrap=True)
+                console.print(
+                    f"wrote {len(files)} files to {escape(str(output))}: " + ", ".join(escape(p.name) for p in files),
+                    soft_wrap=True,
+                )
         if out_format is EvalOutput.json:
             sys.stdout.write(json.dumps(summary, indent=2, sort_keys=True) + "\n")
         else:
             print_eval_tables(out(), summary, interp.value)
         if nothing_evaluated(summary):
-            console.print("[red]error:[/red] nothing was evaluated: no ground-truth box of the evaluated classes counts at any difficulty", soft_wrap=True)
+            console.print(
+                "[red]error:[/red] nothing was evaluated: no ground-truth box of the evaluated classes counts at any difficulty",
+                soft_wrap=True,
+            )
             raise typer.Exit(EXIT_USAGE)

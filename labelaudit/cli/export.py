@@ -37,18 +37,63 @@ class ExportFormat(str, Enum):
 
 @app.command()
 def export(
-    results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer` (or one Parquet file of rows)."),
-    output: Path = typer.Option(..., "-o", "--output", help="File to write: the Parquet table, or the copy of the infos pickle; for --format glenet the folder of the copies; kitti-labels: the review folder."),
-    encoding: Optional[Encoding] = typer.Option(None, "--encoding", help="Targets: box (x,y,z,l,w,h,yaw; the default), log-size = centerpoint (x,y,z,log l/w/h,sin,cos), pixor (dx,dy,log l,log w,sin,cos), residual (the anchor coder of OpenPCDet/mmdet3d). Not with --format glenet (it has its own)."),
-    source: str = typer.Option("model", "--source", help="Where σ_p comes from: model (posterior covariance), num_points, hull_iou, or fixed:VAR."),
-    out_format: ExportFormat = typer.Option(ExportFormat.parquet, "--format", help="parquet (keyed by frame_id, object_index, object_id), openpcdet or mmdet3d (a copy of --infos with the targets added), glenet (copies of --infos and --dbinfos with GLENet's 'uncertainty' added, in folder -o)."),
-    infos: Optional[Path] = typer.Option(None, "--infos", help="OpenPCDet kitti_infos_*.pkl / Waymo infos, or mmdet3d v2 info file to copy; for glenet also a folder of OpenPCDet's per-sequence Waymo infos (<seq>/<seq>.pkl)."),
-    dbinfos: Optional[Path] = typer.Option(None, "--dbinfos", help="OpenPCDet gt-database infos to copy with --format glenet (kitti_dbinfos_train.pkl, Waymo's …_waymo_dbinfos_train_sampled_1.pkl)."),
-    anchor_size: Optional[list[str]] = typer.Option(None, "--anchor-size", help="CLASS=l,w,h anchor size for --encoding residual and --format glenet (repeat; adds to/overrides the KITTI or Waymo defaults)."),
-    min_label_error: float = typer.Option(C.EXPORT_REVIEW_LABEL_ERROR, "--min-label-error", help="kitti-labels: add the suggested box (the label-error fit) of labels whose label_error is above this."),
-    min_score: float = typer.Option(C.EXPORT_REVIEW_MIN_SCORE, "--min-score", help="kitti-labels: add the missing-label candidates whose score is at least this."),
-    min_track_error: float = typer.Option(C.EXPORT_REVIEW_TRACK_ERROR, "--min-track-error", help="kitti-labels on Waymo / Argoverse 2 results: add the box its track expects (source track) for labels whose track_error is above this."),
-    dataset: Optional[Path] = typer.Option(None, "--dataset", help="kitti-labels: the dataset's current location, when it moved since `infer`."),
+    results: Path = typer.Argument(
+        ..., help="Results folder written by `labelaudit infer` (or one Parquet file of rows)."
+    ),
+    output: Path = typer.Option(
+        ...,
+        "-o",
+        "--output",
+        help="File to write: the Parquet table, or the copy of the infos pickle; for --format glenet the folder of the copies; kitti-labels: the review folder.",
+    ),
+    encoding: Optional[Encoding] = typer.Option(
+        None,
+        "--encoding",
+        help="Targets: box (x,y,z,l,w,h,yaw; the default), log-size = centerpoint (x,y,z,log l/w/h,sin,cos), pixor (dx,dy,log l,log w,sin,cos), residual (the anchor coder of OpenPCDet/mmdet3d). Not with --format glenet (it has its own).",
+    ),
+    source: str = typer.Option(
+        "model",
+        "--source",
+        help="Where σ_p comes from: model (posterior covariance), num_points, hull_iou, or fixed:VAR.",
+    ),
+    out_format: ExportFormat = typer.Option(
+        ExportFormat.parquet,
+        "--format",
+        help="parquet (keyed by frame_id, object_index, object_id), openpcdet or mmdet3d (a copy of --infos with the targets added), glenet (copies of --infos and --dbinfos with GLENet's 'uncertainty' added, in folder -o).",
+    ),
+    infos: Optional[Path] = typer.Option(
+        None,
+        "--infos",
+        help="OpenPCDet kitti_infos_*.pkl / Waymo infos, or mmdet3d v2 info file to copy; for glenet also a folder of OpenPCDet's per-sequence Waymo infos (<seq>/<seq>.pkl).",
+    ),
+    dbinfos: Optional[Path] = typer.Option(
+        None,
+        "--dbinfos",
+        help="OpenPCDet gt-database infos to copy with --format glenet (kitti_dbinfos_train.pkl, Waymo's …_waymo_dbinfos_train_sampled_1.pkl).",
+    ),
+    anchor_size: Optional[list[str]] = typer.Option(
+        None,
+        "--anchor-size",
+        help="CLASS=l,w,h anchor size for --encoding residual and --format glenet (repeat; adds to/overrides the KITTI or Waymo defaults).",
+    ),
+    min_label_error: float = typer.Option(
+        C.EXPORT_REVIEW_LABEL_ERROR,
+        "--min-label-error",
+        help="kitti-labels: add the suggested box (the label-error fit) of labels whose label_error is above this.",
+    ),
+    min_score: float = typer.Option(
+        C.EXPORT_REVIEW_MIN_SCORE,
+        "--min-score",
+        help="kitti-labels: add the missing-label candidates whose score is at least this.",
+    ),
+    min_track_error: float = typer.Option(
+        C.EXPORT_REVIEW_TRACK_ERROR,
+        "--min-track-error",
+        help="kitti-labels on Waymo / Argoverse 2 results: add the box its track expects (source track) for labels whose track_error is above this.",
+    ),
+    dataset: Optional[Path] = typer.Option(
+        None, "--dataset", help="kitti-labels: the dataset's current location, when it moved since `infer`."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
@@ -84,10 +129,19 @@ def export(
 
     with handle_errors(debug):
         if out_format is ExportFormat.kitti_labels:
-            given = (("--infos", infos is not None), ("--dbinfos", dbinfos is not None), ("--anchor-size", bool(anchor_size)), ("--encoding", encoding is not None), ("--source", source != "model"))
+            given = (
+                ("--infos", infos is not None),
+                ("--dbinfos", dbinfos is not None),
+                ("--anchor-size", bool(anchor_size)),
+                ("--encoding", encoding is not None),
+                ("--source", source != "model"),
+            )
             for option, used in given:
                 if used:
-                    raise typer.BadParameter("is for the training targets (parquet, openpcdet, mmdet3d, glenet), not --format kitti-labels", param_hint=option)
+                    raise typer.BadParameter(
+                        "is for the training targets (parquet, openpcdet, mmdet3d, glenet), not --format kitti-labels",
+                        param_hint=option,
+                    )
             _export_review(results, output, min_label_error, min_score, min_track_error, dataset, as_json)
             return
         for option, given in (("--min-label-error", min_label_error != C.EXPORT_REVIEW_LABEL_ERROR), ("--min-score", min_score != C.EXPORT_REVIEW_MIN_SCORE),
@@ -107,7 +161,9 @@ def export(
         if as_json:
             sys.stdout.write(json.dumps(summary.to_dict(), indent=2, sort_keys=True) + "\n")
         console = err()
-        t = Table(title=f"labelaudit export — {summary.encoding}, source {escape(summary.source)}", title_justify="left")
+        t = Table(
+            title=f"labelaudit export — {summary.encoding}, source {escape(summary.source)}", title_justify="left"
+        )
         t.add_column("what")
         t.add_column("count", justify="right")
         t.add_row("result rows", str(summary.results_rows))
@@ -137,11 +193,26 @@ def export(
             console.print(f"wrote {escape(path)} ({summary.format})", soft_wrap=True)
 
 
-def _export_review(results: Path, output: Path, min_label_error: float, min_score: float, min_track_error: float, dataset: Optional[Path], as_json: bool) -> None:
+def _export_review(
+    results: Path,
+    output: Path,
+    min_label_error: float,
+    min_score: float,
+    min_track_error: float,
+    dataset: Optional[Path],
+    as_json: bool,
+) -> None:
     """``--format kitti-labels``: :func:`labelaudit.review.export_review`, its counts on stderr (or JSON on stdout)."""
     from labelaudit.review import export_review
 
-    summary = export_review(results, output, min_label_error=min_label_error, min_score=min_score, dataset=dataset, min_track_error=min_track_error)
+    summary = export_review(
+        results,
+        output,
+        min_label_error=min_label_error,
+        min_score=min_score,
+        dataset=dataset,
+        min_track_error=min_track_error,
+    )
     if as_json:
         sys.stdout.write(json.dumps(summary.to_dict(), indent=2, sort_keys=True) + "\n")
     console = err()
@@ -149,14 +220,23 @@ def _export_review(results: Path, output: Path, min_label_error: float, min_scor
     console.print(
         f"review: {summary.frames_written} {what} ({summary.frames_changed} changed): {summary.labels} labels, "
         f"{summary.suggested} suggested boxes (label_error > {summary.min_label_error:g}), "
-        + (f"{summary.track_suggested} boxes from tracks (track_error > {summary.min_track_error:g}), " if summary.format == "parquet" else "")
+        + (
+            f"{summary.track_suggested} boxes from tracks (track_error > {summary.min_track_error:g}), "
+            if summary.format == "parquet"
+            else ""
+        )
         + f"{summary.missing} missing-label candidates (score ≥ {summary.min_score:g})",
         soft_wrap=True,
     )
     if not summary.missing_searched:
-        console.print("note: the results have no missing-label table (infer --no-missing): no candidates added", soft_wrap=True)
+        console.print(
+            "note: the results have no missing-label table (infer --no-missing): no candidates added", soft_wrap=True
+        )
     for fid, why in list(summary.unreviewed_frames.items())[:10]:
         console.print(f"warning: frame {escape(fid)} not reviewed: {escape(why)}", soft_wrap=True)
     if len(summary.unreviewed_frames) > 10:
-        console.print(f"warning: … {len(summary.unreviewed_frames) - 10} more frames not reviewed (review.json lists them)", soft_wrap=True)
+        console.print(
+            f"warning: … {len(summary.unreviewed_frames) - 10} more frames not reviewed (review.json lists them)",
+            soft_wrap=True,
+        )
     console.print(f"wrote {escape(summary.output)} (changes.csv lists every added box)", soft_wrap=True)

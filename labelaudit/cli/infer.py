@@ -20,23 +20,64 @@ class ModelChoice(str, Enum):
 
 @app.command()
 def infer(
-    dataset: Path = typer.Argument(..., help="Dataset folder (KITTI root or training/, Waymo v2 folder, Argoverse 2 root, split or log folder) or a Waymo v1 .tfrecord."),
-    output: str = typer.Option(C.DEFAULT_RESULTS_DIR, "-o", "--output", help="Results folder (Parquet shards + manifest); '-o .' for the current folder."),
-    dataset_format: DatasetFormat = typer.Option(DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."),
-    config: Optional[Path] = typer.Option(None, "--config", help="Model config TOML, or 'paper' for the authors' published KITTI setting (default: the built-in one of the format)."),
-    classes: Optional[str] = typer.Option(None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."),
+    dataset: Path = typer.Argument(
+        ...,
+        help="Dataset folder (KITTI root or training/, Waymo v2 folder, Argoverse 2 root, split or log folder) or a Waymo v1 .tfrecord.",
+    ),
+    output: str = typer.Option(
+        C.DEFAULT_RESULTS_DIR,
+        "-o",
+        "--output",
+        help="Results folder (Parquet shards + manifest); '-o .' for the current folder.",
+    ),
+    dataset_format: DatasetFormat = typer.Option(
+        DatasetFormat.auto, "--dataset-format", help="Dataset format; auto detects it."
+    ),
+    config: Optional[Path] = typer.Option(
+        None,
+        "--config",
+        help="Model config TOML, or 'paper' for the authors' published KITTI setting (default: the built-in one of the format).",
+    ),
+    classes: Optional[str] = typer.Option(
+        None, "--classes", help="Comma-separated classes to audit, or 'all' (default: the config's, vehicles)."
+    ),
     model: Optional[ModelChoice] = typer.Option(None, "--model", help="bev (default) or 3d."),
-    split: Optional[str] = typer.Option(None, "--split", help="KITTI ImageSets split (train, val, …); Waymo v2 and Argoverse 2: the split folder under DATASET."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores); with --scheduler local, the cluster's size."),
+    split: Optional[str] = typer.Option(
+        None,
+        "--split",
+        help="KITTI ImageSets split (train, val, …); Waymo v2 and Argoverse 2: the split folder under DATASET.",
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Worker processes (default: all cores); with --scheduler local, the cluster's size."
+    ),
     scheduler: Optional[str] = typer.Option(
-        None, "--scheduler", metavar="ADDR",
+        None,
+        "--scheduler",
+        metavar="ADDR",
         help="Run on a Dask cluster: tcp://HOST:PORT of a running scheduler, or local[:N] for a local cluster of N processes (docs/scale.md).",
     ),
-    limit: Optional[int] = typer.Option(None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."),
-    resume: bool = typer.Option(True, "--resume/--overwrite", help="Skip shards already written with the same parameters (re-trying those with failures), or start over (also replaces a damaged folder)."),
-    missing: bool = typer.Option(True, "--missing/--no-missing", help="Search the point clouds for objects of the audited classes that have no label (RESULTS/missing/, docs/missing.md); --no-missing skips it."),
-    detections: Optional[Path] = typer.Option(None, "--detections", metavar="PATH", help="A detector's output (KITTI result files, Waymo Objects .bin or labelaudit Parquet, as `eval` reads): confident detections no label overlaps become missing-label candidates too."),
-    strict: bool = typer.Option(False, "--strict", help="Stop at the first frame or object that fails (exit 2, one line naming the file)."),
+    limit: Optional[int] = typer.Option(
+        None, "--limit", help="Only the first N frames (KITTI) / segments (Waymo) / logs (Argoverse 2)."
+    ),
+    resume: bool = typer.Option(
+        True,
+        "--resume/--overwrite",
+        help="Skip shards already written with the same parameters (re-trying those with failures), or start over (also replaces a damaged folder).",
+    ),
+    missing: bool = typer.Option(
+        True,
+        "--missing/--no-missing",
+        help="Search the point clouds for objects of the audited classes that have no label (RESULTS/missing/, docs/missing.md); --no-missing skips it.",
+    ),
+    detections: Optional[Path] = typer.Option(
+        None,
+        "--detections",
+        metavar="PATH",
+        help="A detector's output (KITTI result files, Waymo Objects .bin or labelaudit Parquet, as `eval` reads): confident detections no label overlaps become missing-label candidates too.",
+    ),
+    strict: bool = typer.Option(
+        False, "--strict", help="Stop at the first frame or object that fails (exit 2, one line naming the file)."
+    ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and summary."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
@@ -69,9 +110,21 @@ def infer(
         from labelaudit.infer.run import InferRequest
 
         request = InferRequest(
-            dataset, Path(output), dataset_format.value, split, workers, limit, overwrite=not resume, strict=strict, debug=debug, scheduler=scheduler,
-            config=config, classes=None if classes is None else tuple(classes.split(",")), model=model.value if model else None,
-            missing=missing, detections=detections,
+            dataset,
+            Path(output),
+            dataset_format.value,
+            split,
+            workers,
+            limit,
+            overwrite=not resume,
+            strict=strict,
+            debug=debug,
+            scheduler=scheduler,
+            config=config,
+            classes=None if classes is None else tuple(classes.split(",")),
+            model=model.value if model else None,
+            missing=missing,
+            detections=detections,
         )
         run_and_report(request, quiet, executor)
 

@@ -28,18 +28,44 @@ class OutputFormat(str, Enum):
 @app.command()
 def rank(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
-    by: Optional[str] = typer.Option(None, "--by", help="Numeric column to rank by (default jiou_gt; label_error, track_error, sigma_hat, num_points …; with --missing: score)."),
-    missing: bool = typer.Option(False, "--missing", help="Rank the missing-label candidates (objects nobody labelled, the missing/ table) instead of the labels, highest score first."),
+    by: Optional[str] = typer.Option(
+        None,
+        "--by",
+        help="Numeric column to rank by (default jiou_gt; label_error, track_error, sigma_hat, num_points …; with --missing: score).",
+    ),
+    missing: bool = typer.Option(
+        False,
+        "--missing",
+        help="Rank the missing-label candidates (objects nobody labelled, the missing/ table) instead of the labels, highest score first.",
+    ),
     top: int = typer.Option(C.DEFAULT_RANK_TOP, "--top", help="Number of rows."),
-    descending: Optional[bool] = typer.Option(None, "--desc/--asc", help="Sort order (default: worst first — ascending for jiou_gt, num_points, hull_iou; descending otherwise)."),
+    descending: Optional[bool] = typer.Option(
+        None,
+        "--desc/--asc",
+        help="Sort order (default: worst first — ascending for jiou_gt, num_points, hull_iou; descending otherwise).",
+    ),
     class_: Optional[list[str]] = typer.Option(None, "--class", help="Only these classes (repeat or comma-separate)."),
-    status: Optional[list[str]] = typer.Option(None, "--status", help="Only these statuses: ok, few_points, no_points, skipped, error."),
+    status: Optional[list[str]] = typer.Option(
+        None, "--status", help="Only these statuses: ok, few_points, no_points, skipped, error."
+    ),
     min_points: Optional[int] = typer.Option(None, "--min-points", help="Only objects with at least this many points."),
-    max_distance: Optional[float] = typer.Option(None, "--max-distance", help="Only objects at most this far from the sensor (m)."),
-    where: Optional[list[str]] = typer.Option(None, "--where", help="Extra condition COLUMN OP VALUE, e.g. 'occluded<=1' (repeat: all must hold)."),
-    min_score: Optional[float] = typer.Option(None, "--min-score", help="With --missing: only candidates with at least this score (in [0, 1])."),
-    source: Optional[list[str]] = typer.Option(None, "--source", help="With --missing: only candidates found this way: points, detections or both (repeat or comma-separate)."),
-    out_format: OutputFormat = typer.Option(OutputFormat.table, "--format", help="table (Rich), json (array of row objects) or csv."),
+    max_distance: Optional[float] = typer.Option(
+        None, "--max-distance", help="Only objects at most this far from the sensor (m)."
+    ),
+    where: Optional[list[str]] = typer.Option(
+        None, "--where", help="Extra condition COLUMN OP VALUE, e.g. 'occluded<=1' (repeat: all must hold)."
+    ),
+    min_score: Optional[float] = typer.Option(
+        None, "--min-score", help="With --missing: only candidates with at least this score (in [0, 1])."
+    ),
+    source: Optional[list[str]] = typer.Option(
+        None,
+        "--source",
+        help="With --missing: only candidates found this way: points, detections or both (repeat or comma-separate).",
+    ),
+    out_format: OutputFormat = typer.Option(
+        OutputFormat.table, "--format", help="table (Rich), json (array of row objects) or csv."
+    ),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
     """List the worst labels first, by JIoU-GT (lowest first) or any numeric column; with --missing, the objects nobody labelled.
@@ -69,8 +95,21 @@ def rank(
     with handle_errors(debug):
         if missing:
             if status:
-                raise typer.BadParameter("candidates have no status; filter them with --min-score, --source or --where", param_hint="--status")
-            mquery = MissingQuery(by or "score", top, descending, split_list(class_), split_list(source), min_score, min_points, max_distance, tuple(where or ()))
+                raise typer.BadParameter(
+                    "candidates have no status; filter them with --min-score, --source or --where",
+                    param_hint="--status",
+                )
+            mquery = MissingQuery(
+                by or "score",
+                top,
+                descending,
+                split_list(class_),
+                split_list(source),
+                min_score,
+                min_points,
+                max_distance,
+                tuple(where or ()),
+            )
             mresult = rank_missing(_open(results), mquery)
             _print(out_format, mresult.table, lambda: print_missing_table(out(), mresult))
             if mresult.matched == 0:
@@ -83,13 +122,20 @@ def rank(
         statuses = split_list(status)
         bad = [s for s in statuses if s not in STATUSES]
         if bad:
-            raise typer.BadParameter(f"unknown status {', '.join(bad)}; expected {', '.join(STATUSES)}", param_hint="--status")
-        query = RankQuery(by, top, descending, split_list(class_), statuses, min_points, max_distance, tuple(where or ()))
+            raise typer.BadParameter(
+                f"unknown status {', '.join(bad)}; expected {', '.join(STATUSES)}", param_hint="--status"
+            )
+        query = RankQuery(
+            by, top, descending, split_list(class_), statuses, min_points, max_distance, tuple(where or ())
+        )
         result = rank_results(_open(results), query)
         _print(out_format, result.table, lambda: print_rank_table(out(), result))
         if result.unscored:
             listed = ", ".join(f"{c}: {n}" for c, n in result.unscored.items())
-            err().print(f"note: label_error is null for {listed} (a class the score is not validated for, docs/label-error.md): not ranked", soft_wrap=True)
+            err().print(
+                f"note: label_error is null for {listed} (a class the score is not validated for, docs/label-error.md): not ranked",
+                soft_wrap=True,
+            )
         if result.matched == 0:
             err().print("no objects match the filters")
 
@@ -100,7 +146,10 @@ def _open(results: Path) -> Results:
 
     opened = open_results(results)
     if not opened.complete:
-        err().print(f"note: {escape(str(results))} is incomplete (a run is in progress or stopped); rerun infer to finish it", soft_wrap=True)
+        err().print(
+            f"note: {escape(str(results))} is incomplete (a run is in progress or stopped); rerun infer to finish it",
+            soft_wrap=True,
+        )
     return opened
 
 

@@ -28,10 +28,20 @@ from labelaudit.errors import UsageError
 def report(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
     output: Path = typer.Option(Path("labelaudit-report.html"), "-o", "--output", help="HTML file to write."),
-    gate: Optional[str] = typer.Option(None, "--gate", help="Gate TOML whose verdict the page shows ('default': the built-in configs/gate.toml)."),
-    top: int = typer.Option(C.REPORT_TOP, "--top", help="Gallery size: the worst N by label_error and the worst N by JIoU-GT."),
-    eval_dir: Optional[Path] = typer.Option(None, "--eval", help="Output folder of `labelaudit eval` to include (summary.json and its plots)."),
-    dataset: Optional[Path] = typer.Option(None, "--dataset", help="The dataset's current location, when it moved since `infer` (for the gallery pictures)."),
+    gate: Optional[str] = typer.Option(
+        None, "--gate", help="Gate TOML whose verdict the page shows ('default': the built-in configs/gate.toml)."
+    ),
+    top: int = typer.Option(
+        C.REPORT_TOP, "--top", help="Gallery size: the worst N by label_error and the worst N by JIoU-GT."
+    ),
+    eval_dir: Optional[Path] = typer.Option(
+        None, "--eval", help="Output folder of `labelaudit eval` to include (summary.json and its plots)."
+    ),
+    dataset: Optional[Path] = typer.Option(
+        None,
+        "--dataset",
+        help="The dataset's current location, when it moved since `infer` (for the gallery pictures).",
+    ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
@@ -58,13 +68,23 @@ def report(
             if quiet:
                 return
             if bar is None:
-                bar = Progress(TextColumn("[bold]report[/bold] gallery"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=err())
+                bar = Progress(
+                    TextColumn("[bold]report[/bold] gallery"),
+                    BarColumn(),
+                    MofNCompleteColumn(),
+                    TimeElapsedColumn(),
+                    console=err(),
+                )
                 task = bar.add_task("gallery", total=total)
                 bar.start()
-            bar.update(task, completed=done, total=total)  # the candidates' pictures follow the galleries' and extend the total
+            bar.update(
+                task, completed=done, total=total
+            )  # the candidates' pictures follow the galleries' and extend the total
 
         try:
-            summary = build_report(results, output, gate=gate, top=top, eval_dir=eval_dir, dataset=dataset, progress=progress)
+            summary = build_report(
+                results, output, gate=gate, top=top, eval_dir=eval_dir, dataset=dataset, progress=progress
+            )
         except OSError as exc:
             raise UsageError(f"{output}: cannot write the report ({exc.strerror})") from None
         finally:
@@ -72,7 +92,11 @@ def report(
                 bar.stop()
         if not quiet:
             verdict = f", gate {summary.gate_verdict}" if summary.gate_verdict else ""
-            missing = "" if summary.missing_counted is None else f", {summary.missing_counted} possibly missing labels ({summary.missing_pictures} pictured)"
+            missing = (
+                ""
+                if summary.missing_counted is None
+                else f", {summary.missing_counted} possibly missing labels ({summary.missing_pictures} pictured)"
+            )
             err().print(
                 f"report: {summary.objects} objects ({summary.evaluated} evaluated), {summary.pictures} pictures{verdict}{missing}, "
                 f"{summary.size_bytes / 1e6:.1f} MB in {summary.seconds:.1f} s → {escape(str(summary.path))}",

@@ -26,15 +26,36 @@ class ShowBy(str, Enum):
 @app.command()
 def show(
     results: Path = typer.Argument(..., help="Results folder written by `labelaudit infer`."),
-    frame: str = typer.Argument(..., help="Frame id as in the results (KITTI '000123', Waymo '<segment>:<timestamp>', Argoverse 2 '<log_id>:<timestamp_ns>')."),
-    object_index: Optional[int] = typer.Argument(None, metavar="[OBJECT]", help="object_index of the label in the frame; omit it for the whole frame."),
-    output: Optional[Path] = typer.Option(None, "-o", "--output", help="PNG file to write (default: show-<frame>[-<object>].png)."),
-    dataset: Optional[Path] = typer.Option(None, "--dataset", help="The dataset's current location, when it moved since `infer` (default: the manifest's)."),
-    size: Optional[str] = typer.Option(None, "--size", help=f"Picture size WIDTHxHEIGHT in pixels (default {C.SHOW_SIZE[0]}x{C.SHOW_SIZE[1]}; a frame {C.SHOW_FRAME_SIZE[0]}x{C.SHOW_FRAME_SIZE[1]})."),
+    frame: str = typer.Argument(
+        ...,
+        help="Frame id as in the results (KITTI '000123', Waymo '<segment>:<timestamp>', Argoverse 2 '<log_id>:<timestamp_ns>').",
+    ),
+    object_index: Optional[int] = typer.Argument(
+        None, metavar="[OBJECT]", help="object_index of the label in the frame; omit it for the whole frame."
+    ),
+    output: Optional[Path] = typer.Option(
+        None, "-o", "--output", help="PNG file to write (default: show-<frame>[-<object>].png)."
+    ),
+    dataset: Optional[Path] = typer.Option(
+        None, "--dataset", help="The dataset's current location, when it moved since `infer` (default: the manifest's)."
+    ),
+    size: Optional[str] = typer.Option(
+        None,
+        "--size",
+        help=f"Picture size WIDTHxHEIGHT in pixels (default {C.SHOW_SIZE[0]}x{C.SHOW_SIZE[1]}; a frame {C.SHOW_FRAME_SIZE[0]}x{C.SHOW_FRAME_SIZE[1]}).",
+    ),
     by: ShowBy = typer.Option(ShowBy.jiou_gt, "--by", help="Whole frame: colour the boxes by this score."),
     worst: int = typer.Option(C.SHOW_FRAME_WORST, "--worst", help="Whole frame: number this many worst boxes."),
-    candidate: Optional[int] = typer.Option(None, "--candidate", help="Draw this missing-label candidate of the frame (candidate_index, as `rank --missing` prints it) close up, instead of a label."),
-    min_score: float = typer.Option(C.SHOW_MISSING_MIN_SCORE, "--min-score", help="Whole frame: draw the missing-label candidates with at least this score."),
+    candidate: Optional[int] = typer.Option(
+        None,
+        "--candidate",
+        help="Draw this missing-label candidate of the frame (candidate_index, as `rank --missing` prints it) close up, instead of a label.",
+    ),
+    min_score: float = typer.Option(
+        C.SHOW_MISSING_MIN_SCORE,
+        "--min-score",
+        help="Whole frame: draw the missing-label candidates with at least this score.",
+    ),
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks."),
 ) -> None:
     """Draw one label with its spatial distribution p_G, a whole frame's boxes coloured by a score, or one missing-label candidate.
@@ -71,7 +92,11 @@ def show(
         if worst < 0:
             raise typer.BadParameter(f"must be ≥ 0, got {worst}", param_hint="--worst")
         try:
-            px = parse_size(size) if size else (C.SHOW_SIZE if object_index is not None or candidate is not None else C.SHOW_FRAME_SIZE)
+            px = (
+                parse_size(size)
+                if size
+                else (C.SHOW_SIZE if object_index is not None or candidate is not None else C.SHOW_FRAME_SIZE)
+            )
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--size") from None
         if candidate is not None and object_index is not None:
@@ -96,14 +121,19 @@ def show(
         elif row is not None:
             audit = recompute(source, row)
             for col, (want, got) in audit.mismatches(rtol=1e-6).items():
-                err().print(f"warning: recomputed {col} = {got} but the row says {want} (dataset or labelaudit changed since infer)", soft_wrap=True)
+                err().print(
+                    f"warning: recomputed {col} = {got} but the row says {want} (dataset or labelaudit changed since infer)",
+                    soft_wrap=True,
+                )
             png = render_object(audit, px, track=track_view(opened, row)).png
         else:
             fr = load_frame(source, frame)
             shown = [c for c in frame_candidates(opened, frame) if c["score"] >= min_score]
             png = render_frame(frame, fr.points, rows.to_pylist(), by.value, px, worst, fr.sensor_origin, shown).png
         safe = frame.replace("/", "_").replace(":", "_")
-        which = f"-{object_index}" if object_index is not None else f"-missing-{candidate}" if candidate is not None else ""
+        which = (
+            f"-{object_index}" if object_index is not None else f"-missing-{candidate}" if candidate is not None else ""
+        )
         out = output or Path(f"show-{safe}{which}.png")
         _write_png(png, out)
         typer.echo(str(out))

@@ -104,7 +104,9 @@ def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: Mode
     return _closest_form_phi(y, phi_ref, W, model)[0]
 
 
-def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray]:
+def _closest_form_phi(
+    y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind
+) -> tuple[FloatArray, FloatArray]:
     """:func:`_closest_form` and its φ (the first of the least costs, or of the NaN ones, as ``np.argmin``).
 
     The forms and their φ are those of :func:`_equivalent_boxes` and
@@ -115,7 +117,9 @@ def _closest_form_phi(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: 
     """
     v = y.tolist()
     cx, cy, cz, length, width, height, yaw = v
-    yaws = [(yaw + k * np.pi / 2 + math.pi) % (2.0 * math.pi) - math.pi for k in range(4)]  # g.normalize_angle of a float
+    yaws = [
+        (yaw + k * np.pi / 2 + math.pi) % (2.0 * math.pi) - math.pi for k in range(4)
+    ]  # g.normalize_angle of a float
     yaw4 = np.array(yaws)
     cos4, sin4 = np.cos(yaw4).tolist(), np.sin(yaw4).tolist()
     flat: list[float] = []  # the four φ, row after row (a flat list converts faster than nested ones)
@@ -183,12 +187,25 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     a = np.empty((2 * d + 2, n))
     b = np.empty(n)
     sqd = np.empty(n)
-    _rows_kernel(np.asarray(y, dtype=float), pts_t, d, C.FIT_INSIDE_FREE_DEPTH, 1.0 / C.FIT_INSIDE_SIGMA_RATIO, 0.0, 1.0, a, b, sqd)
+    _rows_kernel(
+        np.asarray(y, dtype=float),
+        pts_t,
+        d,
+        C.FIT_INSIDE_FREE_DEPTH,
+        1.0 / C.FIT_INSIDE_SIGMA_RATIO,
+        0.0,
+        1.0,
+        a,
+        b,
+        sqd,
+    )
     return a.T, b, sqd
 
 
 @kernel
-def _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, centre_deep=False):  # pragma: no cover - compiled
+def _rows_kernel(
+    y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, centre_deep=False
+):  # pragma: no cover - compiled
     """Rows a — transposed, (p, N) — b (N,) and squared distances (N,) of :func:`_plane_rows` for
     points (d, N).
 
@@ -343,7 +360,9 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
     sqd = np.empty(n)
     _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, True)
     ata, atb, rr = _gram_kernel(a, b, phi, True)
-    ss = sw = 0.0  # over the points that are not deep inside; weighted: weight² = |the row's normal part|² (a unit vector)
+    ss = sw = (
+        0.0  # over the points that are not deep inside; weighted: weight² = |the row's normal part|² (a unit vector)
+    )
     for k in range(n):
         if sqd[k] < 0.0:
             continue
@@ -385,8 +404,32 @@ def _solve_spd(M, rhs):  # pragma: no cover - compiled
 
 
 @kernel
-def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, outlier, tol, P0, prior_eta, label, inv_s2, floor, max_iter, halvings,
-                        ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, wfloor):  # pragma: no cover - compiled
+def _fit_iterate_kernel(
+    y_cur,
+    phi,
+    pts_t,
+    three_d,
+    free_depth,
+    deep_weight,
+    outlier,
+    tol,
+    P0,
+    prior_eta,
+    label,
+    inv_s2,
+    floor,
+    max_iter,
+    halvings,
+    ends_t,
+    ox,
+    oy,
+    hz,
+    tau,
+    tau_in,
+    ray_weight,
+    slit,
+    wfloor,
+):  # pragma: no cover - compiled
     d = 3 if three_d else 2
     p, n = phi.shape[0], pts_t.shape[1]
     m = ends_t.shape[1]
@@ -409,7 +452,9 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, out
         ata, atb, rr = _gram_kernel(a, b, phi, descent)
         if m:
             slack = displacement(y_cur, label, reach)
-            k = free_rows_kernel(y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack, wfloor)
+            k = free_rows_kernel(
+                y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack, wfloor
+            )
             if k:
                 ata_r, atb_r, rr_r = _gram_kernel(a_r[:, :k], b_r[:k], phi, descent)
                 ata += ata_r
@@ -447,26 +492,50 @@ def _fit_iterate_kernel(y_cur, phi, pts_t, three_d, free_depth, deep_weight, out
 
 
 @kernel
-def _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor):  # pragma: no cover - compiled
+def _ray_normal_eq_kernel(
+    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor
+):  # pragma: no cover - compiled
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
     b = np.empty(m)
-    active = free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf, wfloor)
+    active = free_rows_kernel(
+        y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf, wfloor
+    )
     ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
     return ata, atb, rr, active
 
 
-
 @kernel
-def _fit_precision_kernel(y, pts_t, three_d, free_depth, deep_weight, outlier, sigma, phi, P0, inv_s2,
-                          ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, wfloor):  # pragma: no cover - compiled
+def _fit_precision_kernel(
+    y,
+    pts_t,
+    three_d,
+    free_depth,
+    deep_weight,
+    outlier,
+    sigma,
+    phi,
+    P0,
+    inv_s2,
+    ends_t,
+    ox,
+    oy,
+    hz,
+    tau,
+    tau_in,
+    ray_weight,
+    slit,
+    wfloor,
+):  # pragma: no cover - compiled
     """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
     + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
     Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
     operations in NumPy's order (no fast-math)."""
     ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
     if ends_t.shape[1]:
-        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor)
+        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(
+            y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor
+        )
         ata = ata + ata_r
         rr += rr_r
     p = ata.shape[0]
@@ -492,7 +561,12 @@ def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray | 
     hz5 = np.empty(5)
     hz5[:4] = hz
     hz5[4] = sigma
-    tau, tau_in, weight, slit = float(free_space.tolerance), float(free_space.inside_tolerance), float(C.FREE_SPACE_WEIGHT), float(C.FREE_SPACE_SLIT_PROB)
+    tau, tau_in, weight, slit = (
+        float(free_space.tolerance),
+        float(free_space.inside_tolerance),
+        float(C.FREE_SPACE_WEIGHT),
+        float(C.FREE_SPACE_SLIT_PROB),
+    )
     floor = np.empty(ends_t.shape[1] if label is not None else 0)
     if len(floor):
         label_ray_weights(label, ends_t, ox, oy, hz5, tau, tau_in, weight, slit, floor)
@@ -523,8 +597,20 @@ def _fit_iterate(
     iteration, the NumPy calls around the point pass cost as much as the pass itself.
     """
     phi, y_cur, it, converged = _fit_iterate_kernel(
-        y_cur, phi, pts, model == "3d", *_fit_point_constants(), float(tol), P0, prior_eta,
-        label, float(inv_s2), C.FIT_MIN_SIZE_FRACTION, C.FIT_MAX_ITERATIONS, int(C.FIT_STEP_HALVINGS), *rays,
+        y_cur,
+        phi,
+        pts,
+        model == "3d",
+        *_fit_point_constants(),
+        float(tol),
+        P0,
+        prior_eta,
+        label,
+        float(inv_s2),
+        C.FIT_MIN_SIZE_FRACTION,
+        C.FIT_MAX_ITERATIONS,
+        int(C.FIT_STEP_HALVINGS),
+        *rays,
     )
     return phi, y_cur, int(it), bool(converged)
 
@@ -563,13 +649,19 @@ def _fit_em(
     if prior_eta is None:
         prior_eta = P0 @ phi_label
     inv_s2 = 1.0 / sigma**2
-    phi, y_cur, it, converged = _fit_iterate(start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays)
+    phi, y_cur, it, converged = _fit_iterate(
+        start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays
+    )
     phi_rect = g.phi_of_valid_box(y_cur, model)
-    precision, rr, ss, sw = _fit_precision_kernel(y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays)
+    precision, rr, ss, sw = _fit_precision_kernel(
+        y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays
+    )
     cov = spd_inverse(precision)
     dphi = phi_rect - phi_label
     log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi.dot(P0).dot(dphi))
-    rms = math.sqrt(ss / sw) if sw > 0 else 0.0  # distance to the surface of the points that count (deep-inside ones do not)
+    rms = (
+        math.sqrt(ss / sw) if sw > 0 else 0.0
+    )  # distance to the surface of the points that count (deep-inside ones do not)
     return phi, cov, it, converged, log_post, y_cur, rms
 
 
@@ -594,7 +686,9 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
 
 
 _BEV_BLOCK = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
-_BEV_BLOCK_FLAT = (g.BEV_OF_3D[:, None] * 8 + g.BEV_OF_3D[None, :]).ravel()  # _BEV_BLOCK as flat indices into a C-ordered (8, 8)
+_BEV_BLOCK_FLAT = (
+    g.BEV_OF_3D[:, None] * 8 + g.BEV_OF_3D[None, :]
+).ravel()  # _BEV_BLOCK as flat indices into a C-ordered (8, 8)
 _TOLERANCE: list[tuple[dict[str, float], ClassPrior]] = []  # (the constants' dict, its ClassPrior)
 
 
@@ -606,6 +700,8 @@ def _tolerance_prior() -> ClassPrior:
     out = ClassPrior(**C.LABEL_TOLERANCE)
     _TOLERANCE[:] = [(dict(C.LABEL_TOLERANCE), out)]
     return out
+
+
 _AS_KIND: list[tuple[ModelParams, ModelKind, ModelParams]] = []  # the last params → params of another kind
 
 
@@ -684,7 +780,9 @@ def fit_label_valid(
     if terms is None or not terms.matches(model, prior, params.prior_weight):  # e.g. a BEV run's, or points without z
         terms = box_prior_terms(y, prior, params.prior_weight, model)
     phi_label, P0 = terms.phi, terms.P0
-    S_tol = terms.G.dot(prior_cov_extended_cached(_tolerance_prior(), model)).dot(terms.G.T)  # ndarray.dot: the BLAS products of @, less overhead
+    S_tol = terms.G.dot(prior_cov_extended_cached(_tolerance_prior(), model)).dot(
+        terms.G.T
+    )  # ndarray.dot: the BLAS products of @, less overhead
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM
@@ -703,7 +801,9 @@ def fit_label_valid(
     if n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9 and best[0][6] > C.FIT_SWAP_RESIDUAL * sigma:
         swapped = y.copy()
         swapped[3], swapped[4] = y[4], y[3]
-        alt = _fit_em(_closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params, rays, prior_eta)
+        alt = _fit_em(
+            _closest_form(swapped, phi_label, P0, model), pts_t, phi_label, P0, y, sigma, params, rays, prior_eta
+        )
         if alt[4] > best[0][4] + 1e-9:
             best = (alt, True)
     (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best

@@ -36,7 +36,17 @@ from labelaudit.kernels import kernel
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
 
-__all__ = ["AzimuthBuckets", "FreeSpace", "azimuth_buckets", "ground_heights", "label_ray_weights", "neighbourhoods", "ray_candidates", "ray_counts", "ray_depths"]
+__all__ = [
+    "AzimuthBuckets",
+    "FreeSpace",
+    "azimuth_buckets",
+    "ground_heights",
+    "label_ray_weights",
+    "neighbourhoods",
+    "ray_candidates",
+    "ray_counts",
+    "ray_depths",
+]
 
 
 @dataclass(frozen=True)
@@ -77,9 +87,18 @@ class FreeSpace:
     @functools.cached_property
     def _inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
         ends_t, _ = height_layout(self.ends, self.ground, self.ref)  # the rows of heights(), in one compiled pass
-        (ox, oy, oz), (g0, gx, gy), (x0, y0) = (np.asarray(v, dtype=float)[:k].tolist() for v, k in ((self.origin, 3), (self.ground, 3), (self.ref, 2)))
-        h0 = oz - (g0 + gx * (ox - x0) + gy * (oy - y0))  # ground_heights of the sensor, in Python floats (the same IEEE operations)
-        return ends_t, float(self.origin[0]), float(self.origin[1]), np.array([h0, self.slab[0], self.slab[1], self.object_height])
+        (ox, oy, oz), (g0, gx, gy), (x0, y0) = (
+            np.asarray(v, dtype=float)[:k].tolist() for v, k in ((self.origin, 3), (self.ground, 3), (self.ref, 2))
+        )
+        h0 = oz - (
+            g0 + gx * (ox - x0) + gy * (oy - y0)
+        )  # ground_heights of the sensor, in Python floats (the same IEEE operations)
+        return (
+            ends_t,
+            float(self.origin[0]),
+            float(self.origin[1]),
+            np.array([h0, self.slab[0], self.slab[1], self.object_height]),
+        )
 
     def kernel_inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
         """The kernels' layout: ends_t (3, M) = x, y and height above the ground of the returns;
@@ -248,7 +267,9 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
 
 
 @kernel
-def free_rows_kernel(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack, floor):  # pragma: no cover - compiled
+def free_rows_kernel(
+    y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack, floor
+):  # pragma: no cover - compiled
     """Hinge rows of the box fit, one per ray: a (p, M) transposed like the point rows, b (M,).
 
     A ray whose empty part reaches depth d* > τ inside the slab of the current box ``y`` gives the
@@ -371,11 +392,28 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
     ys = y.reshape(-1, 7)
     ends_t, ox, oy, hz = fs.kernel_inputs() if fs.num_rays else (None, 0.0, 0.0, None)
     p = None if points is None else np.asarray(points)
-    if ends_t is not None and p is not None and len(p) and p.dtype in (np.float32, np.float64):  # the usual case: one compiled call
+    if (
+        ends_t is not None and p is not None and len(p) and p.dtype in (np.float32, np.float64)
+    ):  # the usual case: one compiled call
         g, r = fs.ground, fs.ref
         counts = np.empty((len(ys), 2), dtype=np.int64)
-        _counts_kernel(ys, ends_t, ox, oy, hz, fs.tolerance, fs.ends[:, 2], p, float(g[0]), float(g[1]), float(g[2]),
-                       float(r[0]), float(r[1]), float(fs.object_height), counts)
+        _counts_kernel(
+            ys,
+            ends_t,
+            ox,
+            oy,
+            hz,
+            fs.tolerance,
+            fs.ends[:, 2],
+            p,
+            float(g[0]),
+            float(g[1]),
+            float(g[2]),
+            float(r[0]),
+            float(r[1]),
+            float(fs.object_height),
+            counts,
+        )
         out = [(int(f), int(e)) for f, e in counts.tolist()]
         return out if many else out[0]
     near = None
@@ -384,14 +422,18 @@ def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple
         hz_end = np.array([0.0, 0.0, 0.0, fs.object_height])
     out = []
     for yb in ys:
-        free = int(_count_kernel(yb, ends_t, ox, oy, hz, fs.tolerance, True, fs.ends[:, 2])) if ends_t is not None else 0
+        free = (
+            int(_count_kernel(yb, ends_t, ox, oy, hz, fs.tolerance, True, fs.ends[:, 2])) if ends_t is not None else 0
+        )
         end = int(_count_kernel(yb, near[0], 0.0, 0.0, hz_end, fs.tolerance, False, near[1])) if near is not None else 0
         out.append((free, end))
     return out if many else out[0]
 
 
 @kernel
-def _counts_kernel(ys, ends_t, ox, oy, hz, tau, ends_z, p, g0, gx, gy, x0, y0, object_height, out):  # pragma: no cover - compiled
+def _counts_kernel(
+    ys, ends_t, ox, oy, hz, tau, ends_z, p, g0, gx, gy, x0, y0, object_height, out
+):  # pragma: no cover - compiled
     """:func:`ray_counts` of the boxes ``ys`` (B, 7) into ``out`` (B, 2) in one call: the returns'
     layout (:func:`height_layout` of ``p``), then the free and the end count of every box."""
     near_t, near_z = _height_layout_kernel(p, g0, gx, gy, x0, y0)
@@ -487,7 +529,9 @@ def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compi
 
 
 @kernel
-def _select_kernel(pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts):  # pragma: no cover - compiled
+def _select_kernel(
+    pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts
+):  # pragma: no cover - compiled
     """For each box, the points of its azimuth bins whose ray from the sensor passes through its
     reach prism (rectangle grown by ``reach``, slab heights above its ground plane); indices into
     ``out`` (flat, in window order: the caller sorts each box's part), number per box into
@@ -562,25 +606,39 @@ class AzimuthBuckets:
         return sizes
 
 
-def azimuth_buckets(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reach: float, nbins: int = C.FREE_SPACE_AZIMUTH_BINS) -> AzimuthBuckets:
+def azimuth_buckets(
+    points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reach: float, nbins: int = C.FREE_SPACE_AZIMUTH_BINS
+) -> AzimuthBuckets:
     """One compiled pass over the frame: the points that can matter to the boxes (not nearer than
     every box, in some box's azimuth window), sorted into ``nbins`` azimuth bins (a counting sort on
     a pseudo-angle), and every box's window: its rectangle grown by ``reach`` seen from the sensor."""
     pts = np.asarray(points)
-    xyz = pts[:, :3] if pts.dtype in (np.float32, np.float64) else pts[:, :3].astype(np.float64)  # no copy of the frame: the kernels read float32 exactly
+    xyz = (
+        pts[:, :3] if pts.dtype in (np.float32, np.float64) else pts[:, :3].astype(np.float64)
+    )  # no copy of the frame: the kernels read float32 exactly
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
     lo, hi = ranges[:, 0::2].ravel(), ranges[:, 1::2].ravel()
     ok = lo <= hi
-    wanted = np.bincount(lo[ok], minlength=nbins + 1) - np.bincount(hi[ok] + 1, minlength=nbins + 1)  # difference array of the boxes' bin ranges
+    wanted = np.bincount(lo[ok], minlength=nbins + 1) - np.bincount(
+        hi[ok] + 1, minlength=nbins + 1
+    )  # difference array of the boxes' bin ranges
     min_r2 = float(near2.min()) if len(b) else 0.0
     order, starts, sorted_xyz = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
     return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
 
 
-def ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, ground: ArrayLike, slabs: ArrayLike, reach: float,
-                   nbins: int = C.FREE_SPACE_AZIMUTH_BINS, buckets: AzimuthBuckets | None = None) -> tuple[list[IndexArray], list[FloatArray]]:
+def ray_candidates(
+    points: ArrayLike,
+    origin: ArrayLike,
+    boxes: ArrayLike,
+    ground: ArrayLike,
+    slabs: ArrayLike,
+    reach: float,
+    nbins: int = C.FREE_SPACE_AZIMUTH_BINS,
+    buckets: AzimuthBuckets | None = None,
+) -> tuple[list[IndexArray], list[FloatArray]]:
     """Indices of the points whose ray (sensor → point) passes through each box's reach prism.
 
     The reach prism of a box is its rectangle grown by ``reach`` on every side, between the heights
@@ -622,19 +680,36 @@ def ray_candidates(points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, groun
         j1 = min(k, j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        pos = _select_kernel(bk.sorted_xyz, bk.order, bk.starts, bk.ranges[j0:j1], bk.near2[j0:j1], b[j0:j1], g[j0:j1], o[0], o[1], o[2], float(reach), sl[j0:j1], out, counts)
+        pos = _select_kernel(
+            bk.sorted_xyz,
+            bk.order,
+            bk.starts,
+            bk.ranges[j0:j1],
+            bk.near2[j0:j1],
+            b[j0:j1],
+            g[j0:j1],
+            o[0],
+            o[1],
+            o[2],
+            float(reach),
+            sl[j0:j1],
+            out,
+            counts,
+        )
         _split(bk.xyz, out[:pos], counts, result, ends)  # the kernel writes the boxes' candidates one after the other
     return result, ends
 
 
-def _split(pts: NDArray, idx: IndexArray, counts: IndexArray, out_idx: list[IndexArray], out_xyz: list[FloatArray]) -> None:
+def _split(
+    pts: NDArray, idx: IndexArray, counts: IndexArray, out_idx: list[IndexArray], out_xyz: list[FloatArray]
+) -> None:
     """Append each box's part of the kernels' flat output (its ``counts[j]`` entries, one box after
     the other), sorted, and its points ``pts[part, :3]`` as float64. The sort is NumPy's (SIMD), not
     numba's, which is several times slower on these sizes."""
     pos = 0
     parts = []
     for c in counts.tolist():
-        part = idx[pos: pos + c]
+        part = idx[pos : pos + c]
         part.sort()
         parts.append(part)
         pos += c
@@ -642,7 +717,7 @@ def _split(pts: NDArray, idx: IndexArray, counts: IndexArray, out_idx: list[Inde
     pos = 0
     for part in parts:
         out_idx.append(part)
-        out_xyz.append(xyz[pos: pos + len(part)])
+        out_xyz.append(xyz[pos : pos + len(part)])
         pos += len(part)
 
 
@@ -656,7 +731,9 @@ def _gather_xyz(pts, idx):  # pragma: no cover - compiled
     return out
 
 
-def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float) -> tuple[list[IndexArray], list[FloatArray]]:
+def neighbourhoods(
+    buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float
+) -> tuple[list[IndexArray], list[FloatArray]]:
     """Indices (sorted) of the points in each box grown by ``margin`` in BEV, from ``below`` under its
     bottom to ``above`` over its top, taken from the boxes' azimuth windows (``buckets`` must reach
     at least ``margin``): one compiled pass over the windows instead of a test of every point of
@@ -672,7 +749,18 @@ def neighbourhoods(buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, bel
         j1 = min(len(b), j0 + _BATCH)
         out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
         counts = np.zeros(j1 - j0, dtype=np.int64)
-        pos = _region_kernel(buckets.sorted_xyz, buckets.order, buckets.starts, np.ascontiguousarray(buckets.ranges[j0:j1]), b[j0:j1], float(margin), float(below), float(above), out, counts)
+        pos = _region_kernel(
+            buckets.sorted_xyz,
+            buckets.order,
+            buckets.starts,
+            np.ascontiguousarray(buckets.ranges[j0:j1]),
+            b[j0:j1],
+            float(margin),
+            float(below),
+            float(above),
+            out,
+            counts,
+        )
         _split(buckets.xyz, out[:pos], counts, result, xyz)
     return result, xyz
 
@@ -709,7 +797,9 @@ def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out,
     return pos
 
 
-def _azimuth_ranges(boxes: FloatArray, origin: FloatArray, reach: float, nbins: int) -> tuple[NDArray[np.int64], FloatArray]:
+def _azimuth_ranges(
+    boxes: FloatArray, origin: FloatArray, reach: float, nbins: int
+) -> tuple[NDArray[np.int64], FloatArray]:
     """Bin ranges (K, 4): up to two inclusive [lo, hi] bin ranges per box (the second when the
     azimuth window wraps past 0; all bins when the sensor lies inside the grown rectangle), and the
     squared BEV distance (K,) from the sensor to each grown rectangle (0 inside)."""

@@ -56,7 +56,9 @@ def _check_model(model: str) -> tuple[int, int]:
 
 def normalize_angle(angle: ArrayLike) -> FloatArray | float:
     """Wrap angles to [-π, π)."""
-    if isinstance(angle, float):  # a scalar: Python's float % is NumPy's remainder (same fmod-based rule), at a tenth of the cost
+    if isinstance(
+        angle, float
+    ):  # a scalar: Python's float % is NumPy's remainder (same fmod-based rule), at a tenth of the cost
         return (float(angle) + math.pi) % (2.0 * math.pi) - math.pi
     wrapped = (np.asarray(angle, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
     return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
@@ -148,9 +150,7 @@ def phi_axes(phi: ArrayLike, model: ModelKind) -> tuple[FloatArray, FloatArray]:
     # length edge = (l cos, l sin); width edge = (-w sin, w cos) — see J(v*).
     if d == 2:
         centre = phi[..., 0:2]
-        axes = np.stack(
-            [np.stack([phi[..., 2], -phi[..., 5]], -1), np.stack([phi[..., 3], phi[..., 4]], -1)], -2
-        )
+        axes = np.stack([np.stack([phi[..., 2], -phi[..., 5]], -1), np.stack([phi[..., 3], phi[..., 4]], -1)], -2)
         return centre, axes
     zeros = np.zeros_like(phi[..., 0])
     centre = phi[..., 0:3]
@@ -197,9 +197,7 @@ def extended_to_phi(ext: ArrayLike, model: ModelKind) -> FloatArray:
         cx, cy, length, width, a, b = e
         return np.array([cx, cy, length * np.cos(a), length * np.sin(a), width * np.cos(b), width * np.sin(b)])
     cx, cy, cz, length, width, height, a, b = e
-    return np.array(
-        [cx, cy, cz, length * np.cos(a), length * np.sin(a), width * np.cos(b), width * np.sin(b), height]
-    )
+    return np.array([cx, cy, cz, length * np.cos(a), length * np.sin(a), width * np.cos(b), width * np.sin(b), height])
 
 
 def phi_to_extended(phi: ArrayLike, model: ModelKind) -> FloatArray:
@@ -232,8 +230,11 @@ def dphi_dext_valid(y: FloatArray, model: ModelKind) -> FloatArray:
     d, p = _check_model(model)
     G = np.zeros(p * p)
     # the entries of the centre, l, w (then h for 3D), a and b columns (_DPHI_DEXT_ENTRIES), at once
-    G[_DPHI_DEXT_ENTRIES[d]] = (1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c) if d == 2 else (
-        1.0, 1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c, 1.0)
+    G[_DPHI_DEXT_ENTRIES[d]] = (
+        (1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c)
+        if d == 2
+        else (1.0, 1.0, 1.0, c, s, c, s, -length * s, length * c, -width * s, width * c, 1.0)
+    )
     return G.reshape(p, p)
 
 
@@ -426,14 +427,18 @@ def clean_points(points: ArrayLike | None, d: int) -> FloatArray:
         return np.zeros((0, d))
     if pts.ndim != 2 or pts.shape[1] < d:
         raise ValueError(f"points must be an (N, ≥{d}) array, got shape {pts.shape}")
-    if pts.dtype == np.float32 or pts.dtype == np.float64:  # the pipeline's crops: one compiled pass (numba, imported here)
+    if (
+        pts.dtype == np.float32 or pts.dtype == np.float64
+    ):  # the pipeline's crops: one compiled pass (numba, imported here)
         from labelaudit.core.pointops import finite_rows_f64
 
         return finite_rows_f64(pts, d)
     pts = pts[:, :d]  # other float types are converted after the cut (exactly): d columns, not all of them
     if np.isfinite(pts).all():  # the usual case: one test, a contiguous copy (as the masked copy below)
         return pts.astype(np.float64, order="C")
-    return pts[np.all(np.isfinite(pts), axis=1)].astype(np.float64, order="C")  # non-finite returns cannot be registered
+    return pts[np.all(np.isfinite(pts), axis=1)].astype(
+        np.float64, order="C"
+    )  # non-finite returns cannot be registered
 
 
 def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:
@@ -441,7 +446,9 @@ def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:
     after ``validate_box``, the fit's own rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost
     more than φ itself at a dozen calls per fit."""
     c, s = float(np.cos(y[6])), float(np.sin(y[6]))  # NumPy's cos/sin (not math's: NumPy may use SIMD kernels)
-    cx, cy, cz, length, width, height, _ = y.tolist()  # Python floats: the same IEEE products, at a fraction of the cost
+    cx, cy, cz, length, width, height, _ = (
+        y.tolist()
+    )  # Python floats: the same IEEE products, at a fraction of the cost
     if model == "bev":
         return np.array([cx, cy, length * c, length * s, width * c, width * s])
     return np.array([cx, cy, cz, length * c, length * s, width * c, width * s, height])

@@ -47,7 +47,9 @@ def hull_iou_valid(y: FloatArray, points: ArrayLike | None) -> float:
         local = _sorted_candidates_kernel(arr, float(y[0]), float(y[1]))
         if len(local) < 3:
             return 0.0
-    corners = _BEV_CORNER_J @ g.phi_of_valid_box(y, "bev") - y[:2]  # = box_corners(y, "bev") − centre, counter-clockwise
+    corners = (
+        _BEV_CORNER_J @ g.phi_of_valid_box(y, "bev") - y[:2]
+    )  # = box_corners(y, "bev") − centre, counter-clockwise
     return float(_hull_iou_kernel(local, np.ascontiguousarray(corners)))
 
 
@@ -78,13 +80,19 @@ def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
     hull = np.empty((2 * n + 1, 2))
     k = 0
     for i in range(n):  # lower hull; collinear and repeated points are dropped (≤ 0)
-        while k >= 2 and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0:
+        while (
+            k >= 2
+            and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0
+        ):
             k -= 1
         hull[k, 0], hull[k, 1] = pts[i, 0], pts[i, 1]
         k += 1
     lower = k + 1
     for i in range(n - 2, -1, -1):  # upper hull
-        while k >= lower and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0:
+        while (
+            k >= lower
+            and _cross(hull[k - 2, 0], hull[k - 2, 1], hull[k - 1, 0], hull[k - 1, 1], pts[i, 0], pts[i, 1]) <= 0.0
+        ):
             k -= 1
         hull[k, 0], hull[k, 1] = pts[i, 0], pts[i, 1]
         k += 1
@@ -157,7 +165,9 @@ def _sorted_candidates_kernel(pts, cx, cy):  # pragma: no cover - compiled
             m += 1
     keep = np.ones(m, dtype=np.bool_)
     if m >= 8:
-        ext = np.zeros(4, dtype=np.int64)  # argmin x, argmin y, argmax x, argmax y (first occurrence): counter-clockwise
+        ext = np.zeros(
+            4, dtype=np.int64
+        )  # argmin x, argmin y, argmax x, argmax y (first occurrence): counter-clockwise
         for k in range(1, m):
             if xs[k] < xs[ext[0]]:
                 ext[0] = k

@@ -81,7 +81,11 @@ def linear_gaussian_posterior(
     mu0 = np.asarray(prior_mean, dtype=float)
     if (prior_cov is None) == (prior_precision is None):
         raise ValueError("give exactly one of prior_cov and prior_precision")
-    P0 = np.linalg.inv(np.asarray(prior_cov, dtype=float)) if prior_precision is None else np.asarray(prior_precision, dtype=float)
+    P0 = (
+        np.linalg.inv(np.asarray(prior_cov, dtype=float))
+        if prior_precision is None
+        else np.asarray(prior_precision, dtype=float)
+    )
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
     # Stack rows of sqrt(w)·J so that one matmul gives Σ w JᵀJ.
     sw = np.sqrt(w)[:, None, None]
@@ -104,8 +108,12 @@ def spd_inverse(P: FloatArray) -> FloatArray:
     try:
         L = linalg.cholesky(P)
     except np.linalg.LinAlgError:
-        raise ValueError(f"posterior precision is not positive definite (eigenvalues {np.linalg.eigvalsh(P)})") from None
-    Linv = linalg.solve(L, _EYE[P.shape[0]] if P.shape[0] in _EYE else np.eye(P.shape[0]))  # L is tiny (≤ 8×8): a generic solve is fine
+        raise ValueError(
+            f"posterior precision is not positive definite (eigenvalues {np.linalg.eigvalsh(P)})"
+        ) from None
+    Linv = linalg.solve(
+        L, _EYE[P.shape[0]] if P.shape[0] in _EYE else np.eye(P.shape[0])
+    )  # L is tiny (≤ 8×8): a generic solve is fine
     cov = Linv.T @ Linv
     return 0.5 * (cov + cov.T)
 
@@ -133,7 +141,9 @@ class Registration:
     points: FloatArray
 
 
-def _responsibilities(sqdist: FloatArray, sigma: float, d: int, outlier_prob: float, outlier_log_density: float) -> FloatArray:
+def _responsibilities(
+    sqdist: FloatArray, sigma: float, d: int, outlier_prob: float, outlier_log_density: float
+) -> FloatArray:
     """r_km ∝ exp(−d²/2σ²) over the M candidates, plus an optional uniform outlier component."""
     if sqdist.size == 0:
         return np.zeros_like(sqdist)
@@ -211,13 +221,17 @@ def register(
     return register_validated(y, g.clean_points(points, d), d, num_nearest, sigma, outlier_prob)
 
 
-def register_validated(y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: float, outlier_prob: float) -> Registration:
+def register_validated(
+    y: FloatArray, pts: FloatArray, d: int, num_nearest: int, sigma: float, outlier_prob: float
+) -> Registration:
     """:func:`register` for a validated box and clean (N, d) points."""
     half = 0.5 * y[3 : 3 + d]
     c, s = np.cos(y[6]), np.sin(y[6])
     m = min(int(num_nearest), 2 * d)
     tol = 1e-9 * max(half.tolist())
-    vstar, sqd, x = _register_kernel(pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, tol, 2.0 * sigma**2)
+    vstar, sqd, x = _register_kernel(
+        pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, tol, 2.0 * sigma**2
+    )
     if not outlier_prob > 0:  # _responsibilities without outliers, from the kernel's exponents
         resp = _normalise_rows(np.exp(x, out=x)) if sqd.size else np.zeros_like(sqd)
     else:
@@ -489,7 +503,11 @@ def em_sigma(regs: Sequence[tuple[FloatArray, float]], d: int, sigma0: float, ou
         # Without outliers the responsibilities of a point sum to 1 and only exp(−(d² − min d²)/2σ²)
         # changes with σ: the squared distances of all points go to one compiled loop.
         sqd_all = np.ascontiguousarray(np.concatenate([sqd for sqd, _, _ in regs], axis=0), dtype=np.float64)
-        return float(_em_fast_kernel(sqd_all, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)))
+        return float(
+            _em_fast_kernel(
+                sqd_all, sigma, estimate, C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, float(C.EM_RESIDUAL_DOF)
+            )
+        )
     for _ in range(C.EM_MAX_ITERATIONS):
         num = den = 0.0
         for sqd, sqd0, log_density in regs:
@@ -657,7 +675,9 @@ def corner_variances(covs: ArrayLike, model: ModelKind) -> FloatArray:
     return np.einsum("cdp,npq,cdq->nc", J, np.asarray(covs, dtype=float), J)
 
 
-def _corner_tv(y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike) -> tuple[FloatArray, NDArray[np.int64]]:
+def _corner_tv(
+    y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike
+) -> tuple[FloatArray, NDArray[np.int64]]:
     tv = _corner_quad_forms(_CORNER_J[model], cov)  # = np.einsum("cdp,pq,cdq->c", J, cov, J)
     c, s = math.cos(y[6]), math.sin(y[6])
     o = np.asarray(sensor_origin, dtype=float)
@@ -813,13 +833,17 @@ def box_prior_terms(y: FloatArray, prior: ClassPrior, weight: float, model: Mode
     return BoxPriorTerms(model=model, prior=prior, weight=weight, phi=phi, G=G, Ginv=E, P0=P0, eta0=P0 @ phi)
 
 
-def checked_prior_terms(terms: BoxPriorTerms | None, y: FloatArray, prior: ClassPrior, weight: float, model: ModelKind) -> BoxPriorTerms:
+def checked_prior_terms(
+    terms: BoxPriorTerms | None, y: FloatArray, prior: ClassPrior, weight: float, model: ModelKind
+) -> BoxPriorTerms:
     """``terms`` when given (raising ValueError when they are of another model, prior or weight),
     else :func:`box_prior_terms` of the box."""
     if terms is None:
         return box_prior_terms(y, prior, weight, model)
     if not terms.matches(model, prior, weight):
-        raise ValueError(f"prior terms of model {terms.model!r} (weight {terms.weight:g}) do not match model {model!r} (weight {weight:g}) and this class prior")
+        raise ValueError(
+            f"prior terms of model {terms.model!r} (weight {terms.weight:g}) do not match model {model!r} (weight {weight:g}) and this class prior"
+        )
     return terms
 
 
@@ -887,8 +911,16 @@ def infer_label_valid(
             reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
 
     data_precision, data_eta = registration_information(reg, model)
-    ok, cov, fit_mean, S0 = _posterior_kernel(P0, terms.eta0, data_precision, data_eta, sigma, G,
-                                              prior_cov_extended_cached(prior, model), float(params.prior_weight))
+    ok, cov, fit_mean, S0 = _posterior_kernel(
+        P0,
+        terms.eta0,
+        data_precision,
+        data_eta,
+        sigma,
+        G,
+        prior_cov_extended_cached(prior, model),
+        float(params.prior_weight),
+    )
     if not ok:  # not positive definite to the compiled factorisation: LAPACK's verdict and message
         precision = P0 + data_precision / sigma**2
         cov = spd_inverse(0.5 * (precision + precision.T))

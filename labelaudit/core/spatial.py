@@ -39,10 +39,25 @@ from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["BoxDistribution", "Grid", "jaccard", "spatial_distribution", "jiou", "jiou_gt", "normal_samples",
-           # the building blocks evaluate.jiou shares: samples, grid, rasteriser
-           "Samples", "sample_boxes", "make_grid", "axis_edges", "sqrt_psd", "rasterise", "pair_masses", "z_coverage",
-           "events_kernel"]
+__all__ = [
+    "BoxDistribution",
+    "Grid",
+    "jaccard",
+    "spatial_distribution",
+    "jiou",
+    "jiou_gt",
+    "normal_samples",
+    # the building blocks evaluate.jiou shares: samples, grid, rasteriser
+    "Samples",
+    "sample_boxes",
+    "make_grid",
+    "axis_edges",
+    "sqrt_psd",
+    "rasterise",
+    "pair_masses",
+    "z_coverage",
+    "events_kernel",
+]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -82,7 +97,9 @@ class BoxDistribution:
         else:
             raise ValueError(f"cov_on must be 'phi' or 'box', got {self.cov_on!r}")
         if cov.shape not in want or not np.all(np.isfinite(cov)):
-            raise ValueError(f"covariance on {self.cov_on} for model {self.model!r} must be finite with shape {want}, got {cov.shape}")
+            raise ValueError(
+                f"covariance on {self.cov_on} for model {self.model!r} must be finite with shape {want}, got {cov.shape}"
+            )
         if self.cov_on == "box" and d == 2 and cov.shape == (7, 7):
             keep = [0, 1, 3, 4, 6]
             cov = cov[np.ix_(keep, keep)]
@@ -161,12 +178,24 @@ class Samples:
     z_std: FloatArray | None
 
     @classmethod
-    def single(cls, centres: FloatArray, axes: FloatArray, z: FloatArray | None, weights: FloatArray, corners: FloatArray) -> "Samples":
+    def single(
+        cls, centres: FloatArray, axes: FloatArray, z: FloatArray | None, weights: FloatArray, corners: FloatArray
+    ) -> "Samples":
         """One sample box (a deterministic distribution, or only its support): a sharp boundary
         (corner std and blur 0); ``centres`` (1, 2), ``axes`` (1, 2, 2), ``z`` (1, 2) or None (BEV),
         ``weights`` (1,), ``corners`` (4, 2)."""
         d = 2 if z is None else 3
-        return cls(centres, axes, z, weights, corners, 0.0, np.zeros(d), None if z is None else z[0], None if z is None else np.zeros(2))
+        return cls(
+            centres,
+            axes,
+            z,
+            weights,
+            corners,
+            0.0,
+            np.zeros(d),
+            None if z is None else z[0],
+            None if z is None else np.zeros(2),
+        )
 
 
 def _cos_sin(angle: float) -> tuple[float, float]:
@@ -219,7 +248,9 @@ def sample_boxes(dist: BoxDistribution, ref: FloatArray, params: SpatialParams) 
         c, sn = np.cos(ys[:, 6]), np.sin(ys[:, 6])
         edges = np.stack([ys[:, 3] * c, ys[:, 3] * sn, ys[:, 4] * c, ys[:, 4] * sn], axis=1)
         phis = np.concatenate([ys[:, :d], edges, ys[:, 5:6]] if d == 3 else [ys[:, :d], edges], axis=1)
-    centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std = _sample_kernel(np.ascontiguousarray(phis, dtype=np.float64), d)
+    centres, A, zint, size, weights, corner_mean, corner_std, blur, z_mean, z_std = _sample_kernel(
+        np.ascontiguousarray(phis, dtype=np.float64), d
+    )
     if d == 2:
         zint = z_mean = z_std = None
     if len(A) == 1:
@@ -282,7 +313,9 @@ def _sample_kernel(phis, d):  # pragma: no cover - compiled
     for k in range(S):
         for i in range(2):
             for j in range(8):
-                pts[k, i, j] = (A[k, i, 0] * _FACE_POINTS_UNIT[0, j] + A[k, i, 1] * _FACE_POINTS_UNIT[1, j]) + centres[k, i]
+                pts[k, i, j] = (A[k, i, 0] * _FACE_POINTS_UNIT[0, j] + A[k, i, 1] * _FACE_POINTS_UNIT[1, j]) + centres[
+                    k, i
+                ]
                 mean[i, j] += pts[k, i, j]
     for i in range(2):
         for j in range(8):
@@ -364,7 +397,12 @@ class Grid:
 
 def axis_edges(half: float, lo: float, hi: float, cell: float) -> FloatArray:
     """Edges with the reference box's faces (±half) on cell boundaries, covering [lo, hi]."""
-    half, lo, hi, cell = float(half), float(lo), float(hi), float(cell)  # Python floats: the same IEEE arithmetic, faster
+    half, lo, hi, cell = (
+        float(half),
+        float(lo),
+        float(hi),
+        float(cell),
+    )  # Python floats: the same IEEE arithmetic, faster
     n_box = max(1, int(round(2 * half / cell)))
     step = 2 * half / n_box
     n_lo = max(0, math.ceil((-half - lo) / step - 1e-9))
@@ -447,8 +485,16 @@ def _events(s: Samples, xe: FloatArray, ye: FloatArray) -> _Events:
     nsub = C.SUBROWS_PER_CELL
     dx, dy = xe[1] - xe[0], ye[1] - ye[0]
     i_lo, i_hi, f_lo, f_hi, valid = events_kernel(
-        np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
-        float(xe[0]), float(xe[-1]), float(ye[0]), float(dx), float(dy), nx, ny, nsub,
+        np.ascontiguousarray(s.axes, dtype=np.float64),
+        np.ascontiguousarray(s.centres, dtype=np.float64),
+        float(xe[0]),
+        float(xe[-1]),
+        float(ye[0]),
+        float(dx),
+        float(dy),
+        nx,
+        ny,
+        nsub,
     )
     return _Events(i_lo, i_hi, f_lo, f_hi, valid, ny, nx, dx, dy / nsub)
 
@@ -476,7 +522,9 @@ def events_kernel(A, centres, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no c
         det, h0, h1, m0, m1, half_y = _sample_slabs(A, k)
         cx, cy = centres[k, 0], centres[k, 1]
         for r in range(R):
-            k_lo, k_hi, lo_off, hi_off, ok = _row_interval((y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx)
+            k_lo, k_hi, lo_off, hi_off, ok = _row_interval(
+                (y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx
+            )
             base = (r // nsub) * (nx + 1)
             i_lo[k, r] = base + k_lo
             i_hi[k, r] = base + k_hi
@@ -566,9 +614,17 @@ def _raster_bev(s: Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
         return aligned
     nx, ny = len(xe) - 1, len(ye) - 1
     return _raster_bev_events_kernel(
-        np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
-        np.ascontiguousarray(s.weights, dtype=np.float64), float(xe[0]), float(xe[-1]), float(ye[0]),
-        float(xe[1] - xe[0]), float(ye[1] - ye[0]), nx, ny, C.SUBROWS_PER_CELL,
+        np.ascontiguousarray(s.axes, dtype=np.float64),
+        np.ascontiguousarray(s.centres, dtype=np.float64),
+        np.ascontiguousarray(s.weights, dtype=np.float64),
+        float(xe[0]),
+        float(xe[-1]),
+        float(ye[0]),
+        float(xe[1] - xe[0]),
+        float(ye[1] - ye[0]),
+        nx,
+        ny,
+        C.SUBROWS_PER_CELL,
     )
 
 
@@ -590,7 +646,9 @@ def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, n
         w = weights[k]
         wdx = w * dx
         for r in range(R):
-            k_lo, k_hi, lo_off, hi_off, _ = _row_interval((y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx)
+            k_lo, k_hi, lo_off, hi_off, _ = _row_interval(
+                (y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx
+            )
             base = (r if nsub == 1 else r // nsub) * (nx + 1)
             lo_dx[base + k_lo] += wdx
             hi_dx[base + k_hi] += wdx
@@ -647,9 +705,16 @@ def _raster_3d(s: Samples, xe: FloatArray, ye: FloatArray, zw: FloatArray) -> Fl
         return aligned[:, :, None] * zw[0]
     if C.SUBROWS_PER_CELL == 1:
         return _raster_3d_kernel(
-            np.ascontiguousarray(s.axes, dtype=np.float64), np.ascontiguousarray(s.centres, dtype=np.float64),
-            np.ascontiguousarray(zw, dtype=np.float64), float(xe[0]), float(xe[-1]), float(ye[0]),
-            float(xe[1] - xe[0]), float(ye[1] - ye[0]), len(xe) - 1, len(ye) - 1,
+            np.ascontiguousarray(s.axes, dtype=np.float64),
+            np.ascontiguousarray(s.centres, dtype=np.float64),
+            np.ascontiguousarray(zw, dtype=np.float64),
+            float(xe[0]),
+            float(xe[-1]),
+            float(ye[0]),
+            float(xe[1] - xe[0]),
+            float(ye[1] - ye[0]),
+            len(xe) - 1,
+            len(ye) - 1,
         )
     from scipy.sparse import coo_matrix
 
@@ -740,7 +805,11 @@ def pair_masses(sa: Samples, sb: Samples, grid: Grid) -> tuple[FloatArray, Float
     layers near the top and bottom faces are formed and sorted one by one.
     """
     if grid.z_edges is None:
-        return _clean(_raster_bev(sa, grid.x_edges, grid.y_edges)), _clean(_raster_bev(sb, grid.x_edges, grid.y_edges)), None
+        return (
+            _clean(_raster_bev(sa, grid.x_edges, grid.y_edges)),
+            _clean(_raster_bev(sb, grid.x_edges, grid.y_edges)),
+            None,
+        )
     ze = grid.z_edges
     dz = np.diff(ze)
     za, zb = z_coverage(sa, ze), z_coverage(sb, ze)
@@ -754,7 +823,9 @@ def pair_masses(sa: Samples, sb: Samples, grid: Grid) -> tuple[FloatArray, Float
         vox = _raster_3d(s, grid.x_edges, grid.y_edges, s.weights[:, None] * zc[:, keep])
         out.append(_clean(vox.reshape(-1, len(keep))))
     ncell = out[0].shape[0]
-    counts = np.concatenate([np.ones((ncell, int(np.count_nonzero(rest)))), np.full((ncell, 1 if n_full else 0), float(n_full))], axis=1)
+    counts = np.concatenate(
+        [np.ones((ncell, int(np.count_nonzero(rest)))), np.full((ncell, 1 if n_full else 0), float(n_full))], axis=1
+    )
     return out[0], out[1], counts
 
 

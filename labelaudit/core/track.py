@@ -120,8 +120,6 @@ class TrackResiduals:
     expected: FloatArray
 
 
-
-
 def _robust_weights(z: FloatArray, k: float, c: float, stage: int) -> FloatArray:
     """Huber weights in the first stages (convex: a safe start), Tukey's biweight after (a gross outlier gets weight 0)."""
     a = np.abs(z)
@@ -147,14 +145,21 @@ def neighbour_index(t: FloatArray, window: float, max_neighbours: int) -> tuple[
     inside = (raw >= 0) & (raw < n)
     index = np.clip(raw, 0, max(n - 1, 0))
     gap = np.where(inside, np.abs(t[index] - t[:, None]), np.inf)
-    order = np.argsort(gap, axis=1, kind="stable")[:, :k]  # ties (a regular rate): the earlier frame first, both sides kept
+    order = np.argsort(gap, axis=1, kind="stable")[
+        :, :k
+    ]  # ties (a regular rate): the earlier frame first, both sides kept
     index = np.take_along_axis(index, order, axis=1)
     valid = np.take_along_axis(gap, order, axis=1) <= window
     return index, valid
 
 
 def local_fit(
-    dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_], ridge: FloatArray, params: TrackParams, iterations: int = C.TRACK_IRLS_ITERATIONS,
+    dt: FloatArray,
+    y: FloatArray,
+    valid: NDArray[np.bool_],
+    ridge: FloatArray,
+    params: TrackParams,
+    iterations: int = C.TRACK_IRLS_ITERATIONS,
     prior: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Robust weighted quadratic through each frame's neighbours, evaluated at the frame (dt = 0).
@@ -176,7 +181,9 @@ def local_fit(
     slope : (n, d) first-order coefficient (per second)
     """
     n, m = dt.shape
-    powers = np.stack([np.ones_like(dt), dt, dt * dt, dt**3, dt**4], axis=-1)  # (n, m, 5): XᵀWX is a Hankel matrix of weighted moments
+    powers = np.stack(
+        [np.ones_like(dt), dt, dt * dt, dt**3, dt**4], axis=-1
+    )  # (n, m, 5): XᵀWX is a Hankel matrix of weighted moments
     base = valid.astype(float) if prior is None else valid * prior
     w = base
     lam = np.diag(ridge)
@@ -185,12 +192,16 @@ def local_fit(
         moments = np.sum(powers * w[..., None], axis=1)  # (n, 5)
         a = moments[:, hankel] + lam  # (n, 3, 3)
         wy = w[..., None] * y  # (n, m, d)
-        b = np.stack([wy.sum(axis=1), (wy * dt[..., None]).sum(axis=1), (wy * (dt * dt)[..., None]).sum(axis=1)], axis=1)  # (n, 3, d)
+        b = np.stack(
+            [wy.sum(axis=1), (wy * dt[..., None]).sum(axis=1), (wy * (dt * dt)[..., None]).sum(axis=1)], axis=1
+        )  # (n, 3, d)
         inv = _inverse_sym3(a)
         coef = np.einsum("nij,njd->nid", inv, b) if b.shape[2] > 1 else inv @ b  # (n, 3, d)
         if it == iterations:
             break
-        resid = y - (coef[:, None, 0, :] + dt[..., None] * coef[:, None, 1, :] + (dt * dt)[..., None] * coef[:, None, 2, :])
+        resid = y - (
+            coef[:, None, 0, :] + dt[..., None] * coef[:, None, 1, :] + (dt * dt)[..., None] * coef[:, None, 2, :]
+        )
         z = np.sqrt(np.mean(resid * resid, axis=-1))  # one robust weight per neighbour (all d coordinates together)
         w = base * _robust_weights(z, params.huber_k, params.biweight_c, it)
     return coef[:, 0, :], inv[:, 0, 0], coef[:, 1, :]
@@ -204,7 +215,9 @@ def _inverse_sym3(a: FloatArray) -> FloatArray:
     c00, c01, c02 = s * u - t * t, r * t - q * u, q * t - r * s
     c11, c12, c22 = p * u - r * r, q * r - p * t, p * s - q * q
     det = p * c00 + q * c01 + r * c02
-    inv = np.stack([np.stack([c00, c01, c02], -1), np.stack([c01, c11, c12], -1), np.stack([c02, c12, c22], -1)], axis=1)
+    inv = np.stack(
+        [np.stack([c00, c01, c02], -1), np.stack([c01, c11, c12], -1), np.stack([c02, c12, c22], -1)], axis=1
+    )
     return inv / det[:, None, None]
 
 
@@ -228,7 +241,9 @@ def pairwise_prediction(dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_])
     ok = valid[:, j] & valid[:, k] & (tj != tk)
     frac = np.where(ok, -tj / np.where(ok, tk - tj, 1.0), np.nan)  # (n, P): where dt = 0 lies on the segment j → k
     pred = y[:, j, :] + (y[:, k, :] - y[:, j, :]) * frac[..., None]
-    ranked = np.sort(np.where(ok[..., None], pred, np.inf), axis=1)  # the valid pairs first (a masked median, without np.ma's cost)
+    ranked = np.sort(
+        np.where(ok[..., None], pred, np.inf), axis=1
+    )  # the valid pairs first (a masked median, without np.ma's cost)
     count = ok.sum(axis=1)
     rows = np.arange(len(count))
     lo, hi = np.maximum(count - 1, 0) // 2, np.maximum(count, 1) // 2
@@ -236,7 +251,9 @@ def pairwise_prediction(dt: FloatArray, y: FloatArray, valid: NDArray[np.bool_])
     return np.where((count > 0)[:, None], med, np.nan)
 
 
-def robust_location(values: FloatArray, precision: FloatArray, params: TrackParams, iterations: int = C.TRACK_IRLS_ITERATIONS) -> tuple[FloatArray, FloatArray]:
+def robust_location(
+    values: FloatArray, precision: FloatArray, params: TrackParams, iterations: int = C.TRACK_IRLS_ITERATIONS
+) -> tuple[FloatArray, FloatArray]:
     """Robust precision-weighted mean of one track's measurements of a constant.
 
     Parameters
@@ -319,7 +336,11 @@ def track_residuals(
     ref = np.where((s != 0) | (c != 0), np.arctan2(s, c), yaw)
     d = normalize_angle(ny - ref[:, None])[..., None] / noise.yaw
     ridge_y = np.array([C.TRACK_NO_NEIGHBOUR_PRECISION, (noise.yaw / w1) ** 2, (noise.yaw / wa1) ** 2])
-    pred_y, _, head = fit(d, ridge_y, lambda pred, var: normalize_angle(yaw - (ref + pred[:, 0] * noise.yaw)) / noise.yaw / np.sqrt(1.0 + var))
+    pred_y, _, head = fit(
+        d,
+        ridge_y,
+        lambda pred, var: normalize_angle(yaw - (ref + pred[:, 0] * noise.yaw)) / noise.yaw / np.sqrt(1.0 + var),
+    )
 
     # size: one rigid size; labels and (optionally) the points' fitted sizes
     ss = np.asarray(noise.size, dtype=float)
@@ -341,7 +362,9 @@ def track_residuals(
     size_z = (lab - loo_mean) / np.sqrt(1.0 + 1.0 / loo_total)
     size_std = ss / np.sqrt(np.maximum(total, 1e-12))
     weight = np.where(prec > 0, wl / prec, 0.0).min(axis=1)
-    expected = np.concatenate([centre + pred_c * sc, loo_mean * ss, normalize_angle(ref + pred_y[:, 0] * noise.yaw)[:, None]], axis=1)
+    expected = np.concatenate(
+        [centre + pred_c * sc, loo_mean * ss, normalize_angle(ref + pred_y[:, 0] * noise.yaw)[:, None]], axis=1
+    )
     return TrackResiduals(size_z, pos, head, mean * ss, size_std, weight, velocity, expected)
 
 
@@ -365,7 +388,12 @@ def kind_scores(res: TrackResiduals, params: TrackParams, size_dims: int = 3) ->
     q_head = res.heading**2
     q_pos = np.sum(res.position**2, axis=1)
     return np.stack(
-        [error_probability(q_size, size_dims, params), error_probability(q_head, 1, params), error_probability(q_pos, 3, params)], axis=1
+        [
+            error_probability(q_size, size_dims, params),
+            error_probability(q_head, 1, params),
+            error_probability(q_pos, 3, params),
+        ],
+        axis=1,
     )
 
 

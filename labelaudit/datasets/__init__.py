@@ -12,8 +12,18 @@ from labelaudit.errors import DatasetError
 
 FORMATS = ("kitti", "waymo-v2", "waymo-v1", "av2")
 
-__all__ = ["FORMATS", "DatasetError", "DatasetReader", "Frame", "FrameFailure", "FrameRef", "ImageView", "detect_format", "open_dataset",
-           "resolve_format"]
+__all__ = [
+    "FORMATS",
+    "DatasetError",
+    "DatasetReader",
+    "Frame",
+    "FrameFailure",
+    "FrameRef",
+    "ImageView",
+    "detect_format",
+    "open_dataset",
+    "resolve_format",
+]
 
 
 def detect_format(root: str | Path) -> str:

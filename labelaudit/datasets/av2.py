@@ -76,7 +76,9 @@ _EXTRA_FIELDS = {"num_lidar_points_in_box": NUM_POINTS}
 # --------------------------------------------------------------------------- files
 
 
-def read_feather(path: Path, required: tuple[str, ...], optional: tuple[str, ...] = (), numeric: tuple[str, ...] = ()) -> pa.Table:
+def read_feather(
+    path: Path, required: tuple[str, ...], optional: tuple[str, ...] = (), numeric: tuple[str, ...] = ()
+) -> pa.Table:
     """A Feather table with the ``required`` columns (and the ``optional`` ones it has).
 
     Raises
@@ -93,7 +95,9 @@ def read_feather(path: Path, required: tuple[str, ...], optional: tuple[str, ...
         raise DatasetError(path, f"not a readable Feather (Arrow IPC) file ({one_line(str(exc))[:300]})") from None
     missing = [c for c in required if c not in table.schema.names]
     if missing:
-        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; the file has {', '.join(table.schema.names) or 'none'}")
+        raise DatasetError(
+            path, f"missing column(s) {', '.join(missing)}; the file has {', '.join(table.schema.names) or 'none'}"
+        )
     table = table.select([*required, *(c for c in optional if c in table.schema.names)])
     for c in numeric:
         if c in table.schema.names:
@@ -212,8 +216,14 @@ def read_cuboids(path: str | Path) -> Cuboids:
         if not pa.types.is_integer(col.type) or col.null_count:
             num = num.astype(np.float64)  # check_extras names fractional or negative counts
     return Cuboids(
-        path, ts, boxes, categories, tracks, num,
-        {r: f"{path} row {r}: {'; '.join(m)}" for r, m in sorted(problems.items())}, [int(r) for r in tilted],
+        path,
+        ts,
+        boxes,
+        categories,
+        tracks,
+        num,
+        {r: f"{path} row {r}: {'; '.join(m)}" for r, m in sorted(problems.items())},
+        [int(r) for r in tilted],
     )
 
 
@@ -284,7 +294,9 @@ def read_sweep(path: str | Path, warnings: list[str]) -> NDArray[np.float32]:
         points[:, j] = t.column(c).to_numpy(zero_copy_only=False).astype(np.float32)  # nulls become NaN
     finite = np.isfinite(points[:, :3]).all(axis=1)
     if not finite.all():
-        warnings.append(f"{path}: dropped {int((~finite).sum())} of {len(points)} points with a null or non-finite x, y or z")
+        warnings.append(
+            f"{path}: dropped {int((~finite).sum())} of {len(points)} points with a null or non-finite x, y or z"
+        )
         points = points[finite]
     return points
 
@@ -323,7 +335,9 @@ def _sweep_files(log_dir: Path, warnings: list[str]) -> dict[int, Path]:
         else:
             odd.append(p.name)
     if odd:
-        warnings.append(f"{folder}: {len(odd)} file(s) not named <timestamp_ns>.feather are ignored ({', '.join(odd[:5])}{' …' if len(odd) > 5 else ''})")
+        warnings.append(
+            f"{folder}: {len(odd)} file(s) not named <timestamp_ns>.feather are ignored ({', '.join(odd[:5])}{' …' if len(odd) > 5 else ''})"
+        )
     return out
 
 
@@ -357,11 +371,15 @@ class Av2Reader:
         base = self.root / self.split if self.split else self.root
         logs = find_logs(base)
         if not logs:
-            raise DatasetError(base, f"no Argoverse 2 log here or one or two levels down (expected <log_id>/{ANNOTATIONS} or <log_id>/{SWEEP_DIR}/)")
+            raise DatasetError(
+                base,
+                f"no Argoverse 2 log here or one or two levels down (expected <log_id>/{ANNOTATIONS} or <log_id>/{SWEEP_DIR}/)",
+            )
         labelled = [d for d in logs if (d / ANNOTATIONS).is_file()]
         if not labelled:
             raise DatasetError(
-                base, f"{len(logs)} Argoverse 2 log(s) but none with {ANNOTATIONS} (an unlabelled split such as test?): no label to audit"
+                base,
+                f"{len(logs)} Argoverse 2 log(s) but none with {ANNOTATIONS} (an unlabelled split such as test?): no label to audit",
             )
         return [FrameRef(FORMAT, str(self.root), str(d)) for d in labelled]
 
@@ -427,11 +445,17 @@ class Av2Reader:
             warnings: list[str] = []
             sweep = sweeps.get(ts)
             try:
-                points = read_sweep(sweep, warnings) if sweep is not None and with_points else np.zeros((0, 4), dtype=np.float32)
+                points = (
+                    read_sweep(sweep, warnings)
+                    if sweep is not None and with_points
+                    else np.zeros((0, 4), dtype=np.float32)
+                )
             except DatasetError as exc:
                 yield FrameFailure(frame_id, exc)
                 continue
-            frame = self._frame(frame_id, ts, rows_of.get(ts, []), cuboids, points, origin, poses.get(ts), warnings, str(sweep or ""))
+            frame = self._frame(
+                frame_id, ts, rows_of.get(ts, []), cuboids, points, origin, poses.get(ts), warnings, str(sweep or "")
+            )
             if sweep is None:
                 warnings.append(
                     f"{log_dir / SWEEP_DIR / f'{ts}.feather'}: no sweep for this annotated timestamp; read with 0 points "
@@ -469,16 +493,24 @@ class Av2Reader:
         else:
             boxes = cuboids.boxes[idx]
             names = [str(cuboids.categories[r]) for r in rows]
-            ids = [f"{frame_id}:{j}" if cuboids.tracks[r] is None else str(cuboids.tracks[r]) for j, r in enumerate(rows)]
+            ids = [
+                f"{frame_id}:{j}" if cuboids.tracks[r] is None else str(cuboids.tracks[r]) for j, r in enumerate(rows)
+            ]
             extras = {}
             if cuboids.num_points is not None:
-                extras = check_extras({"num_lidar_points_in_box": cuboids.num_points[idx]}, _EXTRA_FIELDS,
-                                      [f"{cuboids.path} row {r}" for r in rows], warnings)
+                extras = check_extras(
+                    {"num_lidar_points_in_box": cuboids.num_points[idx]},
+                    _EXTRA_FIELDS,
+                    [f"{cuboids.path} row {r}" for r in rows],
+                    warnings,
+                )
             errors = {j: cuboids.problems[r] for j, r in enumerate(rows) if r in cuboids.problems}
             seen: dict[str, int] = {}
             for j, r in enumerate(rows):
                 if cuboids.tracks[r] is not None and seen.setdefault(ids[j], r) != r:
-                    warnings.append(f"{cuboids.path} rows {seen[ids[j]]} and {r}: track {ids[j]} has two cuboids at timestamp {ts}")
+                    warnings.append(
+                        f"{cuboids.path} rows {seen[ids[j]]} and {r}: track {ids[j]} has two cuboids at timestamp {ts}"
+                    )
         return Frame(
             frame_id=frame_id,
             points=points,
@@ -496,4 +528,13 @@ class Av2Reader:
         )
 
 
-__all__ = ["Av2Reader", "Cuboids", "FORMAT", "find_logs", "lidar_origin", "read_city_poses", "read_cuboids", "read_sweep"]
+__all__ = [
+    "Av2Reader",
+    "Cuboids",
+    "FORMAT",
+    "find_logs",
+    "lidar_origin",
+    "read_city_poses",
+    "read_cuboids",
+    "read_sweep",
+]

@@ -55,7 +55,14 @@ class ImageView:
         w = np.maximum(uvw[:, 2], min_depth)
         u, v = uvw[:, 0] / w, uvw[:, 1] / w
         width, height = self.size
-        return np.array([np.clip(u.min(), 0, width), np.clip(v.min(), 0, height), np.clip(u.max(), 0, width), np.clip(v.max(), 0, height)])
+        return np.array(
+            [
+                np.clip(u.min(), 0, width),
+                np.clip(v.min(), 0, height),
+                np.clip(u.max(), 0, width),
+                np.clip(v.max(), 0, height),
+            ]
+        )
 
 
 @dataclass
@@ -110,7 +117,9 @@ class Frame:
         if self.boxes.shape != (k, 7):
             raise ValueError(f"frame {self.frame_id}: boxes must be (K, 7), got {self.boxes.shape}")
         if len(self.class_names) != k or len(self.object_ids) != k:
-            raise ValueError(f"frame {self.frame_id}: {k} boxes but {len(self.class_names)} classes, {len(self.object_ids)} ids")
+            raise ValueError(
+                f"frame {self.frame_id}: {k} boxes but {len(self.class_names)} classes, {len(self.object_ids)} ids"
+            )
         for name, values in self.extras.items():
             if len(values) != k:
                 raise ValueError(f"frame {self.frame_id}: extra column {name!r} has {len(values)} values for {k} boxes")

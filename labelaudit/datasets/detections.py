@@ -59,7 +59,12 @@ STD_COLUMNS = tuple(f"std_{c}" for c in BOX_COLUMNS)
 
 # (name, type, required, description) — docs/eval.md shows the same table; a test checks they agree.
 DETECTIONS_COLUMNS: tuple[tuple[str, pa.DataType, bool, str], ...] = (
-    ("frame_id", pa.string(), True, "frame id as the dataset reader names it (KITTI '000123', Waymo '<segment>:<timestamp>')"),
+    (
+        "frame_id",
+        pa.string(),
+        True,
+        "frame id as the dataset reader names it (KITTI '000123', Waymo '<segment>:<timestamp>')",
+    ),
     ("class_name", pa.string(), True, "class (Car, Pedestrian, Cyclist; Waymo Vehicle, Pedestrian, Cyclist)"),
     ("cx", pa.float64(), True, "box centre x (m), dataset LiDAR/vehicle frame, geometric centre"),
     ("cy", pa.float64(), True, "box centre y (m)"),
@@ -69,8 +74,18 @@ DETECTIONS_COLUMNS: tuple[tuple[str, pa.DataType, bool, str], ...] = (
     ("height", pa.float64(), True, "box height (m), > 0"),
     ("yaw", pa.float64(), True, "heading about +z (rad)"),
     ("score", pa.float64(), True, "confidence, any finite number (higher = more confident)"),
-    ("cov", pa.list_(pa.float64()), False, "covariance of φ (row-major 6×6 BEV or 8×8 3D, docs/method.md) — a probabilistic detection"),
-    ("std_cx", pa.float64(), False, "per-parameter std (m) of cx; with std_cy … std_yaw a diagonal covariance on the box (used when cov is null)"),
+    (
+        "cov",
+        pa.list_(pa.float64()),
+        False,
+        "covariance of φ (row-major 6×6 BEV or 8×8 3D, docs/method.md) — a probabilistic detection",
+    ),
+    (
+        "std_cx",
+        pa.float64(),
+        False,
+        "per-parameter std (m) of cx; with std_cy … std_yaw a diagonal covariance on the box (used when cov is null)",
+    ),
     ("std_cy", pa.float64(), False, "std of cy (m)"),
     ("std_cz", pa.float64(), False, "std of cz (m; 3D only)"),
     ("std_length", pa.float64(), False, "std of the length (m)"),
@@ -146,7 +161,7 @@ class _Rows:
 
 
 def detect_detections_format(path: str | Path) -> str:
-    """"kitti" (a folder of .txt files or one with ``data/``), "parquet" (a .parquet file or a folder
+    """ "kitti" (a folder of .txt files or one with ``data/``), "parquet" (a .parquet file or a folder
     of them) or "waymo" (any other file, or a folder of .bin files).
 
     Raises
@@ -168,7 +183,8 @@ def detect_detections_format(path: str | Path) -> str:
     if any(p.glob("*.feather")):
         return "av2"
     raise DetectionsError(
-        p, "cannot tell the detections format: expected KITTI result files (<frame>.txt, or data/<frame>.txt), Parquet (*.parquet), "
+        p,
+        "cannot tell the detections format: expected KITTI result files (<frame>.txt, or data/<frame>.txt), Parquet (*.parquet), "
         "Waymo Objects (*.bin) or Argoverse 2 (*.feather); pass --detections-format",
     )
 
@@ -185,7 +201,7 @@ def _kitti_dir(path: Path) -> Path:
 def _as_detections_error(exc: DatasetError) -> DetectionsError:
     where = f"{exc.path}:{exc.line}: " if exc.line is not None else f"{exc.path}: "
     text = str(exc)
-    return DetectionsError(exc.path, text[len(where):] if text.startswith(where) else text, exc.line)
+    return DetectionsError(exc.path, text[len(where) :] if text.startswith(where) else text, exc.line)
 
 
 def _read_kitti_file(path: Path, calib: Any) -> _Rows:
@@ -201,19 +217,33 @@ def _read_kitti_file(path: Path, calib: Any) -> _Rows:
         return rows
     bad = np.flatnonzero(np.isnan(labels.score))
     if len(bad):
-        raise DetectionsError(path, "field 'score': missing — a KITTI result line has 16 columns (the label's 15 and a score)", int(labels.line[bad[0]]))
+        raise DetectionsError(
+            path,
+            "field 'score': missing — a KITTI result line has 16 columns (the label's 15 and a score)",
+            int(labels.line[bad[0]]),
+        )
     sizes = labels.dims_hwl
     bad = np.argwhere(~(np.isfinite(sizes) & (sizes > 0)))
     if len(bad):
         k, c = bad[0]
-        raise DetectionsError(path, f"field {('height', 'width', 'length')[c]!r}: expected a box size > 0, got {sizes[k, c]:g}", int(labels.line[k]))
+        raise DetectionsError(
+            path,
+            f"field {('height', 'width', 'length')[c]!r}: expected a box size > 0, got {sizes[k, c]:g}",
+            int(labels.line[k]),
+        )
     vals = np.c_[labels.location, labels.rotation_y, labels.score]
     bad = np.argwhere(~np.isfinite(vals))
     if len(bad):
         k, c = bad[0]
-        raise DetectionsError(path, f"field {('x', 'y', 'z', 'rotation_y', 'score')[c]!r}: expected a finite number, got {vals[k, c]!r}", int(labels.line[k]))
+        raise DetectionsError(
+            path,
+            f"field {('x', 'y', 'z', 'rotation_y', 'score')[c]!r}: expected a finite number, got {vals[k, c]!r}",
+            int(labels.line[k]),
+        )
     if calib is None:
-        raise DetectionsError(path, "KITTI result files need a KITTI dataset (its calibration converts the boxes to the LiDAR frame)")
+        raise DetectionsError(
+            path, "KITTI result files need a KITTI dataset (its calibration converts the boxes to the LiDAR frame)"
+        )
     rows.boxes = list(boxes_camera_to_lidar(labels.location, labels.dims_hwl, labels.rotation_y, calib).reshape(-1, 7))
     rows.names = list(labels.class_names)
     rows.scores = labels.score.tolist()
@@ -223,7 +253,9 @@ def _read_kitti_file(path: Path, calib: Any) -> _Rows:
     return rows
 
 
-def _read_kitti(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
+def _read_kitti(
+    path: Path, gt: GroundTruth, strict: bool
+) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
     folder = _kitti_dir(path)
     files = {p.stem: p for p in folder.glob("*.txt")}
     index = gt.index()
@@ -252,13 +284,22 @@ def _read_kitti(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _R
 
 
 def _error(frame_id: str | None, exc: DatasetError) -> dict[str, Any]:
-    return {"unit": frame_id or exc.path, "frame_id": frame_id, "file": exc.path, "line": exc.line, "level": "error", "message": str(exc)}
+    return {
+        "unit": frame_id or exc.path,
+        "frame_id": frame_id,
+        "file": exc.path,
+        "line": exc.line,
+        "level": "error",
+        "message": str(exc),
+    }
 
 
 # --------------------------------------------------------------------------- Waymo Objects
 
 
-def _read_waymo(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
+def _read_waymo(
+    path: Path, gt: GroundTruth, strict: bool
+) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
     from labelaudit.datasets import waymo_proto as wp
     from labelaudit.datasets.waymo_common import class_name
 
@@ -284,7 +325,16 @@ def _read_waymo(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _R
                 continue
             b = o.object.box
             values = (b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading, o.score)
-            names = ("object.box.center_x", "object.box.center_y", "object.box.center_z", "object.box.length", "object.box.width", "object.box.height", "object.box.heading", "score")
+            names = (
+                "object.box.center_x",
+                "object.box.center_y",
+                "object.box.center_z",
+                "object.box.length",
+                "object.box.width",
+                "object.box.height",
+                "object.box.heading",
+                "score",
+            )
             try:
                 for n, v in zip(names, values):
                     if not math.isfinite(v):
@@ -310,7 +360,9 @@ def _read_waymo(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _R
     return out, missing, unknown, errors
 
 
-def write_waymo_objects(path: str | Path, frame_ids: Sequence[str], boxes: FloatArray, types: Sequence[int], scores: Sequence[float]) -> Path:
+def write_waymo_objects(
+    path: str | Path, frame_ids: Sequence[str], boxes: FloatArray, types: Sequence[int], scores: Sequence[float]
+) -> Path:
     """Write detections as one serialized Waymo ``Objects`` file (atomically).
 
     Parameters
@@ -356,12 +408,18 @@ def _av2_columns() -> tuple[tuple[str, ...], tuple[str, ...]]:
     return (AV2_LOG, av2.TIMESTAMP, av2.CATEGORY, *numeric), numeric
 
 
-def _read_av2(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
+def _read_av2(
+    path: Path, gt: GroundTruth, strict: bool
+) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
     from labelaudit import constants as C
     from labelaudit.core.geometry import quaternion_yaw
     from labelaudit.datasets import av2
 
-    files = [path] if path.is_file() else sorted(p for p in path.glob("*.feather") if p.is_file() and not p.name.startswith("."))
+    files = (
+        [path]
+        if path.is_file()
+        else sorted(p for p in path.glob("*.feather") if p.is_file() and not p.name.startswith("."))
+    )
     if not files:
         raise DetectionsError(path, "no .feather files found")
     required, numeric = _av2_columns()
@@ -376,17 +434,26 @@ def _read_av2(path: Path, gt: GroundTruth, strict: bool) -> tuple[dict[str, _Row
         except DatasetError as exc:
             raise _as_detections_error(exc) from None
         logs, cats, stamps = (t.column(c).to_pylist() for c in (AV2_LOG, av2.CATEGORY, av2.TIMESTAMP))
-        v = np.stack([t.column(c).to_numpy(zero_copy_only=False).astype(float) for c in numeric], axis=1).reshape(-1, len(numeric))
+        v = np.stack([t.column(c).to_numpy(zero_copy_only=False).astype(float) for c in numeric], axis=1).reshape(
+            -1, len(numeric)
+        )
         q = v[:, 6:10]
         with np.errstate(invalid="ignore", over="ignore"):
-            bad = ~np.isfinite(v).all(axis=1) | (v[:, 3:6] <= 0).any(axis=1) | ~(np.abs(np.linalg.norm(q, axis=1) - 1.0) <= C.AV2_QUATERNION_TOLERANCE)
+            bad = (
+                ~np.isfinite(v).all(axis=1)
+                | (v[:, 3:6] <= 0).any(axis=1)
+                | ~(np.abs(np.linalg.norm(q, axis=1) - 1.0) <= C.AV2_QUATERNION_TOLERANCE)
+            )
         yaw = quaternion_yaw(q)
         for r in range(t.num_rows):
             where = f"row {r}"
             fid = f"{logs[r]}:{stamps[r]}" if logs[r] is not None and isinstance(stamps[r], int) else None
             try:
                 if fid is None:
-                    raise DetectionsError(f, f"{where}: field {AV2_LOG!r} or {av2.TIMESTAMP!r}: missing (expected a log id and integer nanoseconds)")
+                    raise DetectionsError(
+                        f,
+                        f"{where}: field {AV2_LOG!r} or {av2.TIMESTAMP!r}: missing (expected a log id and integer nanoseconds)",
+                    )
                 if fid not in index:
                     unknown[fid] = unknown.get(fid, 0) + 1
                     continue
@@ -426,7 +493,9 @@ def _av2_problem(values: FloatArray, names: Sequence[str]) -> str:
     return f"fields qw, qx, qy, qz = ({', '.join(f'{x:g}' for x in values[6:10])}): expected a unit quaternion"
 
 
-def write_av2_detections(path: str | Path, frame_ids: Sequence[str], boxes: FloatArray, categories: Sequence[str], scores: Sequence[float]) -> Path:
+def write_av2_detections(
+    path: str | Path, frame_ids: Sequence[str], boxes: FloatArray, categories: Sequence[str], scores: Sequence[float]
+) -> Path:
     """Write detections as one Argoverse 2 ``.feather`` file (atomically).
 
     Parameters
@@ -467,7 +536,9 @@ def write_av2_detections(path: str | Path, frame_ids: Sequence[str], boxes: Floa
 # --------------------------------------------------------------------------- Parquet
 
 
-def _read_parquet(path: Path, gt: GroundTruth, strict: bool, view: str) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
+def _read_parquet(
+    path: Path, gt: GroundTruth, strict: bool, view: str
+) -> tuple[dict[str, _Rows], list[str], dict[str, int], list[dict[str, Any]]]:
     files = [path] if path.is_file() else sorted(p for p in path.glob("*.parquet") if not p.name.startswith("."))
     if not files:
         raise DetectionsError(path, "no .parquet files found")
@@ -485,7 +556,9 @@ def _read_parquet(path: Path, gt: GroundTruth, strict: bool, view: str) -> tuple
         names = table.schema.names
         missing_cols = [n for n, _, req, _ in DETECTIONS_COLUMNS if req and n not in names]
         if missing_cols:
-            raise DetectionsError(f, f"missing required column(s) {', '.join(missing_cols)} (schema: docs/eval.md § Detections formats)")
+            raise DetectionsError(
+                f, f"missing required column(s) {', '.join(missing_cols)} (schema: docs/eval.md § Detections formats)"
+            )
         cols = {n: table.column(n).to_pylist() for n in names if n in DETECTIONS_SCHEMA.names}
         for r in range(table.num_rows):
             fid = cols["frame_id"][r]
@@ -513,7 +586,12 @@ def _read_parquet(path: Path, gt: GroundTruth, strict: bool, view: str) -> tuple
                     raise DetectionsError(f, f"{where}: field 'class_name': missing")
                 cov = _row_cov(cols, r, f, where, p_dim, view)
                 height = math.nan
-                if "bbox_top" in cols and "bbox_bottom" in cols and cols["bbox_top"][r] is not None and cols["bbox_bottom"][r] is not None:
+                if (
+                    "bbox_top" in cols
+                    and "bbox_bottom" in cols
+                    and cols["bbox_top"][r] is not None
+                    and cols["bbox_bottom"][r] is not None
+                ):
                     height = float(cols["bbox_bottom"][r]) - float(cols["bbox_top"][r])
             except DetectionsError as exc:
                 if strict:
@@ -534,15 +612,24 @@ def _read_parquet(path: Path, gt: GroundTruth, strict: bool, view: str) -> tuple
     return out, missing, unknown, errors
 
 
-def _row_cov(cols: dict[str, list[Any]], r: int, f: Path, where: str, p_dim: int, view: str) -> tuple[str, FloatArray] | None:
+def _row_cov(
+    cols: dict[str, list[Any]], r: int, f: Path, where: str, p_dim: int, view: str
+) -> tuple[str, FloatArray] | None:
     """("phi", (p, p)) from ``cov``, ("box", diagonal) from ``std_*``, or None."""
     raw = cols.get("cov", [None] * (r + 1))[r]
     if raw is not None:
         a = np.asarray(raw, dtype=float)
         if a.size != p_dim * p_dim:
-            raise DetectionsError(f, f"{where}: field 'cov': expected {p_dim}×{p_dim} = {p_dim * p_dim} values (φ covariance of the {view} view), got {a.size}")
+            raise DetectionsError(
+                f,
+                f"{where}: field 'cov': expected {p_dim}×{p_dim} = {p_dim * p_dim} values (φ covariance of the {view} view), got {a.size}",
+            )
         m = a.reshape(p_dim, p_dim)
-        if not np.all(np.isfinite(m)) or not np.allclose(m, m.T, rtol=1e-6, atol=1e-12) or np.linalg.eigvalsh(0.5 * (m + m.T)).min() < -1e-9 * max(1.0, float(np.abs(m).max())):
+        if (
+            not np.all(np.isfinite(m))
+            or not np.allclose(m, m.T, rtol=1e-6, atol=1e-12)
+            or np.linalg.eigvalsh(0.5 * (m + m.T)).min() < -1e-9 * max(1.0, float(np.abs(m).max()))
+        ):
             raise DetectionsError(f, f"{where}: field 'cov': expected a finite symmetric positive semi-definite matrix")
         return ("phi", m)
     want = ("std_cx", "std_cy", "std_length", "std_width", "std_yaw") if view == "bev" else STD_COLUMNS
@@ -551,7 +638,10 @@ def _row_cov(cols: dict[str, list[Any]], r: int, f: Path, where: str, p_dim: int
         return None
     missing = [n for n in want if n not in present]
     if missing:
-        raise DetectionsError(f, f"{where}: std columns {', '.join(present)} given but {', '.join(missing)} missing (the {view} view needs {', '.join(want)})")
+        raise DetectionsError(
+            f,
+            f"{where}: std columns {', '.join(present)} given but {', '.join(missing)} missing (the {view} view needs {', '.join(want)})",
+        )
     stds = np.array([float(cols[n][r]) for n in want])
     if not np.all(np.isfinite(stds)) or np.any(stds < 0):
         raise DetectionsError(f, f"{where}: std columns must be finite and ≥ 0, got {dict(zip(want, stds.tolist()))}")
@@ -568,7 +658,9 @@ def write_parquet_detections(path: str | Path, table: pa.Table) -> Path:
 # --------------------------------------------------------------------------- entry point
 
 
-def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, strict: bool = True, view: str = "bev") -> Detections:
+def read_detections(
+    path: str | Path, gt: GroundTruth, fmt: str = "auto", *, strict: bool = True, view: str = "bev"
+) -> Detections:
     """Read detections and align them with the frames of ``gt``.
 
     Parameters
@@ -594,7 +686,10 @@ def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, str
         raise DetectionsError(path, "detections path does not exist")
     if fmt == "kitti":
         if gt.dataset_format != "kitti":
-            raise DetectionsError(path, f"KITTI result files need a KITTI dataset, not {gt.dataset_format} (use Parquet detections in the vehicle frame)")
+            raise DetectionsError(
+                path,
+                f"KITTI result files need a KITTI dataset, not {gt.dataset_format} (use Parquet detections in the vehicle frame)",
+            )
         rows, missing, unknown, errors = _read_kitti(path, gt, strict)
     elif fmt == "waymo":
         rows, missing, unknown, errors = _read_waymo(path, gt, strict)
@@ -605,7 +700,14 @@ def read_detections(path: str | Path, gt: GroundTruth, fmt: str = "auto", *, str
     return _assemble(rows, gt, fmt, missing, unknown, errors)
 
 
-def _assemble(rows: dict[str, _Rows], gt: GroundTruth, fmt: str, missing: list[str], unknown: dict[str, int], errors: list[dict[str, Any]]) -> Detections:
+def _assemble(
+    rows: dict[str, _Rows],
+    gt: GroundTruth,
+    fmt: str,
+    missing: list[str],
+    unknown: dict[str, int],
+    errors: list[dict[str, Any]],
+) -> Detections:
     boxes, names, scores, height, covs, source, counts = [], [], [], [], [], [], []
     for f, fid in enumerate(gt.frame_ids):
         r = rows.get(fid)
@@ -625,7 +727,9 @@ def _assemble(rows: dict[str, _Rows], gt: GroundTruth, fmt: str, missing: list[s
     n = len(scores)
     kinds = {c[0] for c in covs if c is not None}
     if len(kinds) > 1:
-        raise DetectionsError("detections", "mixed covariance forms: some rows give cov (on φ), others std_* (on the box); use one form")
+        raise DetectionsError(
+            "detections", "mixed covariance forms: some rows give cov (on φ), others std_* (on the box); use one form"
+        )
     cov = None
     has_cov = np.array([c is not None for c in covs], dtype=bool)
     cov_on = kinds.pop() if kinds else "phi"

@@ -115,12 +115,18 @@ class GroundTruth:
         return {fid: i for i, fid in enumerate(self.frame_ids)}
 
     @classmethod
-    def from_frames(cls, dataset_format: str, frames: list[GroundTruthFrame], errors: list[dict[str, Any]] | None = None) -> "GroundTruth":
+    def from_frames(
+        cls, dataset_format: str, frames: list[GroundTruthFrame], errors: list[dict[str, Any]] | None = None
+    ) -> "GroundTruth":
         counts = [len(f.boxes) for f in frames]
         dcs = [len(f.dontcare) for f in frames]
         cat = lambda xs, shape, dtype: np.concatenate(xs).astype(dtype) if xs else np.zeros(shape, dtype)  # noqa: E731
         boxes = cat([f.boxes for f in frames], (0, 7), float).reshape(-1, 7)
-        origins = np.repeat(np.array([f.sensor_origin for f in frames]).reshape(-1, 3), counts, axis=0) if frames else np.zeros((0, 3))
+        origins = (
+            np.repeat(np.array([f.sensor_origin for f in frames]).reshape(-1, 3), counts, axis=0)
+            if frames
+            else np.zeros((0, 3))
+        )
         return cls(
             dataset_format=dataset_format,
             frame_ids=[f.frame_id for f in frames],
@@ -157,11 +163,23 @@ def kitti_frame(label_path: Path, calib_path: Path, frame_id: str) -> GroundTrut
     if len(bad):
         r = rows[bad[0]]
         h, w, l = labels.dims_hwl[r]
-        raise DatasetError(label_path, f"box dimensions must be > 0, got height={h:g} width={w:g} length={l:g}", int(labels.line[r]))
-    boxes = boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib).reshape(-1, 7) if len(rows) else np.zeros((0, 7))
+        raise DatasetError(
+            label_path, f"box dimensions must be > 0, got height={h:g} width={w:g} length={l:g}", int(labels.line[r])
+        )
+    boxes = (
+        boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib).reshape(-1, 7)
+        if len(rows)
+        else np.zeros((0, 7))
+    )
     dc_rows = np.flatnonzero(is_dc)
     real = dc_rows[np.all(labels.dims_hwl[dc_rows] > 0, axis=1) & np.all(labels.location[dc_rows] > -999, axis=1)]
-    dontcare = boxes_camera_to_lidar(labels.location[real], labels.dims_hwl[real], labels.rotation_y[real], calib).reshape(-1, 7) if len(real) else np.zeros((0, 7))
+    dontcare = (
+        boxes_camera_to_lidar(labels.location[real], labels.dims_hwl[real], labels.rotation_y[real], calib).reshape(
+            -1, 7
+        )
+        if len(real)
+        else np.zeros((0, 7))
+    )
     bbox = labels.bbox2d[rows]
     return GroundTruthFrame(
         frame_id=frame_id,
@@ -214,7 +232,9 @@ def _av2_frames(reader: Any, ref: FrameRef) -> Iterator[GroundTruthFrame]:
     for frame in frames:
         if frame.object_errors:
             message = next(iter(frame.object_errors.values()))  # "<file> row R: …"
-            raise DatasetError(frame.source, message[len(frame.source):].lstrip() if message.startswith(frame.source) else message)
+            raise DatasetError(
+                frame.source, message[len(frame.source) :].lstrip() if message.startswith(frame.source) else message
+            )
     for frame in frames:
         k = frame.num_objects
         num = np.asarray(frame.extras.get("num_lidar_points_in_box", np.full(k, -1)), dtype=float)
@@ -251,7 +271,9 @@ def _frames_of(fmt: str, reader: Any, ref: FrameRef) -> Iterator[GroundTruthFram
         raise ValueError(f"unknown dataset format {fmt!r}")
 
 
-def _load_units(task: tuple[str, str, tuple[tuple[str, Any], ...], list[FrameRef], bool]) -> tuple[list[GroundTruthFrame], list[dict[str, Any]]]:
+def _load_units(
+    task: tuple[str, str, tuple[tuple[str, Any], ...], list[FrameRef], bool],
+) -> tuple[list[GroundTruthFrame], list[dict[str, Any]]]:
     """The frames of some units (in order) and the errors of the units that failed."""
     root, fmt, options, refs, strict = task
     reader = open_dataset(root, fmt, **dict(options))
@@ -263,7 +285,16 @@ def _load_units(task: tuple[str, str, tuple[tuple[str, Any], ...], list[FrameRef
         except DatasetError as exc:
             if strict:
                 raise
-            errors.append({"unit": ref.key, "frame_id": ref.key if fmt == "kitti" else None, "file": exc.path, "line": exc.line, "level": "error", "message": str(exc)})
+            errors.append(
+                {
+                    "unit": ref.key,
+                    "frame_id": ref.key if fmt == "kitti" else None,
+                    "file": exc.path,
+                    "line": exc.line,
+                    "level": "error",
+                    "message": str(exc),
+                }
+            )
     return frames, errors
 
 

@@ -189,7 +189,9 @@ def read_calib(path: str | Path) -> Calibration:
     """
     path = path if isinstance(path, Path) else Path(path)
     if not path.is_file():
-        raise DatasetError(path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)")
+        raise DatasetError(
+            path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)"
+        )
     values: dict[str, FloatArray] = {}
     for lineno, raw in enumerate(read_text_lines(path, "calibration file"), start=1):
         line = raw.strip()
@@ -204,16 +206,24 @@ def read_calib(path: str | Path) -> Calibration:
         try:
             nums = [float(t) for t in rest.split()]
         except ValueError:
-            raise DatasetError(path, f"calibration {key}: expected numbers, got {rest.strip()[:80]!r}", lineno) from None
+            raise DatasetError(
+                path, f"calibration {key}: expected numbers, got {rest.strip()[:80]!r}", lineno
+            ) from None
         shape = _CALIB_SHAPES[key]
         if len(nums) != shape[0] * shape[1]:
-            raise DatasetError(path, f"calibration {key}: expected {shape[0] * shape[1]} numbers ({shape[0]}×{shape[1]}), got {len(nums)}", lineno)
+            raise DatasetError(
+                path,
+                f"calibration {key}: expected {shape[0] * shape[1]} numbers ({shape[0]}×{shape[1]}), got {len(nums)}",
+                lineno,
+            )
         if not all(map(math.isfinite, nums)):  # on the Python floats: no NumPy call per line
             raise DatasetError(path, f"calibration {key}: non-finite values", lineno)
         values[key] = np.array(nums, dtype=float).reshape(shape)
     missing = [k for k in _CALIB_REQUIRED if k not in values]
     if missing:
-        raise DatasetError(path, f"calibration is missing key(s) {', '.join(missing)} (required: {', '.join(_CALIB_REQUIRED)})")
+        raise DatasetError(
+            path, f"calibration is missing key(s) {', '.join(missing)} (required: {', '.join(_CALIB_REQUIRED)})"
+        )
     try:
         return Calibration._from_checked(values)
     except ValueError as exc:
@@ -244,7 +254,9 @@ def format_calib(calib: Calibration) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
-def boxes_camera_to_lidar(locations: ArrayLike, dims_hwl: ArrayLike, rotation_y: ArrayLike, calib: Calibration) -> FloatArray:
+def boxes_camera_to_lidar(
+    locations: ArrayLike, dims_hwl: ArrayLike, rotation_y: ArrayLike, calib: Calibration
+) -> FloatArray:
     """Vectorised :func:`box_camera_to_lidar`.
 
     Parameters
@@ -466,7 +478,11 @@ def read_label(path: str | Path) -> KittiLabels:
                     raise DatasetError(path, f"column {col!r}: expected a number, got {tok[:40]!r}", lineno) from None
             raise
         if nums[1] not in _OCCLUSION_LEVELS:  # also refuses 3e9, 1e300 and NaN: an int column must hold it
-            raise DatasetError(path, f"column 'occluded': expected an integer (0, 1, 2, 3; -1 for DontCare), got {tokens[2][:40]!r}", lineno)
+            raise DatasetError(
+                path,
+                f"column 'occluded': expected an integer (0, 1, 2, 3; -1 for DontCare), got {tokens[2][:40]!r}",
+                lineno,
+            )
         if len(nums) == 14:
             nums.append(math.nan)
         names.append(tokens[0])
@@ -506,7 +522,11 @@ def kitti_difficulty(bbox2d: ArrayLike, occluded: ArrayLike, truncated: ArrayLik
     trunc = np.asarray(truncated, dtype=float).reshape(-1)
     out = np.full(len(box), -1, dtype=np.int8)
     for level in (2, 1, 0):  # hardest first, so easier levels overwrite
-        ok = (height > C.KITTI_MIN_HEIGHT[level]) & (occ <= C.KITTI_MAX_OCCLUSION[level]) & (trunc <= C.KITTI_MAX_TRUNCATION[level])
+        ok = (
+            (height > C.KITTI_MIN_HEIGHT[level])
+            & (occ <= C.KITTI_MAX_OCCLUSION[level])
+            & (trunc <= C.KITTI_MAX_TRUNCATION[level])
+        )
         out[ok] = level
     return out
 
@@ -533,7 +553,9 @@ def read_velodyne(path: str | Path) -> NDArray[np.float32]:
         raise DatasetError(path, "point cloud file not found")
     size = path.stat().st_size
     if size % 16:
-        raise DatasetError(path, f"file size {size} bytes is not a multiple of 16 (4 float32 per point: x, y, z, reflectance)")
+        raise DatasetError(
+            path, f"file size {size} bytes is not a multiple of 16 (4 float32 per point: x, y, z, reflectance)"
+        )
     return np.fromfile(path, dtype="<f4").reshape(-1, 4).astype(np.float32, copy=False)
 
 
@@ -603,7 +625,10 @@ class KittiReader:
                     velodyne_dir = name
                     break
             else:
-                raise DatasetError(self.data_dir, "no velodyne/ or velodyne_reduced/ folder (expected a KITTI object root or its training/ folder)")
+                raise DatasetError(
+                    self.data_dir,
+                    "no velodyne/ or velodyne_reduced/ folder (expected a KITTI object root or its training/ folder)",
+                )
         elif not (self.data_dir / velodyne_dir).is_dir():
             raise DatasetError(self.data_dir / velodyne_dir, "point cloud folder not found")
         self.velodyne_dir = velodyne_dir
@@ -632,12 +657,18 @@ class KittiReader:
         if self.split is not None:
             list_file = self.imagesets_dir / f"{self.split}.txt"
             if not list_file.is_file():
-                raise DatasetError(list_file, f"split list not found (expected ImageSets/{self.split}.txt next to training/)")
+                raise DatasetError(
+                    list_file, f"split list not found (expected ImageSets/{self.split}.txt next to training/)"
+                )
             ids, first = [], {}
             for lineno, line in enumerate(read_text_lines(list_file, "split list"), start=1):
                 for fid in line.split():
                     if fid in first:
-                        raise DatasetError(list_file, f"frame {fid!r} is listed twice (lines {first[fid]} and {lineno}); list each frame once", lineno)
+                        raise DatasetError(
+                            list_file,
+                            f"frame {fid!r} is listed twice (lines {first[fid]} and {lineno}); list each frame once",
+                            lineno,
+                        )
                     first[fid] = lineno
                     ids.append(fid)
         else:
@@ -692,9 +723,13 @@ class KittiReader:
         object_errors = _label_problems(labels, rows, boxes, label_path, calib_path)
         for name in {labels.class_names[r] for r in rows if not labels.class_names[r].isprintable()}:
             at = ", ".join(str(labels.line[r]) for r in rows if labels.class_names[r] == name)
-            warnings.append(f"{label_path}: line {at}: class name {name!r} has unprintable characters (a byte-order mark or a control character?)")
+            warnings.append(
+                f"{label_path}: line {at}: class name {name!r} has unprintable characters (a byte-order mark or a control character?)"
+            )
         if not _is_utf8(frame_id):
-            warnings.append(f"{label_path}: the file name is not valid UTF-8; frame_id shows its undecodable bytes as \\xNN")
+            warnings.append(
+                f"{label_path}: the file name is not valid UTF-8; frame_id shows its undecodable bytes as \\xNN"
+            )
         extras: dict[str, np.ndarray] = {
             "truncated": labels.truncated[rows],
             "occluded": labels.occluded[rows],
@@ -739,15 +774,22 @@ _LABEL_BOX_FIELDS = ("height", "width", "length", "x", "y", "z", "rotation_y")
 _LABEL_BOX_KINDS = ("size", "size", "size", "centre", "centre", "centre", "angle")
 
 
-def _label_problems(labels: KittiLabels, rows: NDArray[np.int64], boxes: FloatArray, label_path: Path, calib_path: Path) -> dict[int, str]:
+def _label_problems(
+    labels: KittiLabels, rows: NDArray[np.int64], boxes: FloatArray, label_path: Path, calib_path: Path
+) -> dict[int, str]:
     """Object index → why its label cannot be audited: a label column that is not finite, a size
     ≤ 0 or beyond the sane limits (named as the file spells it), else a LiDAR-frame box out of
     range after the calibration."""
     raw = np.concatenate([labels.dims_hwl[rows], labels.location[rows], labels.rotation_y[rows, None]], axis=1)
-    out = {i: f"{label_path}:{labels.line[rows[i]]}: {msg}" for i, msg in box_problems(raw, _LABEL_BOX_FIELDS, _LABEL_BOX_KINDS).items()}
+    out = {
+        i: f"{label_path}:{labels.line[rows[i]]}: {msg}"
+        for i, msg in box_problems(raw, _LABEL_BOX_FIELDS, _LABEL_BOX_KINDS).items()
+    }
     for i, msg in box_problems(boxes, BOX_FIELDS).items():
         if i not in out:
-            out[i] = f"{label_path}:{labels.line[rows[i]]}: box in the LiDAR frame out of range after {calib_path}: {msg}"
+            out[i] = (
+                f"{label_path}:{labels.line[rows[i]]}: box in the LiDAR frame out of range after {calib_path}: {msg}"
+            )
     return out
 
 

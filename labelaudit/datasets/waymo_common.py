@@ -142,8 +142,13 @@ def ray_directions(calibration: LidarCalibration, height: int, width: int) -> ND
     """
     e = np.asarray(calibration.extrinsic, dtype=np.float64)
     key = (
-        calibration.name, height, width, e.tobytes(), calibration.inclination_min,
-        calibration.inclination_max, np.asarray(calibration.inclinations, dtype=np.float64).tobytes(),
+        calibration.name,
+        height,
+        width,
+        e.tobytes(),
+        calibration.inclination_min,
+        calibration.inclination_max,
+        np.asarray(calibration.inclinations, dtype=np.float64).tobytes(),
     )
     dirs = _DIRECTION_CACHE.get(key)
     if dirs is None:
@@ -160,9 +165,7 @@ def ray_directions(calibration: LidarCalibration, height: int, width: int) -> ND
 
 def _apply(rot: NDArray[np.float64], trans: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per-point rigid transform: rot (N, 3, 3), trans (N, 3), p (N, 3)."""
-    return (
-        rot[:, :, 0] * p[:, 0:1] + rot[:, :, 1] * p[:, 1:2] + rot[:, :, 2] * p[:, 2:3] + trans
-    )
+    return rot[:, :, 0] * p[:, 0:1] + rot[:, :, 1] * p[:, 1:2] + rot[:, :, 2] * p[:, 2:3] + trans
 
 
 def range_image_to_points(
@@ -254,13 +257,17 @@ def frame_points(
             continue
         pose = lidar.pixel_pose
         if pose is not None and frame_pose is None:
-            warnings.append(f"{source}: lidar {label} has per-pixel poses but the frame has no pose; not motion-corrected")
+            warnings.append(
+                f"{source}: lidar {label} has per-pixel poses but the frame has no pose; not motion-corrected"
+            )
             pose = None
         for r, image in enumerate(lidar.returns):
             if image is None or image.size == 0:
                 continue
             try:
-                with np.errstate(over="ignore", invalid="ignore"):  # absurd calibrations: non-finite points, dropped below
+                with np.errstate(
+                    over="ignore", invalid="ignore"
+                ):  # absurd calibrations: non-finite points, dropped below
                     parts.append(range_image_to_points(image, calib, pose, frame_pose))
             except ValueError as exc:
                 warnings.append(f"{source}: lidar {label}: {exc}; its points are skipped")
@@ -273,7 +280,9 @@ def frame_points(
     finite = np.isfinite(points[:, :3]).all(axis=1)
     if not finite.all():  # a NaN/inf calibration or pose value: those points cannot be placed
         n_bad = int(len(points) - finite.sum())
-        warnings.append(f"{source}: dropped {n_bad} of {len(points)} points with NaN/inf coordinates (calibration or pose values?)")
+        warnings.append(
+            f"{source}: dropped {n_bad} of {len(points)} points with NaN/inf coordinates (calibration or pose values?)"
+        )
         points, ray_mask = points[finite], ray_mask[finite]
     return points, ray_mask
 
@@ -295,7 +304,9 @@ EXTRA_RANGES: dict[str, tuple[int, int]] = {
 }
 
 
-def check_extras(extras: dict[str, np.ndarray], field_names: dict[str, str], locations: list[str], warnings: list[str]) -> dict[str, np.ndarray]:
+def check_extras(
+    extras: dict[str, np.ndarray], field_names: dict[str, str], locations: list[str], warnings: list[str]
+) -> dict[str, np.ndarray]:
     """Integer extras with every value outside :data:`EXTRA_RANGES` replaced by NaN (null in the
     results; such an array becomes float64), one warning per bad value naming where and which field.
 
@@ -308,10 +319,16 @@ def check_extras(extras: dict[str, np.ndarray], field_names: dict[str, str], loc
             continue
         v = np.asarray(extras[key])
         with np.errstate(invalid="ignore"):
-            bad = (v < lo) | (v > hi) if v.dtype.kind in "iu" else ~np.isnan(v) & ((v < lo) | (v > hi) | (v != np.round(v)))
+            bad = (
+                (v < lo) | (v > hi)
+                if v.dtype.kind in "iu"
+                else ~np.isnan(v) & ((v < lo) | (v > hi) | (v != np.round(v)))
+            )
         if bad.any():
             for i in np.flatnonzero(bad):
-                warnings.append(f"{locations[i]}: {field_names.get(key, key)} = {v[i]} is outside [{lo}, {hi}]; stored as null")
+                warnings.append(
+                    f"{locations[i]}: {field_names.get(key, key)} = {v[i]} is outside [{lo}, {hi}]; stored as null"
+                )
             fixed = v.astype(np.float64)
             fixed[bad] = np.nan
             out[key] = fixed

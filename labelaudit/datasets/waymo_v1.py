@@ -96,7 +96,10 @@ def _iter_stream(fh: BinaryIO, path: Path, verify: bool) -> Iterator[bytes | Dat
         if not header:
             return
         if len(header) < _HEADER.size:
-            raise DatasetError(path, f"truncated TFRecord: record {index} at byte {offset} has a {len(header)}-byte header (expected 12)")
+            raise DatasetError(
+                path,
+                f"truncated TFRecord: record {index} at byte {offset} has a {len(header)}-byte header (expected 12)",
+            )
         length, length_crc = _HEADER.unpack(header)
         if verify and masked_crc32c(header[:8]) != length_crc:
             raise DatasetError(path, f"TFRecord length CRC mismatch in record {index} at byte {offset} (corrupt file?)")
@@ -116,7 +119,9 @@ def _iter_stream(fh: BinaryIO, path: Path, verify: bool) -> Iterator[bytes | Dat
                 f"file ends after {len(payload) + len(footer)}",
             )
         if verify and masked_crc32c(payload) != _FOOTER.unpack(footer)[0]:
-            yield DatasetError(path, f"TFRecord payload CRC mismatch in record {index} at byte {offset} (corrupt file?)")
+            yield DatasetError(
+                path, f"TFRecord payload CRC mismatch in record {index} at byte {offset} (corrupt file?)"
+            )
         else:
             yield payload
         index += 1
@@ -178,7 +183,13 @@ def iter_labels(path: str | Path, verify: bool = True) -> Iterator[FrameLabels]:
             raise DatasetError(path, f"record {index} is not a Waymo Frame: {exc}") from exc
         segment = msg.context.name or path.stem
         labels = msg.laser_labels
-        boxes = np.array([[l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading] for l in labels], dtype=float).reshape(-1, 7)
+        boxes = np.array(
+            [
+                [l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading]
+                for l in labels
+            ],
+            dtype=float,
+        ).reshape(-1, 7)
         yield FrameLabels(
             frame_id=f"{segment}:{msg.timestamp_micros}",
             boxes=boxes,
@@ -193,9 +204,7 @@ def iter_labels(path: str | Path, verify: bool = True) -> Iterator[FrameLabels]:
         raise DatasetError(path, "empty TFRecord file: no records")
 
 
-def decode_frame(
-    payload: bytes, source: str | Path, classes: tuple[str, ...] | None = None, index: int = 0
-) -> Frame:
+def decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] | None = None, index: int = 0) -> Frame:
     """Decode one serialized ``Frame`` into a labelaudit :class:`Frame`.
 
     Parameters
@@ -247,7 +256,10 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
     labels = msg.laser_labels
     k = len(labels)
     boxes = np.array(
-        [[l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading] for l in labels],
+        [
+            [l.box.center_x, l.box.center_y, l.box.center_z, l.box.length, l.box.width, l.box.height, l.box.heading]
+            for l in labels
+        ],
         dtype=np.float64,
     ).reshape(k, 7)
     types = np.array([l.type for l in labels], dtype=np.int64)
@@ -270,8 +282,20 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
             warnings.append(no_lidar_warning(where, frame_id, k))
     extras = check_extras(extras, _EXTRA_FIELDS, locations, warnings)
     return make_frame(
-        frame_id, points, boxes, types, ids, extras, sensor_origin(calibrations), warnings, classes,
-        source=str(source), locations=locations, box_fields=_BOX_FIELDS, ray_mask=ray_mask, pose=frame_pose,
+        frame_id,
+        points,
+        boxes,
+        types,
+        ids,
+        extras,
+        sensor_origin(calibrations),
+        warnings,
+        classes,
+        source=str(source),
+        locations=locations,
+        box_fields=_BOX_FIELDS,
+        ray_mask=ray_mask,
+        pose=frame_pose,
         timestamp=msg.timestamp_micros / 1e6,
     )
 
@@ -308,7 +332,9 @@ class WaymoV1Reader:
     ):
         self.root = Path(root) / split if split else Path(root)
         if not self.root.exists():
-            raise DatasetError(self.root, "dataset path does not exist" if not split else f"split folder {split!r} not found")
+            raise DatasetError(
+                self.root, "dataset path does not exist" if not split else f"split folder {split!r} not found"
+            )
         self.classes = None if classes is None else tuple(classes)
         self.verify_crc = verify_crc
 
@@ -351,9 +377,13 @@ class WaymoV1Reader:
                 yield FrameFailure(None, exc)
                 continue
             if frame.frame_id in seen:
-                yield FrameFailure(frame.frame_id, DatasetError(
-                    path, f"record {index} repeats frame {frame.frame_id} of record {seen[frame.frame_id]} (same segment name and timestamp); not read twice"
-                ))
+                yield FrameFailure(
+                    frame.frame_id,
+                    DatasetError(
+                        path,
+                        f"record {index} repeats frame {frame.frame_id} of record {seen[frame.frame_id]} (same segment name and timestamp); not read twice",
+                    ),
+                )
                 continue
             seen[frame.frame_id] = index
             yield frame

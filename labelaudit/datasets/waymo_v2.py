@@ -101,7 +101,9 @@ def _reading(path: Path) -> Iterator[None]:
 
 def _check_numeric(path: Path, schema: pa.Schema, columns: list[str]) -> None:
     for c in columns:
-        if c in schema.names and not (pa.types.is_integer(schema.field(c).type) or pa.types.is_floating(schema.field(c).type)):
+        if c in schema.names and not (
+            pa.types.is_integer(schema.field(c).type) or pa.types.is_floating(schema.field(c).type)
+        ):
             raise DatasetError(path, f"column {c}: expected numbers, found {schema.field(c).type}")
 
 
@@ -119,9 +121,7 @@ def _keys(table: pa.Table, column: str, path: Path) -> NDArray[np.int64]:
 def _check_columns(path: Path, schema: pa.Schema, required: list[str]) -> None:
     missing = [c for c in required if c not in schema.names]
     if missing:
-        raise DatasetError(
-            path, f"missing column(s) {', '.join(missing)}; the file has {', '.join(schema.names)}"
-        )
+        raise DatasetError(path, f"missing column(s) {', '.join(missing)}; the file has {', '.join(schema.names)}")
 
 
 def _read(path: Path, required: list[str], optional: list[str] = ()) -> pa.Table:  # type: ignore[assignment]
@@ -219,9 +219,7 @@ class WaymoV2Reader:
 
     format_name = FORMAT
 
-    def __init__(
-        self, root: str | Path, classes: tuple[str, ...] | list[str] | None = None, split: str | None = None
-    ):
+    def __init__(self, root: str | Path, classes: tuple[str, ...] | list[str] | None = None, split: str | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
             raise DatasetError(self.root, "expected a Waymo v2 folder (with lidar_box/, lidar/ …)")
@@ -240,7 +238,10 @@ class WaymoV2Reader:
         """One unit per ``lidar_box/<segment>.parquet`` file, sorted by path."""
         dirs = self._split_dirs()
         if not dirs:
-            raise DatasetError(self.root, "no lidar_box/ folder here or one level down (Waymo v2 layout <root>/<component>/<segment>.parquet)")
+            raise DatasetError(
+                self.root,
+                "no lidar_box/ folder here or one level down (Waymo v2 layout <root>/<component>/<segment>.parquet)",
+            )
         files = [p for d in dirs for p in sorted((d / "lidar_box").glob("*.parquet"))]
         if not files:
             raise DatasetError(self.root, "lidar_box/ holds no .parquet files")
@@ -291,10 +292,18 @@ class WaymoV2Reader:
             for i in order:
                 rows_of[int(ts_all[i])].append(int(i))
             # nulls read as NaN: float64 for every box column, the null rows named below
-            box_arrays = {k: boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64) for k, c in BOX_COLUMNS.items()}
+            box_arrays = {
+                k: boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64) for k, c in BOX_COLUMNS.items()
+            }
             type_col = boxes_t.column(BOX_COLUMNS["type"])  # exact integers (a float64 copy rounds beyond 2^53)
-            box_arrays["type"] = pc.fill_null(type_col, 0).to_numpy(zero_copy_only=False).astype(np.int64) if pa.types.is_integer(type_col.type) else box_arrays["type"]
-            box_nulls = {k: pc.is_null(boxes_t.column(c)).to_numpy(zero_copy_only=False) for k, c in BOX_COLUMNS.items()}
+            box_arrays["type"] = (
+                pc.fill_null(type_col, 0).to_numpy(zero_copy_only=False).astype(np.int64)
+                if pa.types.is_integer(type_col.type)
+                else box_arrays["type"]
+            )
+            box_nulls = {
+                k: pc.is_null(boxes_t.column(c)).to_numpy(zero_copy_only=False) for k, c in BOX_COLUMNS.items()
+            }
             ids = boxes_t.column(K_OBJ).to_pylist()
             # same dtypes as the v1 reader (int64 counts and levels, float64 speeds); a null stays NaN (null in the results)
             extras_all = {}
@@ -302,12 +311,28 @@ class WaymoV2Reader:
                 if c in boxes_t.schema.names:
                     v = boxes_t.column(c).to_numpy(zero_copy_only=False).astype(np.float64)
                     exact = len(v) == 0 or (not np.isnan(v).any() and np.abs(v).max() < 2**62)
-                    extras_all[k] = v.astype(np.int64) if exact and not k.startswith("speed") else v  # else check_extras names them
+                    extras_all[k] = (
+                        v.astype(np.int64) if exact and not k.startswith("speed") else v
+                    )  # else check_extras names them
 
         for ts in sorted(rows_of):
             frame_id = f"{segment}:{ts}"
             try:
-                frame = self._frame(ts, frame_id, rows_of[ts], box_arrays, box_nulls, ids, extras_all, calibrations, poses, lidar, lidar_pose, origin, paths)
+                frame = self._frame(
+                    ts,
+                    frame_id,
+                    rows_of[ts],
+                    box_arrays,
+                    box_nulls,
+                    ids,
+                    extras_all,
+                    calibrations,
+                    poses,
+                    lidar,
+                    lidar_pose,
+                    origin,
+                    paths,
+                )
             except DatasetError as exc:  # this frame only: the next one still reads
                 yield FrameFailure(frame_id, exc)
                 continue
@@ -363,9 +388,22 @@ class WaymoV2Reader:
         extras = check_extras({k: v[idx] for k, v in extras_all.items()}, BOX_EXTRAS, locations, warnings)
         object_ids = [f"{frame_id}:{j}" if ids[r] is None else str(ids[r]) for j, r in enumerate(rows)]
         return make_frame(
-            frame_id, points, boxes, types, object_ids, extras, origin, warnings, self.classes,
-            source=str(box_file), locations=locations, box_fields=tuple(BOX_COLUMNS[k] for k in _BOX_KEYS), object_errors=object_errors,
-            ray_mask=ray_mask, pose=frame_pose, timestamp=ts / 1e6,
+            frame_id,
+            points,
+            boxes,
+            types,
+            object_ids,
+            extras,
+            origin,
+            warnings,
+            self.classes,
+            source=str(box_file),
+            locations=locations,
+            box_fields=tuple(BOX_COLUMNS[k] for k in _BOX_KEYS),
+            object_errors=object_errors,
+            ray_mask=ray_mask,
+            pose=frame_pose,
+            timestamp=ts / 1e6,
         )
 
     @staticmethod
@@ -413,7 +451,9 @@ class WaymoV2Reader:
             for i in idx:
                 name = int(names[int(i)].as_py())
                 returns = [
-                    img for vals, shape in LIDAR_RETURNS if (img := _image(table, int(i), vals, shape, path)) is not None
+                    img
+                    for vals, shape in LIDAR_RETURNS
+                    if (img := _image(table, int(i), vals, shape, path)) is not None
                 ]
                 if returns:
                     # only TOP has per-pixel poses in Waymo; use whatever the file provides

@@ -62,7 +62,9 @@ class PrecisionCurve:
         return float(self.recall[-1]) if len(self.recall) else 0.0
 
 
-def precision_curve(tp: ArrayLike, fp: ArrayLike, fn: ArrayLike, thresholds: ArrayLike, n_points: int = C.EVAL_RECALL_POINTS) -> PrecisionCurve:
+def precision_curve(
+    tp: ArrayLike, fp: ArrayLike, fn: ArrayLike, thresholds: ArrayLike, n_points: int = C.EVAL_RECALL_POINTS
+) -> PrecisionCurve:
     """Precision samples from TP/FP/FN per threshold, as the devkit's ``eval_class``.
 
     A threshold with TP + FP = 0 (possible only in degenerate matchings) gets precision 0 where the
@@ -81,7 +83,9 @@ def precision_curve(tp: ArrayLike, fp: ArrayLike, fn: ArrayLike, thresholds: Arr
     prec[:t] = raw
     # max over this and every later sample (the zeros beyond t do not change it)
     prec[:t] = np.maximum.accumulate(prec[:t][::-1])[::-1]
-    return PrecisionCurve(prec, recall.astype(float), raw.astype(float), np.asarray(thresholds, dtype=float), tp, fp, fn)
+    return PrecisionCurve(
+        prec, recall.astype(float), raw.astype(float), np.asarray(thresholds, dtype=float), tp, fp, fn
+    )
 
 
 def ap_r40(precision: ArrayLike) -> float:

@@ -222,7 +222,14 @@ def _grid_quad(box: FloatArray, ref: FloatArray) -> FloatArray:
     return np.ascontiguousarray(corners @ np.array([[c, -s], [s, c]]))
 
 
-def _uniform_jaccard(box: FloatArray, ref: FloatArray, grid: S.Grid, q: FloatArray, q_full: NDArray[np.bool_] | None, q_total: float = 1.0) -> float:
+def _uniform_jaccard(
+    box: FloatArray,
+    ref: FloatArray,
+    grid: S.Grid,
+    q: FloatArray,
+    q_full: NDArray[np.bool_] | None,
+    q_total: float = 1.0,
+) -> float:
     """Jaccard of the uniform distribution on a deterministic ``box`` and the label mass ``q`` on ``grid``.
 
     The box's share of every cell is exact (polygon clipping), and each partly covered cell is
@@ -273,8 +280,11 @@ def _uniform_jaccard(box: FloatArray, ref: FloatArray, grid: S.Grid, q: FloatArr
     if not Ps:
         return 0.0
     return S.jaccard(
-        np.concatenate(Ps), np.concatenate(Qs), np.concatenate(Cs),
-        p_outside=max(0.0, 1.0 - p_in), q_outside=max(0.0, q_total - q_in),
+        np.concatenate(Ps),
+        np.concatenate(Qs),
+        np.concatenate(Cs),
+        p_outside=max(0.0, 1.0 - p_in),
+        q_outside=max(0.0, q_total - q_in),
     )
 
 
@@ -296,10 +306,14 @@ def _window(grid: S.Grid, quads: list[FloatArray]) -> S.Grid:
     return S.Grid(grid.ref, xe[i0 : i1 + 1], ye[j0 : j1 + 1], grid.z_edges)
 
 
-_UNIT8 = np.array([[0.5, -0.5, -0.5, 0.5, 0.5, -0.5, 0.0, 0.0], [0.5, 0.5, -0.5, -0.5, 0.0, 0.0, 0.5, -0.5]])  # BEV corners, then face midpoints
+_UNIT8 = np.array(
+    [[0.5, -0.5, -0.5, 0.5, 0.5, -0.5, 0.0, 0.0], [0.5, 0.5, -0.5, -0.5, 0.0, 0.0, 0.5, -0.5]]
+)  # BEV corners, then face midpoints
 
 
-def _label_samples_bev(box: FloatArray, cov: FloatArray, params: SpatialParams) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def _label_samples_bev(
+    box: FloatArray, cov: FloatArray, params: SpatialParams
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The label's p_G samples in its own frame, as ``spatial.sample_boxes`` draws them (BEV, φ covariance).
 
     Returns axes (S, 2, 2), centres (S, 2), weights (S,) and the support bounds lo, hi (2,) — the mean
@@ -342,7 +356,9 @@ def _fast_bev_group(task: PairTask, g: int, rows: NDArray[np.int64], out: FloatA
     pts = np.concatenate(quads)
     lo = np.minimum(lo, pts.min(axis=0))
     hi = np.maximum(hi, pts.max(axis=0))
-    cell = min(max(ref[3], ref[4]), float(np.min(np.maximum(boxes[:, 3], boxes[:, 4])))) / max(float(p.cells_per_side), 1.0)
+    cell = min(max(ref[3], ref[4]), float(np.min(np.maximum(boxes[:, 3], boxes[:, 4])))) / max(
+        float(p.cells_per_side), 1.0
+    )
     grid = S.Grid(ref, S.axis_edges(ref[3] / 2, lo[0], hi[0], cell), S.axis_edges(ref[4] / 2, lo[1], hi[1], cell))
     win = _window(grid, quads)
     for k, (b, qd) in enumerate(zip(boxes, quads)):
@@ -399,10 +415,12 @@ def _label_group(task: PairTask, g: int, rows: NDArray[np.int64]) -> FloatArray:
             cen = np.ascontiguousarray(sb.centres, dtype=np.float64)
             w = np.ascontiguousarray(sb.weights, dtype=np.float64)
             for (k, b), qd in zip(uniform, quads):
-                out[k] = _jiou_uniform_bev_kernel(A, cen, w, win.x_edges, win.y_edges, qd, b[3] * b[4], 1.0, C.SUBROWS_PER_CELL)
+                out[k] = _jiou_uniform_bev_kernel(
+                    A, cen, w, win.x_edges, win.y_edges, qd, b[3] * b[4], 1.0, C.SUBROWS_PER_CELL
+                )
         else:
             q = S.rasterise(sb, win)
-            for (k, b) in uniform:
+            for k, b in uniform:
                 out[k] = _uniform_jaccard(b, ref, win, q, q_full)
     if spread:
         q = S.rasterise(sb, grid)
@@ -486,9 +504,18 @@ def pair_jious(
             (
                 idx,
                 PairTask(
-                    model, params, np.ascontiguousarray(gt_boxes[gsel]), np.ascontiguousarray(gt_cov[gsel]),
-                    np.ascontiguousarray(det_boxes[dsel]), None if det_cov is None else np.ascontiguousarray(det_cov[dsel]),
-                    det_cov_on, ginv.astype(np.int64), dinv.astype(np.int64), piou[idx], deterministic, len(tasks),
+                    model,
+                    params,
+                    np.ascontiguousarray(gt_boxes[gsel]),
+                    np.ascontiguousarray(gt_cov[gsel]),
+                    np.ascontiguousarray(det_boxes[dsel]),
+                    None if det_cov is None else np.ascontiguousarray(det_cov[dsel]),
+                    det_cov_on,
+                    ginv.astype(np.int64),
+                    dinv.astype(np.int64),
+                    piou[idx],
+                    deterministic,
+                    len(tasks),
                 ),
             )
         )

@@ -66,7 +66,13 @@ class LabelSet:
 def expected_metadata(dataset: Path, dataset_format: str, cfg: RunConfig) -> dict[str, Any]:
     """The manifest fields an ``infer`` run of ``cfg`` on ``dataset`` would write (for the match check)."""
     inputs = hash_inputs(cfg)
-    return R.run_metadata(inputs["params"], cfg.param_hash(), str(Path(dataset).resolve()), dataset_format, constants_digest=inputs["constants_digest"])
+    return R.run_metadata(
+        inputs["params"],
+        cfg.param_hash(),
+        str(Path(dataset).resolve()),
+        dataset_format,
+        constants_digest=inputs["constants_digest"],
+    )
 
 
 def check_results_match(results: R.Results, dataset: Path, dataset_format: str, cfg: RunConfig) -> None:
@@ -77,9 +83,13 @@ def check_results_match(results: R.Results, dataset: Path, dataset_format: str, 
     """
     where = results.root
     if results.root.is_file() or not results.manifest:
-        raise EvalError(f"{where}: --results needs a results folder with {R.MANIFEST_NAME} (written by `labelaudit infer`), so that its input and parameters can be checked")
+        raise EvalError(
+            f"{where}: --results needs a results folder with {R.MANIFEST_NAME} (written by `labelaudit infer`), so that its input and parameters can be checked"
+        )
     if not results.complete:
-        raise EvalError(f"{where}: the results folder is incomplete (an infer run is in progress or stopped); rerun `labelaudit infer` to finish it")
+        raise EvalError(
+            f"{where}: the results folder is incomplete (an infer run is in progress or stopped); rerun `labelaudit infer` to finish it"
+        )
     classes = tuple((results.manifest.get("params") or {}).get("classes") or cfg.classes)
     expected = expected_metadata(dataset, dataset_format, cfg.with_overrides(classes=classes))
     why = R.resume_mismatch(results.manifest, expected)
@@ -90,7 +100,9 @@ def check_results_match(results: R.Results, dataset: Path, dataset_format: str, 
         )
 
 
-def label_uncertainty(results: R.Results, gt: GroundTruth, needed: NDArray[np.bool_], model: str, source: str = "results") -> LabelSet:
+def label_uncertainty(
+    results: R.Results, gt: GroundTruth, needed: NDArray[np.bool_], model: str, source: str = "results"
+) -> LabelSet:
     """Covariance and JIoU-GT of the needed GT rows from a results folder.
 
     Raises
@@ -109,7 +121,11 @@ def label_uncertainty(results: R.Results, gt: GroundTruth, needed: NDArray[np.bo
     frame_ids = table.column("frame_id").to_pylist()
     obj = table.column("object_index").to_numpy(zero_copy_only=False)
     row_of = {(f, int(o)): i for i, (f, o) in enumerate(zip(frame_ids, obj))}
-    boxes = np.stack([table.column(c).to_numpy(zero_copy_only=False).astype(float) for c in R.BOX_COLUMNS], axis=1) if table.num_rows else np.zeros((0, 7))
+    boxes = (
+        np.stack([table.column(c).to_numpy(zero_copy_only=False).astype(float) for c in R.BOX_COLUMNS], axis=1)
+        if table.num_rows
+        else np.zeros((0, 7))
+    )
     covs = table.column("cov").to_pylist()
     dims = table.column("cov_dim").to_pylist()
     models = table.column("model").to_pylist()
@@ -135,7 +151,9 @@ def label_uncertainty(results: R.Results, gt: GroundTruth, needed: NDArray[np.bo
         status[g] = status_col[r]
         if covs[r] is not None:
             if models[r] != model or dims[r] != p:
-                raise EvalError(f"{results.root}: label covariances of the {models[r]} model, but --metric {model} needs the {model} model (`labelaudit infer --model {model}`)")
+                raise EvalError(
+                    f"{results.root}: label covariances of the {models[r]} model, but --metric {model} needs the {model} model (`labelaudit infer --model {model}`)"
+                )
             cov[g] = np.asarray(covs[r], dtype=float).reshape(p, p)
             jiou_gt[g] = float(jg[r]) if jg[r] is not None else 1.0
     if missing:
@@ -146,7 +164,16 @@ def label_uncertainty(results: R.Results, gt: GroundTruth, needed: NDArray[np.bo
             f"first: frame {gt.frame_ids[frame_of[g]]} object {int(gt.object_index[g])}); audit them with "
             f"`labelaudit infer --classes {','.join(classes)}` (or --classes all), or evaluate fewer --classes"
         )
-    return LabelSet(cov, jiou_gt, status, np.asarray(needed, dtype=bool), model, source, results.root, results.manifest.get("param_hash"))
+    return LabelSet(
+        cov,
+        jiou_gt,
+        status,
+        np.asarray(needed, dtype=bool),
+        model,
+        source,
+        results.root,
+        results.manifest.get("param_hash"),
+    )
 
 
 def infer_labels(

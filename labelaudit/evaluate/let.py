@@ -40,8 +40,16 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = [
-    "LetCurve", "camera_centre", "let_curves", "let_min_iou", "let_origins", "let_records", "longitudinal_affinity",
-    "range_aligned_centres", "score_cutoffs", "waymo_average_precision",
+    "LetCurve",
+    "camera_centre",
+    "let_curves",
+    "let_min_iou",
+    "let_origins",
+    "let_records",
+    "longitudinal_affinity",
+    "range_aligned_centres",
+    "score_cutoffs",
+    "waymo_average_precision",
 ]
 
 
@@ -120,7 +128,9 @@ def range_aligned_centres(G: ArrayLike, P: ArrayLike) -> FloatArray:
     return k[:, None] * p
 
 
-def waymo_average_precision(precision: ArrayLike, recall: ArrayLike, recall_delta: float = C.EVAL_LET_RECALL_DELTA) -> float:
+def waymo_average_precision(
+    precision: ArrayLike, recall: ArrayLike, recall_delta: float = C.EVAL_LET_RECALL_DELTA
+) -> float:
     """Area under a PR curve as Waymo's metrics integrate it (a fraction in [0, 1]).
 
     Each recall keeps its largest precision (recall 0 starts at precision 1); walking from the
@@ -199,7 +209,9 @@ class LetCurve:
         return 100.0 * waymo_average_precision(self.precision(True), self.recall)
 
 
-def _frame_matches(w: IntArray, ok: NDArray[np.bool_], det_scores: FloatArray, cutoffs: FloatArray) -> tuple[IntArray, IntArray]:
+def _frame_matches(
+    w: IntArray, ok: NDArray[np.bool_], det_scores: FloatArray, cutoffs: FloatArray
+) -> tuple[IntArray, IntArray]:
     """One frame: for each score cut-off, the Hungarian matching of the detections scoring at least it.
 
     Parameters
@@ -217,7 +229,7 @@ def _frame_matches(w: IntArray, ok: NDArray[np.bool_], det_scores: FloatArray, c
     """
     from scipy.optimize import linear_sum_assignment
 
-    kept = (det_scores[None, :] >= cutoffs[:, None])  # (K, D)
+    kept = det_scores[None, :] >= cutoffs[:, None]  # (K, D)
     counts = kept.sum(axis=1)
     distinct, subset_of_cutoff = np.unique(counts, return_inverse=True)
     matches = np.full((len(distinct), len(det_scores)), -1, dtype=np.int64)
@@ -278,7 +290,11 @@ def let_curves(
     n_frames = len(origins)
     for cls in classes:
         thr = let_min_iou(cls)
-        gi = np.flatnonzero((gcls == cls.lower()) & np.asarray(gt_in_pool, dtype=bool)) if len(gcls) else np.zeros(0, np.int64)
+        gi = (
+            np.flatnonzero((gcls == cls.lower()) & np.asarray(gt_in_pool, dtype=bool))
+            if len(gcls)
+            else np.zeros(0, np.int64)
+        )
         di = np.flatnonzero(dcls == cls.lower()) if len(dcls) else np.zeros(0, np.int64)
         gi = gi[np.argsort(gt_frame[gi], kind="stable")]  # frame by frame
         di = di[np.argsort(det_frame[di], kind="stable")]
@@ -308,7 +324,9 @@ def let_curves(
             for f in np.unique(f_of[ok]):
                 block = slice(p_off[f], p_off[f + 1])
                 OK = ok[block].reshape(nd[f], ng[f])
-                keep = np.flatnonzero(OK.any(axis=1))  # a detection without a possible match is a false positive at every cut-off
+                keep = np.flatnonzero(
+                    OK.any(axis=1)
+                )  # a detection without a possible match is a false positive at every cut-off
                 OK = OK[keep]
                 W = weight[block].reshape(nd[f], ng[f])[keep]
                 A = aff[block].reshape(nd[f], ng[f])[keep]
@@ -326,7 +344,16 @@ def let_curves(
         fp = n_kept - tp
         for lvl in range(n_levels):
             n_gt = int(counted[lvl, gi].sum())
-            out[(cls, lvl)] = LetCurve(cuts, tp.copy(), fp.astype(np.int64), (n_gt - matched_counted[lvl]).astype(np.int64), sum_a.copy(), n_gt, int(len(di)), thr)
+            out[(cls, lvl)] = LetCurve(
+                cuts,
+                tp.copy(),
+                fp.astype(np.int64),
+                (n_gt - matched_counted[lvl]).astype(np.int64),
+                sum_a.copy(),
+                n_gt,
+                int(len(di)),
+                thr,
+            )
     return out
 
 
@@ -341,9 +368,19 @@ def let_records(curves: dict[tuple[str, int], LetCurve], difficulties: Sequence[
                 ap, note = None, "no ground truth of this class at this difficulty"
             elif c.num_det == 0:
                 note = "no detections of this class: AP 0"
-            out.append({
-                "class": cls, "difficulty": difficulties[lvl], "view": "3d", "metric": metric, "threshold": c.threshold, "interp": LET_INTERP,
-                "ap": None if ap is None else round(float(ap), 4), "num_gt": c.num_gt, "num_det": c.num_det,
-                "max_recall": round(float(c.recall[0]), 6), "note": note,
-            })
+            out.append(
+                {
+                    "class": cls,
+                    "difficulty": difficulties[lvl],
+                    "view": "3d",
+                    "metric": metric,
+                    "threshold": c.threshold,
+                    "interp": LET_INTERP,
+                    "ap": None if ap is None else round(float(ap), 4),
+                    "num_gt": c.num_gt,
+                    "num_det": c.num_det,
+                    "max_recall": round(float(c.recall[0]), 6),
+                    "note": note,
+                }
+            )
     return out

@@ -67,7 +67,12 @@ def _lower(names: Sequence[str]) -> NDArray[np.object_]:
 
 
 def kitti_ignored_gt(
-    class_names: Sequence[str], height: FloatArray, occluded: NDArray[np.integer], truncated: FloatArray, current: str, difficulty: int
+    class_names: Sequence[str],
+    height: FloatArray,
+    occluded: NDArray[np.integer],
+    truncated: FloatArray,
+    current: str,
+    difficulty: int,
 ) -> NDArray[np.int8]:
     """The devkit's ``ignored_gt`` of one frame's (or many frames') GT boxes.
 
@@ -87,7 +92,9 @@ def kitti_ignored_gt(
     names = _lower(class_names)
     cur = current.lower()
     neighbours = {n.lower() for n in C.EVAL_NEIGHBOUR_CLASSES.get(_canonical(current), ())}
-    valid = np.where(names == cur, 1, np.where(np.isin(names, list(neighbours)), 0, -1)) if len(names) else np.zeros(0, int)
+    valid = (
+        np.where(names == cur, 1, np.where(np.isin(names, list(neighbours)), 0, -1)) if len(names) else np.zeros(0, int)
+    )
     h = np.asarray(height, dtype=float)
     hard = (
         (np.asarray(occluded) > C.KITTI_MAX_OCCLUSION[difficulty])
@@ -100,7 +107,9 @@ def kitti_ignored_gt(
     return out
 
 
-def kitti_ignored_det(class_names: Sequence[str], height: FloatArray, current: str, difficulty: int) -> NDArray[np.int8]:
+def kitti_ignored_det(
+    class_names: Sequence[str], height: FloatArray, current: str, difficulty: int
+) -> NDArray[np.int8]:
     """The devkit's ``ignored_det``: 1 when lower than the level's minimum height (any class), 0 when
     of the evaluated class, −1 otherwise. The devkit truncates the height to an integer first; for
     the integer minimum heights that gives the same comparison."""
@@ -111,7 +120,13 @@ def kitti_ignored_det(class_names: Sequence[str], height: FloatArray, current: s
     return out
 
 
-def waymo_ignored_gt(class_names: Sequence[str], level: NDArray[np.integer], num_points: NDArray[np.integer], current: str, difficulty: int) -> NDArray[np.int8]:
+def waymo_ignored_gt(
+    class_names: Sequence[str],
+    level: NDArray[np.integer],
+    num_points: NDArray[np.integer],
+    current: str,
+    difficulty: int,
+) -> NDArray[np.int8]:
     """``ignored_gt`` for Waymo: ``difficulty`` 0 = LEVEL_1 (LEVEL_2 boxes ignored), 1 = LEVEL_2 (all
     counted); boxes without any LiDAR point are ignored at both levels (Waymo drops them)."""
     names = _lower(class_names)
@@ -151,7 +166,9 @@ class FrameBlocks:
     dcov: FloatArray
 
     @classmethod
-    def build(cls, gt_counts: Sequence[int], det_counts: Sequence[int], dc_counts: Sequence[int], dcov: FloatArray) -> "FrameBlocks":
+    def build(
+        cls, gt_counts: Sequence[int], det_counts: Sequence[int], dc_counts: Sequence[int], dcov: FloatArray
+    ) -> "FrameBlocks":
         g = np.asarray(gt_counts, dtype=np.int64)
         d = np.asarray(det_counts, dtype=np.int64)
         m = np.asarray(dc_counts, dtype=np.int64)
@@ -205,7 +222,9 @@ class Cell:
         g_count = cg[blocks.gt_off[1:]] - cg[blocks.gt_off[:-1]]
         d_count = cd[blocks.det_off[1:]] - cd[blocks.det_off[:-1]]
         sub = FrameBlocks.build(g_count, d_count, nm, blocks.dcov[dc_pairs])
-        return cls(sub, pairs.astype(np.int64), gt_rows, det_rows, np.asarray(gt_ign)[gt_rows], np.asarray(det_ign)[det_rows])
+        return cls(
+            sub, pairs.astype(np.int64), gt_rows, det_rows, np.asarray(gt_ign)[gt_rows], np.asarray(det_ign)[det_rows]
+        )
 
 
 @kernel
@@ -264,7 +283,24 @@ def _thresholds(v_desc, n_gt, n_points):  # pragma: no cover - compiled
 
 
 @kernel
-def _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh, assigned, matched, dc_hit):  # pragma: no cover - compiled
+def _match_frame(
+    f,
+    gt_off,
+    det_off,
+    ov_off,
+    ov,
+    dc_off,
+    dcov_off,
+    dcov,
+    gt_ign,
+    det_ign,
+    score,
+    min_ov,
+    thresh,
+    assigned,
+    matched,
+    dc_hit,
+):  # pragma: no cover - compiled
     """Pass 2 on frame f at one score threshold; fills assigned/matched/dc_hit (length D_f); returns tp, fp, fn."""
     g0, g1, d0, d1 = gt_off[f], gt_off[f + 1], det_off[f], det_off[f + 1]
     nd, ng = d1 - d0, g1 - g0
@@ -337,7 +373,9 @@ def _frame_buffers(det_off):  # pragma: no cover - compiled
 
 
 @kernel
-def _second_pass(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresholds):  # pragma: no cover - compiled
+def _second_pass(
+    gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresholds
+):  # pragma: no cover - compiled
     nt = thresholds.shape[0]
     nf = gt_off.shape[0] - 1
     tp = np.zeros(nt, dtype=np.int64)
@@ -348,7 +386,24 @@ def _second_pass(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, de
         if gt_off[f + 1] == gt_off[f] and det_off[f + 1] == det_off[f]:
             continue
         for t in range(nt):
-            a, b, c = _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresholds[t], assigned, matched, dc_hit)
+            a, b, c = _match_frame(
+                f,
+                gt_off,
+                det_off,
+                ov_off,
+                ov,
+                dc_off,
+                dcov_off,
+                dcov,
+                gt_ign,
+                det_ign,
+                score,
+                min_ov,
+                thresholds[t],
+                assigned,
+                matched,
+                dc_hit,
+            )
             tp[t] += a
             fp[t] += b
             fn[t] += c
@@ -356,14 +411,33 @@ def _second_pass(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, de
 
 
 @kernel
-def _assign(gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh):  # pragma: no cover - compiled
+def _assign(
+    gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh
+):  # pragma: no cover - compiled
     nf = gt_off.shape[0] - 1
     nd_all = det_ign.shape[0]
     outcome = np.full(nd_all, 4, dtype=np.int8)
     matched_all = np.full(nd_all, -1, dtype=np.int64)
     assigned, matched, dc_hit = _frame_buffers(det_off)
     for f in range(nf):
-        _match_frame(f, gt_off, det_off, ov_off, ov, dc_off, dcov_off, dcov, gt_ign, det_ign, score, min_ov, thresh, assigned, matched, dc_hit)
+        _match_frame(
+            f,
+            gt_off,
+            det_off,
+            ov_off,
+            ov,
+            dc_off,
+            dcov_off,
+            dcov,
+            gt_ign,
+            det_ign,
+            score,
+            min_ov,
+            thresh,
+            assigned,
+            matched,
+            dc_hit,
+        )
         d0 = det_off[f]
         for j in range(det_off[f + 1] - d0):
             dj = det_ign[d0 + j]
@@ -385,9 +459,25 @@ def _c(a: np.ndarray, dtype: type) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
-def first_pass(blocks: FrameBlocks, ov: FloatArray, gt_ign: NDArray[np.int8], det_ign: NDArray[np.int8], score: FloatArray, min_overlap: float) -> tuple[FloatArray, int]:
+def first_pass(
+    blocks: FrameBlocks,
+    ov: FloatArray,
+    gt_ign: NDArray[np.int8],
+    det_ign: NDArray[np.int8],
+    score: FloatArray,
+    min_overlap: float,
+) -> tuple[FloatArray, int]:
     """Pass 1: scores of the true positives (highest-scoring candidate per GT) and the number of counted GTs."""
-    v, n_gt = _first_pass(blocks.gt_off, blocks.det_off, blocks.ov_off, _c(ov, np.float64), _c(gt_ign, np.int8), _c(det_ign, np.int8), _c(score, np.float64), float(min_overlap))
+    v, n_gt = _first_pass(
+        blocks.gt_off,
+        blocks.det_off,
+        blocks.ov_off,
+        _c(ov, np.float64),
+        _c(gt_ign, np.int8),
+        _c(det_ign, np.int8),
+        _c(score, np.float64),
+        float(min_overlap),
+    )
     return v, int(n_gt)
 
 
@@ -406,24 +496,60 @@ def recall_thresholds(tp_scores: FloatArray, n_gt: int, n_points: int = C.EVAL_R
     return _thresholds(v, int(n_gt), float(n_points))
 
 
-def second_pass(blocks: FrameBlocks, ov: FloatArray, gt_ign: NDArray[np.int8], det_ign: NDArray[np.int8], score: FloatArray, min_overlap: float, thresholds: FloatArray) -> tuple[IntArray, IntArray, IntArray]:
+def second_pass(
+    blocks: FrameBlocks,
+    ov: FloatArray,
+    gt_ign: NDArray[np.int8],
+    det_ign: NDArray[np.int8],
+    score: FloatArray,
+    min_overlap: float,
+    thresholds: FloatArray,
+) -> tuple[IntArray, IntArray, IntArray]:
     """Pass 2: TP, FP, FN summed over frames at each score threshold, each (T,)."""
     if len(thresholds) == 0:
         z = np.zeros(0, dtype=np.int64)
         return z, z, z
     return _second_pass(
-        blocks.gt_off, blocks.det_off, blocks.ov_off, _c(ov, np.float64), blocks.dc_off, blocks.dcov_off, blocks.dcov,
-        _c(gt_ign, np.int8), _c(det_ign, np.int8), _c(score, np.float64), float(min_overlap), _c(thresholds, np.float64),
+        blocks.gt_off,
+        blocks.det_off,
+        blocks.ov_off,
+        _c(ov, np.float64),
+        blocks.dc_off,
+        blocks.dcov_off,
+        blocks.dcov,
+        _c(gt_ign, np.int8),
+        _c(det_ign, np.int8),
+        _c(score, np.float64),
+        float(min_overlap),
+        _c(thresholds, np.float64),
     )
 
 
-def assign(blocks: FrameBlocks, ov: FloatArray, gt_ign: NDArray[np.int8], det_ign: NDArray[np.int8], score: FloatArray, min_overlap: float, thresh: float = -np.inf) -> tuple[NDArray[np.int8], IntArray]:
+def assign(
+    blocks: FrameBlocks,
+    ov: FloatArray,
+    gt_ign: NDArray[np.int8],
+    det_ign: NDArray[np.int8],
+    score: FloatArray,
+    min_overlap: float,
+    thresh: float = -np.inf,
+) -> tuple[NDArray[np.int8], IntArray]:
     """Pass 2 at one score threshold, per detection: outcome code (:data:`OUTCOMES`) and matched GT row (−1 none).
 
     The matched GT is given for true positives and for matches that do not count (ignored GT or
     ignored detection); the index is into the concatenated GT rows.
     """
     return _assign(
-        blocks.gt_off, blocks.det_off, blocks.ov_off, _c(ov, np.float64), blocks.dc_off, blocks.dcov_off, blocks.dcov,
-        _c(gt_ign, np.int8), _c(det_ign, np.int8), _c(score, np.float64), float(min_overlap), float(thresh),
+        blocks.gt_off,
+        blocks.det_off,
+        blocks.ov_off,
+        _c(ov, np.float64),
+        blocks.dc_off,
+        blocks.dcov_off,
+        blocks.dcov,
+        _c(gt_ign, np.int8),
+        _c(det_ign, np.int8),
+        _c(score, np.float64),
+        float(min_overlap),
+        float(thresh),
     )

@@ -162,7 +162,9 @@ def clip_area(P, Q):  # pragma: no cover - compiled
 
 
 @kernel
-def _pairs_kernel(ca, cb, centre_a, centre_b, radius_a, radius_b, za, zb, ia, ib, three_d):  # pragma: no cover - compiled
+def _pairs_kernel(
+    ca, cb, centre_a, centre_b, radius_a, radius_b, za, zb, ia, ib, three_d
+):  # pragma: no cover - compiled
     n = ia.shape[0]
     inter = np.zeros(n)
     for k in range(n):
@@ -222,8 +224,17 @@ def pair_overlaps(
     za = np.ascontiguousarray(np.c_[a[:, 2] - a[:, 5] / 2, a[:, 2] + a[:, 5] / 2])
     zb = np.ascontiguousarray(np.c_[b[:, 2] - b[:, 5] / 2, b[:, 2] + b[:, 5] / 2])
     inter = _pairs_kernel(
-        bev_corners(a), bev_corners(b), np.ascontiguousarray(a[:, :2]), np.ascontiguousarray(b[:, :2]),
-        0.5 * np.hypot(a[:, 3], a[:, 4]), 0.5 * np.hypot(b[:, 3], b[:, 4]), za, zb, ia, ib, three_d,
+        bev_corners(a),
+        bev_corners(b),
+        np.ascontiguousarray(a[:, :2]),
+        np.ascontiguousarray(b[:, :2]),
+        0.5 * np.hypot(a[:, 3], a[:, 4]),
+        0.5 * np.hypot(b[:, 3], b[:, 4]),
+        za,
+        zb,
+        ia,
+        ib,
+        three_d,
     )
     area_a, area_b = box_areas(a, view)[ia], box_areas(b, view)[ib]
     union = area_a + area_b - inter

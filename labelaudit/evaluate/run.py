@@ -227,7 +227,9 @@ def run_eval(request: EvalRequest, progress: Progress | None = None) -> EvalResu
     except TypeError as exc:
         raise EvalError(f"{request.dataset}: option not supported by the {fmt} reader ({exc})") from None
     if gt.num_frames == 0:
-        raise EvalError(f"{request.dataset}: no frames to evaluate (format {fmt}{', split ' + request.split if request.split else ''})")
+        raise EvalError(
+            f"{request.dataset}: no frames to evaluate (format {fmt}{', split ' + request.split if request.split else ''})"
+        )
     progress.stage(f"reading detections {request.detections}")
     dets = read_detections(request.detections, gt, request.detections_format, strict=request.strict, view=request.view)
     failed = {e["frame_id"] for e in dets.errors if e.get("frame_id")}
@@ -246,8 +248,24 @@ def run_eval(request: EvalRequest, progress: Progress | None = None) -> EvalResu
     labels = _labels(request, gt, fmt, cfg, classes, needed, progress)
     timings["labels"] = time.perf_counter() - t1
 
-    result = evaluate(gt, dets, labels, classes, request.view, cfg, workers=request.workers, progress=progress, timings=timings, let=request.let)
-    result.summary["dataset"] = {"path": str(Path(request.dataset).resolve()), "format": fmt, "split": request.split, "limit": request.limit}
+    result = evaluate(
+        gt,
+        dets,
+        labels,
+        classes,
+        request.view,
+        cfg,
+        workers=request.workers,
+        progress=progress,
+        timings=timings,
+        let=request.let,
+    )
+    result.summary["dataset"] = {
+        "path": str(Path(request.dataset).resolve()),
+        "format": fmt,
+        "split": request.split,
+        "limit": request.limit,
+    }
     result.summary["detections_source"] = {"path": str(Path(request.detections).resolve()), "format": dets.format}
     timings["total"] = time.perf_counter() - t0
     result.summary["timings"] = {k: round(v, 3) for k, v in timings.items()}
@@ -275,7 +293,11 @@ def _drop_frames(gt: GroundTruth, dets: Detections, frames: set[str]) -> tuple[G
 
 
 def _rows(off: NDArray[np.int64], keep: Sequence[int]) -> NDArray[np.int64]:
-    return np.concatenate([np.arange(off[i], off[i + 1]) for i in keep]).astype(np.int64) if keep else np.zeros(0, np.int64)
+    return (
+        np.concatenate([np.arange(off[i], off[i + 1]) for i in keep]).astype(np.int64)
+        if keep
+        else np.zeros(0, np.int64)
+    )
 
 
 def _offsets(off: NDArray[np.int64], keep: Sequence[int]) -> NDArray[np.int64]:
@@ -285,23 +307,49 @@ def _offsets(off: NDArray[np.int64], keep: Sequence[int]) -> NDArray[np.int64]:
 def _subset_gt(gt: GroundTruth, keep: Sequence[int]) -> GroundTruth:
     r, dc = _rows(gt.gt_off, keep), _rows(gt.dc_off, keep)
     return replace(
-        gt, frame_ids=[gt.frame_ids[i] for i in keep], gt_off=_offsets(gt.gt_off, keep), boxes=gt.boxes[r],
-        class_names=[gt.class_names[i] for i in r], object_index=gt.object_index[r], height=gt.height[r],
-        occluded=gt.occluded[r], truncated=gt.truncated[r], difficulty=gt.difficulty[r], num_points=gt.num_points[r],
-        distance=gt.distance[r], dc_off=_offsets(gt.dc_off, keep), dontcare=gt.dontcare[dc],
-        calibs=[gt.calibs[i] for i in keep], sources=[gt.sources[i] for i in keep],
+        gt,
+        frame_ids=[gt.frame_ids[i] for i in keep],
+        gt_off=_offsets(gt.gt_off, keep),
+        boxes=gt.boxes[r],
+        class_names=[gt.class_names[i] for i in r],
+        object_index=gt.object_index[r],
+        height=gt.height[r],
+        occluded=gt.occluded[r],
+        truncated=gt.truncated[r],
+        difficulty=gt.difficulty[r],
+        num_points=gt.num_points[r],
+        distance=gt.distance[r],
+        dc_off=_offsets(gt.dc_off, keep),
+        dontcare=gt.dontcare[dc],
+        calibs=[gt.calibs[i] for i in keep],
+        sources=[gt.sources[i] for i in keep],
     )
 
 
 def _subset_dets(d: Detections, keep: Sequence[int]) -> Detections:
     r = _rows(d.det_off, keep)
     return replace(
-        d, det_off=_offsets(d.det_off, keep), boxes=d.boxes[r], class_names=[d.class_names[i] for i in r], scores=d.scores[r],
-        height=d.height[r], cov=None if d.cov is None else d.cov[r], has_cov=d.has_cov[r], source=[d.source[i] for i in r],
+        d,
+        det_off=_offsets(d.det_off, keep),
+        boxes=d.boxes[r],
+        class_names=[d.class_names[i] for i in r],
+        scores=d.scores[r],
+        height=d.height[r],
+        cov=None if d.cov is None else d.cov[r],
+        has_cov=d.has_cov[r],
+        source=[d.source[i] for i in r],
     )
 
 
-def _labels(request: EvalRequest, gt: GroundTruth, fmt: str, cfg: RunConfig, classes: Sequence[str], needed: NDArray[np.bool_], progress: Progress) -> LabelSet:
+def _labels(
+    request: EvalRequest,
+    gt: GroundTruth,
+    fmt: str,
+    cfg: RunConfig,
+    classes: Sequence[str],
+    needed: NDArray[np.bool_],
+    progress: Progress,
+) -> LabelSet:
     from labelaudit.results import open_results
 
     if request.results is not None:
@@ -323,8 +371,17 @@ def _labels(request: EvalRequest, gt: GroundTruth, fmt: str, cfg: RunConfig, cla
         f"{'built-in config' if request.config is None else request.config}, model {request.view}) into {folder}"
     )
     try:
-        results = infer_labels(Path(request.dataset), fmt, cfg_inf, folder, split=request.split, limit=request.limit,
-                               workers=request.workers, progress=progress.infer_progress(), debug=request.debug)
+        results = infer_labels(
+            Path(request.dataset),
+            fmt,
+            cfg_inf,
+            folder,
+            split=request.split,
+            limit=request.limit,
+            workers=request.workers,
+            progress=progress.infer_progress(),
+            debug=request.debug,
+        )
         labels = label_uncertainty(results, gt, needed, request.view, "inferred")
     finally:
         if tmp is not None:
@@ -337,7 +394,9 @@ def _labels(request: EvalRequest, gt: GroundTruth, fmt: str, cfg: RunConfig, cla
 # --------------------------------------------------------------------------- the evaluation proper
 
 
-def _ignored(gt: GroundTruth, dets: Detections, fam: str, cls: str, d: int) -> tuple[NDArray[np.int8], NDArray[np.int8]]:
+def _ignored(
+    gt: GroundTruth, dets: Detections, fam: str, cls: str, d: int
+) -> tuple[NDArray[np.int8], NDArray[np.int8]]:
     if fam == "kitti":
         return (
             kitti_ignored_gt(gt.class_names, gt.height, gt.occluded, gt.truncated, cls, d),
@@ -403,8 +462,18 @@ def pair_ious(gt: GroundTruth, dets: Detections, view: str) -> PairOverlaps:
     return PairOverlaps(pd, pg, iou, blocks)
 
 
-def jiou_overlaps(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Sequence[str], view: str, cfg: RunConfig, pairs: PairOverlaps,
-                  metrics: Sequence[str], workers: int | None, progress: Progress) -> tuple[dict[str, FloatArray], int]:
+def jiou_overlaps(
+    gt: GroundTruth,
+    dets: Detections,
+    labels: LabelSet,
+    classes: Sequence[str],
+    view: str,
+    cfg: RunConfig,
+    pairs: PairOverlaps,
+    metrics: Sequence[str],
+    workers: int | None,
+    progress: Progress,
+) -> tuple[dict[str, FloatArray], int]:
     """The overlap of every pair under each metric (``jiou_deterministic`` added for probabilistic
     detections), and the number of pairs whose JIoU was computed.
 
@@ -417,7 +486,9 @@ def jiou_overlaps(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: 
     grow_gt = cfg.spatial.support_std * corner_std(labels.cov, view)
     grow_det = np.zeros(dets.num)
     if dets.cov is not None:
-        grow_det = cfg.spatial.support_std * (corner_std(dets.cov, view) if dets.cov_on == "phi" else box_cov_corner_std(dets.cov, dets.boxes))
+        grow_det = cfg.spatial.support_std * (
+            corner_std(dets.cov, view) if dets.cov_on == "phi" else box_cov_corner_std(dets.cov, dets.boxes)
+        )
     wanted = np.isin([n.lower() for n in dets.class_names], [c.lower() for c in classes])
     if fam == "kitti":  # a detection lower than the minimum height is ignored, not dropped: it may absorb a GT
         wanted = wanted | (np.trunc(np.abs(dets.height)) < max(C.KITTI_MIN_HEIGHT))
@@ -429,22 +500,53 @@ def jiou_overlaps(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: 
     if with_jiou:
         progress.stage(f"JIoU of {len(cand)} candidate (detection, label) pairs")
     # two certain boxes: JIoU is the IoU handed in (the devkit's, for KITTI)
-    jiou[cand] = pair_jious(view, cfg.spatial, gt.boxes, labels.cov, dets.boxes, dets.cov, dets.cov_on, pg[cand], pd[cand], iou[cand],
-                            workers=workers, progress=progress.pairs)
+    jiou[cand] = pair_jious(
+        view,
+        cfg.spatial,
+        gt.boxes,
+        labels.cov,
+        dets.boxes,
+        dets.cov,
+        dets.cov_on,
+        pg[cand],
+        pd[cand],
+        iou[cand],
+        workers=workers,
+        progress=progress.pairs,
+    )
     jgt = labels.jiou_gt[pg] if len(pg) else np.zeros(0)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(jgt > 0, jiou / jgt, 0.0)
     overlaps = {m: {"iou": iou, "jiou": jiou, "jiou_ratio": ratio}[m] for m in metrics}
     if dets.probabilistic and with_jiou:
         jiou_det = np.zeros(len(pd))
-        jiou_det[cand] = pair_jious(view, cfg.spatial, gt.boxes, labels.cov, dets.boxes, dets.cov, dets.cov_on, pg[cand], pd[cand], iou[cand],
-                                    deterministic=True, workers=workers, progress=progress.pairs)
+        jiou_det[cand] = pair_jious(
+            view,
+            cfg.spatial,
+            gt.boxes,
+            labels.cov,
+            dets.boxes,
+            dets.cov,
+            dets.cov_on,
+            pg[cand],
+            pd[cand],
+            iou[cand],
+            deterministic=True,
+            workers=workers,
+            progress=progress.pairs,
+        )
         overlaps["jiou_deterministic"] = jiou_det
     return overlaps, len(cand)
 
 
-def ap_cells(gt: GroundTruth, dets: Detections, classes: Sequence[str], view: str, blocks: FrameBlocks, overlaps: dict[str, FloatArray]
-             ) -> tuple[list[dict[str, Any]], dict[tuple[str, str, str, float], PrecisionCurve], dict[tuple[str, int], Cell]]:
+def ap_cells(
+    gt: GroundTruth,
+    dets: Detections,
+    classes: Sequence[str],
+    view: str,
+    blocks: FrameBlocks,
+    overlaps: dict[str, FloatArray],
+) -> tuple[list[dict[str, Any]], dict[tuple[str, str, str, float], PrecisionCurve], dict[tuple[str, int], Cell]]:
     """The devkit's two passes for every class × difficulty × metric × threshold cell: AP records
     (R40 and R11), the PR curves and each (class, difficulty)'s :class:`Cell`."""
     fam = family(gt.dataset_format)
@@ -470,7 +572,9 @@ def ap_cells(gt: GroundTruth, dets: Detections, classes: Sequence[str], view: st
     return ap_records, curves, cells
 
 
-def associate(gt: GroundTruth, dets: Detections, classes: Sequence[str], pairs: PairOverlaps) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+def associate(
+    gt: GroundTruth, dets: Detections, classes: Sequence[str], pairs: PairOverlaps
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Which GT row each detection localises (−1 none) and the index of that pair.
 
     The devkit's matching at :data:`~labelaudit.constants.EVAL_ASSOCIATION_MIN_IOU`, where every GT
@@ -481,11 +585,21 @@ def associate(gt: GroundTruth, dets: Detections, classes: Sequence[str], pairs: 
     gt_lower = np.array([n.lower() for n in gt.class_names], dtype=object)
     det_lower = np.array([n.lower() for n in dets.class_names], dtype=object)
     for cls in classes:
-        own = [cls.lower(), *(n.lower() for k, nb in C.EVAL_NEIGHBOUR_CLASSES.items() if k.lower() == cls.lower() for n in nb)]
+        own = [
+            cls.lower(),
+            *(n.lower() for k, nb in C.EVAL_NEIGHBOUR_CLASSES.items() if k.lower() == cls.lower() for n in nb),
+        ]
         gi = np.where(np.isin(gt_lower, own), 0, -1).astype(np.int8)
         di = np.where(det_lower == cls.lower(), 0, -1).astype(np.int8)
         cell = Cell.build(pairs.blocks, gi, di)
-        _, m = assign(cell.blocks, pairs.iou[cell.pairs], cell.gt_ign, cell.det_ign, dets.scores[cell.det_rows], C.EVAL_ASSOCIATION_MIN_IOU)
+        _, m = assign(
+            cell.blocks,
+            pairs.iou[cell.pairs],
+            cell.gt_ign,
+            cell.det_ign,
+            dets.scores[cell.det_rows],
+            C.EVAL_ASSOCIATION_MIN_IOU,
+        )
         hit = m >= 0
         matched_gt[cell.det_rows[hit]] = cell.gt_rows[m[hit]]
     if dets.num:
@@ -498,8 +612,13 @@ def associate(gt: GroundTruth, dets: Detections, classes: Sequence[str], pairs: 
     return matched_gt, matched_pair
 
 
-def outcomes_at_usual_threshold(dets: Detections, classes: Sequence[str], difficulties: Sequence[str], cells: dict[tuple[str, int], Cell],
-                                overlaps: dict[str, FloatArray]) -> dict[str, NDArray[np.int8]]:
+def outcomes_at_usual_threshold(
+    dets: Detections,
+    classes: Sequence[str],
+    difficulties: Sequence[str],
+    cells: dict[tuple[str, int], Cell],
+    overlaps: dict[str, FloatArray],
+) -> dict[str, NDArray[np.int8]]:
     """Per detection, its outcome code (:data:`OUTCOMES`) under each metric and difficulty at its class's usual threshold."""
     det_lower = np.array([n.lower() for n in dets.class_names], dtype=object)
     outcomes: dict[str, NDArray[np.int8]] = {}
@@ -508,7 +627,14 @@ def outcomes_at_usual_threshold(dets: Detections, classes: Sequence[str], diffic
             col = np.full(dets.num, 4, dtype=np.int8)
             for cls in classes:
                 cell = cells[(cls, d)]
-                oc, _ = assign(cell.blocks, overlaps[metric][cell.pairs], cell.gt_ign, cell.det_ign, dets.scores[cell.det_rows], usual_threshold(cls))
+                oc, _ = assign(
+                    cell.blocks,
+                    overlaps[metric][cell.pairs],
+                    cell.gt_ign,
+                    cell.det_ign,
+                    dets.scores[cell.det_rows],
+                    usual_threshold(cls),
+                )
                 own = det_lower[cell.det_rows] == cls.lower()
                 col[cell.det_rows[own]] = oc[own]
             outcomes[f"outcome_{metric}_{dname}"] = col
@@ -559,12 +685,16 @@ def evaluate(
     timings["jiou_pairs"] = float(n_cand)
 
     t2 = time.perf_counter()
-    progress.stage(f"matching: {len(classes)} classes × {len(difficulties)} difficulties × {len(overlaps)} metrics × {len(C.EVAL_MAP_THRESHOLDS)}+ thresholds")
+    progress.stage(
+        f"matching: {len(classes)} classes × {len(difficulties)} difficulties × {len(overlaps)} metrics × {len(C.EVAL_MAP_THRESHOLDS)}+ thresholds"
+    )
     ap_records, curves, cells = ap_cells(gt, dets, classes, view, pairs.blocks, overlaps)
     timings["matching"] = time.perf_counter() - t2
     if let:
         t_let = time.perf_counter()
-        progress.stage(f"LET-3D-AP: Hungarian matching of {len(classes)} classes at {C.EVAL_LET_SCORE_CUTOFFS} score cut-offs")
+        progress.stage(
+            f"LET-3D-AP: Hungarian matching of {len(classes)} classes at {C.EVAL_LET_SCORE_CUTOFFS} score cut-offs"
+        )
         ap_records += let_ap_records(gt, dets, classes)
         timings["let"] = time.perf_counter() - t_let
 
@@ -580,8 +710,10 @@ def evaluate(
         summary["metric"]["let"] = let_parameters(gt, classes)
         outside = int(np.count_nonzero((dets.scores < 0.0) | (dets.scores > 1.0)))
         if outside:
-            summary["notes"].append(f"{outside} detections score outside [0, 1]: LET's score cut-offs are 0, 0.01, …, 1, so scores above 1 count at every cut-off "
-                                    "and negative ones at none; rescale such scores to probabilities for a meaningful LET-3D-AP")
+            summary["notes"].append(
+                f"{outside} detections score outside [0, 1]: LET's score cut-offs are 0, 0.01, …, 1, so scores above 1 count at every cut-off "
+                "and negative ones at none; rescale such scores to probabilities for a meaningful LET-3D-AP"
+            )
     return EvalResult(summary, table, curves, timings)
 
 
@@ -596,24 +728,51 @@ def let_ap_records(gt: GroundTruth, dets: Detections, classes: Sequence[str]) ->
         origins = let_origins(gt.dataset_format, gt.calibs)
     except ValueError as exc:
         raise EvalError(f"--let: {exc}") from None
-    counted = np.stack([_counted_at(gt, fam, d) for d in range(len(DIFFICULTIES[fam]))]) if len(gt.boxes) else np.zeros((len(DIFFICULTIES[fam]), 0), bool)
+    counted = (
+        np.stack([_counted_at(gt, fam, d) for d in range(len(DIFFICULTIES[fam]))])
+        if len(gt.boxes)
+        else np.zeros((len(DIFFICULTIES[fam]), 0), bool)
+    )
     in_pool = gt.num_points != 0 if fam in ("waymo", "av2") else np.ones(len(gt.boxes), bool)
-    curves = let_curves(gt.boxes, gt.frame_of_row, gt.class_names, counted, in_pool, dets.boxes, dets.frame_of_row, dets.class_names, dets.scores, origins, classes)
+    curves = let_curves(
+        gt.boxes,
+        gt.frame_of_row,
+        gt.class_names,
+        counted,
+        in_pool,
+        dets.boxes,
+        dets.frame_of_row,
+        dets.class_names,
+        dets.scores,
+        origins,
+        classes,
+    )
     return let_records(curves, DIFFICULTIES[fam])
 
 
 def let_parameters(gt: GroundTruth, classes: Sequence[str]) -> dict[str, Any]:
     """What the LET records were computed with (``summary.metric.let``)."""
     fam = family(gt.dataset_format)
-    camera = {"kitti": "image_2 camera centre from each frame's calibration (P2)", "waymo": list(C.EVAL_LET_WAYMO_CAMERA), "av2": list(C.EVAL_LET_AV2_CAMERA)}[fam]
+    camera = {
+        "kitti": "image_2 camera centre from each frame's calibration (P2)",
+        "waymo": list(C.EVAL_LET_WAYMO_CAMERA),
+        "av2": list(C.EVAL_LET_AV2_CAMERA),
+    }[fam]
     return {
-        "camera": camera, "tolerance_fraction": C.EVAL_LET_TOLERANCE_FRACTION, "min_tolerance_m": C.EVAL_LET_MIN_TOLERANCE,
-        "min_let_iou": {c: let_min_iou(c) for c in classes}, "score_cutoffs": C.EVAL_LET_SCORE_CUTOFFS, "recall_delta": C.EVAL_LET_RECALL_DELTA,
-        "matching": "Hungarian, maximum sum of LET-IoU x affinity per frame and cut-off", "boxes": "LiDAR/vehicle frame, 3D IoU",
+        "camera": camera,
+        "tolerance_fraction": C.EVAL_LET_TOLERANCE_FRACTION,
+        "min_tolerance_m": C.EVAL_LET_MIN_TOLERANCE,
+        "min_let_iou": {c: let_min_iou(c) for c in classes},
+        "score_cutoffs": C.EVAL_LET_SCORE_CUTOFFS,
+        "recall_delta": C.EVAL_LET_RECALL_DELTA,
+        "matching": "Hungarian, maximum sum of LET-IoU x affinity per frame and cut-off",
+        "boxes": "LiDAR/vehicle frame, 3D IoU",
     }
 
 
-def _ap_record(cls: str, dname: str, view: str, metric: str, t: float, interp: str, curve: PrecisionCurve, n_gt: int, num_det: int) -> dict[str, Any]:
+def _ap_record(
+    cls: str, dname: str, view: str, metric: str, t: float, interp: str, curve: PrecisionCurve, n_gt: int, num_det: int
+) -> dict[str, Any]:
     note = None
     ap: float | None = curve.ap_r40 if interp == "R40" else curve.ap_r11
     if n_gt == 0:
@@ -623,14 +782,30 @@ def _ap_record(cls: str, dname: str, view: str, metric: str, t: float, interp: s
     elif n_gt < C.EVAL_RECALL_POINTS - 1:
         note = f"fewer than {C.EVAL_RECALL_POINTS - 1} GT boxes: the devkit samples recall by true positive, AP is coarse (docs/eval.md)"
     return {
-        "class": cls, "difficulty": dname, "view": view, "metric": metric, "threshold": t, "interp": interp,
-        "ap": None if ap is None else round(float(ap), 4), "num_gt": int(n_gt), "num_det": int(num_det),
-        "max_recall": round(curve.max_recall, 6), "note": note,
+        "class": cls,
+        "difficulty": dname,
+        "view": view,
+        "metric": metric,
+        "threshold": t,
+        "interp": interp,
+        "ap": None if ap is None else round(float(ap), 4),
+        "num_gt": int(n_gt),
+        "num_det": int(num_det),
+        "max_recall": round(curve.max_recall, 6),
+        "note": note,
     }
 
 
-def _mean_overlaps(gt: GroundTruth, dets: Detections, fam: str, classes: Sequence[str], difficulties: Sequence[str], overlaps: dict[str, FloatArray],
-                   matched_gt: NDArray[np.int64], matched_pair: NDArray[np.int64]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+def _mean_overlaps(
+    gt: GroundTruth,
+    dets: Detections,
+    fam: str,
+    classes: Sequence[str],
+    difficulties: Sequence[str],
+    overlaps: dict[str, FloatArray],
+    matched_gt: NDArray[np.int64],
+    matched_pair: NDArray[np.int64],
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Mean overlap of the matched detections per difficulty × distance bin × metric: pooled over the
     evaluated classes (one record per cell, the EVAL_DIR contract's ``mean_overlap``) and per class."""
     pooled: list[dict[str, Any]] = []
@@ -655,15 +830,27 @@ def _mean_overlaps(gt: GroundTruth, dets: Detections, fam: str, classes: Sequenc
                 for metric in metrics:
                     vals = overlaps[metric][matched_pair[in_bin]] if in_bin.any() else np.zeros(0)
                     rec = {
-                        "class": "all" if scope is None else scope, "difficulty": dname, "distance_bin": bname, "metric": metric,
-                        "mean": None if not len(vals) else round(float(np.mean(vals)), 6), "count": int(len(vals)),
+                        "class": "all" if scope is None else scope,
+                        "difficulty": dname,
+                        "distance_bin": bname,
+                        "metric": metric,
+                        "mean": None if not len(vals) else round(float(np.mean(vals)), 6),
+                        "count": int(len(vals)),
                     }
                     (pooled if scope is None else by_class).append(rec)
     return pooled, by_class
 
 
-def _detections_table(gt: GroundTruth, dets: Detections, labels: LabelSet, overlaps: dict[str, FloatArray], matched_gt: NDArray[np.int64],
-                      matched_pair: NDArray[np.int64], outcomes: dict[str, NDArray[np.int8]], difficulties: Sequence[str]) -> pa.Table:
+def _detections_table(
+    gt: GroundTruth,
+    dets: Detections,
+    labels: LabelSet,
+    overlaps: dict[str, FloatArray],
+    matched_gt: NDArray[np.int64],
+    matched_pair: NDArray[np.int64],
+    outcomes: dict[str, NDArray[np.int8]],
+    difficulties: Sequence[str],
+) -> pa.Table:
     n = dets.num
     fr = dets.frame_of_row
     has = matched_gt >= 0
@@ -683,10 +870,16 @@ def _detections_table(gt: GroundTruth, dets: Detections, labels: LabelSet, overl
         cols[name] = pa.array(dets.boxes[:, k] if n else np.zeros(0), pa.float64())
     cols["probabilistic"] = pa.array(dets.has_cov, pa.bool_())
     cols["source"] = pa.array(dets.source, pa.string())
-    cols["matched_object_index"] = pa.array(np.where(has, gt.object_index[mg] if len(gt.object_index) else 0, 0), pa.int32(), mask=~has)
+    cols["matched_object_index"] = pa.array(
+        np.where(has, gt.object_index[mg] if len(gt.object_index) else 0, 0), pa.int32(), mask=~has
+    )
     cols["matched_class"] = pa.array([gt.class_names[g] if h else None for g, h in zip(mg, has)], pa.string())
-    diff_names = {"kitti": {-1: "none", 0: "easy", 1: "moderate", 2: "hard"}, "av2": {1: "all"}}.get(family(gt.dataset_format), {1: "level_1", 2: "level_2"})
-    cols["matched_difficulty"] = pa.array([diff_names.get(int(gt.difficulty[g]), "none") if h else None for g, h in zip(mg, has)], pa.string())
+    diff_names = {"kitti": {-1: "none", 0: "easy", 1: "moderate", 2: "hard"}, "av2": {1: "all"}}.get(
+        family(gt.dataset_format), {1: "level_1", 2: "level_2"}
+    )
+    cols["matched_difficulty"] = pa.array(
+        [diff_names.get(int(gt.difficulty[g]), "none") if h else None for g, h in zip(mg, has)], pa.string()
+    )
     cols["matched_distance"] = masked(gt.distance[mg] if len(gt.distance) else np.zeros(n))
     for name in ("iou", "jiou", "jiou_ratio"):
         if name in overlaps:
@@ -699,8 +892,19 @@ def _detections_table(gt: GroundTruth, dets: Detections, labels: LabelSet, overl
     return pa.table(cols)
 
 
-def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Sequence[str], view: str, cfg: RunConfig, ap_all: list[dict[str, Any]],
-             mean_records: tuple[list[dict[str, Any]], list[dict[str, Any]]], curves: dict[tuple[str, str, str, float], PrecisionCurve], fam: str, n_pairs: int) -> dict[str, Any]:
+def _summary(
+    gt: GroundTruth,
+    dets: Detections,
+    labels: LabelSet,
+    classes: Sequence[str],
+    view: str,
+    cfg: RunConfig,
+    ap_all: list[dict[str, Any]],
+    mean_records: tuple[list[dict[str, Any]], list[dict[str, Any]]],
+    curves: dict[tuple[str, str, str, float], PrecisionCurve],
+    fam: str,
+    n_pairs: int,
+) -> dict[str, Any]:
     difficulties = DIFFICULTIES[fam]
     # the contract's ``ap`` holds the three metrics (and LET with --let); the deterministic baseline of probabilistic
     # detections goes to ``probabilistic_ap`` (same records)
@@ -709,16 +913,31 @@ def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Seque
     maps: list[dict[str, Any]] = []
     for cls in classes:
         for dname in difficulties:
-            for metric in {r["metric"] for r in ap_all} - set(LET_METRICS):  # LET has one threshold: no mean over thresholds
+            for metric in {r["metric"] for r in ap_all} - set(
+                LET_METRICS
+            ):  # LET has one threshold: no mean over thresholds
                 for interp in INTERPS:
-                    sel = [r for r in ap_all if r["class"] == cls and r["difficulty"] == dname and r["metric"] == metric
-                           and r["interp"] == interp and any(abs(r["threshold"] - t) < 1e-9 for t in C.EVAL_MAP_THRESHOLDS)]
+                    sel = [
+                        r
+                        for r in ap_all
+                        if r["class"] == cls
+                        and r["difficulty"] == dname
+                        and r["metric"] == metric
+                        and r["interp"] == interp
+                        and any(abs(r["threshold"] - t) < 1e-9 for t in C.EVAL_MAP_THRESHOLDS)
+                    ]
                     vals = [r["ap"] for r in sel]
-                    maps.append({
-                        "class": cls, "difficulty": dname, "view": view, "metric": metric, "interp": interp,
-                        "map": None if any(v is None for v in vals) or not vals else round(float(np.mean(vals)), 4),
-                        "thresholds": [float(t) for t in C.EVAL_MAP_THRESHOLDS],
-                    })
+                    maps.append(
+                        {
+                            "class": cls,
+                            "difficulty": dname,
+                            "view": view,
+                            "metric": metric,
+                            "interp": interp,
+                            "map": None if any(v is None for v in vals) or not vals else round(float(np.mean(vals)), 4),
+                            "thresholds": [float(t) for t in C.EVAL_MAP_THRESHOLDS],
+                        }
+                    )
     maps.sort(key=lambda r: (r["class"], r["difficulty"], r["metric"], r["interp"]))
     gt_counts = {c: int(sum(1 for n in gt.class_names if n.lower() == c.lower())) for c in classes}
     det_counts = {c: int(sum(1 for n in dets.class_names if n.lower() == c.lower())) for c in classes}
@@ -743,12 +962,18 @@ def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Seque
     notes = []
     if dets.format == "kitti" and dets.frames_without_file:
         shown = ", ".join(dets.frames_without_file[:5])
-        notes.append(f"{len(dets.frames_without_file)} frames have no detection file (no detections, like the devkit): {shown}{' …' if len(dets.frames_without_file) > 5 else ''}")
+        notes.append(
+            f"{len(dets.frames_without_file)} frames have no detection file (no detections, like the devkit): {shown}{' …' if len(dets.frames_without_file) > 5 else ''}"
+        )
     if dets.unknown_frames:
         shown = ", ".join(list(dets.unknown_frames)[:5])
-        notes.append(f"{len(dets.unknown_frames)} frames with {sum(dets.unknown_frames.values())} detections are not in the dataset and were not evaluated: {shown}{' …' if len(dets.unknown_frames) > 5 else ''}")
+        notes.append(
+            f"{len(dets.unknown_frames)} frames with {sum(dets.unknown_frames.values())} detections are not in the dataset and were not evaluated: {shown}{' …' if len(dets.unknown_frames) > 5 else ''}"
+        )
     if labels.without_cov:
-        notes.append(f"{labels.without_cov} GT boxes have no covariance in the label results (skipped or failed there) and count as certain labels (JIoU = IoU)")
+        notes.append(
+            f"{labels.without_cov} GT boxes have no covariance in the label results (skipped or failed there) and count as certain labels (JIoU = IoU)"
+        )
     if counts["failed_frames"]:
         notes.append(f"{counts['failed_frames']} frames could not be read and were left out (see 'errors')")
     for c in classes:
@@ -763,21 +988,51 @@ def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Seque
         for metric in METRICS:
             curve = curves.get((cls, headline, metric, usual_threshold(cls)))  # absent metrics are skipped
             if curve is not None:
-                pr_curves.append({"class": cls, "difficulty": headline, "metric": metric, "threshold": usual_threshold(cls),
-                                  "recall": [round(float(x), 6) for x in curve.recall], "precision": [round(float(x), 6) for x in curve.raw_precision],
-                                  "interpolated_precision": [round(float(x), 6) for x in curve.precision]})
+                pr_curves.append(
+                    {
+                        "class": cls,
+                        "difficulty": headline,
+                        "metric": metric,
+                        "threshold": usual_threshold(cls),
+                        "recall": [round(float(x), 6) for x in curve.recall],
+                        "precision": [round(float(x), 6) for x in curve.raw_precision],
+                        "interpolated_precision": [round(float(x), 6) for x in curve.precision],
+                    }
+                )
     prob = _probabilistic(ap_all, classes, difficulties, view) if ap_baseline else None
     return {
-        "tool": "labelaudit", "tool_version": __version__, "summary_version": SUMMARY_VERSION,
+        "tool": "labelaudit",
+        "tool_version": __version__,
+        "summary_version": SUMMARY_VERSION,
         "metric": {
-            "view": view, "metrics": list(dict.fromkeys(r["metric"] for r in ap_all)), "interp": list(INTERPS), "difficulties": list(difficulties),
-            "headline_difficulty": headline, "map_thresholds": [float(t) for t in C.EVAL_MAP_THRESHOLDS],
-            "usual_thresholds": {c: usual_threshold(c) for c in classes}, "distance_bins": [b[0] for b in distance_bins()],
-            "association_min_iou": C.EVAL_ASSOCIATION_MIN_IOU, "recall_points": C.EVAL_RECALL_POINTS,
-            "spatial": {"cells_per_side": cfg.spatial.cells_per_side, "num_samples": cfg.spatial.num_samples, "support_std": cfg.spatial.support_std},
+            "view": view,
+            "metrics": list(dict.fromkeys(r["metric"] for r in ap_all)),
+            "interp": list(INTERPS),
+            "difficulties": list(difficulties),
+            "headline_difficulty": headline,
+            "map_thresholds": [float(t) for t in C.EVAL_MAP_THRESHOLDS],
+            "usual_thresholds": {c: usual_threshold(c) for c in classes},
+            "distance_bins": [b[0] for b in distance_bins()],
+            "association_min_iou": C.EVAL_ASSOCIATION_MIN_IOU,
+            "recall_points": C.EVAL_RECALL_POINTS,
+            "spatial": {
+                "cells_per_side": cfg.spatial.cells_per_side,
+                "num_samples": cfg.spatial.num_samples,
+                "support_std": cfg.spatial.support_std,
+            },
         },
-        "dataset": {"path": None, "format": gt.dataset_format, "split": None, "limit": None},  # run_eval fills in the path
-        "labels": {"source": labels.source, "path": str(labels.path), "param_hash": labels.param_hash, "model": labels.model},
+        "dataset": {
+            "path": None,
+            "format": gt.dataset_format,
+            "split": None,
+            "limit": None,
+        },  # run_eval fills in the path
+        "labels": {
+            "source": labels.source,
+            "path": str(labels.path),
+            "param_hash": labels.param_hash,
+            "model": labels.model,
+        },
         "classes": list(classes),
         "ap": ap_records,
         "map": maps,
@@ -792,7 +1047,9 @@ def _summary(gt: GroundTruth, dets: Detections, labels: LabelSet, classes: Seque
     }
 
 
-def _probabilistic(ap_records: list[dict[str, Any]], classes: Sequence[str], difficulties: Sequence[str], view: str) -> list[dict[str, Any]]:
+def _probabilistic(
+    ap_records: list[dict[str, Any]], classes: Sequence[str], difficulties: Sequence[str], view: str
+) -> list[dict[str, Any]]:
     """Recall (and AP) at each JIoU threshold with the detections' own distributions vs the same detections as deterministic boxes."""
     idx = {(r["class"], r["difficulty"], r["metric"], r["threshold"], r["interp"]): r for r in ap_records}
     out = []
@@ -803,12 +1060,19 @@ def _probabilistic(ap_records: list[dict[str, Any]], classes: Sequence[str], dif
                 q = idx.get((cls, dname, "jiou_deterministic", t, "R40"))
                 if p is None or q is None:
                     continue
-                out.append({
-                    "class": cls, "difficulty": dname, "view": view, "threshold": t,
-                    "recall_probabilistic": p["max_recall"], "recall_deterministic": q["max_recall"],
-                    "recall_gain": round(p["max_recall"] - q["max_recall"], 6),
-                    "ap_probabilistic": p["ap"], "ap_deterministic": q["ap"],
-                })
+                out.append(
+                    {
+                        "class": cls,
+                        "difficulty": dname,
+                        "view": view,
+                        "threshold": t,
+                        "recall_probabilistic": p["max_recall"],
+                        "recall_deterministic": q["max_recall"],
+                        "recall_gain": round(p["max_recall"] - q["max_recall"], 6),
+                        "ap_probabilistic": p["ap"],
+                        "ap_deterministic": q["ap"],
+                    }
+                )
     return out
 
 

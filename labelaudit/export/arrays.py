@@ -120,5 +120,7 @@ def read_result_arrays(results: str | Path | pa.Table) -> ResultArrays:
     keys = Counter(zip(arrays.frame_id.tolist(), arrays.object_index.tolist()))
     dup = next((k for k, n in keys.items() if n > 1), None)
     if dup is not None:
-        raise ExportError(f"{where}: frame {dup[0]} object_index {dup[1]} appears {keys[dup]} times; results must have one row per object")
+        raise ExportError(
+            f"{where}: frame {dup[0]} object_index {dup[1]} appears {keys[dup]} times; results must have one row per object"
+        )
     return arrays

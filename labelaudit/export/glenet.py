@@ -97,7 +97,9 @@ class GlenetValues:
 
 
 def glenet_values(
-    arrays: ResultArrays, source: str | T.VarianceSource = "model", anchor_sizes: Mapping[str, Sequence[float]] | None = None
+    arrays: ResultArrays,
+    source: str | T.VarianceSource = "model",
+    anchor_sizes: Mapping[str, Sequence[float]] | None = None,
 ) -> GlenetValues:
     """GLENet's variances of every row (rows without get −1 and a reason).
 
@@ -209,7 +211,9 @@ def attach_glenet_dbinfos(
         Not a dict of class → list of entries, or an entry without its frame or ``gt_idx``.
     """
     if not isinstance(dbinfos, dict) or not all(isinstance(v, list) for v in dbinfos.values()):
-        raise ExportError(f"{path}: a gt-database infos file is a dict of class name → list of entries; got {type(dbinfos).__name__}")
+        raise ExportError(
+            f"{path}: a gt-database infos file is a dict of class name → list of entries; got {type(dbinfos).__name__}"
+        )
     by_frame: dict[Any, int] = {}
     for f, info in enumerate(infos):
         by_frame[_frame_key(kind, info)] = f
@@ -272,7 +276,9 @@ def attach_glenet_dbinfos(
     for entry, v in zip(matched, got):
         entry[GLENET_KEY] = v
     with_values = got[:, 0] > 0
-    all_reasons = np.concatenate([np.asarray(r, dtype=object) for r in reasons]) if len(reasons) else np.zeros(0, dtype=object)
+    all_reasons = (
+        np.concatenate([np.asarray(r, dtype=object) for r in reasons]) if len(reasons) else np.zeros(0, dtype=object)
+    )
     stats.update(str(r) or "no value" for r in all_reasons[flat[~with_values]].tolist())
     return {"objects": n, "objects_with_targets": int(with_values.sum()), "reasons": dict(stats)}
 
@@ -285,7 +291,9 @@ def _infos_files(infos: Path, output_dir: Path) -> list[tuple[Path, Path]]:
     if infos.is_dir():
         found = sorted(p for p in infos.glob("*/*.pkl") if p.stem == p.parent.name)
         if not found:
-            raise ExportError(f"{infos}: a folder of infos holds <sequence>/<sequence>.pkl files (OpenPCDet's Waymo layout); found none")
+            raise ExportError(
+                f"{infos}: a folder of infos holds <sequence>/<sequence>.pkl files (OpenPCDet's Waymo layout); found none"
+            )
         return [(p, output_dir / p.relative_to(infos)) for p in found]
     if not infos.is_file():
         raise ExportError(f"{infos}: infos file not found")
@@ -349,7 +357,9 @@ def export_glenet(
     if arrays.manifest and not arrays.manifest.get("complete", True):
         summary.notes.append(f"{results} is incomplete (infer was stopped); objects of frames not yet audited get -1")
     if summary.rows_with_targets == 0:
-        raise ExportError(f"{results}: no result row has values ({reasons_text(summary.rows_without_targets)}); nothing written")
+        raise ExportError(
+            f"{results}: no result row has values ({reasons_text(summary.rows_without_targets)}); nothing written"
+        )
 
     data = [load_infos(src) for src, _ in pairs]
     merged: list[Any] = []
@@ -360,7 +370,9 @@ def export_glenet(
     where = str(infos) if len(pairs) == 1 else f"{infos} ({len(pairs)} files)"
     kind, frames, values, stats = attach_glenet_infos(merged, arrays, gv, where)
     if stats["objects_with_targets"] == 0:
-        raise ExportError(f"{where}: no object of the infos got values ({reasons_text(stats['reasons'])}); nothing written")
+        raise ExportError(
+            f"{where}: no object of the infos got values ({reasons_text(stats['reasons'])}); nothing written"
+        )
     db_data = None
     if dbinfos is not None:
         db_data = load_infos(dbinfos)

@@ -103,7 +103,9 @@ def _openpcdet_frame(info: Any, where: str) -> tuple[str, FrameObjects]:
         raise ExportError(f"{where}: expected a dict with 'point_cloud' and 'annos' (OpenPCDet infos)")
     annos = info.get("annos")
     if not isinstance(annos, dict) or "name" not in annos:
-        raise ExportError(f"{where}: no 'annos' with 'name' (a test-split infos file has no labels to attach targets to)")
+        raise ExportError(
+            f"{where}: no 'annos' with 'name' (a test-split infos file has no labels to attach targets to)"
+        )
     names = [str(n) for n in np.asarray(annos["name"]).reshape(-1).tolist()]
     k = len(names)
     dims = np.asarray(annos.get("dimensions", np.full((k, 3), np.nan)), dtype=float).reshape(k, 3)
@@ -111,7 +113,9 @@ def _openpcdet_frame(info: Any, where: str) -> tuple[str, FrameObjects]:
     if "lidar_sequence" in pc_info or "obj_ids" in annos:
         md = info.get("metadata") or {}
         if "context_name" not in md or "timestamp_micros" not in md:
-            raise ExportError(f"{where}: Waymo infos need 'metadata' with context_name and timestamp_micros to find the frame")
+            raise ExportError(
+                f"{where}: Waymo infos need 'metadata' with context_name and timestamp_micros to find the frame"
+            )
         if "obj_ids" not in annos:
             raise ExportError(f"{where}: Waymo 'annos' have no 'obj_ids' (laser object ids) to align objects by")
         keys: list[Any] = [str(x) for x in np.asarray(annos["obj_ids"]).reshape(-1).tolist()]
@@ -201,7 +205,11 @@ def align_frames(
             results = {}
         present = {k for k in fr.keys if k is not None}
         if first_extra is None:
-            extra_keys = [k for k in results.keys() - present if not (index.key == "object_id" and arrays.class_name[results[k]] == "Unknown")]
+            extra_keys = [
+                k
+                for k in results.keys() - present
+                if not (index.key == "object_id" and arrays.class_name[results[k]] == "Unknown")
+            ]
             if extra_keys:
                 key = min(extra_keys, key=str)
                 what = f"object_index {key}" if index.key == "object_index" else f"object id {key!r}"
@@ -264,7 +272,9 @@ def align_frames(
     return list(rows_out), extra
 
 
-def _gather(targets: ExportTargets, rows: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+def _gather(
+    targets: ExportTargets, rows: NDArray[np.int64]
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     Tn = targets.encoding.size
     std = np.full((len(rows), Tn), np.nan, dtype=np.float32)
     cov = np.full((len(rows), Tn, Tn), np.nan, dtype=np.float32)
@@ -279,7 +289,11 @@ def _gather(targets: ExportTargets, rows: NDArray[np.int64]) -> tuple[NDArray[np
 
 
 def attach_to_infos(
-    infos: Any, fmt: Literal["openpcdet", "mmdet3d"], arrays: ResultArrays, targets: ExportTargets, path: str = "<infos>"
+    infos: Any,
+    fmt: Literal["openpcdet", "mmdet3d"],
+    arrays: ResultArrays,
+    targets: ExportTargets,
+    path: str = "<infos>",
 ) -> tuple[Any, dict[str, Any]]:
     """Add the targets to every object of an infos structure, in the file's own object order (in place).
 
@@ -300,7 +314,9 @@ def attach_to_infos(
         index = ResultIndex(arrays, "object_id" if kind == "waymo" else "object_index")
     else:
         if not isinstance(infos, dict) or "data_list" not in infos:
-            raise ExportError(f"{path}: an mmdet3d v2 info file is a dict with 'metainfo' and 'data_list'; got {type(infos).__name__}")
+            raise ExportError(
+                f"{path}: an mmdet3d v2 info file is a dict with 'metainfo' and 'data_list'; got {type(infos).__name__}"
+            )
         frames = _mmdet3d_frames(infos, path)
         index = ResultIndex(arrays, "object_index")
     rows, extra = align_frames(frames, arrays, targets.reason, index, path)

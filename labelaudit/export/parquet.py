@@ -41,5 +41,9 @@ def targets_to_table(arrays: ResultArrays, targets: ExportTargets) -> pa.Table:
     table = pa.table(cols)
     order = np.lexsort((arrays.object_index, arrays.frame_id.astype(str)))
     table = table.take(pa.array(order))
-    meta = {**targets.metadata(), "results_param_hash": arrays.manifest.get("param_hash"), "results_input": arrays.manifest.get("input")}
+    meta = {
+        **targets.metadata(),
+        "results_param_hash": arrays.manifest.get("param_hash"),
+        "results_input": arrays.manifest.get("input"),
+    }
     return table.replace_schema_metadata({b"labelaudit_export": json.dumps(meta, sort_keys=True).encode()})

@@ -78,7 +78,17 @@ def load_infos(path: str | Path) -> Any:
             return _InfosUnpickler(f, str(path)).load()  # type: ignore[arg-type]
     except UnsafePickleError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, ImportError, IndexError, KeyError, OSError) as exc:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        AttributeError,
+        ImportError,
+        IndexError,
+        KeyError,
+        OSError,
+    ) as exc:
         raise ExportError(f"{path}: not a readable infos pickle ({type(exc).__name__}: {exc})") from None
 
 

@@ -59,9 +59,13 @@ def export_results(
         raise ExportError(f"--dbinfos is for --format glenet; --format {fmt} writes no gt-database file")
     if fmt == "glenet":
         if infos is None:
-            raise ExportError("--format glenet writes copies of the infos files: give them with --infos FILE (and --dbinfos FILE)")
+            raise ExportError(
+                "--format glenet writes copies of the infos files: give them with --infos FILE (and --dbinfos FILE)"
+            )
         if encoding is not None:
-            raise ExportError(f"--encoding {encoding}: --format glenet has its own targets (GLENet's residual variances); drop --encoding")
+            raise ExportError(
+                f"--encoding {encoding}: --format glenet has its own targets (GLENet's residual variances); drop --encoding"
+            )
         return export_glenet(results, output, infos, dbinfos, source=source, anchor_sizes=anchor_sizes)
     if fmt == "parquet" and infos is not None:
         raise ExportError("--infos is for --format openpcdet or mmdet3d; the Parquet output needs none")
@@ -83,9 +87,13 @@ def export_results(
         rows_without_targets=targets.reasons(),
     )
     if arrays.manifest and not arrays.manifest.get("complete", True):
-        summary.notes.append(f"{results} is incomplete (infer was stopped); objects of frames not yet audited have no targets")
+        summary.notes.append(
+            f"{results} is incomplete (infer was stopped); objects of frames not yet audited have no targets"
+        )
     if summary.rows_with_targets == 0:
-        raise ExportError(f"{results}: no result row has targets ({reasons_text(summary.rows_without_targets)}); nothing written")
+        raise ExportError(
+            f"{results}: no result row has targets ({reasons_text(summary.rows_without_targets)}); nothing written"
+        )
     if fmt == "parquet":
         R.write_parquet_atomic(targets_to_table(arrays, targets), output)
         return summary
@@ -95,7 +103,9 @@ def export_results(
         raise ExportError(f"{infos}: this is an {found} infos file, not {fmt}; use --format {found}")
     data, stats = attach_to_infos(data, fmt, arrays, targets, str(infos))
     if stats["objects_with_targets"] == 0:
-        raise ExportError(f"{infos}: no object of the infos got targets ({reasons_text(stats['reasons'])}); nothing written")
+        raise ExportError(
+            f"{infos}: no object of the infos got targets ({reasons_text(stats['reasons'])}); nothing written"
+        )
     dump_infos(data, output)
     summary.infos = str(infos)
     summary.add_infos_stats(stats)

@@ -94,7 +94,9 @@ def _prior_std(arrays: ResultArrays) -> tuple[FloatArray, float]:
         try:
             table[name] = [p["center"], p["center"], p["center"], p["length"], p["width"], p["height"], p["yaw"]]
         except (KeyError, TypeError):
-            raise ExportError(f"results manifest: prior of class {name!r} lacks center/length/width/height/yaw ({p!r})") from None
+            raise ExportError(
+                f"results manifest: prior of class {name!r} lacks center/length/width/height/yaw ({p!r})"
+            ) from None
     default = table["default"]
     return np.array([table.get(c, default) for c in arrays.class_name.tolist()], dtype=float).reshape(-1, 7), weight
 
@@ -122,7 +124,9 @@ def parse_anchor_sizes(specs: Iterable[str]) -> dict[str, tuple[float, float, fl
         except ValueError:
             sizes = ()
         if not sep or not name.strip() or len(sizes) != 3 or not all(math.isfinite(v) and v > 0 for v in sizes):
-            raise ExportError(f"--anchor-size {spec!r}: expected CLASS=l,w,h with three sizes > 0 in metres, e.g. Car=3.9,1.6,1.56")
+            raise ExportError(
+                f"--anchor-size {spec!r}: expected CLASS=l,w,h with three sizes > 0 in metres, e.g. Car=3.9,1.6,1.56"
+            )
         out[name.strip()] = sizes  # type: ignore[assignment]
     return out
 
@@ -225,7 +229,9 @@ def box_covariances(
         missing = np.zeros(n, dtype=bool)
         what = ""
     if what and np.all(missing[audited]) and audited.any():
-        raise ExportError(f"source {src}: the column {what!r} is null in every audited row; rerun `labelaudit infer` with this version")
+        raise ExportError(
+            f"source {src}: the column {what!r} is null in every audited row; rerun `labelaudit infer` with this version"
+        )
     reason[(reason == "") & missing] = f"no {what}"
 
     cov = np.full((n, 7, 7), np.nan)

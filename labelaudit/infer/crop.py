@@ -226,7 +226,9 @@ def _xyz_float64(pts, rows):  # pragma: no cover - compiled
     return out
 
 
-def refine_crop(points: ArrayLike, boxes: ArrayLike, candidates: list[IndexArray], params: CropParams) -> list[IndexArray]:
+def refine_crop(
+    points: ArrayLike, boxes: ArrayLike, candidates: list[IndexArray], params: CropParams
+) -> list[IndexArray]:
     """The indices :func:`crop_frame` ``(points, boxes, params)`` returns, taken from a superset.
 
     Open3D's ``OrientedBoundingBox`` keeps a point p when ``|(p − c)·R[:, a]| ≤ extent_a / 2`` for
@@ -283,11 +285,15 @@ class _BevIndex:
         self.ny = int(np.floor((y1 - self.y0) / cell)) + 1
         nx = int(np.floor((x1 - self.x0) / cell)) + 1
         if pts.dtype in (np.float32, np.float64) and nx * self.ny <= C.CROP_GRID_DENSE_CELLS * max(len(pts), 1024):
-            self.keys, self.index = _counting_sort_cells(pts, float(self.x0), float(self.y0), float(x1), float(y1), float(cell), nx, self.ny)
+            self.keys, self.index = _counting_sort_cells(
+                pts, float(self.x0), float(self.y0), float(x1), float(y1), float(cell), nx, self.ny
+            )
             return
         xy = pts[:, :2].astype(np.float64)
         with np.errstate(invalid="ignore"):
-            keep = np.flatnonzero((xy[:, 0] >= self.x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= self.y0) & (xy[:, 1] <= y1))  # NaN: out
+            keep = np.flatnonzero(
+                (xy[:, 0] >= self.x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= self.y0) & (xy[:, 1] <= y1)
+            )  # NaN: out
         key = self._cells(xy[keep, 0], self.x0) * self.ny + self._cells(xy[keep, 1], self.y0)
         order = np.argsort(key, kind="stable")
         self.keys, self.index = key[order], keep[order]
@@ -383,7 +389,9 @@ def bev_candidates(points: ArrayLike, boxes: ArrayLike, cell: float = C.CROP_GRI
     return _split_by_box(own, idx, len(b))
 
 
-def _inside(pts: NDArray, sel: NDArray[np.float64], rot: NDArray[np.float64], own: IndexArray, idx: IndexArray) -> NDArray[np.bool_]:
+def _inside(
+    pts: NDArray, sel: NDArray[np.float64], rot: NDArray[np.float64], own: IndexArray, idx: IndexArray
+) -> NDArray[np.bool_]:
     """Which (box, point) pairs are inside the box, as :func:`refine_crop` decides, on many boxes at once.
 
     The same float64 operations element for element, except the terms with the zero entries of
@@ -399,14 +407,19 @@ def _inside(pts: NDArray, sel: NDArray[np.float64], rot: NDArray[np.float64], ow
     return inside & (sel[own, 5] > 0)
 
 
-def _crop_pair_by_grid(pts: NDArray, b: NDArray[np.float64], params: CropParams) -> tuple[list[IndexArray], list[IndexArray]]:
+def _crop_pair_by_grid(
+    pts: NDArray, b: NDArray[np.float64], params: CropParams
+) -> tuple[list[IndexArray], list[IndexArray]]:
     """:func:`crop_frame_pair` through the BEV grid: O(N log N + candidates), identical indices.
 
     Boxes go in batches of :data:`~labelaudit.constants.CROP_GRID_BATCH`, so the candidate
     arrays stay a few MB however many boxes a frame has.
     """
     wide = replace(params, margin=max(params.margin, params.fit_margin))
-    sel_w, sel_n = selection_boxes(b, wide.margin, wide.ground_cut), selection_boxes(b, params.margin, params.ground_cut)
+    sel_w, sel_n = (
+        selection_boxes(b, wide.margin, wide.ground_cut),
+        selection_boxes(b, params.margin, params.ground_cut),
+    )
     rot_w, rot_n = rotation_z(sel_w[:, 6]), rotation_z(sel_n[:, 6])
     grid = _BevIndex(pts, sel_w, C.CROP_GRID_CELL)
     owners_w, points_w, owners_n, points_n = [], [], [], []
@@ -427,7 +440,9 @@ def _crop_pair_by_grid(pts: NDArray, b: NDArray[np.float64], params: CropParams)
     return _split_by_box(np.concatenate(owners_n), np.concatenate(points_n), len(b)), fit_indices
 
 
-def crop_frame_pair(points: ArrayLike, boxes: ArrayLike, params: CropParams) -> tuple[list[IndexArray], list[IndexArray]]:
+def crop_frame_pair(
+    points: ArrayLike, boxes: ArrayLike, params: CropParams
+) -> tuple[list[IndexArray], list[IndexArray]]:
     """The model's crop (``params.margin``) and the label-error fit's wider crop (``params.fit_margin``).
 
     One Open3D pass with the wide margin; the narrow crop is refined from it

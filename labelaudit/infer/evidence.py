@@ -52,7 +52,15 @@ from labelaudit.kernels import kernel
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
 
-__all__ = ["BoxEvidence", "ObjectEvidence", "fit_free_space", "frame_evidence", "ground_plane", "label_boxes", "scenery_mask"]
+__all__ = [
+    "BoxEvidence",
+    "ObjectEvidence",
+    "fit_free_space",
+    "frame_evidence",
+    "ground_plane",
+    "label_boxes",
+    "scenery_mask",
+]
 
 
 def fit_free_space(class_name: str, free_space: FreeSpace | None) -> FreeSpace | None:
@@ -107,11 +115,19 @@ class BoxEvidence:
 
     def for_object(self, points: NDArray) -> ObjectEvidence:
         """The :class:`ObjectEvidence` of this box, given the frame's points."""
-        return ObjectEvidence(self.free_space, points[self.near_idx], self.neighbour_points, self.ground_z, self.scenery_points)
+        return ObjectEvidence(
+            self.free_space, points[self.near_idx], self.neighbour_points, self.ground_z, self.scenery_points
+        )
 
 
-def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropParams, others: NDArray | None = None,
-                   ray_mask: NDArray | None = None) -> list[BoxEvidence]:
+def frame_evidence(
+    points: NDArray,
+    boxes: NDArray,
+    origin: NDArray,
+    crop: CropParams,
+    others: NDArray | None = None,
+    ray_mask: NDArray | None = None,
+) -> list[BoxEvidence]:
     """Crops, local ground, neighbours and candidate rays of every box of a frame.
 
     Parameters
@@ -170,23 +186,47 @@ def frame_evidence(points: NDArray, boxes: NDArray, origin: NDArray, crop: CropP
     for j, box in enumerate(b):
         if j % _BATCH == 0:  # the other labels the fit margins of the next boxes can reach (never the box itself)
             bb = b[j : j + _BATCH]
-            reach = np.hypot(bb[:, 3], bb[:, 4])[:, None] / 2 + np.hypot(others[:, 3], others[:, 4])[None, :] / 2 + crop.fit_margin + C.NEIGHBOUR_MARGIN
+            reach = (
+                np.hypot(bb[:, 3], bb[:, 4])[:, None] / 2
+                + np.hypot(others[:, 3], others[:, 4])[None, :] / 2
+                + crop.fit_margin
+                + C.NEIGHBOUR_MARGIN
+            )
             close_all = np.hypot(bb[:, None, 0] - others[None, :, 0], bb[:, None, 1] - others[None, :, 1]) <= reach
             close_all &= ~np.all(bb[:, None, :] == others[None, :, :], axis=2)
         idx = near[j]
         model_idx, fit_idx, n_foreign, n_scenery = _box_crops(
-            near_xyz[j], idx, box, grounds[j], others[close_all[j % _BATCH]], crop.fit_margin, crop.ground_cut,
-            C.NEIGHBOUR_MARGIN, C.SCENERY_VOXEL, sel[j], rotations[j], sel[j, 5] > 0)
+            near_xyz[j],
+            idx,
+            box,
+            grounds[j],
+            others[close_all[j % _BATCH]],
+            crop.fit_margin,
+            crop.ground_cut,
+            C.NEIGHBOUR_MARGIN,
+            C.SCENERY_VOXEL,
+            sel[j],
+            rotations[j],
+            sel[j, 5] > 0,
+        )
         fs = FreeSpace(
-            origin=o, ends=ray_ends[j], ground=planes[j], ref=box[:2].copy(),
-            slab=(slab_list[j][0], slab_list[j][1]), tolerance=tau, inside_tolerance=tau_in, object_height=crop.ground_cut,
+            origin=o,
+            ends=ray_ends[j],
+            ground=planes[j],
+            ref=box[:2].copy(),
+            slab=(slab_list[j][0], slab_list[j][1]),
+            tolerance=tau,
+            inside_tolerance=tau_in,
+            object_height=crop.ground_cut,
         )
         out.append(BoxEvidence(model_idx, fit_idx, idx, fs, ground_list[j], int(n_foreign), int(n_scenery)))
     return out
 
 
 @kernel
-def _box_crops(xyz, idx, box, plane, others, fit_margin, cut, nb_margin, cell, sel, R, with_model):  # pragma: no cover - compiled
+def _box_crops(
+    xyz, idx, box, plane, others, fit_margin, cut, nb_margin, cell, sel, R, with_model
+):  # pragma: no cover - compiled
     """One box's crops from its neighbourhood (n, 3) and indices ``idx`` (n,): the model's crop
     (:func:`_open3d_inside` of the selection box ``sel``, rotation ``R``; none unless ``with_model``)
     without other labels' points, the fit's crop (:func:`_box_kernel`), and the number of points
@@ -241,7 +281,11 @@ def _open3d_inside(xyz, sel, R):  # pragma: no cover - compiled
                 break
         out[k] = ok
     return out
-_BATCH = 256  # boxes per batch of the neighbour search (bounds its (batch, labels) arrays in frames of thousands of boxes)
+
+
+_BATCH = (
+    256  # boxes per batch of the neighbour search (bounds its (batch, labels) arrays in frames of thousands of boxes)
+)
 
 
 @kernel
@@ -279,7 +323,11 @@ def _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags
                     o_have[j] = True
                 co, so = o_cos[j], o_sin[j]
                 ex, ey = xyz[k, 0] - o[0], xyz[k, 1] - o[1]
-                if abs(co * ex + so * ey) <= 0.5 * o[3] + nb_margin and abs(-so * ex + co * ey) <= 0.5 * o[4] + nb_margin and abs(z - o[2]) <= 0.5 * o[5]:
+                if (
+                    abs(co * ex + so * ey) <= 0.5 * o[3] + nb_margin
+                    and abs(-so * ex + co * ey) <= 0.5 * o[4] + nb_margin
+                    and abs(z - o[2]) <= 0.5 * o[5]
+                ):
                     foreign = True
                     break
         f = 0
@@ -379,8 +427,18 @@ def ground_plane(xyz: FloatArray, box: FloatArray) -> FloatArray | None:
     call (:func:`_ground_kernel`), ~0.05 ms.
     """
     out = np.empty(3)
-    ok = _ground_kernel(np.ascontiguousarray(xyz, dtype=np.float64), np.asarray(box, dtype=float), _GROUND_DRAWS, C.GROUND_SCORED,
-                        C.GROUND_MARGIN, C.GROUND_WINDOW, C.GROUND_INLIER, C.GROUND_MIN_POINTS, C.GROUND_MAX_SLOPE, out)
+    ok = _ground_kernel(
+        np.ascontiguousarray(xyz, dtype=np.float64),
+        np.asarray(box, dtype=float),
+        _GROUND_DRAWS,
+        C.GROUND_SCORED,
+        C.GROUND_MARGIN,
+        C.GROUND_WINDOW,
+        C.GROUND_INLIER,
+        C.GROUND_MIN_POINTS,
+        C.GROUND_MAX_SLOPE,
+        out,
+    )
     return out if ok else None
 
 
@@ -389,7 +447,9 @@ _GROUND_DRAWS = np.random.default_rng(0).random((C.GROUND_HYPOTHESES, 4))
 
 
 @kernel
-def _ground_kernel(xyz, box, draws, scored, margin, window, inlier, min_points, max_slope, out):  # pragma: no cover - compiled
+def _ground_kernel(
+    xyz, box, draws, scored, margin, window, inlier, min_points, max_slope, out
+):  # pragma: no cover - compiled
     c, s = math.cos(box[6]), math.sin(box[6])
     hl, hw = 0.5 * box[3], 0.5 * box[4]
     bottom = box[2] - 0.5 * box[5]
@@ -400,14 +460,22 @@ def _ground_kernel(xyz, box, draws, scored, margin, window, inlier, min_points, 
         dx, dy = xyz[k, 0] - box[0], xyz[k, 1] - box[1]
         lx, ly = abs(c * dx + s * dy), abs(-s * dx + c * dy)
         z = xyz[k, 2]
-        if lx > hl + margin or ly > hw + margin or (lx <= hl and ly <= hw) or z < bottom - window or z > bottom + 0.5 * window:
+        if (
+            lx > hl + margin
+            or ly > hw + margin
+            or (lx <= hl and ly <= hw)
+            or z < bottom - window
+            or z > bottom + 0.5 * window
+        ):
             continue
         cand[n, 0], cand[n, 1], cand[n, 2] = dx, dy, z
         n += 1
     if n < min_points:
         return False
     stride = max(1, n // scored)
-    ns = (n + stride - 1) // stride  # the scored candidates, copied contiguous so the count loops vectorise (integer counts: exact)
+    ns = (
+        n + stride - 1
+    ) // stride  # the scored candidates, copied contiguous so the count loops vectorise (integer counts: exact)
     sx, sy, sz = np.empty(ns), np.empty(ns), np.empty(ns)
     for t in range(ns):
         sx[t], sy[t], sz[t] = cand[t * stride, 0], cand[t * stride, 1], cand[t * stride, 2]

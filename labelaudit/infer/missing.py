@@ -77,7 +77,9 @@ class Cluster:
 
 
 @kernel
-def _ground_grid(xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop, slope_floor):  # pragma: no cover - compiled
+def _ground_grid(
+    xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop, slope_floor
+):  # pragma: no cover - compiled
     """Ground height per cell (n, n) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
     high the sensor sees at a range (a tilted sensor sees higher on one side than on the other).
@@ -167,7 +169,9 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
 
 
 @kernel
-def _occupancy(xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, y0, cell, nx, ny, lo, hi, tall):  # pragma: no cover - compiled
+def _occupancy(
+    xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, y0, cell, nx, ny, lo, hi, tall
+):  # pragma: no cover - compiled
     """The returns in the search band — their indices, cells (flat index) and heights above the
     ground, (B,) each — and per cell the band returns (nx, ny) and the returns above the band up to
     ``tall``. All around the sensor, whatever the labelled region: a wall that leaves the camera's
@@ -292,7 +296,9 @@ def _comp_extras(xyz, band_idx, band_cell, band_h, comp_flat, k, ox, oy):  # pra
 
 
 @kernel
-def _merge_fragments(stats, extras, min_points, gap, overlap, side_gap, max_extent, cell):  # pragma: no cover - compiled
+def _merge_fragments(
+    stats, extras, min_points, gap, overlap, side_gap, max_extent, cell
+):  # pragma: no cover - compiled
     """Group id per component: fragments of one object seen through gaps of returns are joined
     when the joined footprint stays within ``max_extent`` (m; cells of ``cell`` m) and either one lies
     behind the other within ``gap`` metres of range with azimuth intervals overlapping by at least
@@ -316,7 +322,15 @@ def _merge_fragments(stats, extras, min_points, gap, overlap, side_gap, max_exte
                 rb = parent[rb]
             if ra == rb:
                 continue
-            near = max(stats[a, 3] - stats[b, 4], stats[b, 3] - stats[a, 4], stats[a, 5] - stats[b, 6], stats[b, 5] - stats[a, 6]) <= side_gap
+            near = (
+                max(
+                    stats[a, 3] - stats[b, 4],
+                    stats[b, 3] - stats[a, 4],
+                    stats[a, 5] - stats[b, 6],
+                    stats[b, 5] - stats[a, 6],
+                )
+                <= side_gap
+            )
             if not near and (extras[b, 3] - extras[a, 4] > gap or extras[a, 3] - extras[b, 4] > gap):
                 continue
             d = 0.0
@@ -460,8 +474,16 @@ def _ramp(x: float, lo: float, hi: float) -> float:
     return min(1.0, max(0.0, (x - lo) / (hi - lo)))
 
 
-def _size_match(vis_l: float, vis_w: float, top: float, top_seen: bool, ceiling: float, mean: tuple[float, float, float],
-                largest: tuple[float, float, float], gap: float = 0.0) -> float:
+def _size_match(
+    vis_l: float,
+    vis_w: float,
+    top: float,
+    top_seen: bool,
+    ceiling: float,
+    mean: tuple[float, float, float],
+    largest: tuple[float, float, float],
+    gap: float = 0.0,
+) -> float:
     """How well visible extents (m) and the seen top (m above ground) fit a class: 1 inside its
     largest size, falling to 0 at ``MISSING_SIZE_SLACK`` beyond. Returns that reach as high as the
     beams go at that range (``top_seen`` false) while the beams there (``ceiling``, m above ground)
@@ -522,13 +544,28 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     gcell = C.MISSING_GROUND_CELL
     gn = int(math.ceil(2 * reach / gcell))
     gx0, gy0 = ox - reach, oy - reach
-    ground, top_slope = _ground_grid(xyz, ox, oy, oz, gx0, gy0, gcell, gn, reach * reach, C.MISSING_GROUND_RANK, C.MISSING_CEILING_BINS, C.MISSING_GROUND_DROP,
-                                     math.tan(math.radians(C.MISSING_CEILING_FLOOR)))
+    ground, top_slope = _ground_grid(
+        xyz,
+        ox,
+        oy,
+        oz,
+        gx0,
+        gy0,
+        gcell,
+        gn,
+        reach * reach,
+        C.MISSING_GROUND_RANK,
+        C.MISSING_CEILING_BINS,
+        C.MISSING_GROUND_DROP,
+        math.tan(math.radians(C.MISSING_CEILING_FLOOR)),
+    )
     cell = C.MISSING_CELL
     x0, y0 = ox - reach, oy - reach
     x1, y1 = ox + reach, oy + reach
     view = frame.image_view
-    if view is not None:  # a camera looking along +x (KITTI): the grid need not reach behind it (but walls run on past its edge)
+    if (
+        view is not None
+    ):  # a camera looking along +x (KITTI): the grid need not reach behind it (but walls run on past its edge)
         d = np.asarray(view.projection, dtype=float)[2, :3]
         if d[0] > C.MISSING_FORWARD_COS * float(np.linalg.norm(d)):
             x0 = ox - C.MISSING_CONTINUATION - C.MISSING_EGO_RADIUS
@@ -536,16 +573,43 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
     mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
     lo, hi = C.MISSING_BAND
-    band_idx, band_cell, band_h, counts, over = _occupancy(xyz, ox, oy, C.MISSING_EGO_RADIUS ** 2, (params.max_range + C.MISSING_CONTINUATION) ** 2, ground,
-                                               gx0, gy0, gcell, gn, mask, x0, y0, cell, nx, ny, lo, hi, C.MISSING_TALL)
+    band_idx, band_cell, band_h, counts, over = _occupancy(
+        xyz,
+        ox,
+        oy,
+        C.MISSING_EGO_RADIUS**2,
+        (params.max_range + C.MISSING_CONTINUATION) ** 2,
+        ground,
+        gx0,
+        gy0,
+        gcell,
+        gn,
+        mask,
+        x0,
+        y0,
+        cell,
+        nx,
+        ny,
+        lo,
+        hi,
+        C.MISSING_TALL,
+    )
     comp, stats = _components(counts, over, np.flatnonzero(counts))
     if len(stats) == 0:
         return []
     extras = _comp_extras(xyz, band_idx, band_cell, band_h, comp.ravel(), len(stats), ox, oy)
     largest = max(v[1][0] for v in sizes.values())
     max_diag = math.hypot(largest, 3.0) + C.MISSING_SIZE_SLACK
-    group = _merge_fragments(stats, extras, C.MISSING_FRAGMENT_POINTS, C.MISSING_MERGE_GAP, C.MISSING_MERGE_OVERLAP,
-                             C.MISSING_MERGE_SIDE_CELLS, max_diag, cell)
+    group = _merge_fragments(
+        stats,
+        extras,
+        C.MISSING_FRAGMENT_POINTS,
+        C.MISSING_MERGE_GAP,
+        C.MISSING_MERGE_OVERLAP,
+        C.MISSING_MERGE_SIDE_CELLS,
+        max_diag,
+        cell,
+    )
     k = len(stats)
     roots = np.unique(group)
     g_points = np.bincount(group, weights=stats[:, 0], minlength=k)[roots]
@@ -569,7 +633,9 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         probe = np.zeros((len(roots), 7))
         probe[:, 0], probe[:, 1] = sx / np.maximum(g_points, 1), sy / np.maximum(g_points, 1)
         probe[:, 3:6] = 1.0
-        keep &= in_labelled_region(probe, frame, params.max_range + C.MISSING_REGION_SLACK, dontcare=False, slack_px=C.MISSING_IMAGE_SLACK)
+        keep &= in_labelled_region(
+            probe, frame, params.max_range + C.MISSING_REGION_SLACK, dontcare=False, slack_px=C.MISSING_IMAGE_SLACK
+        )
     chosen_roots = roots[keep]
     if len(chosen_roots) == 0:
         return []
@@ -583,12 +649,25 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     rays_per_rad2 = _rays_per_rad2(xyz, ox, oy, oz)
     out = []
     g_total = np.bincount(group, weights=stats[:, 0], minlength=k)
-    solid = g_total[group] >= C.MISSING_FRAGMENT_POINTS  # components of groups with a few returns at least (not stray ones)
+    solid = (
+        g_total[group] >= C.MISSING_FRAGMENT_POINTS
+    )  # components of groups with a few returns at least (not stray ones)
     owner = np.where(comp >= 0, np.where(solid, group, -1)[np.maximum(comp, 0)], -1)  # the group of every occupied cell
     grid = (owner, x0, y0, cell)
     for s in range(len(chosen)):
-        pos = order[starts[s]:starts[s + 1]]
-        cl = _box_cluster(xyz[band_idx[pos]].astype(float), band_h[pos], sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, int(chosen[s]))
+        pos = order[starts[s] : starts[s + 1]]
+        cl = _box_cluster(
+            xyz[band_idx[pos]].astype(float),
+            band_h[pos],
+            sizes,
+            ox,
+            oy,
+            oz,
+            top_slope,
+            rays_per_rad2,
+            grid,
+            int(chosen[s]),
+        )
         if cl is not None:
             out.append(cl)
     return out
@@ -602,8 +681,20 @@ def _rays_per_rad2(xyz: NDArray, ox: float, oy: float, oz: float) -> float:
     return len(xyz) / max(2 * np.pi * float(hi - lo), 1e-6)
 
 
-def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1: float, b1: float, a2: float, b2: float, along1: bool,
-               po: float, qo: float) -> bool:
+def _continues(
+    grid: tuple,
+    own: int,
+    centre: FloatArray,
+    c: float,
+    s: float,
+    a1: float,
+    b1: float,
+    a2: float,
+    b2: float,
+    along1: bool,
+    po: float,
+    qo: float,
+) -> bool:
     """Whether the cluster's longer face (the side facing the sensor, at ``po``, ``qo`` in the
     cluster's frame) goes on beyond it through returns of other clusters no label explains: a
     stretch of a wall or a hedge, not an object of its own."""
@@ -633,7 +724,11 @@ def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1
                 along |= hit
                 cells.update(zip(ii[hit].tolist(), jj[hit].tolist()))
         # the returns must run along the line (a wall going on), not cross it (a wall behind, square to the face)
-        if len(cells) >= C.MISSING_CONTINUATION_CELLS and np.any(along) and np.ptp(ts[along]) >= C.MISSING_CONTINUATION_RUN:
+        if (
+            len(cells) >= C.MISSING_CONTINUATION_CELLS
+            and np.any(along)
+            and np.ptp(ts[along]) >= C.MISSING_CONTINUATION_RUN
+        ):
             return True
     # a corner: at an end of the face, other returns run away from the sensor, square to the face
     # (the end wall of a building whose front the cluster is), deeper than a vehicle is wide
@@ -642,11 +737,15 @@ def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1
     if along1:
         q = a2 if qo < 0.5 * (a2 + b2) else b2
         away = 1.0 if q == a2 else -1.0
-        corners = [(e + across[:, None] + 0.0 * ts[None, :], q + away * ts[None, :] + 0.0 * across[:, None]) for e in (a1, b1)]
+        corners = [
+            (e + across[:, None] + 0.0 * ts[None, :], q + away * ts[None, :] + 0.0 * across[:, None]) for e in (a1, b1)
+        ]
     else:
         p = a1 if po < 0.5 * (a1 + b1) else b1
         away = 1.0 if p == a1 else -1.0
-        corners = [(p + away * ts[None, :] + 0.0 * across[:, None], e + across[:, None] + 0.0 * ts[None, :]) for e in (a2, b2)]
+        corners = [
+            (p + away * ts[None, :] + 0.0 * across[:, None], e + across[:, None] + 0.0 * ts[None, :]) for e in (a2, b2)
+        ]
     depth = np.broadcast_to(ts[None, :], (5, len(ts)))
     for p, q in corners:
         x = centre[0] + c * p - s * q
@@ -660,8 +759,18 @@ def _continues(grid: tuple, own: int, centre: FloatArray, c: float, s: float, a1
     return False
 
 
-def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: float, oz: float, top_slope: float, rays_per_rad2: float,
-                 grid: tuple | None = None, own: int = -1) -> Cluster | None:
+def _box_cluster(
+    xyz: FloatArray,
+    h: FloatArray,
+    sizes: dict,
+    ox: float,
+    oy: float,
+    oz: float,
+    top_slope: float,
+    rays_per_rad2: float,
+    grid: tuple | None = None,
+    own: int = -1,
+) -> Cluster | None:
     """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,))."""
     centre = xyz[:, :2].mean(axis=0)
     xy = np.ascontiguousarray(xyz[:, :2] - centre)
@@ -675,19 +784,30 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: flo
     near = float(np.min(np.hypot(xyz[:, 0] - ox, xyz[:, 1] - oy)))
     ground_z = float(np.median(xyz[:, 2] - h))
     nb = len(top_slope)
-    bins = np.minimum(nb - 1, ((np.arctan2(xyz[:, 1] - oy, xyz[:, 0] - ox) + np.pi) / (2 * np.pi) * nb).astype(np.int64))
+    bins = np.minimum(
+        nb - 1, ((np.arctan2(xyz[:, 1] - oy, xyz[:, 0] - ox) + np.pi) / (2 * np.pi) * nb).astype(np.int64)
+    )
     # the lowest top beam over the cluster's directions, but no lower than the sensor's tilt allows
     # below its highest: a direction whose top beams hit nothing (open sky) holds only lower beams
     highest = float(np.max(top_slope))
-    slope = max(float(np.min(top_slope[np.unique(bins)])), math.tan(math.atan(highest) - math.radians(C.MISSING_CEILING_SPREAD)))
-    ceiling = (oz - ground_z) + near * slope  # the highest the beams reach at the cluster's nearest range, above the ground
+    slope = max(
+        float(np.min(top_slope[np.unique(bins)])), math.tan(math.atan(highest) - math.radians(C.MISSING_CEILING_SPREAD))
+    )
+    ceiling = (
+        oz - ground_z
+    ) + near * slope  # the highest the beams reach at the cluster's nearest range, above the ground
     top_seen = top < ceiling - C.MISSING_TOP_CLEARANCE
     vis_l, vis_w = max(e1, e2), min(e1, e2)
     # the smallest class that explains the visible extents (a larger one fits any fragment of a
     # smaller and would place the box far off), else the best-fitting one
     gap = near * math.tan(math.radians(C.MISSING_BEAM_GAP))
-    fits = [(_size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap), name) for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])]
-    size_score, best_name = next(((m, name) for m, name in fits if m >= C.MISSING_CLASS_FIT), max(fits, key=lambda f: f[0]))  # ties: the smaller
+    fits = [
+        (_size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap), name)
+        for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])
+    ]
+    size_score, best_name = next(
+        ((m, name) for m, name in fits if m >= C.MISSING_CLASS_FIT), max(fits, key=lambda f: f[0])
+    )  # ties: the smaller
     mean, _ = sizes[best_name]
     # which axis is the length: the longer visible one, unless both fit in a width (a car seen
     # head-on or from behind): then the axis nearer the line of sight
@@ -706,7 +826,10 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: flo
     shape_score = _ramp(share, *C.MISSING_FACE_SHARE)
     rect = np.array([[a1, a2], [b1, a2], [b1, b2], [a1, b2]])
     corners = centre + rect @ np.array([[c, s], [-s, c]])
-    density_score = _ramp(_fill(len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2), *C.MISSING_FILL)
+    density_score = _ramp(
+        _fill(len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2),
+        *C.MISSING_FILL,
+    )
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo):
         shape_score = 0.0
@@ -716,7 +839,9 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, sizes: dict, ox: float, oy: flo
 # --------------------------------------------------------------------------- where labels exist
 
 
-def in_labelled_region(boxes: FloatArray, frame: Frame, max_range: float, *, dontcare: bool = True, slack_px: float = 0.0) -> NDArray[np.bool_]:
+def in_labelled_region(
+    boxes: FloatArray, frame: Frame, max_range: float, *, dontcare: bool = True, slack_px: float = 0.0
+) -> NDArray[np.bool_]:
     """(K,) whether each box lies where the dataset labels objects.
 
     Every format: BEV distance of the centre from the sensor ≤ ``max_range`` and beyond the ego zone
@@ -767,7 +892,9 @@ def with_free_space(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> li
     o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
     boxes = np.array([c.box for c in clusters])
     with np.errstate(all="ignore"):
-        evidence = frame_evidence(frame.points, boxes, o, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask)
+        evidence = frame_evidence(
+            frame.points, boxes, o, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask
+        )
         out = []
         for c, ev in zip(clusters, evidence):
             box = c.box
@@ -814,7 +941,9 @@ def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | Non
     rows: list[dict[str, Any]] = []
     for c in clusters:
         iou = _max_iou(c.box, regions)
-        if iou >= C.MISSING_LABEL_IOU:  # a label covers it, only not where its returns are: a wrong label (label_error), not a missing one
+        if (
+            iou >= C.MISSING_LABEL_IOU
+        ):  # a label covers it, only not where its returns are: a wrong label (label_error), not a missing one
             continue
         rows.append(_row(frame, cfg, c.box, c.class_name, c.num_points, c.score, "points", c, iou))
     if detections is not None and len(detections.scores):
@@ -827,18 +956,30 @@ def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | Non
             det_score = float(min(1.0, max(0.0, detections.scores[k])))
             match = None
             for r in rows:
-                if r["source"] == "points" and bev_iou_exact(box, np.array([r[f] for f in g.BOX_FIELDS])) >= C.MISSING_MERGE_IOU:
+                if (
+                    r["source"] == "points"
+                    and bev_iou_exact(box, np.array([r[f] for f in g.BOX_FIELDS])) >= C.MISSING_MERGE_IOU
+                ):
                     match = r
                     break
-            evidence = {"detection_score": float(detections.scores[k]), "detection_class": detections.class_names[k],
-                        "detection_source": detections.sources[k]}
+            evidence = {
+                "detection_score": float(detections.scores[k]),
+                "detection_class": detections.class_names[k],
+                "detection_source": detections.sources[k],
+            }
             if match is not None:
                 both = 1.0 - (1.0 - match["score"]) * (1.0 - det_score)
-                match.update(dict(zip(g.BOX_FIELDS, box.tolist())), score=both, source="both", max_label_iou=iou, **evidence)
+                match.update(
+                    dict(zip(g.BOX_FIELDS, box.tolist())), score=both, source="both", max_label_iou=iou, **evidence
+                )
                 match["distance"] = float(math.hypot(box[0] - o[0], box[1] - o[1]))
             else:
                 n = _points_in_box(frame.points, box)
-                cls = detections.class_names[k] if detections.class_names[k] in class_sizes(cfg) else _nearest_class(box, cfg)
+                cls = (
+                    detections.class_names[k]
+                    if detections.class_names[k] in class_sizes(cfg)
+                    else _nearest_class(box, cfg)
+                )
                 row = _row(frame, cfg, box, cls, n, det_score, "detections", None, iou)
                 row.update(evidence)
                 rows.append(row)
@@ -863,8 +1004,17 @@ def _points_in_box(points: NDArray, box: FloatArray) -> int:
     return int(inside.sum())
 
 
-def _row(frame: Frame, cfg: RunConfig, box: FloatArray, class_name: str, num_points: int, score: float, source: str,
-         cluster: Cluster | None, max_label_iou: float) -> dict[str, Any]:
+def _row(
+    frame: Frame,
+    cfg: RunConfig,
+    box: FloatArray,
+    class_name: str,
+    num_points: int,
+    score: float,
+    source: str,
+    cluster: Cluster | None,
+    max_label_iou: float,
+) -> dict[str, Any]:
     o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
     labels = np.asarray(frame.boxes, dtype=float).reshape(-1, 7)
     nearest = float(np.min(np.hypot(labels[:, 0] - box[0], labels[:, 1] - box[1]))) if len(labels) else None
@@ -882,7 +1032,14 @@ def _row(frame: Frame, cfg: RunConfig, box: FloatArray, class_name: str, num_poi
         "max_label_iou": float(max_label_iou),
     }
     if cluster is not None:
-        row.update(points_score=cluster.score, size_score=cluster.size_score, shape_score=cluster.shape_score,
-                   density_score=cluster.density_score, free_space_score=cluster.free_space_score,
-                   free_rays=cluster.free_rays, end_rays=cluster.end_rays, ground_z=cluster.ground_z)
+        row.update(
+            points_score=cluster.score,
+            size_score=cluster.size_score,
+            shape_score=cluster.shape_score,
+            density_score=cluster.density_score,
+            free_space_score=cluster.free_space_score,
+            free_rays=cluster.free_rays,
+            end_rays=cluster.end_rays,
+            ground_z=cluster.ground_z,
+        )
     return row

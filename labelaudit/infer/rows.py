@@ -57,7 +57,14 @@ def label_where(frame: Frame, i: int) -> str:
     return f"{source}:{int(lines[i])}" if lines is not None and frame.source else source
 
 
-def frame_note(frame_id: str | None, unit: str, message: str, level: str = "error", file: str | None = None, line: int | None = None) -> dict[str, Any]:
+def frame_note(
+    frame_id: str | None,
+    unit: str,
+    message: str,
+    level: str = "error",
+    file: str | None = None,
+    line: int | None = None,
+) -> dict[str, Any]:
     return {"unit": unit, "frame_id": frame_id, "file": file, "line": line, "level": level, "message": message}
 
 
@@ -86,7 +93,9 @@ def world_boxes(frame: Frame, indices: list[int]) -> dict[int, dict[str, float |
         return {i: {"timestamp": ts} for i in indices}
     pose = np.asarray(frame.pose, dtype=float)
     boxes = np.asarray(frame.boxes[indices], dtype=float).reshape(-1, 7)
-    with np.errstate(invalid="ignore", over="ignore"):  # a label the reader could not use (inf, NaN) stays unusable, silently: its row says why
+    with np.errstate(
+        invalid="ignore", over="ignore"
+    ):  # a label the reader could not use (inf, NaN) stays unusable, silently: its row says why
         centres = boxes[:, :3] @ pose[:3, :3].T + pose[:3, 3]
         yaws = g.normalize_angle(boxes[:, 6] + math.atan2(pose[1, 0], pose[0, 0]))
     for j, i in enumerate(indices):
@@ -152,7 +161,9 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             continue
         length = float(box[3])
         if not (cfg.min_length <= length <= cfg.max_length):
-            row.update(status="skipped", message=f"length {length:.2f} m outside [{cfg.min_length:g}, {cfg.max_length:g}] m")
+            row.update(
+                status="skipped", message=f"length {length:.2f} m outside [{cfg.min_length:g}, {cfg.max_length:g}] m"
+            )
             continue
         to_audit.append(i)
 
@@ -164,19 +175,32 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # errstate: extreme but valid boxes (1e38 m) overflow the geometry harmlessly, and it changes
         # no value: a non-finite result is refused per object (check_finite), not warned about on stderr
         with np.errstate(all="ignore"):
-            evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask)
+            evidence = frame_evidence(
+                frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask
+            )
             for i, ev in zip(to_audit, evidence):
                 row = rows[i]
                 idx = ev.model_idx
                 try:
-                    result = audit_object(frame.boxes[i], frame.points[idx], frame.class_names[i], cfg, origin,
-                                          fit_points=frame.points[ev.fit_idx], evidence=ev.for_object(frame.points))
+                    result = audit_object(
+                        frame.boxes[i],
+                        frame.points[idx],
+                        frame.class_names[i],
+                        cfg,
+                        origin,
+                        fit_points=frame.points[ev.fit_idx],
+                        evidence=ev.for_object(frame.points),
+                    )
                     check_finite(result)
                     # values the schema cannot hold fail here, per object; the row is final after this
                     rows[i] = R.normalize_row({**row, **result})
                     final.add(i)
                 except Exception as exc:  # one bad object never sinks the frame (docs/datasets.md, bad input)
-                    row.update(status="error", message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"), num_points=len(idx))
+                    row.update(
+                        status="error",
+                        message=one_line(f"{label_where(frame, i)}: {type(exc).__name__}: {exc}"),
+                        num_points=len(idx),
+                    )
     return [rows[i] if i in final else R.normalize_row(rows[i]) for i in selected], notes
 
 
@@ -234,7 +258,9 @@ def audit_object(
     # Validated once here: the posterior takes the clean points, and a 3D run's posterior and the
     # label-error fit (3D) share the label's φ, Jacobians and prior precision (a BEV run's are not used).
     terms = box_prior_terms(y, params.prior_for(class_name), params.prior_weight, params.kind)
-    post = infer_label_valid(y, g.clean_points(points, g.point_dim(params.kind)), class_name, params, sensor_origin, prior_terms=terms)
+    post = infer_label_valid(
+        y, g.clean_points(points, g.point_dim(params.kind)), class_name, params, sensor_origin, prior_terms=terms
+    )
     n = post.num_points
     if n == 0:
         status = "no_points"
@@ -243,13 +269,17 @@ def audit_object(
     else:
         status = "ok"
     fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
-    fit = fit_label_valid(y, points if fit_points is None else fit_points, class_name, params, free_space=fs, prior_terms=terms)
+    fit = fit_label_valid(
+        y, points if fit_points is None else fit_points, class_name, params, free_space=fs, prior_terms=terms
+    )
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
         "sigma": float(post.sigma),
         "jiou_gt": float(jiou_gt(post, cfg.spatial)),
-        "label_error": float(fit.label_error) if class_name in C.LABEL_ERROR_CLASSES else None,  # null: not validated for the class
+        "label_error": float(fit.label_error)
+        if class_name in C.LABEL_ERROR_CLASSES
+        else None,  # null: not validated for the class
         "sigma_hat": float(post.sigma_hat),
         "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
         "corner_tv": post.corner_tv.tolist(),
@@ -268,7 +298,8 @@ def audit_object(
     row["mahalanobis"] = float(fit.mahalanobis)
     if evidence is not None:
         (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
-            np.array((y, fit.box)), evidence.free_space, evidence.near_points)
+            np.array((y, fit.box)), evidence.free_space, evidence.near_points
+        )
         row["neighbour_points"] = int(evidence.neighbour_points)
         row["scenery_points"] = int(evidence.scenery_points)
         row["ground_z"] = float(evidence.ground_z)
@@ -279,4 +310,12 @@ def audit_object(
 
 _FIT_COLUMNS = tuple(f"fit_{name}" for name in g.BOX_FIELDS)
 _STD_COLUMNS = tuple(f"std_{name}" for name in g.BOX_FIELDS)
-_EVIDENCE_COLUMNS = ("free_rays", "end_rays", "fit_free_rays", "fit_end_rays", "neighbour_points", "scenery_points", "ground_z")
+_EVIDENCE_COLUMNS = (
+    "free_rays",
+    "end_rays",
+    "fit_free_rays",
+    "fit_end_rays",
+    "neighbour_points",
+    "scenery_points",
+    "ground_z",
+)

@@ -82,7 +82,9 @@ class ChunkResult:
         return [e for e in self.errors if e["level"] == "error"]
 
 
-_READERS = threading.local()  # per thread: a Dask worker may run several tasks at once (--nthreads > 1), and readers keep open files
+_READERS = (
+    threading.local()
+)  # per thread: a Dask worker may run several tasks at once (--nthreads > 1), and readers keep open files
 
 
 def _reader(ref: FrameRef, options: tuple[tuple[str, Any], ...]) -> Any:
@@ -129,7 +131,14 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
                 except Exception as exc:
                     if task.debug:
                         raise
-                    errors.append(frame_note(frame.frame_id, ref.key, one_line(f"{type(exc).__name__} in frame {frame.frame_id} of {source}: {exc}"), file=source))
+                    errors.append(
+                        frame_note(
+                            frame.frame_id,
+                            ref.key,
+                            one_line(f"{type(exc).__name__} in frame {frame.frame_id} of {source}: {exc}"),
+                            file=source,
+                        )
+                    )
                     continue
                 for note in notes:
                     note["unit"] = ref.key
@@ -144,18 +153,32 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
                     except Exception as exc:
                         if task.debug:
                             raise
-                        errors.append(frame_note(frame.frame_id, ref.key, one_line(
-                            f"missing-label search failed in frame {frame.frame_id} of {source}: {type(exc).__name__}: {exc} (its objects are kept)"), file=source))
+                        errors.append(
+                            frame_note(
+                                frame.frame_id,
+                                ref.key,
+                                one_line(
+                                    f"missing-label search failed in frame {frame.frame_id} of {source}: {type(exc).__name__}: {exc} (its objects are kept)"
+                                ),
+                                file=source,
+                            )
+                        )
         except DatasetError as exc:  # the reader gave up on the unit (or on the rest of it)
             errors.append(frame_note(None, ref.key, one_line(str(exc)), file=exc.path, line=exc.line))
         except Exception as exc:
             if task.debug:
                 raise
             detail = f": {exc}" if str(exc) else ""
-            errors.append(frame_note(None, ref.key, one_line(f"{type(exc).__name__} while reading {ref.key}{detail}"), file=ref.key))
+            errors.append(
+                frame_note(
+                    None, ref.key, one_line(f"{type(exc).__name__} while reading {ref.key}{detail}"), file=ref.key
+                )
+            )
     table = R.rows_to_table(rows, normalized=True)  # process_frame's rows are normalised
     missing = R.missing_rows_to_table(candidates) if search else None
-    return ChunkResult(task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start, sources, missing)
+    return ChunkResult(
+        task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start, sources, missing
+    )
 
 
 # --------------------------------------------------------------------------- layer 3: a run
@@ -185,7 +208,9 @@ class InferRequest:
     model: str | None = None  # "bev" / "3d" override of the config's [model] kind
     scheduler: str | None = None  # Dask scheduler address (tcp://HOST:PORT) or local[:N]; None: the pool of ``workers``
     missing: bool = True  # search for objects without a label (missing/); False: --no-missing
-    detections: Path | None = None  # a detector's output (the formats `eval` reads): its unlabelled detections are candidates too
+    detections: Path | None = (
+        None  # a detector's output (the formats `eval` reads): its unlabelled detections are candidates too
+    )
 
 
 @dataclass
@@ -247,7 +272,9 @@ def plan_chunks(refs: Sequence[FrameRef], chunk_units: int) -> list[tuple[str, t
     return [(chunk_name(c), c) for c in chunks]
 
 
-def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None = None, executor: Executor | None = None) -> RunSummary:
+def run_infer(
+    request: InferRequest, cfg: RunConfig, progress: Progress | None = None, executor: Executor | None = None
+) -> RunSummary:
     """Audit a dataset folder into a results folder (``labelaudit infer``).
 
     Parameters
@@ -271,7 +298,9 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
     dataset = Path(request.dataset).absolute()  # units name absolute paths: workers of a cluster do not share our cwd
     validate_config(cfg, "the run configuration")
     if request.split is not None and (not request.split.strip() or any(c in request.split for c in "/\\\0")):
-        raise InferError(f"--split {request.split!r}: expected a split name such as train or val (ImageSets/<split>.txt)")
+        raise InferError(
+            f"--split {request.split!r}: expected a split name such as train or val (ImageSets/<split>.txt)"
+        )
     fmt = resolve_format(dataset, request.dataset_format)
     if cfg.dataset_format != fmt:
         cfg = cfg.with_overrides(dataset_format=fmt)
@@ -290,7 +319,9 @@ def run_infer(request: InferRequest, cfg: RunConfig, progress: Progress | None =
             raise InferError(f"--limit must be ≥ 1, got {request.limit}")
         refs = refs[: request.limit]
     if not refs:
-        raise InferError(f"{dataset}: no frames found (format {fmt}{', split ' + request.split if request.split else ''})")
+        raise InferError(
+            f"{dataset}: no frames found (format {fmt}{', split ' + request.split if request.split else ''})"
+        )
 
     # Start the executor now that the input is known to be good: the pool's fork server imports
     # the core while this process hashes and prepares the folder; an unreachable cluster fails
@@ -317,7 +348,13 @@ def _run_checked(
 ) -> RunSummary:
     inputs = hash_inputs(cfg)
     metadata = R.run_metadata(
-        inputs["params"], cfg.param_hash(), str(dataset.resolve()), fmt, constants_digest=inputs["constants_digest"], split=request.split, limit=request.limit
+        inputs["params"],
+        cfg.param_hash(),
+        str(dataset.resolve()),
+        fmt,
+        constants_digest=inputs["constants_digest"],
+        split=request.split,
+        limit=request.limit,
     )
     output = Path(request.output)
     R.check_output_folder(output)
@@ -343,15 +380,29 @@ def _run_locked(
     chunks = plan_chunks(refs, chunk_units)
     shard_dir, err_dir, missing_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR, output / R.MISSING_DIR
     search = cfg.missing.enabled
-    state = {name: R.chunk_state(shard_dir / name, err_dir / name, missing_dir / name if search else None) for name, _ in chunks}
+    state = {
+        name: R.chunk_state(shard_dir / name, err_dir / name, missing_dir / name if search else None)
+        for name, _ in chunks
+    }
     done = {name for name, s in state.items() if s == "done"}
     retried = sum(1 for s in state.values() if s == "retry")
-    R.write_json_atomic({**metadata, "complete": False, "units": len(refs), "chunks": len(chunks)}, output / R.MANIFEST_NAME)
+    R.write_json_atomic(
+        {**metadata, "complete": False, "units": len(refs), "chunks": len(chunks)}, output / R.MANIFEST_NAME
+    )
 
-    detections = read_missing_detections(cfg, fmt, refs[0].root, request.split, request.limit) if cfg.missing.detections else {}
+    detections = (
+        read_missing_detections(cfg, fmt, refs[0].root, request.split, request.limit) if cfg.missing.detections else {}
+    )
     tasks = [
-        ChunkTask(name, c, cfg, reader_options, request.limit if fmt != "kitti" else None, request.debug,
-                  detections_of_chunk(detections, c, fmt))
+        ChunkTask(
+            name,
+            c,
+            cfg,
+            reader_options,
+            request.limit if fmt != "kitti" else None,
+            request.debug,
+            detections_of_chunk(detections, c, fmt),
+        )
         for name, c in chunks
         if name not in done
     ]
@@ -403,7 +454,19 @@ def _run_locked(
         "wall_seconds_last_run": round(wall, 3),
     }
     R.write_json_atomic(manifest, output / R.MANIFEST_NAME)
-    return RunSummary(output, manifest, len(refs), len(chunks), len(done), frames, objects, failed, errors.num_rows - failed, wall, retried)
+    return RunSummary(
+        output,
+        manifest,
+        len(refs),
+        len(chunks),
+        len(done),
+        frames,
+        objects,
+        failed,
+        errors.num_rows - failed,
+        wall,
+        retried,
+    )
 
 
 def _raise_if_failed(result: ChunkResult) -> None:
@@ -421,10 +484,16 @@ def _raise_if_failed(result: ChunkResult) -> None:
             source = result.sources.get(row["frame_id"], "")
             line = f" (line {row['label_line']})" if row.get("label_line") is not None else ""
             where = "" if not source or source in (row["message"] or "") else f"{source}{line}: "
-            raise StrictError(one_line(f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"))
+            raise StrictError(
+                one_line(
+                    f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"
+                )
+            )
 
 
-def read_missing_detections(cfg: RunConfig, fmt: str, dataset: str, split: str | None, limit: int | None) -> dict[str, Any]:
+def read_missing_detections(
+    cfg: RunConfig, fmt: str, dataset: str, split: str | None, limit: int | None
+) -> dict[str, Any]:
     """A detector's output for the missing-label search (``--detections``): frame id →
     :class:`~labelaudit.infer.missing.FrameDetections` of the detections at or above
     ``cfg.missing.detection_min_score``, in the dataset's LiDAR/vehicle frame.
@@ -449,7 +518,12 @@ def read_missing_detections(cfg: RunConfig, fmt: str, dataset: str, split: str |
         lo, hi = int(det.det_off[f]), int(det.det_off[f + 1])
         keep = [k for k in range(lo, hi) if det.scores[k] >= threshold]
         if keep:
-            out[fid] = FrameDetections(det.boxes[keep].copy(), det.scores[keep].copy(), [det.class_names[k] for k in keep], [det.source[k] for k in keep])
+            out[fid] = FrameDetections(
+                det.boxes[keep].copy(),
+                det.scores[keep].copy(),
+                [det.class_names[k] for k in keep],
+                [det.source[k] for k in keep],
+            )
     return out
 
 
@@ -469,7 +543,9 @@ def with_missing_options(cfg: RunConfig, request: InferRequest) -> RunConfig:
     """``cfg`` with the missing-label options of ``request`` (``--no-missing``, ``--detections``)."""
     if request.detections is not None:
         if not request.missing:
-            raise InferError("--detections and --no-missing exclude each other: the detections are used by the missing-label search")
+            raise InferError(
+                "--detections and --no-missing exclude each other: the detections are used by the missing-label search"
+            )
         path = Path(request.detections)
         if not path.exists():
             raise InferError(f"{path}: --detections path does not exist")
@@ -479,7 +555,9 @@ def with_missing_options(cfg: RunConfig, request: InferRequest) -> RunConfig:
     return cfg
 
 
-def infer_dataset(request: InferRequest, progress: Progress | None = None, executor: Executor | None = None) -> RunSummary:
+def infer_dataset(
+    request: InferRequest, progress: Progress | None = None, executor: Executor | None = None
+) -> RunSummary:
     """``labelaudit infer``: resolve the format and config of ``request``, run, check something was audited.
 
     Raises

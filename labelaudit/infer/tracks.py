@@ -31,9 +31,22 @@ from labelaudit.core import track as T
 from labelaudit.core.geometry import normalize_angle
 
 NEEDED_COLUMNS = (
-    "dataset", "frame_id", "object_index", "object_id", "class_name", "status",
-    "length", "width", "height", *R.WORLD_COLUMNS,
-    "fit_length", "fit_width", "fit_height", "std_length", "std_width", "std_height",
+    "dataset",
+    "frame_id",
+    "object_index",
+    "object_id",
+    "class_name",
+    "status",
+    "length",
+    "width",
+    "height",
+    *R.WORLD_COLUMNS,
+    "fit_length",
+    "fit_width",
+    "fit_height",
+    "std_length",
+    "std_width",
+    "std_height",
 )
 """What the pass reads from the shards."""
 
@@ -60,7 +73,9 @@ class TrackScores:
 
 TRACKS_SCHEMA = pa.schema(
     [
-        pa.field("log_id", pa.string(), nullable=False),  # Waymo segment / Argoverse 2 log: frame_id before its last ':'
+        pa.field(
+            "log_id", pa.string(), nullable=False
+        ),  # Waymo segment / Argoverse 2 log: frame_id before its last ':'
         pa.field("object_id", pa.string(), nullable=False),  # the dataset's track id
         pa.field("class_name", pa.string(), nullable=False),  # the most frequent class of the track's labels
         pa.field("frames", pa.int32(), nullable=False),  # labelled frames of the track that were judged
@@ -74,7 +89,9 @@ TRACKS_SCHEMA = pa.schema(
         pa.field("std_width", pa.float64()),
         pa.field("std_height", pa.float64()),
         pa.field("mean_speed", pa.float64()),  # m/s, mean BEV speed of the centre from the local fits
-        pa.field("heading_vs_motion", pa.float64()),  # rad, circular mean of heading − direction of motion over the moving frames (≈ ±π: labelled backwards or reversing); null when never moving
+        pa.field(
+            "heading_vs_motion", pa.float64()
+        ),  # rad, circular mean of heading − direction of motion over the moving frames (≈ ±π: labelled backwards or reversing); null when never moving
         pa.field("flagged", pa.int32(), nullable=False),  # frames with track_error ≥ TRACK_FLAG
         pa.field("max_track_error", pa.float64()),  # the worst frame's track_error (null: too short to judge)
         pa.field("worst_frame_id", pa.string()),  # frame_id and object_index of that frame
@@ -107,10 +124,24 @@ class _Rows:
 
     @classmethod
     def of(cls, table: pa.Table) -> "_Rows":
-        numeric = (*R.WORLD_COLUMNS, "length", "width", "height", "fit_length", "fit_width", "fit_height", "std_length", "std_width", "std_height")
+        numeric = (
+            *R.WORLD_COLUMNS,
+            "length",
+            "width",
+            "height",
+            "fit_length",
+            "fit_width",
+            "fit_height",
+            "std_length",
+            "std_width",
+            "std_height",
+        )
         return cls(
-            table.column("frame_id").to_pylist(), table.column("object_index").to_pylist(), table.column("object_id").to_pylist(),
-            table.column("class_name").to_pylist(), np.array(table.column("status").to_pylist(), dtype=object),
+            table.column("frame_id").to_pylist(),
+            table.column("object_index").to_pylist(),
+            table.column("object_id").to_pylist(),
+            table.column("class_name").to_pylist(),
+            np.array(table.column("status").to_pylist(), dtype=object),
             {c: _column(table, c) for c in numeric},
         )
 
@@ -121,17 +152,31 @@ def _eligible(rows: _Rows, fmt: list[str]) -> np.ndarray:
     finite = np.ones(n, dtype=bool)
     for c in (*R.WORLD_COLUMNS, "length", "width", "height"):
         finite &= np.isfinite(rows.num[c])
-    ok = np.array(
-        [fmt[i] in C.TRACK_FORMATS and rows.status[i] != "error" and rows.oid[i] != f"{rows.frame[i]}:{rows.index[i]}" for i in range(n)], dtype=bool
-    ) if n else np.zeros(0, dtype=bool)
+    ok = (
+        np.array(
+            [
+                fmt[i] in C.TRACK_FORMATS
+                and rows.status[i] != "error"
+                and rows.oid[i] != f"{rows.frame[i]}:{rows.index[i]}"
+                for i in range(n)
+            ],
+            dtype=bool,
+        )
+        if n
+        else np.zeros(0, dtype=bool)
+    )
     return ok & finite
 
 
 def _noise_from(values: Mapping[str, float]) -> T.TrackNoise:
-    return T.TrackNoise(np.full(3, values["center"]), np.array([values["length"], values["width"], values["height"]]), values["yaw"])
+    return T.TrackNoise(
+        np.full(3, values["center"]), np.array([values["length"], values["width"], values["height"]]), values["yaw"]
+    )
 
 
-def _size_evidence(rows: _Rows, idx: np.ndarray, cfg: RunConfig | None, class_name: str) -> tuple[np.ndarray, np.ndarray] | None:
+def _size_evidence(
+    rows: _Rows, idx: np.ndarray, cfg: RunConfig | None, class_name: str
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Each frame's fitted size and its data precision (per-frame posterior minus the prior), 0 without points."""
     if cfg is None:
         return None
@@ -180,7 +225,11 @@ class _Tracks:
     @classmethod
     def of(cls, table: pa.Table, cfg: RunConfig | None, params: T.TrackParams) -> "_Tracks":
         rows = _Rows.of(table)
-        groups = [g for g in _groups(rows, _eligible(rows, table.column("dataset").to_pylist())) if len(g) >= params.min_frames]
+        groups = [
+            g
+            for g in _groups(rows, _eligible(rows, table.column("dataset").to_pylist()))
+            if len(g) >= params.min_frames
+        ]
         classes = [max(sorted({rows.classes[i] for i in g}), key=[rows.classes[i] for i in g].count) for g in groups]
         return cls(rows, groups, classes, [_size_evidence(rows, g, cfg, c) for g, c in zip(groups, classes)])
 
@@ -208,8 +257,16 @@ def _noise_counts(tracks: _Tracks, params: T.TrackParams) -> NoiseCounts:
     for k, c in enumerate(tracks.classes):
         r = tracks.residuals(k, floor, params)
         hist = out.setdefault(c, {key: np.zeros(nb + 1, dtype=np.int64) for key in _NOISE_KEYS})
-        for key, z in (("center", r.position.ravel()), ("length", r.size[:, 0]), ("width", r.size[:, 1]), ("height", r.size[:, 2]), ("yaw", r.heading)):
-            b = np.minimum((np.abs(z) / C.TRACK_NOISE_BIN).astype(np.int64), nb)  # the last bin holds everything beyond the range
+        for key, z in (
+            ("center", r.position.ravel()),
+            ("length", r.size[:, 0]),
+            ("width", r.size[:, 1]),
+            ("height", r.size[:, 2]),
+            ("yaw", r.heading),
+        ):
+            b = np.minimum(
+                (np.abs(z) / C.TRACK_NOISE_BIN).astype(np.int64), nb
+            )  # the last bin holds everything beyond the range
             hist[key] += np.bincount(b, minlength=nb + 1)
     return out
 
@@ -265,24 +322,41 @@ def _score(tracks: _Tracks, noise: Mapping[str, Mapping[str, float]], params: T.
         moving = speed > C.TRACK_MOVING_SPEED
         if moving.any():
             diff = rows.num["world_yaw"][g][moving] - np.arctan2(r.velocity[moving, 1], r.velocity[moving, 0])
-            vs_motion: float | None = float(normalize_angle(float(np.arctan2(np.sin(diff).mean(), np.cos(diff).mean()))))
+            vs_motion: float | None = float(
+                normalize_angle(float(np.arctan2(np.sin(diff).mean(), np.cos(diff).mean())))
+            )
         else:
             vs_motion = None
         first, last, w = g[0], g[-1], g[worst]
-        out.append({
-            "log_id": log_of(rows.frame[first]), "object_id": rows.oid[first], "class_name": c, "frames": len(g),
-            "first_frame_id": rows.frame[first], "last_frame_id": rows.frame[last], "duration": float(ts[last] - ts[first]),
-            **{d: float(v) for d, v in zip(("length", "width", "height"), r.size_mean)},
-            **{f"std_{d}": float(v) for d, v in zip(("length", "width", "height"), r.size_std)},
-            "mean_speed": float(speed.mean()), "heading_vs_motion": vs_motion,
-            "flagged": int(np.sum(err >= C.TRACK_FLAG)), "max_track_error": float(err[worst]),
-            "worst_frame_id": rows.frame[w], "worst_object_index": int(rows.index[w]), "worst_issue": kinds[worst],
-        })
+        out.append(
+            {
+                "log_id": log_of(rows.frame[first]),
+                "object_id": rows.oid[first],
+                "class_name": c,
+                "frames": len(g),
+                "first_frame_id": rows.frame[first],
+                "last_frame_id": rows.frame[last],
+                "duration": float(ts[last] - ts[first]),
+                **{d: float(v) for d, v in zip(("length", "width", "height"), r.size_mean)},
+                **{f"std_{d}": float(v) for d, v in zip(("length", "width", "height"), r.size_std)},
+                "mean_speed": float(speed.mean()),
+                "heading_vs_motion": vs_motion,
+                "flagged": int(np.sum(err >= C.TRACK_FLAG)),
+                "max_track_error": float(err[worst]),
+                "worst_frame_id": rows.frame[w],
+                "worst_object_index": int(rows.index[w]),
+                "worst_issue": kinds[worst],
+            }
+        )
     return TrackScores(error, issue, out, dict(noise))
 
 
-def score_table(table: pa.Table, cfg: RunConfig | None = None, params: T.TrackParams | None = None,
-                noise: Mapping[str, Mapping[str, float]] | None = None) -> TrackScores:
+def score_table(
+    table: pa.Table,
+    cfg: RunConfig | None = None,
+    params: T.TrackParams | None = None,
+    noise: Mapping[str, Mapping[str, float]] | None = None,
+) -> TrackScores:
     """Score every row of an objects table against its track.
 
     Parameters
@@ -300,8 +374,13 @@ def score_table(table: pa.Table, cfg: RunConfig | None = None, params: T.TrackPa
     return _score(tracks, noise, params)
 
 
-def expected_boxes(table: pa.Table, cfg: RunConfig | None = None, noise: Mapping[str, Mapping[str, float]] | None = None,
-                   params: T.TrackParams | None = None, only: np.ndarray | None = None) -> np.ndarray:
+def expected_boxes(
+    table: pa.Table,
+    cfg: RunConfig | None = None,
+    noise: Mapping[str, Mapping[str, float]] | None = None,
+    params: T.TrackParams | None = None,
+    only: np.ndarray | None = None,
+) -> np.ndarray:
     """Per row the box the rest of its track expects in this frame, in the row's own LiDAR/vehicle frame.
 
     The centre and heading are those the track model predicts for the frame from its neighbouring
@@ -326,7 +405,9 @@ def expected_boxes(table: pa.Table, cfg: RunConfig | None = None, noise: Mapping
         noise = _noise_of(_noise_counts(tracks, params))
     out = np.full((table.num_rows, 7), np.nan)
     label = np.stack([_column(table, b) for b in R.BOX_COLUMNS], axis=1).reshape(-1, 7)
-    label_world = np.stack([tracks.rows.num[w] for w in ("world_cx", "world_cy", "world_cz", "world_yaw")], axis=1).reshape(-1, 4)
+    label_world = np.stack(
+        [tracks.rows.num[w] for w in ("world_cx", "world_cy", "world_cz", "world_yaw")], axis=1
+    ).reshape(-1, 4)
     for k, (g, c) in enumerate(zip(tracks.groups, tracks.classes)):
         if only is not None and not only[g].any():
             continue
@@ -396,7 +477,9 @@ def run_tracks_pass(output: Path, cfg: RunConfig, metadata: Mapping[str, Any]) -
     def read(group: list[Path]) -> list[pa.Table]:
         return [pq.read_table(f, columns=[*NEEDED_COLUMNS, *R.TRACK_COLUMNS]) for f in group]
 
-    noise = _noise_of(_merge_counts([_noise_counts(_Tracks.of(pa.concat_tables(read(g)), cfg, params), params) for g in groups]))
+    noise = _noise_of(
+        _merge_counts([_noise_counts(_Tracks.of(pa.concat_tables(read(g)), cfg, params), params) for g in groups])
+    )
     all_tracks: list[dict[str, Any]] = []
     for group in groups:
         parts = read(group)
@@ -408,12 +491,18 @@ def run_tracks_pass(output: Path, cfg: RunConfig, metadata: Mapping[str, Any]) -
             new_err = pa.array([None if v != v else float(v) for v in scores.track_error[start:stop]], pa.float64())
             new_issue = pa.array(scores.track_issue[start:stop], pa.string())
             start = stop
-            if part.column("track_error").combine_chunks().equals(new_err) and part.column("track_issue").combine_chunks().equals(new_issue):
+            if part.column("track_error").combine_chunks().equals(new_err) and part.column(
+                "track_issue"
+            ).combine_chunks().equals(new_issue):
                 continue  # already written (a resumed run whose rows did not change)
             shard = pq.read_table(f)
             meta = shard.schema.metadata
-            shard = shard.set_column(shard.schema.get_field_index("track_error"), R.SCHEMA.field("track_error"), new_err)
-            shard = shard.set_column(shard.schema.get_field_index("track_issue"), R.SCHEMA.field("track_issue"), new_issue)
+            shard = shard.set_column(
+                shard.schema.get_field_index("track_error"), R.SCHEMA.field("track_error"), new_err
+            )
+            shard = shard.set_column(
+                shard.schema.get_field_index("track_issue"), R.SCHEMA.field("track_issue"), new_issue
+            )
             R.write_parquet_atomic(shard.replace_schema_metadata(meta), f)
     R.write_parquet_atomic(tracks_table(TrackScores(np.zeros(0), [], all_tracks, noise), metadata), tracks_path)
     return len(all_tracks)

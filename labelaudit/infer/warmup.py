@@ -61,7 +61,9 @@ def warm_up(strict: bool = False) -> None:
         base = load_config(None, "kitti")
         for model in ("bev", "3d"):  # crops, ground, rays, neighbours, the fit with rays, counts: every kernel
             cfg = base.with_overrides(model=replace(base.model, kind=model))
-            process_frame(Frame("warm-up", pts, np.stack([box, box + [0, 2.5, 0, 0, 0, 0, 0]]), ["Car", "Car"], ["a", "b"]), cfg)
+            process_frame(
+                Frame("warm-up", pts, np.stack([box, box + [0, 2.5, 0, 0, 0, 0, 0]]), ["Car", "Car"], ["a", "b"]), cfg
+            )
         from labelaudit.infer.missing import find_missing
 
         # the missing-label search: the same returns with no label, so a cluster is boxed and its rays counted

@@ -46,14 +46,19 @@ __all__ = ["kernel", "kernel_mode", "build"]
 MODE_ENV = "LABELAUDIT_KERNELS"  # "jit": never load the ahead-of-time module; "aot": fail loudly when it cannot be used
 AOT_NAME = "_kernels_aot"  # the extension module's name (a sibling of this file)
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]  # labelaudit/
-_SELF = str(Path(__file__).resolve().relative_to(_PACKAGE_DIR))  # this module's source: it shapes every compiled function
+_SELF = str(
+    Path(__file__).resolve().relative_to(_PACKAGE_DIR)
+)  # this module's source: it shapes every compiled function
 _TABLE = _PACKAGE_DIR / f"{AOT_NAME}.json"  # what the module holds: fingerprint, kernel → exported functions
 
-_REGISTRY: dict[str, Kernel | Any] = {}  # "module.qualname" → the decorated kernel (Kernel, or a numba dispatcher on the JIT path)
+_REGISTRY: dict[
+    str, Kernel | Any
+] = {}  # "module.qualname" → the decorated kernel (Kernel, or a numba dispatcher on the JIT path)
 _STATE: dict[str, Any] = {}  # the chosen path, loaded once per process: mode, reason, module, table
 
 
 # --- which path ------------------------------------------------------------------------------------
+
 
 def _cpu_identity() -> str:
     """The CPU the ahead-of-time code may use (model and instruction-set flags; Linux)."""
@@ -92,12 +97,18 @@ def _choose() -> dict[str, Any]:
         try:
             table = json.loads(_TABLE.read_text(encoding="utf-8"))
             if table.get("fingerprint") != fingerprint(table.get("sources", [])):
-                state["reason"] = f"{_TABLE.name} was built from other sources, NumPy or CPU (run: python -m labelaudit.kernels build)"
+                state["reason"] = (
+                    f"{_TABLE.name} was built from other sources, NumPy or CPU (run: python -m labelaudit.kernels build)"
+                )
             else:
                 module = importlib.import_module(f"labelaudit.{AOT_NAME}")
                 if not hasattr(module, f"build_{table['token']}"):  # the table and the module of two builds
-                    raise ImportError(f"{_TABLE.name} does not describe the module beside it (rebuild: python -m labelaudit.kernels build)")
-                state.update(mode="aot", module=module, table=table["kernels"], reason=f"built {table.get('built', '?')}")
+                    raise ImportError(
+                        f"{_TABLE.name} does not describe the module beside it (rebuild: python -m labelaudit.kernels build)"
+                    )
+                state.update(
+                    mode="aot", module=module, table=table["kernels"], reason=f"built {table.get('built', '?')}"
+                )
         except FileNotFoundError:
             state["reason"] = "not built (run: python -m labelaudit.kernels build)"
         except (OSError, ValueError, KeyError, ImportError) as exc:
@@ -115,6 +126,7 @@ def kernel_mode() -> tuple[str, str]:
 
 
 # --- the decorator ---------------------------------------------------------------------------------
+
 
 def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
     """Compile ``fn`` (a numba nopython function); ``options`` are numba's (``fastmath``,
@@ -137,8 +149,18 @@ def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
     return _REGISTRY[name]
 
 
-_SCALAR_KEYS: dict[type, str] = {float: "float64", int: "int64", bool: "bool", np.float64: "float64", np.float32: "float32",
-                                 np.int64: "int64", np.int32: "int32", np.bool_: "bool", np.uint8: "uint8", np.intp: "int64"}
+_SCALAR_KEYS: dict[type, str] = {
+    float: "float64",
+    int: "int64",
+    bool: "bool",
+    np.float64: "float64",
+    np.float32: "float32",
+    np.int64: "int64",
+    np.int32: "int32",
+    np.bool_: "bool",
+    np.uint8: "uint8",
+    np.intp: "int64",
+}
 
 
 def _arg_key(a: Any) -> Any:
@@ -147,7 +169,14 @@ def _arg_key(a: Any) -> Any:
     t = type(a)
     if t is np.ndarray:
         f = a.flags
-        return ("A", a.dtype.str, a.ndim, "C" if f.c_contiguous else ("F" if f.f_contiguous else "A"), f.writeable, f.aligned)
+        return (
+            "A",
+            a.dtype.str,
+            a.ndim,
+            "C" if f.c_contiguous else ("F" if f.f_contiguous else "A"),
+            f.writeable,
+            f.aligned,
+        )
     key = _SCALAR_KEYS.get(t)
     if key is not None:
         return key
@@ -170,10 +199,15 @@ def _test_of(i: int, key: Any, env: dict[str, Any], tag: str) -> str | None:
         _, dtype, ndim, layout, mutable, aligned = key
         env[d] = np.dtype(dtype)
         flags = f"({f} := {v}.flags)"
-        contiguity = {"C": f"{flags}.c_contiguous", "F": f"not {flags}.c_contiguous and {f}.f_contiguous",
-                      "A": f"not {flags}.c_contiguous and not {f}.f_contiguous"}[layout]
-        return (f"type({v}) is _ndarray and ({v}.dtype is {d} or {v}.dtype == {d}) and {v}.ndim == {ndim} and {contiguity}"
-                f" and {'' if mutable else 'not '}{f}.writeable and {'' if aligned else 'not '}{f}.aligned")
+        contiguity = {
+            "C": f"{flags}.c_contiguous",
+            "F": f"not {flags}.c_contiguous and {f}.f_contiguous",
+            "A": f"not {flags}.c_contiguous and not {f}.f_contiguous",
+        }[layout]
+        return (
+            f"type({v}) is _ndarray and ({v}.dtype is {d} or {v}.dtype == {d}) and {v}.ndim == {ndim} and {contiguity}"
+            f" and {'' if mutable else 'not '}{f}.writeable and {'' if aligned else 'not '}{f}.aligned"
+        )
     if isinstance(key, str):
         env[s] = frozenset(t for t, k in _SCALAR_KEYS.items() if k == key)
         return f"type({v}) in {s}"
@@ -240,7 +274,12 @@ class Kernel:
             copy = pytypes.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
             copy.__qualname__, copy.__module__, copy.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
             self._jit = numba.njit(cache=True, **self.options)(copy)
-            scope.update({k: (v.kernel.jit() if isinstance(getattr(v, "kernel", None), Kernel) else v) for k, v in fn.__globals__.items()})
+            scope.update(
+                {
+                    k: (v.kernel.jit() if isinstance(getattr(v, "kernel", None), Kernel) else v)
+                    for k, v in fn.__globals__.items()
+                }
+            )
         return self._jit
 
     def __repr__(self) -> str:
@@ -248,6 +287,7 @@ class Kernel:
 
 
 # --- the ahead-of-time build -----------------------------------------------------------------------
+
 
 def _type_key(t: Any) -> Any:
     """:func:`_arg_key` of a numba type; None when the build cannot export it."""
@@ -331,7 +371,9 @@ def build(workload: Callable[[], object], verbose: bool = False) -> Path:
             n += 1
     # every module that holds a kernel (an exported one, or one compiled into it), so editing any of them retires the build
     modules = {disp.py_func.__module__ for disp in _REGISTRY.values()}
-    sources = sorted({str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in modules} | {_SELF})
+    sources = sorted(
+        {str(Path(sys.modules[m].__file__).resolve().relative_to(_PACKAGE_DIR)) for m in modules} | {_SELF}
+    )
     with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp:
         cc.output_dir = tmp
         cc.verbose = verbose
@@ -343,8 +385,15 @@ def build(workload: Callable[[], object], verbose: bool = False) -> Path:
         os.replace(staged, _PACKAGE_DIR / cc.output_file)  # atomic: a running process keeps its mapped copy
     from datetime import datetime, timezone
 
-    doc = {"fingerprint": fingerprint(sources), "token": token, "sources": sources, "built": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-           "numba": __import__("numba").__version__, "functions": n, "kernels": table}
+    doc = {
+        "fingerprint": fingerprint(sources),
+        "token": token,
+        "sources": sources,
+        "built": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "numba": __import__("numba").__version__,
+        "functions": n,
+        "kernels": table,
+    }
     staged_table = _TABLE.with_suffix(".json.tmp")
     staged_table.write_text(json.dumps(doc, indent=1), encoding="utf-8")
     os.replace(staged_table, _TABLE)

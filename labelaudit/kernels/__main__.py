@@ -39,7 +39,10 @@ def workload() -> None:
     eval_warm_up(strict=True)
     sim = simulate_frame(0, seed=0)
     boxes, names = sim.written_boxes, list(sim.scene.class_names)
-    for fmt, classes in (("kitti", ("Car", "Van", "Truck", "Pedestrian", "Cyclist")), ("waymo", ("Vehicle", "Pedestrian", "Cyclist"))):
+    for fmt, classes in (
+        ("kitti", ("Car", "Van", "Truck", "Pedestrian", "Cyclist")),
+        ("waymo", ("Vehicle", "Pedestrian", "Cyclist")),
+    ):
         for model in ("bev", "3d"):
             cfg = resolve_config(None, fmt, classes, model)
             mask = np.arange(len(sim.points)) % 2 == 0 if fmt == "waymo" else None  # Waymo: only some points end rays
@@ -47,14 +50,22 @@ def workload() -> None:
             frame = Frame("build", sim.points, boxes, as_read, [str(i) for i in range(len(boxes))], ray_mask=mask)
             process_frame(frame, cfg)
             half = len(boxes) // 2  # the missing-label search: half the labels left out, so clusters are boxed
-            find_missing(Frame("build", sim.points, boxes[:half], as_read[:half], [str(i) for i in range(half)], ray_mask=mask), cfg)
+            find_missing(
+                Frame("build", sim.points, boxes[:half], as_read[:half], [str(i) for i in range(half)], ray_mask=mask),
+                cfg,
+            )
     crop_frame(sim.points, boxes, load_config(None, "kitti").crop)
-    quiet = contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO())  # the commands' own reports
+    quiet = (
+        contextlib.redirect_stdout(io.StringIO()),
+        contextlib.redirect_stderr(io.StringIO()),
+    )  # the commands' own reports
     with tempfile.TemporaryDirectory(prefix="labelaudit-kernels-") as tmp, quiet[0], quiet[1]:
         data = f"{tmp}/sim"
-        for argv in (["simulate", data, "--frames", "3", "--seed", "1", "--detections", "-q"],
-                     ["eval", data, f"{data}/detections", "--workers", "1", "-q"],
-                     ["eval", data, f"{data}/detections", "--workers", "1", "--metric", "3d", "-q"]):
+        for argv in (
+            ["simulate", data, "--frames", "3", "--seed", "1", "--detections", "-q"],
+            ["eval", data, f"{data}/detections", "--workers", "1", "-q"],
+            ["eval", data, f"{data}/detections", "--workers", "1", "--metric", "3d", "-q"],
+        ):
             app(argv, standalone_mode=False)
 
 
@@ -68,7 +79,10 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit("build: this process already loaded the ahead-of-time kernels")
         path = K.build(workload, verbose="-v" in args)
         doc = json.loads(path.read_text(encoding="utf-8"))
-        print(f"built {doc['functions']} compiled functions of {len(doc['kernels'])} kernels: {path.with_suffix('')}*.so", file=sys.stderr)
+        print(
+            f"built {doc['functions']} compiled functions of {len(doc['kernels'])} kernels: {path.with_suffix('')}*.so",
+            file=sys.stderr,
+        )
         return 0
     if cmd == "status":
         mode, why = K.kernel_mode()

@@ -93,7 +93,9 @@ def write_annotations(
     return _write(path, pa.table(cols))
 
 
-def write_sweep(path: str | Path, points: ArrayLike, laser_number: ArrayLike | None = None, offset_ns: ArrayLike | None = None) -> Path:
+def write_sweep(
+    path: str | Path, points: ArrayLike, laser_number: ArrayLike | None = None, offset_ns: ArrayLike | None = None
+) -> Path:
     """Write one lidar sweep ``<timestamp_ns>.feather``.
 
     Parameters
@@ -109,7 +111,9 @@ def write_sweep(path: str | Path, points: ArrayLike, laser_number: ArrayLike | N
     n = len(p)
     cols = {c: pa.array(p[:, j].astype(np.float16)) for j, c in enumerate(("x", "y", "z"))}
     cols["intensity"] = pa.array(np.clip(np.rint(p[:, 3]), 0, 255).astype(np.uint8))
-    cols["laser_number"] = pa.array(np.zeros(n, np.uint8) if laser_number is None else np.asarray(laser_number, dtype=np.uint8))
+    cols["laser_number"] = pa.array(
+        np.zeros(n, np.uint8) if laser_number is None else np.asarray(laser_number, dtype=np.uint8)
+    )
     cols["offset_ns"] = pa.array(np.zeros(n, np.int32) if offset_ns is None else np.asarray(offset_ns, dtype=np.int32))
     return _write(path, pa.table(cols))
 
@@ -148,23 +152,66 @@ def _write(path: str | Path, table: pa.Table) -> Path:
     return path
 
 
-
-
 # --------------------------------------------------------------------------- simulated logs
 
 # The simulator's classes → AV2 categories (AV2's REGULAR_VEHICLE includes vans; a rider is BICYCLIST).
-AV2_CATEGORY = {"Car": "REGULAR_VEHICLE", "Van": "REGULAR_VEHICLE", "Truck": "BOX_TRUCK", "Pedestrian": "PEDESTRIAN", "Cyclist": "BICYCLIST"}
+AV2_CATEGORY = {
+    "Car": "REGULAR_VEHICLE",
+    "Van": "REGULAR_VEHICLE",
+    "Truck": "BOX_TRUCK",
+    "Pedestrian": "PEDESTRIAN",
+    "Cyclist": "BICYCLIST",
+}
 # Elevations (deg) of the 32 lasers of a VLP-32C, top first: dense around the horizon.
 VLP32C_INCLINATION_DEG = (
-    15.0, 10.33, 7.0, 4.67, 3.33, 2.33, 1.67, 1.33, 1.0, 0.67, 0.33, 0.0, -0.33, -0.67, -1.0, -1.33,
-    -1.67, -2.0, -2.33, -2.67, -3.0, -3.33, -3.67, -4.0, -4.67, -5.33, -6.15, -7.25, -8.84, -11.31, -15.64, -25.0,
+    15.0,
+    10.33,
+    7.0,
+    4.67,
+    3.33,
+    2.33,
+    1.67,
+    1.33,
+    1.0,
+    0.67,
+    0.33,
+    0.0,
+    -0.33,
+    -0.67,
+    -1.0,
+    -1.33,
+    -1.67,
+    -2.0,
+    -2.33,
+    -2.67,
+    -3.0,
+    -3.33,
+    -3.67,
+    -4.0,
+    -4.67,
+    -5.33,
+    -6.15,
+    -7.25,
+    -8.84,
+    -11.31,
+    -15.64,
+    -25.0,
 )
 AV2_COLUMNS = {"real": 1800, "small": 360}  # azimuth columns per sweep: 0.2° (VLP-32C at 10 Hz), or a cheap 1°
 AV2_MAX_RANGE = 200.0  # m; VLP-32C
 SWEEP_NS = 100_000_000  # 10 Hz
 AV2_T0 = 315_966_265_259_836_000  # ns; timestamps start where the real val logs do (+ 1 s per seed)
-MANIFEST_COLUMNS = ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation",
-                    "track_error_kind", "track_error_size")  # as the Waymo simulator's
+MANIFEST_COLUMNS = (
+    "frame_id",
+    "object_id",
+    "class_name",
+    "sim_class",
+    "true_box",
+    "written_box",
+    "perturbation",
+    "track_error_kind",
+    "track_error_size",
+)  # as the Waymo simulator's
 
 
 @dataclass
@@ -196,7 +243,9 @@ class SimAv2Frame:
     sim_classes: list[str]
     perturbation: list[str]
     num_interior_pts: NDArray[np.int64]
-    track_error_kind: list[str] = field(default_factory=list)  # per object, labelaudit.sim.tracknoise kinds (empty: no track noise)
+    track_error_kind: list[str] = field(
+        default_factory=list
+    )  # per object, labelaudit.sim.tracknoise kinds (empty: no track noise)
     track_error_size: list[float] = field(default_factory=list)  # per object, the injected error's magnitude (m / rad)
 
 
@@ -217,8 +266,14 @@ def av2_lidar_spec(size: str = "small", noise: bool = True) -> LidarSpec:
     if size not in AV2_COLUMNS:
         raise ValueError(f"size must be one of {sorted(AV2_COLUMNS)}, got {size!r}")
     kw = {} if noise else {"range_noise_std": 0.0, "dropout": 0.0, "far_dropout": 0.0}
-    return LidarSpec(beams=len(VLP32C_INCLINATION_DEG), columns=AV2_COLUMNS[size], inclinations_deg=VLP32C_INCLINATION_DEG,
-                     min_range=1.0, max_range=AV2_MAX_RANGE, **kw)
+    return LidarSpec(
+        beams=len(VLP32C_INCLINATION_DEG),
+        columns=AV2_COLUMNS[size],
+        inclinations_deg=VLP32C_INCLINATION_DEG,
+        min_range=1.0,
+        max_range=AV2_MAX_RANGE,
+        **kw,
+    )
 
 
 def simulate_av2_log(
@@ -265,7 +320,11 @@ def simulate_av2_log(
     scene_v = sample_scene(rng, spec, ground_z=0.0)
     start = planar_pose(*world_offset, 0.0)
     world = scene_in_vehicle(scene_v, np.linalg.inv(start))  # drawn around the ego at t = 0
-    motions = vehicle_motions(np.random.default_rng([seed, 13]), world, moving_fraction) if moving_fraction > 0 else [None] * len(world.objects)
+    motions = (
+        vehicle_motions(np.random.default_rng([seed, 13]), world, moving_fraction)
+        if moving_fraction > 0
+        else [None] * len(world.objects)
+    )
     log = SimAv2Log(_uuid(rng), {n: tuple(C.AV2_LIDAR_MOUNTS[n]) for n in av2.LIDARS})
     tracks = [_uuid(rng) for _ in world.objects]
     classes = [o.class_name for o in world.objects]
@@ -298,14 +357,29 @@ def simulate_av2_log(
         track_kinds: list[str] = []
         track_sizes: list[float] = []
         if track_noise is not None:
-            boxes, track_kinds, mags = perturb_track_labels(boxes, classes, track_noise, np.random.default_rng([seed, f, 11]))
+            boxes, track_kinds, mags = perturb_track_labels(
+                boxes, classes, track_noise, np.random.default_rng([seed, f, 11])
+            )
             track_sizes = mags.tolist()
         counts = np.array([len(i) for i in points_in_boxes_numpy(points, boxes)], dtype=np.int64)
-        log.frames.append(SimAv2Frame(
-            t0 + f * SWEEP_NS, pose, points, np.concatenate(lasers), np.concatenate(offsets), boxes, true_boxes,
-            [AV2_CATEGORY.get(c, c.upper()) for c in classes], list(tracks), list(classes), list(kinds), counts,
-            track_kinds, track_sizes,
-        ))
+        log.frames.append(
+            SimAv2Frame(
+                t0 + f * SWEEP_NS,
+                pose,
+                points,
+                np.concatenate(lasers),
+                np.concatenate(offsets),
+                boxes,
+                true_boxes,
+                [AV2_CATEGORY.get(c, c.upper()) for c in classes],
+                list(tracks),
+                list(classes),
+                list(kinds),
+                counts,
+                track_kinds,
+                track_sizes,
+            )
+        )
     return log
 
 
@@ -320,8 +394,11 @@ def write_av2_log(log: SimAv2Log, root: str | Path, *, sweeps: bool = True) -> P
     frames = log.frames
     ts = [fr.timestamp for fr in frames for _ in range(len(fr.boxes))]
     write_annotations(
-        folder / av2.ANNOTATIONS, ts, np.concatenate([fr.boxes for fr in frames]).reshape(-1, 7),
-        [c for fr in frames for c in fr.categories], [t for fr in frames for t in fr.track_ids],
+        folder / av2.ANNOTATIONS,
+        ts,
+        np.concatenate([fr.boxes for fr in frames]).reshape(-1, 7),
+        [c for fr in frames for c in fr.categories],
+        [t for fr in frames for t in fr.track_ids],
         np.concatenate([fr.num_interior_pts for fr in frames]),
     )
     if sweeps:
@@ -363,7 +440,9 @@ def av2_manifest_rows(log: SimAv2Log) -> dict[str, list]:
     return rows
 
 
-def simulate_av2_detections(logs: Sequence[SimAv2Log], path: str | Path, spec: DetectorSpec | None = None, seed: int = 0) -> DetectorSummary:
+def simulate_av2_detections(
+    logs: Sequence[SimAv2Log], path: str | Path, spec: DetectorSpec | None = None, seed: int = 0
+) -> DetectorSummary:
     """The synthetic detector (:func:`~labelaudit.sim.detector.detect_frame`) run on simulated logs,
     written as one AV2 detections ``.feather`` file (what ``labelaudit eval`` reads).
 
@@ -386,7 +465,9 @@ def simulate_av2_detections(logs: Sequence[SimAv2Log], path: str | Path, spec: D
     for i, log in enumerate(logs):
         for f, fr in enumerate(log.frames):
             rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(i, f, 1000)))
-            b, classes, s, _, kinds = detect_frame(rng, fr.true_boxes, fr.sim_classes, fr.num_interior_pts, spec, sensor_height=0.0)
+            b, classes, s, _, kinds = detect_frame(
+                rng, fr.true_boxes, fr.sim_classes, fr.num_interior_pts, spec, sensor_height=0.0
+            )
             fids += [f"{log.log_id}:{fr.timestamp}"] * len(b)
             boxes.append(b)
             cats += [AV2_CATEGORY.get(c, c.upper()) for c in classes]
@@ -399,8 +480,13 @@ def simulate_av2_detections(logs: Sequence[SimAv2Log], path: str | Path, spec: D
 
 
 def simulate_av2_dataset(
-    out_dir: str | Path, logs: int = 2, frames: int = 3, seed: int = 0, size: str = "small",
-    label_noise: NoiseSpec | None = None, split: str = "val",
+    out_dir: str | Path,
+    logs: int = 2,
+    frames: int = 3,
+    seed: int = 0,
+    size: str = "small",
+    label_noise: NoiseSpec | None = None,
+    split: str = "val",
 ) -> Path:
     """Simulate ``logs`` AV2 logs into ``out_dir/<split>/<log_id>/`` and ``out_dir/manifest.parquet``
     (true vs written box per object and frame); returns the split folder."""
@@ -420,6 +506,16 @@ def simulate_av2_dataset(
 
 
 __all__ = [
-    "SimAv2Frame", "SimAv2Log", "av2_lidar_spec", "av2_manifest_rows", "simulate_av2_dataset", "simulate_av2_detections", "simulate_av2_log",
-    "write_annotations", "write_av2_log", "write_calibration", "write_poses", "write_sweep",
+    "SimAv2Frame",
+    "SimAv2Log",
+    "av2_lidar_spec",
+    "av2_manifest_rows",
+    "simulate_av2_dataset",
+    "simulate_av2_detections",
+    "simulate_av2_log",
+    "write_annotations",
+    "write_av2_log",
+    "write_calibration",
+    "write_poses",
+    "write_sweep",
 ]

@@ -149,6 +149,9 @@ def ranking_table(
         if m.shape != y.shape:
             raise ValueError(f"subset {row_name!r}: mask length {m.size} != {y.size} labels")
         au = {k: auroc(np.asarray(v, dtype=float)[m], y[m]) for k, v in scores.items()}
-        pr = {k: precision_at_fraction(np.asarray(v, dtype=float)[m], y[m], fraction) if m.any() else float("nan") for k, v in scores.items()}
+        pr = {
+            k: precision_at_fraction(np.asarray(v, dtype=float)[m], y[m], fraction) if m.any() else float("nan")
+            for k, v in scores.items()
+        }
         rows.append(RankingRow(row_name, int(m.sum()), int(y[m].sum()), au, pr))
     return rows

@@ -70,7 +70,10 @@ def frame_generators(seed: int, index: int) -> dict[str, np.random.Generator]:
     """
     if seed < 0 or index < 0:
         raise ValueError(f"seed and frame index must be >= 0, got seed={seed}, index={index}")
-    return {name: np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index, k))) for k, name in enumerate(_STREAMS)}
+    return {
+        name: np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index, k)))
+        for k, name in enumerate(_STREAMS)
+    }
 
 
 @dataclass
@@ -151,24 +154,43 @@ def manifest_schema() -> pa.Schema:
     it without occluders, ``visible_rays`` those it actually stops (before noise and dropout).
     """
     fields = [
-        pa.field("frame_id", pa.string()), pa.field("object_index", pa.int64()), pa.field("object_id", pa.string()),
-        pa.field("scene_index", pa.int64()), pa.field("class_name", pa.string()), pa.field("labelled", pa.bool_()),
+        pa.field("frame_id", pa.string()),
+        pa.field("object_index", pa.int64()),
+        pa.field("object_id", pa.string()),
+        pa.field("scene_index", pa.int64()),
+        pa.field("class_name", pa.string()),
+        pa.field("labelled", pa.bool_()),
         pa.field("dropped", pa.bool_()),
     ]
     fields += [pa.field(f"{p}_{n}", pa.float64()) for p in ("true", "written") for n in BOX_FIELDS]
     fields += [pa.field("perturbation", pa.string())]
     fields += [pa.field(f"delta_{n}", pa.float64()) for n in BOX_FIELDS]
     fields += [
-        pa.field("center_offset_m", pa.float64()), pa.field("num_points", pa.int64()), pa.field("num_rays", pa.int64()),
-        pa.field("visible_rays", pa.int64()), pa.field("occlusion_fraction", pa.float64()), pa.field("occluded", pa.int64()),
-        pa.field("truncated", pa.float64()), pa.field("in_camera_fov", pa.bool_()), pa.field("distance", pa.float64()),
+        pa.field("center_offset_m", pa.float64()),
+        pa.field("num_points", pa.int64()),
+        pa.field("num_rays", pa.int64()),
+        pa.field("visible_rays", pa.int64()),
+        pa.field("occlusion_fraction", pa.float64()),
+        pa.field("occluded", pa.int64()),
+        pa.field("truncated", pa.float64()),
+        pa.field("in_camera_fov", pa.bool_()),
+        pa.field("distance", pa.float64()),
     ]
     return pa.schema(fields)
 
 
-def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(), lidar: LidarSpec = LidarSpec(),
-                   scene_spec: SceneSpec = SceneSpec(), label_fov: str = "camera",
-                   label_precision: int | None = 2, scene: Scene | None = None, drop_fraction: float = 0.0) -> SimFrame:
+def simulate_frame(
+    index: int,
+    *,
+    seed: int = 0,
+    noise: NoiseSpec = NoiseSpec(),
+    lidar: LidarSpec = LidarSpec(),
+    scene_spec: SceneSpec = SceneSpec(),
+    label_fov: str = "camera",
+    label_precision: int | None = 2,
+    scene: Scene | None = None,
+    drop_fraction: float = 0.0,
+) -> SimFrame:
     """Simulate frame ``index`` of the dataset with ``seed`` (pure: writes nothing).
 
     Parameters
@@ -192,14 +214,26 @@ def simulate_frame(index: int, *, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
     points, hits = ri.points("scene")
     calib = make_calibration(gens["calib"])
     written, kinds = perturb_boxes(scene.boxes, scene.class_names, noise, gens["noise"])
-    u = gens["drop"].random(len(scene.objects))  # one draw per object whatever the fraction: a larger fraction drops a superset
+    u = gens["drop"].random(
+        len(scene.objects)
+    )  # one draw per object whatever the fraction: a larger fraction drops a superset
     drop = (u < drop_fraction) & np.array([c in VEHICLE_CLASSES for c in scene.class_names], dtype=bool)
-    labels = kitti_labels(scene.boxes, written, scene.class_names, ri.occlusion_fraction, calib,
-                          label_fov=label_fov, precision=label_precision, drop=drop)
+    labels = kitti_labels(
+        scene.boxes,
+        written,
+        scene.class_names,
+        ri.occlusion_fraction,
+        calib,
+        label_fov=label_fov,
+        precision=label_precision,
+        drop=drop,
+    )
     return SimFrame(f"{index:06d}", scene, ri, points, hits, calib, written, kinds, labels)
 
 
-def write_manifest(out_dir: str | Path, rows: list[dict[str, list[Any]]], metadata: dict[str, str] | None = None) -> Path:
+def write_manifest(
+    out_dir: str | Path, rows: list[dict[str, list[Any]]], metadata: dict[str, str] | None = None
+) -> Path:
     """Write ``manifest.parquet`` (atomically) from per-frame :meth:`SimFrame.manifest_rows`."""
     schema = manifest_schema()
     columns: dict[str, list[Any]] = {name: [] for name in schema.names}
@@ -291,13 +325,17 @@ def prepare_output(out_dir: str | Path, owned: Sequence[str], overwrite: bool) -
         raise UsageError(f"{out}: cannot use this output folder ({exc.strerror or exc})") from None
     if existing:
         if not overwrite:
-            raise OutputExistsError(f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite it (--overwrite)")
+            raise OutputExistsError(
+                f"{out}: already holds {', '.join(p.name for p in existing)}; choose a new folder or overwrite it (--overwrite)"
+            )
         for p in existing:
             shutil.rmtree(p) if p.is_dir() else p.unlink()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # a dangling link, a path under a file …
-        raise UsageError(f"{out}: cannot create the output folder ({exc.strerror or exc}); choose another one") from None
+        raise UsageError(
+            f"{out}: cannot create the output folder ({exc.strerror or exc}); choose another one"
+        ) from None
     return out
 
 
@@ -307,10 +345,21 @@ SEQUENCE_FORMATS: dict[str, str] = {"waymo-v2": "waymo_v2", "waymo-v1": "waymo_v
 """Simulated sequence formats and the folder each writes under OUT (AV2: the ``val`` split)."""
 
 
-def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: int = 2, frames: int = 10, seed: int = 0,
-                       noise: NoiseSpec = NoiseSpec(), size: str = "real", progress: bool = True,
-                       overwrite: bool = False, detections: Any = None, track_noise: Any = None,
-                       moving_fraction: float = 0.0) -> SimulationSummary:
+def simulate_sequences(
+    out_dir: str | Path,
+    dataset_format: str,
+    *,
+    sequences: int = 2,
+    frames: int = 10,
+    seed: int = 0,
+    noise: NoiseSpec = NoiseSpec(),
+    size: str = "real",
+    progress: bool = True,
+    overwrite: bool = False,
+    detections: Any = None,
+    track_noise: Any = None,
+    moving_fraction: float = 0.0,
+) -> SimulationSummary:
     """Simulate Waymo segments or Argoverse 2 logs: sequences with track ids and a moving ego vehicle.
 
     Sequence ``i`` is drawn from seed ``seed + i`` (:func:`~labelaudit.sim.waymo_writer.simulate_waymo_segment`,
@@ -353,7 +402,9 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
     if size not in ("real", "small"):
         raise UsageError(f"size must be 'real' or 'small', got {size!r}")
     if detections is not None and dataset_format != "av2":
-        raise UsageError(f"the synthetic detector of sequences writes Argoverse 2 detections; not available for {dataset_format}")
+        raise UsageError(
+            f"the synthetic detector of sequences writes Argoverse 2 detections; not available for {dataset_format}"
+        )
     folder = SEQUENCE_FORMATS[dataset_format]
     out = prepare_output(out_dir, (folder, MANIFEST_NAME, AV2_DETECTIONS), overwrite)
     start = time.perf_counter()
@@ -363,18 +414,32 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
     manifest_rows: dict[str, list[Any]] = {}
     for i in tqdm(range(sequences), desc="simulate", unit="sequence", file=sys.stderr, disable=not progress):
         if dataset_format == "av2":
-            log = av2_writer.simulate_av2_log(seed=seed + i, frames=frames, size=size, label_noise=noise, track_noise=track_noise,
-                                              moving_fraction=moving_fraction)
+            log = av2_writer.simulate_av2_log(
+                seed=seed + i,
+                frames=frames,
+                size=size,
+                label_noise=noise,
+                track_noise=track_noise,
+                moving_fraction=moving_fraction,
+            )
             av2_writer.write_av2_log(log, out / folder)
             num_points += sum(len(fr.points) for fr in log.frames)
             for k, v in av2_writer.av2_manifest_rows(log).items():
                 manifest_rows.setdefault(k, []).extend(v)
             if detections is not None:
-                log.frames = [replace(fr, points=fr.points[:0]) for fr in log.frames]  # the detector needs boxes and counts only
+                log.frames = [
+                    replace(fr, points=fr.points[:0]) for fr in log.frames
+                ]  # the detector needs boxes and counts only
                 logs.append(log)
             continue
-        seg = waymo_writer.simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=noise, track_noise=track_noise,
-                                                  moving_fraction=moving_fraction)
+        seg = waymo_writer.simulate_waymo_segment(
+            seed=seed + i,
+            frames=frames,
+            size=size,
+            label_noise=noise,
+            track_noise=track_noise,
+            moving_fraction=moving_fraction,
+        )
         if dataset_format == "waymo-v2":
             waymo_writer.write_waymo_v2(seg, out / folder)
         else:
@@ -388,20 +453,43 @@ def simulate_sequences(out_dir: str | Path, dataset_format: str, *, sequences: i
         os.replace(tmp, manifest)
     else:
         waymo_writer.write_manifest(segments, manifest)
-    kinds = np.asarray(pq.read_table(manifest, columns=["perturbation"]).column("perturbation").to_pylist(), dtype=object)
-    det = av2_writer.simulate_av2_detections(logs, out / AV2_DETECTIONS, detections, seed) if detections is not None else None
+    kinds = np.asarray(
+        pq.read_table(manifest, columns=["perturbation"]).column("perturbation").to_pylist(), dtype=object
+    )
+    det = (
+        av2_writer.simulate_av2_detections(logs, out / AV2_DETECTIONS, detections, seed)
+        if detections is not None
+        else None
+    )
     return SimulationSummary(
-        out_dir=out, manifest=manifest, frames=sequences * frames, seed=seed, num_points=num_points,
-        num_objects=len(kinds), num_labels=len(kinds),
+        out_dir=out,
+        manifest=manifest,
+        frames=sequences * frames,
+        seed=seed,
+        num_points=num_points,
+        num_objects=len(kinds),
+        num_labels=len(kinds),
         perturbations={k: int(np.count_nonzero(kinds == k)) for k in PERTURBATION_KINDS},
-        seconds=time.perf_counter() - start, detections=det,
+        seconds=time.perf_counter() - start,
+        detections=det,
     )
 
 
-def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, noise: NoiseSpec = NoiseSpec(),
-                     lidar: LidarSpec = LidarSpec(), workers: int = 1, progress: bool = True,
-                     scene: SceneSpec = SceneSpec(), label_fov: str = "camera", label_precision: int | None = 2,
-                     overwrite: bool = False, drop_fraction: float = 0.0) -> SimulationSummary:
+def simulate_dataset(
+    out_dir: str | Path,
+    *,
+    frames: int = 10,
+    seed: int = 0,
+    noise: NoiseSpec = NoiseSpec(),
+    lidar: LidarSpec = LidarSpec(),
+    workers: int = 1,
+    progress: bool = True,
+    scene: SceneSpec = SceneSpec(),
+    label_fov: str = "camera",
+    label_precision: int | None = 2,
+    overwrite: bool = False,
+    drop_fraction: float = 0.0,
+) -> SimulationSummary:
     """Simulate a KITTI-format dataset with known label noise.
 
     Writes ``training/velodyne/*.bin``, ``training/label_2/*.txt``, ``training/calib/*.txt``,
@@ -446,8 +534,16 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
         raise UsageError(f"label_precision must be None or an integer 0..17, got {label_precision!r}")
     out = prepare_output(out_dir, _OWNED, overwrite)
     start = time.perf_counter()
-    opts = {"out_dir": out, "seed": seed, "noise": noise, "lidar": lidar, "scene_spec": scene,
-            "label_fov": label_fov, "label_precision": label_precision, "drop_fraction": drop_fraction}
+    opts = {
+        "out_dir": out,
+        "seed": seed,
+        "noise": noise,
+        "lidar": lidar,
+        "scene_spec": scene,
+        "label_fov": label_fov,
+        "label_precision": label_precision,
+        "drop_fraction": drop_fraction,
+    }
     jobs = [(i, dict(opts)) for i in range(frames)]
     results: list[tuple[int, dict[str, list[Any]], int]] = []
     bar = tqdm(total=frames, desc="simulate", unit="frame", file=sys.stderr, disable=not progress)
@@ -477,8 +573,13 @@ def simulate_dataset(out_dir: str | Path, *, frames: int = 10, seed: int = 0, no
     labelled = np.concatenate([np.asarray(rows["labelled"], dtype=bool) for _, rows, _ in results])
     kinds = np.concatenate([np.asarray(rows["perturbation"], dtype=object) for _, rows, _ in results])[labelled]
     return SimulationSummary(
-        out_dir=out, manifest=manifest, frames=frames, seed=seed, num_points=int(sum(r[2] for r in results)),
-        num_objects=len(labelled), num_labels=int(labelled.sum()),
+        out_dir=out,
+        manifest=manifest,
+        frames=frames,
+        seed=seed,
+        num_points=int(sum(r[2] for r in results)),
+        num_objects=len(labelled),
+        num_labels=int(labelled.sum()),
         perturbations={k: int(np.count_nonzero(kinds == k)) for k in PERTURBATION_KINDS},
         seconds=time.perf_counter() - start,
     )

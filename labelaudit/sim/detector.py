@@ -107,7 +107,17 @@ class DetectorSummary:
 def _stds(spec: DetectorSpec, distance: FloatArray) -> FloatArray:
     """(K, 7) error std of (cx, cy, cz, l, w, h, yaw) at each distance."""
     grow = 1.0 + np.asarray(distance, dtype=float) / spec.range_scale
-    base = np.array([spec.center_std, spec.center_std, 0.5 * spec.center_std, spec.size_std, spec.size_std, spec.size_std, spec.yaw_std])
+    base = np.array(
+        [
+            spec.center_std,
+            spec.center_std,
+            0.5 * spec.center_std,
+            spec.size_std,
+            spec.size_std,
+            spec.size_std,
+            spec.yaw_std,
+        ]
+    )
     return grow[:, None] * base[None, :]
 
 
@@ -117,8 +127,14 @@ def _score(rng: np.random.Generator, z: FloatArray) -> FloatArray:
     return 1.0 / (1.0 + np.exp(-logit))
 
 
-def detect_frame(rng: np.random.Generator, true_boxes: FloatArray, classes: list[str], num_points: NDArray[np.integer], spec: DetectorSpec,
-                 sensor_height: float = C.SIM_SENSOR_HEIGHT) -> tuple[FloatArray, list[str], FloatArray, FloatArray, list[str]]:
+def detect_frame(
+    rng: np.random.Generator,
+    true_boxes: FloatArray,
+    classes: list[str],
+    num_points: NDArray[np.integer],
+    spec: DetectorSpec,
+    sensor_height: float = C.SIM_SENSOR_HEIGHT,
+) -> tuple[FloatArray, list[str], FloatArray, FloatArray, list[str]]:
     """Detections of one frame.
 
     Parameters
@@ -184,7 +200,13 @@ def detect_frame(rng: np.random.Generator, true_boxes: FloatArray, classes: list
         out_score.append(float(rng.beta(1.2, 6.0)))
         out_std.append(_stds(spec, np.array([r]))[0] * 3.0)
         kinds.append("background")
-    return (np.asarray(out_boxes, dtype=float).reshape(-1, 7), out_cls, np.asarray(out_score, dtype=float), np.asarray(out_std, dtype=float).reshape(-1, 7), kinds)
+    return (
+        np.asarray(out_boxes, dtype=float).reshape(-1, 7),
+        out_cls,
+        np.asarray(out_score, dtype=float),
+        np.asarray(out_std, dtype=float).reshape(-1, 7),
+        kinds,
+    )
 
 
 def _kitti_lines(boxes: FloatArray, classes: list[str], scores: FloatArray, calib: Calibration) -> list[str]:
@@ -196,7 +218,10 @@ def _kitti_lines(boxes: FloatArray, classes: list[str], scores: FloatArray, cali
     alpha = np.atleast_1d(alpha_from_location(loc, ry))
     w, h = C.SIM_IMAGE_SIZE
     bbox = np.clip(image_boxes(boxes, calib), 0.0, [w - 1, h - 1, w - 1, h - 1])
-    return [format_label_line(c, -1, -1, a, b, d, l, r, score=float(s), precision=None) for c, a, b, d, l, r, s in zip(classes, alpha, bbox, dims, loc, ry, scores)]
+    return [
+        format_label_line(c, -1, -1, a, b, d, l, r, score=float(s), precision=None)
+        for c, a, b, d, l, r, s in zip(classes, alpha, bbox, dims, loc, ry, scores)
+    ]
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
@@ -205,7 +230,9 @@ def _write_text_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def simulate_detections(dataset: str | Path, spec: DetectorSpec = DetectorSpec(), seed: int = 0, out: str | Path | None = None) -> DetectorSummary:
+def simulate_detections(
+    dataset: str | Path, spec: DetectorSpec = DetectorSpec(), seed: int = 0, out: str | Path | None = None
+) -> DetectorSummary:
     """Write the synthetic detector's output for a dataset made by ``labelaudit simulate``.
 
     Parameters
@@ -232,15 +259,51 @@ def simulate_detections(dataset: str | Path, spec: DetectorSpec = DetectorSpec()
     frames: dict[str, list[int]] = {}
     for i, fid in enumerate(cols["frame_id"]):
         frames.setdefault(fid, []).append(i)
-    true = np.stack([np.asarray(cols[f"true_{n}"], dtype=float) for n in ("cx", "cy", "cz", "length", "width", "height", "yaw")], axis=1) if cols["frame_id"] else np.zeros((0, 7))
+    true = (
+        np.stack(
+            [
+                np.asarray(cols[f"true_{n}"], dtype=float)
+                for n in ("cx", "cy", "cz", "length", "width", "height", "yaw")
+            ],
+            axis=1,
+        )
+        if cols["frame_id"]
+        else np.zeros((0, 7))
+    )
     labelled = np.asarray(cols["labelled"], dtype=bool) if cols["frame_id"] else np.zeros(0, bool)
-    rows: dict[str, list[Any]] = {n: [] for n in ("frame_id", "class_name", "cx", "cy", "cz", "length", "width", "height", "yaw", "score",
-                                                 "std_cx", "std_cy", "std_cz", "std_length", "std_width", "std_height", "std_yaw")}
+    rows: dict[str, list[Any]] = {
+        n: []
+        for n in (
+            "frame_id",
+            "class_name",
+            "cx",
+            "cy",
+            "cz",
+            "length",
+            "width",
+            "height",
+            "yaw",
+            "score",
+            "std_cx",
+            "std_cy",
+            "std_cz",
+            "std_length",
+            "std_width",
+            "std_height",
+            "std_yaw",
+        )
+    }
     total = tp = fp = 0
     for fid in sorted(frames):
         idx = np.asarray([i for i in frames[fid] if labelled[i]], dtype=np.int64)
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(int(fid), _STREAM)))
-        boxes, classes, scores, stds, kinds = detect_frame(rng, true[idx], [cols["class_name"][i] for i in idx], np.asarray(cols["num_points"], dtype=np.int64)[idx], spec)
+        boxes, classes, scores, stds, kinds = detect_frame(
+            rng,
+            true[idx],
+            [cols["class_name"][i] for i in idx],
+            np.asarray(cols["num_points"], dtype=np.int64)[idx],
+            spec,
+        )
         calib = read_calib(root / "training" / "calib" / f"{fid}.txt")
         lines = _kitti_lines(boxes, classes, scores, calib)
         _write_text_atomic(folder / f"{fid}.txt", "".join(line + "\n" for line in lines))
@@ -259,7 +322,8 @@ def simulate_detections(dataset: str | Path, spec: DetectorSpec = DetectorSpec()
         from labelaudit.datasets.detections import DETECTIONS_SCHEMA, write_parquet_detections
 
         schema = pa.schema([DETECTIONS_SCHEMA.field(n) for n in rows])
-        table = pa.table(rows, schema=schema).replace_schema_metadata({"labelaudit.detector": str(asdict(spec)), "labelaudit.seed": str(seed)})
+        table = pa.table(rows, schema=schema).replace_schema_metadata(
+            {"labelaudit.detector": str(asdict(spec)), "labelaudit.seed": str(seed)}
+        )
         parquet = write_parquet_detections(root / DETECTIONS_PARQUET, table)
     return DetectorSummary(folder, parquet, len(frames), total, tp, fp)
-

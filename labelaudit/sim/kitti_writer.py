@@ -71,7 +71,9 @@ def make_calibration(rng: np.random.Generator) -> Calibration:
         "Tr_velo_to_cam": np.c_[tr_rot, tr_t],
     }
     # 7 significant digits, like the official files (the reader inverts generally, not rigidly).
-    return Calibration(**{k: np.array([float(f"{v:.6e}") for v in m.ravel()]).reshape(m.shape) for k, m in mats.items()})
+    return Calibration(
+        **{k: np.array([float(f"{v:.6e}") for v in m.ravel()]).reshape(m.shape) for k, m in mats.items()}
+    )
 
 
 @dataclass
@@ -135,10 +137,18 @@ def occlusion_level(occlusion_fraction: FloatArray) -> NDArray[np.int64]:
     return np.where(np.isfinite(frac), level, 3).astype(np.int64)
 
 
-def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names: list[str],
-                 occlusion_fraction: FloatArray, calib: Calibration, *, label_fov: str = "camera",
-                 precision: int | None = 2, image_size: tuple[int, int] = C.SIM_IMAGE_SIZE,
-                 drop: NDArray[np.bool_] | None = None) -> KittiLabelInfo:
+def kitti_labels(
+    true_boxes: FloatArray,
+    written_boxes: FloatArray,
+    class_names: list[str],
+    occlusion_fraction: FloatArray,
+    calib: Calibration,
+    *,
+    label_fov: str = "camera",
+    precision: int | None = 2,
+    image_size: tuple[int, int] = C.SIM_IMAGE_SIZE,
+    drop: NDArray[np.bool_] | None = None,
+) -> KittiLabelInfo:
     """Label lines for one frame and what the reader will read back from them.
 
     The 2D box and truncation come from the *true* box (2D boxes are drawn on the image of the
@@ -194,8 +204,17 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
         if not in_fov[i]:
             bbox2d[i] = 0.0
             truncated[i] = 1.0
-        line = format_label_line(class_names[i], truncated[i], int(occluded[i]), alpha[i], bbox2d[i], dims[i], loc[i],
-                                 ry[i], precision=precision)
+        line = format_label_line(
+            class_names[i],
+            truncated[i],
+            int(occluded[i]),
+            alpha[i],
+            bbox2d[i],
+            dims[i],
+            loc[i],
+            ry[i],
+            precision=precision,
+        )
         object_index[i] = len(lines)
         lines.append(line)
     if lines:
@@ -205,8 +224,9 @@ def kitti_labels(true_boxes: FloatArray, written_boxes: FloatArray, class_names:
     return KittiLabelInfo(object_index, written, truncated, occluded, alpha, bbox2d, in_fov, lines, dropped)
 
 
-def write_kitti_frame(root: str | Path, frame_id: str, points: NDArray[np.float32], label_lines: list[str],
-                      calib: Calibration) -> None:
+def write_kitti_frame(
+    root: str | Path, frame_id: str, points: NDArray[np.float32], label_lines: list[str], calib: Calibration
+) -> None:
     """Write ``training/{velodyne,label_2,calib}/<frame_id>.*`` under ``root``."""
     base = Path(root) / "training"
     write_velodyne(base / "velodyne" / f"{frame_id}.bin", points)

@@ -86,8 +86,11 @@ class NoiseSpec:
     def benchmark(cls) -> "NoiseSpec":
         """The label-error benchmark's noise: 20 % jitter (centre 0.3 m, size 0.2 m, yaw 0.1 rad) + 2 % gross."""
         return cls(
-            fraction=C.SIM_BENCH_FRACTIONS[0], gross_fraction=C.SIM_BENCH_FRACTIONS[1],
-            center_std=C.SIM_BENCH_NOISE[0], size_std=C.SIM_BENCH_NOISE[1], yaw_std=C.SIM_BENCH_NOISE[2],
+            fraction=C.SIM_BENCH_FRACTIONS[0],
+            gross_fraction=C.SIM_BENCH_FRACTIONS[1],
+            center_std=C.SIM_BENCH_NOISE[0],
+            size_std=C.SIM_BENCH_NOISE[1],
+            yaw_std=C.SIM_BENCH_NOISE[2],
         )
 
     @property
@@ -95,8 +98,9 @@ class NoiseSpec:
         return self.fraction > 0 or self.gross_fraction > 0
 
 
-def perturb_boxes(boxes: FloatArray, class_names: list[str], spec: NoiseSpec,
-                  rng: np.random.Generator) -> tuple[FloatArray, list[str]]:
+def perturb_boxes(
+    boxes: FloatArray, class_names: list[str], spec: NoiseSpec, rng: np.random.Generator
+) -> tuple[FloatArray, list[str]]:
     """Apply label noise to true boxes.
 
     Parameters
@@ -140,7 +144,9 @@ def perturb_boxes(boxes: FloatArray, class_names: list[str], spec: NoiseSpec,
                 b[6] += sign[i] * np.pi / 2
             kinds[i] = kind
         elif u[i] < spec.gross_fraction + spec.fraction:
-            stds = np.array([spec.center_std, spec.center_std, spec.center_std_z, spec.size_std, spec.size_std, spec.height_std])
+            stds = np.array(
+                [spec.center_std, spec.center_std, spec.center_std_z, spec.size_std, spec.size_std, spec.height_std]
+            )
             b[:6] += stds * normals[i]
             b[3:6] = np.maximum(b[3:6], spec.min_size)
             b[6] += spec.yaw_std * dyaw[i]

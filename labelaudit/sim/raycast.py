@@ -225,8 +225,9 @@ def _column_window(az_lo: float, az_hi: float, extrinsic_yaw: float, width: int)
     return np.arange(j0, j1 + 1) % width
 
 
-def _object_window(corners_sensor: FloatArray, inclinations: FloatArray, extrinsic_yaw: float, width: int,
-                   max_range: float) -> tuple[slice, NDArray[np.int64]] | None:
+def _object_window(
+    corners_sensor: FloatArray, inclinations: FloatArray, extrinsic_yaw: float, width: int, max_range: float
+) -> tuple[slice, NDArray[np.int64]] | None:
     """Rows (a slice) and columns that can see a convex object given its 8 corners in the sensor frame.
 
     The azimuth extremes of a convex solid seen from outside are at its corners. Elevation is
@@ -292,8 +293,9 @@ def _intersect_boxes(origin: FloatArray, dirs: FloatArray, boxes: FloatArray) ->
     return np.where(hit, t_near, np.inf), axis
 
 
-def _intersect_objects(origin: FloatArray, dirs: FloatArray, parts: FloatArray, reflectivity: FloatArray,
-                       obj: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+def _intersect_objects(
+    origin: FloatArray, dirs: FloatArray, parts: FloatArray, reflectivity: FloatArray, obj: NDArray[np.int64]
+) -> tuple[FloatArray, FloatArray]:
     """First hit of rays on their candidate object's parts.
 
     Parameters
@@ -321,8 +323,11 @@ def _intersect_objects(origin: FloatArray, dirs: FloatArray, parts: FloatArray, 
         refl = np.where(closer, reflectivity[obj, p], refl)
         # |cos incidence| = |direction · face normal| = |component of the direction along the face axis|
         yaw = parts[obj, p, 6]
-        along = np.where(axis == 0, np.cos(yaw) * dirs[:, 0] + np.sin(yaw) * dirs[:, 1],
-                         np.where(axis == 1, -np.sin(yaw) * dirs[:, 0] + np.cos(yaw) * dirs[:, 1], dirs[:, 2]))
+        along = np.where(
+            axis == 0,
+            np.cos(yaw) * dirs[:, 0] + np.sin(yaw) * dirs[:, 1],
+            np.where(axis == 1, -np.sin(yaw) * dirs[:, 0] + np.cos(yaw) * dirs[:, 1], dirs[:, 2]),
+        )
         cos_inc = np.where(closer, np.abs(along), cos_inc)
     return t, _intensity(refl, cos_inc)
 
@@ -332,8 +337,12 @@ def _intensity(reflectivity: FloatArray, cos_incidence: FloatArray) -> FloatArra
     return reflectivity * (0.3 + 0.7 * cos_incidence)
 
 
-def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: FloatArray | None = None,
-                       rng: np.random.Generator | None = None) -> RangeImage:
+def render_range_image(
+    scene: Scene,
+    lidar: LidarSpec = LidarSpec(),
+    extrinsic: FloatArray | None = None,
+    rng: np.random.Generator | None = None,
+) -> RangeImage:
     """Ray-cast one sweep of ``lidar`` into ``scene``.
 
     Parameters
@@ -405,8 +414,9 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
             parts[i, : len(o.parts)] = o.parts
             refl[i, : len(o.parts)] = o.reflectivity
         # float32 for the slab test: half the memory traffic; 1e-7 relative is micrometres at 120 m.
-        t_obj, int_obj = _intersect_objects(origin.astype(f32), dirs.reshape(-1, 3)[ray], parts.astype(f32),
-                                            refl.astype(f32), obj)
+        t_obj, int_obj = _intersect_objects(
+            origin.astype(f32), dirs.reshape(-1, 3)[ray], parts.astype(f32), refl.astype(f32), obj
+        )
         t_obj[t_obj > lidar.max_range] = np.inf
         ray_counts = np.bincount(obj[np.isfinite(t_obj)], minlength=n_solid)[:k].astype(np.int64)
         # Depth buffer: the nearest of ground and objects per ray (ties: the later object).
@@ -426,7 +436,9 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
     if rng is not None:
         # float32 draws: half the cost, and far finer than the 2 cm noise they model.
         rng_range = t_best + f32(lidar.range_noise_std) * rng.standard_normal((height, width), dtype=f32)
-        p_drop = f32(lidar.dropout) + f32(lidar.far_dropout) * np.minimum(rng_range / f32(lidar.max_range), f32(1.0)) ** 2
+        p_drop = (
+            f32(lidar.dropout) + f32(lidar.far_dropout) * np.minimum(rng_range / f32(lidar.max_range), f32(1.0)) ** 2
+        )
         dropped = rng.random((height, width), dtype=f32) < p_drop
         intensity = intensity * (f32(1.0) + f32(0.1) * rng.standard_normal((height, width), dtype=f32))
         keep = ~dropped & (rng_range >= lidar.min_range) & (rng_range <= lidar.max_range)
@@ -448,6 +460,14 @@ def render_range_image(scene: Scene, lidar: LidarSpec = LidarSpec(), extrinsic: 
     kept_hits = hit[keep]
     return_counts = np.bincount(kept_hits[kept_hits >= 0], minlength=k).astype(np.int64)
     return RangeImage(
-        range=ranges, intensity=intensity, hit=hit, inclinations=inc, azimuths=az, extrinsic=T,
-        ray_counts=ray_counts, visible_counts=visible_counts, return_counts=return_counts, object_rays=windows,
+        range=ranges,
+        intensity=intensity,
+        hit=hit,
+        inclinations=inc,
+        azimuths=az,
+        extrinsic=T,
+        ray_counts=ray_counts,
+        visible_counts=visible_counts,
+        return_counts=return_counts,
+        object_rays=windows,
     )

@@ -161,7 +161,9 @@ class SceneSpec:
             if not (0 <= lo <= hi):
                 raise ValueError(f"SceneSpec.{name} must be (min, max) with 0 <= min <= max, got ({lo}, {hi})")
         if self.distance[0] < 3.0:
-            raise ValueError(f"SceneSpec.distance min must be >= 3 m (objects would hit the sensor), got {self.distance[0]}")
+            raise ValueError(
+                f"SceneSpec.distance min must be >= 3 m (objects would hit the sensor), got {self.distance[0]}"
+            )
         for name in ("front_fraction", "road_aligned_fraction"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
@@ -207,7 +209,13 @@ def _parts_local(rng: np.random.Generator, class_name: str, lwh: FloatArray) -> 
         cab = rng.uniform(0.18, 0.25) * length
         gap = rng.uniform(0.02, 0.05) * length
         parts = [
-            part(length / 2 - cab, length / 2, rng.uniform(0.9, 0.97) * width, bottom, bottom + rng.uniform(0.7, 0.85) * height),
+            part(
+                length / 2 - cab,
+                length / 2,
+                rng.uniform(0.9, 0.97) * width,
+                bottom,
+                bottom + rng.uniform(0.7, 0.85) * height,
+            ),
             part(-length / 2, length / 2 - cab - gap, width, bottom, top),
         ]
         refl = [paint, rng.uniform(*_PAINT_REFLECTIVITY)]
@@ -233,8 +241,14 @@ def _parts_local(rng: np.random.Generator, class_name: str, lwh: FloatArray) -> 
     return np.asarray(parts, dtype=float), np.asarray(refl, dtype=float)
 
 
-def make_object(class_name: str, center_xy: tuple[float, float], yaw: float, lwh: FloatArray, ground_z: float,
-                rng: np.random.Generator) -> SimObject:
+def make_object(
+    class_name: str,
+    center_xy: tuple[float, float],
+    yaw: float,
+    lwh: FloatArray,
+    ground_z: float,
+    rng: np.random.Generator,
+) -> SimObject:
     """Build an object standing on the ground with its parts in the scene frame."""
     lwh = np.asarray(lwh, dtype=float)
     local, refl = _parts_local(rng, class_name, lwh)
@@ -264,7 +278,9 @@ def _footprints_overlap(corners: FloatArray, others: FloatArray, gap: float) -> 
     return bool(np.any(~separated.any(axis=1)))
 
 
-def sample_scene(rng: np.random.Generator, spec: SceneSpec = SceneSpec(), *, ground_z: float = -C.SIM_SENSOR_HEIGHT) -> Scene:
+def sample_scene(
+    rng: np.random.Generator, spec: SceneSpec = SceneSpec(), *, ground_z: float = -C.SIM_SENSOR_HEIGHT
+) -> Scene:
     """Draw a random scene: vehicles first, then pedestrians and cyclists, none overlapping.
 
     Parameters
@@ -324,8 +340,11 @@ def _add_clutter(rng: np.random.Generator, scene: Scene, spec: SceneSpec, footpr
                 cxy = (rng.uniform(-60, 60), side * (rng.uniform(12, 30) + lwh[1] / 2))
                 yaw = rng.normal(0.0, 0.05)
             else:
-                lwh = (np.array([0.3, 0.3, rng.uniform(4, 8)]) if kind == "pole"
-                       else np.array([rng.uniform(1, 4), rng.uniform(1, 3), rng.uniform(0.5, 2.5)]))
+                lwh = (
+                    np.array([0.3, 0.3, rng.uniform(4, 8)])
+                    if kind == "pole"
+                    else np.array([rng.uniform(1, 4), rng.uniform(1, 3), rng.uniform(0.5, 2.5)])
+                )
                 azimuth, dist = rng.uniform(-np.pi, np.pi), rng.uniform(*spec.distance)
                 cxy = (dist * np.cos(azimuth), dist * np.sin(azimuth))
                 yaw = rng.uniform(-np.pi, np.pi)
@@ -337,5 +356,7 @@ def _add_clutter(rng: np.random.Generator, scene: Scene, spec: SceneSpec, footpr
             footprints.append(corners)
             box = np.array([cxy[0], cxy[1], scene.ground_z + lwh[2] / 2, *lwh, normalize_angle(yaw)])
             name = {"building": "Building", "pole": "Pole"}.get(str(kind), VEGETATION)
-            scene.clutter.append(SimObject(name, box, box[None].copy(), np.array([rng.uniform(*_CLUTTER_REFLECTIVITY)])))
+            scene.clutter.append(
+                SimObject(name, box, box[None].copy(), np.array([rng.uniform(*_CLUTTER_REFLECTIVITY)]))
+            )
             break

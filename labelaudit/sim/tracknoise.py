@@ -114,7 +114,12 @@ def perturb_track_labels(
     written = boxes.copy()
     kinds = ["none"] * k
     magnitude = np.zeros(k)
-    ranges = {"length": spec.length_range, "width": spec.width_range, "yaw": spec.yaw_range, "centre": spec.centre_range}
+    ranges = {
+        "length": spec.length_range,
+        "width": spec.width_range,
+        "yaw": spec.yaw_range,
+        "centre": spec.centre_range,
+    }
     for i in range(k):
         if class_names[i] not in spec.classes:
             continue

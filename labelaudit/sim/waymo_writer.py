@@ -136,7 +136,9 @@ class SimWaymoFrame:
     sim_classes: list[str] = field(default_factory=list)  # the simulator's KITTI class names
     true_boxes: FloatArray | None = None  # (K, 7) before label noise (None: boxes are exact)
     perturbation: list[str] = field(default_factory=list)  # per object, labelaudit.sim.noise kinds
-    track_error_kind: list[str] = field(default_factory=list)  # per object, labelaudit.sim.tracknoise kinds (empty: no track noise)
+    track_error_kind: list[str] = field(
+        default_factory=list
+    )  # per object, labelaudit.sim.tracknoise kinds (empty: no track noise)
     track_error_size: list[float] = field(default_factory=list)  # per object, the injected error's magnitude (m / rad)
 
 
@@ -189,11 +191,15 @@ def scene_at(world: Scene, motions: list[tuple[float, float] | None], t: float) 
         if abs(rate) < 1e-9:
             shift = speed * t * np.array([np.cos(th0), np.sin(th0)])
         else:
-            shift = speed / rate * np.array([np.sin(th0 + rate * t) - np.sin(th0), np.cos(th0) - np.cos(th0 + rate * t)])
+            shift = (
+                speed / rate * np.array([np.sin(th0 + rate * t) - np.sin(th0), np.cos(th0) - np.cos(th0 + rate * t)])
+            )
         turn = rate * t
         rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
 
-        def move(b: FloatArray, c0: FloatArray = c0, rot: FloatArray = rot, shift: FloatArray = shift, turn: float = turn) -> FloatArray:
+        def move(
+            b: FloatArray, c0: FloatArray = c0, rot: FloatArray = rot, shift: FloatArray = shift, turn: float = turn
+        ) -> FloatArray:
             out = b.copy()
             out[..., :2] = (b[..., :2] - c0) @ rot.T + c0 + shift
             out[..., 6] = np.arctan2(np.sin(b[..., 6] + turn), np.cos(b[..., 6] + turn))
@@ -206,8 +212,14 @@ def scene_at(world: Scene, motions: list[tuple[float, float] | None], t: float) 
 def _spec(calib: LidarCalibration, width: int, height: int, name: int, noise: bool) -> LidarSpec:
     el = np.rad2deg(calib.row_inclinations(height))  # top row first, the simulator's order
     kw = {} if noise else {"range_noise_std": 0.0, "dropout": 0.0, "far_dropout": 0.0}
-    return LidarSpec(beams=height, columns=width, inclinations_deg=tuple(float(v) for v in el),
-                     min_range=0.3, max_range=MAX_RANGE[name], **kw)
+    return LidarSpec(
+        beams=height,
+        columns=width,
+        inclinations_deg=tuple(float(v) for v in el),
+        min_range=0.3,
+        max_range=MAX_RANGE[name],
+        **kw,
+    )
 
 
 def _points_of(image: Any, rows_cols_mask: NDArray[np.bool_], ranges: NDArray[np.float32]) -> NDArray[np.float64]:
@@ -269,7 +281,11 @@ def simulate_waymo_segment(
     start = planar_pose(ox, oy, 0.0)
     # the scene was drawn around the vehicle at t = 0: move it to the world
     world = scene_in_vehicle(scene_v, np.linalg.inv(start))
-    motions = vehicle_motions(np.random.default_rng([seed, 13]), world, moving_fraction) if moving_fraction > 0 else [None] * len(world.objects)
+    motions = (
+        vehicle_motions(np.random.default_rng([seed, 13]), world, moving_fraction)
+        if moving_fraction > 0
+        else [None] * len(world.objects)
+    )
     calibs = waymo_calibrations(size)
     seg = SimWaymoSegment(name or f"{seed:019d}_0000_000_0020_000", calibs)
     ids = [f"sim{seed}-{i:04d}" for i in range(len(world.objects))]
@@ -304,7 +320,9 @@ def simulate_waymo_segment(
                 pose_c = pose_at(t_c)
                 local = scene_in_vehicle(scene_at(world, motions, t_c), pose_c)
                 img = render_range_image(local, spec, calib.extrinsic, rng if noise else None)
-                ground = render_range_image(Scene([], local.ground_z, local.ground_reflectivity), spec, calib.extrinsic, None)
+                ground = render_range_image(
+                    Scene([], local.ground_z, local.ground_reflectivity), spec, calib.extrinsic, None
+                )
                 cols = np.zeros((h, w), dtype=bool)
                 cols[:, j0:j1] = True
                 rng_c = np.where(cols, img.range, -1.0).astype(np.float32)
@@ -315,7 +333,10 @@ def simulate_waymo_segment(
                 r2[..., 0] = np.where(second, ground.range, r2[..., 0])
                 r2[..., 1] = np.where(second, ground.intensity, r2[..., 1])
                 m_to_frame = pose_f_inv @ pose_c
-                for mask, ranges, inten in ((rng_c > 0, img.range, img.intensity), (second, ground.range, ground.intensity)):
+                for mask, ranges, inten in (
+                    (rng_c > 0, img.range, img.intensity),
+                    (second, ground.range, ground.intensity),
+                ):
                     xyz = _points_of(img, mask, ranges) @ m_to_frame[:3, :3].T + m_to_frame[:3, 3]
                     pts = np.empty((len(xyz), 4), dtype=np.float32)
                     pts[:, :3], pts[:, 3] = xyz, inten[mask]
@@ -332,13 +353,30 @@ def simulate_waymo_segment(
         track_kinds: list[str] = []
         track_sizes: list[float] = []
         if track_noise is not None:
-            boxes, track_kinds, mags = perturb_track_labels(boxes, classes, track_noise, np.random.default_rng([seed, f, 11]))
+            boxes, track_kinds, mags = perturb_track_labels(
+                boxes, classes, track_noise, np.random.default_rng([seed, f, 11])
+            )
             track_sizes = mags.tolist()
         pts = np.concatenate(expected) if expected else np.zeros((0, 4), np.float32)
-        counts = np.array([len(idx) for idx in points_in_boxes_numpy(pts, boxes)], dtype=np.int64)  # Waymo counts every point in the box
+        counts = np.array(
+            [len(idx) for idx in points_in_boxes_numpy(pts, boxes)], dtype=np.int64
+        )  # Waymo counts every point in the box
         seg.frames.append(
-            SimWaymoFrame(t0 + int(round(t_f * 1e6)), pose_f, lidars, boxes, types.copy(), list(ids), counts, pts,
-                          classes, true_boxes, kinds, track_kinds, track_sizes)
+            SimWaymoFrame(
+                t0 + int(round(t_f * 1e6)),
+                pose_f,
+                lidars,
+                boxes,
+                types.copy(),
+                list(ids),
+                counts,
+                pts,
+                classes,
+                true_boxes,
+                kinds,
+                track_kinds,
+                track_sizes,
+            )
         )
     return seg
 
@@ -406,7 +444,9 @@ def write_waymo_v2(
     string, i64, i8 = pa.string(), pa.int64(), pa.int8()
 
     # lidar_box
-    cols: dict[str, list] = {k: [] for k in [v2.K_SEG, v2.K_TS, v2.K_OBJ, *v2.BOX_COLUMNS.values(), *v2.BOX_EXTRAS.values()]}
+    cols: dict[str, list] = {
+        k: [] for k in [v2.K_SEG, v2.K_TS, v2.K_OBJ, *v2.BOX_COLUMNS.values(), *v2.BOX_EXTRAS.values()]
+    }
     for fr in segment.frames:
         diff = _difficulty(fr.num_points)
         for k, box in enumerate(fr.boxes):
@@ -422,11 +462,20 @@ def write_waymo_v2(
             cols[v2.BOX_EXTRAS["tracking_difficulty"]].append(int(diff[k]))
             cols[v2.BOX_EXTRAS["speed_x"]].append(0.0)
             cols[v2.BOX_EXTRAS["speed_y"]].append(0.0)
-    types = {v2.K_SEG: string, v2.K_TS: i64, v2.K_OBJ: string, v2.BOX_COLUMNS["type"]: i8,
-             v2.BOX_EXTRAS["num_lidar_points_in_box"]: i64, v2.BOX_EXTRAS["num_top_lidar_points_in_box"]: i64,
-             v2.BOX_EXTRAS["detection_difficulty"]: i8, v2.BOX_EXTRAS["tracking_difficulty"]: i8}
-    pq.write_table(pa.table({k: pa.array(v, type=types.get(k, pa.float64())) for k, v in cols.items()}),
-                   root / "lidar_box" / f"{seg}.parquet")
+    types = {
+        v2.K_SEG: string,
+        v2.K_TS: i64,
+        v2.K_OBJ: string,
+        v2.BOX_COLUMNS["type"]: i8,
+        v2.BOX_EXTRAS["num_lidar_points_in_box"]: i64,
+        v2.BOX_EXTRAS["num_top_lidar_points_in_box"]: i64,
+        v2.BOX_EXTRAS["detection_difficulty"]: i8,
+        v2.BOX_EXTRAS["tracking_difficulty"]: i8,
+    }
+    pq.write_table(
+        pa.table({k: pa.array(v, type=types.get(k, pa.float64())) for k, v in cols.items()}),
+        root / "lidar_box" / f"{seg}.parquet",
+    )
 
     # lidar and lidar_pose
     keys: dict[str, list] = {v2.K_SEG: [], v2.K_TS: [], v2.K_LASER: []}
@@ -443,13 +492,19 @@ def write_waymo_v2(
                 ret[k].append(lid.returns[k] if k < len(lid.returns) else None)
             if lid.pixel_pose is not None:
                 poses.append(lid.pixel_pose)
-    table = {v2.K_SEG: pa.array(keys[v2.K_SEG], string), v2.K_TS: pa.array(keys[v2.K_TS], i64),
-             v2.K_LASER: pa.array(keys[v2.K_LASER], i8)}
+    table = {
+        v2.K_SEG: pa.array(keys[v2.K_SEG], string),
+        v2.K_TS: pa.array(keys[v2.K_TS], i64),
+        v2.K_LASER: pa.array(keys[v2.K_LASER], i8),
+    }
     for k, (vcol, scol) in enumerate(v2.LIDAR_RETURNS):
         table[vcol], table[scol] = _image_columns(ret[k])
     pq.write_table(pa.table(table), root / "lidar" / f"{seg}.parquet", row_group_size=rows_per_group)
-    ptable = {v2.K_SEG: pa.array(pkeys[v2.K_SEG], string), v2.K_TS: pa.array(pkeys[v2.K_TS], i64),
-              v2.K_LASER: pa.array(pkeys[v2.K_LASER], i8)}
+    ptable = {
+        v2.K_SEG: pa.array(pkeys[v2.K_SEG], string),
+        v2.K_TS: pa.array(pkeys[v2.K_TS], i64),
+        v2.K_LASER: pa.array(pkeys[v2.K_LASER], i8),
+    }
     ptable[v2.POSE_COLUMNS[0]], ptable[v2.POSE_COLUMNS[1]] = _image_columns(poses)
     pq.write_table(pa.table(ptable), root / "lidar_pose" / f"{seg}.parquet", row_group_size=max(1, rows_per_group // 3))
 
@@ -457,25 +512,29 @@ def write_waymo_v2(
     names = sorted(segment.calibrations)
     cal = [segment.calibrations[n] for n in names]
     pq.write_table(
-        pa.table({
-            v2.K_SEG: pa.array([seg] * len(names), string),
-            v2.K_LASER: pa.array(names, i8),
-            v2.CAL_EXTRINSIC: pa.array([c.extrinsic.ravel().tolist() for c in cal], pa.list_(pa.float64(), 16)),
-            v2.CAL_MIN: pa.array([c.inclination_min for c in cal], pa.float64()),
-            v2.CAL_MAX: pa.array([c.inclination_max for c in cal], pa.float64()),
-            v2.CAL_VALUES: pa.array([c.inclinations.tolist() or None for c in cal], pa.list_(pa.float64())),
-        }),
+        pa.table(
+            {
+                v2.K_SEG: pa.array([seg] * len(names), string),
+                v2.K_LASER: pa.array(names, i8),
+                v2.CAL_EXTRINSIC: pa.array([c.extrinsic.ravel().tolist() for c in cal], pa.list_(pa.float64(), 16)),
+                v2.CAL_MIN: pa.array([c.inclination_min for c in cal], pa.float64()),
+                v2.CAL_MAX: pa.array([c.inclination_max for c in cal], pa.float64()),
+                v2.CAL_VALUES: pa.array([c.inclinations.tolist() or None for c in cal], pa.list_(pa.float64())),
+            }
+        ),
         root / "lidar_calibration" / f"{seg}.parquet",
     )
 
     # vehicle_pose
     ftype = pa.float32() if np.dtype(pose_dtype) == np.float32 else pa.float64()
     pq.write_table(
-        pa.table({
-            v2.K_SEG: pa.array([seg] * len(segment.frames), string),
-            v2.K_TS: pa.array([fr.timestamp for fr in segment.frames], i64),
-            v2.VEHICLE_POSE: pa.array([fr.pose.ravel().tolist() for fr in segment.frames], pa.list_(ftype, 16)),
-        }),
+        pa.table(
+            {
+                v2.K_SEG: pa.array([seg] * len(segment.frames), string),
+                v2.K_TS: pa.array([fr.timestamp for fr in segment.frames], i64),
+                v2.VEHICLE_POSE: pa.array([fr.pose.ravel().tolist() for fr in segment.frames], pa.list_(ftype, 16)),
+            }
+        ),
         root / "vehicle_pose" / f"{seg}.parquet",
     )
     return root
@@ -495,8 +554,9 @@ def write_as_kitti(segment: SimWaymoSegment, root: str | Path, seed: int = 0) ->
     for i, fr in enumerate(segment.frames):
         frame_id = f"{i:06d}"
         calib = make_calibration(rng)
-        info = kitti_labels(fr.boxes, fr.boxes, fr.sim_classes, np.zeros(len(fr.boxes)), calib,
-                            label_fov="all", precision=None)
+        info = kitti_labels(
+            fr.boxes, fr.boxes, fr.sim_classes, np.zeros(len(fr.boxes)), calib, label_fov="all", precision=None
+        )
         write_kitti_frame(root, frame_id, fr.points, info.lines, calib)
         ids.append(frame_id)
     return ids
@@ -505,15 +565,29 @@ def write_as_kitti(segment: SimWaymoSegment, root: str | Path, seed: int = 0) ->
 def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
     """One row per object: frame_id, object_id, class names, true and written box, perturbation,
     the injected track error (``track_error_kind``: none / length / width / yaw / flip / centre) and its size."""
-    rows: dict[str, list] = {k: [] for k in ("frame_id", "object_id", "class_name", "sim_class", "true_box", "written_box", "perturbation",
-                                             "track_error_kind", "track_error_size")}
+    rows: dict[str, list] = {
+        k: []
+        for k in (
+            "frame_id",
+            "object_id",
+            "class_name",
+            "sim_class",
+            "true_box",
+            "written_box",
+            "perturbation",
+            "track_error_kind",
+            "track_error_size",
+        )
+    }
     for seg in segments:
         for fr in seg.frames:
             true = fr.boxes if fr.true_boxes is None else fr.true_boxes
             for k in range(len(fr.boxes)):
                 rows["frame_id"].append(f"{seg.name}:{fr.timestamp}")
                 rows["object_id"].append(fr.object_ids[k])
-                rows["class_name"].append({1: "Vehicle", 2: "Pedestrian", 4: "Cyclist"}.get(int(fr.types[k]), "Unknown"))
+                rows["class_name"].append(
+                    {1: "Vehicle", 2: "Pedestrian", 4: "Cyclist"}.get(int(fr.types[k]), "Unknown")
+                )
                 rows["sim_class"].append(fr.sim_classes[k] if fr.sim_classes else "")
                 rows["true_box"].append([float(v) for v in true[k]])
                 rows["written_box"].append([float(v) for v in fr.boxes[k]])
@@ -548,7 +622,14 @@ def simulate_waymo_dataset(
         raise ValueError(f"unknown formats {sorted(unknown)}; expected waymo-v2 and/or waymo-v1")
     out = Path(out_dir)
     segs = [
-        simulate_waymo_segment(seed=seed + i, frames=frames, size=size, label_noise=label_noise, track_noise=track_noise, moving_fraction=moving_fraction)
+        simulate_waymo_segment(
+            seed=seed + i,
+            frames=frames,
+            size=size,
+            label_noise=label_noise,
+            track_noise=track_noise,
+            moving_fraction=moving_fraction,
+        )
         for i in range(segments)
     ]
     roots: dict[str, Path] = {}

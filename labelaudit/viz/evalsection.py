@@ -97,7 +97,9 @@ def _check_records(records: Any, key: str, fields: Mapping[str, tuple[Any, bool]
         if "interp" in fields:
             interps = (LET_INTERP,) if rec["metric"] in LET_METRICS else INTERPS
             if rec["interp"] not in interps:
-                raise ViewError(f"{where}: {key}[{i}].interp must be {' or '.join(interps)} for metric {rec['metric']}, got {rec['interp']!r}")
+                raise ViewError(
+                    f"{where}: {key}[{i}].interp must be {' or '.join(interps)} for metric {rec['metric']}, got {rec['interp']!r}"
+                )
     return records
 
 
@@ -124,8 +126,14 @@ def _ap_table(records: list[dict[str, Any]]) -> tuple[list[str], list[dict[str, 
         if not picked:
             have = ", ".join(f"{t:g}" for t in sorted({float(r["threshold"]) for r in mine}))
             interps = ", ".join(sorted({r["interp"] for r in mine}))
-            rows[(cls, "", "")] = {"class": cls, "view": "", "metric": "", "threshold": thr, "cells": [None] * len(columns),
-                                   "note": f"no {C.REPORT_AP_INTERP} AP at {thr:g} in summary.json (thresholds {have}; {interps})"}
+            rows[(cls, "", "")] = {
+                "class": cls,
+                "view": "",
+                "metric": "",
+                "threshold": thr,
+                "cells": [None] * len(columns),
+                "note": f"no {C.REPORT_AP_INTERP} AP at {thr:g} in summary.json (thresholds {have}; {interps})",
+            }
             continue
         for view in _ordered([r["view"] for r in picked]):
             for metric in METRICS:
@@ -134,16 +142,38 @@ def _ap_table(records: list[dict[str, Any]]) -> tuple[list[str], list[dict[str, 
                     continue
                 cells: list[dict[str, Any] | None] = [None] * len(columns)
                 for r in sel:
-                    cells[columns.index(str(r["difficulty"]))] = {"ap": r["ap"], "num_gt": r["num_gt"], "num_det": r["num_det"]}
-                rows[(cls, view, metric)] = {"class": cls, "view": view, "metric": metric, "threshold": thr, "cells": cells, "note": ""}
+                    cells[columns.index(str(r["difficulty"]))] = {
+                        "ap": r["ap"],
+                        "num_gt": r["num_gt"],
+                        "num_det": r["num_det"],
+                    }
+                rows[(cls, view, metric)] = {
+                    "class": cls,
+                    "view": view,
+                    "metric": metric,
+                    "threshold": thr,
+                    "cells": cells,
+                    "note": "",
+                }
         for metric in LET_METRICS:  # LET: its own LET-IoU threshold and Waymo's integration
             sel = [r for r in records if r["class"] == cls and r["metric"] == metric]
             if not sel:
                 continue
             cells = [None] * len(columns)
             for r in sel:
-                cells[columns.index(str(r["difficulty"]))] = {"ap": r["ap"], "num_gt": r["num_gt"], "num_det": r["num_det"]}
-            rows[(cls, "3d", metric)] = {"class": cls, "view": sel[0]["view"], "metric": metric, "threshold": float(sel[0]["threshold"]), "cells": cells, "note": ""}
+                cells[columns.index(str(r["difficulty"]))] = {
+                    "ap": r["ap"],
+                    "num_gt": r["num_gt"],
+                    "num_det": r["num_det"],
+                }
+            rows[(cls, "3d", metric)] = {
+                "class": cls,
+                "view": sel[0]["view"],
+                "metric": metric,
+                "threshold": float(sel[0]["threshold"]),
+                "cells": cells,
+                "note": "",
+            }
     return columns, list(rows.values())
 
 
@@ -198,4 +228,6 @@ def read_eval_dir(root: str | Path) -> EvalSection:
         plots.append((png.name, blob))
     ap_columns, ap_rows = _ap_table(ap)
     ov_columns, ov_rows = _overlap_table(overlap)
-    return EvalSection(root, _text(data["dataset"]), _text(data["metric"]), pairs, ap_columns, ap_rows, ov_columns, ov_rows, plots)
+    return EvalSection(
+        root, _text(data["dataset"]), _text(data["metric"]), pairs, ap_columns, ap_rows, ov_columns, ov_rows, plots
+    )

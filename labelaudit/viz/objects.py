@@ -40,8 +40,21 @@ from labelaudit.results import BOX_COLUMNS, MANIFEST_NAME, Results
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ViewError", "AuditSource", "ObjectAudit", "TrackView", "open_source", "audit_view", "frame_rows", "object_row", "load_frame", "recompute",
-           "track_view", "frame_candidates", "candidate_row"]
+__all__ = [
+    "ViewError",
+    "AuditSource",
+    "ObjectAudit",
+    "TrackView",
+    "open_source",
+    "audit_view",
+    "frame_rows",
+    "object_row",
+    "load_frame",
+    "recompute",
+    "track_view",
+    "frame_candidates",
+    "candidate_row",
+]
 
 AUDITED_STATUSES = ("ok", "few_points", "no_points")
 """Statuses whose rows carry model results (``skipped`` and ``error`` rows do not)."""
@@ -95,7 +108,9 @@ def open_source(results: Results, dataset: str | Path | None = None) -> AuditSou
     where = results.root / MANIFEST_NAME if results.root.is_dir() else results.root
     missing = [k for k in ("params", "param_hash", "format", "input") if k not in manifest]
     if missing:
-        raise ViewError(f"{where}: no run manifest with {', '.join(missing)}; pictures need a results folder written by `labelaudit infer`")
+        raise ViewError(
+            f"{where}: no run manifest with {', '.join(missing)}; pictures need a results folder written by `labelaudit infer`"
+        )
     fmt = str(manifest["format"])
     path = Path(dataset) if dataset is not None else Path(str(manifest["input"]))
     if not path.exists():
@@ -113,12 +128,19 @@ def open_source(results: Results, dataset: str | Path | None = None) -> AuditSou
             "rerun `labelaudit infer --overwrite` with this version to draw them"
         ) from None
     if cfg.to_dict() != manifest["params"]:
-        raise ViewError(f"{where}: the run parameters do not rebuild into a configuration of this labelaudit (edited manifest?); rerun `labelaudit infer`")
+        raise ViewError(
+            f"{where}: the run parameters do not rebuild into a configuration of this labelaudit (edited manifest?); rerun `labelaudit infer`"
+        )
     notes = []
     inputs = hash_inputs(cfg)
-    for key, what in (("tool_version", "labelaudit version"), ("constants_digest", "model constants (labelaudit/constants.py)")):
+    for key, what in (
+        ("tool_version", "labelaudit version"),
+        ("constants_digest", "model constants (labelaudit/constants.py)"),
+    ):
         if manifest.get(key) is not None and manifest.get(key) != inputs[key]:
-            notes.append(f"these results were computed with another {what} ({manifest.get(key)} → {inputs[key]}): pictures may differ from their rows")
+            notes.append(
+                f"these results were computed with another {what} ({manifest.get(key)} → {inputs[key]}): pictures may differ from their rows"
+            )
     options: dict[str, Any] = {"split": manifest["split"]} if manifest.get("split") else {}
     reader = open_dataset(path, fmt, **options)
     return AuditSource(results, cfg, path, fmt, reader, notes)
@@ -177,7 +199,9 @@ def object_row(rows: pa.Table, object_index: int) -> dict[str, Any]:
         return rows.slice(indices.index(object_index), 1).to_pylist()[0]
     classes = rows.column("class_name").to_pylist()
     order = sorted(range(len(indices)), key=lambda j: (abs(indices[j] - object_index), indices[j]))
-    listed = ", ".join(f"{indices[j]} ({classes[j]})" for j in sorted(order[: C.VIZ_NEAREST_IDS], key=lambda j: indices[j]))
+    listed = ", ".join(
+        f"{indices[j]} ({classes[j]})" for j in sorted(order[: C.VIZ_NEAREST_IDS], key=lambda j: indices[j])
+    )
     frame = rows.column("frame_id")[0].as_py()
     more = f" of {len(indices)}" if len(indices) > C.VIZ_NEAREST_IDS else ""
     raise ViewError(f"frame {frame}: no audited object {object_index}; nearest objects{more}: {listed}")
@@ -208,13 +232,17 @@ def candidate_row(results: Results, frame_id: str, candidate_index: int) -> dict
 
     table = read_candidates(results)
     if table is None:
-        raise ViewError(f"{results.root}: no missing-label table (missing/): the run skipped the search (infer --no-missing)")
+        raise ViewError(
+            f"{results.root}: no missing-label table (missing/): the run skipped the search (infer --no-missing)"
+        )
     rows = frame_candidates(results, frame_id)
     for r in rows:
         if r["candidate_index"] == candidate_index:
             return r
     if rows:
-        listed = ", ".join(f"{r['candidate_index']} ({r['class_name']}, score {r['score']:.2f})" for r in rows[: C.VIZ_NEAREST_IDS])
+        listed = ", ".join(
+            f"{r['candidate_index']} ({r['class_name']}, score {r['score']:.2f})" for r in rows[: C.VIZ_NEAREST_IDS]
+        )
         raise ViewError(f"frame {frame_id}: no candidate {candidate_index}; its candidates: {listed}")
     frames = sorted(set(table.column("frame_id").to_pylist()))
     near = ", ".join(_nearest(frame_id, frames)) if frames else "none"
@@ -254,7 +282,9 @@ def load_frame(source: AuditSource, frame_id: str) -> Frame:
                     source._frames.pop(next(iter(source._frames)))
                 source._frames[frame_id] = frame
                 return frame
-    raise ViewError(f"{source.dataset}: frame {frame_id!r} of the results is not in this dataset; is --dataset the dataset these results were computed on?")
+    raise ViewError(
+        f"{source.dataset}: frame {frame_id!r} of the results is not in this dataset; is --dataset the dataset these results were computed on?"
+    )
 
 
 # --------------------------------------------------------------------------- one object
@@ -313,7 +343,12 @@ class ObjectAudit:
         """Row values that the recomputation does not reproduce: {column: (row, recomputed)}."""
         if self.row is None:
             return {}
-        mine = {"num_points": len(self.points), "jiou_gt": self.jiou_gt, "label_error": self.label_error, "sigma_hat": self.sigma_hat}
+        mine = {
+            "num_points": len(self.points),
+            "jiou_gt": self.jiou_gt,
+            "label_error": self.label_error,
+            "sigma_hat": self.sigma_hat,
+        }
         out: dict[str, tuple[Any, Any]] = {}
         for k, v in mine.items():
             r = self.row.get(k)
@@ -361,27 +396,39 @@ def audit_view(
     if mass.ndim == 3:  # 3D model: the picture is the BEV marginal
         mass = mass.sum(axis=2)
     pts, fpts = np.asarray(points), np.asarray(fit_points)
-    ctx = np.zeros((0, fpts.shape[1] if fpts.ndim == 2 else 3)) if context is None else _rows_not_in(np.asarray(context), fpts)
-    return ObjectAudit(y, class_name, origin, pts, fpts, _rows_not_in(fpts, pts), ctx, post, fit, score, grid, mass, row)
+    ctx = (
+        np.zeros((0, fpts.shape[1] if fpts.ndim == 2 else 3))
+        if context is None
+        else _rows_not_in(np.asarray(context), fpts)
+    )
+    return ObjectAudit(
+        y, class_name, origin, pts, fpts, _rows_not_in(fpts, pts), ctx, post, fit, score, grid, mass, row
+    )
 
 
 def _rows_not_in(a: FloatArray, b: FloatArray) -> FloatArray:
     """Rows of ``a`` whose x, y, z are not a row of ``b`` (exact float equality; vectorised)."""
     if len(a) == 0 or len(b) == 0:
         return a
+
     def key(m: FloatArray) -> NDArray[np.void]:
         xyz = np.ascontiguousarray(np.asarray(m, dtype=np.float64)[:, :3])
         return xyz.view(np.dtype((np.void, 24))).ravel()
+
     return a[~np.isin(key(a), key(b))]
 
 
 def _check_box(frame: Frame, row: Mapping[str, Any], where: Path) -> int:
     i = int(row["object_index"])
     if i >= frame.num_objects or frame.class_names[i] != row["class_name"]:
-        raise ViewError(f"{where}: frame {frame.frame_id} object {i} is not the {row['class_name']} of the results; is --dataset the dataset these results were computed on?")
+        raise ViewError(
+            f"{where}: frame {frame.frame_id} object {i} is not the {row['class_name']} of the results; is --dataset the dataset these results were computed on?"
+        )
     box_row = np.array([row[c] for c in BOX_COLUMNS], dtype=float)
     if not np.allclose(frame.boxes[i], box_row, rtol=0.0, atol=1e-9):
-        raise ViewError(f"{where}: the box of frame {frame.frame_id} object {i} differs from the results row (labels edited since infer?); rerun `labelaudit infer`")
+        raise ViewError(
+            f"{where}: the box of frame {frame.frame_id} object {i} differs from the results row (labels edited since infer?); rerun `labelaudit infer`"
+        )
     return i
 
 
@@ -398,13 +445,21 @@ def recompute(source: AuditSource, row: Mapping[str, Any], frame: Frame | None =
 
     if row["status"] not in AUDITED_STATUSES:
         why = f" ({row['message']})" if row.get("message") else ""
-        raise ViewError(f"frame {row['frame_id']} object {row['object_index']} has status {row['status']}{why}: no model result to show")
+        raise ViewError(
+            f"frame {row['frame_id']} object {row['object_index']} has status {row['status']}{why}: no model result to show"
+        )
     frame = frame or load_frame(source, str(row["frame_id"]))
     i = _check_box(frame, row, source.dataset)
     box = frame.boxes[i : i + 1]
     # a box's evidence depends on the box, the points and the frame's other labels only: one box suffices
-    (ev,) = frame_evidence(frame.points, box, np.asarray(frame.sensor_origin, dtype=float), source.cfg.crop, others=label_boxes(frame.boxes),
-                           ray_mask=frame.ray_mask)
+    (ev,) = frame_evidence(
+        frame.points,
+        box,
+        np.asarray(frame.sensor_origin, dtype=float),
+        source.cfg.crop,
+        others=label_boxes(frame.boxes),
+        ray_mask=frame.ray_mask,
+    )
     (ctx_idx,) = crop_frame(frame.points, box, replace(source.cfg.crop, margin=C.SHOW_CONTEXT_MARGIN))
     return audit_view(
         frame.boxes[i],
@@ -451,7 +506,10 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
     """The labels of ``row``'s track in up to ``frames`` frames before and after it, or None when
     the row has no track (KITTI, no pose, a made-up id)."""
     needed = ("timestamp", "world_cx", "world_cy", "world_cz", "world_yaw")
-    if any(row.get(c) is None for c in needed) or row.get("object_id") in (None, f"{row['frame_id']}:{row['object_index']}"):
+    if any(row.get(c) is None for c in needed) or row.get("object_id") in (
+        None,
+        f"{row['frame_id']}:{row['object_index']}",
+    ):
         return None
     log = str(row["frame_id"]).rsplit(":", 1)[0]
     cols = ["frame_id", "object_id", *needed, "length", "width", "height"]
@@ -459,7 +517,11 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
     if len(present) < len(cols):
         return None
     t = results.dataset.to_table(columns=cols, filter=pc.field("object_id") == row["object_id"])
-    mates = [r for r in t.to_pylist() if str(r["frame_id"]).rsplit(":", 1)[0] == log and r["timestamp"] is not None and r["world_cx"] is not None]
+    mates = [
+        r
+        for r in t.to_pylist()
+        if str(r["frame_id"]).rsplit(":", 1)[0] == log and r["timestamp"] is not None and r["world_cx"] is not None
+    ]
     mates.sort(key=lambda r: (r["timestamp"], r["frame_id"]))
     here = [i for i, r in enumerate(mates) if r["frame_id"] == row["frame_id"]]
     if not here:
@@ -472,7 +534,12 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
     def here(world_boxes: Sequence[Sequence[float]]) -> FloatArray:  # into this frame (its pose from this row)
         return T.to_frame(np.asarray(world_boxes, dtype=float).reshape(-1, 7), label, label_world)
 
-    boxes = here([[r["world_cx"], r["world_cy"], r["world_cz"], r["length"], r["width"], r["height"], r["world_yaw"]] for r in chosen])
+    boxes = here(
+        [
+            [r["world_cx"], r["world_cy"], r["world_cz"], r["length"], r["width"], r["height"], r["world_yaw"]]
+            for r in chosen
+        ]
+    )
     size = None
     noise = T.TrackNoise.floor()
     tracks = results.tracks()
@@ -483,16 +550,29 @@ def track_view(results: Results, row: Mapping[str, Any], frames: int = C.SHOW_TR
         used = (tracks.schema.metadata or {}).get(b"labelaudit")
         per_class = json.loads(used).get("track_noise", {}).get(row["class_name"]) if used else None
         if per_class:
-            noise = T.TrackNoise(np.full(3, per_class["center"]), np.array([per_class["length"], per_class["width"], per_class["height"]]), per_class["yaw"])
+            noise = T.TrackNoise(
+                np.full(3, per_class["center"]),
+                np.array([per_class["length"], per_class["width"], per_class["height"]]),
+                per_class["yaw"],
+            )
     expected = None
     if len(mates) >= C.TRACK_MIN_FRAMES:  # what the rest of the track expects here (the labels' size consensus)
         t = np.array([r["timestamp"] for r in mates], dtype=float)
         res = T.track_residuals(
-            t - t[0], np.array([[r["world_cx"], r["world_cy"], r["world_cz"]] for r in mates]), np.array([r["world_yaw"] for r in mates]),
-            np.array([[r["length"], r["width"], r["height"]] for r in mates]), noise, T.default_params(),
+            t - t[0],
+            np.array([[r["world_cx"], r["world_cy"], r["world_cz"]] for r in mates]),
+            np.array([r["world_yaw"] for r in mates]),
+            np.array([[r["length"], r["width"], r["height"]] for r in mates]),
+            noise,
+            T.default_params(),
         )
         expected = here(res.expected[i])[0]
     return TrackView(
-        np.array([r["timestamp"] - row["timestamp"] for r in chosen], dtype=float), boxes, [str(r["frame_id"]) for r in chosen],
-        row.get("track_error"), row.get("track_issue"), size, expected,
+        np.array([r["timestamp"] - row["timestamp"] for r in chosen], dtype=float),
+        boxes,
+        [str(r["frame_id"]) for r in chosen],
+        row.get("track_error"),
+        row.get("track_issue"),
+        size,
+        expected,
     )

@@ -82,7 +82,13 @@ def corner_variance_plot(classes: NDArray[np.object_], corner_tv: FloatArray) ->
         m = ok & (classes == name)
         mean = corner_tv[m].mean(axis=0)
         data[name] = {"mean": mean.tolist(), "count": int(m.sum())}
-        ax.bar(np.arange(4) + (k - (len(names) - 1) / 2) * width, mean, width=width * 0.95, color=PALETTE[k % len(PALETTE)], label=f"{name} (n={int(m.sum())})")
+        ax.bar(
+            np.arange(4) + (k - (len(names) - 1) / 2) * width,
+            mean,
+            width=width * 0.95,
+            color=PALETTE[k % len(PALETTE)],
+            label=f"{name} (n={int(m.sum())})",
+        )
     if not names:
         _empty(ax, "no corner variances")
     else:
@@ -93,7 +99,9 @@ def corner_variance_plot(classes: NDArray[np.object_], corner_tv: FloatArray) ->
     return Plot(_png(fig), title, data)
 
 
-def binned_means(x: FloatArray, y: FloatArray, edges: FloatArray, min_count: int = C.REPORT_MIN_BIN_COUNT) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
+def binned_means(
+    x: FloatArray, y: FloatArray, edges: FloatArray, min_count: int = C.REPORT_MIN_BIN_COUNT
+) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """Mean of ``y`` in the bins ``edges`` of ``x`` (NaN where fewer than ``min_count`` values).
 
     Returns
@@ -111,7 +119,15 @@ def binned_means(x: FloatArray, y: FloatArray, edges: FloatArray, min_count: int
     return 0.5 * (edges[1:] + edges[:-1]), means, counts
 
 
-def binned_mean_plot(classes: NDArray[np.object_], x: FloatArray, y: FloatArray, edges: FloatArray, title: str, xlabel: str, ylabel: str = "mean JIoU-GT") -> Plot:
+def binned_mean_plot(
+    classes: NDArray[np.object_],
+    x: FloatArray,
+    y: FloatArray,
+    edges: FloatArray,
+    title: str,
+    xlabel: str,
+    ylabel: str = "mean JIoU-GT",
+) -> Plot:
     """Fig. 7b/7c: the mean of ``y`` per bin of ``x``, one line per class (bins with too few objects left out)."""
     fig, ax = _figure()
     data: dict[str, Any] = {}
@@ -122,7 +138,14 @@ def binned_mean_plot(classes: NDArray[np.object_], x: FloatArray, y: FloatArray,
         centres, means, counts = binned_means(x[m], y[m], edges)
         data[name] = {"centres": centres.tolist(), "means": means.tolist(), "counts": counts.tolist()}
         if np.isfinite(means).any():
-            ax.plot(centres, means, marker="o", markersize=4, color=PALETTE[k % len(PALETTE)], label=f"{name} (n={int(np.isfinite(x[m] + y[m]).sum())})")
+            ax.plot(
+                centres,
+                means,
+                marker="o",
+                markersize=4,
+                color=PALETTE[k % len(PALETTE)],
+                label=f"{name} (n={int(np.isfinite(x[m] + y[m]).sum())})",
+            )
             drawn += 1
     if drawn:
         ax.legend(fontsize=8)
@@ -135,7 +158,9 @@ def binned_mean_plot(classes: NDArray[np.object_], x: FloatArray, y: FloatArray,
     return Plot(_png(fig), title, data, note)
 
 
-def distribution_plot(classes: NDArray[np.object_], values: FloatArray, title: str, xlabel: str, bins: int = 40, log: bool = False) -> Plot:
+def distribution_plot(
+    classes: NDArray[np.object_], values: FloatArray, title: str, xlabel: str, bins: int = 40, log: bool = False
+) -> Plot:
     """Histogram of a score in [0, 1] per class (fraction of the class's objects per bin)."""
     fig, ax = _figure()
     edges = np.linspace(0.0, 1.0, bins + 1)
@@ -147,7 +172,13 @@ def distribution_plot(classes: NDArray[np.object_], values: FloatArray, title: s
         counts, _ = np.histogram(np.clip(v, 0.0, 1.0), bins=edges)
         frac = counts / max(len(v), 1)
         data[name] = {"counts": counts.tolist(), "median": float(np.median(v)), "count": int(len(v))}
-        ax.stairs(frac, edges, color=PALETTE[k % len(PALETTE)], linewidth=1.5, label=f"{name} (n={len(v)}, median {np.median(v):.3f})")
+        ax.stairs(
+            frac,
+            edges,
+            color=PALETTE[k % len(PALETTE)],
+            linewidth=1.5,
+            label=f"{name} (n={len(v)}, median {np.median(v):.3f})",
+        )
     if names:
         ax.legend(fontsize=8)
         if log:
@@ -175,7 +206,14 @@ def distance_edges(distance: FloatArray) -> FloatArray:
     return np.arange(0.0, top + step + 1e-9, step)
 
 
-def standard_plots(classes: Sequence[str] | NDArray[np.object_], jiou: FloatArray, label_error: FloatArray, distance: FloatArray, num_points: FloatArray, corner_tv: FloatArray) -> list[Plot]:
+def standard_plots(
+    classes: Sequence[str] | NDArray[np.object_],
+    jiou: FloatArray,
+    label_error: FloatArray,
+    distance: FloatArray,
+    num_points: FloatArray,
+    corner_tv: FloatArray,
+) -> list[Plot]:
     """The report's five plots from the columns of the audited objects (one entry per object)."""
     cls = np.asarray(classes, dtype=object)
     n = np.asarray(num_points, dtype=float)
@@ -183,8 +221,19 @@ def standard_plots(classes: Sequence[str] | NDArray[np.object_], jiou: FloatArra
         logn = np.where(n >= 1, np.log10(np.maximum(n, 1)), np.nan)
     return [
         corner_variance_plot(cls, corner_tv),
-        binned_mean_plot(cls, distance, jiou, distance_edges(distance), "Mean JIoU-GT vs distance to the sensor (Fig. 7b)", "distance (m)"),
-        binned_mean_plot(cls, logn, jiou, log_point_edges(n), "Mean JIoU-GT vs number of points (Fig. 7c)", "log10(number of points)"),
+        binned_mean_plot(
+            cls,
+            distance,
+            jiou,
+            distance_edges(distance),
+            "Mean JIoU-GT vs distance to the sensor (Fig. 7b)",
+            "distance (m)",
+        ),
+        binned_mean_plot(
+            cls, logn, jiou, log_point_edges(n), "Mean JIoU-GT vs number of points (Fig. 7c)", "log10(number of points)"
+        ),
         distribution_plot(cls, jiou, "Distribution of JIoU-GT per class", "JIoU-GT (1 = certain)"),
-        distribution_plot(cls, label_error, "Distribution of label_error per class", "label_error (1 = surely wrong)", log=True),
+        distribution_plot(
+            cls, label_error, "Distribution of label_error per class", "label_error (1 = surely wrong)", log=True
+        ),
     ]

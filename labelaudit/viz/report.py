@@ -39,8 +39,20 @@ __all__ = ["ReportSummary", "build_report", "render_report", "anchor_of", "missi
 
 TEMPLATE_DIR = Path(__file__).with_name("templates")
 TEMPLATE_NAME = "report.html.j2"
-GALLERY_COLUMNS = ("class_name", "status", "distance", "num_points", "jiou_gt", "label_error", "sigma_hat", "fit_offset_m", "mahalanobis", "hull_iou",
-                   "track_error", "track_issue")
+GALLERY_COLUMNS = (
+    "class_name",
+    "status",
+    "distance",
+    "num_points",
+    "jiou_gt",
+    "label_error",
+    "sigma_hat",
+    "fit_offset_m",
+    "mahalanobis",
+    "hull_iou",
+    "track_error",
+    "track_issue",
+)
 GALLERIES = (  # (key, ranking column, title, points needed)
     ("label_error", "label_error", "Worst labels by label_error (most likely wrong)", None),
     ("jiou_gt", "jiou_gt", "Worst labels by JIoU-GT (least certain, boxes with points)", 1),
@@ -124,7 +136,9 @@ def _floats(table: pa.Table, name: str) -> np.ndarray:
 def _corner_tv(table: pa.Table) -> np.ndarray:
     col = table.column("corner_tv").combine_chunks()
     out = np.full((table.num_rows, 4), np.nan)
-    valid = np.asarray(col.is_valid().to_numpy(zero_copy_only=False), dtype=bool) if table.num_rows else np.zeros(0, bool)
+    valid = (
+        np.asarray(col.is_valid().to_numpy(zero_copy_only=False), dtype=bool) if table.num_rows else np.zeros(0, bool)
+    )
     if valid.any():
         lengths = np.asarray(pc.list_value_length(col).fill_null(0).to_numpy(zero_copy_only=False))
         ok = valid & (lengths == 4)
@@ -150,13 +164,15 @@ def _summary(results: R.Results, table: pa.Table) -> dict[str, Any]:
     for name in names[np.lexsort((names, -counts))] if len(names) else []:
         sel = classes == name
         ev = sel & np.isin(status, AUDITED_STATUSES)
-        by_class.append({
-            "name": str(name),
-            "total": int(sel.sum()),
-            "statuses": [int(np.sum(sel & (status == s))) for s in R.STATUSES],
-            "median_jiou_gt": _median(jiou[ev]),
-            "median_label_error": _median(lerr[ev]),
-        })
+        by_class.append(
+            {
+                "name": str(name),
+                "total": int(sel.sum()),
+                "statuses": [int(np.sum(sel & (status == s))) for s in R.STATUSES],
+                "median_jiou_gt": _median(jiou[ev]),
+                "median_label_error": _median(lerr[ev]),
+            }
+        )
     errors = results.errors()
     levels = errors.column("level").to_pylist() if errors.num_rows else []
     failed = [r for r, lv in zip(errors.to_pylist(), levels) if lv == "error"]
@@ -164,11 +180,17 @@ def _summary(results: R.Results, table: pa.Table) -> dict[str, Any]:
         ("dataset", m.get("input", "–")),
         ("format", m.get("format", "–")),
         ("split / limit", f"{m.get('split') or 'all'} / {m.get('limit') or 'none'}"),
-        ("model", f"{model.get('kind', model.get('model', '–'))}, σ = {model.get('sigma', '–')} m, prior weight {model.get('prior_weight', '–')}, estimate σ: {model.get('estimate_sigma', '–')}"),
+        (
+            "model",
+            f"{model.get('kind', model.get('model', '–'))}, σ = {model.get('sigma', '–')} m, prior weight {model.get('prior_weight', '–')}, estimate σ: {model.get('estimate_sigma', '–')}",
+        ),
         ("classes", ", ".join(params.get("classes", []) or []) or "–"),
         ("parameters hash", m.get("param_hash", "–")),
         ("labelaudit / schema", f"{m.get('tool_version', '–')} / {m.get('schema_version', '–')}"),
-        ("run complete", "yes" if results.complete else "NO — the run stopped before all shards were written; rerun infer to finish"),
+        (
+            "run complete",
+            "yes" if results.complete else "NO — the run stopped before all shards were written; rerun infer to finish",
+        ),
         ("units / shards", f"{m.get('units', '–')} / {m.get('chunks', '–')}"),
     ]
     return {
@@ -197,10 +219,24 @@ def _gate(results: R.Results, gate_path: str | Path | None) -> dict[str, Any] | 
     except R.ResultsError as exc:
         return {"source": gate.source, "verdict": "NOT EVALUATED", "error": str(exc), "rules": [], "absent": []}
     rules = [
-        {"scope": r.scope, "rule": r.rule, "value": _fmt(r.value), "threshold": f"{r.comparison} {_fmt(r.threshold)}", "objects": r.objects, "status": r.status, "note": r.note}
+        {
+            "scope": r.scope,
+            "rule": r.rule,
+            "value": _fmt(r.value),
+            "threshold": f"{r.comparison} {_fmt(r.threshold)}",
+            "objects": r.objects,
+            "status": r.status,
+            "note": r.note,
+        }
         for r in report.results
     ]
-    return {"source": report.source, "verdict": report.verdict, "error": "", "rules": rules, "absent": report.absent_classes}
+    return {
+        "source": report.source,
+        "verdict": report.verdict,
+        "error": "",
+        "rules": rules,
+        "absent": report.absent_classes,
+    }
 
 
 def _plots(table: pa.Table) -> list[dict[str, Any]]:
@@ -220,7 +256,9 @@ def _plots(table: pa.Table) -> list[dict[str, Any]]:
     return [{"title": p.title, "src": data_uri(p.png), "note": p.note} for p in plots]
 
 
-def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress: Progress | None) -> tuple[list[dict[str, Any]], int]:
+def _gallery(
+    results: R.Results, top: int, dataset: str | Path | None, progress: Progress | None
+) -> tuple[list[dict[str, Any]], int]:
     """Both galleries: the worst ``top`` by each score, each object pictured once."""
     from labelaudit.rank import RankQuery, rank_results
     from labelaudit.viz.objects import open_source, recompute, track_view
@@ -231,7 +269,9 @@ def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress:
         if by not in results.columns:
             ranked.append((key, title, []))
             continue
-        rows = rank_results(results, RankQuery(by=by, top=top, min_points=min_points, statuses=AUDITED_STATUSES)).table.to_pylist()
+        rows = rank_results(
+            results, RankQuery(by=by, top=top, min_points=min_points, statuses=AUDITED_STATUSES)
+        ).table.to_pylist()
         ranked.append((key, title, rows))
     unique: dict[str, Mapping[str, Any]] = {}
     for _, _, rows in ranked:
@@ -248,7 +288,11 @@ def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress:
                 audit = recompute(source, row)
                 pic = render_object(audit, C.REPORT_GALLERY_SIZE, compact=True, track=track_view(results, row))
                 mism = audit.mismatches(rtol=1e-6)
-                pictures[anchor] = {"src": data_uri(pic.png), "error": "", "mismatch": ", ".join(f"{k}: row {a} vs {b}" for k, (a, b) in mism.items())}
+                pictures[anchor] = {
+                    "src": data_uri(pic.png),
+                    "error": "",
+                    "mismatch": ", ".join(f"{k}: row {a} vs {b}" for k, (a, b) in mism.items()),
+                }
             except ViewError as exc:
                 pictures[anchor] = {"src": "", "error": str(exc), "mismatch": ""}
             if progress is not None:
@@ -260,18 +304,20 @@ def _gallery(results: R.Results, top: int, dataset: str | Path | None, progress:
         entries = []
         for rank, r in enumerate(rows, start=1):
             anchor = anchor_of(r["frame_id"], r["object_index"])
-            entries.append({
-                "rank": rank,
-                "anchor": anchor,
-                "id": None if anchor in seen else anchor,  # one HTML id per object: its first appearance
-                "frame_id": r["frame_id"],
-                "object_index": r["object_index"],
-                "object_id": r["object_id"],
-                "class_name": r["class_name"],
-                "numbers": [(c, r.get(c)) for c in GALLERY_COLUMNS],
-                "command": f"labelaudit show {root} {shlex.quote(str(r['frame_id']))} {r['object_index']} -o {shlex.quote(anchor)}.png",
-                **pictures[anchor],
-            })
+            entries.append(
+                {
+                    "rank": rank,
+                    "anchor": anchor,
+                    "id": None if anchor in seen else anchor,  # one HTML id per object: its first appearance
+                    "frame_id": r["frame_id"],
+                    "object_index": r["object_index"],
+                    "object_id": r["object_id"],
+                    "class_name": r["class_name"],
+                    "numbers": [(c, r.get(c)) for c in GALLERY_COLUMNS],
+                    "command": f"labelaudit show {root} {shlex.quote(str(r['frame_id']))} {r['object_index']} -o {shlex.quote(anchor)}.png",
+                    **pictures[anchor],
+                }
+            )
             seen.add(anchor)
         galleries.append({"key": key, "title": title, "entries": entries})
     return galleries, len(pictures)
@@ -292,7 +338,9 @@ def _tracks(results: R.Results, top: int) -> dict[str, Any] | None:
     issue = np.asarray(t.column("track_issue").to_pylist(), dtype=object)
     flagged = judged & (err >= C.TRACK_FLAG)
     by_issue = [(k, int(np.sum(flagged & (issue == k)))) for k in ("size", "heading", "position")]
-    rows = sorted(tracks.to_pylist(), key=lambda r: (-(r["max_track_error"] or 0.0), -r["flagged"], r["log_id"], r["object_id"]))[:top]
+    rows = sorted(
+        tracks.to_pylist(), key=lambda r: (-(r["max_track_error"] or 0.0), -r["flagged"], r["log_id"], r["object_id"])
+    )[:top]
     meta = R.shard_metadata(results.root / R.TRACKS_FILE) if (results.root / R.TRACKS_FILE).is_file() else {}
     noise = meta.get("track_noise") or {}
     return {
@@ -305,10 +353,17 @@ def _tracks(results: R.Results, top: int) -> dict[str, Any] | None:
         "noise": [(c, ", ".join(f"{k} {v:.3f}" for k, v in sorted(n.items()))) for c, n in sorted(noise.items())],
         "worst": [
             {
-                "log_id": r["log_id"], "object_id": r["object_id"], "class_name": r["class_name"], "frames": r["frames"],
+                "log_id": r["log_id"],
+                "object_id": r["object_id"],
+                "class_name": r["class_name"],
+                "frames": r["frames"],
                 "size": f"{r['length']:.2f} × {r['width']:.2f} × {r['height']:.2f} m (± {r['std_length']:.3f}, {r['std_width']:.3f}, {r['std_height']:.3f})",
-                "speed": r["mean_speed"], "flagged": r["flagged"], "max_track_error": r["max_track_error"],
-                "worst_frame_id": r["worst_frame_id"], "worst_object_index": r["worst_object_index"], "worst_issue": r["worst_issue"],
+                "speed": r["mean_speed"],
+                "flagged": r["flagged"],
+                "max_track_error": r["max_track_error"],
+                "worst_frame_id": r["worst_frame_id"],
+                "worst_object_index": r["worst_object_index"],
+                "worst_issue": r["worst_issue"],
                 "anchor": anchor_of(r["worst_frame_id"], r["worst_object_index"]),
             }
             for r in rows
@@ -329,7 +384,15 @@ def _missing(results: R.Results, top: int, dataset: str | Path | None, progress:
 
     table = read_candidates(results)
     if table is None:
-        return {"searched": False, "entries": [], "total": 0, "counted": 0, "frames": 0, "by_class": [], "min_score": C.REPORT_MISSING_MIN_SCORE}
+        return {
+            "searched": False,
+            "entries": [],
+            "total": 0,
+            "counted": 0,
+            "frames": 0,
+            "by_class": [],
+            "min_score": C.REPORT_MISSING_MIN_SCORE,
+        }
     scores = np.asarray(table.column("score").to_numpy(zero_copy_only=False), dtype=float)
     counted = scores >= C.REPORT_MISSING_MIN_SCORE
     classes = np.asarray(table.column("class_name").to_pylist(), dtype=object)
@@ -340,7 +403,11 @@ def _missing(results: R.Results, top: int, dataset: str | Path | None, progress:
         for name in sorted(set(classes.tolist()))
     ]  # fmt: skip
     frames = len(set(np.asarray(table.column("frame_id").to_pylist(), dtype=object)[counted].tolist()))
-    rows = rank_missing(results, MissingQuery(top=top, min_score=C.REPORT_MISSING_MIN_SCORE)).table.to_pylist() if counted.any() else []
+    rows = (
+        rank_missing(results, MissingQuery(top=top, min_score=C.REPORT_MISSING_MIN_SCORE)).table.to_pylist()
+        if counted.any()
+        else []
+    )
     source = open_source(results, dataset) if rows else None
     root = shlex.quote(str(results.root))
     entries = []
@@ -352,7 +419,11 @@ def _missing(results: R.Results, top: int, dataset: str | Path | None, progress:
             "frame_id": r["frame_id"],
             "candidate_index": r["candidate_index"],
             "class_name": r["class_name"],
-            "numbers": [(c, r.get(c)) for c in ("score", "source", "num_points", "distance", "length", "width", "height", *EVIDENCE_COLUMNS) if c in r],
+            "numbers": [
+                (c, r.get(c))
+                for c in ("score", "source", "num_points", "distance", "length", "width", "height", *EVIDENCE_COLUMNS)
+                if c in r
+            ],
             "command": f"labelaudit show {root} {shlex.quote(str(r['frame_id']))} --candidate {r['candidate_index']} -o {shlex.quote(anchor)}.png",
             "src": "",
             "error": "",
@@ -364,7 +435,9 @@ def _missing(results: R.Results, top: int, dataset: str | Path | None, progress:
                 labels = frame_rows(results, r["frame_id"]).to_pylist()
             except ViewError:  # a frame without labels
                 labels = []
-            pic = render_candidate(r["frame_id"], frame.points, r, labels, C.REPORT_GALLERY_SIZE, frame.sensor_origin, compact=True)
+            pic = render_candidate(
+                r["frame_id"], frame.points, r, labels, C.REPORT_GALLERY_SIZE, frame.sensor_origin, compact=True
+            )
             entry["src"] = data_uri(pic.png)
         except (ViewError, DatasetError) as exc:
             entry["error"] = str(exc)
@@ -478,9 +551,18 @@ def build_report(
     lap("plots")
     tracks_section = _tracks(results, top)
     lap("tracks")
-    galleries, pictures = _gallery(results, top, dataset, progress) if summary["evaluated"] else ([{"key": k, "title": title, "entries": []} for k, _, title, _ in GALLERIES], 0)
+    galleries, pictures = (
+        _gallery(results, top, dataset, progress)
+        if summary["evaluated"]
+        else ([{"key": k, "title": title, "entries": []} for k, _, title, _ in GALLERIES], 0)
+    )
     lap("gallery")
-    missing = _missing(results, top, dataset, None if progress is None else (lambda done, total: progress(pictures + done, pictures + total)))
+    missing = _missing(
+        results,
+        top,
+        dataset,
+        None if progress is None else (lambda done, total: progress(pictures + done, pictures + total)),
+    )
     lap("missing")
     context = {
         "title": f"labelaudit report — {Path(str(results.manifest.get('input', results.root))).name or results.root}",
@@ -502,7 +584,16 @@ def build_report(
     R.write_text_atomic(html, out)
     lap("html")
     return ReportSummary(
-        out, out.stat().st_size, summary["objects"], summary["evaluated"], pictures,
-        {g["key"]: len(g["entries"]) for g in galleries}, None if gate_section is None else gate_section["verdict"], time.perf_counter() - start, timings, cpu_timings,
-        missing_pictures=len(missing["entries"]), missing_counted=missing["counted"] if missing["searched"] else None,
+        out,
+        out.stat().st_size,
+        summary["objects"],
+        summary["evaluated"],
+        pictures,
+        {g["key"]: len(g["entries"]) for g in galleries},
+        None if gate_section is None else gate_section["verdict"],
+        time.perf_counter() - start,
+        timings,
+        cpu_timings,
+        missing_pictures=len(missing["entries"]),
+        missing_counted=missing["counted"] if missing["searched"] else None,
     )

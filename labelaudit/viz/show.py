@@ -35,7 +35,17 @@ from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit, TrackView
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ObjectPicture", "FramePicture", "CandidatePicture", "render_object", "render_frame", "render_candidate", "parse_size", "corner_covariances", "SCORES"]
+__all__ = [
+    "ObjectPicture",
+    "FramePicture",
+    "CandidatePicture",
+    "render_object",
+    "render_frame",
+    "render_candidate",
+    "parse_size",
+    "corner_covariances",
+    "SCORES",
+]
 
 SCORES = {"jiou_gt": "JIoU-GT", "label_error": "label_error"}
 """Scores a frame picture can colour boxes by (low JIoU-GT is bad; high label_error is bad)."""
@@ -50,11 +60,14 @@ ELLIPSE_COLOUR = "#7CFC00"
 CONTEXT_COLOUR = "#8a8a8a"
 TRACK_CMAP = "coolwarm"  # the track's other frames: blue earlier, red later
 EXPECTED_COLOUR = "#ffd400"  # the box the rest of the track expects in this frame
-CANDIDATE_COLOUR = "#ff3df5"  # missing-label candidates: magenta, outside the red–yellow–green of the scores and the cool/magma maps
+CANDIDATE_COLOUR = (
+    "#ff3df5"  # missing-label candidates: magenta, outside the red–yellow–green of the scores and the cool/magma maps
+)
 
 
-
-def fit_view(lo: FloatArray, hi: FloatArray, ax_rect: tuple[float, float, float, float], size: tuple[int, int]) -> tuple[float, float, float, float]:
+def fit_view(
+    lo: FloatArray, hi: FloatArray, ax_rect: tuple[float, float, float, float], size: tuple[int, int]
+) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1) around the (2,) corners ``lo``, ``hi`` grown so one metre is as long in x as in y on an
     axes of ``ax_rect`` (figure fractions) in a figure of ``size`` pixels."""
     aspect = (ax_rect[3] * size[1]) / (ax_rect[2] * size[0])
@@ -64,7 +77,13 @@ def fit_view(lo: FloatArray, hi: FloatArray, ax_rect: tuple[float, float, float,
     else:
         span_x = span_y / aspect
     mid = 0.5 * (lo + hi)
-    return (float(mid[0] - span_x / 2), float(mid[0] + span_x / 2), float(mid[1] - span_y / 2), float(mid[1] + span_y / 2))
+    return (
+        float(mid[0] - span_x / 2),
+        float(mid[0] + span_x / 2),
+        float(mid[1] - span_y / 2),
+        float(mid[1] + span_y / 2),
+    )
+
 
 def parse_size(text: str) -> tuple[int, int]:
     """``"640x600"`` or ``"640"`` (square) → (width, height) in pixels.
@@ -80,7 +99,9 @@ def parse_size(text: str) -> tuple[int, int]:
     except ValueError:
         w = h = 0
     if not (64 <= w <= 8192 and 64 <= h <= 8192):
-        raise ValueError(f"size {text!r}: expected WIDTHxHEIGHT in pixels (e.g. 640x600, or 640 for a square), each 64–8192")
+        raise ValueError(
+            f"size {text!r}: expected WIDTHxHEIGHT in pixels (e.g. 640x600, or 640 for a square), each 64–8192"
+        )
     return w, h
 
 
@@ -135,7 +156,16 @@ def _add_scale_bar(ax: Any, view: tuple[float, float, float, float], colour: str
     length = _nice_length(span_x)
     x1, y = view[1] - 0.04 * span_x, view[2] + 0.06 * span_y
     ax.plot([x1 - length, x1], [y, y], color=colour, linewidth=3, solid_capstyle="butt", zorder=9)
-    ax.text(x1 - length / 2, y + 0.015 * span_y, f"{length:g} m", color=colour, fontsize=8, ha="center", va="bottom", zorder=9)
+    ax.text(
+        x1 - length / 2,
+        y + 0.015 * span_y,
+        f"{length:g} m",
+        color=colour,
+        fontsize=8,
+        ha="center",
+        va="bottom",
+        zorder=9,
+    )
     return length
 
 
@@ -151,10 +181,27 @@ def _add_sensor_arrow(ax: Any, view: tuple[float, float, float, float], directio
     span_x, span_y = view[1] - view[0], view[3] - view[2]
     start = np.array([view[0] + 0.16 * span_x, view[3] - 0.16 * span_y])
     tip = start + 0.08 * span_x * direction
-    ax.annotate("", xy=tuple(tip), xytext=tuple(start - 0.08 * span_x * direction), arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.4}, zorder=8)
+    ax.annotate(
+        "",
+        xy=tuple(tip),
+        xytext=tuple(start - 0.08 * span_x * direction),
+        arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.4},
+        zorder=8,
+    )
     label_at = start - 0.15 * span_x * direction  # behind the arrow's tail, whichever way it points
-    label_at = np.clip(label_at, [view[0] + 0.08 * span_x, view[2] + 0.05 * span_y], [view[1] - 0.08 * span_x, view[3] - 0.05 * span_y])
-    ax.text(label_at[0], label_at[1], f"to sensor\n{distance:.1f} m", color="white", fontsize=7, ha="center", va="center", zorder=8)
+    label_at = np.clip(
+        label_at, [view[0] + 0.08 * span_x, view[2] + 0.05 * span_y], [view[1] - 0.08 * span_x, view[3] - 0.05 * span_y]
+    )
+    ax.text(
+        label_at[0],
+        label_at[1],
+        f"to sensor\n{distance:.1f} m",
+        color="white",
+        fontsize=7,
+        ha="center",
+        va="center",
+        zorder=8,
+    )
 
 
 # --------------------------------------------------------------------------- one object
@@ -205,11 +252,17 @@ def _caption(audit: ObjectAudit, track: TrackView | None = None) -> str:
     row = audit.row or {}
     where = f"frame {row['frame_id']} · object {row['object_index']}" if "frame_id" in row else "object"
     status = row.get("status", "")
-    first = f"{audit.class_name} · {where} · {audit.distance:.1f} m · {len(audit.points)} points" + (f" ({status})" if status and status != "ok" else "")
+    first = f"{audit.class_name} · {where} · {audit.distance:.1f} m · {len(audit.points)} points" + (
+        f" ({status})" if status and status != "ok" else ""
+    )
     second = f"JIoU-GT {_fmt(audit.jiou_gt)}   label_error {_fmt(audit.label_error)}   σ̂ {_fmt(audit.sigma_hat, '.3f', ' m')}"
     if track is not None:
         issue = f" ({track.track_issue})" if track.track_issue not in (None, "none") else ""
-        size = "" if track.size is None else f"   track size {track.size[0]:.2f} × {track.size[1]:.2f} m (label {audit.box[3]:.2f} × {audit.box[4]:.2f})"
+        size = (
+            ""
+            if track.size is None
+            else f"   track size {track.size[0]:.2f} × {track.size[1]:.2f} m (label {audit.box[3]:.2f} × {audit.box[4]:.2f})"
+        )
         second += f"\ntrack_error {_fmt(track.track_error)}{issue}{size}"
     return f"{first}\n{second}"
 
@@ -221,8 +274,14 @@ def _ellipse(ax: Any, centre: FloatArray, cov: FloatArray, **kw: Any) -> None:
     ax.add_patch(Ellipse(tuple(centre), 2 * math.sqrt(lam[1]), 2 * math.sqrt(lam[0]), angle=angle, **kw))
 
 
-def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, overlays: bool = True, compact: bool = False,
-                  track: TrackView | None = None) -> ObjectPicture:
+def render_object(
+    audit: ObjectAudit,
+    size: tuple[int, int] = C.SHOW_SIZE,
+    *,
+    overlays: bool = True,
+    compact: bool = False,
+    track: TrackView | None = None,
+) -> ObjectPicture:
     """Draw one label with its spatial distribution (the paper's Fig. 1 look).
 
     Parameters
@@ -264,10 +323,26 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     sensor_dir = sensor_dir / max(float(np.linalg.norm(sensor_dir)), 1e-12)
 
     # View: the label, the suggested box and the 2-σ corner ellipses, plus a margin; the figure's aspect.
-    track_corners = np.array([_to_box_frame(g.box_corners(b, "bev"), box) for b in track.boxes]) if track is not None and len(track.boxes) else np.zeros((0, 4, 2))
-    expected_corners = _to_box_frame(g.box_corners(track.expected, "bev"), box) if track is not None and track.expected is not None else np.zeros((0, 2))
-    reach = np.vstack([label_corners, fit_corners, centres + 2 * np.sqrt(covs[:, [0, 1], [0, 1]]), centres - 2 * np.sqrt(covs[:, [0, 1], [0, 1]]),
-                       track_corners.reshape(-1, 2), expected_corners])
+    track_corners = (
+        np.array([_to_box_frame(g.box_corners(b, "bev"), box) for b in track.boxes])
+        if track is not None and len(track.boxes)
+        else np.zeros((0, 4, 2))
+    )
+    expected_corners = (
+        _to_box_frame(g.box_corners(track.expected, "bev"), box)
+        if track is not None and track.expected is not None
+        else np.zeros((0, 2))
+    )
+    reach = np.vstack(
+        [
+            label_corners,
+            fit_corners,
+            centres + 2 * np.sqrt(covs[:, [0, 1], [0, 1]]),
+            centres - 2 * np.sqrt(covs[:, [0, 1], [0, 1]]),
+            track_corners.reshape(-1, 2),
+            expected_corners,
+        ]
+    )
     lo, hi = reach.min(axis=0) - C.SHOW_VIEW_MARGIN, reach.max(axis=0) + C.SHOW_VIEW_MARGIN
     fig = _figure(size)
     ax_rect = ((0.01, 0.01, 0.98, 0.98) if compact else (0.1, 0.13, 0.72, 0.74)) if overlays else (0.0, 0.0, 1.0, 1.0)
@@ -277,7 +352,9 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     heat_norm = Normalize(0.0, max(1.0, float(density.max())))
     heat_cmap = colormaps[HEAT_CMAP]
     ax.set_facecolor(heat_cmap(0.0))  # beyond the grid p_G is 0: the background continues the heatmap
-    heat = ax.imshow(density, extent=extent, origin="lower", cmap=heat_cmap, norm=heat_norm, interpolation="nearest", zorder=0)
+    heat = ax.imshow(
+        density, extent=extent, origin="lower", cmap=heat_cmap, norm=heat_norm, interpolation="nearest", zorder=0
+    )
     ax.set_xlim(view[0], view[1])
     ax.set_ylim(view[2], view[3])
     ax.set_aspect("equal")
@@ -285,40 +362,128 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     if not overlays:
         ax.set_axis_off()
         png = _png(fig)
-        return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners, expected_corners)
+        return ObjectPicture(
+            png,
+            size,
+            density,
+            extent,
+            pts,
+            height,
+            fit_only_xy,
+            context_xy,
+            label_corners,
+            fit_corners,
+            centres,
+            covs,
+            sensor_dir,
+            view,
+            caption,
+            track_corners,
+            expected_corners,
+        )
 
     if len(context_xy):
-        ax.plot(context_xy[:, 0], context_xy[:, 1], ls="", marker="o", markersize=1.4, markerfacecolor=CONTEXT_COLOUR, markeredgewidth=0, zorder=2)
+        ax.plot(
+            context_xy[:, 0],
+            context_xy[:, 1],
+            ls="",
+            marker="o",
+            markersize=1.4,
+            markerfacecolor=CONTEXT_COLOUR,
+            markeredgewidth=0,
+            zorder=2,
+        )
     if len(fit_only_xy):
-        ax.plot(fit_only_xy[:, 0], fit_only_xy[:, 1], ls="", marker="o", markersize=2.4, markerfacecolor="none", markeredgecolor="#d0d0d0", markeredgewidth=0.6, zorder=3)
+        ax.plot(
+            fit_only_xy[:, 0],
+            fit_only_xy[:, 1],
+            ls="",
+            marker="o",
+            markersize=2.4,
+            markerfacecolor="none",
+            markeredgecolor="#d0d0d0",
+            markeredgewidth=0.6,
+            zorder=3,
+        )
     h_top = max(float(box[5]), 0.5)
     # A dense crop (up to ~10k points) is drawn with an even subsample: the picture looks the same,
     # the marker pass dominated the drawing time. ``points_xy`` keeps every point.
     step = max(1, -(-len(pts) // C.SHOW_MAX_POINTS_DRAWN))
-    pts_art = ax.scatter(pts[::step, 0], pts[::step, 1], s=9, c=height[::step], cmap=HEIGHT_CMAP, vmin=0.0, vmax=h_top, edgecolors="black", linewidths=0.3, zorder=4) if len(pts) else None
+    pts_art = (
+        ax.scatter(
+            pts[::step, 0],
+            pts[::step, 1],
+            s=9,
+            c=height[::step],
+            cmap=HEIGHT_CMAP,
+            vmin=0.0,
+            vmax=h_top,
+            edgecolors="black",
+            linewidths=0.3,
+            zorder=4,
+        )
+        if len(pts)
+        else None
+    )
     if len(track_corners):
         span = max(float(np.abs(track.dt).max()), 1e-9)  # type: ignore[union-attr]
         tcmap = colormaps[TRACK_CMAP]
         for corners, dt in zip(track_corners, track.dt):  # type: ignore[union-attr]
             colour = tcmap(0.5 + 0.5 * dt / span)
-            ax.add_patch(Polygon(corners, closed=True, fill=False, edgecolor=colour, linewidth=1.0, alpha=0.9, zorder=4.5))
+            ax.add_patch(
+                Polygon(corners, closed=True, fill=False, edgecolor=colour, linewidth=1.0, alpha=0.9, zorder=4.5)
+            )
             front = corners[[0, 3]].mean(axis=0)  # box_corners: 0 front-left, 3 front-right
             mid = corners.mean(axis=0)
             ax.plot([mid[0], front[0]], [mid[1], front[1]], color=colour, linewidth=0.8, alpha=0.9, zorder=4.5)
     if len(expected_corners):
-        ax.add_patch(Polygon(expected_corners, closed=True, fill=False, edgecolor=EXPECTED_COLOUR, linewidth=1.4, linestyle=(0, (1.5, 1.5)), zorder=5))
+        ax.add_patch(
+            Polygon(
+                expected_corners,
+                closed=True,
+                fill=False,
+                edgecolor=EXPECTED_COLOUR,
+                linewidth=1.4,
+                linestyle=(0, (1.5, 1.5)),
+                zorder=5,
+            )
+        )
         tip, mid = expected_corners[[0, 3]].mean(axis=0), expected_corners.mean(axis=0)
-        ax.plot([mid[0], tip[0]], [mid[1], tip[1]], color=EXPECTED_COLOUR, linewidth=1.0, linestyle=(0, (1.5, 1.5)), zorder=5)
+        ax.plot(
+            [mid[0], tip[0]],
+            [mid[1], tip[1]],
+            color=EXPECTED_COLOUR,
+            linewidth=1.0,
+            linestyle=(0, (1.5, 1.5)),
+            zorder=5,
+        )
     ax.add_patch(Polygon(label_corners, closed=True, fill=False, edgecolor=LABEL_COLOUR, linewidth=1.6, zorder=5))
-    ax.add_patch(Polygon(fit_corners, closed=True, fill=False, edgecolor=FIT_COLOUR, linewidth=1.4, linestyle=(0, (4, 2)), zorder=5))
+    ax.add_patch(
+        Polygon(
+            fit_corners, closed=True, fill=False, edgecolor=FIT_COLOUR, linewidth=1.4, linestyle=(0, (4, 2)), zorder=5
+        )
+    )
     # Heading: a short tick from the centre to the front face.
     ax.plot([0.0, box[3] / 2], [0.0, 0.0], color=LABEL_COLOUR, linewidth=0.8, alpha=0.7, zorder=5)
     for k, (c, cv) in enumerate(zip(centres, covs)):
         _ellipse(ax, c, cv, fill=False, edgecolor=ELLIPSE_COLOUR, linewidth=1.2 if k else 1.8, zorder=6)
     ax.scatter(centres[1:, 0], centres[1:, 1], s=10, c=ELLIPSE_COLOUR, zorder=7)
-    ax.scatter(centres[:1, 0], centres[:1, 1], s=40, marker="*", c=ELLIPSE_COLOUR, edgecolors="black", linewidths=0.4, zorder=7)
+    ax.scatter(
+        centres[:1, 0], centres[:1, 1], s=40, marker="*", c=ELLIPSE_COLOUR, edgecolors="black", linewidths=0.4, zorder=7
+    )
     out = centres[0] / max(float(np.linalg.norm(centres[0])), 1e-9)
-    ax.annotate("C1", xy=tuple(centres[0]), xytext=tuple(out * 14), textcoords="offset points", color=ELLIPSE_COLOUR, fontsize=9, fontweight="bold", ha="center", va="center", zorder=8)
+    ax.annotate(
+        "C1",
+        xy=tuple(centres[0]),
+        xytext=tuple(out * 14),
+        textcoords="offset points",
+        color=ELLIPSE_COLOUR,
+        fontsize=9,
+        fontweight="bold",
+        ha="center",
+        va="center",
+        zorder=8,
+    )
 
     _add_sensor_arrow(ax, view, sensor_dir, float(np.hypot(*to_sensor)))
     _add_scale_bar(ax, view, "white")
@@ -326,7 +491,25 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     if compact:  # the scale bar gives the metres and the report prints the numbers beside the picture: ticks and glyphs cost most of the drawing
         ax.set_xticks([])
         ax.set_yticks([])
-        return ObjectPicture(_png(fig), size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners, expected_corners)
+        return ObjectPicture(
+            _png(fig),
+            size,
+            density,
+            extent,
+            pts,
+            height,
+            fit_only_xy,
+            context_xy,
+            label_corners,
+            fit_corners,
+            centres,
+            covs,
+            sensor_dir,
+            view,
+            caption,
+            track_corners,
+            expected_corners,
+        )
     fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=9)
     ax.tick_params(labelsize=7)
     ax.set_xlabel("along the label's length (m)", fontsize=8)
@@ -337,21 +520,85 @@ def render_object(audit: ObjectAudit, size: tuple[int, int] = C.SHOW_SIZE, *, ov
     handles = [
         Line2D([], [], color=LABEL_COLOUR, lw=1.6, label="label"),
         Line2D([], [], color=FIT_COLOUR, lw=1.4, ls=(0, (4, 2)), label="suggested box (fit)"),
-        Line2D([], [], color=ELLIPSE_COLOUR, lw=1.2, marker="*", markersize=7, markeredgecolor="black", label="corner 1-σ (C1 ★ nearest sensor)"),
-        Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="#8f70ff", markeredgecolor="black", label="model's points"),
-        Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="none", markeredgecolor="#777", label="fit-only points"),
-        Line2D([], [], ls="", marker="o", markersize=3, markerfacecolor=CONTEXT_COLOUR, markeredgecolor="none", label="other points"),
+        Line2D(
+            [],
+            [],
+            color=ELLIPSE_COLOUR,
+            lw=1.2,
+            marker="*",
+            markersize=7,
+            markeredgecolor="black",
+            label="corner 1-σ (C1 ★ nearest sensor)",
+        ),
+        Line2D(
+            [],
+            [],
+            ls="",
+            marker="o",
+            markersize=4,
+            markerfacecolor="#8f70ff",
+            markeredgecolor="black",
+            label="model's points",
+        ),
+        Line2D(
+            [],
+            [],
+            ls="",
+            marker="o",
+            markersize=4,
+            markerfacecolor="none",
+            markeredgecolor="#777",
+            label="fit-only points",
+        ),
+        Line2D(
+            [],
+            [],
+            ls="",
+            marker="o",
+            markersize=3,
+            markerfacecolor=CONTEXT_COLOUR,
+            markeredgecolor="none",
+            label="other points",
+        ),
     ]
     if len(track_corners):
         handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](0.0), lw=1.0, label="track: earlier"))
         handles.append(Line2D([], [], color=colormaps[TRACK_CMAP](1.0), lw=1.0, label="track: later"))
     if len(expected_corners):
         handles.append(Line2D([], [], color=EXPECTED_COLOUR, lw=1.4, ls=(0, (1.5, 1.5)), label="track expects here"))
-    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06 if len(handles) <= 8 else 0.0, 0.0), ncol=3 if len(handles) <= 6 else 4 if len(handles) <= 8 else 5, fontsize=6.5, frameon=True, handlelength=2.2 if len(handles) <= 8 else 1.6, columnspacing=1.0 if len(handles) <= 8 else 0.6, labelcolor="white")
+    leg = fig.legend(
+        handles=handles,
+        loc="lower left",
+        bbox_to_anchor=(0.06 if len(handles) <= 8 else 0.0, 0.0),
+        ncol=3 if len(handles) <= 6 else 4 if len(handles) <= 8 else 5,
+        fontsize=6.5,
+        frameon=True,
+        handlelength=2.2 if len(handles) <= 8 else 1.6,
+        columnspacing=1.0 if len(handles) <= 8 else 0.6,
+        labelcolor="white",
+    )
     leg.get_frame().set_facecolor(heat_cmap(0.0))  # the label's white line needs the heatmap's dark ground
     leg.get_frame().set_edgecolor("none")
     png = _png(fig)
-    return ObjectPicture(png, size, density, extent, pts, height, fit_only_xy, context_xy, label_corners, fit_corners, centres, covs, sensor_dir, view, caption, track_corners, expected_corners)
+    return ObjectPicture(
+        png,
+        size,
+        density,
+        extent,
+        pts,
+        height,
+        fit_only_xy,
+        context_xy,
+        label_corners,
+        fit_corners,
+        centres,
+        covs,
+        sensor_dir,
+        view,
+        caption,
+        track_corners,
+        expected_corners,
+    )
 
 
 # --------------------------------------------------------------------------- a whole frame
@@ -419,13 +666,18 @@ def render_frame(
     """
     if by not in SCORES:
         raise ValueError(f"by must be one of {', '.join(SCORES)}, got {by!r}")
-    boxes = np.array([[r[c] for c in ("cx", "cy", "cz", "length", "width", "height", "yaw")] for r in rows], dtype=float).reshape(-1, 7)
+    boxes = np.array(
+        [[r[c] for c in ("cx", "cy", "cz", "length", "width", "height", "yaw")] for r in rows], dtype=float
+    ).reshape(-1, 7)
     refused = box_problems(boxes, g.BOX_FIELDS)
     drawable = np.array([i not in refused for i in range(len(rows))], dtype=bool)
     if not drawable.all():  # a label the reader refused (NaN, absurd size): an error row with no box to draw
         rows = [r for r, ok in zip(rows, drawable) if ok]
         boxes = boxes[drawable]
-    scores = np.array([np.nan if r.get(by) is None or r.get("status") not in AUDITED_STATUSES else float(r[by]) for r in rows], dtype=float)
+    scores = np.array(
+        [np.nan if r.get(by) is None or r.get("status") not in AUDITED_STATUSES else float(r[by]) for r in rows],
+        dtype=float,
+    )
     indices = np.array([int(r["object_index"]) for r in rows], dtype=np.int64)
     corners = np.array([g.box_corners(b, "bev") for b in boxes]).reshape(-1, 4, 2)
     order = worst_order(scores, by)[:worst]
@@ -452,21 +704,65 @@ def render_frame(
         if len(p):
             # Ground returns dim, anything standing on it bright: height above the 10th z percentile.
             rise = np.clip((p[:, 2] - np.percentile(p[:, 2], 10)) / 1.5, 0.0, 1.0)
-            ax.scatter(p[:, 0], p[:, 1], s=0.5, c=0.25 + 0.75 * rise, cmap="Greys_r", vmin=0.0, vmax=1.0, linewidths=0, rasterized=True, zorder=1)
+            ax.scatter(
+                p[:, 0],
+                p[:, 1],
+                s=0.5,
+                c=0.25 + 0.75 * rise,
+                cmap="Greys_r",
+                vmin=0.0,
+                vmax=1.0,
+                linewidths=0,
+                rasterized=True,
+                zorder=1,
+            )
     cmap = colormaps[SCORE_CMAP[by]]
     norm = Normalize(0.0, 1.0)
     for k in range(len(boxes)):
         colour = "#9e9e9e" if not np.isfinite(scores[k]) else cmap(norm(scores[k]))
-        ax.add_patch(Polygon(corners[k], closed=True, fill=False, edgecolor=colour, linewidth=1.5, linestyle="-" if np.isfinite(scores[k]) else ":", zorder=3))
+        ax.add_patch(
+            Polygon(
+                corners[k],
+                closed=True,
+                fill=False,
+                edgecolor=colour,
+                linewidth=1.5,
+                linestyle="-" if np.isfinite(scores[k]) else ":",
+                zorder=3,
+            )
+        )
         front = corners[k][[0, 3]].mean(axis=0)
         ax.plot([boxes[k, 0], front[0]], [boxes[k, 1], front[1]], color=colour, linewidth=0.8, zorder=3)
     for n, k in enumerate(order, start=1):
-        ax.text(boxes[k, 0], boxes[k, 1], str(n), color="white", fontsize=9, fontweight="bold", ha="center", va="center", zorder=5,
-                bbox={"boxstyle": "circle,pad=0.2", "facecolor": "black", "edgecolor": cmap(norm(scores[k])), "linewidth": 1.2})
+        ax.text(
+            boxes[k, 0],
+            boxes[k, 1],
+            str(n),
+            color="white",
+            fontsize=9,
+            fontweight="bold",
+            ha="center",
+            va="center",
+            zorder=5,
+            bbox={
+                "boxstyle": "circle,pad=0.2",
+                "facecolor": "black",
+                "edgecolor": cmap(norm(scores[k])),
+                "linewidth": 1.2,
+            },
+        )
     for k, r in enumerate(candidates):
         _draw_candidate(ax, cand_boxes[k, :2], cand_corners[k], f"M{int(r['candidate_index'])} {float(r['score']):.2f}")
     ax.scatter([origin[0]], [origin[1]], marker="^", s=60, c="#00e5ff", edgecolors="black", zorder=6)
-    ax.annotate("sensor", xy=(origin[0], origin[1]), xytext=(6, -10), textcoords="offset points", color="#00e5ff", fontsize=8, zorder=6)
+    ax.annotate(
+        "sensor",
+        xy=(origin[0], origin[1]),
+        xytext=(6, -10),
+        textcoords="offset points",
+        color="#00e5ff",
+        fontsize=8,
+        zorder=6,
+    )
     ax.set_xlim(view[0], view[1])
     ax.set_ylim(view[2], view[3])
     ax.set_aspect("equal")
@@ -474,14 +770,30 @@ def render_frame(
     ax.set_xlabel("x (m, forward)", fontsize=8)
     ax.set_ylabel("y (m, left)", fontsize=8)
     _add_scale_bar(ax, view, "white")
-    _colour_bar(fig, ScalarMappable(norm=norm, cmap=cmap), (0.89, 0.08, 0.02, 0.84), f"{SCORES[by]} ({'low' if by == 'jiou_gt' else 'high'} = worse; grey dotted: not audited)")
-    listed = "  ".join(f"{n}: #{i} ({_fmt(scores[k], '.2f')})" for n, (i, k) in enumerate(zip(numbered, order), start=1))
+    _colour_bar(
+        fig,
+        ScalarMappable(norm=norm, cmap=cmap),
+        (0.89, 0.08, 0.02, 0.84),
+        f"{SCORES[by]} ({'low' if by == 'jiou_gt' else 'high'} = worse; grey dotted: not audited)",
+    )
+    listed = "  ".join(
+        f"{n}: #{i} ({_fmt(scores[k], '.2f')})" for n, (i, k) in enumerate(zip(numbered, order), start=1)
+    )
     caption = f"frame {frame_id} · {len(boxes)} boxes coloured by {SCORES[by]} · worst numbered\n{listed or 'no scored boxes'}"
     if len(candidates):
-        caption += f"\n{len(candidates)} possibly missing label(s): " + "  ".join(f"M{int(r['candidate_index'])} {r['class_name']} ({float(r['score']):.2f})" for r in candidates)
+        caption += f"\n{len(candidates)} possibly missing label(s): " + "  ".join(
+            f"M{int(r['candidate_index'])} {r['class_name']} ({float(r['score']):.2f})" for r in candidates
+        )
         handles = [
             Line2D([], [], color=colormaps[SCORE_CMAP[by]](0.8), lw=1.5, label=f"label (colour: {SCORES[by]})"),
-            Line2D([], [], color=CANDIDATE_COLOUR, lw=1.8, ls=(0, (4, 2)), label="possibly missing label (M<candidate>, score)"),
+            Line2D(
+                [],
+                [],
+                color=CANDIDATE_COLOUR,
+                lw=1.8,
+                ls=(0, (4, 2)),
+                label="possibly missing label (M<candidate>, score)",
+            ),
         ]
         leg = ax.legend(handles=handles, loc="lower left", fontsize=7, labelcolor="white", framealpha=0.75)
         leg.get_frame().set_facecolor("#111111")
@@ -494,13 +806,28 @@ def render_frame(
 def _draw_candidate(ax: Any, centre: FloatArray, corners: FloatArray, text: str | None) -> None:
     """A missing-label candidate (centre (2,), BEV corners (4, 2)): dashed magenta outline over a faint fill, its heading tick and a tag."""
     ax.add_patch(Polygon(corners, closed=True, facecolor=CANDIDATE_COLOUR, alpha=0.15, edgecolor="none", zorder=3))
-    ax.add_patch(Polygon(corners, closed=True, fill=False, edgecolor=CANDIDATE_COLOUR, linewidth=1.8, linestyle=(0, (4, 2)), zorder=4))
+    ax.add_patch(
+        Polygon(
+            corners, closed=True, fill=False, edgecolor=CANDIDATE_COLOUR, linewidth=1.8, linestyle=(0, (4, 2)), zorder=4
+        )
+    )
     front = corners[[0, 3]].mean(axis=0)
     ax.plot([centre[0], front[0]], [centre[1], front[1]], color=CANDIDATE_COLOUR, linewidth=1.0, zorder=4)
     if text:
         top = corners[np.argmax(corners[:, 1])]
-        ax.annotate(text, xy=tuple(top), xytext=(0, 6), textcoords="offset points", color=CANDIDATE_COLOUR, fontsize=8, fontweight="bold",
-                    ha="center", va="bottom", zorder=6, bbox={"boxstyle": "round,pad=0.15", "facecolor": "#111111", "edgecolor": "none", "alpha": 0.7})
+        ax.annotate(
+            text,
+            xy=tuple(top),
+            xytext=(0, 6),
+            textcoords="offset points",
+            color=CANDIDATE_COLOUR,
+            fontsize=8,
+            fontweight="bold",
+            ha="center",
+            va="bottom",
+            zorder=6,
+            bbox={"boxstyle": "round,pad=0.15", "facecolor": "#111111", "edgecolor": "none", "alpha": 0.7},
+        )
 
 
 # --------------------------------------------------------------------------- one missing-label candidate
@@ -542,8 +869,14 @@ EVIDENCE_COLUMNS = ("size_score", "shape_score", "density_score", "free_space_sc
 def _candidate_caption(frame_id: str, row: Mapping[str, Any]) -> str:
     first = (f"possibly missing label · frame {frame_id} · candidate {row['candidate_index']} · looks like {row['class_name']} · "
              f"{float(row['distance']):.1f} m · {row['num_points']} points")  # fmt: skip
-    evidence = "   ".join(f"{c.replace('_score', '')} {_fmt(row[c], '.2f') if isinstance(row[c], float) else row[c]}" for c in EVIDENCE_COLUMNS if row.get(c) is not None)
-    return f"{first}\nscore {_fmt(row['score'], '.3f')}   source {row['source']}" + (f"   {evidence}" if evidence else "")
+    evidence = "   ".join(
+        f"{c.replace('_score', '')} {_fmt(row[c], '.2f') if isinstance(row[c], float) else row[c]}"
+        for c in EVIDENCE_COLUMNS
+        if row.get(c) is not None
+    )
+    return f"{first}\nscore {_fmt(row['score'], '.3f')}   source {row['source']}" + (
+        f"   {evidence}" if evidence else ""
+    )
 
 
 def render_candidate(
@@ -581,13 +914,28 @@ def render_candidate(
     xy = _to_box_frame(pts[:, :2], box) if len(pts) else np.zeros((0, 2))
     in_view = (xy[:, 0] >= view[0]) & (xy[:, 0] <= view[1]) & (xy[:, 1] >= view[2]) & (xy[:, 1] <= view[3])
     bottom, top = box[2] - box[5] / 2, box[2] + box[5] / 2
-    inside = in_view & (np.abs(xy[:, 0]) <= box[3] / 2) & (np.abs(xy[:, 1]) <= box[4] / 2) & (pts[:, 2] >= bottom) & (pts[:, 2] <= top)
+    inside = (
+        in_view
+        & (np.abs(xy[:, 0]) <= box[3] / 2)
+        & (np.abs(xy[:, 1]) <= box[4] / 2)
+        & (pts[:, 2] >= bottom)
+        & (pts[:, 2] <= top)
+    )
     context = in_view & ~inside
     points_xy, height, context_xy = xy[inside], pts[inside, 2] - bottom, xy[context]
 
     ax.set_facecolor("#111111")
     if len(context_xy):
-        ax.plot(context_xy[:, 0], context_xy[:, 1], ls="", marker="o", markersize=1.4, markerfacecolor=CONTEXT_COLOUR, markeredgewidth=0, zorder=2)
+        ax.plot(
+            context_xy[:, 0],
+            context_xy[:, 1],
+            ls="",
+            marker="o",
+            markersize=1.4,
+            markerfacecolor=CONTEXT_COLOUR,
+            markeredgewidth=0,
+            zorder=2,
+        )
     step = max(1, -(-len(points_xy) // C.SHOW_MAX_POINTS_DRAWN))
     pts_art = ax.scatter(points_xy[::step, 0], points_xy[::step, 1], s=9, c=height[::step], cmap=HEIGHT_CMAP, vmin=0.0, vmax=max(float(box[5]), 0.5),
                          edgecolors="black", linewidths=0.3, zorder=4) if len(points_xy) else None  # fmt: skip
@@ -597,7 +945,12 @@ def render_candidate(
         if not np.isfinite(lb).all():
             continue
         lc = _to_box_frame(g.box_corners(lb, "bev"), box)
-        if (lc[:, 0].max() < view[0]) or (lc[:, 0].min() > view[1]) or (lc[:, 1].max() < view[2]) or (lc[:, 1].min() > view[3]):
+        if (
+            (lc[:, 0].max() < view[0])
+            or (lc[:, 0].min() > view[1])
+            or (lc[:, 1].max() < view[2])
+            or (lc[:, 1].min() > view[3])
+        ):
             continue
         label_corners.append(lc)
         label_classes.append(str(r["class_name"]))
@@ -606,8 +959,22 @@ def render_candidate(
         if view[0] < mid[0] < view[1] and view[2] < mid[1] < view[3]:  # the tag kept whole inside the axes
             inset = 0.1 * (view[1] - view[0])
             at = np.clip(mid, [view[0] + inset, view[2] + inset], [view[1] - inset, view[3] - inset])
-            ax.text(at[0], at[1], f"label #{r['object_index']}", color=LABEL_COLOUR, fontsize=7, ha="center", va="center", zorder=6)
-    _draw_candidate(ax, np.zeros(2), corners, None if compact else f"M{candidate['candidate_index']} {float(candidate['score']):.2f}")
+            ax.text(
+                at[0],
+                at[1],
+                f"label #{r['object_index']}",
+                color=LABEL_COLOUR,
+                fontsize=7,
+                ha="center",
+                va="center",
+                zorder=6,
+            )
+    _draw_candidate(
+        ax,
+        np.zeros(2),
+        corners,
+        None if compact else f"M{candidate['candidate_index']} {float(candidate['score']):.2f}",
+    )
 
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float).reshape(3)
     sensor_dir = _to_box_frame(origin[None, :2], box)[0]
@@ -623,7 +990,9 @@ def render_candidate(
     if compact:
         ax.set_xticks([])
         ax.set_yticks([])
-        return CandidatePicture(_png(fig), size, corners, points_xy, height, context_xy, label_arr, label_classes, sensor_dir, view, caption)
+        return CandidatePicture(
+            _png(fig), size, corners, points_xy, height, context_xy, label_arr, label_classes, sensor_dir, view, caption
+        )
     fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=8.5)
     ax.tick_params(labelsize=7)
     ax.set_xlabel("along the candidate's length (m)", fontsize=8)
@@ -633,10 +1002,38 @@ def render_candidate(
     handles = [
         Line2D([], [], color=CANDIDATE_COLOUR, lw=1.8, ls=(0, (4, 2)), label="possibly missing label (no label here)"),
         Line2D([], [], color=LABEL_COLOUR, lw=1.4, label="labels of the frame"),
-        Line2D([], [], ls="", marker="o", markersize=4, markerfacecolor="#8f70ff", markeredgecolor="black", label="points in the candidate"),
-        Line2D([], [], ls="", marker="o", markersize=3, markerfacecolor=CONTEXT_COLOUR, markeredgecolor="none", label="other points"),
+        Line2D(
+            [],
+            [],
+            ls="",
+            marker="o",
+            markersize=4,
+            markerfacecolor="#8f70ff",
+            markeredgecolor="black",
+            label="points in the candidate",
+        ),
+        Line2D(
+            [],
+            [],
+            ls="",
+            marker="o",
+            markersize=3,
+            markerfacecolor=CONTEXT_COLOUR,
+            markeredgecolor="none",
+            label="other points",
+        ),
     ]
-    leg = fig.legend(handles=handles, loc="lower left", bbox_to_anchor=(0.06, 0.0), ncol=2, fontsize=6.5, frameon=True, labelcolor="white")
+    leg = fig.legend(
+        handles=handles,
+        loc="lower left",
+        bbox_to_anchor=(0.06, 0.0),
+        ncol=2,
+        fontsize=6.5,
+        frameon=True,
+        labelcolor="white",
+    )
     leg.get_frame().set_facecolor("#111111")
     leg.get_frame().set_edgecolor("none")
-    return CandidatePicture(_png(fig), size, corners, points_xy, height, context_xy, label_arr, label_classes, sensor_dir, view, caption)
+    return CandidatePicture(
+        _png(fig), size, corners, points_xy, height, context_xy, label_arr, label_classes, sensor_dir, view, caption
+    )

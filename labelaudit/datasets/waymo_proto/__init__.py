@@ -180,9 +180,7 @@ _DEFAULTS = {("Object", "score"): "1"}  # metrics.proto: an Object without a sco
 
 
 def _build_classes() -> dict[str, Any]:
-    fdp = descriptor_pb2.FileDescriptorProto(
-        name="labelaudit/waymo_minimal.proto", package=_PACKAGE, syntax="proto2"
-    )
+    fdp = descriptor_pb2.FileDescriptorProto(name="labelaudit/waymo_minimal.proto", package=_PACKAGE, syntax="proto2")
     for msg_name, fields in _MESSAGES:
         msg = fdp.message_type.add(name=msg_name)
         for name, number, ftype, label, type_name, packed in fields:
@@ -196,8 +194,7 @@ def _build_classes() -> dict[str, Any]:
     pool = descriptor_pool.DescriptorPool()
     pool.Add(fdp)
     return {
-        name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{_PACKAGE}.{name}"))
-        for name, _ in _MESSAGES
+        name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{_PACKAGE}.{name}")) for name, _ in _MESSAGES
     }
 
 
