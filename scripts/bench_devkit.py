@@ -15,7 +15,7 @@ the label reader) are pointed at its own ``rotate_iou.py`` and a stub; its code 
 
 Scenes:
   (1) ``labelaudit simulate --detections`` (the synthetic detector), ``--frames`` frames, seed ``--seed``;
-  (2) the real KITTI frames of ``/work/shared/realdata/openpcdet-pr653-kitti`` with the real
+  (2) the real KITTI frames of ``../shared/realdata/openpcdet-pr653-kitti`` (or ``$LABELAUDIT_REALDATA``) with the real
       Point-GNN detections of ``pointgnn-kitti-results`` (frames with a result file), when present.
 
 For each scene, view (BEV, 3D), class, difficulty and threshold 0.5:0.05:0.9 it prints the largest
@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9)
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 DIFFICULTIES = ("easy", "moderate", "hard")
-REALDATA = Path("/work/shared/realdata")
+REALDATA = Path(os.environ.get("LABELAUDIT_REALDATA", REPO.parent / "shared" / "realdata"))  # as the tests find it
 
 
 # --------------------------------------------------------------------------- the port, in its own process

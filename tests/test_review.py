@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
+from conftest import REALDATA
 from labelaudit import results as R
 from labelaudit.cli import app
 from labelaudit.datasets.kitti import LABEL_COLUMNS, KittiReader, boxes_camera_to_lidar, read_calib, read_label
@@ -21,7 +22,7 @@ from results_factory import add_missing, make_candidate, make_results, make_row
 from viz_data import simulate_and_infer
 
 runner = CliRunner()
-REAL_KITTI = Path("/work/shared/realdata/openpcdet-pr653-kitti/training")
+REAL_KITTI = REALDATA / "openpcdet-pr653-kitti" / "training"  # optional: tests skip or shrink without it
 
 
 def invoke(*args):
@@ -251,11 +252,10 @@ def test_waymo_results_get_a_parquet_of_boxes(tmp_path):
     assert json.loads(result.stdout)["format"] == "parquet"
 
 
-def test_kitti_lines_round_trip_on_real_calibrations():
+def test_kitti_lines_round_trip_on_real_calibrations(realdata):
     """Exact write → read on the real KITTI calibrations (printed matrices, not exactly orthonormal)."""
-    calibs = sorted((REAL_KITTI / "calib").glob("*.txt")) if REAL_KITTI.is_dir() else []
-    if not calibs:
-        pytest.skip("no real KITTI frames in /work/shared/realdata (CI has none)")
+    calibs = sorted((realdata / "openpcdet-pr653-kitti" / "training" / "calib").glob("*.txt"))
+    assert calibs, "the real KITTI folder has no calib files"
     rng = np.random.default_rng(0)
     for path in calibs:
         calib = read_calib(path)
