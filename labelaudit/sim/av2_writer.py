@@ -21,7 +21,6 @@ from typing import Sequence
 import numpy as np
 import pyarrow as pa
 import pyarrow.feather as feather
-import pyarrow.parquet as pq
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
@@ -29,6 +28,7 @@ from labelaudit.core.geometry import yaw_quaternion
 from labelaudit.datasets import av2
 from labelaudit.infer.crop import points_in_boxes_numpy
 from labelaudit.sim.detector import DetectorSpec, DetectorSummary
+from labelaudit.sim.manifest import MANIFEST_NAME, SEQUENCE_MANIFEST_COLUMNS, write_manifest_rows
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import SceneSpec, sample_scene
@@ -201,17 +201,6 @@ AV2_COLUMNS = {"real": 1800, "small": 360}  # azimuth columns per sweep: 0.2° (
 AV2_MAX_RANGE = 200.0  # m; VLP-32C
 SWEEP_NS = 100_000_000  # 10 Hz
 AV2_T0 = 315_966_265_259_836_000  # ns; timestamps start where the real val logs do (+ 1 s per seed)
-MANIFEST_COLUMNS = (
-    "frame_id",
-    "object_id",
-    "class_name",
-    "sim_class",
-    "true_box",
-    "written_box",
-    "perturbation",
-    "track_error_kind",
-    "track_error_size",
-)  # as the Waymo simulator's
 
 
 @dataclass
@@ -425,7 +414,7 @@ def _interpolate_planar(a: FloatArray, b: FloatArray, s: float) -> FloatArray:
 
 def av2_manifest_rows(log: SimAv2Log) -> dict[str, list]:
     """Manifest rows of a log (the columns of :func:`~labelaudit.sim.waymo_writer.write_manifest`)."""
-    rows: dict[str, list] = {k: [] for k in MANIFEST_COLUMNS}
+    rows: dict[str, list] = {k: [] for k in SEQUENCE_MANIFEST_COLUMNS}
     for fr in log.frames:
         for k in range(len(fr.boxes)):
             rows["frame_id"].append(f"{log.log_id}:{fr.timestamp}")
@@ -494,14 +483,11 @@ def simulate_av2_dataset(
     logs_ = [simulate_av2_log(seed=seed + i, frames=frames, size=size, label_noise=label_noise) for i in range(logs)]
     for log in logs_:
         write_av2_log(log, out / split)
-    rows: dict[str, list] = {k: [] for k in MANIFEST_COLUMNS}
+    rows: dict[str, list] = {k: [] for k in SEQUENCE_MANIFEST_COLUMNS}
     for log in logs_:
         for k, v in av2_manifest_rows(log).items():
             rows[k].extend(v)
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / f".manifest.parquet.tmp-{os.getpid()}"
-    pq.write_table(pa.table(rows), tmp)
-    os.replace(tmp, out / "manifest.parquet")
+    write_manifest_rows(rows, out / MANIFEST_NAME)
     return out / split
 
 

@@ -7,12 +7,34 @@ it here, without importing the writers.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 MANIFEST_NAME = "manifest.parquet"
+SEQUENCE_MANIFEST_COLUMNS = (
+    "frame_id",
+    "object_id",
+    "class_name",
+    "sim_class",
+    "true_box",
+    "written_box",
+    "perturbation",
+    "track_error_kind",
+    "track_error_size",
+)  # the manifest of simulated sequences (Waymo segments, Argoverse 2 logs): one row per object and frame
+
+
+def write_manifest_rows(rows: dict[str, list], path: str | Path) -> Path:
+    """Write manifest columns to ``path`` atomically (a temporary name, then a rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    pq.write_table(pa.table(rows), tmp)
+    os.replace(tmp, path)
+    return path
 
 
 def read_manifest(path: str | Path) -> pa.Table:

@@ -40,6 +40,7 @@ from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
 from labelaudit.infer.crop import points_in_boxes_numpy
+from labelaudit.sim.manifest import SEQUENCE_MANIFEST_COLUMNS, write_manifest_rows
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, ray_directions, render_range_image
 from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, SimObject, sample_scene
@@ -565,20 +566,7 @@ def write_as_kitti(segment: SimWaymoSegment, root: str | Path, seed: int = 0) ->
 def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
     """One row per object: frame_id, object_id, class names, true and written box, perturbation,
     the injected track error (``track_error_kind``: none / length / width / yaw / flip / centre) and its size."""
-    rows: dict[str, list] = {
-        k: []
-        for k in (
-            "frame_id",
-            "object_id",
-            "class_name",
-            "sim_class",
-            "true_box",
-            "written_box",
-            "perturbation",
-            "track_error_kind",
-            "track_error_size",
-        )
-    }
+    rows: dict[str, list] = {k: [] for k in SEQUENCE_MANIFEST_COLUMNS}
     for seg in segments:
         for fr in seg.frames:
             true = fr.boxes if fr.true_boxes is None else fr.true_boxes
@@ -594,10 +582,7 @@ def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
                 rows["perturbation"].append(fr.perturbation[k] if fr.perturbation else "none")
                 rows["track_error_kind"].append(fr.track_error_kind[k] if fr.track_error_kind else "none")
                 rows["track_error_size"].append(float(fr.track_error_size[k]) if fr.track_error_size else 0.0)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.table(rows), path)
-    return path
+    return write_manifest_rows(rows, path)
 
 
 def simulate_waymo_dataset(
