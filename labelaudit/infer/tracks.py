@@ -30,17 +30,11 @@ from labelaudit.config import RunConfig
 from labelaudit.core import track as T
 from labelaudit.core.geometry import normalize_angle
 
-NEEDED_COLUMNS = (
-    "dataset",
-    "frame_id",
-    "object_index",
-    "object_id",
-    "class_name",
-    "status",
+NUMERIC_COLUMNS = (
+    *R.WORLD_COLUMNS,
     "length",
     "width",
     "height",
-    *R.WORLD_COLUMNS,
     "fit_length",
     "fit_width",
     "fit_height",
@@ -48,6 +42,8 @@ NEEDED_COLUMNS = (
     "std_width",
     "std_height",
 )
+"""The float columns of the shards the pass computes with."""
+NEEDED_COLUMNS = ("dataset", "frame_id", "object_index", "object_id", "class_name", "status", *NUMERIC_COLUMNS)
 """What the pass reads from the shards."""
 
 _NOISE_KEYS = ("center", "length", "width", "height", "yaw")
@@ -124,25 +120,13 @@ class _Rows:
 
     @classmethod
     def of(cls, table: pa.Table) -> "_Rows":
-        numeric = (
-            *R.WORLD_COLUMNS,
-            "length",
-            "width",
-            "height",
-            "fit_length",
-            "fit_width",
-            "fit_height",
-            "std_length",
-            "std_width",
-            "std_height",
-        )
         return cls(
             table.column("frame_id").to_pylist(),
             table.column("object_index").to_pylist(),
             table.column("object_id").to_pylist(),
             table.column("class_name").to_pylist(),
             np.array(table.column("status").to_pylist(), dtype=object),
-            {c: _column(table, c) for c in numeric},
+            {c: _column(table, c) for c in NUMERIC_COLUMNS},
         )
 
 
