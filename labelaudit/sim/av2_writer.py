@@ -28,7 +28,7 @@ from labelaudit.core.geometry import yaw_quaternion
 from labelaudit.datasets import av2
 from labelaudit.infer.crop import points_in_boxes_numpy
 from labelaudit.sim.detector import DetectorSpec, DetectorSummary
-from labelaudit.sim.manifest import MANIFEST_NAME, SEQUENCE_MANIFEST_COLUMNS, write_manifest_rows
+from labelaudit.sim.manifest import MANIFEST_NAME, SEQUENCE_MANIFEST_COLUMNS, write_manifest_table
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, render_range_image
 from labelaudit.sim.scene import SceneSpec, sample_scene
@@ -487,7 +487,7 @@ def simulate_av2_dataset(
     for log in logs_:
         for k, v in av2_manifest_rows(log).items():
             rows[k].extend(v)
-    write_manifest_rows(rows, out / MANIFEST_NAME)
+    write_manifest_table(pa.table(rows), out / MANIFEST_NAME)
     return out / split
 
 

@@ -37,7 +37,7 @@ from labelaudit.datasets.kitti import Calibration
 from labelaudit.errors import OutputExistsError, UsageError
 from labelaudit.executors import make_executor
 from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calibration, write_kitti_frame
-from labelaudit.sim.manifest import MANIFEST_NAME
+from labelaudit.sim.manifest import MANIFEST_NAME, write_manifest_table
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
 from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, sample_scene
@@ -241,11 +241,7 @@ def write_manifest(
         for name in columns:
             columns[name].extend(frame_rows[name])
     table = pa.table(columns, schema=schema).replace_schema_metadata(metadata or {})
-    manifest = Path(out_dir) / MANIFEST_NAME
-    tmp = manifest.with_name(f".{manifest.name}.tmp-{os.getpid()}")
-    pq.write_table(table, tmp)
-    tmp.replace(manifest)
-    return manifest
+    return write_manifest_table(table, Path(out_dir) / MANIFEST_NAME)
 
 
 @dataclass
@@ -448,9 +444,7 @@ def simulate_sequences(
         segments.append(seg)
     manifest = out / MANIFEST_NAME
     if dataset_format == "av2":
-        tmp = manifest.with_name(f".{manifest.name}.tmp-{os.getpid()}")
-        pq.write_table(pa.table(manifest_rows), tmp)
-        os.replace(tmp, manifest)
+        write_manifest_table(pa.table(manifest_rows), manifest)
     else:
         waymo_writer.write_manifest(segments, manifest)
     kinds = np.asarray(

@@ -27,12 +27,12 @@ SEQUENCE_MANIFEST_COLUMNS = (
 )  # the manifest of simulated sequences (Waymo segments, Argoverse 2 logs): one row per object and frame
 
 
-def write_manifest_rows(rows: dict[str, list], path: str | Path) -> Path:
-    """Write manifest columns to ``path`` atomically (a temporary name, then a rename)."""
+def write_manifest_table(table: pa.Table, path: str | Path) -> Path:
+    """Write a manifest table to ``path`` atomically (a temporary name, then a rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    pq.write_table(pa.table(rows), tmp)
+    pq.write_table(table, tmp)
     os.replace(tmp, path)
     return path
 

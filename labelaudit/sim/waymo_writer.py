@@ -40,7 +40,7 @@ from labelaudit.datasets import waymo_v2 as v2
 from labelaudit.datasets.waymo_common import LidarCalibration
 from labelaudit.datasets.waymo_v1 import encode_record
 from labelaudit.infer.crop import points_in_boxes_numpy
-from labelaudit.sim.manifest import SEQUENCE_MANIFEST_COLUMNS, write_manifest_rows
+from labelaudit.sim.manifest import SEQUENCE_MANIFEST_COLUMNS, write_manifest_table
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
 from labelaudit.sim.raycast import LidarSpec, ray_directions, render_range_image
 from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, SimObject, sample_scene
@@ -582,7 +582,7 @@ def write_manifest(segments: list[SimWaymoSegment], path: str | Path) -> Path:
                 rows["perturbation"].append(fr.perturbation[k] if fr.perturbation else "none")
                 rows["track_error_kind"].append(fr.track_error_kind[k] if fr.track_error_kind else "none")
                 rows["track_error_size"].append(float(fr.track_error_size[k]) if fr.track_error_size else 0.0)
-    return write_manifest_rows(rows, path)
+    return write_manifest_table(pa.table(rows), path)
 
 
 def simulate_waymo_dataset(
