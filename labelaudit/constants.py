@@ -362,6 +362,7 @@ AV2_QUATERNION_TOLERANCE = (
     1e-3  # a cuboid or pose quaternion whose norm differs from 1 by more than this is corrupt input, not a rounding
 )
 AV2_MAX_TILT = 0.01  # rad; a cuboid whose up axis leans more than this (roll/pitch) is audited upright with its heading, with a warning
+AV2_ROI_MARGIN = 5.0  # m; AV2 labels within this of the drivable area (its region of interest: av2-api ROI_ISOCONTOUR_M); missing-label candidates must touch it
 
 # --- accepted config values (labelaudit/config.py validate_params): key -> (low, high, low open?, high open?) ---
 PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {

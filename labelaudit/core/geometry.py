@@ -339,6 +339,50 @@ BEV_CORNERS_UNIT: FloatArray = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], 
 """Unit coordinates of the 4 BEV corners, in the order of :func:`box_corners`."""
 
 
+def near_polygons(
+    xy: ArrayLike, polygons: list[FloatArray] | tuple[FloatArray, ...], margin: float
+) -> NDArray[np.bool_]:
+    """Whether each point lies inside one of the polygons or within ``margin`` of its boundary.
+
+    Parameters
+    ----------
+    xy : (M, 2) points
+    polygons : each (P, 2) vertices, P ≥ 3, in order (either orientation; concave allowed); the last
+        vertex joins the first (a repeated first vertex is harmless)
+    margin : m, ≥ 0; the Euclidean distance to the nearest boundary segment: the polygon grown by a
+        disc (rounded at convex corners), as a distance transform of its raster would be
+
+    Returns
+    -------
+    (M,) bool. Inside is the even-odd rule, so where two polygons of one list overlap an odd number
+    of times counts; pass the pieces of a union as separate polygons.
+    """
+    pts = np.asarray(xy, dtype=float).reshape(-1, 2)
+    out = np.zeros(len(pts), dtype=bool)
+    for poly in polygons:
+        v = np.asarray(poly, dtype=float).reshape(-1, 2)
+        if len(v) < 3 or out.all():
+            continue
+        lo, hi = v.min(axis=0) - margin, v.max(axis=0) + margin
+        cand = np.flatnonzero(~out & np.all((pts >= lo) & (pts <= hi), axis=1))
+        if not len(cand):
+            continue
+        p = pts[cand][:, None, :]  # (m, 1, 2) against the edges a → b (1, P, 2)
+        a, b = v[None, :, :], np.roll(v, -1, axis=0)[None, :, :]
+        ab = b - a
+        # even-odd crossings of the ray from p towards +x
+        straddle = (a[..., 1] > p[..., 1]) != (b[..., 1] > p[..., 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = a[..., 0] + (p[..., 1] - a[..., 1]) * ab[..., 0] / ab[..., 1]
+        inside = np.count_nonzero(straddle & (p[..., 0] < x_cross), axis=1) % 2 == 1
+        # distance to the nearest edge (a degenerate edge is its point)
+        len2 = np.einsum("...k,...k->...", ab, ab)
+        t = np.clip(np.einsum("...k,...k->...", p - a, ab) / np.where(len2 > 0, len2, 1.0), 0.0, 1.0)
+        d2 = np.einsum("...k,...k->...", p - a - t[..., None] * ab, p - a - t[..., None] * ab)
+        out[cand] = inside | (d2.min(axis=1) <= margin * margin)
+    return out
+
+
 def transform_points(T_dst_src: ArrayLike, points_src: ArrayLike) -> FloatArray:
     """Apply a 4×4 homogeneous transform to points (N, 3); extra columns are kept unchanged."""
     T = np.asarray(T_dst_src, dtype=float)

@@ -7,7 +7,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from labelaudit.datasets.base import DatasetReader, Frame, FrameFailure, FrameRef, ImageView
+from labelaudit.datasets.base import (
+    DatasetReader,
+    Frame,
+    FrameFailure,
+    FrameRef,
+    ImageView,
+    RegionOfInterest,
+    in_labelled_region,
+)
 from labelaudit.errors import DatasetError
 
 FORMATS = ("kitti", "waymo-v2", "waymo-v1", "av2")
@@ -20,7 +28,9 @@ __all__ = [
     "FrameFailure",
     "FrameRef",
     "ImageView",
+    "RegionOfInterest",
     "detect_format",
+    "in_labelled_region",
     "open_dataset",
     "resolve_format",
 ]

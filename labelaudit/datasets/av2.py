@@ -32,10 +32,15 @@ Layout (``docs/datasets.md`` § Argoverse 2)::
   :data:`~labelaudit.constants.AV2_LIDAR_MOUNTS`.
 * **Poses.** ``Frame.pose`` is ``city_SE3_egovehicle`` at the frame's timestamp (exact match; AV2
   writes a pose at every lidar timestamp), None with a warning when missing.
+* **Region of interest.** AV2 labels objects near the road only: within ``AV2_ROI_MARGIN`` (5 m) of
+  the drivable area. When the log has its map (``map/log_map_archive_*.json``), the drivable-area
+  polygons, moved into each frame with its pose, are ``Frame.roi``; without a map (or a pose) it is
+  None and only the range limit says where labels exist. A map that cannot be used is a warning.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -47,8 +52,8 @@ import pyarrow.feather as feather
 from numpy.typing import NDArray
 
 from labelaudit import constants as C
-from labelaudit.core.geometry import quaternion_to_matrix, quaternion_yaw
-from labelaudit.datasets.base import Frame, FrameFailure, FrameRef, box_problems
+from labelaudit.core.geometry import invert_transform, quaternion_to_matrix, quaternion_yaw, transform_points
+from labelaudit.datasets.base import Frame, FrameFailure, FrameRef, RegionOfInterest, box_problems
 from labelaudit.datasets.waymo_common import check_extras
 from labelaudit.errors import DatasetError, one_line
 
@@ -57,6 +62,8 @@ ANNOTATIONS = "annotations.feather"
 POSES = "city_SE3_egovehicle.feather"
 SWEEP_DIR = Path("sensors") / "lidar"
 CALIBRATION = Path("calibration") / "egovehicle_SE3_sensor.feather"
+MAP_DIR = "map"
+MAP_GLOB = "log_map_archive_*.json"
 
 TIMESTAMP = "timestamp_ns"
 TRACK = "track_uuid"
@@ -277,6 +284,62 @@ def lidar_origin(log_dir: str | Path) -> tuple[NDArray[np.float64], list[str]]:
     return np.mean([found[n] for n in LIDARS], axis=0), []
 
 
+def read_drivable_areas(log_dir: str | Path) -> tuple[list[NDArray[np.float64]], str, list[str]]:
+    """The drivable-area polygons of a log's map — each (P, 3) x, y, z in the city frame — the map
+    file and warnings.
+
+    No ``map/`` folder: no polygons and no warning (the map is optional). A ``map/`` without exactly
+    one ``log_map_archive_*.json``, a file that is not such JSON, or a polygon with a bad vertex or
+    fewer than 3 vertices: those polygons are left out, each named in a warning.
+    """
+    folder = Path(log_dir) / MAP_DIR
+    if not folder.is_dir():
+        return [], "", []
+    files = sorted(folder.glob(MAP_GLOB))
+    if len(files) != 1:
+        found = ", ".join(p.name for p in files) or "none"
+        return [], "", [f"{folder}: expected one {MAP_GLOB} (found {found}); no region of interest, {_RANGE_ONLY}"]
+    path = files[0]
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        areas = data["drivable_areas"]
+        if not isinstance(areas, dict):
+            raise TypeError(f"drivable_areas is a {type(areas).__name__}, expected an object of areas by id")
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        return [], "", [f"{path}: not an AV2 map ({one_line(str(exc))[:200]}); no region of interest, {_RANGE_ONLY}"]
+    polygons, bad = [], []
+    for key, area in areas.items():
+        try:
+            v = np.array([[float(p["x"]), float(p["y"]), float(p["z"])] for p in area["area_boundary"]])
+        except (KeyError, TypeError, ValueError):
+            bad.append(f"{key} (a vertex without numeric x, y, z)")
+            continue
+        if len(v) < 3 or not np.isfinite(v).all():
+            bad.append(f"{key} ({len(v)} vertices{'' if np.isfinite(v).all() else ', not all finite'})")
+            continue
+        polygons.append(v)
+    warnings = []
+    if bad:
+        warnings.append(
+            f"{path}: drivable area(s) {', '.join(bad[:5])}{' …' if len(bad) > 5 else ''} left out of the region of "
+            "interest (expected 3 or more finite vertices)"
+        )
+    if not polygons:
+        warnings.append(f"{path}: no usable drivable area; no region of interest, {_RANGE_ONLY}")
+        return [], "", warnings
+    return polygons, str(path), warnings
+
+
+_RANGE_ONLY = "so missing-label candidates are limited by range only"
+
+
+def frame_roi(polygons: list[NDArray[np.float64]], pose: NDArray[np.float64], source: str) -> RegionOfInterest:
+    """The region of interest of one frame: the city-frame drivable areas (each (P, 3)) moved into
+    the ego frame through ``pose`` (egovehicle → city, 4 × 4), grown by ``AV2_ROI_MARGIN``."""
+    ego_city = invert_transform(pose)
+    return RegionOfInterest(tuple(transform_points(ego_city, p)[:, :2] for p in polygons), C.AV2_ROI_MARGIN, source)
+
+
 def read_sweep(path: str | Path, warnings: list[str]) -> NDArray[np.float32]:
     """(N, 4) float32 x, y, z, intensity of a lidar sweep file, in the egovehicle frame.
 
@@ -414,6 +477,8 @@ class Av2Reader:
         sweeps = _sweep_files(log_dir, log_notes)
         origin, notes = lidar_origin(log_dir)
         log_notes += notes
+        drivable, map_source, notes = read_drivable_areas(log_dir)
+        log_notes += notes
         poses: dict[int, NDArray[np.float64]] = {}
         pose_path = log_dir / POSES
         if pose_path.is_file():
@@ -456,6 +521,10 @@ class Av2Reader:
             frame = self._frame(
                 frame_id, ts, rows_of.get(ts, []), cuboids, points, origin, poses.get(ts), warnings, str(sweep or "")
             )
+            if drivable and frame.pose is not None:
+                frame.roi = frame_roi(drivable, frame.pose, map_source)
+            elif drivable:
+                warnings.append(f"{map_source}: the frame has no ego pose to place the map; {_RANGE_ONLY}")
             if sweep is None:
                 warnings.append(
                     f"{log_dir / SWEEP_DIR / f'{ts}.feather'}: no sweep for this annotated timestamp; read with 0 points "
@@ -533,8 +602,10 @@ __all__ = [
     "Cuboids",
     "FORMAT",
     "find_logs",
+    "frame_roi",
     "lidar_origin",
     "read_city_poses",
+    "read_drivable_areas",
     "read_cuboids",
     "read_sweep",
 ]

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
+from labelaudit.core.geometry import BEV_CORNERS_UNIT, near_polygons
 from labelaudit.errors import DatasetError
 
 
@@ -65,6 +66,27 @@ class ImageView:
         )
 
 
+@dataclass(frozen=True)
+class RegionOfInterest:
+    """Where a dataset labels objects in bird's-eye view, from its map (Argoverse 2: the drivable
+    area grown by ``AV2_ROI_MARGIN``, the region of interest its annotators label in).
+
+    Attributes
+    ----------
+    polygons : each (P, 2) BEV vertices in the frame's LiDAR/vehicle coordinates (P ≥ 3)
+    margin : m; the region is every point inside a polygon or within ``margin`` of one
+    source : the map file the polygons come from (named by messages)
+    """
+
+    polygons: tuple[NDArray[np.float64], ...]
+    margin: float
+    source: str = ""
+
+    def contains(self, xy: ArrayLike, slack: float = 0.0) -> NDArray[np.bool_]:
+        """(M,) whether BEV points (M, 2) lie in the region grown by ``slack`` metres more."""
+        return near_polygons(xy, self.polygons, self.margin + slack)
+
+
 @dataclass
 class Frame:
     """One LiDAR sweep with its labeled boxes, everything in the LiDAR/vehicle frame.
@@ -93,6 +115,8 @@ class Frame:
         None when the dataset has none (KITTI object) or the frame's pose is missing
     image_view : the camera image the labels were drawn in, when the dataset labels only what one
         camera sees (KITTI: image_2, with its DontCare regions); None = labels all around (Waymo)
+    roi : where the dataset labels around the car, from its map (Argoverse 2 with the log's
+        ``map/``: the drivable area grown by 5 m); None = everywhere within range
     timestamp : capture time in seconds (Waymo timestamp_micros / 1e6, Argoverse 2
         timestamp_ns / 1e9), for ordering a sequence in time; None when unknown (KITTI object)
     """
@@ -111,6 +135,7 @@ class Frame:
     pose: NDArray[np.float64] | None = None
     image_view: ImageView | None = None
     timestamp: float | None = None
+    roi: RegionOfInterest | None = None
 
     def __post_init__(self) -> None:
         k = len(self.boxes)
@@ -129,6 +154,57 @@ class Frame:
     @property
     def num_objects(self) -> int:
         return len(self.boxes)
+
+
+def in_labelled_region(
+    boxes: ArrayLike,
+    frame: Frame,
+    max_range: float,
+    *,
+    dontcare: bool = True,
+    slack_px: float = 0.0,
+    slack_m: float = 0.0,
+) -> NDArray[np.bool_]:
+    """(K,) whether each box (K, 7) lies where the dataset labels objects: the one rule per format.
+
+    Every format: BEV distance of the centre from the sensor ≤ ``max_range`` and beyond the ego zone
+    (``MISSING_EGO_RADIUS``). With an image view (KITTI): the centre projects into image_2 (at least
+    ``MISSING_MIN_DEPTH`` in front of the camera, ``slack_px`` pixels of slack) and, with
+    ``dontcare``, the box's 2D projection is not ``MISSING_DONTCARE_OVERLAP`` or more inside a
+    DontCare region. With a region of interest (Argoverse 2 with its map): a BEV corner of the box
+    lies in it (grown by ``slack_m``), the rule AV2's own evaluation uses for cuboids.
+    """
+    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    d = np.hypot(b[:, 0] - o[0], b[:, 1] - o[1])
+    ok = (d <= max_range) & (d > C.MISSING_EGO_RADIUS)
+    if frame.roi is not None and ok.any():
+        k = np.flatnonzero(ok)
+        c, s = np.cos(b[k, 6])[:, None], np.sin(b[k, 6])[:, None]
+        u, v = BEV_CORNERS_UNIT[:, 0] * b[k, 3:4], BEV_CORNERS_UNIT[:, 1] * b[k, 4:5]  # (k, 4) each
+        corners = np.stack([b[k, 0:1] + c * u - s * v, b[k, 1:2] + s * u + c * v], axis=-1)
+        ok[k] = frame.roi.contains(corners.reshape(-1, 2), slack_m).reshape(-1, 4).any(axis=1)
+    view = frame.image_view
+    if view is None or not len(b):
+        return ok
+    w, h = view.size
+    centre = np.c_[b[:, :3], np.ones(len(b))] @ view.projection.T
+    depth = centre[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = centre[:, 0] / depth, centre[:, 1] / depth
+    ok &= (depth > C.MISSING_MIN_DEPTH) & (u >= -slack_px) & (u < w + slack_px) & (v >= -slack_px) & (v < h + slack_px)
+    if dontcare and len(view.dontcare):
+        for k in np.flatnonzero(ok):
+            rect = view.box_to_image(b[k])
+            area = max(rect[2] - rect[0], 0.0) * max(rect[3] - rect[1], 0.0)
+            if area <= 0:
+                continue
+            dc = view.dontcare
+            iw = np.clip(np.minimum(dc[:, 2], rect[2]) - np.maximum(dc[:, 0], rect[0]), 0, None)
+            ih = np.clip(np.minimum(dc[:, 3], rect[3]) - np.maximum(dc[:, 1], rect[1]), 0, None)
+            if float((iw * ih).max()) >= C.MISSING_DONTCARE_OVERLAP * area:
+                ok[k] = False
+    return ok
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
 from labelaudit.core.freespace import ray_counts
 from labelaudit.core.iou import bev_iou_exact
-from labelaudit.datasets import Frame
+from labelaudit.datasets import Frame, in_labelled_region
 from labelaudit.infer.evidence import frame_evidence, label_boxes
 from labelaudit.kernels import kernel
 
@@ -634,7 +634,12 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         probe[:, 0], probe[:, 1] = sx / np.maximum(g_points, 1), sy / np.maximum(g_points, 1)
         probe[:, 3:6] = 1.0
         keep &= in_labelled_region(
-            probe, frame, params.max_range + C.MISSING_REGION_SLACK, dontcare=False, slack_px=C.MISSING_IMAGE_SLACK
+            probe,
+            frame,
+            params.max_range + C.MISSING_REGION_SLACK,
+            dontcare=False,
+            slack_px=C.MISSING_IMAGE_SLACK,
+            slack_m=C.MISSING_REGION_SLACK,
         )
     chosen_roots = roots[keep]
     if len(chosen_roots) == 0:
@@ -836,43 +841,8 @@ def _box_cluster(
     return Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
 
 
-# --------------------------------------------------------------------------- where labels exist
-
-
-def in_labelled_region(
-    boxes: FloatArray, frame: Frame, max_range: float, *, dontcare: bool = True, slack_px: float = 0.0
-) -> NDArray[np.bool_]:
-    """(K,) whether each box lies where the dataset labels objects.
-
-    Every format: BEV distance of the centre from the sensor ≤ ``max_range`` and beyond the ego zone
-    (``MISSING_EGO_RADIUS``). With an image view (KITTI): the centre projects into image_2 (in front
-    of the camera) and the box's 2D projection is not mostly inside a DontCare region.
-    """
-    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
-    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
-    d = np.hypot(b[:, 0] - o[0], b[:, 1] - o[1])
-    ok = (d <= max_range) & (d > C.MISSING_EGO_RADIUS)
-    view = frame.image_view
-    if view is None or not len(b):
-        return ok
-    w, h = view.size
-    centre = np.c_[b[:, :3], np.ones(len(b))] @ view.projection.T
-    depth = centre[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = centre[:, 0] / depth, centre[:, 1] / depth
-    ok &= (depth > C.MISSING_MIN_DEPTH) & (u >= -slack_px) & (u < w + slack_px) & (v >= -slack_px) & (v < h + slack_px)
-    if dontcare and len(view.dontcare):
-        for k in np.flatnonzero(ok):
-            rect = view.box_to_image(b[k])
-            area = max(rect[2] - rect[0], 0.0) * max(rect[3] - rect[1], 0.0)
-            if area <= 0:
-                continue
-            dc = view.dontcare
-            iw = np.clip(np.minimum(dc[:, 2], rect[2]) - np.maximum(dc[:, 0], rect[0]), 0, None)
-            ih = np.clip(np.minimum(dc[:, 3], rect[3]) - np.maximum(dc[:, 1], rect[1]), 0, None)
-            if float((iw * ih).max()) >= C.MISSING_DONTCARE_OVERLAP * area:
-                ok[k] = False
-    return ok
+# --------------------------------------------------------------------------- against the labels
+# (where a dataset labels at all is the reader's to say: labelaudit.datasets.in_labelled_region)
 
 
 def _max_iou(box: FloatArray, others: FloatArray) -> float:
