@@ -1,10 +1,18 @@
-"""Compare the object rows of two results folders, bit for bit.
+"""Compare the object rows of two results folders, bit for bit or within tolerances.
 
 Prints the number of rows, and every column that differs (with the largest difference and the
 first differing row); exits 1 when anything differs, 0 when the rows are identical. Used to check
 that a change on the ``infer`` path leaves the rows untouched:
 
     python scripts/compare_results.py before/ after/
+
+``--tolerant``: a change that may move the last bits (compiled code replacing NumPy/LAPACK
+arithmetic) passes when every float column is within 1e-9 relative or 1e-12 absolute,
+``jiou_gt`` within 1e-7 and ``label_error`` within 1e-6 (absolute), and every other column
+(status, integers, strings) is identical; it prints the largest absolute and relative difference
+of every column that moved:
+
+    python scripts/compare_results.py --tolerant before/ after/ [more pairs …]
 """
 
 from __future__ import annotations
@@ -34,6 +42,60 @@ def _gap(a: object, b: object) -> float:
         return math.inf
 
 
+TOLERANCES = {"jiou_gt": 1e-7, "label_error": 1e-6}  # absolute; other floats: FLOAT_REL or FLOAT_ABS
+FLOAT_REL, FLOAT_ABS = 1e-9, 1e-12
+
+
+def _floats(value: object) -> list[float] | None:
+    """The float(s) of a cell (a list column flattened), None when it holds something else."""
+    if isinstance(value, float):
+        return [value]
+    if isinstance(value, list) and all(isinstance(x, float) for x in value):
+        return list(value)
+    return None
+
+
+def moved(before: str, after: str) -> tuple[dict[str, tuple[int, float, float]], list[str]]:
+    """Per float column that differs: (rows, largest absolute, largest relative difference); and the
+    violations of the tolerances (module docstring), including any other column that differs."""
+    ta = open_results(before).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
+    tb = open_results(after).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
+    if ta.num_rows != tb.num_rows or ta.column_names != tb.column_names:
+        return {}, [f"rows {ta.num_rows} vs {tb.num_rows}, columns equal: {ta.column_names == tb.column_names}"]
+    stats: dict[str, tuple[int, float, float]] = {}
+    bad: list[str] = []
+    for name in ta.column_names:
+        va, vb = ta.column(name).to_pylist(), tb.column(name).to_pylist()
+        rows, worst_abs, worst_rel = 0, 0.0, 0.0
+        for i, (x, y) in enumerate(zip(va, vb)):
+            if _same(x, y):
+                continue
+            fx, fy = _floats(x), _floats(y)
+            if (
+                fx is None
+                or fy is None
+                or len(fx) != len(fy)
+                or any(math.isnan(a) != math.isnan(b) for a, b in zip(fx, fy))
+            ):
+                key = {k: ta.column(k)[i].as_py() for k in KEY_COLUMNS}
+                bad.append(f"{name}: {x!r} vs {y!r} at {key}")
+                break
+            rows += 1
+            for a, b in zip(fx, fy):
+                if math.isnan(a) or a == b:
+                    continue
+                gap, rel = abs(a - b), abs(a - b) / max(abs(a), abs(b))
+                worst_abs, worst_rel = max(worst_abs, gap), max(worst_rel, rel)
+                limit = TOLERANCES.get(name)
+                ok = gap <= limit if limit is not None else (rel <= FLOAT_REL or gap <= FLOAT_ABS)
+                if not ok:
+                    key = {k: ta.column(k)[i].as_py() for k in KEY_COLUMNS}
+                    bad.append(f"{name}: {a!r} vs {b!r} (difference {gap:.3g}, relative {rel:.3g}) at {key}")
+        if rows:
+            stats[name] = (rows, worst_abs, worst_rel)
+    return stats, bad
+
+
 def compare(before: str, after: str) -> list[str]:
     """Differences between the rows of two results folders (empty when identical)."""
     ta = open_results(before).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
@@ -56,9 +118,27 @@ def compare(before: str, after: str) -> list[str]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tolerant", action="store_true", help="last-bit changes within the tolerances pass")
     parser.add_argument("before")
     parser.add_argument("after")
+    parser.add_argument("pairs", nargs="*", help="more before/after folders (with --tolerant)")
     args = parser.parse_args()
+    if args.tolerant:
+        folders = [args.before, args.after, *args.pairs]
+        if len(folders) % 2:
+            parser.error("give folders in before/after pairs")
+        failed = False
+        for before, after in zip(folders[::2], folders[1::2]):
+            stats, bad = moved(before, after)
+            rows = open_results(before).dataset.count_rows()
+            verdict = "OUTSIDE THE TOLERANCES" if bad else ("within the tolerances" if stats else "bit-identical")
+            print(f"{before} → {after}: {rows} rows, {verdict}")
+            for name, (n, gap, rel) in sorted(stats.items()):
+                print(f"  {name:18s} {n:5d} rows moved, largest difference {gap:.3g} (relative {rel:.3g})")
+            for line in bad[:20]:
+                print(f"  ! {line}")
+            failed |= bool(bad)
+        return 1 if failed else 0
     diffs = compare(args.before, args.after)
     rows = open_results(args.before).dataset.count_rows()
     if diffs:

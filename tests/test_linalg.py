@@ -39,3 +39,31 @@ def test_compiled_pairwise_sum_is_numpys_sum():
     for n in [*range(0, 300), 1000, 1023, 1024, 1700, 8191, 8192, 8193, 50001]:
         x = rng.normal(size=(n, 2)) * 10.0 ** rng.uniform(-6, 6, size=(n, 2))
         assert linalg.pairwise_sum(x[:, 0]) == x[:, 0].sum() and linalg.pairwise_sum(x.ravel()) == x.sum(), n
+
+
+@pytest.mark.parametrize("p", [2, 6, 8])
+def test_compiled_symmetric_root_equals_the_lapack_form(p: int) -> None:
+    """sqrt_psd_kernel (Jacobi rotations) gives LAPACK's V √max(Λ, 0) Vᵀ within what the root's
+    conditioning allows (an eigenvalue λ off by ε·λ_max moves √λ by ε·λ_max / 2√λ), exactly
+    symmetric, squaring back to the matrix; singular and repeated-eigenvalue matrices included,
+    and its lower triangle is what it reads (as eigh_lo)."""
+    rng = np.random.default_rng(10 + p)
+    for trial in range(300):
+        A = rng.normal(size=(p, p)) * 10.0 ** rng.uniform(-3, 1, size=p)
+        P = A @ A.T
+        if trial % 4 == 0:  # singular
+            P[:, 0] = P[0, :] = 0.0
+        if trial % 5 == 0:  # repeated eigenvalues
+            Q, _ = np.linalg.qr(rng.normal(size=(p, p)))
+            lam = np.repeat(rng.uniform(0.1, 2.0, (p + 1) // 2), 2)[:p]
+            P = (Q * lam) @ Q.T
+        lam, V = np.linalg.eigh(P)
+        want = (V * np.sqrt(np.maximum(lam, 0.0))) @ V.T
+        upper_garbage = P + np.triu(rng.normal(size=(p, p)), 1)
+        got = linalg.sqrt_psd_kernel(upper_garbage)
+        scale = np.sqrt(max(lam.max(), 1e-300))
+        small = np.sqrt(np.clip(lam, 0.0, None)[np.clip(lam, 0.0, None) > 1e-14 * lam.max()].min())
+        assert np.array_equal(got, got.T)
+        assert np.abs(got - want).max() <= 1e-13 * scale * max(1.0, scale / small), trial
+        np.testing.assert_allclose(got @ got, P, atol=1e-12 * lam.max())
+    assert np.isnan(linalg.sqrt_psd_kernel(np.full((p, p), np.nan))).all()

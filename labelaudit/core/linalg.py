@@ -14,6 +14,8 @@ after editing these). No I/O.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -26,7 +28,7 @@ except ImportError:  # pragma: no cover - another NumPy layout: use the public A
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["cholesky", "eigh", "inv", "nan_max", "nan_min", "pairwise_sum", "solve"]
+__all__ = ["cholesky", "eigh", "inv", "nan_max", "nan_min", "pairwise_sum", "solve", "sqrt_psd_kernel"]
 
 
 def inv(a: FloatArray) -> FloatArray:
@@ -158,3 +160,78 @@ def nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
     if a != a or b != b:
         return a + b
     return a if a <= b else b
+
+
+@kernel(error_model="numpy")
+def sqrt_psd_kernel(a):  # pragma: no cover - compiled
+    """The symmetric square root V √max(Λ, 0) Vᵀ of a symmetric PSD matrix (its lower triangle, as
+    LAPACK's ``eigh`` reads it; small n), by cyclic Jacobi rotations.
+
+    Compiled code cannot call NumPy's LAPACK, and a per-object LAPACK call costs more than the
+    arithmetic of a 6×6 or 8×8 matrix. Jacobi's eigenvalues are accurate to a few units in the
+    last place (relative to the largest), so the root differs from the LAPACK form only in its
+    last bits (tests/test_linalg.py compares them); the square root itself is unique, so repeated
+    eigenvalues, whose eigenvectors the two methods pick differently, do not change it. Non-finite
+    input gives a non-finite result (the caller decides what that means).
+    """
+    n = a.shape[0]
+    A = np.empty((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            A[i, j] = a[i, j]
+            A[j, i] = a[i, j]
+    V = np.zeros((n, n))
+    for i in range(n):
+        V[i, i] = 1.0
+    for sweep in range(64):
+        off = 0.0
+        for p in range(n):
+            for q in range(p + 1, n):
+                off += A[p, q] * A[p, q]
+        if not off > 0.0:  # diagonal (or NaN: no rotation would help)
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                app, aqq = A[p, p], A[q, q]
+                small = 100.0 * abs(apq)
+                if sweep > 3 and abs(app) + small == abs(app) and abs(aqq) + small == abs(aqq):
+                    A[p, q] = A[q, p] = 0.0  # below the diagonal's last bit
+                    continue
+                theta = (aqq - app) / (2.0 * apq)
+                if abs(theta) < 1e150:
+                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                    if theta < 0.0:
+                        t = -t
+                else:  # θ² would overflow: t ≈ 1 / (2θ)
+                    t = 0.5 / theta
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # A ← A J (columns p, q)
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(n):  # A ← Jᵀ A (rows p, q)
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                A[p, q] = A[q, p] = 0.0  # zero by construction of t
+                for k in range(n):  # V ← V J
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    root = np.empty(n)
+    for k in range(n):
+        lam = A[k, k]
+        root[k] = math.sqrt(lam) if lam > 0.0 else (lam if lam != lam else 0.0)  # NaN stays NaN
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            acc = 0.0
+            for k in range(n):
+                acc += V[i, k] * root[k] * V[j, k]
+            out[i, j] = acc
+            out[j, i] = acc
+    return out

@@ -46,6 +46,7 @@ __all__ = [
     "spatial_distribution",
     "jiou",
     "jiou_gt",
+    "jiou_gt_generic",
     "normal_samples",
     # the building blocks evaluate.jiou shares: samples, grid, rasteriser
     "Samples",
@@ -149,10 +150,15 @@ def sqrt_psd(cov: FloatArray) -> FloatArray:
     """The symmetric square root of a PSD matrix (L Lᵀ = cov, L = Lᵀ).
 
     Unlike a Cholesky factor or V·√Λ it is unique and continuous in ``cov`` and commutes with
-    rotations, so equal covariances always give equal samples (also when singular).
+    rotations, so equal covariances always give equal samples (also when singular). Compiled
+    (:func:`labelaudit.core.linalg.sqrt_psd_kernel`); a non-finite matrix goes to LAPACK, which
+    raises as ``np.linalg.eigh`` does.
     """
-    lam, V = linalg.eigh(cov)
-    return (V * np.sqrt(np.maximum(lam, 0.0))) @ V.T  # = np.clip(lam, 0.0, None)
+    a = np.ascontiguousarray(cov, dtype=np.float64)
+    if not np.isfinite(a).all():
+        lam, V = linalg.eigh(a)
+        return (V * np.sqrt(np.maximum(lam, 0.0))) @ V.T
+    return linalg.sqrt_psd_kernel(a)
 
 
 @dataclass(frozen=True)
@@ -397,21 +403,34 @@ class Grid:
 
 def axis_edges(half: float, lo: float, hi: float, cell: float) -> FloatArray:
     """Edges with the reference box's faces (±half) on cell boundaries, covering [lo, hi]."""
-    half, lo, hi, cell = (
-        float(half),
-        float(lo),
-        float(hi),
-        float(cell),
-    )  # Python floats: the same IEEE arithmetic, faster
-    n_box = max(1, int(round(2 * half / cell)))
+    half, lo, hi, cell = float(half), float(lo), float(hi), float(cell)
+    if not (math.isfinite(half) and math.isfinite(lo) and math.isfinite(hi) and cell > 0 and math.isfinite(cell)):
+        raise ValueError(f"grid axis: half {half}, bounds [{lo}, {hi}] and cell {cell} must be finite, cell > 0")
+    return _axis_edges_kernel(half, lo, hi, cell, C.MAX_CELLS_PER_AXIS)
+
+
+@kernel
+def _axis_edges_kernel(half, lo, hi, cell, max_cells):  # pragma: no cover - compiled
+    """:func:`axis_edges` of finite floats: ``round`` is Python's (half to even, as ``np.rint``) and a
+    capped axis is NumPy's ``linspace`` (k · step + lo, the last edge = hi)."""
+    n_box = max(1, np.int64(np.rint(2 * half / cell)))
     step = 2 * half / n_box
     n_lo = max(0, math.ceil((-half - lo) / step - 1e-9))
     n_hi = max(0, math.ceil((hi - half) / step - 1e-9))
     total = n_lo + n_box + n_hi
-    if total > C.MAX_CELLS_PER_AXIS:  # wide support around a tiny box: coarser cells, box no longer on edges
+    if total > max_cells:  # wide support around a tiny box: coarser cells, box no longer on edges
         lo, hi = min(lo, -half), max(hi, half)
-        return np.linspace(lo, hi, C.MAX_CELLS_PER_AXIS + 1)
-    return -half - n_lo * step + step * np.arange(total + 1)
+        out = np.empty(max_cells + 1)
+        lin = (hi - lo) / max_cells
+        for k in range(max_cells + 1):
+            out[k] = k * lin + lo
+        out[max_cells] = hi
+        return out
+    out = np.empty(total + 1)
+    base = -half - n_lo * step
+    for k in range(total + 1):
+        out[k] = base + step * k
+    return out
 
 
 def _support(s: Samples, support_std: float) -> tuple[FloatArray, FloatArray]:
@@ -865,12 +884,21 @@ def jaccard(
         raise ValueError(f"p, q (and counts) must have the same number of cells, got {p.size}, {q.size}, {c.size}")
     # Cells with q = 0 (r = ∞) are in every p-suffix, cells with p = 0 (r = 0) in every q-prefix:
     # only the cells where both are positive need sorting.
-    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, float(p_outside), float(q_outside))
+    negative, value = _jaccard_kernel(p, q, c, float(p_outside), float(q_outside))
     if negative:
         raise ValueError("p and q must be non-negative")
-    if not pb.size:
-        return 0.0
-    return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only))
+    return float(value)
+
+
+@kernel(error_model="numpy")
+def _jaccard_kernel(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
+    """(a mass is negative, J) of :func:`jaccard` in one pass: split, sort by r, sums. Cells of
+    equal r give equal terms whatever their order (the max picks p_j/p_i = q_j/q_i), so the sort's
+    order of ties only moves the last bits."""
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, p_outside, q_outside)
+    if negative or pb.size == 0:
+        return negative, 0.0
+    return False, _jaccard_sum(pb, qb, cb, np.argsort(ratio), p_only, q_only)
 
 
 @kernel(error_model="numpy")
@@ -981,23 +1009,96 @@ def jiou_gt(post: "object", params: SpatialParams) -> float:
 
     Same as ``jiou(BoxDistribution.deterministic(box), BoxDistribution.from_posterior(post))``
     (a test checks it) but faster: no re-validation, and since the uniform distribution is 0
-    outside the box, p_G is only rasterised inside it (the rest is 1 − its mass there).
+    outside the box, p_G is only rasterised inside it (the rest is 1 − its mass there). A BEV
+    posterior is one compiled pass (:func:`_jiou_gt_bev_kernel`).
     """
     ref = np.asarray(post.box, dtype=float)  # type: ignore[attr-defined]
     model = post.model  # type: ignore[attr-defined]
+    cov = np.ascontiguousarray(post.cov, dtype=np.float64)  # type: ignore[attr-defined]
+    d = g.point_dim(model)
+    cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
+    if d == 2 and params.num_samples > 1:
+        ok, value = _jiou_gt_bev_kernel(
+            ref,
+            cov,
+            normal_samples(6, params.num_samples, params.seed),
+            float(max(cells, 1.0)),
+            C.CELL_STD_SPAN,
+            C.MAX_CELLS_PER_AXIS,
+            C.SUBROWS_PER_CELL,
+        )
+        if ok:
+            return float(value)
+    return jiou_gt_generic(ref, model, cov, params)
+
+
+def jiou_gt_generic(ref: FloatArray, model: ModelKind, cov: FloatArray, params: SpatialParams) -> float:
+    """:func:`jiou_gt` of box ``ref`` (7,) with φ covariance ``cov`` by the general steps (samples,
+    grid, :func:`pair_masses`, :func:`jaccard`): the 3D path, and what the BEV kernel is tested against."""
+    d = g.point_dim(model)
+    cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     label = BoxDistribution.__new__(BoxDistribution)  # validated box and SPD covariance from the model
     object.__setattr__(label, "box", ref)
     object.__setattr__(label, "model", model)
-    object.__setattr__(label, "cov", np.asarray(post.cov, dtype=float))  # type: ignore[attr-defined]
+    object.__setattr__(label, "cov", cov)
     object.__setattr__(label, "cov_on", "phi")
     sa, sb = _reference_samples(ref, model), sample_boxes(label, ref, params)
     # q = 0 outside the labeled box, so p there only enters through its total, 1 − (p inside):
     # the grid covers the box alone (no truncated tails either).
-    d = g.point_dim(model)
-    cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     cell = np.maximum(max(ref[3], ref[4]), C.CELL_STD_SPAN * sb.blur) / max(cells, 1.0)
     edges = [axis_edges(0.5 * ref[3 + i], -0.5 * ref[3 + i], 0.5 * ref[3 + i], cell[i]) for i in range(d)]
     grid = Grid(ref, edges[0], edges[1], edges[2] if d == 3 else None)
     uniform, p_g, counts = pair_masses(sa, sb, grid)
     inside = float((p_g if counts is None else p_g * counts).sum())
     return jaccard(uniform, p_g, counts, q_outside=max(0.0, 1.0 - inside))
+
+
+@kernel(error_model="numpy")
+def _jiou_gt_bev_kernel(ref, cov, z, cells, span, max_cells, nsub):  # pragma: no cover - compiled
+    """(ok, JIoU-GT) of a BEV posterior (box ``ref`` (7,), φ covariance ``cov`` (6, 6)) from the
+    normal samples ``z`` (S, 6), S > 1: the steps of :func:`jiou_gt`'s generic form in one pass —
+    φ samples in the label's frame (φ̄ + z √(T Σ Tᵀ)), their boxes and blur, the grid over the label,
+    both rasters cleaned, the Jaccard with p_G's mass outside the label. ``ok`` is False for a
+    non-finite covariance (the generic form then raises as before)."""
+    for i in range(6):
+        for j in range(6):
+            if not math.isfinite(cov[i, j]):
+                return False, 0.0
+    length, width = ref[3], ref[4]
+    # φ in the label's own frame: the three in-plane 2-vectors turned by −yaw (T Σ Tᵀ, T = diag(Rᵀ, Rᵀ, Rᵀ))
+    c0, s0 = math.cos(ref[6]), math.sin(ref[6])
+    tc = np.empty((6, 6))
+    for i in range(6):
+        b = i - i % 2
+        for j in range(6):
+            tc[i, j] = (c0 * cov[b, j] + s0 * cov[b + 1, j]) if i % 2 == 0 else (-s0 * cov[b, j] + c0 * cov[b + 1, j])
+    m = np.empty((6, 6))
+    for i in range(6):
+        for j in range(6):
+            b = j - j % 2
+            m[i, j] = (tc[i, b] * c0 + tc[i, b + 1] * s0) if j % 2 == 0 else (-tc[i, b] * s0 + tc[i, b + 1] * c0)
+    root = linalg.sqrt_psd_kernel(m)
+    mean = (0.0, 0.0, length, 0.0, width, 0.0)
+    S = z.shape[0]
+    phis = np.empty((S, 6))
+    for k in range(S):
+        for j in range(6):
+            acc = 0.0
+            for i in range(6):
+                acc += z[k, i] * root[i, j]
+            phis[k, j] = mean[j] + acc
+    centres, A, _, _, weights, _, _, blur, _, _ = _sample_kernel(phis, 2)
+    top = max(length, width)
+    xe = _axis_edges_kernel(0.5 * length, -0.5 * length, 0.5 * length, max(top, span * blur[0]) / cells, max_cells)
+    ye = _axis_edges_kernel(0.5 * width, -0.5 * width, 0.5 * width, max(top, span * blur[1]) / cells, max_cells)
+    nx, ny = xe.size - 1, ye.size - 1
+    uniform = _aligned_kernel(0.0, 0.0, 0.5 * length, 0.5 * width, xe, ye, 1.0 / (length * width * 1.0))
+    p_g = _raster_bev_events_kernel(
+        A, centres, weights, xe[0], xe[nx], ye[0], xe[1] - xe[0], ye[1] - ye[0], nx, ny, nsub
+    )
+    u, q = uniform.reshape(-1), p_g.reshape(-1)
+    _clean_kernel(u)
+    _clean_kernel(q)
+    inside = linalg.pairwise_sum(q)
+    negative, value = _jaccard_kernel(u, q, np.ones(u.size), 0.0, max(0.0, 1.0 - inside))
+    return not negative, value
