@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from labelaudit import constants as C
-from labelaudit.config import resolve_config
+from labelaudit.config import RunConfig, resolve_config
 from labelaudit.core.geometry import near_polygons, transform_points
 from labelaudit.datasets import RegionOfInterest, in_labelled_region, open_dataset
 from labelaudit.datasets.av2 import ANNOTATIONS, POSES, SWEEP_DIR, read_city_poses
@@ -20,6 +21,7 @@ from labelaudit.infer.missing import find_missing
 from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.results import open_results
 from labelaudit.sim.av2_writer import write_annotations, write_sweep
+from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_waymo_v1, write_waymo_v2
 from test_av2 import T0, make_log
 from test_missing import GROUND, _best, _car_points, _frame
 
@@ -243,3 +245,40 @@ def test_real_av2_no_candidate_lies_on_a_label_of_any_category(realdata):
                 dx, dy = r["cx"] - box[0], r["cy"] - box[1]
                 assert abs(c * dx + s * dy) > box[3] / 2 or abs(-s * dx + c * dy) > box[4] / 2, r
     assert unaudited > 50  # the check means something: most of the labels are of other categories
+
+
+# --------------------------------------------------------------------------- Waymo: No Label Zones
+
+
+def test_a_candidate_touching_a_no_label_zone_is_dropped():
+    cfg = RunConfig()
+    frame = _frame(_car_points(15.0, 3.0))
+    on_car = (np.abs(frame.points[:, 0] - 15.0) < 2.2) & (np.abs(frame.points[:, 1] - 3.0) < 1.0)
+    on_car &= frame.points[:, 2] > GROUND + 0.5
+    frame.no_label_zone = np.zeros(len(frame.points), dtype=bool)
+    frame.no_label_zone[np.flatnonzero(frame.points[:, 0] > 40.0)[:50]] = True  # a zone elsewhere
+    assert _best(find_missing(frame, cfg), 15.0, 3.0) >= 0.5
+    frame.no_label_zone[np.flatnonzero(on_car)[:1]] = True  # one return of the car in a zone: Waymo's rule
+    assert _best(find_missing(frame, cfg), 15.0, 3.0) == 0.0
+    with pytest.raises(ValueError, match="one flag per point"):
+        replace(frame, no_label_zone=np.zeros(3, dtype=bool))
+
+
+@pytest.mark.parametrize("fmt", ["waymo-v1", "waymo-v2"])
+def test_waymo_readers_flag_the_points_in_no_label_zones(tmp_path, fmt):
+    segment = simulate_waymo_segment(seed=5, frames=1, size="small")
+    top = segment.frames[0].lidars[1]
+    flagged = 0
+    for image in top.returns:
+        image[:, :40, 3] = 1.0  # the first 40 columns: an azimuth wedge from +π down (the vehicle's rear-left)
+        flagged += int((image[:, :40, 0] > 0).sum())
+    (write_waymo_v1 if fmt == "waymo-v1" else write_waymo_v2)(segment, tmp_path / "seg")
+    reader = open_dataset(tmp_path / "seg", fmt)
+    frame = next(f for ref in reader.list_units() for f in reader.load_unit(ref))
+    zone = frame.no_label_zone
+    assert zone is not None and zone.shape == (len(frame.points),) and int(zone.sum()) == flagged > 0
+    # column j looks along the azimuth π − (j + ½)·2π/W: the first 40 columns, from 180° down
+    wedge = 40 * 360.0 / top.returns[0].shape[1]
+    rel = frame.points[zone, :2] - frame.sensor_origin[:2]  # seen from the TOP lidar
+    az = np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) % 360.0
+    assert (az > 180.0 - wedge - 3.0).all() and (az < 183.0).all(), (wedge, az.min(), az.max())

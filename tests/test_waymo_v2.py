@@ -199,7 +199,7 @@ def test_rolling_shutter_correction_matters(segment) -> None:
     sf = segment.frames[1]
     lidars = [LidarData(n, lid.returns, None) for n, lid in sf.lidars.items()]
     warnings: list[str] = []
-    pts, _ = frame_points(lidars, segment.calibrations, sf.pose, "sim", warnings)
+    pts, _, _ = frame_points(lidars, segment.calibrations, sf.pose, "sim", warnings)
     d, _ = cKDTree(sf.points[:, :3]).query(pts[:, :3])
     assert d.max() > 0.1
 
@@ -209,7 +209,7 @@ def test_only_the_top_lidars_first_returns_are_rays(tmp_path: Path, segment) -> 
     the other lidars' points and every second return are not (docs/label-error.md)."""
     sf = segment.frames[0]
     lidars = [LidarData(n, lid.returns, lid.pixel_pose) for n, lid in sf.lidars.items()]
-    pts, rays = frame_points(lidars, segment.calibrations, sf.pose, "sim", [])
+    pts, rays, _ = frame_points(lidars, segment.calibrations, sf.pose, "sim", [])
     top_first = np.asarray(sf.lidars[1].returns[0])
     assert rays.shape == (len(pts),) and rays.dtype == bool
     assert rays.sum() == int((top_first[..., 0] > 0).sum()) > 0

@@ -117,6 +117,8 @@ class Frame:
         camera sees (KITTI: image_2, with its DontCare regions); None = labels all around (Waymo)
     roi : where the dataset labels around the car, from its map (Argoverse 2 with the log's
         ``map/``: the drivable area grown by 5 m); None = everywhere within range
+    no_label_zone : (N,) bool — the points the dataset marks as lying in an area it does not label
+        (Waymo's No Label Zones: the far side of a highway, a crowded parking lot …); None = none
     timestamp : capture time in seconds (Waymo timestamp_micros / 1e6, Argoverse 2
         timestamp_ns / 1e9), for ordering a sequence in time; None when unknown (KITTI object)
     """
@@ -136,6 +138,7 @@ class Frame:
     image_view: ImageView | None = None
     timestamp: float | None = None
     roi: RegionOfInterest | None = None
+    no_label_zone: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         k = len(self.boxes)
@@ -148,6 +151,11 @@ class Frame:
         for name, values in self.extras.items():
             if len(values) != k:
                 raise ValueError(f"frame {self.frame_id}: extra column {name!r} has {len(values)} values for {k} boxes")
+        if self.no_label_zone is not None and np.shape(self.no_label_zone) != (len(self.points),):
+            raise ValueError(
+                f"frame {self.frame_id}: no_label_zone must be one flag per point ({len(self.points)}), "
+                f"got shape {np.shape(self.no_label_zone)}"
+            )
         if self.pose is not None and np.shape(self.pose) != (4, 4):
             raise ValueError(f"frame {self.frame_id}: pose must be a 4×4 transform, got shape {np.shape(self.pose)}")
 
@@ -172,7 +180,9 @@ def in_labelled_region(
     ``MISSING_MIN_DEPTH`` in front of the camera, ``slack_px`` pixels of slack) and, with
     ``dontcare``, the box's 2D projection is not ``MISSING_DONTCARE_OVERLAP`` or more inside a
     DontCare region. With a region of interest (Argoverse 2 with its map): a BEV corner of the box
-    lies in it (grown by ``slack_m``), the rule AV2's own evaluation uses for cuboids.
+    lies in it (grown by ``slack_m``), the rule AV2's own evaluation uses for cuboids. With
+    ``dontcare`` and points flagged in a No Label Zone (Waymo): no such point lies in the box, the
+    rule Waymo's metrics apply to predictions.
     """
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
@@ -184,6 +194,18 @@ def in_labelled_region(
         u, v = BEV_CORNERS_UNIT[:, 0] * b[k, 3:4], BEV_CORNERS_UNIT[:, 1] * b[k, 4:5]  # (k, 4) each
         corners = np.stack([b[k, 0:1] + c * u - s * v, b[k, 1:2] + s * u + c * v], axis=-1)
         ok[k] = frame.roi.contains(corners.reshape(-1, 2), slack_m).reshape(-1, 4).any(axis=1)
+    zone = frame.no_label_zone
+    if dontcare and zone is not None and zone.any() and ok.any():
+        p = np.asarray(frame.points[zone, :3], dtype=float)
+        for k in np.flatnonzero(ok):
+            c, s = np.cos(b[k, 6]), np.sin(b[k, 6])
+            dx, dy = p[:, 0] - b[k, 0], p[:, 1] - b[k, 1]
+            inside = (
+                (np.abs(c * dx + s * dy) <= 0.5 * b[k, 3])
+                & (np.abs(-s * dx + c * dy) <= 0.5 * b[k, 4])
+                & (np.abs(p[:, 2] - b[k, 2]) <= 0.5 * b[k, 5])
+            )
+            ok[k] = not inside.any()
     view = frame.image_view
     if view is None or not len(b):
         return ok

@@ -237,9 +237,10 @@ def frame_points(
     frame_pose: NDArray[np.floating] | None,
     source: str | Path,
     warnings: list[str],
-) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-    """Concatenate the points of all lidars and returns of a frame: (N, 4) float32 points and an
-    (N,) bool mask of the TOP lidar's first returns.
+) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Concatenate the points of all lidars and returns of a frame: (N, 4) float32 points, an (N,)
+    bool mask of the TOP lidar's first returns and an (N,) bool mask of the points Waymo marks as in a
+    No Label Zone (channel 3 of the range image > 0; an image without that channel has none).
 
     Only those are rays from :func:`sensor_origin` whose path up to the point is empty: the four
     short-range lidars sit elsewhere on the vehicle, and a second return lies behind a surface that
@@ -249,6 +250,7 @@ def frame_points(
     """
     parts: list[NDArray[np.float32]] = []
     rays: list[NDArray[np.bool_]] = []
+    zones: list[NDArray[np.bool_]] = []
     for lidar in sorted(lidars, key=lambda d: d.name):
         calib = calibrations.get(lidar.name)
         label = LASER_NAMES.get(lidar.name, str(lidar.name))
@@ -273,18 +275,25 @@ def frame_points(
                 warnings.append(f"{source}: lidar {label}: {exc}; its points are skipped")
                 continue
             rays.append(np.full(len(parts[-1]), lidar.name == TOP and r == 0))
+            # the pixels range_image_to_points keeps (range > 0), in the same row-major order; most
+            # images flag no pixel, and then one strided pass (~1 ms per Waymo frame) is all it costs
+            flags = image[..., 3] > 0 if image.shape[2] > 3 else None
+            zones.append(
+                flags[image[..., 0] > 0] if flags is not None and flags.any() else np.zeros(len(parts[-1]), bool)
+            )
     if not parts:
-        return np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool)
+        return np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
     points = np.concatenate(parts, axis=0)
     ray_mask = np.concatenate(rays)
+    no_label_zone = np.concatenate(zones)
     finite = np.isfinite(points[:, :3]).all(axis=1)
     if not finite.all():  # a NaN/inf calibration or pose value: those points cannot be placed
         n_bad = int(len(points) - finite.sum())
         warnings.append(
             f"{source}: dropped {n_bad} of {len(points)} points with NaN/inf coordinates (calibration or pose values?)"
         )
-        points, ray_mask = points[finite], ray_mask[finite]
-    return points, ray_mask
+        points, ray_mask, no_label_zone = points[finite], ray_mask[finite], no_label_zone[finite]
+    return points, ray_mask, no_label_zone
 
 
 def sensor_origin(calibrations: dict[int, LidarCalibration]) -> NDArray[np.float64]:
@@ -353,6 +362,7 @@ def make_frame(
     ray_mask: NDArray[np.bool_] | None = None,
     pose: NDArray[np.floating] | None = None,
     timestamp: float | None = None,
+    no_label_zone: NDArray[np.bool_] | None = None,
 ) -> Frame:
     """Build a :class:`Frame`, keeping only the labels of ``classes`` (all when None).
 
@@ -384,6 +394,7 @@ def make_frame(
         ray_mask=ray_mask,
         pose=None if pose is None else np.asarray(pose, dtype=np.float64),
         timestamp=timestamp,
+        no_label_zone=no_label_zone,
     )
 
 

@@ -275,9 +275,10 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
     }
 
     if lidars:
-        points, ray_mask = frame_points(lidars, calibrations, frame_pose, where, warnings)
+        points, ray_mask, no_label_zone = frame_points(lidars, calibrations, frame_pose, where, warnings)
     else:
         points, ray_mask = np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool)
+        no_label_zone = ray_mask
         if k:
             warnings.append(no_lidar_warning(where, frame_id, k))
     extras = check_extras(extras, _EXTRA_FIELDS, locations, warnings)
@@ -295,6 +296,7 @@ def _decode_frame(payload: bytes, source: str | Path, classes: tuple[str, ...] |
         locations=locations,
         box_fields=_BOX_FIELDS,
         ray_mask=ray_mask,
+        no_label_zone=no_label_zone,
         pose=frame_pose,
         timestamp=msg.timestamp_micros / 1e6,
     )

@@ -381,9 +381,10 @@ class WaymoV2Reader:
         if lidars:
             if frame_pose is None:
                 warnings.append(f"{paths['vehicle_pose']}: no vehicle pose for frame {frame_id}")
-            points, ray_mask = frame_points(lidars, calibrations, frame_pose, paths["lidar"], warnings)
+            points, ray_mask, no_label_zone = frame_points(lidars, calibrations, frame_pose, paths["lidar"], warnings)
         else:
             points, ray_mask = np.zeros((0, 4), dtype=np.float32), np.zeros(0, dtype=bool)
+            no_label_zone = ray_mask
             warnings.append(no_lidar_warning(paths["lidar"], frame_id, len(idx)))
         extras = check_extras({k: v[idx] for k, v in extras_all.items()}, BOX_EXTRAS, locations, warnings)
         object_ids = [f"{frame_id}:{j}" if ids[r] is None else str(ids[r]) for j, r in enumerate(rows)]
@@ -402,6 +403,7 @@ class WaymoV2Reader:
             box_fields=tuple(BOX_COLUMNS[k] for k in _BOX_KEYS),
             object_errors=object_errors,
             ray_mask=ray_mask,
+            no_label_zone=no_label_zone,
             pose=frame_pose,
             timestamp=ts / 1e6,
         )
