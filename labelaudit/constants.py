@@ -432,6 +432,11 @@ SIM_MAX_LABEL_OCCLUSION = 0.9  # objects with more of their LiDAR rays blocked t
 SIM_FOLIAGE_DEPTH = 0.3  # m; mean (exponential) depth a LiDAR ray enters simulated foliage before it returns
 SIM_FOLIAGE_GAP = 0.25  # share of the rays into simulated foliage that pass through its gaps (no return from it)
 SIM_CLUTTER = (4, 12)  # --clutter: unlabelled walls, poles and bushes per frame (min, max)
+SIM_CHASSIS_CLEARANCE = {  # m; open height under a simulated vehicle's body, drawn uniformly per vehicle (--under-chassis); real KITTI: rays cross cars' boxes up to ~0.3 m, a truck's up to ~1 m
+    "Car": (0.15, 0.3),
+    "Van": (0.15, 0.3),
+    "Truck": (0.4, 0.9),
+}
 SIM_TRACK_NOISE = (
     0.03,
     0.03,

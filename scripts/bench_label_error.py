@@ -46,7 +46,7 @@ from labelaudit.config import resolve_config
 from labelaudit.infer.rows import process_frame
 from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
-from labelaudit.sim.dataset import NoiseSpec, SceneSpec, simulate_dataset
+from labelaudit.sim.dataset import NoiseSpec, SceneSpec, SeeThrough, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_REAL = tuple(
@@ -129,7 +129,15 @@ def kind_rows(scores: dict[str, np.ndarray], kinds: np.ndarray, base: np.ndarray
 # ---------------------------------------------------------------------------------- synthetic
 
 
-def simulate(out: Path, frames: int, seed: int, workers: int, reuse: bool, clutter: bool = False) -> Path:
+def simulate(
+    out: Path,
+    frames: int,
+    seed: int,
+    workers: int,
+    reuse: bool,
+    clutter: bool = False,
+    see_through: SeeThrough = SeeThrough(),
+) -> Path:
     sim = out / "sim"
     manifest = sim / "manifest.parquet"
     if reuse and manifest.is_file():
@@ -138,8 +146,12 @@ def simulate(out: Path, frames: int, seed: int, workers: int, reuse: bool, clutt
         same_scene = json.loads(meta.get("labelaudit.scene", "{}")).get("num_clutter") == list(
             CLUTTER if clutter else SceneSpec().num_clutter
         )
+        same_see = json.loads(meta.get("labelaudit.see_through", "{}") or "{}") in (
+            [dataclasses.asdict(see_through)] + ([{}] if not see_through.active else [])
+        )
         if (
             same_scene
+            and same_see
             and meta.get("labelaudit.seed") == str(seed)
             and meta.get("labelaudit.frames") == str(frames)
             and noise
@@ -158,6 +170,7 @@ def simulate(out: Path, frames: int, seed: int, workers: int, reuse: bool, clutt
         progress=False,
         overwrite=True,
         scene=SceneSpec(num_clutter=CLUTTER) if clutter else SceneSpec(),
+        see_through=see_through if see_through.active else None,
     )
     print(
         f"simulated {summary.frames} frames in {time.perf_counter() - t:.0f} s: {summary.num_labels} labels, perturbations {summary.perturbations}",
@@ -196,6 +209,7 @@ def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
         "hull_iou",
         "fit_offset_m",
         "class_name",
+        "free_rays",
     ]
     rows = pads.dataset(res / "objects", format="parquet").to_table(columns=cols).to_pydict()
     man = pq.read_table(sim / "manifest.parquet").to_pydict()
@@ -223,7 +237,18 @@ def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
         )
         out[c] = v[keep]
     idx = np.array(take)[keep]
-    for c in ("perturbation", "center_offset_m", "delta_yaw", "delta_length", "delta_width"):
+    for c in (
+        "perturbation",
+        "center_offset_m",
+        "delta_yaw",
+        "delta_length",
+        "delta_width",
+        "glass_rays",
+        "under_rays",
+    ):
+        if c not in man:  # a manifest written before the see-through columns
+            out[c] = np.zeros(len(idx))
+            continue
         out[c] = np.array(man[c], dtype=object if c == "perturbation" else float)[idx]
     out["perturbation"] = out["perturbation"].astype(str)
     out["num_points"] = out["num_points"].astype(float)
@@ -231,7 +256,8 @@ def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
 
 
 def synthetic(args: argparse.Namespace) -> str:
-    sim = simulate(args.out, args.frames, args.seed, args.workers, args.reuse, args.clutter)
+    see = SeeThrough(glass=args.see_through, under=args.under_chassis)
+    sim = simulate(args.out, args.frames, args.seed, args.workers, args.reuse, args.clutter, see)
     res = infer(sim, args.out, args.workers, args.reuse)
     t = joined_table(sim, res)
     scores = score_columns(t)
@@ -239,10 +265,14 @@ def synthetic(args: argparse.Namespace) -> str:
     pos = kinds != "none"
     n_pts = t["num_points"]
     md = [
-        f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
+        f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}"
+        f"{f', see-through: glass {see.glass}, under the chassis {see.under}' if see.active else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
         f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))}).\n"
     ]
-    rows = ranking_table(scores, pos, standard_subsets(n_pts, t["distance"]), TOP)
+    subsets = standard_subsets(n_pts, t["distance"])
+    for c in ("Car", "Van", "Truck"):
+        subsets[f"{c}, ≥ 10 points"] = (t["class_name"] == c) & (n_pts >= 10)
+    rows = ranking_table(scores, pos, subsets, TOP)
     md.append(print_table("Synthetic, benchmark definition (positive = any perturbation)", rows))
     md.append(
         print_table(
@@ -292,6 +322,15 @@ def synthetic(args: argparse.Namespace) -> str:
     verdicts.append(
         f"unperturbed labels with ≥ 10 points and label_error ≥ 0.9: {int(fa.sum())} of {int((~pos & (n_pts >= 10)).sum())}"
     )
+    seen = t["glass_rays"] + t["under_rays"]
+    if seen.any():
+        through = ~pos & (seen > 0)
+        verdicts.append(
+            f"see-through: {int(t['glass_rays'].sum())} rays through the windows and {int(t['under_rays'].sum())} under the chassis of the labelled vehicles; "
+            f"unperturbed labels that rays passed: {int(through.sum())} (median {np.median(seen[through]) if through.any() else 0:.0f} rays, "
+            f"free_rays at the label median {np.median(t['free_rays'][through]) if through.any() else 0:.0f}, max {np.max(t['free_rays'][through]) if through.any() else 0:.0f}); "
+            f"of them label_error ≥ 0.5: {int((through & (le >= 0.5)).sum())}, ≥ 0.9: {int((through & (le >= 0.9)).sum())}"
+        )
     for v in verdicts:
         print(v, flush=True)
     md.append("\n".join(f"- {v}" for v in verdicts) + "\n")
@@ -452,6 +491,107 @@ def objective(m: dict[str, float]) -> float:
     return 0.5 * (m["all:label_error"] + m["size:label_error"])
 
 
+CENSUS_CORNER = (
+    0.5  # m; --ray-census: a crossing whose deepest point lies this close to a corner of the rectangle is "at a corner"
+)
+
+
+def ray_census(frames: dict[str, Any], cfg: Any) -> str:
+    """Where rays cross the correct (unperturbed) vehicle labels of the real frames.
+
+    Per label, the rays whose empty part passes deeper than τ inside its rectangle and that do not
+    end on or in it (the rule of ``free_rays``), counted in three height bands above the label's
+    local ground: under the solid slab (< ``FREE_SPACE_SLAB[0]``: under the body), the slab itself
+    (what ``free_rays`` counts) and above it up to the label's top (bonnet, boot, windows); for the
+    slab's rays the height of their deepest point, where they end and how many pass within
+    ``CENSUS_CORNER`` of a corner."""
+    from labelaudit import constants as LC
+    from labelaudit.core.freespace import FreeSpace, ground_heights, ray_candidates, ray_depths
+    from labelaudit.infer.evidence import frame_evidence, label_boxes
+
+    tau = LC.FREE_SPACE_TOLERANCE
+    lines = [
+        "| label | class | distance (m) | points | under the slab | slab (free_rays) | of them at a corner | their deepest point, m above the ground (min / median / max) | where they end, m above the ground (median) | above the slab |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    totals: dict[str, list[int]] = {}
+    for fid in sorted(frames):
+        fr = frames[fid]
+        idx = [i for i, c in enumerate(fr.class_names) if c in cfg.classes]
+        if not idx:
+            continue
+        b = fr.boxes[idx]
+        o = np.asarray(fr.sensor_origin, dtype=float)
+        ev = frame_evidence(fr.points, b, o, cfg.crop, others=label_boxes(fr.boxes), ray_mask=fr.ray_mask)
+        grounds = np.array([e.free_space.ground[:3] for e in ev])
+        whole = np.stack([np.full(len(b), -1.0), b[:, 5]], 1)  # every height up to the label's top
+        _, ends = ray_candidates(fr.points, o, b, grounds, whole, 0.0)
+        for j, i in enumerate(idx):
+            y, fs0 = b[j], ev[j].free_space
+            e = ends[j]
+            h_end = ground_heights(e, fs0.ground, fs0.ref) if len(e) else np.empty(0)
+            c, s = np.cos(y[6]), np.sin(y[6])
+            q = e[:, :2] - y[:2]
+            ex, ey = c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1]
+            on = (
+                (np.abs(ex) <= y[3] / 2 + tau)
+                & (np.abs(ey) <= y[4] / 2 + tau)
+                & (h_end >= fs0.object_height)
+                & (e[:, 2] <= y[2] + y[5] / 2 + tau)
+            )
+            bands = {
+                "under": (-1.0, LC.FREE_SPACE_SLAB[0]),
+                "slab": fs0.slab,
+                "above": (fs0.slab[1], float(y[5])),
+            }
+            n: dict[str, int] = {}
+            for name, band in bands.items():
+                fs = dataclasses.replace(fs0, ends=e, slab=band)
+                dep, t = ray_depths(y, fs)
+                hit = (dep > tau) & ~on
+                n[name] = int(hit.sum())
+                if name == "slab":
+                    sh0, _ = FreeSpace.heights(fs)
+                    h_deep = sh0 + t[hit] * (h_end[hit] - sh0)
+                    p = o[None, :2] + t[hit, None] * (e[hit, :2] - o[None, :2]) - y[:2]
+                    lx, ly = c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1]
+                    corner = int((np.hypot(y[3] / 2 - np.abs(lx), y[4] / 2 - np.abs(ly)) < CENSUS_CORNER).sum())
+                    where = h_end[hit]
+            pts = fr.points[ev[j].near_idx, :3].astype(float)
+            qq = pts[:, :2] - y[:2]
+            inside = (
+                (np.abs(c * qq[:, 0] + s * qq[:, 1]) <= y[3] / 2)
+                & (np.abs(-s * qq[:, 0] + c * qq[:, 1]) <= y[4] / 2)
+                & (ground_heights(pts, fs0.ground, fs0.ref) >= fs0.object_height)
+                & (pts[:, 2] <= y[2] + y[5] / 2)
+            )
+            deep = "–" if not n["slab"] else " / ".join(f"{v:.2f}" for v in np.percentile(h_deep, [0, 50, 100]))
+            lines.append(
+                f"| {fid}:{i} | {fr.class_names[i]} | {np.hypot(*(y[:2] - o[:2])):.1f} | {int(inside.sum())} | {n['under']} | {n['slab']} | {corner} | {deep} | "
+                f"{'–' if not n['slab'] else f'{np.median(where):.2f}'} | {n['above']} |"
+            )
+            for k in ("under", "slab", "above"):
+                totals.setdefault(f"{fr.class_names[i]}:{k}", []).append(n[k])
+            totals.setdefault(f"{fr.class_names[i]}:corner", []).append(corner)
+    summary = []
+    for cls in sorted({k.split(":")[0] for k in totals}):
+        sl = np.array(totals[f"{cls}:slab"])
+        summary.append(
+            f"{cls}: {len(sl)} labels; slab rays (free_rays) 0 for {int((sl == 0).sum())}, 1–25 for {int(((sl >= 1) & (sl <= 25)).sum())}, "
+            f"more for {int((sl > 25).sum())} (max {int(sl.max())}); {int(np.sum(totals[f'{cls}:corner']))} of their {int(sl.sum())} within {CENSUS_CORNER} m of a corner; "
+            f"under the slab median {np.median(totals[f'{cls}:under']):.0f} (max {int(np.max(totals[f'{cls}:under']))}), above it median {np.median(totals[f'{cls}:above']):.0f}"
+        )
+    text = (
+        "**Real KITTI: rays through the correct vehicle labels** (deeper than τ inside the rectangle, not ending on or in the label)\n\n"
+        + "\n".join(lines)
+        + "\n\n"
+        + "\n".join(f"- {x}" for x in summary)
+        + "\n"
+    )
+    print(text, flush=True)
+    return text
+
+
 def real(args: argparse.Namespace) -> str:
     from labelaudit import constants as LC
 
@@ -459,6 +599,8 @@ def real(args: argparse.Namespace) -> str:
     if not frames:
         return ""
     cfg = resolve_config(None, "kitti")
+    if args.ray_census:
+        return ray_census(frames, cfg)
     vehicles = tuple(cfg.classes)
     groups = [("vehicles", vehicles)] + ([(c, (c,)) for c in REAL_OTHER_CLASSES] if args.real_other_classes else [])
     grid = parse_grid(args.grid)
@@ -656,6 +798,25 @@ def main(argv: list[str] | None = None) -> int:
         "--clutter",
         action="store_true",
         help=f"add {CLUTTER[0]}–{CLUTTER[1]} unlabelled clutter objects per frame (not the issue's setting)",
+    )
+    ap.add_argument(
+        "--see-through",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="simulated vehicles' windows let this share of the rays through (SeeThrough.glass; default 0)",
+    )
+    ap.add_argument(
+        "--under-chassis",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="this share of the rays that meet a simulated vehicle below its ground clearance pass under it (default 0)",
+    )
+    ap.add_argument(
+        "--ray-census",
+        action="store_true",
+        help="real data: instead of the benchmark, count where rays cross the correct vehicle labels (under, in and above the solid slab)",
     )
     ap.add_argument("--skip-real", action="store_true", help="leave out the real-data part")
     ap.add_argument("--markdown", type=Path, default=None, help="also write the tables as Markdown to this file")

@@ -8,6 +8,7 @@ import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
@@ -169,6 +170,18 @@ def test_simulate_writes_a_kitti_dataset(tmp_path):
     assert len(list((out / "training" / "velodyne").glob("*.bin"))) == 2 and (out / "manifest.parquet").is_file()
     assert invoke("simulate", out, "--frames", "2", "-q").exit_code == 2  # exists, no --overwrite
     assert invoke("simulate", out, "--frames", "0").exit_code == 2
+
+
+def test_simulate_see_through_vehicles(tmp_path):
+    out = tmp_path / "sim"
+    r = invoke("simulate", out, "--frames", "2", "--see-through", "0.5", "--under-chassis", "1", "-q")
+    assert r.exit_code == 0, r.output
+    table = pq.read_table(out / "manifest.parquet")
+    assert sum(table.column("glass_rays").to_pylist()) > 0 and sum(table.column("under_rays").to_pylist()) > 0
+    r = invoke("simulate", tmp_path / "bad", "--see-through", "1.5")
+    assert r.exit_code == 2 and "--see-through" in r.stderr and "1.5" in r.stderr
+    r = invoke("simulate", tmp_path / "seq", "--dataset-format", "av2", "--under-chassis", "0.5")
+    assert r.exit_code == 2 and "KITTI only" in r.stderr
 
 
 @pytest.mark.slow

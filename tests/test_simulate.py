@@ -9,12 +9,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from labelaudit import constants as C
 from labelaudit.core.params import BOX_FIELDS
 from labelaudit.datasets.kitti import KittiReader, read_label, read_velodyne
 from labelaudit.sim.dataset import frame_generators, simulate_dataset, simulate_frame
 from labelaudit.sim.manifest import read_manifest
 from labelaudit.sim.noise import NoiseSpec, perturb_boxes
-from labelaudit.sim.raycast import HIT_GROUND, HIT_NOTHING, LidarSpec, render_range_image
+from labelaudit.sim.raycast import HIT_GROUND, HIT_NOTHING, LidarSpec, SeeThrough, render_range_image
 from labelaudit.sim.scene import Scene, SceneSpec, make_object, sample_scene
 
 COARSE = LidarSpec.coarse()
@@ -406,3 +407,84 @@ def test_clutter_returns_points_occludes_and_is_never_labelled(tmp_path):
     summary = simulate_dataset(tmp_path, frames=2, lidar=COARSE, scene=spec, progress=False)
     rows = read_manifest(tmp_path).to_pylist()
     assert summary.num_labels > 0 and all(m["class_name"] != "Clutter" for m in rows)
+
+
+# --- see-through vehicles (windows, the gap under the chassis) ------------------------------------
+
+
+def _passed_returns(ri, obj: int):
+    """Scene-frame returns (N, 3) of the rays that passed object ``obj``'s windows or chassis, and
+    the range each ray travelled."""
+    rows, cols = np.nonzero((ri.passed == obj) & (ri.range > 0))
+    r = ri.range[rows, cols].astype(float)
+    inc, az = ri.inclinations[rows], ri.azimuths[cols]
+    xyz = np.c_[r * np.cos(inc) * np.cos(az), r * np.cos(inc) * np.sin(az), r * np.sin(inc)]
+    return xyz, r
+
+
+def _depth_in(xy: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """BEV depth of points (N, 2) inside the rectangle of ``box`` (negative outside)."""
+    c, s = np.cos(box[6]), np.sin(box[6])
+    d = xy - box[:2]
+    lx, ly = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    return np.minimum(box[3] / 2 - np.abs(lx), box[4] / 2 - np.abs(ly))
+
+
+def test_see_through_rays_end_on_the_ground_behind_the_car_or_inside_it():
+    car = _car(12.0, 1.0, yaw=0.4)
+    scene = Scene([car], GROUND_Z)
+    rng = np.random.default_rng(5)
+    opaque = render_range_image(scene, COARSE)
+    glass = render_range_image(scene, COARSE, see_through=SeeThrough(glass=1.0), see_rng=rng)
+    assert glass.glass_counts[0] > 20 and glass.under_counts[0] == 0
+    xyz, r = _passed_returns(glass, 0)
+    assert len(xyz) == glass.glass_counts[0]
+    near = np.linalg.norm(car.box[:2]) - 0.5 * np.hypot(car.box[3], car.box[4])
+    assert np.all(r > near)  # every such ray went on past the car's near side …
+    body_top = car.parts[0, 2] + car.parts[0, 5] / 2
+    on_ground = np.abs(xyz[:, 2] - GROUND_Z) < 1e-3
+    inside = (_depth_in(xyz[:, :2], car.box) > -1e-3) & (np.abs(xyz[:, 2] - body_top) < 1e-3)
+    assert np.all(on_ground | inside)  # … to the road or onto the car's interior (the body's top)
+    assert np.all(_depth_in(xyz[on_ground, :2], car.box) < 0)  # the road behind the car, not under it
+    assert on_ground.sum() > 10
+    # opaque cars stop every such ray on their windows: the same rays hit the car without see-through
+    rows, cols = np.nonzero(glass.passed == 0)
+    assert np.all(opaque.hit[rows, cols] == 0)
+    # nothing passes below the windows: no see-through ray crosses the solid body's height inside the box
+    assert glass.return_counts[0] < opaque.return_counts[0]
+
+
+def test_rays_under_the_chassis_end_on_the_ground_under_or_behind_it():
+    car = _car(8.0, -0.5, yaw=0.1)
+    scene = Scene([car], GROUND_Z)
+    ri = render_range_image(scene, COARSE, see_through=SeeThrough(under=1.0), see_rng=np.random.default_rng(1))
+    lo, hi = C.SIM_CHASSIS_CLEARANCE["Car"]
+    assert lo <= ri.clearance[0] <= hi and ri.under_counts[0] > 5 and ri.glass_counts[0] == 0
+    xyz, _ = _passed_returns(ri, 0)
+    assert np.allclose(xyz[:, 2], GROUND_Z, atol=1e-3)  # on the road …
+    near = np.linalg.norm(car.box[:2]) - 0.5 * np.hypot(car.box[3], car.box[4])
+    assert np.all(np.linalg.norm(xyz[:, :2], axis=1) > near)  # … beyond the car's nearest corner
+    opaque = render_range_image(scene, COARSE)
+    # what the gap lets through lay below the clearance: the car lost exactly those returns
+    assert opaque.return_counts[0] - ri.return_counts[0] == ri.under_counts[0]
+
+
+def test_see_through_off_renders_exactly_the_opaque_scene_and_fractions_nest(tmp_path):
+    a = simulate_frame(2, seed=3)
+    b = simulate_frame(2, seed=3, see_through=SeeThrough())
+    assert np.array_equal(a.points, b.points)
+    assert not a.manifest_rows()["glass_rays"] or max(a.manifest_rows()["glass_rays"]) == 0
+    counts = [
+        int(simulate_frame(2, seed=3, see_through=SeeThrough(glass=g, under=g)).range_image.glass_counts.sum())
+        for g in (0.1, 0.3, 0.5)
+    ]
+    assert 0 < counts[0] < counts[1] < counts[2]  # one draw per (ray, part): a larger share passes a superset
+    with pytest.raises(ValueError, match="glass must be a share"):
+        SeeThrough(glass=1.5)
+    summary = simulate_dataset(
+        tmp_path / "st", frames=2, seed=3, progress=False, see_through=SeeThrough(glass=0.5, under=0.5)
+    )
+    table = pq.read_table(summary.manifest)
+    assert sum(table.column("glass_rays").to_pylist()) > 0 and sum(table.column("under_rays").to_pylist()) > 0
+    meta = table.schema.metadata[b"labelaudit.see_through"].decode()
+    assert '"glass": 0.5' in meta and '"under": 0.5' in meta

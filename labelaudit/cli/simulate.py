@@ -64,6 +64,18 @@ def simulate(
         metavar="F",
         help="KITTI: leave out this share of the vehicle labels (their points stay): missing labels, recorded in manifest.parquet (column dropped).",
     ),
+    see_through: float = typer.Option(
+        0.0,
+        "--see-through",
+        metavar="F",
+        help="KITTI: this share of the rays that meet a car's or van's windows pass through them (on to the interior, the road behind or beyond), as through real glass; manifest columns glass_rays.",
+    ),
+    under_chassis: float = typer.Option(
+        0.0,
+        "--under-chassis",
+        metavar="F",
+        help="KITTI: this share of the rays that meet a vehicle lower than its ground clearance (cars 0.15–0.3 m, trucks 0.4–0.9 m) pass under it; manifest columns under_rays, clearance.",
+    ),
     track_noise: bool = typer.Option(
         False,
         "--track-noise",
@@ -110,6 +122,8 @@ def simulate(
       labelaudit simulate sim/ --frames 50 --detections && labelaudit eval sim/ sim/detections
 
       labelaudit simulate sim/ --clutter --drop-fraction 0.15 && labelaudit infer sim/ -o results/
+
+      labelaudit simulate sim/ --see-through 0.5 --under-chassis 1 && labelaudit infer sim/ -o results/
     """
     from labelaudit.sim.dataset import simulate_dataset, simulate_sequences
     from labelaudit.sim.noise import NoiseSpec
@@ -149,10 +163,14 @@ def simulate(
             raise typer.BadParameter(str(exc), param_hint="--noise-*/--gross-fraction") from None
         if not 0.0 <= drop_fraction <= 1.0:
             raise typer.BadParameter(f"must be in [0, 1], got {drop_fraction}", param_hint="--drop-fraction")
-        if sequence and (clutter or drop_fraction > 0):
+        if sequence and (clutter or drop_fraction > 0 or see_through > 0 or under_chassis > 0):
             raise typer.BadParameter(
-                f"KITTI only, not {dataset_format.value} sequences", param_hint="--clutter/--drop-fraction"
+                f"KITTI only, not {dataset_format.value} sequences",
+                param_hint="--clutter/--drop-fraction/--see-through/--under-chassis",
             )
+        for value, hint in ((see_through, "--see-through"), (under_chassis, "--under-chassis")):
+            if not 0.0 <= value <= 1.0:
+                raise typer.BadParameter(f"must be a share in [0, 1], got {value}", param_hint=hint)
         if not sequence and (track_noise or moving):
             raise typer.BadParameter(
                 "KITTI frames are not sequences; use --dataset-format waymo-v2, waymo-v1 or av2",
@@ -180,9 +198,11 @@ def simulate(
             )
             what = f"{sequences} {'log' if dataset_format is SimFormat.av2 else 'segment'}(s) of {frames} frames ({summary.num_labels} labels)"
         else:
+            from labelaudit.sim.raycast import SeeThrough
             from labelaudit.sim.scene import SceneSpec
 
             scene = SceneSpec(num_clutter=C.SIM_CLUTTER) if clutter else SceneSpec()
+            see = SeeThrough(glass=see_through, under=under_chassis)
             simulate_dataset(
                 out,
                 frames=frames,
@@ -193,6 +213,7 @@ def simulate(
                 overwrite=overwrite,
                 scene=scene,
                 drop_fraction=drop_fraction,
+                see_through=see if see.active else None,
             )
             what = f"{frames} frames"
         err().print(f"wrote {what} to {escape(str(out))} (next: labelaudit infer {escape(str(out))})", soft_wrap=True)

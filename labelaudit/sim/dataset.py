@@ -39,13 +39,14 @@ from labelaudit.executors import make_executor
 from labelaudit.sim.kitti_writer import KittiLabelInfo, kitti_labels, make_calibration, write_kitti_frame
 from labelaudit.sim.manifest import MANIFEST_NAME, write_manifest_table
 from labelaudit.sim.noise import PERTURBATION_KINDS, NoiseSpec, perturb_boxes
-from labelaudit.sim.raycast import LidarSpec, RangeImage, render_range_image
+from labelaudit.sim.raycast import LidarSpec, RangeImage, SeeThrough, render_range_image
 from labelaudit.sim.scene import VEHICLE_CLASSES, Scene, SceneSpec, sample_scene
 
 __all__ = [
     "LidarSpec",
     "NoiseSpec",
     "SceneSpec",
+    "SeeThrough",
     "SimFrame",
     "SimulationSummary",
     "frame_generators",
@@ -59,12 +60,13 @@ __all__ = [
 ]
 
 MANIFEST_VERSION = "1"
-_STREAMS = ("scene", "lidar", "calib", "noise", "drop")
+_STREAMS = ("scene", "lidar", "calib", "noise", "drop", "see")
 _SPLIT_KEY = 0xFFFFFFFF  # spawn key of the train/val split generator (no frame index reaches it)
 
 
 def frame_generators(seed: int, index: int) -> dict[str, np.random.Generator]:
-    """Independent generators of frame ``index``: "scene", "lidar", "calib", "noise" and "drop".
+    """Independent generators of frame ``index``: "scene", "lidar", "calib", "noise", "drop" and
+    "see" (the see-through draws).
 
     A Waymo writer that re-renders the same scene draws it from ``frame_generators(...)["scene"]``.
     """
@@ -136,6 +138,10 @@ class SimFrame:
         rows["truncated"] = lab.truncated.tolist()
         rows["in_camera_fov"] = lab.in_camera_fov.tolist()
         rows["distance"] = np.hypot(true[:, 0], true[:, 1]).tolist()
+        zeros = np.zeros(k)
+        rows["glass_rays"] = (zeros if ri.glass_counts is None else ri.glass_counts).astype(np.int64).tolist()
+        rows["under_rays"] = (zeros if ri.under_counts is None else ri.under_counts).astype(np.int64).tolist()
+        rows["clearance"] = (zeros if ri.clearance is None else ri.clearance).tolist()
         return rows
 
 
@@ -152,6 +158,9 @@ def manifest_schema() -> pa.Schema:
     missing label; ``labelled`` is false for it).
     ``num_points`` counts the LiDAR returns on the true object; ``num_rays`` the rays that would hit
     it without occluders, ``visible_rays`` those it actually stops (before noise and dropout).
+    ``glass_rays`` and ``under_rays`` count the rays that reached the object's windows or the gap
+    under its body and passed through (``--see-through`` / ``--under-chassis``; else 0), and
+    ``clearance`` is its ground clearance (m; 0 unless ``--under-chassis``).
     """
     fields = [
         pa.field("frame_id", pa.string()),
@@ -175,6 +184,9 @@ def manifest_schema() -> pa.Schema:
         pa.field("truncated", pa.float64()),
         pa.field("in_camera_fov", pa.bool_()),
         pa.field("distance", pa.float64()),
+        pa.field("glass_rays", pa.int64()),
+        pa.field("under_rays", pa.int64()),
+        pa.field("clearance", pa.float64()),
     ]
     return pa.schema(fields)
 
@@ -190,6 +202,7 @@ def simulate_frame(
     label_precision: int | None = 2,
     scene: Scene | None = None,
     drop_fraction: float = 0.0,
+    see_through: SeeThrough | None = None,
 ) -> SimFrame:
     """Simulate frame ``index`` of the dataset with ``seed`` (pure: writes nothing).
 
@@ -206,11 +219,13 @@ def simulate_frame(
     drop_fraction : share of the vehicle labels left out of the label file (their objects and points
         stay; the manifest's ``dropped``): missing labels, drawn per object from the frame's "drop"
         stream, so the scene, points and other labels are the same as without dropping
+    see_through : vehicles' windows and the gap under them let rays through (:class:`SeeThrough`,
+        drawn from the frame's "see" stream); None: opaque vehicles
     """
     gens = frame_generators(seed, index)
     if scene is None:
         scene = sample_scene(gens["scene"], scene_spec, ground_z=-lidar.sensor_height)
-    ri = render_range_image(scene, lidar, None, gens["lidar"])
+    ri = render_range_image(scene, lidar, None, gens["lidar"], see_through, gens["see"])
     points, hits = ri.points("scene")
     calib = make_calibration(gens["calib"])
     written, kinds = perturb_boxes(scene.boxes, scene.class_names, noise, gens["noise"])
@@ -483,6 +498,7 @@ def simulate_dataset(
     label_precision: int | None = 2,
     overwrite: bool = False,
     drop_fraction: float = 0.0,
+    see_through: SeeThrough | None = None,
 ) -> SimulationSummary:
     """Simulate a KITTI-format dataset with known label noise.
 
@@ -505,6 +521,9 @@ def simulate_dataset(
     overwrite : replace an existing simulated dataset in ``out_dir`` (only the simulator's own
         ``training/``, ``ImageSets/`` and manifest are removed)
     drop_fraction : share of vehicle labels left out (missing labels; manifest column ``dropped``)
+    see_through : share of the rays that pass vehicles' windows and under their chassis
+        (:class:`SeeThrough`; manifest columns ``glass_rays``, ``under_rays``, ``clearance``); None:
+        opaque vehicles
 
     Raises
     ------
@@ -537,6 +556,7 @@ def simulate_dataset(
         "label_fov": label_fov,
         "label_precision": label_precision,
         "drop_fraction": drop_fraction,
+        "see_through": see_through,
     }
     jobs = [(i, dict(opts)) for i in range(frames)]
     results: list[tuple[int, dict[str, list[Any]], int]] = []
@@ -560,6 +580,7 @@ def simulate_dataset(
         "labelaudit.scene": json.dumps(asdict(scene)),
         "labelaudit.label_fov": label_fov,
         "labelaudit.drop_fraction": repr(float(drop_fraction)),
+        "labelaudit.see_through": json.dumps(asdict(see_through or SeeThrough())),
     }
     manifest = write_manifest(out, [rows for _, rows, _ in results], meta)
     _write_imagesets(out, frames, seed)

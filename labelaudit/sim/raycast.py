@@ -16,6 +16,7 @@ A depth buffer keeps the first hit per ray, which is what makes occlusion natura
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -119,6 +120,53 @@ class LidarSpec:
         return az - _extrinsic_yaw(extrinsic)
 
 
+@dataclass(frozen=True)
+class SeeThrough:
+    """How far vehicles let LiDAR rays through, as real ones do (default: opaque boxes).
+
+    Attributes
+    ----------
+    glass : share of the rays that meet a car's or van's windows — the side, front and rear faces
+        of its cabin part, not the roof — and pass through them; such a ray goes on through the
+        cabin (the windows on the far side too) and ends on the interior (the body's top inside the
+        car), the ground behind it or whatever lies beyond
+    under : share of the rays that meet a vehicle (Car, Van, Truck) lower than its ground
+        clearance above the ground and pass under its body (the rest hit wheels, axles and sills);
+        the clearance of every vehicle is drawn uniformly from ``SIM_CHASSIS_CLEARANCE[class]``
+    """
+
+    glass: float = 0.0
+    under: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("glass", "under"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"SeeThrough.{name} must be a share in [0, 1], got {v}")
+
+    @property
+    def active(self) -> bool:
+        return self.glass > 0.0 or self.under > 0.0
+
+    def clearances(self, class_names: list[str], rng: np.random.Generator) -> FloatArray:
+        """Ground clearance (m) of every object (K,): drawn for vehicles, 0 for the rest (one
+        uniform draw per object, whatever its class, so the draws of a frame do not depend on it)."""
+        u = rng.random(len(class_names))
+        out = np.zeros(len(class_names))
+        for j, c in enumerate(class_names):
+            if c in C.SIM_CHASSIS_CLEARANCE:
+                lo, hi = C.SIM_CHASSIS_CLEARANCE[c]
+                out[j] = lo + (hi - lo) * u[j]
+        return out
+
+
+OpenRule = Callable[[int, FloatArray, NDArray[np.int64]], NDArray[np.int8]]
+"""Which rays pass part p: (p, distance to the part (M,), entry axis (M,)) → 1 glass, 2 under the chassis, 0 stopped."""
+
+GLASS_CLASSES = ("Car", "Van")
+"""Classes whose second part (the cabin) is glass on its side, front and rear faces."""
+
+
 def _extrinsic_yaw(extrinsic: FloatArray | None) -> float:
     if extrinsic is None:
         return 0.0
@@ -142,6 +190,11 @@ class RangeImage:
     visible_counts : (K,) rays whose first hit is the object (before noise and dropout)
     return_counts : (K,) returns kept on the object (after noise, dropout and range limits) — the
         number of LiDAR points on it
+    passed : (H, W) int32 the object whose glass or chassis the ray passed (the nearest such one;
+        −1 none: every ray without :class:`SeeThrough`)
+    glass_counts, under_counts : (K,) rays that reached the object's windows / the gap under it
+        (nothing nearer stopped them) and passed through (0 without :class:`SeeThrough`)
+    clearance : (K,) the objects' ground clearance (m; 0 without :class:`SeeThrough` ``under``)
     """
 
     range: NDArray[np.float32]
@@ -154,6 +207,10 @@ class RangeImage:
     visible_counts: NDArray[np.int64]
     return_counts: NDArray[np.int64]
     object_rays: list[tuple[slice, NDArray[np.int64]]] = field(default_factory=list, repr=False)
+    passed: NDArray[np.int32] | None = field(default=None, repr=False)
+    glass_counts: NDArray[np.int64] | None = None
+    under_counts: NDArray[np.int64] | None = None
+    clearance: FloatArray | None = None
 
     @property
     def valid(self) -> NDArray[np.bool_]:
@@ -294,8 +351,13 @@ def _intersect_boxes(origin: FloatArray, dirs: FloatArray, boxes: FloatArray) ->
 
 
 def _intersect_objects(
-    origin: FloatArray, dirs: FloatArray, parts: FloatArray, reflectivity: FloatArray, obj: NDArray[np.int64]
-) -> tuple[FloatArray, FloatArray]:
+    origin: FloatArray,
+    dirs: FloatArray,
+    parts: FloatArray,
+    reflectivity: FloatArray,
+    obj: NDArray[np.int64],
+    see_through: OpenRule | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int8]]:
     """First hit of rays on their candidate object's parts.
 
     Parameters
@@ -305,17 +367,29 @@ def _intersect_objects(
     parts : (K, P, 7) parts of every object (padded with boxes far away)
     reflectivity : (K, P)
     obj : (M,) object of each pair
+    see_through : None, or a function (part p, t_p (M,), entry axis (M,)) → (M,) int8: 1 where the
+        ray passes that part as glass, 2 where it passes under the chassis, 0 where the part stops it
 
     Returns
     -------
     t : (M,) distance to the object, ``inf`` for a miss
     intensity : (M,) noise-free return intensity at the hit
+    t_pass : (M,) distance to the nearest part the ray passed (``inf``: none)
+    kind : (M,) int8 how it passed there (1 glass, 2 under the chassis, 0 none)
     """
     t = np.full(len(dirs), np.inf, dtype=dirs.dtype)
     refl = np.zeros(len(dirs), dtype=dirs.dtype)
     cos_inc = np.zeros(len(dirs), dtype=dirs.dtype)
+    t_pass = np.full(len(dirs), np.inf, dtype=dirs.dtype)
+    kind = np.zeros(len(dirs), dtype=np.int8)
     for p in range(parts.shape[1]):
         t_p, axis = _intersect_boxes(origin, dirs, parts[obj, p])
+        if see_through is not None:
+            open_p = see_through(p, t_p, axis)
+            first = (open_p > 0) & (t_p < t_pass)
+            t_pass = np.where(first, t_p, t_pass)
+            kind = np.where(first, open_p, kind)
+            t_p = np.where(open_p > 0, np.inf, t_p)
         closer = t_p < t
         if not closer.any():
             continue
@@ -329,7 +403,7 @@ def _intersect_objects(
             np.where(axis == 1, -np.sin(yaw) * dirs[:, 0] + np.cos(yaw) * dirs[:, 1], dirs[:, 2]),
         )
         cos_inc = np.where(closer, np.abs(along), cos_inc)
-    return t, _intensity(refl, cos_inc)
+    return t, _intensity(refl, cos_inc), t_pass, kind
 
 
 def _intensity(reflectivity: FloatArray, cos_incidence: FloatArray) -> FloatArray:
@@ -342,6 +416,8 @@ def render_range_image(
     lidar: LidarSpec = LidarSpec(),
     extrinsic: FloatArray | None = None,
     rng: np.random.Generator | None = None,
+    see_through: SeeThrough | None = None,
+    see_rng: np.random.Generator | None = None,
 ) -> RangeImage:
     """Ray-cast one sweep of ``lidar`` into ``scene``.
 
@@ -352,6 +428,10 @@ def render_range_image(
     extrinsic : (4, 4) sensor pose in the scene frame ``T_scene_sensor``; default: identity (the
         KITTI case — the scene frame is the LiDAR frame and the ground is at ``-sensor_height``)
     rng : generator for range noise, dropout and intensity noise; ``None`` renders noise-free
+    see_through : vehicles' windows and the gap under them let this share of rays through
+        (:class:`SeeThrough`); None (or all zero) renders opaque vehicles, exactly as before
+    see_rng : the generator of the see-through draws (the vehicles' clearances, then one number
+        per (object, ray) pair and part); required when ``see_through`` is active
 
     Returns
     -------
@@ -401,6 +481,15 @@ def render_range_image(
     ray_counts = np.zeros(k, dtype=np.int64)
     t_flat, hit_flat, int_flat = t_best.reshape(-1), hit.reshape(-1), intensity.reshape(-1)
     foliage = np.zeros(height * width, dtype=bool)  # rays whose first hit is vegetation (porous: see below)
+    passed = np.full(height * width, -1, dtype=np.int32)
+    glass_counts = np.zeros(k, dtype=np.int64)
+    under_counts = np.zeros(k, dtype=np.int64)
+    clearance = np.zeros(k)
+    see = see_through is not None and see_through.active
+    if see:
+        if see_rng is None:
+            raise ValueError("render_range_image: see_through needs its generator (see_rng)")
+        clearance = see_through.clearances(scene.class_names, see_rng)
     if pair_rays:
         # All (object, ray) candidate pairs in one batch: a few ten thousand, whatever the object count.
         ray = np.concatenate(pair_rays)
@@ -413,9 +502,13 @@ def render_range_image(
         for i, o in enumerate(solids):
             parts[i, : len(o.parts)] = o.parts
             refl[i, : len(o.parts)] = o.reflectivity
+        pair_dirs = dirs.reshape(-1, 3)[ray]
+        opener = (
+            _see_through_rule(see_through, see_rng, scene, obj, pair_dirs, origin, clearance, n_parts) if see else None
+        )
         # float32 for the slab test: half the memory traffic; 1e-7 relative is micrometres at 120 m.
-        t_obj, int_obj = _intersect_objects(
-            origin.astype(f32), dirs.reshape(-1, 3)[ray], parts.astype(f32), refl.astype(f32), obj
+        t_obj, int_obj, t_pass, pass_kind = _intersect_objects(
+            origin.astype(f32), pair_dirs, parts.astype(f32), refl.astype(f32), obj, opener
         )
         t_obj[t_obj > lidar.max_range] = np.inf
         ray_counts = np.bincount(obj[np.isfinite(t_obj)], minlength=n_solid)[:k].astype(np.int64)
@@ -424,6 +517,14 @@ def render_range_image(
         win = np.isfinite(t_obj) & (t_obj == t_flat[ray])
         hit_flat[ray[win]] = np.where(obj[win] < k, obj[win], HIT_CLUTTER)
         int_flat[ray[win]] = int_obj[win]
+        if see:  # rays that reached a window or the gap under a vehicle (nothing stopped them before) and went on
+            went = np.isfinite(t_pass) & (t_pass < t_flat[ray])
+            t_went = np.full(height * width, np.inf, dtype=t_flat.dtype)
+            np.minimum.at(t_went, ray[went], t_pass[went])
+            nearest = went & (t_pass == t_went[ray])
+            passed[ray[nearest]] = obj[nearest]
+            glass_counts = np.bincount(obj[went & (pass_kind == 1)], minlength=n_solid)[:k].astype(np.int64)
+            under_counts = np.bincount(obj[went & (pass_kind == 2)], minlength=n_solid)[:k].astype(np.int64)
         porous = np.array([o.class_name == VEGETATION for o in solids], dtype=bool)
         if porous.any():
             foliage[ray[win]] = porous[obj[win]]
@@ -470,4 +571,43 @@ def render_range_image(
         visible_counts=visible_counts,
         return_counts=return_counts,
         object_rays=windows,
+        passed=passed.reshape(height, width),
+        glass_counts=glass_counts,
+        under_counts=under_counts,
+        clearance=clearance,
     )
+
+
+def _see_through_rule(
+    spec: SeeThrough,
+    rng: np.random.Generator,
+    scene: Scene,
+    obj: NDArray[np.int64],
+    dirs: FloatArray,
+    origin: FloatArray,
+    clearance: FloatArray,
+    n_parts: int,
+) -> OpenRule:
+    """The ``see_through`` function of :func:`_intersect_objects` for the (object, ray) pairs
+    ``obj`` (M,) with directions ``dirs`` (M, 3): one uniform number per pair and part decides
+    whether the ray passes a window (part 1 of a car or van, entered through a side, front or rear
+    face) or the gap under a vehicle (any part, entered lower than its clearance above the ground)."""
+    k = len(scene.objects)
+    u = rng.random((len(obj), n_parts))
+    names = scene.class_names
+    glass_obj = np.array([c in GLASS_CLASSES for c in names] + [False], dtype=bool)
+    vehicle = np.array([c in C.SIM_CHASSIS_CLEARANCE for c in names] + [False], dtype=bool)
+    own = np.where(obj < k, obj, k)  # clutter is never see-through
+    lift = np.append(clearance, 0.0)[own]
+
+    def rule(p: int, t_p: FloatArray, axis: NDArray[np.int64]) -> NDArray[np.int8]:
+        hit = np.isfinite(t_p)
+        out = np.zeros(len(t_p), dtype=np.int8)
+        if p == 1:
+            out[hit & glass_obj[own] & (axis != 2) & (u[:, p] < spec.glass)] = 1
+        with np.errstate(invalid="ignore"):
+            low = origin[2] + t_p * dirs[:, 2] - scene.ground_z < lift
+        out[hit & vehicle[own] & low & (u[:, p] < spec.under)] = 2
+        return out
+
+    return rule
