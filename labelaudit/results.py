@@ -245,6 +245,14 @@ COLUMNS: tuple[Column, ...] = (
     Column("fit_free_rays", pa.int32(), True, "", "free_rays of the suggested box", "model"),
     Column("fit_end_rays", pa.int32(), True, "", "end_rays of the suggested box", "model"),
     Column(
+        "through_rays",
+        pa.int32(),
+        True,
+        "",
+        "rays through the label's solid lower body that passed beyond its own returns in the same direction (under a chassis, through glass): the object is see-through there; not counted in free_rays",
+        "model",
+    ),
+    Column(
         "neighbour_points",
         pa.int32(),
         True,

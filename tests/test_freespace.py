@@ -19,7 +19,7 @@ from labelaudit.datasets import Frame
 from labelaudit.infer.crop import crop_frame
 from labelaudit.infer.evidence import frame_evidence, ground_plane
 from labelaudit.infer.rows import audit_object, process_frame
-from labelaudit.sim.raycast import LidarSpec, render_range_image
+from labelaudit.sim.raycast import LidarSpec, SeeThrough, render_range_image
 from labelaudit.sim.scene import Scene, SimObject, make_object
 
 GROUND = -C.SIM_SENSOR_HEIGHT
@@ -112,12 +112,12 @@ def test_points_that_end_no_ray_from_the_origin_give_no_free_space():
     points = np.vstack([first, behind]).astype(np.float32)
     box = car.box[None]
     ev = frame_evidence(points, box, np.zeros(3), CFG.crop)[0]
-    assert (
-        F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] > 20
-    )  # taken for rays, the second returns cross the car
+    # taken for rays, the second returns cross the car beyond its first returns: see-through rays,
+    # not free space (they are never free_rays)
+    assert ev.through_rays > 20 and F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] == 0
     mask = np.r_[np.ones(len(first), bool), np.zeros(len(behind), bool)]
     ev = frame_evidence(points, box, np.zeros(3), CFG.crop, ray_mask=mask)[0]
-    assert F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] == 0
+    assert F.ray_counts(car.box, ev.free_space, points[ev.near_idx])[0] == 0 and ev.through_rays == 0
     assert len(ev.fit_idx) > len(
         frame_evidence(first, box, np.zeros(3), CFG.crop)[0].fit_idx
     )  # the points themselves still count
@@ -314,7 +314,7 @@ def _real_frame(realdata, frame_id: str):
 
 def test_a_correct_real_label_with_rays_past_its_round_corner_is_not_turned(realdata, monkeypatch):
     """Real KITTI 000021:1 (a car at 14 m seen from the front): a few rays pass its rounded corner
-    inside the rectangle. Plain EM steps made the fit overshoot, turn by 0.2 rad into free space
+    inside the rectangle. Plain EM steps made the fit overshoot, turn by more than 0.1 rad into free space
     and oscillate (label_error 1.0); a step that raises the fit's cost is halved back, and the
     fit stays on the car."""
     frame = _real_frame(realdata, "000021")
@@ -325,7 +325,7 @@ def test_a_correct_real_label_with_rays_past_its_round_corner_is_not_turned(real
     assert abs(fit.offsets["yaw"]) < 0.06 and fit.label_error < 0.5
     monkeypatch.setattr(C, "FIT_STEP_HALVINGS", 0)
     plain = fit_label(box, pts, "Car", CFG.model, free_space=ev.free_space)
-    assert abs(plain.offsets["yaw"]) > 0.15 and plain.label_error > 0.99
+    assert abs(plain.offsets["yaw"]) > 0.1 and plain.label_error > 0.99
     # a real error of the same label is still found: shifted 0.5 m sideways
     moved = _moved(box, cy=0.5)
     ev = frame_evidence(frame.points, moved[None], np.zeros(3), CFG.crop, others=frame.boxes[[0, 2, 3, 4, 5, 6, 7]])[0]
@@ -333,3 +333,87 @@ def test_a_correct_real_label_with_rays_past_its_round_corner_is_not_turned(real
     assert (
         fit_label(moved, frame.points[ev.fit_idx][:, :3], "Car", CFG.model, free_space=ev.free_space).label_error > 0.9
     )
+
+
+# ------------------------------------------------------------------------ see-through vehicles
+
+
+def _audit(points: np.ndarray, box: np.ndarray, cls: str = "Car") -> dict:
+    ev = frame_evidence(points, box[None], np.zeros(3), CFG.crop)[0]
+    return audit_object(
+        box, points[ev.model_idx], cls, CFG, fit_points=points[ev.fit_idx], evidence=ev.for_object(points)
+    )
+
+
+def test_rays_through_the_windows_leave_a_correct_car_alone_and_a_shift_is_still_found():
+    """Every ray into the cabin's windows passes (SeeThrough(glass=1)): hundreds of rays cross the
+    correct label above its solid slab and end on its interior or the road behind; none is free space."""
+    car = _car(11.0, 2.5, yaw=0.3)
+    ri = render_range_image(Scene([car]), LIDAR, see_through=SeeThrough(glass=1.0), see_rng=np.random.default_rng(0))
+    points, _ = ri.points()
+    assert ri.glass_counts[0] > 100
+    right = _audit(points, car.box)
+    assert right["free_rays"] == 0 and right["label_error"] < 0.5
+    assert _audit(points, _moved(car.box, cy=0.7))["label_error"] > 0.9  # slid sideways over seen road
+
+
+def test_rays_through_the_lower_body_beyond_its_returns_are_see_through_not_free_space(monkeypatch):
+    """Half the rays that reach a car's lower body (0.3–0.55 m above the road) go on to the road
+    behind it, as under a high chassis or through an open structure: each passes beyond the car's
+    returns in its own direction, so it is counted in ``through_rays`` and not as free space."""
+    car = _car(12.0, 3.0, yaw=0.2)
+    points, hit = render_range_image(Scene([car]), LIDAR).points()
+    h = points[:, 2] - GROUND
+    passing = np.flatnonzero((hit == 0) & (h > 0.3) & (h < 0.55))[::2]
+    xyz = points[passing, :3].astype(float)
+    points[passing, :3] = xyz * (-GROUND / (-GROUND - h[passing]))[:, None]  # on along the ray, to the road
+    assert np.all(np.hypot(points[passing, 0], points[passing, 1]) > np.hypot(xyz[:, 0], xyz[:, 1]) + 2.0)
+    right = _audit(points, car.box)
+    assert right["through_rays"] > len(passing) / 4 and right["label_error"] < 0.5
+    assert right["free_rays"] + right["through_rays"] <= len(passing) + 5
+    assert _audit(points, _moved(car.box, cy=0.7))["label_error"] > 0.9  # a shift over seen road still is an error
+    monkeypatch.setattr(C, "FREE_SPACE_SIGHT_ANGLE", 0.0)  # every ray trusted: the same rays are free space
+    trusted = _audit(points, car.box)
+    assert trusted["through_rays"] == 0 and trusted["free_rays"] > right["free_rays"] + len(passing) / 4
+    assert trusted["label_error"] > right["label_error"]
+
+
+def test_rays_under_a_truck_are_see_through_rays():
+    """A truck with 0.4–0.9 m of open space under its body (SeeThrough(under=1)): hundreds of rays
+    cross its slab beyond its own returns (the real KITTI truck 000019:0 has 1,106); the correct
+    label keeps few free rays and a low score, a label slid sideways over seen road is an error."""
+    truck = make_object("Truck", (4.0, 9.0), 0.0, np.array([8.0, 2.5, 3.2]), GROUND, np.random.default_rng(0))
+    ri = render_range_image(Scene([truck]), LIDAR, see_through=SeeThrough(under=1.0), see_rng=np.random.default_rng(2))
+    points, _ = ri.points()
+    assert ri.under_counts[0] > 500
+    right = _audit(points, truck.box, "Truck")
+    assert right["through_rays"] > 500 and right["free_rays"] < right["through_rays"] / 20
+    assert right["label_error"] < 0.5
+    assert _audit(points, _moved(truck.box, cy=0.7), "Truck")["label_error"] > 0.9
+
+
+def test_through_own_returns_known_answers():
+    """One ray along +x through a 4 × 2 m box at 10 m, in its slab: see-through when the box has
+    returns nearer than the ray's deepest point on both sides of its azimuth; free space when they
+    lie on one side only (the ray passes the object's outline), are farther, or are absent."""
+    box = np.array([10.0, 0.0, 0.75, 4.0, 2.0, 1.5, 0.0])
+    fs = F.FreeSpace(
+        origin=np.array([0.0, 0.0, 1.73]),
+        ends=np.array([[14.0, 0.0, 0.0]]),  # down to the road at 14 m: in the slab from x = 9.1 m on
+        ground=np.zeros(4),
+        ref=box[:2].copy(),
+        slab=(0.25, 0.6),
+        tolerance=0.1,
+    )
+    near = np.array([[8.0, -0.016, 0.5], [8.0, 0.016, 0.5]])  # the box's near face, 2 mrad either side
+    assert F.through_own_returns(box, fs, near, 0.004).tolist() == [True]
+    assert F.through_own_returns(box, fs, near[:1], 0.004).tolist() == [False]  # one side only
+    column = np.array([[8.0, 0.0, 1.2]])  # straight above the ray (the same azimuth, another laser): both sides
+    assert F.through_own_returns(box, fs, column, 0.004).tolist() == [True]
+    assert F.through_own_returns(box, fs, near, 0.0001).tolist() == [False]  # outside the window
+    far = near.copy()
+    far[:, 0] = 11.9  # beyond the ray's deepest point (it enters the slab 1 m deep, at x = 9.1 m)
+    assert F.through_own_returns(box, fs, far, 0.004).tolist() == [False]
+    assert F.through_own_returns(box, fs, np.empty((0, 3)), 0.004).tolist() == [False]
+    on = replace(fs, ends=np.array([[10.0, 0.0, 0.5]]))  # a ray that ends on the box is no ray through it
+    assert F.through_own_returns(box, on, near, 0.004).tolist() == [False]

@@ -32,7 +32,7 @@ Pure functions of arrays: no files, no printing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,8 +42,10 @@ from labelaudit.config import CropParams
 from labelaudit.core.freespace import (
     FreeSpace,
     azimuth_buckets,
+    ground_heights,
     neighbourhoods,
     ray_candidates,
+    through_own_returns,
 )
 from labelaudit.core.geometry import rotation_z
 from labelaudit.infer.crop import selection_boxes
@@ -87,6 +89,7 @@ class ObjectEvidence:
     neighbour_points: int = 0
     ground_z: float = float("nan")
     scenery_points: int = 0
+    through_rays: int = 0
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,8 @@ class BoxEvidence:
     neighbour_points : points dropped from the fit's crop because they lie in another label
     scenery_points : points dropped from the fit's crop because they belong to an unlabelled
         surface outside the label that runs out of the crop
+    through_rays : rays through the box's slab that passed beyond its own returns (see-through:
+        under a chassis, through glass), left out of ``free_space``
     """
 
     model_idx: IndexArray
@@ -112,11 +117,17 @@ class BoxEvidence:
     ground_z: float
     neighbour_points: int
     scenery_points: int = 0
+    through_rays: int = 0
 
     def for_object(self, points: NDArray) -> ObjectEvidence:
         """The :class:`ObjectEvidence` of this box, given the frame's points."""
         return ObjectEvidence(
-            self.free_space, points[self.near_idx], self.neighbour_points, self.ground_z, self.scenery_points
+            self.free_space,
+            points[self.near_idx],
+            self.neighbour_points,
+            self.ground_z,
+            self.scenery_points,
+            self.through_rays,
         )
 
 
@@ -219,8 +230,33 @@ def frame_evidence(
             inside_tolerance=tau_in,
             object_height=crop.ground_cut,
         )
-        out.append(BoxEvidence(model_idx, fit_idx, idx, fs, ground_list[j], int(n_foreign), int(n_scenery)))
+        # rays that passed beyond the box's own returns saw through the object (under its chassis,
+        # through glass): not empty space inside the box
+        through = through_own_returns(
+            box, fs, _own_returns(near_xyz[j], box, planes[j], tau, crop.ground_cut), C.FREE_SPACE_SIGHT_ANGLE
+        )
+        if through.any():
+            fs = replace(fs, ends=fs.ends[~through])
+        out.append(
+            BoxEvidence(model_idx, fit_idx, idx, fs, ground_list[j], int(n_foreign), int(n_scenery), int(through.sum()))
+        )
     return out
+
+
+def _own_returns(xyz: FloatArray, box: FloatArray, plane: FloatArray, tau: float, cut: float) -> FloatArray:
+    """The box's own returns among its neighbourhood's points (n, 3): within τ of its rectangle in
+    bird's-eye view, at least ``cut`` above its ground plane, at most τ over its top (the returns
+    ``ray_counts`` takes for ending on or in it)."""
+    c, s = math.cos(box[6]), math.sin(box[6])
+    q = xyz[:, :2] - box[:2]
+    h = ground_heights(xyz, plane, box[:2])
+    keep = (
+        (np.abs(c * q[:, 0] + s * q[:, 1]) <= box[3] / 2 + tau)
+        & (np.abs(-s * q[:, 0] + c * q[:, 1]) <= box[4] / 2 + tau)
+        & (h >= cut)
+        & (xyz[:, 2] <= box[2] + box[5] / 2 + tau)
+    )
+    return xyz[keep]
 
 
 @kernel

@@ -246,7 +246,8 @@ def audit_object(
         of the box and the convex hull of its points; 0 below 3 points). Free space (with
         ``evidence``): ``free_rays`` / ``end_rays`` (rays through the label's solid lower body that
         end behind it / rays that end on or in it), ``fit_free_rays`` / ``fit_end_rays`` (the same
-        for the suggested box), ``neighbour_points`` and ``ground_z``.
+        for the suggested box), ``through_rays`` (rays through the slab that passed beyond the
+        label's own returns: see-through, left out of the free space), ``neighbour_points`` and ``ground_z``.
 
     Raises
     ------
@@ -300,6 +301,7 @@ def audit_object(
         (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
             np.array((y, fit.box)), evidence.free_space, evidence.near_points
         )
+        row["through_rays"] = int(evidence.through_rays)
         row["neighbour_points"] = int(evidence.neighbour_points)
         row["scenery_points"] = int(evidence.scenery_points)
         row["ground_z"] = float(evidence.ground_z)
@@ -315,6 +317,7 @@ _EVIDENCE_COLUMNS = (
     "end_rays",
     "fit_free_rays",
     "fit_end_rays",
+    "through_rays",
     "neighbour_points",
     "scenery_points",
     "ground_z",
