@@ -3,11 +3,13 @@ labels of every category (audited or not) explaining their returns in the missin
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import replace
 from pathlib import Path
 
+import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
@@ -22,6 +24,7 @@ from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.results import open_results
 from labelaudit.sim.av2_writer import write_annotations, write_sweep
 from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_waymo_v1, write_waymo_v2
+from labelaudit.viz.show import OTHER_LABEL_COLOUR, REGION_COLOUR, render_frame
 from test_av2 import T0, make_log
 from test_missing import GROUND, _best, _car_points, _frame
 
@@ -282,3 +285,24 @@ def test_waymo_readers_flag_the_points_in_no_label_zones(tmp_path, fmt):
     rel = frame.points[zone, :2] - frame.sensor_origin[:2]  # seen from the TOP lidar
     az = np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) % 360.0
     assert (az > 180.0 - wedge - 3.0).all() and (az < 183.0).all(), (wedge, az.min(), az.max())
+
+
+# --------------------------------------------------------------------------- where a user looks
+
+
+def _pixels(png: bytes, colour: str) -> int:
+    image = mpimg.imread(io.BytesIO(png), format="png")[..., :3]
+    want = np.array([int(colour[i : i + 2], 16) for i in (1, 3, 5)]) / 255.0
+    return int(np.sum(np.abs(image - want).max(axis=-1) < 0.08))
+
+
+def test_the_frame_picture_draws_the_region_and_the_labels_not_audited():
+    frame = _frame(_car_points(15.0, 3.0))
+    road = _road(-2.0, 2.0)
+    trailer = np.array([[3.0, 3.0, GROUND + 0.75, 3.0, 1.5, 1.5, 0.3]])
+    plain = render_frame("f", frame.points, [], "jiou_gt", (600, 500), 3, frame.sensor_origin)
+    drawn = render_frame(
+        "f", frame.points, [], "jiou_gt", (600, 500), 3, frame.sensor_origin, other_labels=trailer, roi=road
+    )
+    assert _pixels(plain.png, REGION_COLOUR) == 0 and _pixels(drawn.png, REGION_COLOUR) > 100
+    assert _pixels(plain.png, OTHER_LABEL_COLOUR) == 0 and _pixels(drawn.png, OTHER_LABEL_COLOUR) > 30

@@ -60,7 +60,7 @@ def show(
 ) -> None:
     """Draw one label with its spatial distribution p_G, a whole frame's boxes coloured by a score, or one missing-label candidate.
 
-    A whole frame also draws its missing-label candidates (objects nobody labelled, the missing/ table) with a score of at least --min-score: magenta, dashed, tagged M<candidate_index> and their score, with a legend. --candidate K draws candidate K close up: the points inside it coloured by height, the labels around it, its score and evidence.
+    A whole frame also draws its missing-label candidates (objects nobody labelled, the missing/ table) with a score of at least --min-score: magenta, dashed, tagged M<candidate_index> and their score, with a legend; the labels of classes not audited (thin, blue) and, for an Argoverse 2 log with its map, the drivable area its labels stay within 5 m of (orange, dashed). --candidate K draws candidate K close up: the points inside it coloured by height, the labels around it, its score and evidence.
 
     One object: its crop's points coloured by height, the labeled box, p_G as a heatmap, the 1-σ ellipses of its corners (C1 nearest the sensor), the suggested box of the label-error fit, the direction to the sensor, a scale bar and the row's numbers; for a tracked object (Waymo, Argoverse 2) also its labels in the 3 frames before and after, moved into this frame through the world frame (blue earlier, red later), with its track_error and the track's fused size. Everything is recomputed from the dataset with the run's parameters, so the picture matches the row. Prints the PNG's path on stdout.
 
@@ -129,7 +129,12 @@ def show(
         else:
             fr = load_frame(source, frame)
             shown = [c for c in frame_candidates(opened, frame) if c["score"] >= min_score]
-            png = render_frame(frame, fr.points, rows.to_pylist(), by.value, px, worst, fr.sensor_origin, shown).png
+            listed = rows.to_pylist()
+            with_row = {int(r["object_index"]) for r in listed}
+            others = fr.boxes[[i for i in range(len(fr.boxes)) if i not in with_row]]
+            png = render_frame(
+                frame, fr.points, listed, by.value, px, worst, fr.sensor_origin, shown, other_labels=others, roi=fr.roi
+            ).png
         safe = frame.replace("/", "_").replace(":", "_")
         which = (
             f"-{object_index}" if object_index is not None else f"-missing-{candidate}" if candidate is not None else ""

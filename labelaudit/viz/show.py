@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core.posterior import corner_covariances as corner_cov
-from labelaudit.datasets.base import box_problems
+from labelaudit.datasets.base import RegionOfInterest, box_problems
 from labelaudit.viz.objects import AUDITED_STATUSES, ObjectAudit, TrackView
 
 FloatArray = NDArray[np.float64]
@@ -63,6 +63,8 @@ EXPECTED_COLOUR = "#ffd400"  # the box the rest of the track expects in this fra
 CANDIDATE_COLOUR = (
     "#ff3df5"  # missing-label candidates: magenta, outside the red–yellow–green of the scores and the cool/magma maps
 )
+REGION_COLOUR = "#ff9800"  # the map's drivable area (Argoverse 2 labels within a margin of it): orange, dashed
+OTHER_LABEL_COLOUR = "#5c8fb0"  # labels of classes not audited (they explain their returns): muted blue, thin
 
 
 def fit_view(
@@ -649,9 +651,13 @@ def render_frame(
     worst: int = C.SHOW_FRAME_WORST,
     sensor_origin: FloatArray | None = None,
     candidates: Sequence[Mapping[str, Any]] = (),
+    *,
+    other_labels: FloatArray | None = None,
+    roi: RegionOfInterest | None = None,
 ) -> FramePicture:
     """Draw every audited box of a frame over its points, coloured by ``by``, the ``worst`` numbered;
-    missing-label candidates in their own style (magenta, dashed, ``M<candidate_index>``) with a legend.
+    missing-label candidates in their own style (magenta, dashed, ``M<candidate_index>``) with a legend;
+    the frame's other labels (classes not audited) thin, and the region where the dataset labels.
 
     Parameters
     ----------
@@ -663,6 +669,8 @@ def render_frame(
     worst : how many of the worst boxes get a number
     sensor_origin : (3,) sensor position (drawn as a marker)
     candidates : the frame's missing-label candidate rows to draw (box columns, candidate_index, score, class_name)
+    other_labels : (K, 7) the frame's labels that have no row (classes not audited): they explain their returns
+    roi : the frame's region of interest (Argoverse 2 with its map): its drivable-area polygons, dashed
     """
     if by not in SCORES:
         raise ValueError(f"by must be one of {', '.join(SCORES)}, got {by!r}")
@@ -751,6 +759,20 @@ def render_frame(
                 "linewidth": 1.2,
             },
         )
+    others = np.zeros((0, 7)) if other_labels is None else np.asarray(other_labels, dtype=float).reshape(-1, 7)
+    others = others[np.all(np.isfinite(others), axis=1)]
+    for b in others:
+        ax.add_patch(
+            Polygon(
+                g.box_corners(b, "bev"), closed=True, fill=False, edgecolor=OTHER_LABEL_COLOUR, linewidth=0.8, zorder=2
+            )
+        )
+    for poly in roi.polygons if roi is not None else ():
+        ax.add_patch(
+            Polygon(
+                poly, closed=True, fill=False, edgecolor=REGION_COLOUR, linewidth=0.9, linestyle=(0, (5, 3)), zorder=2
+            )
+        )
     for k, r in enumerate(candidates):
         _draw_candidate(ax, cand_boxes[k, :2], cand_corners[k], f"M{int(r['candidate_index'])} {float(r['score']):.2f}")
     ax.scatter([origin[0]], [origin[1]], marker="^", s=60, c="#00e5ff", edgecolors="black", zorder=6)
@@ -784,17 +806,32 @@ def render_frame(
         caption += f"\n{len(candidates)} possibly missing label(s): " + "  ".join(
             f"M{int(r['candidate_index'])} {r['class_name']} ({float(r['score']):.2f})" for r in candidates
         )
-        handles = [
-            Line2D([], [], color=colormaps[SCORE_CMAP[by]](0.8), lw=1.5, label=f"label (colour: {SCORES[by]})"),
-            Line2D(
-                [],
-                [],
-                color=CANDIDATE_COLOUR,
-                lw=1.8,
-                ls=(0, (4, 2)),
-                label="possibly missing label (M<candidate>, score)",
-            ),
-        ]
+    if len(candidates) or len(others) or roi is not None:
+        handles = [Line2D([], [], color=colormaps[SCORE_CMAP[by]](0.8), lw=1.5, label=f"label (colour: {SCORES[by]})")]
+        if len(others):
+            handles.append(Line2D([], [], color=OTHER_LABEL_COLOUR, lw=0.8, label="label of a class not audited"))
+        if roi is not None:
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color=REGION_COLOUR,
+                    lw=0.9,
+                    ls=(0, (5, 3)),
+                    label=f"drivable area (labels within {roi.margin:g} m of it)",
+                )
+            )
+        if len(candidates):
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color=CANDIDATE_COLOUR,
+                    lw=1.8,
+                    ls=(0, (4, 2)),
+                    label="possibly missing label (M<candidate>, score)",
+                )
+            )
         leg = ax.legend(handles=handles, loc="lower left", fontsize=7, labelcolor="white", framealpha=0.75)
         leg.get_frame().set_facecolor("#111111")
         leg.set_zorder(10)
