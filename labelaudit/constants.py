@@ -243,6 +243,7 @@ MISSING_GROUND_RANK = (
 MISSING_GROUND_DROP = (
     1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
 )
+MISSING_GROUND_OPENING = 9.0  # m; ground narrower than this square is not ground (an opening of the ground grid): an object in an occluder's shadow or between a far object's sparse road rings is not taken for the road
 MISSING_CEILING_BINS = 360  # azimuth bins (1°) of the top beam's elevation (the sensor's tilt makes it vary around)
 MISSING_BEAM_GAP = 0.4  # deg; elevation between two beams (HDL-64E 0.4°, Waymo TOP 0.3°): a far vehicle's highest return may lie this far under its top
 MISSING_FORWARD_COS = 0.9  # a camera whose optical axis is this close to +x (cosine) looks forward: the search grid starts just behind the sensor

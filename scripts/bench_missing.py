@@ -47,7 +47,14 @@ def _candidates(frame, cfg):
 
 
 def bench_sim(
-    frames: int, seed: int, drop: float, threshold: float, min_points: int, workers: int, keep: Path | None
+    frames: int,
+    seed: int,
+    drop: float,
+    threshold: float,
+    min_points: int,
+    workers: int,
+    keep: Path | None,
+    verbose: bool = False,
 ) -> None:
     import pyarrow.parquet as pq
 
@@ -83,10 +90,12 @@ def bench_sim(
     false_by = defaultdict(int)
     n_false = n_frames = 0
     seconds = 0.0
+    misses = []
     for n_ref, ref in enumerate(reader.list_units()):
         frame = next(reader.load_unit(ref))
         t = time.process_time()
-        cands = [c for c in _candidates(frame, cfg) if c["score"] >= threshold]
+        all_cands = _candidates(frame, cfg)
+        cands = [c for c in all_cands if c["score"] >= threshold]
         if n_ref >= 2:  # the first frames load (or compile) the kernels
             seconds += time.process_time() - t
         n_frames += 1
@@ -96,6 +105,27 @@ def bench_sim(
             if not o["dropped"] or o["num_points"] < min_points:
                 continue
             hit = any(math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]) <= 1.0 for c in cands)
+            if not hit:
+                near = min(
+                    (c for c in all_cands),
+                    key=lambda c: math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]),
+                    default=None,
+                )
+                what = (
+                    "no cluster boxed"
+                    if near is None or math.hypot(near["cx"] - o["true_cx"], near["cy"] - o["true_cy"]) > 3.0
+                    else f"nearest candidate {math.hypot(near['cx'] - o['true_cx'], near['cy'] - o['true_cy']):.1f} m off,"
+                    f" {near['class_name']}, score {near['score']:.2f}"
+                    + "".join(
+                        f" {k[:-6]} {near[k]:.2f}"
+                        for k in ("size_score", "shape_score", "density_score", "free_space_score")
+                        if near.get(k) is not None
+                    )
+                )
+                misses.append(
+                    f"    {frame.frame_id} {o['class_name']} at ({o['true_cx']:.1f}, {o['true_cy']:.1f}) {o['distance']:.0f} m,"
+                    f" {o['num_points']} points, occlusion {o['occlusion_fraction'] or 0:.2f}: {what}"
+                )
             for key in (
                 "all",
                 f"distance {_bin(o['distance'], DIST_BINS)} m",
@@ -122,6 +152,9 @@ def bench_sim(
         f"  search CPU time: {seconds / max(n_frames - 2, 1) * 1e3:.1f} ms per frame after the first two (this process, load {os.getloadavg()[0]:.1f}; "
         "frames with dropped labels and clutter: more clusters to box than a fully labelled frame)"
     )
+    if verbose:
+        print("  missed:")
+        print("\n".join(misses))
     if not keep:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -211,10 +244,24 @@ def main() -> None:
         help="also the real KITTI frames (default folder: ../shared/realdata)",
     )
     ap.add_argument("--no-sim", action="store_true", help="only the real frames")
-    ap.add_argument("-v", "--verbose", action="store_true", help="list every real candidate and removed vehicle")
+    ap.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        help="list every real candidate and removed vehicle, and every simulated miss",
+    )
     args = ap.parse_args()
     if not args.no_sim:
-        bench_sim(args.frames, args.seed, args.drop_fraction, args.threshold, args.min_points, args.workers, args.keep)
+        bench_sim(
+            args.frames,
+            args.seed,
+            args.drop_fraction,
+            args.threshold,
+            args.min_points,
+            args.workers,
+            args.keep,
+            args.verbose,
+        )
     if args.real is not None:
         if args.real.is_dir():
             bench_real(args.real, args.threshold, 50, args.verbose)

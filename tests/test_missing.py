@@ -269,6 +269,25 @@ def test_a_car_scores_higher_than_a_wall_a_pole_a_bush_and_a_kerb():
         assert _best(rows, x, y, radius=2.5) < min(0.5, car_score), what
 
 
+def test_a_car_in_a_shadow_is_measured_from_the_road_around_not_from_its_own_lowest_returns():
+    """An occluder hides the road around a car and its lower body: the 3 × 3 ground cells under it
+    hold only its own returns. Its height must come from the road a few metres off, so it is found
+    with its height, and a shadow with nothing in it stays empty."""
+    cfg = RunConfig()
+    whole = _car_points(25.0, 3.0)
+    car = whole[whole[:, 2] >= GROUND + 0.7]  # the lower body hidden behind something low ahead of it
+    ground = _unshadowed(_ground(), [whole])
+    hole = (np.abs(ground[:, 0] - 25.0) < 4.5) & (np.abs(ground[:, 1] - 3.0) < 3.0)  # no road seen around it
+    pts = np.vstack([ground[~hole], car])
+    frame = Frame("000001", np.c_[pts, np.zeros(len(pts))].astype(np.float32), np.zeros((0, 7)), [], [])
+    rows = find_missing(frame, cfg)
+    assert _best(rows, 25.0, 3.0) >= 0.5
+    top = max(rows, key=lambda r: r["score"])
+    assert abs(top["height"] - 1.5) < 0.2 and abs(top["cz"] - (GROUND + 0.75)) < 0.2
+    empty = Frame("000001", np.c_[ground[~hole], np.zeros((~hole).sum())].astype(np.float32), np.zeros((0, 7)), [], [])
+    assert find_missing(empty, cfg) == []
+
+
 def test_nothing_inside_the_ego_zone_or_beyond_the_labelled_range():
     cfg = RunConfig()
     near = _car_points(2.5, 0.0)

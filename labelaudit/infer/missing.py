@@ -7,7 +7,8 @@ detector's output when one is given. Pure function: no files, no printing.
 The search, in compiled passes over the frame (a few milliseconds per KITTI frame):
 
 1. ground: the lowest return of every ``MISSING_GROUND_CELL`` cell, the lowest of its 3 × 3
-   neighbourhood is the ground under it (a car never covers a neighbourhood of cells);
+   neighbourhood is the ground under it (a car never covers a neighbourhood of cells), no higher
+   than a grey-scale opening of that grid (``MISSING_GROUND_OPENING``) allows;
 2. the returns between ``MISSING_BAND`` above that ground, within the labelled range, outside the
    ego zone and outside every label grown by ``MISSING_LABEL_MARGIN`` go into a BEV occupancy grid
    of ``MISSING_CELL`` cells; its 8-connected components are the clusters;
@@ -78,7 +79,7 @@ class Cluster:
 
 @kernel
 def _ground_grid(
-    xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop, slope_floor
+    xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop, slope_floor, reach
 ):  # pragma: no cover - compiled
     """Ground height per cell (n, n) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
@@ -142,7 +143,40 @@ def _ground_grid(
                 if vals[q] >= med - drop:  # a floor far below its neighbours' is a cell of stray returns under the road
                     m1 = min(m1, vals[q])
             ground[i, j] = m1
-    return ground, top
+    # an opening (the minimum over a square of side 2·reach + 1 cells, then the maximum of that over
+    # the same square; cells without returns ignored) keeps every stretch of ground at least that wide
+    # — a slope, a raised pavement, the road — and takes away what is narrower: an object whose 3 × 3
+    # cells hold only its own returns (in an occluder's shadow, or between a far object's sparse road
+    # rings), whose lowest return would otherwise be taken for the road
+    eroded = _window_extreme(_window_extreme(ground, reach, True, False), reach, True, True)
+    eroded = np.where(ground < np.inf, eroded, np.inf)  # only cells with returns of their own show ground
+    opened = _window_extreme(_window_extreme(eroded, reach, False, False), reach, False, True)
+    out = np.full((n, n), np.inf)
+    for i in range(n):
+        for j in range(n):
+            if ground[i, j] < np.inf:
+                out[i, j] = min(ground[i, j], opened[i, j])
+    return out, top
+
+
+@kernel
+def _window_extreme(a, reach, lowest, columns):  # pragma: no cover - compiled
+    """(n, n): per cell the lowest (``lowest``) or highest finite value of ``a`` within ``reach`` cells
+    along its column (``columns``) or row; inf where there is none."""
+    n0, n1 = a.shape
+    out = np.full((n0, n1), np.inf)
+    for i in range(n0):
+        for j in range(n1):
+            best = np.inf
+            for d in range(-reach, reach + 1):
+                ii, jj = (i, j + d) if columns else (i + d, j)
+                if ii < 0 or jj < 0 or ii >= n0 or jj >= n1:
+                    continue
+                v = a[ii, jj]
+                if v < np.inf and (best == np.inf or (v < best if lowest else v > best)):
+                    best = v
+            out[i, j] = best
+    return out
 
 
 @kernel
@@ -558,6 +592,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         C.MISSING_CEILING_BINS,
         C.MISSING_GROUND_DROP,
         math.tan(math.radians(C.MISSING_CEILING_FLOOR)),
+        int(round(0.5 * (C.MISSING_GROUND_OPENING / gcell - 1))),
     )
     cell = C.MISSING_CELL
     x0, y0 = ox - reach, oy - reach
