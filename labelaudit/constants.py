@@ -207,9 +207,16 @@ MISSING_MIN_KEPT_SCORE = 0.05  # clusters scoring below this are not written (mo
 MISSING_CLASS_SIZES = {  # classes the search looks for: (mean, largest) length, width, height in metres (KITTI / Waymo statistics)
     "Car": ((3.9, 1.6, 1.55), (5.3, 2.1, 2.1)),
     "Van": ((5.1, 1.9, 2.2), (6.5, 2.4, 3.0)),
+    "Truck": ((10.1, 2.6, 3.25), (16.0, 3.0, 4.2)),
     "Vehicle": ((4.6, 2.0, 1.8), (6.5, 2.5, 2.8)),
     "REGULAR_VEHICLE": ((4.7, 1.95, 1.7), (6.5, 2.5, 2.6)),
 }
+MISSING_CLASS_MIN_TOP = {
+    "Truck": 2.4
+}  # m; classes whose roof is at least this high: the returns must reach it (or the highest beam there)
+MISSING_CLASS_MIN_CORNER = {
+    "Truck": (1.0, 1.5)
+}  # m; classes seen only as an L-shape: the size score rises from 0 to 1 as the shorter leg (the rear or the front beside the side) goes from the first to the second (a stretch of wall has one face)
 MISSING_IMAGE_SLACK = 100.0  # px; KITTI: clusters whose centroid projects this far outside image_2 are not boxed (a candidate's centre must project inside)
 MISSING_FRAGMENT_POINTS = 3  # components with fewer returns are not joined to others (noise)
 MISSING_MERGE_GAP = (
@@ -244,6 +251,11 @@ MISSING_GROUND_DROP = (
     1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
 )
 MISSING_GROUND_OPENING = 9.0  # m; ground narrower than this square is not ground (an opening of the ground grid): an object in an occluder's shadow or between a far object's sparse road rings is not taken for the road
+MISSING_SPLITS = 2  # a cluster that fits no class is split at a gap at most this many times (two cars side by side, a car and a hedge)
+MISSING_SPLIT_BIN = 0.1  # m; slices across a cluster's axes in which a gap between two objects is looked for
+MISSING_SPLIT_GAP = 0.1  # … a slice holding at most this share of the returns of an average occupied slice is a gap
+MISSING_SPLIT_MIN_PART = 1.0  # m; … with at least this much of the cluster on either side of it
+MISSING_SPLIT_MIN_POINTS = 10  # … and at least this many returns on either side
 MISSING_CEILING_BINS = 360  # azimuth bins (1°) of the top beam's elevation (the sensor's tilt makes it vary around)
 MISSING_BEAM_GAP = 0.4  # deg; elevation between two beams (HDL-64E 0.4°, Waymo TOP 0.3°): a far vehicle's highest return may lie this far under its top
 MISSING_FORWARD_COS = 0.9  # a camera whose optical axis is this close to +x (cosine) looks forward: the search grid starts just behind the sensor

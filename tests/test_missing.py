@@ -12,12 +12,13 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.config import MissingParams, RunConfig
 from labelaudit.datasets import Frame, ImageView
 from labelaudit.errors import ResultsError
 from labelaudit.executors import SerialExecutor
-from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_region
+from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_region, search_clusters
 from labelaudit.infer.run import InferRequest, run_infer
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
@@ -286,6 +287,47 @@ def test_a_car_in_a_shadow_is_measured_from_the_road_around_not_from_its_own_low
     assert abs(top["height"] - 1.5) < 0.2 and abs(top["cz"] - (GROUND + 0.75)) < 0.2
     empty = Frame("000001", np.c_[ground[~hole], np.zeros((~hole).sum())].astype(np.float32), np.zeros((0, 7)), [], [])
     assert find_missing(empty, cfg) == []
+
+
+@pytest.mark.parametrize("splits", [0, C.MISSING_SPLITS])
+def test_two_cars_parked_side_by_side_are_two_candidates(monkeypatch, splits):
+    """Two cars 0.4 m apart make one cluster no class fits (4 m wide): it is split at the gap and
+    each car is found where it stands; without the split neither is."""
+    monkeypatch.setattr(C, "MISSING_SPLITS", splits)
+    near = _car_points(15.0, 3.0)
+    far = _face((13.6, 4.3), (13.6, 6.1), GROUND + 0.2, GROUND + 1.5, 0.08)  # only its rear shows beside the first
+    rows = find_missing(_frame(near, far), RunConfig())
+    found = [_best(rows, x, y, radius=1.0) >= 0.5 for x, y in ((15.0, 3.0), (15.7, 5.2))]
+    assert found == ([True, True] if splits else [False, False])
+
+
+def test_a_car_beside_a_hedge_is_found_and_the_hedge_is_not():
+    rng = np.random.default_rng(1)
+    car = _car_points(18.0, 3.0)
+    hedge = np.c_[
+        rng.uniform(15.5, 21.0, 2500), rng.uniform(4.4, 5.6, 2500), rng.uniform(GROUND + 0.3, GROUND + 1.6, 2500)
+    ]
+    rows = find_missing(_frame(car, hedge), RunConfig())
+    assert _best(rows, 18.0, 3.0, radius=1.0) >= 0.5
+    assert _best(rows, 18.25, 5.0, radius=0.9) < 0.5
+
+
+def test_a_truck_seen_from_a_corner_is_found_as_a_truck_and_a_wall_or_fence_as_long_is_not(monkeypatch):
+    cfg = RunConfig()
+    truck = _car_points(22.0, 6.0, length=10.0, width=2.5, height=3.2, step=0.1)
+    rows = find_missing(_frame(truck), cfg)
+    top = max(rows, key=lambda r: r["score"])
+    assert top["score"] >= 0.5 and top["class_name"] == "Truck"
+    assert math.hypot(top["cx"] - 22.0, top["cy"] - 6.0) < 1.0 and 8.0 <= top["length"] <= 12.0
+    # the truck's side alone, as high (a wall) or lower (a fence), under beams that would show a truck's roof
+    wall = _face((17.0, 4.75), (27.0, 4.75), GROUND + 0.1, GROUND + 3.5, 0.1)
+    fence = _face((17.0, 4.75), (27.0, 4.75), GROUND + 0.1, GROUND + 1.5, 0.1)
+    az = np.radians(np.arange(-90.0, 90.0, 0.2))
+    sky = np.c_[60.0 * np.cos(az), 60.0 * np.sin(az), np.full(len(az), 6.0)]  # the top beams reach 6 m at 60 m
+    for what in (wall, fence):  # the points alone (before the rays through the box are counted) say "no truck"
+        assert max((c.score for c in search_clusters(_frame(what, sky), cfg)), default=0.0) < 0.5
+    monkeypatch.setattr(C, "MISSING_CLASS_MIN_CORNER", {})  # without the L-shape a wall is a truck's side
+    assert max(c.score for c in search_clusters(_frame(wall, sky), cfg)) >= 0.5
 
 
 def test_nothing_inside_the_ego_zone_or_beyond_the_labelled_range():

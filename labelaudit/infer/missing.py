@@ -517,12 +517,15 @@ def _size_match(
     mean: tuple[float, float, float],
     largest: tuple[float, float, float],
     gap: float = 0.0,
+    min_top: float | None = None,
 ) -> float:
     """How well visible extents (m) and the seen top (m above ground) fit a class: 1 inside its
     largest size, falling to 0 at ``MISSING_SIZE_SLACK`` beyond. Returns that reach as high as the
     beams go at that range (``top_seen`` false) while the beams there (``ceiling``, m above ground)
     would pass over such a vehicle are no vehicle of the class (a wall, a pole). ``gap``: the height
-    between two beams at the cluster's range, by which the highest return may lie under the top."""
+    between two beams at the cluster's range, by which the highest return may lie under the top.
+    ``min_top`` (m): a class whose roof is at least this high (a truck) needs returns that high, or
+    as high as the beams reach there (a fence or a low wall as long as a truck is none)."""
     L, W, H = largest
     slack = C.MISSING_SIZE_SLACK
     s = 1.0 - _ramp(vis_l, L, L + slack)
@@ -530,6 +533,9 @@ def _size_match(
     s *= 1.0 - _ramp(top, H, H + slack)
     s *= _ramp(top + gap, C.MISSING_MIN_TOP[0], C.MISSING_MIN_TOP[1])  # kerbs, low walls, debris
     s *= _ramp(vis_l, C.MISSING_MIN_EXTENT[0], C.MISSING_MIN_EXTENT[1])  # poles, signs, people
+    if min_top is not None:
+        need = min(min_top, ceiling - C.MISSING_TOP_CLEARANCE)
+        s *= _ramp(top + gap, need - C.MISSING_SIZE_SLACK, need)
     if not top_seen and ceiling > mean[2] + C.MISSING_TALL_MARGIN + C.MISSING_TOP_CLEARANCE:
         s *= C.MISSING_UNSEEN_TOP_FACTOR
     return s
@@ -696,7 +702,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     grid = (owner, x0, y0, cell)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
-        cl = _box_cluster(
+        out += _box_cluster(
             xyz[band_idx[pos]].astype(float),
             band_h[pos],
             sizes,
@@ -707,9 +713,8 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
             rays_per_rad2,
             grid,
             int(chosen[s]),
+            C.MISSING_SPLITS,
         )
-        if cl is not None:
-            out.append(cl)
     return out
 
 
@@ -810,8 +815,16 @@ def _box_cluster(
     rays_per_rad2: float,
     grid: tuple | None = None,
     own: int = -1,
-) -> Cluster | None:
-    """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,))."""
+    splits: int = 0,
+) -> list[Cluster]:
+    """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,)).
+
+    A cluster that fits no class is split, up to ``splits`` times, at the emptiest slice across one
+    of its axes when that slice is a gap (:func:`_split`): two cars parked side by side, a car and
+    the hedge beside it. Each part is boxed on its own, the other part
+    counting as returns beside it (a wall broken by a doorway is still one wall to the continuation
+    test), and the parts replace the whole when one of them scores higher than the whole.
+    """
     centre = xyz[:, :2].mean(axis=0)
     xy = np.ascontiguousarray(xyz[:, :2] - centre)
     lo, hi = C.MISSING_FACE_BAND
@@ -841,8 +854,13 @@ def _box_cluster(
     # the smallest class that explains the visible extents (a larger one fits any fragment of a
     # smaller and would place the box far off), else the best-fitting one
     gap = near * math.tan(math.radians(C.MISSING_BEAM_GAP))
+    corner = min(_face_lengths(xy, c, s, C.MISSING_FACE_WIDTH))  # the shorter leg of an L-shape (≈ 0: one face)
     fits = [
-        (_size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap), name)
+        (
+            _size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap, C.MISSING_CLASS_MIN_TOP.get(name))
+            * _ramp(corner, *C.MISSING_CLASS_MIN_CORNER.get(name, (0.0, 0.0))),
+            name,
+        )
         for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])
     ]
     size_score, best_name = next(
@@ -873,7 +891,83 @@ def _box_cluster(
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo):
         shape_score = 0.0
-    return Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
+    whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
+    if splits > 0 and size_score < C.MISSING_CLASS_FIT:  # no class fits: maybe two objects
+        parts = _split(xy, c, s)
+        if parts is not None:
+            out = []
+            for mine, other in (parts, parts[::-1]):
+                with _others_marked(grid, own, xyz[other]):
+                    out += _box_cluster(
+                        xyz[mine], h[mine], sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, own, splits - 1
+                    )
+            if out and max(p.score for p in out) > whole.score:  # two objects explain the returns better than one
+                return out
+    return [whole]
+
+
+def _face_lengths(xy: FloatArray, c: float, s: float, width: float) -> tuple[float, float]:
+    """Lengths (m) of the densest ``width``-wide face square to each axis (cos θ, sin θ) and
+    (−sin θ, cos θ) of the returns ``xy`` (M, 2): a side and a rear of a vehicle seen from a corner
+    are both long (an L-shape), a stretch of wall has one long face and one as short as it is thick."""
+    p = c * xy[:, 0] + s * xy[:, 1]
+    q = -s * xy[:, 0] + c * xy[:, 1]
+    out = []
+    for across, along in ((p, q), (q, p)):
+        idx = ((across - across.min()) / width).astype(np.int64)
+        on = idx == int(np.argmax(np.bincount(idx)))
+        out.append(float(np.ptp(along[on])))
+    return out[0], out[1]
+
+
+def _split(xy: FloatArray, c: float, s: float) -> tuple[NDArray, NDArray] | None:
+    """Indices of the two parts of a cluster (returns ``xy`` (M, 2) about its centre) on either side
+    of its emptiest ``MISSING_SPLIT_BIN`` slice across the axis (cos θ, sin θ) or (−sin θ, cos θ),
+    each part at least ``MISSING_SPLIT_MIN_PART`` long on that axis; ``None`` when that slice holds
+    more than ``MISSING_SPLIT_GAP`` of the returns of an average occupied slice (no gap: one object)
+    or a part has fewer than ``MISSING_SPLIT_MIN_POINTS`` returns."""
+    width = C.MISSING_SPLIT_BIN
+    k0 = int(round(C.MISSING_SPLIT_MIN_PART / width))
+    best = None
+    for proj in (c * xy[:, 0] + s * xy[:, 1], -s * xy[:, 0] + c * xy[:, 1]):
+        lo = float(proj.min())
+        idx = ((proj - lo) / width).astype(np.int64)
+        hist = np.bincount(idx)
+        if len(hist) <= 2 * k0:
+            continue
+        k = k0 + int(np.argmin(hist[k0 : len(hist) - k0]))
+        level = hist[k] / float(hist[hist > 0].mean())
+        if level <= C.MISSING_SPLIT_GAP and (best is None or level < best[0]):
+            best = (level, idx <= k)
+    if best is None:
+        return None
+    first = np.flatnonzero(best[1])
+    second = np.flatnonzero(~best[1])
+    if min(len(first), len(second)) < C.MISSING_SPLIT_MIN_POINTS:
+        return None
+    return first, second
+
+
+class _others_marked:
+    """Within the block, the cells of ``xyz`` (M, 3) hold returns of another cluster in ``grid``'s
+    owner map (so the continuation test sees a part's sibling as returns beside it); restored after."""
+
+    def __init__(self, grid: tuple | None, own: int, xyz: FloatArray):
+        self.grid, self.own, self.xyz, self.saved = grid, own, xyz, None
+
+    def __enter__(self) -> None:
+        if self.grid is None:
+            return
+        owner, x0, y0, cell = self.grid
+        i = np.clip(((self.xyz[:, 0] - x0) / cell).astype(np.int64), 0, owner.shape[0] - 1)
+        j = np.clip(((self.xyz[:, 1] - y0) / cell).astype(np.int64), 0, owner.shape[1] - 1)
+        self.saved = (i, j, owner[i, j].copy())
+        owner[i, j] = np.where(owner[i, j] == self.own, np.iinfo(owner.dtype).max, owner[i, j])
+
+    def __exit__(self, *exc: object) -> None:
+        if self.saved is not None:
+            i, j, values = self.saved
+            self.grid[0][i, j] = values
 
 
 # --------------------------------------------------------------------------- against the labels
