@@ -79,9 +79,9 @@ class Cluster:
 
 @kernel
 def _ground_grid(
-    xyz, ox, oy, oz, x0, y0, cell, n, reach2, rank, nbins, drop, slope_floor, reach
+    xyz, ox, oy, oz, x0, y0, cell, n0, n1, reach2, rank, nbins, drop, slope_floor, reach
 ):  # pragma: no cover - compiled
-    """Ground height per cell (n, n) (inf where unknown) and, per azimuth bin (nbins,), the steepest
+    """Ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
     high the sensor sees at a range (a tilted sensor sees higher on one side than on the other).
 
@@ -89,7 +89,7 @@ def _ground_grid(
     off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
     floor of the 3 × 3 cells around it (one cell of such returns is ignored too), so under a vehicle,
     whose cells hold no road returns, it comes from the road beside it."""
-    low = np.full((n, n, rank), np.inf)
+    low = np.full((n0, n1, rank), np.inf)
     top = np.full(nbins, -np.inf)
     for k in range(xyz.shape[0]):
         dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
@@ -106,29 +106,29 @@ def _ground_grid(
                 top[b] = s
         i = int((xyz[k, 0] - x0) / cell)
         j = int((xyz[k, 1] - y0) / cell)
-        if 0 <= i < n and 0 <= j < n and z < low[i, j, rank - 1]:
+        if 0 <= i < n0 and 0 <= j < n1 and z < low[i, j, rank - 1]:
             q = rank - 1
             while q > 0 and low[i, j, q - 1] > z:
                 low[i, j, q] = low[i, j, q - 1]
                 q -= 1
             low[i, j, q] = z
-    floor = np.full((n, n), np.inf)
-    for i in range(n):
-        for j in range(n):
+    floor = np.full((n0, n1), np.inf)
+    for i in range(n0):
+        for j in range(n1):
             f = np.inf
             for q in range(rank):
                 if low[i, j, q] < np.inf:
                     f = low[i, j, q]
             floor[i, j] = f
-    ground = np.full((n, n), np.inf)
+    ground = np.full((n0, n1), np.inf)
     vals = np.empty(9)
-    for i in range(n):
-        for j in range(n):
+    for i in range(n0):
+        for j in range(n1):
             if floor[i, j] == np.inf:  # no return here: no height is measured from this cell
                 continue
             k = 0
-            for a in range(max(0, i - 1), min(n, i + 2)):
-                for b in range(max(0, j - 1), min(n, j + 2)):
+            for a in range(max(0, i - 1), min(n0, i + 2)):
+                for b in range(max(0, j - 1), min(n1, j + 2)):
                     v = floor[a, b]
                     if v < np.inf:  # insertion sort of at most 9 floors
                         q = k
@@ -151,9 +151,9 @@ def _ground_grid(
     eroded = _window_extreme(_window_extreme(ground, reach, True, False), reach, True, True)
     eroded = np.where(ground < np.inf, eroded, np.inf)  # only cells with returns of their own show ground
     opened = _window_extreme(_window_extreme(eroded, reach, False, False), reach, False, True)
-    out = np.full((n, n), np.inf)
-    for i in range(n):
-        for j in range(n):
+    out = np.full((n0, n1), np.inf)
+    for i in range(n0):
+        for j in range(n1):
             if ground[i, j] < np.inf:
                 out[i, j] = min(ground[i, j], opened[i, j])
     return out, top
@@ -161,21 +161,47 @@ def _ground_grid(
 
 @kernel
 def _window_extreme(a, reach, lowest, columns):  # pragma: no cover - compiled
-    """(n, n): per cell the lowest (``lowest``) or highest finite value of ``a`` within ``reach`` cells
-    along its column (``columns``) or row; inf where there is none."""
+    """(n0, n1): per cell the lowest (``lowest``) or highest finite value of ``a`` within ``reach``
+    cells along its row (``columns``: along the second index) or its column; inf where there is none.
+    Van Herk's running extremes over blocks of the window's width: three passes per line, whatever
+    the reach."""
     n0, n1 = a.shape
-    out = np.full((n0, n1), np.inf)
-    for i in range(n0):
-        for j in range(n1):
-            best = np.inf
-            for d in range(-reach, reach + 1):
-                ii, jj = (i, j + d) if columns else (i + d, j)
-                if ii < 0 or jj < 0 or ii >= n0 or jj >= n1:
-                    continue
-                v = a[ii, jj]
-                if v < np.inf and (best == np.inf or (v < best if lowest else v > best)):
-                    best = v
-            out[i, j] = best
+    size = n1 if columns else n0
+    lines = n0 if columns else n1
+    w = 2 * reach + 1
+    fill = np.inf if lowest else -np.inf  # no value: never chosen
+    m = size + 2 * reach
+    buf = np.empty(m)
+    pre = np.empty(m)
+    suf = np.empty(m)
+    out = np.empty((n0, n1))
+    for line in range(lines):
+        for k in range(m):
+            t = k - reach
+            v = fill
+            if 0 <= t < size:
+                v = a[line, t] if columns else a[t, line]
+                if v == np.inf or v == -np.inf:
+                    v = fill
+            buf[k] = v
+        for k in range(m):
+            if k % w == 0:
+                pre[k] = buf[k]
+            else:
+                pre[k] = min(pre[k - 1], buf[k]) if lowest else max(pre[k - 1], buf[k])
+        for k in range(m - 1, -1, -1):
+            if k == m - 1 or (k + 1) % w == 0:
+                suf[k] = buf[k]
+            else:
+                suf[k] = min(suf[k + 1], buf[k]) if lowest else max(suf[k + 1], buf[k])
+        for t in range(size):
+            v = min(suf[t], pre[t + 2 * reach]) if lowest else max(suf[t], pre[t + 2 * reach])
+            if v == fill:
+                v = np.inf
+            if columns:
+                out[line, t] = v
+            else:
+                out[t, line] = v
     return out
 
 
@@ -204,7 +230,7 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
 
 @kernel
 def _occupancy(
-    xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, gn, mask, x0, y0, cell, nx, ny, lo, hi, tall
+    xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, mask, x0, y0, cell, nx, ny, lo, hi, tall
 ):  # pragma: no cover - compiled
     """The returns in the search band — their indices, cells (flat index) and heights above the
     ground, (B,) each — and per cell the band returns (nx, ny) and the returns above the band up to
@@ -224,7 +250,7 @@ def _occupancy(
             continue
         gi = int((xyz[k, 0] - gx0) / gcell)
         gj = int((xyz[k, 1] - gy0) / gcell)
-        if gi < 0 or gj < 0 or gi >= gn or gj >= gn:
+        if gi < 0 or gj < 0 or gi >= ground.shape[0] or gj >= ground.shape[1]:
             continue
         h = xyz[k, 2] - ground[gi, gj]
         if h < lo or h > tall:
@@ -581,9 +607,21 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
     xyz = pts[:, :3]
     reach = params.max_range + C.MISSING_GROUND_CELL * 2
+    cell = C.MISSING_CELL
+    x0, y0 = ox - reach, oy - reach
+    x1, y1 = ox + reach, oy + reach
+    view = frame.image_view
+    if (
+        view is not None
+    ):  # a camera looking along +x (KITTI): the grids need not reach behind it (but walls run on past its edge)
+        d = np.asarray(view.projection, dtype=float)[2, :3]
+        if d[0] > C.MISSING_FORWARD_COS * float(np.linalg.norm(d)):
+            x0 = ox - C.MISSING_CONTINUATION - C.MISSING_EGO_RADIUS
     gcell = C.MISSING_GROUND_CELL
-    gn = int(math.ceil(2 * reach / gcell))
-    gx0, gy0 = ox - reach, oy - reach
+    opening = int(round(0.5 * (C.MISSING_GROUND_OPENING / gcell - 1)))
+    # the ground cells the search grid needs, and the opening's reach around them (cells anchored at ox − reach)
+    skip = max(0, math.floor((x0 - (opening + 2) * gcell - (ox - reach)) / gcell))
+    gx0, gy0 = ox - reach + skip * gcell, oy - reach
     ground, top_slope = _ground_grid(
         xyz,
         ox,
@@ -592,24 +630,15 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         gx0,
         gy0,
         gcell,
-        gn,
+        int(math.ceil((x1 - gx0) / gcell)),
+        int(math.ceil((y1 - gy0) / gcell)),
         reach * reach,
         C.MISSING_GROUND_RANK,
         C.MISSING_CEILING_BINS,
         C.MISSING_GROUND_DROP,
         math.tan(math.radians(C.MISSING_CEILING_FLOOR)),
-        int(round(0.5 * (C.MISSING_GROUND_OPENING / gcell - 1))),
+        opening,
     )
-    cell = C.MISSING_CELL
-    x0, y0 = ox - reach, oy - reach
-    x1, y1 = ox + reach, oy + reach
-    view = frame.image_view
-    if (
-        view is not None
-    ):  # a camera looking along +x (KITTI): the grid need not reach behind it (but walls run on past its edge)
-        d = np.asarray(view.projection, dtype=float)[2, :3]
-        if d[0] > C.MISSING_FORWARD_COS * float(np.linalg.norm(d)):
-            x0 = ox - C.MISSING_CONTINUATION - C.MISSING_EGO_RADIUS
     nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
     mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
@@ -624,7 +653,6 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         gx0,
         gy0,
         gcell,
-        gn,
         mask,
         x0,
         y0,
