@@ -150,8 +150,6 @@ def warm_stages(
     """
     import io
 
-    import pyarrow.parquet as pq
-
     from labelaudit import results as R
     from labelaudit.config import resolve_config
     from labelaudit.datasets import open_dataset
@@ -218,7 +216,7 @@ def warm_stages(
                 table = R.rows_to_table(chunk_rows, normalized=True)
                 acc["arrow"] += clock() - t
                 t = clock()
-                pq.write_table(table, io.BytesIO(), compression="zstd")
+                R.write_parquet(table, io.BytesIO())  # as infer writes its shards
                 acc["parquet"] += clock() - t
                 n_obj += len(chunk_rows)
             total = clock() - t0

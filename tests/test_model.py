@@ -1070,3 +1070,32 @@ def test_corner_covariances_known_answer_and_one_formula():
             np.testing.assert_allclose(
                 np.trace(M.corner_covariances(covs[k], model), axis1=1, axis2=2), stacked[k], rtol=1e-13
             )
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_one_pass_posterior_equals_the_general_steps(model, monkeypatch):
+    """infer_label's one compiled pass (no outlier component) gives the general steps' posterior:
+    the registration, σ, σ̂, corner order and sample count exactly, the covariance, corner variances,
+    stds, Gaussian mean and prior covariance within the last bits (its exponentials are numba's,
+    not NumPy's), for 0, 1, few and many points, with and without σ̂ replacing σ."""
+    rng = np.random.default_rng(21)
+    box = np.array([14.0, -3.0, 0.8, 4.3, 1.8, 1.5, 0.6])
+    cases = []
+    for n in (0, 1, 2, 5, 60, 400):
+        for estimate in (True, False):
+            pts = face_points(box, ["-x", "-y", "+y"][: 1 + n % 3], max(n, 1), 0.04, seed=n)[:n]
+            cases.append((np.c_[pts, rng.uniform(0, 1, len(pts))], ModelParams(kind=model, estimate_sigma=estimate)))
+    kernel = M._posterior_no_outliers_kernel
+    taken = []
+    monkeypatch.setattr(M, "_posterior_no_outliers_kernel", lambda *a: taken.append(kernel(*a)) or taken[-1])
+    fast = [M.infer_label(box, pts, "Car", params, (0.0, 0.0, 0.0)) for pts, params in cases]
+    assert len(taken) == len(cases) and all(t[0] for t in taken)  # the one pass answered every case
+    monkeypatch.setattr(M, "_posterior_no_outliers_kernel", lambda *a: (False, *kernel(*a)[1:]))
+    general = [M.infer_label(box, pts, "Car", params, (0.0, 0.0, 0.0)) for pts, params in cases]
+    for a, b in zip(fast, general):
+        assert a.num_points == b.num_points and a.sigma == b.sigma
+        assert a.sigma_hat == b.sigma_hat or (math.isnan(a.sigma_hat) and math.isnan(b.sigma_hat))
+        assert np.array_equal(a.corner_order, b.corner_order) and np.array_equal(a.phi, b.phi)
+        for x, y in ((a.cov, b.cov), (a.corner_tv, b.corner_tv), (a.fit_mean, b.fit_mean), (a.prior_cov, b.prior_cov)):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-15 * np.abs(y).max())
+        np.testing.assert_allclose(list(a.std_box.values()), list(b.std_box.values()), rtol=1e-12)

@@ -679,6 +679,12 @@ def _corner_tv(
     y: FloatArray, cov: FloatArray, model: ModelKind, sensor_origin: ArrayLike
 ) -> tuple[FloatArray, NDArray[np.int64]]:
     tv = _corner_quad_forms(_CORNER_J[model], cov)  # = np.einsum("cdp,pq,cdq->c", J, cov, J)
+    order = _corner_order(y, sensor_origin)
+    return tv[order], order
+
+
+def _corner_order(y: FloatArray, sensor_origin: ArrayLike) -> NDArray[np.int64]:
+    """The 4 BEV corners of box ``y`` (box_corners' order), nearest to the sensor first."""
     c, s = math.cos(y[6]), math.sin(y[6])
     o = np.asarray(sensor_origin, dtype=float)
     # Corners − sensor in Python floats: the same IEEE operations as on (4,) arrays, without the calls.
@@ -688,8 +694,7 @@ def _corner_tv(
         ux, uy = ux * float(y[3]), uy * float(y[4])
         dx.append((c * ux - s * uy + x0) - ox)
         dy.append((s * ux + c * uy + y0) - oy)
-    order = np.hypot(dx, dy).argsort(kind="stable")
-    return tv[order], order
+    return np.hypot(dx, dy).argsort(kind="stable")
 
 
 def box_std(box: ArrayLike, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
@@ -699,8 +704,12 @@ def box_std(box: ArrayLike, cov: ArrayLike, model: ModelKind) -> dict[str, float
 
 
 def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, float]:
+    return _std_of(_quad_forms(K, np.asarray(cov, dtype=float)), model)  # = np.einsum("ip,pq,iq->i", K, cov, K)
+
+
+def _std_of(var: FloatArray, model: ModelKind) -> dict[str, float]:
+    """The std per box field from the variances K Σ Kᵀ of the model's parameters (NaN for cz, height in BEV)."""
     names = ("cx", "cy", "length", "width", "yaw") if g.point_dim(model) == 2 else g.BOX_FIELDS
-    var = _quad_forms(K, np.asarray(cov, dtype=float))  # = np.einsum("ip,pq,iq->i", K, cov, K)
     out = dict.fromkeys(g.BOX_FIELDS, float("nan"))
     for name, v in zip(names, var.tolist()):
         out[name] = math.sqrt(max(v, 0.0))  # IEEE square roots are exact-rounded: = np.sqrt
@@ -900,6 +909,51 @@ def infer_label_valid(
     terms = checked_prior_terms(prior_terms, y, prior, params.prior_weight, model)
     phi, G, E, P0 = terms.phi, terms.G, terms.Ginv, terms.P0
 
+    if not params.outlier_prob > 0:
+        c, s = np.cos(y[6]), np.sin(y[6])
+        B, BB = _BASIS[model]
+        p = phi.size
+        K = np.empty((p - 1, p))  # as geometry.box_param_jacobian
+        K[: p - 2] = E[: p - 2]
+        K[p - 2] = 0.5 * (E[p - 2] + E[p - 1])
+        ok, sigma, sigma_hat, cov, fit_mean, S0, tv, var = _posterior_no_outliers_kernel(
+            pts,
+            y,
+            float(c),
+            float(s),
+            min(int(params.num_nearest), 2 * d),
+            float(params.sigma),
+            bool(params.estimate_sigma),
+            int(max(params.min_points, 2)),
+            (C.SIGMA_FLOOR, C.EM_TOLERANCE, float(C.EM_RESIDUAL_DOF)),
+            C.EM_MAX_ITERATIONS,
+            B,
+            BB,
+            P0,
+            terms.eta0,
+            G,
+            prior_cov_extended_cached(prior, model),
+            float(params.prior_weight),
+            _CORNER_J[model],
+            K,
+        )
+        if ok:
+            order = _corner_order(y, sensor_origin)
+            return LabelPosterior(
+                model=model,
+                box=y,
+                phi=phi,
+                cov=cov,
+                sigma=float(sigma),
+                num_points=n,
+                std_box=_std_of(var, model),
+                corner_tv=tv[order],
+                sigma_hat=float(sigma_hat),
+                prior_cov=S0,
+                corner_order=order,
+                class_name=class_name,
+                fit_mean=fit_mean,
+            )
     sigma_hat = float("nan")
     sigma = float(params.sigma)
     reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
@@ -945,6 +999,49 @@ def infer_label_valid(
         class_name=class_name,
         fit_mean=fit_mean,
     )
+
+
+@kernel
+def _posterior_no_outliers_kernel(
+    pts, y, c, s, m, sigma, estimate, min_points, em, max_iter, B, BB, P0, eta0, G, S_ext, weight, J, K
+):  # pragma: no cover - compiled
+    """:func:`infer_label_valid` without the outlier component, in one pass: the registration
+    (:func:`_register_kernel`), σ̂ (:func:`_em_one_kernel`; σ = max(σ̂, floor) with ``estimate``
+    and ≥ ``min_points`` points, the responsibilities re-weighted with it: the nearest faces do not
+    depend on σ), the information (:func:`_information_kernel`), the posterior
+    (:func:`_posterior_kernel`), the corners' total variances (box_corners' order) and the variances
+    K Σ Kᵀ of the box parameters. ``em`` = (σ floor, tolerance, residual dof). The exponentials are
+    numba's (``math.exp``), not NumPy's SIMD ``np.exp``: the responsibilities, and so Σ, differ in
+    the last bits. Returns (ok, σ, σ̂, Σ, mean, Σ0, tv, var); ok is False when σ̂ cannot be formed
+    this way or Σ's factorisation fails (the caller then takes the general steps)."""
+    n, d = pts.shape
+    floor, tol, dof = em
+    if m < 1:  # no candidates: the general steps
+        return False, sigma, math.nan, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0), np.zeros(0)
+    half = np.empty(d)
+    for a in range(d):
+        half[a] = 0.5 * y[3 + a]
+    top = half[0]
+    for a in range(1, d):
+        top = max(top, half[a])
+    vstar, sqd, x = _register_kernel(pts, y[0], y[1], y[2], c, s, half, m, 1e-9 * top, 2.0 * sigma**2)
+    sigma_hat = math.nan
+    if n >= 2:
+        ok, sigma_hat = _em_one_kernel(sqd, floor, tol, max_iter, dof)
+        if not ok:
+            return False, sigma, sigma_hat, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0), np.zeros(0)
+        if estimate and n >= min_points and math.isfinite(sigma_hat):
+            sigma = max(sigma_hat, floor)
+            x = _resp_exponents(sqd, 2.0 * sigma**2)
+    for k in range(n):
+        for j in range(m):
+            x[k, j] = math.exp(x[k, j])
+    resp = _normalise_rows(x)
+    info, eta = _information_kernel(vstar, resp, pts, B, BB)
+    ok, cov, mean, S0 = _posterior_kernel(P0, eta0, info, eta, sigma, G, S_ext, weight)
+    if not ok:
+        return False, sigma, sigma_hat, cov, mean, S0, np.zeros(0), np.zeros(0)
+    return True, sigma, sigma_hat, cov, mean, S0, _corner_quad_forms(J, cov), _quad_forms(K, cov)
 
 
 @kernel
