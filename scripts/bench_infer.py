@@ -148,6 +148,7 @@ def warm_stages(
     is what :func:`process_frame` spends around them (selection, row dicts, normalisation). The
     Arrow table and the Parquet bytes are made per chunk, as ``infer`` makes its shards.
     """
+    import gc
     import io
 
     from labelaudit import results as R
@@ -159,6 +160,15 @@ def warm_stages(
 
     clock = time.process_time
     acc: dict[str, float] = defaultdict(float)
+    gc_started = [0.0]
+
+    def gc_clock(phase: str, info: dict) -> None:  # the collector's pauses, whichever stage they fall in
+        if phase == "start":
+            gc_started[0] = clock()
+        else:
+            acc["gc (within the stages)"] += clock() - gc_started[0]
+
+    gc.callbacks.append(gc_clock)
     originals = {}
     crop_name = (
         "frame_evidence" if hasattr(rows_mod, "frame_evidence") else "crop_frame_pair"
@@ -221,6 +231,7 @@ def warm_stages(
                 n_obj += len(chunk_rows)
             total = clock() - t0
     finally:
+        gc.callbacks.remove(gc_clock)
         for name, f in originals.items():
             setattr(rows_mod, name, f)
     acc["rows"] = acc.pop("frame") - sum(acc[s] for s in ("crop", "infer_label", "jiou_gt", "fit_label", "hull_iou"))
@@ -230,7 +241,7 @@ def warm_stages(
 def bench_warm(data: Path, frames: int, repeat: int) -> None:
     runs = [warm_stages(data, frames) for _ in range(repeat)]
     n_frames, n_obj = runs[0][0], runs[0][1]
-    per = lambda key: [r[2][key] / r[0] * 1e3 for r in runs]  # noqa: E731
+    per = lambda key: [r[2].get(key, 0.0) / r[0] * 1e3 for r in runs]  # noqa: E731
     print(f"one warm process, {n_frames} frames, {n_obj / n_frames:.1f} boxes/frame, CPU ms per frame ({load()}):")
     print(
         f"  total                  {spread([r[3] / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (target ≤ 10 ms without the missing-label search)"
@@ -240,6 +251,20 @@ def bench_warm(data: Path, frames: int, repeat: int) -> None:
     )
     for stage in STAGES:
         print(f"    {stage:20s} {spread(per(stage))} ms")
+    print(f"    (garbage collector   {spread(per('gc (within the stages)'))} ms, counted in the stages above)")
+    from labelaudit import kernels as K
+
+    jitted = [name for name, k in K._REGISTRY.items() if getattr(k, "_jit", None) is not None]
+    mode, why = K.kernel_mode()
+    print(
+        f"    kernels: {mode} ({why}); "
+        + (
+            f"{len(jitted)} compiled by numba's JIT in this process (the build lacks their argument types; "
+            f"each costs its compile or cache load in the first repeat): {', '.join(jitted)}"
+            if jitted
+            else "none fell to numba's JIT"
+        )
+    )
 
 
 # --------------------------------------------------------------------------- ratio to the floor

@@ -3,9 +3,10 @@
 Prints, each repeated ``--repeat`` times (median and range, with the machine's load average):
 
   workers    480 simulated frames, ``labelaudit infer --workers 1`` and ``--workers 2`` (subprocesses):
-             wall time, start-up (until the first shard), CPU of the process tree, speed-up 2 vs 1.
-             Target: ≥ 1.8. Printed beside it: what the machine gives two busy pure-Python loops
-             (2.0 on two free cores; a shared VM often gives less, and it varies by the minute).
+             wall time, start-up (until the first shard), CPU of the process tree, speed-up 2 vs 1,
+             beside what the machine gives two busy pure-Python loops in the same repeat (2.0 on two
+             free cores; a shared VM often gives less, and it varies by the minute). Target: the
+             pool's speed-up ≥ 0.9 × the machine's own.
   dask       the same run with ``--scheduler local:2`` (a LocalCluster of 2 worker processes)
              against the 2-worker pool: wall time including the cluster's start, and the span from
              the first to the last shard. Target: within 10 %.
@@ -158,9 +159,13 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
             f"then {spread([r[3] for r in rs])} s), CPU {spread([r[1] for r in rs])} s, {statistics.median(frames / r[0] for r in rs):.1f} frames/s"
         )
     w1, w2 = [r[0] for r in runs["1 worker"]], [r[0] for r in runs["2 workers"]]
+    speedups = [a / b for a, b in zip(w1, w2)]
     print(
-        f"  speed-up 2 vs 1 workers, wall: {spread([a / b for a, b in zip(w1, w2)])}   (target ≥ 1.8; "
-        f"the machine's own for two busy loops, measured before each repeat: {spread(ceiling)})"
+        f"  speed-up 2 vs 1 workers, wall: {spread(speedups)}; the machine's own for two busy loops, "
+        f"measured before each repeat: {spread(ceiling)}"
+    )
+    print(
+        f"  pool's speed-up / the machine's own, per repeat: {spread([a / b for a, b in zip(speedups, ceiling)])}   (target ≥ 0.9)"
     )
     if with_dask:
         dk, pool = runs["dask local:2"], runs["2 workers"]
