@@ -56,6 +56,7 @@ FREE_SPACE_REACH = (
 FREE_SPACE_WEIGHT = 1.0  # √weight of a free-space ray row relative to a point row in the box fit
 FREE_SPACE_SLIT_PROB = 0.1  # prior probability that a ray through a right box's slab is a slit (cab–cargo gap, glass): the fit's ray rows are a robust mixture
 FREE_SPACE_SIGHT_ANGLE = 0.004  # rad (0.23°: a little more than one column of KITTI's, Waymo's, AV2's scanners); a ray through a box's slab that passes beyond the box's returns on both sides of its azimuth within this is see-through, not free space
+FREE_SPACE_SAME_RAY_ANGLE = 0.0005  # rad (0.03°); two returns this close in direction from the sensor lie on one ray (a second return): a single-return spinning lidar's beams are ≥ 0.14° apart
 FREE_SPACE_AZIMUTH_BINS = 2048  # azimuth buckets of the frame's points for the ray selection (speed only)
 LABEL_TOLERANCE = {
     "center": 0.10,

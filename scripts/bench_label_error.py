@@ -46,7 +46,7 @@ from labelaudit.config import resolve_config
 from labelaudit.infer.rows import process_frame
 from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.sim.benchmark import RankingRow, bin_index, ranking_table
-from labelaudit.sim.dataset import NoiseSpec, SceneSpec, SeeThrough, simulate_dataset
+from labelaudit.sim.dataset import LidarSpec, NoiseSpec, SceneSpec, SeeThrough, simulate_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_REAL = tuple(
@@ -179,6 +179,47 @@ def simulate(
     return sim
 
 
+def add_ground_behind(sim: Path, frames: int, seed: int, share: float, see_through: SeeThrough) -> int:
+    """Stress test (``--ground-behind F``): the same scenes with the road behind the vehicles visible
+    *through* them. For a share F of the rays a vehicle stops, a second return on the road where the
+    ray would have met it is appended to the frame's points (2 cm range noise), as if the ray had gone
+    on through glass or under the body — and a KITTI reader takes every point for the end of an
+    empty ray from the sensor, so the ray crosses the vehicle's whole height, lower body included.
+    The draws depend on the seed and the frame only. Returns the points added."""
+    from labelaudit.datasets.kitti import read_velodyne, write_velodyne
+    from labelaudit.sim.dataset import simulate_frame
+    from labelaudit.sim.raycast import RangeImage, render_range_image
+    from labelaudit.sim.scene import VEHICLE_CLASSES, Scene
+
+    added = 0
+    for i in range(frames):
+        fr = simulate_frame(
+            i, seed=seed, noise=NoiseSpec.benchmark(), see_through=see_through if see_through.active else None
+        )
+        road = render_range_image(Scene(ground_z=fr.scene.ground_z), LidarSpec())
+        vehicle = np.array([c in VEHICLE_CLASSES for c in fr.scene.class_names] + [False], dtype=bool)
+        hit = fr.range_image.hit
+        stopped = vehicle[np.where(hit >= 0, hit, len(vehicle) - 1)] & (road.range > 0)
+        rng = np.random.default_rng([seed, i, 0x9E0])
+        take = stopped & (rng.random(hit.shape) < share)
+        second = np.where(take, road.range + np.float32(0.02) * rng.standard_normal(hit.shape, dtype=np.float32), -1.0)
+        pts, _ = RangeImage(
+            second.astype(np.float32),
+            road.intensity,
+            road.hit,
+            road.inclinations,
+            road.azimuths,
+            road.extrinsic,
+            road.ray_counts,
+            road.visible_counts,
+            road.return_counts,
+        ).points()
+        path = sim / "training" / "velodyne" / f"{fr.frame_id}.bin"
+        write_velodyne(path, np.vstack([read_velodyne(path), pts]))
+        added += len(pts)
+    return added
+
+
 def infer(sim: Path, out: Path, workers: int, reuse: bool) -> Path:
     res = out / "results"
     mf = res / "manifest.json"
@@ -257,7 +298,15 @@ def joined_table(sim: Path, res: Path) -> dict[str, np.ndarray]:
 
 def synthetic(args: argparse.Namespace) -> str:
     see = SeeThrough(glass=args.see_through, under=args.under_chassis)
-    sim = simulate(args.out, args.frames, args.seed, args.workers, args.reuse, args.clutter, see)
+    sim = simulate(
+        args.out, args.frames, args.seed, args.workers, args.reuse and not args.ground_behind, args.clutter, see
+    )
+    if args.ground_behind:
+        n = add_ground_behind(sim, args.frames, args.seed, args.ground_behind, see)
+        print(
+            f"stress test: {n} second returns on the road behind the vehicles added ({args.ground_behind:.0%} of the rays they stop)",
+            flush=True,
+        )
     res = infer(sim, args.out, args.workers, args.reuse)
     t = joined_table(sim, res)
     scores = score_columns(t)
@@ -266,7 +315,8 @@ def synthetic(args: argparse.Namespace) -> str:
     n_pts = t["num_points"]
     md = [
         f"Synthetic: {args.frames} simulated frames (seed {args.seed}{', with clutter ' + str(CLUTTER) if args.clutter else ''}"
-        f"{f', see-through: glass {see.glass}, under the chassis {see.under}' if see.active else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
+        f"{f', see-through: glass {see.glass}, under the chassis {see.under}' if see.active else ''}"
+        f"{f', STRESS TEST: the road behind the vehicles seen through {args.ground_behind:.0%} of the rays they stop' if args.ground_behind else ''}), {len(kinds)} vehicle labels, {int(pos.sum())} perturbed "
         f"({', '.join(f'{k} {int((kinds == k).sum())}' for k in ('jitter', 'shift', 'swap_lw', 'yaw90'))}).\n"
     ]
     subsets = standard_subsets(n_pts, t["distance"])
@@ -812,6 +862,13 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         metavar="F",
         help="this share of the rays that meet a simulated vehicle below its ground clearance pass under it (default 0)",
+    )
+    ap.add_argument(
+        "--ground-behind",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="stress test: append a second return on the road behind the vehicles for this share of the rays they stop (the road seen through them, every height)",
     )
     ap.add_argument(
         "--ray-census",

@@ -417,3 +417,50 @@ def test_through_own_returns_known_answers():
     assert F.through_own_returns(box, fs, np.empty((0, 3)), 0.004).tolist() == [False]
     on = replace(fs, ends=np.array([[10.0, 0.0, 0.5]]))  # a ray that ends on the box is no ray through it
     assert F.through_own_returns(box, on, near, 0.004).tolist() == [False]
+
+
+def test_behind_other_returns_known_answers():
+    """A second return: another point on the same ray from the sensor, nearer than the ray's
+    deepest point in the box's slab, means the ray went on through something — not empty space."""
+    box = np.array([10.0, 0.0, 0.75, 4.0, 2.0, 1.5, 0.0])
+    origin = np.array([0.0, 0.0, 1.73])
+    end = np.array([14.0, 0.0, 0.0])  # down to the road at 14 m: in the slab from x = 9.1 m on
+
+    def flagged(*others):
+        pts = np.vstack([end[None, :], *[np.asarray(o, dtype=float)[None, :] for o in others]])
+        buckets = F.azimuth_buckets(pts, origin, box[None], 1.0)
+        fs = F.FreeSpace(
+            origin=origin, ends=end[None, :], ground=np.zeros(4), ref=box[:2].copy(), slab=(0.25, 0.6), tolerance=0.1
+        )
+        return F.behind_other_returns(box, fs, buckets, 0.0005).tolist()
+
+    on_ray = origin + (end - origin) * (8.0 / 14.0)  # 8 m out on the same ray (the box's near face)
+    assert flagged() == [False]
+    assert flagged(on_ray) == [True]
+    beyond = origin + (end - origin) * (11.5 / 14.0)  # on the ray but past its deepest point in the slab
+    assert flagged(beyond) == [False]
+    aside = on_ray + np.array([0.0, 0.016, 0.0])  # 2 mrad off the ray: the next column, not the same ray
+    assert flagged(aside) == [False]
+    above = on_ray + np.array([0.0, 0.0, 0.05])  # 6 mrad above it: the next beam
+    assert flagged(above) == [False]
+
+
+def test_the_road_seen_through_every_vehicle_does_not_call_correct_labels_wrong(monkeypatch):
+    """The road behind a car returns too, along every ray the car stops (a second return at every
+    height, as if the car were glass): each such ray crosses the car's solid slab. Taken for empty
+    rays they call the correct label wrong; as second returns they are left out."""
+    car = _car(10.0, -2.0, yaw=0.4)
+    scene = Scene([car])
+    ri = render_range_image(scene, LIDAR)
+    road = render_range_image(Scene(), LIDAR)
+    second = np.where((ri.hit == 0) & (road.range > 0), road.range, -1.0).astype(np.float32)
+    behind, _ = replace(road, range=second).points()
+    points = np.vstack([ri.points()[0], behind])
+    assert len(behind) > 300
+    right = _audit(points, car.box)
+    assert right["label_error"] < 0.5 and right["through_rays"] > 300 and right["free_rays"] < 10
+    assert _audit(points, _moved(car.box, cy=0.7))["label_error"] > 0.9
+    monkeypatch.setattr(C, "FREE_SPACE_SAME_RAY_ANGLE", 0.0)
+    monkeypatch.setattr(C, "FREE_SPACE_SIGHT_ANGLE", 0.0)
+    trusted = _audit(points, car.box)  # every point taken for the end of an empty ray
+    assert trusted["free_rays"] > 300 and trusted["label_error"] > right["label_error"]

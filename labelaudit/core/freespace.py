@@ -40,9 +40,11 @@ __all__ = [
     "AzimuthBuckets",
     "FreeSpace",
     "azimuth_buckets",
+    "behind_other_returns",
     "ground_heights",
     "label_ray_weights",
     "neighbourhoods",
+    "passing_rays",
     "ray_candidates",
     "ray_counts",
     "ray_depths",
@@ -379,23 +381,65 @@ def ray_depths(box: ArrayLike, fs: FreeSpace) -> tuple[FloatArray, FloatArray]:
     return dep, t
 
 
+def passing_rays(box: ArrayLike, fs: FreeSpace) -> tuple[NDArray[np.bool_], FloatArray]:
+    """The rays (M,) whose empty part passes through the slab of ``box`` deeper than τ and that end
+    behind or under it (not on or in it: the rule of ``free_rays``), and the distance (M,) from the
+    sensor to each one's deepest point in the slab (3-D, m; NaN for the others)."""
+    y = np.asarray(box, dtype=float)
+    m = fs.num_rays
+    passing = np.zeros(m, dtype=np.bool_)
+    reach = np.full(m, np.nan)
+    if m:
+        dep, t = ray_depths(y, fs)
+        _passing_kernel(
+            y,
+            fs.ends,
+            fs.origin,
+            dep,
+            t,
+            fs.tolerance,
+            fs.kernel_inputs()[0][2],
+            fs.object_height,
+            passing,
+            reach,
+        )
+    return passing, reach
+
+
+@kernel
+def _passing_kernel(y, ends, o, dep, t, tau, h_end, object_height, passing, reach):  # pragma: no cover - compiled
+    """:func:`passing_rays` per ray; ``h_end`` the rays' end heights above the ground."""
+    c, s = math.cos(y[6]), math.sin(y[6])
+    hl, hw, top = 0.5 * y[3], 0.5 * y[4], y[2] + 0.5 * y[5]
+    for k in range(ends.shape[0]):
+        if not dep[k] > tau:
+            continue
+        qx, qy = ends[k, 0] - y[0], ends[k, 1] - y[1]
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        if abs(px) <= hl + tau and abs(py) <= hw + tau and h_end[k] >= object_height and ends[k, 2] <= top + tau:
+            continue  # ends on or in the box: not a ray through it
+        dx, dy, dz = ends[k, 0] - o[0], ends[k, 1] - o[1], ends[k, 2] - o[2]
+        passing[k] = True
+        reach[k] = t[k] * math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 def through_own_returns(
     box: ArrayLike, fs: FreeSpace, own: ArrayLike, angle: float = C.FREE_SPACE_SIGHT_ANGLE
 ) -> NDArray[np.bool_]:
     """Rays (M,) that pass through the slab of ``box`` deeper than τ *beyond its own returns*: the
     object is see-through there, it is not empty space inside the box.
 
-    A ray whose empty part crosses the slab and that ends behind or under the box (not on or in it)
-    is flagged when the box's own returns ``own`` (the points of the object: inside its rectangle,
-    above the ground cut) lie on both sides of its azimuth within ``angle``, seen from the sensor,
-    more than τ nearer than the ray's deepest point in the slab. Rays in the same direction stopped
-    on the object in front of where this one went: this one passed under its chassis, through its
-    glass or an open structure (the real KITTI truck 000019:0 has 1,106 such rays under its
-    chassis). A label shifted, turned or grown into empty space covers road *beside* its object,
-    where no return of it lies in the rays' direction, so its free rays stay; "both sides" keeps the
-    rays just past the object's outline, which have its returns on one side only. The window is a
-    little more than one column of the scanner (KITTI's HDL-64E 0.17°, Waymo's top lidar 0.14°,
-    Argoverse 2's 0.2°), so a ray inside the outline has the neighbouring columns' returns.
+    A ray whose empty part crosses the slab and that ends behind or under the box
+    (:func:`passing_rays`) is flagged when the box's own returns ``own`` (the points of the object:
+    inside its rectangle, above the ground cut) lie on both sides of its azimuth within ``angle``,
+    seen from the sensor, more than τ nearer than the ray's deepest point in the slab. Rays in the
+    same direction stopped on the object in front of where this one went: this one passed under its
+    chassis, through its glass or an open structure (the real KITTI truck 000019:0 has 1,106 such
+    rays under its chassis). A label shifted, turned or grown into empty space covers road *beside*
+    its object, where no return of it lies in the rays' direction, so its free rays stay; "both
+    sides" keeps the rays just past the object's outline, which have its returns on one side only.
+    The window is a little more than one column of the scanner (KITTI's HDL-64E 0.17°, Waymo's top
+    lidar 0.14°, Argoverse 2's 0.2°), so a ray inside the outline has the neighbouring columns' returns.
 
     Parameters
     ----------
@@ -413,23 +457,19 @@ def through_own_returns(
     pts = np.asarray(own, dtype=float)
     if m == 0 or len(pts) == 0:
         return np.zeros(m, dtype=bool)
-    dep, t = ray_depths(y, fs)
+    passing, reach = passing_rays(y, fs)
     o = fs.origin
     centre = math.atan2(y[1] - o[1], y[0] - o[0])
     az = np.angle(np.exp(1j * (np.arctan2(pts[:, 1] - o[1], pts[:, 0] - o[0]) - centre)))
     order = np.argsort(az, kind="stable")
     out = np.zeros(m, dtype=np.bool_)
     _through_kernel(
-        y,
         fs.ends,
-        o[0],
-        o[1],
+        o,
         centre,
-        dep,
-        t,
+        passing,
+        reach,
         fs.tolerance,
-        fs.kernel_inputs()[0][2],
-        fs.object_height,
         np.ascontiguousarray(az[order]),
         np.ascontiguousarray(np.hypot(pts[order, 0] - o[0], pts[order, 1] - o[1])),
         float(angle),
@@ -439,25 +479,17 @@ def through_own_returns(
 
 
 @kernel
-def _through_kernel(
-    y, ends, ox, oy, centre, dep, t, tau, h_end, object_height, own_az, own_r, angle, out
-):  # pragma: no cover - compiled
+def _through_kernel(ends, o, centre, passing, reach, tau, own_az, own_r, angle, out):  # pragma: no cover - compiled
     """:func:`through_own_returns` per ray: ``own_az`` sorted azimuths of the own returns relative
-    to ``centre``, ``own_r`` their BEV ranges; ``h_end`` the rays' end heights above the ground."""
-    c, s = math.cos(y[6]), math.sin(y[6])
-    hl, hw, top = 0.5 * y[3], 0.5 * y[4], y[2] + 0.5 * y[5]
+    to ``centre``, ``own_r`` their BEV ranges."""
     n = own_az.shape[0]
     for k in range(ends.shape[0]):
-        if not dep[k] > tau:
+        if not passing[k]:
             continue
-        qx, qy = ends[k, 0] - y[0], ends[k, 1] - y[1]
-        px, py = c * qx + s * qy, -s * qx + c * qy
-        if abs(px) <= hl + tau and abs(py) <= hw + tau and h_end[k] >= object_height and ends[k, 2] <= top + tau:
-            continue  # ends on or in the box: not a ray through it
-        ex, ey = ends[k, 0] - ox, ends[k, 1] - oy
+        ex, ey, ez = ends[k, 0] - o[0], ends[k, 1] - o[1], ends[k, 2] - o[2]
         a = math.atan2(ey, ex) - centre
         a = (a + math.pi) % (2.0 * math.pi) - math.pi
-        deepest = t[k] * math.sqrt(ex * ex + ey * ey) - tau
+        deepest = reach[k] * math.sqrt(ex * ex + ey * ey) / math.sqrt(ex * ex + ey * ey + ez * ez) - tau  # BEV
         left = right = False  # a nearer return on each side: the ray is inside the object's outline, not past its edge
         i = np.searchsorted(own_az, a - angle)
         while i < n and own_az[i] <= a + angle and not (left and right):
@@ -468,6 +500,61 @@ def _through_kernel(
                     right = True
             i += 1
         out[k] = left and right
+
+
+def behind_other_returns(
+    box: ArrayLike, fs: FreeSpace, buckets: AzimuthBuckets, angle: float = C.FREE_SPACE_SAME_RAY_ANGLE
+) -> NDArray[np.bool_]:
+    """Rays (M,) through the slab of ``box`` (:func:`passing_rays`) that are *second returns*: another
+    point of the frame lies in the same direction from the sensor (within ``angle``) more than τ
+    nearer than the ray's deepest point in the slab. That point is on the ray: the ray went on
+    through something that returned — glass, foliage, a dual-return sensor's first return, the
+    road seen through a vehicle — so it is not an empty ray up to its end. Two returns of a
+    single-return spinning lidar are never this close in direction (its beams are ≥ 0.33° apart in
+    elevation, its columns 0.14–0.2° apart in azimuth). ``buckets`` must hold the frame's points
+    around the box (:func:`azimuth_buckets`); points nearer than every box of the frame are not in
+    them (they cannot be compared).
+    """
+    y = np.asarray(box, dtype=float)
+    m = fs.num_rays
+    out = np.zeros(m, dtype=np.bool_)
+    if m == 0 or len(buckets.order) == 0:
+        return out
+    passing, reach = passing_rays(y, fs)
+    nbins = len(buckets.starts) - 1
+    _same_ray_kernel(
+        fs.ends, fs.origin, passing, reach, fs.tolerance, buckets.sorted_xyz, buckets.starts, nbins, float(angle), out
+    )
+    return out
+
+
+@kernel
+def _same_ray_kernel(ends, o, passing, reach, tau, pts, starts, nbins, angle, out):  # pragma: no cover - compiled
+    """:func:`behind_other_returns` per ray: the points of the ray's azimuth bin and its two
+    neighbours (``pts`` in bucket order, ``starts`` the bins' first positions)."""
+    scale = nbins / 4.0
+    sin2 = math.sin(angle) ** 2
+    for k in range(ends.shape[0]):
+        if not passing[k]:
+            continue
+        ux, uy, uz = ends[k, 0] - o[0], ends[k, 1] - o[1], ends[k, 2] - o[2]
+        un = math.sqrt(ux * ux + uy * uy + uz * uz)
+        ux, uy, uz = ux / un, uy / un, uz / un
+        near2 = (reach[k] - tau) ** 2
+        q = min(max(int(_pseudo_angle(ends[k, 0] - o[0], ends[k, 1] - o[1]) * scale), 0), nbins - 1)
+        for dq in (-1, 0, 1):
+            b = (q + dq) % nbins
+            for i in range(starts[b], starts[b + 1]):
+                vx, vy, vz = np.float64(pts[i, 0]) - o[0], np.float64(pts[i, 1]) - o[1], np.float64(pts[i, 2]) - o[2]
+                v2 = vx * vx + vy * vy + vz * vz
+                if v2 >= near2 or v2 == 0.0:
+                    continue
+                cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # |u × v|² = sin² · |v|²
+                if cx * cx + cy * cy + cz * cz <= sin2 * v2 and ux * vx + uy * vy + uz * vz > 0.0:
+                    out[k] = True
+                    break
+            if out[k]:
+                break
 
 
 def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple[int, int] | list[tuple[int, int]]:

@@ -42,6 +42,7 @@ from labelaudit.config import CropParams
 from labelaudit.core.freespace import (
     FreeSpace,
     azimuth_buckets,
+    behind_other_returns,
     ground_heights,
     neighbourhoods,
     ray_candidates,
@@ -231,10 +232,10 @@ def frame_evidence(
             object_height=crop.ground_cut,
         )
         # rays that passed beyond the box's own returns saw through the object (under its chassis,
-        # through glass): not empty space inside the box
+        # through glass), and second returns went on through something nearer: not empty space inside the box
         through = through_own_returns(
             box, fs, _own_returns(near_xyz[j], box, planes[j], tau, crop.ground_cut), C.FREE_SPACE_SIGHT_ANGLE
-        )
+        ) | behind_other_returns(box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE)
         if through.any():
             fs = replace(fs, ends=fs.ends[~through])
         out.append(
