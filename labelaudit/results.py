@@ -249,7 +249,7 @@ COLUMNS: tuple[Column, ...] = (
         pa.int32(),
         True,
         "",
-        "rays through the label's solid lower body that passed beyond its own returns in the same direction (under a chassis, through glass): the object is see-through there; not counted in free_rays",
+        "rays through the label's solid lower body that passed beyond its own returns in the same direction (under a chassis, through glass) or are second returns (another point nearer on the same ray): not counted in free_rays",
         "model",
     ),
     Column(
