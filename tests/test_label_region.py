@@ -19,7 +19,7 @@ from labelaudit.core.geometry import near_polygons, transform_points
 from labelaudit.datasets import RegionOfInterest, in_labelled_region, open_dataset
 from labelaudit.datasets.av2 import ANNOTATIONS, POSES, SWEEP_DIR, read_city_poses
 from labelaudit.executors import SerialExecutor
-from labelaudit.infer.missing import find_missing
+from labelaudit.infer.missing import FrameDetections, find_missing
 from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.results import open_results
 from labelaudit.sim.av2_writer import write_annotations, write_sweep
@@ -261,8 +261,11 @@ def test_a_candidate_touching_a_no_label_zone_is_dropped():
     frame.no_label_zone = np.zeros(len(frame.points), dtype=bool)
     frame.no_label_zone[np.flatnonzero(frame.points[:, 0] > 40.0)[:50]] = True  # a zone elsewhere
     assert _best(find_missing(frame, cfg), 15.0, 3.0) >= 0.5
+    dets = FrameDetections(np.array([[15.0, 3.0, GROUND + 0.8, 4.4, 2.0, 1.6, 0.0]]), np.array([0.9]), ["Car"], ["d:1"])
+    assert _best(find_missing(frame, cfg, dets), 15.0, 3.0) >= 0.9
     frame.no_label_zone[np.flatnonzero(on_car)[:1]] = True  # one return of the car in a zone: Waymo's rule
     assert _best(find_missing(frame, cfg), 15.0, 3.0) == 0.0
+    assert find_missing(frame, cfg, dets) == []  # a detection there is not a candidate either
     with pytest.raises(ValueError, match="one flag per point"):
         replace(frame, no_label_zone=np.zeros(3, dtype=bool))
 
