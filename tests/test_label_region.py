@@ -15,6 +15,7 @@ import pytest
 
 from labelaudit import constants as C
 from labelaudit.config import RunConfig, resolve_config
+from labelaudit.core import geometry as g
 from labelaudit.core.geometry import near_polygons, transform_points
 from labelaudit.datasets import RegionOfInterest, in_labelled_region, open_dataset
 from labelaudit.datasets.av2 import ANNOTATIONS, POSES, SWEEP_DIR, read_city_poses
@@ -24,7 +25,8 @@ from labelaudit.infer.run import InferRequest, run_infer
 from labelaudit.results import open_results
 from labelaudit.sim.av2_writer import write_annotations, write_sweep
 from labelaudit.sim.waymo_writer import simulate_waymo_segment, write_waymo_v1, write_waymo_v2
-from labelaudit.viz.show import OTHER_LABEL_COLOUR, REGION_COLOUR, render_frame
+from labelaudit.viz.objects import frame_label_rows
+from labelaudit.viz.show import OTHER_LABEL_COLOUR, REGION_COLOUR, render_candidate, render_frame
 from test_av2 import T0, make_log
 from test_missing import GROUND, _best, _car_points, _frame
 
@@ -309,3 +311,21 @@ def test_the_frame_picture_draws_the_region_and_the_labels_not_audited():
     )
     assert _pixels(plain.png, REGION_COLOUR) == 0 and _pixels(drawn.png, REGION_COLOUR) > 100
     assert _pixels(plain.png, OTHER_LABEL_COLOUR) == 0 and _pixels(drawn.png, OTHER_LABEL_COLOUR) > 30
+
+
+def test_the_candidate_close_up_draws_the_labels_of_every_class():
+    boxes = [
+        [15.0, 5.5, GROUND + 0.9, 0.6, 0.6, 1.8, 0.0],  # a pedestrian beside the car: not audited
+        [15.0, 0.0, GROUND + 0.75, 4.0, 1.8, 1.5, 0.0],  # a car label
+        [15.0, 9.0, GROUND + 0.75, np.nan, 1.8, 1.5, 0.0],  # refused by the reader: no box to draw
+    ]
+    frame = _frame(_car_points(15.0, 3.0), boxes=boxes, names=["PEDESTRIAN", "REGULAR_VEHICLE", "BUS"])
+    frame.object_errors = {2: "row 2: length_m = nan"}
+    rows = frame_label_rows(frame)
+    assert [(r["object_index"], r["class_name"]) for r in rows] == [(0, "PEDESTRIAN"), (1, "REGULAR_VEHICLE")]
+    candidate = dict(zip(g.BOX_FIELDS, [15.0, 3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]))
+    candidate.update(
+        candidate_index=0, score=0.9, class_name="REGULAR_VEHICLE", source="points", num_points=100, distance=15.3
+    )
+    pic = render_candidate("f", frame.points, candidate, rows, (500, 450), frame.sensor_origin)
+    assert sorted(pic.label_classes) == ["PEDESTRIAN", "REGULAR_VEHICLE"]

@@ -79,6 +79,7 @@ def show(
         ViewError,
         candidate_row,
         frame_candidates,
+        frame_label_rows,
         frame_rows,
         load_frame,
         object_row,
@@ -117,7 +118,7 @@ def show(
             err().print(f"warning: {escape(note)}", soft_wrap=True)
         if cand is not None:
             fr = load_frame(source, frame)
-            png = render_candidate(frame, fr.points, cand, rows.to_pylist(), px, fr.sensor_origin).png
+            png = render_candidate(frame, fr.points, cand, frame_label_rows(fr), px, fr.sensor_origin).png
         elif row is not None:
             audit = recompute(source, row)
             for col, (want, got) in audit.mismatches(rtol=1e-6).items():

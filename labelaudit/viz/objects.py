@@ -54,6 +54,7 @@ __all__ = [
     "track_view",
     "frame_candidates",
     "candidate_row",
+    "frame_label_rows",
 ]
 
 AUDITED_STATUSES = ("ok", "few_points", "no_points")
@@ -217,6 +218,18 @@ def frame_candidates(results: Results, frame_id: str) -> list[dict[str, Any]]:
         return []
     rows = [r for r in table.filter(pc.equal(table.column("frame_id"), frame_id)).to_pylist()]
     return sorted(rows, key=lambda r: r["candidate_index"])
+
+
+def frame_label_rows(frame: Frame) -> list[dict[str, Any]]:
+    """Every usable label of a loaded frame, audited class or not, as the rows a close-up draws
+    (box columns, ``class_name``, ``object_index``): a label of any class explains the returns
+    around a missing-label candidate, so a reviewer sees them all (labels the reader refused are
+    left out: they have no box)."""
+    return [
+        {**dict(zip(g.BOX_FIELDS, box.tolist())), "class_name": name, "object_index": i}
+        for i, (box, name) in enumerate(zip(np.asarray(frame.boxes, dtype=float), frame.class_names))
+        if i not in frame.object_errors and np.all(np.isfinite(box))
+    ]
 
 
 def candidate_row(results: Results, frame_id: str, candidate_index: int) -> dict[str, Any]:

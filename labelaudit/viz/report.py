@@ -379,7 +379,7 @@ def missing_anchor(frame_id: str, candidate_index: int) -> str:
 def _missing(results: R.Results, top: int, dataset: str | Path | None, progress: Progress | None) -> dict[str, Any]:
     """The "possibly missing labels" section: counts, and the ``top`` likeliest candidates pictured."""
     from labelaudit.rank import MissingQuery, rank_missing, read_candidates
-    from labelaudit.viz.objects import frame_rows, load_frame, open_source
+    from labelaudit.viz.objects import frame_label_rows, load_frame, open_source
     from labelaudit.viz.show import EVIDENCE_COLUMNS, render_candidate
 
     table = read_candidates(results)
@@ -431,12 +431,14 @@ def _missing(results: R.Results, top: int, dataset: str | Path | None, progress:
         try:
             assert source is not None
             frame = load_frame(source, r["frame_id"])
-            try:
-                labels = frame_rows(results, r["frame_id"]).to_pylist()
-            except ViewError:  # a frame without labels
-                labels = []
             pic = render_candidate(
-                r["frame_id"], frame.points, r, labels, C.REPORT_GALLERY_SIZE, frame.sensor_origin, compact=True
+                r["frame_id"],
+                frame.points,
+                r,
+                frame_label_rows(frame),
+                C.REPORT_GALLERY_SIZE,
+                frame.sensor_origin,
+                compact=True,
             )
             entry["src"] = data_uri(pic.png)
         except (ViewError, DatasetError) as exc:
