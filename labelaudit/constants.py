@@ -236,6 +236,7 @@ MISSING_TALL_MARGIN = (
 )
 MISSING_MERGE_SIDE_CELLS = 2  # fragments whose footprints come within this many cells of each other are one object too (a side broken by a dark panel or glass)
 MISSING_CORNER_DEPTH = 1.5  # m; a face is part of a larger structure too where other returns at one of its ends run this far away from the sensor, square to it (a building's corner)
+MISSING_CORNER_START = 0.6  # m; … and begin within this of the face (a building's end wall meets its front; a hedge behind a parked car begins beyond the car's width)
 MISSING_REGION_SLACK = 3.0  # m; clusters whose centroid lies this far beyond the labelled range are not boxed (a box centre may lie farther than its returns)
 MISSING_CLASS_FIT = (
     0.5  # a candidate resembles the smallest class whose size score reaches this (else the best-scoring one)
@@ -252,7 +253,7 @@ MISSING_GROUND_DROP = (
     1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
 )
 MISSING_GROUND_OPENING = 9.0  # m; ground narrower than this square is not ground (an opening of the ground grid): an object in an occluder's shadow or between a far object's sparse road rings is not taken for the road
-MISSING_SPLITS = 2  # a cluster that fits no class is split at a gap at most this many times (two cars side by side, a car and a hedge)
+MISSING_SPLITS = 3  # a cluster that fits no class is split at a gap at most this many times (two cars side by side, a car and a hedge)
 MISSING_SPLIT_BIN = 0.1  # m; slices across a cluster's axes in which a gap between two objects is looked for
 MISSING_SPLIT_GAP = 0.1  # … a slice holding at most this share of the returns of an average occupied slice is a gap
 MISSING_SPLIT_MIN_PART = 1.0  # m; … with at least this much of the cluster on either side of it

@@ -312,6 +312,18 @@ def test_a_car_beside_a_hedge_is_found_and_the_hedge_is_not():
     assert _best(rows, 18.25, 5.0, radius=0.9) < 0.5
 
 
+def test_a_car_at_the_edge_of_the_camera_view_merged_with_a_hedge_outside_it_is_found():
+    """The merged cluster's centroid lies outside the camera's view, the car inside it: the cluster
+    is searched because one of its fragments is in view, and the split frees the car."""
+    rng = np.random.default_rng(2)
+    car = _car_points(8.0, 4.5)  # 29–34° off the camera's axis (its edge: 41.6°)
+    hedge = np.c_[
+        rng.uniform(2.0, 9.5, 4000), rng.uniform(5.8, 8.5, 4000), rng.uniform(GROUND + 0.3, GROUND + 1.8, 4000)
+    ]
+    rows = find_missing(_frame(car, hedge, view=_camera()), RunConfig())
+    assert _best(rows, 8.0, 4.5, radius=1.0) >= 0.5
+
+
 def test_a_truck_seen_from_a_corner_is_found_as_a_truck_and_a_wall_or_fence_as_long_is_not(monkeypatch):
     cfg = RunConfig()
     truck = _car_points(22.0, 6.0, length=10.0, width=2.5, height=3.2, step=0.1)
@@ -440,26 +452,35 @@ def test_clutter_stays_unlabelled(tmp_path):
 # --------------------------------------------------------------------------- real KITTI
 
 
-def test_a_real_car_removed_from_its_label_file_is_found(realdata, tmp_path):
+@pytest.mark.parametrize(
+    "folder, frame_id, line",
+    [
+        ("openpcdet-pr653-kitti", "000004", 1),  # a Car with ~70 points at 41 m
+        ("kitti-object-more", "000015", 1),  # a Car 4 m beside the sensor at the camera's edge, against a hedge
+        ("kitti-object-more", "000019", 1),  # a Truck 6 m away, seen from its corner
+    ],
+)
+def test_a_real_vehicle_removed_from_its_label_file_is_found(realdata, tmp_path, folder, frame_id, line):
     from labelaudit.datasets import FrameRef, open_dataset
 
-    src = realdata / "openpcdet-pr653-kitti" / "training"
-    if not (src / "label_2" / "000004.txt").is_file():
-        pytest.skip("frame 000004 not present")
+    src = realdata / folder / "training"
+    if not (src / "label_2" / f"{frame_id}.txt").is_file():
+        pytest.skip(f"{folder} frame {frame_id} not present")
     for sub in ("velodyne", "calib", "image_2"):
         (tmp_path / "training" / sub).mkdir(parents=True)
-        for f in (src / sub).glob("000004.*"):
+        for f in (src / sub).glob(f"{frame_id}.*"):
             (tmp_path / "training" / sub / f.name).symlink_to(f)
-    lines = (src / "label_2" / "000004.txt").read_text().splitlines(keepends=True)
+    lines = (src / "label_2" / f"{frame_id}.txt").read_text().splitlines(keepends=True)
     (tmp_path / "training" / "label_2").mkdir()
-    (tmp_path / "training" / "label_2" / "000004.txt").write_text("".join(lines[1:]))  # line 1: a Car with ~70 points
-    full = next(open_dataset(src.parent, "kitti").load_unit(FrameRef("kitti", str(src.parent), "000004")))
-    cut = next(open_dataset(tmp_path, "kitti").load_unit(FrameRef("kitti", str(tmp_path), "000004")))
-    car = full.boxes[0]
-    assert full.class_names[0] == "Car"
+    (tmp_path / "training" / "label_2" / f"{frame_id}.txt").write_text("".join(lines[: line - 1] + lines[line:]))
+    full = next(open_dataset(src.parent, "kitti").load_unit(FrameRef("kitti", str(src.parent), frame_id)))
+    cut = next(open_dataset(tmp_path, "kitti").load_unit(FrameRef("kitti", str(tmp_path), frame_id)))
+    k = list(full.extras["label_line"]).index(line)
+    vehicle = full.boxes[k]
+    assert full.class_names[k] in ("Car", "Van", "Truck")
     rows = find_missing(cut, RunConfig())
-    assert _best(rows, car[0], car[1], radius=1.0) >= 0.5
-    assert _best(find_missing(full, RunConfig()), car[0], car[1], radius=1.0) == 0.0
+    assert _best(rows, vehicle[0], vehicle[1], radius=1.0) >= 0.5
+    assert _best(find_missing(full, RunConfig()), vehicle[0], vehicle[1], radius=1.0) == 0.0
 
 
 def test_simulated_foliage_is_porous_and_solid_clutter_is_not():

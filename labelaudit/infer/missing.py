@@ -697,12 +697,14 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     keep &= g_over <= C.MISSING_MAX_OVER_SHARE * g_points  # walls, poles, trunks: they go on above the band
     keep &= g_top >= C.MISSING_MIN_TOP[0]  # kerbs, low walls, debris
     if keep.any():  # only where labels exist (the exact test is on the boxes; this spares boxing the rest)
-        sx = np.bincount(group, weights=extras[:, 5], minlength=k)[roots]
-        sy = np.bincount(group, weights=extras[:, 6], minlength=k)[roots]
-        probe = np.zeros((len(roots), 7))
-        probe[:, 0], probe[:, 1] = sx / np.maximum(g_points, 1), sy / np.maximum(g_points, 1)
+        # a group is kept when one of its fragments lies there: a car at the camera's edge merged with
+        # the hedge beside it has its centroid outside the view, its own returns inside (it is split later)
+        member = keep[np.searchsorted(roots, group)] & (stats[:, 0] >= C.MISSING_FRAGMENT_POINTS)
+        probe = np.zeros((int(member.sum()), 7))
+        probe[:, 0] = extras[member, 5] / stats[member, 0]
+        probe[:, 1] = extras[member, 6] / stats[member, 0]
         probe[:, 3:6] = 1.0
-        keep &= in_labelled_region(
+        inside = in_labelled_region(
             probe,
             frame,
             params.max_range + C.MISSING_REGION_SLACK,
@@ -710,6 +712,9 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
             slack_px=C.MISSING_IMAGE_SLACK,
             slack_m=C.MISSING_REGION_SLACK,
         )
+        hit = np.zeros(len(roots), dtype=bool)
+        hit[np.searchsorted(roots, group[member])[inside]] = True
+        keep &= hit
     chosen_roots = roots[keep]
     if len(chosen_roots) == 0:
         return []
@@ -827,7 +832,9 @@ def _continues(
         j = np.clip(((y - y0) / cell).astype(np.int64), 0, ny - 1)
         o = owner[i, j]
         hit = (o >= 0) & (o != own)
-        if np.any(hit) and np.ptp(depth[hit]) >= C.MISSING_CORNER_DEPTH:
+        # from the face's end on (a building's end wall meets its front; a hedge behind a car begins
+        # only beyond the car's width)
+        if np.any(hit) and depth[hit].min() <= C.MISSING_CORNER_START and np.ptp(depth[hit]) >= C.MISSING_CORNER_DEPTH:
             return True
     return False
 
