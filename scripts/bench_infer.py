@@ -135,6 +135,7 @@ def bench_startup(tmp: Path, seed: int, repeat: int, env: dict[str, str]) -> Non
 
 # --------------------------------------------------------------------------- one warm process
 
+WARM_FRAMES = 10  # frames run before the timed ones (fewer when the dataset has no more to spare)
 STAGES = ("read", "crop", "infer_label", "jiou_gt", "fit_label", "hull_iou", "rows", "missing", "arrow", "parquet")
 
 
@@ -160,6 +161,9 @@ def warm_stages(
 
     clock = time.process_time
     acc: dict[str, float] = defaultdict(float)
+    write = getattr(R, "write_parquet", None) or (  # a checkout before results.write_parquet: its writer
+        lambda table, sink: __import__("pyarrow.parquet").parquet.write_table(table, sink, compression="zstd")
+    )
     gc_started = [0.0]
 
     def gc_clock(phase: str, info: dict) -> None:  # the collector's pauses, whichever stage they fall in
@@ -198,7 +202,10 @@ def warm_stages(
         cfg = resolve_config(None, fmt, classes, model)
         reader = open_dataset(data, fmt)
         refs = reader.list_units()
-        warm, sample = (refs[:2], refs[2 : 2 + frames]) if len(refs) > 2 else (refs, refs)  # a Waymo segment: twice
+        # a Waymo segment: twice; else WARM_FRAMES first, so that one-time costs (a kernel's first call, a
+        # class prior's first use) stay out of the figures even when the frames sampled later need them
+        w = max(2, min(WARM_FRAMES, len(refs) - frames))
+        warm, sample = (refs[:w], refs[w : w + frames]) if len(refs) > 2 else (refs, refs)
         per_chunk = chunk_size_for(fmt, len(refs))
         for phase in (warm, sample):
             acc.clear()
@@ -226,7 +233,7 @@ def warm_stages(
                 table = R.rows_to_table(chunk_rows, normalized=True)
                 acc["arrow"] += clock() - t
                 t = clock()
-                R.write_parquet(table, io.BytesIO())  # as infer writes its shards
+                write(table, io.BytesIO())  # as infer writes its shards
                 acc["parquet"] += clock() - t
                 n_obj += len(chunk_rows)
             total = clock() - t0
@@ -244,7 +251,7 @@ def bench_warm(data: Path, frames: int, repeat: int) -> None:
     per = lambda key: [r[2].get(key, 0.0) / r[0] * 1e3 for r in runs]  # noqa: E731
     print(f"one warm process, {n_frames} frames, {n_obj / n_frames:.1f} boxes/frame, CPU ms per frame ({load()}):")
     print(
-        f"  total                  {spread([r[3] / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (target ≤ 10 ms without the missing-label search)"
+        f"  total                  {spread([r[3] / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (target ≤ 10 ms: the default infer, missing-label search included)"
     )
     print(
         f"  without `missing`      {spread([(r[3] - r[2]['missing']) / r[0] * 1e3 for r in runs], '{:.1f}')} ms   (--no-missing; the search adds the `missing` line, target ≤ 5 ms)"
