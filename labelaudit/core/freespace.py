@@ -424,7 +424,11 @@ def _passing_kernel(y, ends, o, dep, t, tau, h_end, object_height, passing, reac
 
 
 def through_own_returns(
-    box: ArrayLike, fs: FreeSpace, own: ArrayLike, angle: float = C.FREE_SPACE_SIGHT_ANGLE
+    box: ArrayLike,
+    fs: FreeSpace,
+    own: ArrayLike,
+    angle: float = C.FREE_SPACE_SIGHT_ANGLE,
+    passing: tuple[NDArray[np.bool_], FloatArray] | None = None,
 ) -> NDArray[np.bool_]:
     """Rays (M,) that pass through the slab of ``box`` deeper than τ *beyond its own returns*: the
     object is see-through there, it is not empty space inside the box.
@@ -447,6 +451,7 @@ def through_own_returns(
     fs : its rays (``fs.ends``, M) and ground
     own : (N, ≥3) the box's own returns
     angle : half-width of the azimuth window (rad): about one column of the sensor
+    passing : :func:`passing_rays` of ``box`` and ``fs``, when the caller has it
 
     Returns
     -------
@@ -457,7 +462,7 @@ def through_own_returns(
     pts = np.asarray(own, dtype=float)
     if m == 0 or len(pts) == 0:
         return np.zeros(m, dtype=bool)
-    passing, reach = passing_rays(y, fs)
+    crossing, reach = passing_rays(y, fs) if passing is None else passing
     o = fs.origin
     centre = math.atan2(y[1] - o[1], y[0] - o[0])
     az = np.angle(np.exp(1j * (np.arctan2(pts[:, 1] - o[1], pts[:, 0] - o[0]) - centre)))
@@ -467,7 +472,7 @@ def through_own_returns(
         fs.ends,
         o,
         centre,
-        passing,
+        crossing,
         reach,
         fs.tolerance,
         np.ascontiguousarray(az[order]),
@@ -503,7 +508,11 @@ def _through_kernel(ends, o, centre, passing, reach, tau, own_az, own_r, angle, 
 
 
 def behind_other_returns(
-    box: ArrayLike, fs: FreeSpace, buckets: AzimuthBuckets, angle: float = C.FREE_SPACE_SAME_RAY_ANGLE
+    box: ArrayLike,
+    fs: FreeSpace,
+    buckets: AzimuthBuckets,
+    angle: float = C.FREE_SPACE_SAME_RAY_ANGLE,
+    passing: tuple[NDArray[np.bool_], FloatArray] | None = None,
 ) -> NDArray[np.bool_]:
     """Rays (M,) through the slab of ``box`` (:func:`passing_rays`) that are *second returns*: another
     point of the frame lies in the same direction from the sensor (within ``angle``) more than τ
@@ -513,17 +522,18 @@ def behind_other_returns(
     single-return spinning lidar are never this close in direction (its beams are ≥ 0.33° apart in
     elevation, its columns 0.14–0.2° apart in azimuth). ``buckets`` must hold the frame's points
     around the box (:func:`azimuth_buckets`); points nearer than every box of the frame are not in
-    them (they cannot be compared).
+    them (they cannot be compared). ``passing``: :func:`passing_rays` of ``box`` and ``fs``, when the
+    caller has it.
     """
     y = np.asarray(box, dtype=float)
     m = fs.num_rays
     out = np.zeros(m, dtype=np.bool_)
     if m == 0 or len(buckets.order) == 0:
         return out
-    passing, reach = passing_rays(y, fs)
+    crossing, reach = passing_rays(y, fs) if passing is None else passing
     nbins = len(buckets.starts) - 1
     _same_ray_kernel(
-        fs.ends, fs.origin, passing, reach, fs.tolerance, buckets.sorted_xyz, buckets.starts, nbins, float(angle), out
+        fs.ends, fs.origin, crossing, reach, fs.tolerance, buckets.sorted_xyz, buckets.starts, nbins, float(angle), out
     )
     return out
 

@@ -45,6 +45,7 @@ from labelaudit.core.freespace import (
     behind_other_returns,
     ground_heights,
     neighbourhoods,
+    passing_rays,
     ray_candidates,
     through_own_returns,
 )
@@ -233,9 +234,13 @@ def frame_evidence(
         )
         # rays that passed beyond the box's own returns saw through the object (under its chassis,
         # through glass), and second returns went on through something nearer: not empty space inside the box
-        through = through_own_returns(
-            box, fs, _own_returns(near_xyz[j], box, planes[j], tau, crop.ground_cut), C.FREE_SPACE_SIGHT_ANGLE
-        ) | behind_other_returns(box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE)
+        crossing = passing_rays(box, fs)
+        through = np.zeros(fs.num_rays, dtype=bool)
+        if crossing[0].any():  # most right labels have no ray through them at all
+            own = _own_returns(near_xyz[j], box, planes[j], tau, crop.ground_cut)
+            through = through_own_returns(box, fs, own, C.FREE_SPACE_SIGHT_ANGLE, crossing) | behind_other_returns(
+                box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE, crossing
+            )
         if through.any():
             fs = replace(fs, ends=fs.ends[~through])
         out.append(
