@@ -62,3 +62,91 @@ def test_label_error_is_written_only_for_classes_it_is_validated_for():
         assert name not in C.LABEL_ERROR_CLASSES
         row = audit_object(CAR, pts, name, cfg)
         assert row["label_error"] is None and np.isfinite(row["fit_cx"]) and row["status"] == "ok"
+
+
+# --- the seen faces' gaps (docs/label-error.md, "Sizes: the seen faces' gaps") ------------------------
+
+BEHIND = np.array([0.0, 5.0, 1.7])  # the sensor straight behind CAR: only its −x face is seen
+BESIDE = np.array([15.0, 0.0, 1.7])  # the sensor beside CAR: only its −y face is seen
+
+
+def _lower_body(faces, n=400, noise=0.01, seed=0):
+    """Points of CAR's given faces (its lower body among them: face_points spreads them over the height)."""
+    return face_points(CAR, faces, n, noise, seed=seed)
+
+
+def test_face_gaps_known_answer():
+    pts = face_points(CAR, ["-x", "-y"], 400, 0.0)
+    gaps, counts = LF.face_gaps(CAR, pts, np.zeros(3))
+    # seen from the origin: −x and −y are seen (the sensor is beyond their planes), +x and +y are not
+    assert gaps[0] == pytest.approx(0.0, abs=1e-9) and gaps[2] == pytest.approx(0.0, abs=1e-9)
+    assert np.isnan(gaps[1]) and np.isnan(gaps[3])
+    # only the lower body counts: FREE_SPACE_SLAB above the bottom (0.25 m to 0.4 × 1.5 m), ~23 % of a face
+    assert 0.15 * 400 < counts[0] < 0.32 * 400
+    # a label 0.3 m longer and 0.2 m wider about the centre: each seen face lies half of that beyond its points
+    gaps, _ = LF.face_gaps(_moved(length=0.3, width=0.2), pts, np.zeros(3))
+    assert gaps[0] == pytest.approx(0.15, abs=1e-9) and gaps[2] == pytest.approx(0.10, abs=1e-9)
+    # 0.2 m shorter: the points lie outside the −x face (negative depth)
+    gaps, _ = LF.face_gaps(_moved(length=-0.2), pts, np.zeros(3))
+    assert gaps[0] == pytest.approx(-0.1, abs=1e-9)
+    # the FACE_GAP_QUANTILE of the depths: a few points outside the surface (mirrors, noise) do not move it
+    stray = CAR[:3] + np.array([[-2.2, 0.0, -0.3]] * 3)  # 0.1 m behind the −x face, in the lower body
+    gaps_stray, _ = LF.face_gaps(CAR, np.vstack([pts, stray]), np.zeros(3))
+    assert gaps_stray[0] == pytest.approx(0.0, abs=1e-9)
+    # fewer than FACE_GAP_MIN_POINTS points on a face: no gap
+    gaps, counts = LF.face_gaps(CAR, pts[:1], np.zeros(3))
+    assert np.all(np.isnan(gaps))
+
+
+@pytest.mark.parametrize(
+    "sensor, faces, field",
+    [(BEHIND, ["-x"], "length"), (BESIDE, ["-y"], "width")],
+    ids=["length-seen-from-behind", "width-seen-from-the-side"],
+)
+def test_a_size_error_on_the_seen_face_orders_perfect_slight_bad(sensor, faces, field):
+    pts = _lower_body(faces)
+    params = ModelParams()
+
+    def score(delta):
+        return LF.fit_label(_moved(**{field: delta}), pts, "Car", params, sensor_origin=sensor).label_error
+
+    # too long / too wide about the centre: the seen face lies beyond its points by half the error
+    assert score(0.0) < score(0.25) < score(0.5)
+    # too short / too narrow: the points fall outside the seen face
+    assert score(0.0) < score(-0.25) < score(-0.5)
+    # a face 0.25 m beyond its points is (0.25 − FACE_GAP) / FACE_GAP_STD ≈ 2.3 standard deviations
+    # of a right label's looseness: flagged at about 0.4; 0.25 m inside them adds the fit's own pull
+    assert score(0.0) < 0.01 and score(0.5) > 0.3 and score(-0.5) > 0.9
+    # without the sensor's position the faces' gaps are not known, and the fit alone does not see a
+    # loose (too long) label at all — the score before the face term
+    alone = LF.fit_label(_moved(**{field: 0.5}), pts, "Car", params).label_error
+    assert alone < 0.01
+
+
+def test_a_face_never_seen_gives_no_evidence():
+    # Seen from behind, the car's far end (+x face) is hidden by the car itself: a label 0.4 m too
+    # long *at that end* has the same seen-face gaps as the right label, and is not flagged.
+    pts = _lower_body(["-x"])
+    far_end = _moved(cx=0.2, length=0.4)
+    right = LF.fit_label(CAR, pts, "Car", ModelParams(), sensor_origin=BEHIND)
+    wrong = LF.fit_label(far_end, pts, "Car", ModelParams(), sensor_origin=BEHIND)
+    assert np.allclose(wrong.face_gaps, right.face_gaps, equal_nan=True)
+    assert np.isfinite(right.face_gaps[0]) and np.all(np.isnan(np.asarray(right.face_gaps)[1:]))
+    assert wrong.label_error < 0.1
+    # the same 0.4 m at the seen end is found
+    near_end = _moved(cx=-0.2, length=0.4)
+    assert LF.fit_label(near_end, pts, "Car", ModelParams(), sensor_origin=BEHIND).label_error > 0.9
+
+
+def test_the_score_adds_the_seen_faces_as_degrees_of_freedom():
+    pts = _lower_body(["-x", "-y"])
+    for label in (CAR, _moved(length=0.3), _moved(width=-0.3, cy=0.1)):
+        for kind, k in (("bev", 5), ("3d", 7)):
+            fit = LF.fit_label(label, pts, "Car", ModelParams(kind=kind), sensor_origin=np.zeros(3))
+            m = int(np.isfinite(fit.face_gaps).sum())
+            assert m == 2
+            want = chi2.cdf(fit.tolerance_distance**2 + fit.face_gap_distance**2, k + m)
+            assert fit.label_error == pytest.approx(want, abs=1e-12)
+    # non-vehicles (no solid lower body) get no face term
+    ped = LF.fit_label(CAR, pts, "Pedestrian", ModelParams(), sensor_origin=np.zeros(3))
+    assert np.all(np.isnan(ped.face_gaps)) and ped.face_gap_distance == 0.0

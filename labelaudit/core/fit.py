@@ -15,12 +15,19 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
-from labelaudit.core.freespace import FreeSpace, displacement, free_rows_kernel, label_ray_weights, ray_bounds
+from labelaudit.core.freespace import (
+    FreeSpace,
+    displacement,
+    free_rows_kernel,
+    ground_heights,
+    label_ray_weights,
+    ray_bounds,
+)
 from labelaudit.core.geometry import FloatArray
 from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
 from labelaudit.core.posterior import (
@@ -61,6 +68,12 @@ class LabelFit:
     iterations : EM iterations of the chosen start
     converged : whether the chosen start converged within the iteration cap
     swapped_start : the chosen fit started from the label with length and width swapped
+    face_gaps : (−length, +length, −width, +width) depth (m) inside the label's side face of the outer
+        surface its points show (:func:`face_gaps`); NaN for a face the sensor does not see, with too
+        few points, or when the sensor position is unknown
+    face_gap_distance : √Σ (gap − FACE_GAP)² / (FACE_GAP_STD² + σ²/n) over the seen faces: how far the
+        label's seen faces are from where a right label's lie, in their own standard deviations;
+        ``label_error`` = chi2.cdf(tolerance_distance² + face_gap_distance², k + faces)
     """
 
     model: ModelKind
@@ -75,6 +88,8 @@ class LabelFit:
     iterations: int
     converged: bool
     swapped_start: bool
+    face_gaps: tuple[float, float, float, float] = (math.nan,) * 4
+    face_gap_distance: float = 0.0
     _residual_inputs: tuple = field(default=(), repr=False, compare=False)  # (box, points, d, params, σ)
 
     @functools.cached_property
@@ -373,6 +388,59 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
 
 
 @kernel
+def _face_gaps_kernel(y, pts_t, d, sx, sy, quantile, min_points, gaps, counts):  # pragma: no cover - compiled
+    """Per side face of box ``y`` (−length, +length, −width, +width), the depth inside the face of its
+    outer surface — the ``quantile`` of the depths (m, negative outside) of the points (d, N)
+    registered to it — into ``gaps`` (4,), NaN for a face the sensor at (``sx``, ``sy``) does not
+    see (it is not beyond the face's plane in BEV) or with fewer than ``min_points`` points; the
+    points registered to each face into ``counts`` (4,).
+
+    A point is registered to the side face it lies furthest beyond, or, inside, nearest under (its
+    largest signed distance |x| − l/2 or |y| − w/2); a point nearer the top or bottom face (3D) is
+    no side's. The quantile is the order statistic of rank ⌊q (n − 1)⌋ (0-based, ascending).
+    """
+    c, s = math.cos(y[6]), math.sin(y[6])
+    h0, h1 = 0.5 * y[3], 0.5 * y[4]
+    h2 = 0.5 * y[5] if d == 3 else math.inf
+    rx, ry = sx - y[0], sy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry  # the sensor in the box frame
+    n = pts_t.shape[1]
+    face = np.empty(n, dtype=np.int64)
+    depth = np.empty(n)
+    for f in range(4):
+        counts[f] = 0
+    for k in range(n):
+        qx, qy = pts_t[0, k] - y[0], pts_t[1, k] - y[1]
+        l0, l1 = c * qx + s * qy, -s * qx + c * qy
+        e0, e1 = abs(l0) - h0, abs(l1) - h1
+        if e0 >= e1:
+            f, e = (1 if l0 > 0.0 else 0), e0
+        else:
+            f, e = (3 if l1 > 0.0 else 2), e1
+        if d == 3 and abs(pts_t[2, k] - y[2]) - h2 > e:
+            face[k] = -1
+            continue
+        face[k] = f
+        depth[k] = -e
+        counts[f] += 1
+    for f in range(4):
+        gaps[f] = math.nan
+        sign = 1.0 if f % 2 else -1.0
+        seen = sign * bx > h0 if f < 2 else sign * by > h1
+        m = counts[f]
+        if not seen or m == 0 or m < min_points:
+            continue
+        dep = np.empty(m)
+        j = 0
+        for k in range(n):
+            if face[k] == f:
+                dep[j] = depth[k]
+                j += 1
+        dep.sort()
+        gaps[f] = dep[int(quantile * (m - 1))]
+
+
+@kernel
 def _solve_spd(M, rhs):  # pragma: no cover - compiled
     """x with M x = rhs for a small symmetric positive definite M (p, p): Cholesky, two
     triangular substitutions (scalars only; a LAPACK call from here would need scipy)."""
@@ -474,6 +542,10 @@ def _fit_iterate_kernel(
                 phi = 0.5 * (phi_prev + phi)
                 y_cur = _rect_from_phi(phi, three_d, label, floor)
                 continue
+            if halved and np.max(np.abs(phi - phi_prev)) < tol:
+                # halved until it moved less than the tolerance: the descent has stopped here (a full
+                # step from here would overshoot again, and the iteration would cycle to its cap)
+                return phi, y_cur, it, True
             halved = 0
             e_prev = e_cur
         precision = P0 + ata * inv_s2
@@ -546,6 +618,8 @@ def _fit_precision_kernel(
             out[i, j] = 0.5 * (prec[i, j] + prec[j, i])
     return out, rr, ss, sw
 
+
+_NO_FACE_GAPS = np.full(4, np.nan)
 
 _NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0, np.empty(0))
 """Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
@@ -716,12 +790,76 @@ def _params_of_kind(params: ModelParams, kind: ModelKind) -> ModelParams:
     return out
 
 
+def face_gaps(
+    box: ArrayLike, points: ArrayLike, sensor_origin: ArrayLike, free_space: FreeSpace | None = None
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """How deep inside each side face of ``box`` (7,) the outer surface of its lower body lies.
+
+    Returns ``(gaps, counts)``, both (4,), in the order −length, +length, −width, +width face:
+    :data:`~labelaudit.constants.FACE_GAP_QUANTILE` of the depths inside the face (m; negative
+    outside) of the points (N, ≥2) registered to it, NaN for a face the sensor at
+    ``sensor_origin`` does not see (it is not beyond the face's plane, bird's-eye view) or with
+    fewer than :data:`~labelaudit.constants.FACE_GAP_MIN_POINTS` points; and the number of points
+    registered to each face. With z, only points of the solid lower body count —
+    ``free_space.slab`` above its local ground, or FREE_SPACE_SLAB above the box bottom without
+    ``free_space`` — and a point nearer the top or bottom face belongs to no side. A point belongs
+    to the side face it lies furthest beyond (outside the box) or nearest under (inside).
+
+    Above the lower body the surface is the cabin, windscreen and hood, inside a right label by
+    the vehicle's shape; a face whose lower body is hidden, or that the sensor never sees, has no
+    gap: nothing in the points says where it is.
+    """
+    y = g.validate_box(box)
+    pts = np.asarray(points, dtype=float)
+    d = 3 if pts.ndim == 2 and pts.shape[1] >= 3 else 2
+    return _slab_face_gaps(y, g.clean_points(pts, d), d, sensor_origin, free_space)
+
+
+def _slab_face_gaps(
+    y: FloatArray, pts: FloatArray, d: int, origin: ArrayLike, free_space: FreeSpace | None
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """:func:`face_gaps` of a valid box (7,) and clean points (N, d)."""
+    if d == 3:
+        if free_space is not None:
+            h = ground_heights(pts, free_space.ground, free_space.ref)
+            lo, hi = free_space.slab
+        else:
+            h = pts[:, 2] - (y[2] - 0.5 * y[5])
+            lo, hi = C.FREE_SPACE_SLAB[0], C.FREE_SPACE_SLAB[1] * y[5]
+        pts = pts[(h >= lo) & (h <= hi)]
+    o = np.asarray(origin, dtype=float).reshape(-1)
+    gaps, counts = np.empty(4), np.empty(4, dtype=np.int64)
+    _face_gaps_kernel(
+        y,
+        np.ascontiguousarray(pts.T),
+        d,
+        float(o[0]),
+        float(o[1]),
+        C.FACE_GAP_QUANTILE,
+        int(C.FACE_GAP_MIN_POINTS),
+        gaps,
+        counts,
+    )
+    return gaps, counts
+
+
+def _face_gap_d2(gaps: FloatArray, counts: NDArray[np.int64], sigma: float) -> tuple[float, int]:
+    """(Σ (gap − FACE_GAP)² / (FACE_GAP_STD² + σ²/n), number of seen faces) over the faces with a gap."""
+    d2, m = 0.0, 0
+    for gap, n in zip(gaps.tolist(), counts.tolist()):
+        if gap == gap:
+            d2 += (gap - C.FACE_GAP) ** 2 / (C.FACE_GAP_STD**2 + sigma * sigma / n)
+            m += 1
+    return d2, m
+
+
 def fit_label(
     box: ArrayLike,
     points: ArrayLike | None,
     class_name: str,
     params: ModelParams,
     free_space: FreeSpace | None = None,
+    sensor_origin: ArrayLike | None = None,
 ) -> LabelFit:
     """The model's suggested box for a label, and scores of how far the label is from it.
 
@@ -742,8 +880,14 @@ def fit_label(
     points agree with the label *or cannot tell* (few points: wide posterior), and near 1 when the
     points put the box clearly elsewhere. Rough reading: 0.5 ≈ two tolerances off in one parameter
     (≈ 20 cm), 0.9 ≈ three, 0.99 ≈ four.
+
+    With the sensor's position (``sensor_origin``, else ``free_space.origin``) the side faces the
+    sensor sees add one χ² term each to d² and one degree of freedom each to k: how far each lies
+    beyond its lower body's outer surface, against a right label's looseness
+    (:func:`face_gaps`; FACE_GAP ± FACE_GAP_STD) — what shows a label too long or too wide on a
+    seen face, whose points the fit treats as a loose label's. Vehicles only (a solid lower body).
     """
-    return fit_label_valid(g.validate_box(box), points, class_name, params, free_space)
+    return fit_label_valid(g.validate_box(box), points, class_name, params, free_space, sensor_origin=sensor_origin)
 
 
 def fit_label_valid(
@@ -754,6 +898,7 @@ def fit_label_valid(
     free_space: FreeSpace | None = None,
     *,
     prior_terms: BoxPriorTerms | None = None,
+    sensor_origin: ArrayLike | None = None,
 ) -> LabelFit:
     """:func:`fit_label` of a box (7,) float64 known to be valid (after
     :func:`~labelaudit.core.geometry.validate_box`): the pipeline validates each label once.
@@ -814,6 +959,14 @@ def fit_label_valid(
     d2_tol = float(delta.dot(W).dot(delta))
     d2 = float(delta.dot(_scored_metric(cov, model, scored)).dot(delta))
     k = 5 if scored == "bev" else 7
+    # The seen faces' gaps, at the label: the points say where a seen face's outer surface is, and a
+    # right label's face lies FACE_GAP ± FACE_GAP_STD beyond it. The fit cannot say this (points deep
+    # inside never pull a face in: a label too long or too wide there looks loose, not wrong).
+    origin = sensor_origin if sensor_origin is not None else (None if free_space is None else free_space.origin)
+    gaps, d2_gap, m = _NO_FACE_GAPS, 0.0, 0
+    if origin is not None and n and class_name in C.FREE_SPACE_CLASSES:
+        gaps, counts = _slab_face_gaps(y, pts, d, origin, free_space)
+        d2_gap, m = _face_gap_d2(gaps, counts, sigma)
 
     fit_v, label_v = y_fit.tolist(), y.tolist()  # Python floats: the same IEEE differences as y_fit − y
     diffs = [a - b for a, b in zip(fit_v, label_v)]
@@ -832,10 +985,12 @@ def fit_label_valid(
         offset_m=math.sqrt(dc.dot(dc)),  # = np.linalg.norm(dc)
         mahalanobis=math.sqrt(max(d2, 0.0)),
         tolerance_distance=math.sqrt(max(d2_tol, 0.0)),
-        label_error=_chi2_cdf(max(d2_tol, 0.0), k),
+        label_error=_chi2_cdf(max(d2_tol, 0.0) + d2_gap, k + m),
         iterations=iterations,
         converged=converged,
         swapped_start=is_swapped,
+        face_gaps=tuple(gaps.tolist()),
+        face_gap_distance=math.sqrt(d2_gap),
         _residual_inputs=(y_fit.copy(), pts, d, params, sigma) if n >= 2 else (),
     )
 

@@ -271,7 +271,13 @@ def audit_object(
         status = "ok"
     fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
     fit = fit_label_valid(
-        y, points if fit_points is None else fit_points, class_name, params, free_space=fs, prior_terms=terms
+        y,
+        points if fit_points is None else fit_points,
+        class_name,
+        params,
+        free_space=fs,
+        prior_terms=terms,
+        sensor_origin=sensor_origin,
     )
     row: dict[str, Any] = {
         "status": status,
