@@ -367,18 +367,22 @@ def near_polygons(
         cand = np.flatnonzero(~out & np.all((pts >= lo) & (pts <= hi), axis=1))
         if not len(cand):
             continue
-        p = pts[cand][:, None, :]  # (m, 1, 2) against the edges a → b (1, P, 2)
-        a, b = v[None, :, :], np.roll(v, -1, axis=0)[None, :, :]
-        ab = b - a
+        # the points (m, 1) against the edges a → b (P,), x and y apart (no (m, P, 2) temporaries)
+        px, py = pts[cand, 0:1], pts[cand, 1:2]
+        ax, ay = v[:, 0], v[:, 1]
+        by = np.roll(ay, -1)
+        dx, dy = np.roll(ax, -1) - ax, by - ay
         # even-odd crossings of the ray from p towards +x
-        straddle = (a[..., 1] > p[..., 1]) != (b[..., 1] > p[..., 1])
         with np.errstate(divide="ignore", invalid="ignore"):
-            x_cross = a[..., 0] + (p[..., 1] - a[..., 1]) * ab[..., 0] / ab[..., 1]
-        inside = np.count_nonzero(straddle & (p[..., 0] < x_cross), axis=1) % 2 == 1
+            x_cross = ax + (py - ay) * (dx / dy)
+        inside = np.count_nonzero(((ay > py) != (by > py)) & (px < x_cross), axis=1) % 2 == 1
         # distance to the nearest edge (a degenerate edge is its point)
-        len2 = np.einsum("...k,...k->...", ab, ab)
-        t = np.clip(np.einsum("...k,...k->...", p - a, ab) / np.where(len2 > 0, len2, 1.0), 0.0, 1.0)
-        d2 = np.einsum("...k,...k->...", p - a - t[..., None] * ab, p - a - t[..., None] * ab)
+        len2 = dx * dx + dy * dy
+        inv = np.where(len2 > 0, 1.0 / np.where(len2 > 0, len2, 1.0), 0.0)
+        rx, ry = px - ax, py - ay
+        t = np.clip((rx * dx + ry * dy) * inv, 0.0, 1.0)
+        ex, ey = rx - t * dx, ry - t * dy
+        d2 = ex * ex + ey * ey
         out[cand] = inside | (d2.min(axis=1) <= margin * margin)
     return out
 
