@@ -481,10 +481,11 @@ def _jaccard_numpy(p, q, c, p_outside=0.0, q_outside=0.0):
 
 
 def test_compiled_jaccard_equals_the_numpy_form():
-    """jaccard's compiled split, sort and sums give the NumPy form's value: bit for bit when no two
-    cells have the same ratio p/q, within the last bits when some do (the compiled sort orders ties
-    otherwise; tied cells give equal terms in any order, only the rounding of the sums moves).
-    Sparse supports, tied ratios, merged cells (counts) and mass outside the listed cells."""
+    """jaccard's compiled split and sums give the NumPy form's value bit for bit, and the one-pass
+    kernel of the BEV JIoU-GT (numba's sort) gives it bit for bit when no two cells have the same
+    ratio p/q, within the last bits when some do (tied cells give equal terms in any order, only
+    the rounding of the sums moves). Sparse supports, tied ratios, merged cells (counts) and mass
+    outside the listed cells."""
     rng = np.random.default_rng(8)
     for trial in range(80):
         n = int(rng.integers(1, 5000))
@@ -495,8 +496,11 @@ def test_compiled_jaccard_equals_the_numpy_form():
             q[rng.random(n) < 0.5] = 0.5
         c = np.ones(n) if trial % 2 else rng.integers(1, 9, n).astype(float)
         po, qo = (0.0, 0.0) if trial % 4 else tuple(rng.uniform(0, 3, 2))
-        got, want = sp.jaccard(p, q, c, po, qo), _jaccard_numpy(p, q, c, po, qo)
+        want = _jaccard_numpy(p, q, c, po, qo)
+        assert sp.jaccard(p, q, c, po, qo) == want, trial
+        negative, got = sp._jaccard_kernel(p, q, c, float(po), float(qo))
         both = (p > 0) & (q > 0)
+        assert not negative
         if np.unique(p[both] / q[both]).size == np.count_nonzero(both):
             assert got == want, trial
         else:

@@ -884,17 +884,22 @@ def jaccard(
         raise ValueError(f"p, q (and counts) must have the same number of cells, got {p.size}, {q.size}, {c.size}")
     # Cells with q = 0 (r = ∞) are in every p-suffix, cells with p = 0 (r = 0) in every q-prefix:
     # only the cells where both are positive need sorting.
-    negative, value = _jaccard_kernel(p, q, c, float(p_outside), float(q_outside))
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, float(p_outside), float(q_outside))
     if negative:
         raise ValueError("p and q must be non-negative")
-    return float(value)
+    if not pb.size:
+        return 0.0
+    # NumPy's sort, not numba's: a 3D grid has 10⁴–10⁵ cells, most of them tied (the interior), and
+    # NumPy's vectorised sort takes a third of the time numba's quicksort does there
+    return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only))
 
 
 @kernel(error_model="numpy")
 def _jaccard_kernel(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
-    """(a mass is negative, J) of :func:`jaccard` in one pass: split, sort by r, sums. Cells of
-    equal r give equal terms whatever their order (the max picks p_j/p_i = q_j/q_i), so the sort's
-    order of ties only moves the last bits."""
+    """(a mass is negative, J) of :func:`jaccard` in one compiled pass — split, sort by r, sums —
+    for the BEV JIoU-GT's ~10³ cells, where numba's sort is as fast as NumPy's. Cells of equal r give
+    equal terms whatever their order (the max picks p_j/p_i = q_j/q_i), so the sort's order of
+    ties (another algorithm than NumPy's) only moves the last bits."""
     negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, p_outside, q_outside)
     if negative or pb.size == 0:
         return negative, 0.0
