@@ -79,11 +79,13 @@ class Cluster:
 
 @kernel
 def _ground_grid(
-    xyz, ox, oy, oz, x0, y0, cell, n0, n1, reach2, rank, nbins, drop, slope_floor, reach
+    xyz, ox, oy, oz, x0, y0, cell, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread
 ):  # pragma: no cover - compiled
     """Ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
-    high the sensor sees at a range (a tilted sensor sees higher on one side than on the other).
+    high the sensor sees at a range (a tilted sensor sees higher on one side than on the other);
+    a bin whose top lies more than ``spread`` (radians) under the frame's highest holds some lower
+    value (its users take it no lower than that).
 
     A cell's floor is its ``rank``-th lowest return (a few returns below the road — reflections
     off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
@@ -91,6 +93,7 @@ def _ground_grid(
     whose cells hold no road returns, it comes from the road beside it."""
     low = np.full((n0, n1, rank), np.inf)
     top = np.full(nbins, -np.inf)
+    highest, cut = -np.inf, -np.inf
     for k in range(xyz.shape[0]):
         dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
         r2 = dx * dx + dy * dy
@@ -101,9 +104,15 @@ def _ground_grid(
         # only returns above the sensor's lower beams can be a top beam's (spares a sqrt and an atan2 per return)
         if r2 > 4.0 and (dz >= 0.0 or dz * dz < slope_floor * slope_floor * r2):
             s = dz / math.sqrt(r2)
-            b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
-            if s > top[b]:
-                top[b] = s
+            if s > highest:
+                highest = s
+                cut = math.tan(math.atan(highest) - spread)
+            # a direction's top beam is used no lower than ``spread`` under the frame's highest: below
+            # that its value does not matter (spares the atan2 of most returns)
+            if s >= cut:
+                b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
+                if s > top[b]:
+                    top[b] = s
         i = int((xyz[k, 0] - x0) / cell)
         j = int((xyz[k, 1] - y0) / cell)
         if 0 <= i < n0 and 0 <= j < n1 and z < low[i, j, rank - 1]:
@@ -233,17 +242,24 @@ def _occupancy(
     xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, mask, x0, y0, cell, nx, ny, lo, hi, tall
 ):  # pragma: no cover - compiled
     """The returns in the search band — their indices, cells (flat index) and heights above the
-    ground, (B,) each — and per cell the band returns (nx, ny) and the returns above the band up to
-    ``tall``. All around the sensor, whatever the labelled region: a wall that leaves the camera's
-    view is still one wall."""
+    ground, (B,) each — per cell the band returns (nx, ny) and the returns above the band up to
+    ``tall``, and the cells holding band returns (flat indices, ascending). All around the sensor,
+    whatever the labelled region: a wall that leaves the camera's view is still one wall."""
     m = xyz.shape[0]
     band_idx = np.empty(m, dtype=np.int64)
     band_cell = np.empty(m, dtype=np.int64)
     band_h = np.empty(m)
+    occupied = np.empty(m, dtype=np.int64)
     nb = 0
+    no = 0
     counts = np.zeros((nx, ny), dtype=np.int32)
     over = np.zeros((nx, ny), dtype=np.int32)
     for k in range(m):
+        # the cheapest tests first: most returns lie outside the grid (behind a forward camera) or under a label
+        i = int((xyz[k, 0] - x0) / cell)
+        j = int((xyz[k, 1] - y0) / cell)
+        if i < 0 or j < 0 or i >= nx or j >= ny or mask[i, j]:
+            continue
         dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
         r2 = dx * dx + dy * dy
         if r2 < near2 or r2 > far2:
@@ -255,11 +271,10 @@ def _occupancy(
         h = xyz[k, 2] - ground[gi, gj]
         if h < lo or h > tall:
             continue
-        i = int((xyz[k, 0] - x0) / cell)
-        j = int((xyz[k, 1] - y0) / cell)
-        if i < 0 or j < 0 or i >= nx or j >= ny or mask[i, j]:
-            continue
         if h <= hi:
+            if counts[i, j] == 0:
+                occupied[no] = i * ny + j
+                no += 1
             counts[i, j] += 1
             band_idx[nb] = k
             band_cell[nb] = i * ny + j
@@ -267,7 +282,7 @@ def _occupancy(
             nb += 1
         else:
             over[i, j] += 1
-    return band_idx[:nb], band_cell[:nb], band_h[:nb], counts, over
+    return band_idx[:nb], band_cell[:nb], band_h[:nb], counts, over, np.sort(occupied[:no])
 
 
 @kernel
@@ -638,12 +653,13 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         C.MISSING_GROUND_DROP,
         math.tan(math.radians(C.MISSING_CEILING_FLOOR)),
         opening,
+        math.radians(C.MISSING_CEILING_SPREAD),
     )
     nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
     mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
     lo, hi = C.MISSING_BAND
-    band_idx, band_cell, band_h, counts, over = _occupancy(
+    band_idx, band_cell, band_h, counts, over, occupied = _occupancy(
         xyz,
         ox,
         oy,
@@ -663,7 +679,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         hi,
         C.MISSING_TALL,
     )
-    comp, stats = _components(counts, over, np.flatnonzero(counts))
+    comp, stats = _components(counts, over, occupied)
     if len(stats) == 0:
         return []
     extras = _comp_extras(xyz, band_idx, band_cell, band_h, comp.ravel(), len(stats), ox, oy)
