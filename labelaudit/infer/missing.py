@@ -157,61 +157,40 @@ def _ground_grid(
     # — a slope, a raised pavement, the road — and takes away what is narrower: an object whose 3 × 3
     # cells hold only its own returns (in an occluder's shadow, or between a far object's sparse road
     # rings), whose lowest return would otherwise be taken for the road
-    eroded = _window_extreme(_window_extreme(ground, reach, True, False), reach, True, True)
-    eroded = np.where(ground < np.inf, eroded, np.inf)  # only cells with returns of their own show ground
-    opened = _window_extreme(_window_extreme(eroded, reach, False, False), reach, False, True)
+    eroded = _square_min(ground, reach)
+    # the highest of those over the square, as minus the lowest of their negatives; only cells with
+    # returns of their own show ground (the others are +inf, never the lowest)
+    negated = np.where(ground < np.inf, -eroded, np.inf)
+    lowest = _square_min(negated, reach)
     out = np.full((n0, n1), np.inf)
     for i in range(n0):
         for j in range(n1):
             if ground[i, j] < np.inf:
-                out[i, j] = min(ground[i, j], opened[i, j])
+                out[i, j] = min(ground[i, j], -lowest[i, j])
     return out, top
 
 
 @kernel
-def _window_extreme(a, reach, lowest, columns):  # pragma: no cover - compiled
-    """(n0, n1): per cell the lowest (``lowest``) or highest finite value of ``a`` within ``reach``
-    cells along its row (``columns``: along the second index) or its column; inf where there is none.
-    Van Herk's running extremes over blocks of the window's width: three passes per line, whatever
-    the reach."""
+def _row_min(a, reach):  # pragma: no cover - compiled
+    """(n0, n1): per cell the lowest value of ``a`` (n0, n1) within ``reach`` cells along its row
+    (the second index; inf where all are inf)."""
     n0, n1 = a.shape
-    size = n1 if columns else n0
-    lines = n0 if columns else n1
-    w = 2 * reach + 1
-    fill = np.inf if lowest else -np.inf  # no value: never chosen
-    m = size + 2 * reach
-    buf = np.empty(m)
-    pre = np.empty(m)
-    suf = np.empty(m)
     out = np.empty((n0, n1))
-    for line in range(lines):
-        for k in range(m):
-            t = k - reach
-            v = fill
-            if 0 <= t < size:
-                v = a[line, t] if columns else a[t, line]
-                if v == np.inf or v == -np.inf:
-                    v = fill
-            buf[k] = v
-        for k in range(m):
-            if k % w == 0:
-                pre[k] = buf[k]
-            else:
-                pre[k] = min(pre[k - 1], buf[k]) if lowest else max(pre[k - 1], buf[k])
-        for k in range(m - 1, -1, -1):
-            if k == m - 1 or (k + 1) % w == 0:
-                suf[k] = buf[k]
-            else:
-                suf[k] = min(suf[k + 1], buf[k]) if lowest else max(suf[k + 1], buf[k])
-        for t in range(size):
-            v = min(suf[t], pre[t + 2 * reach]) if lowest else max(suf[t], pre[t + 2 * reach])
-            if v == fill:
-                v = np.inf
-            if columns:
-                out[line, t] = v
-            else:
-                out[t, line] = v
+    for i in range(n0):
+        for j in range(n1):
+            v = np.inf
+            for jj in range(max(0, j - reach), min(n1, j + reach + 1)):
+                if a[i, jj] < v:
+                    v = a[i, jj]
+            out[i, j] = v
     return out
+
+
+@kernel
+def _square_min(a, reach):  # pragma: no cover - compiled
+    """(n0, n1): the lowest value of ``a`` within a square of side 2·reach + 1 cells around each cell."""
+    rows = _row_min(a, reach)
+    return np.ascontiguousarray(_row_min(np.ascontiguousarray(rows.T), reach).T)
 
 
 @kernel
