@@ -342,6 +342,21 @@ def test_a_truck_seen_from_a_corner_is_found_as_a_truck_and_a_wall_or_fence_as_l
     assert max(c.score for c in search_clusters(_frame(wall, sky), cfg)) >= 0.5
 
 
+def test_a_truck_sized_l_whose_short_leg_goes_on_in_line_is_a_building_corner():
+    """The same L-shape as a truck seen from its corner, but its short leg (the rear) goes on in line
+    past a gap: the end wall of a building broken by a window, not a truck."""
+    cfg = RunConfig()
+    az = np.radians(np.arange(-90.0, 90.0, 0.2))
+    sky = np.c_[60.0 * np.cos(az), 60.0 * np.sin(az), np.full(len(az), 6.0)]
+    truck = _car_points(22.0, 6.0, length=10.0, width=2.5, height=3.2, step=0.1)
+    beyond = _face((17.0, 7.85), (17.0, 9.85), GROUND + 0.1, GROUND + 3.2, 0.1)  # the rear's line, 0.6 m on
+    assert max(c.score for c in search_clusters(_frame(truck, sky), cfg)) >= 0.5
+    near = [
+        c for c in search_clusters(_frame(truck, beyond, sky), cfg) if math.hypot(c.box[0] - 22.0, c.box[1] - 6.0) < 3.0
+    ]
+    assert near and max(c.score for c in near) < 0.5
+
+
 def test_nothing_inside_the_ego_zone_or_beyond_the_labelled_range():
     cfg = RunConfig()
     near = _car_points(2.5, 0.0)

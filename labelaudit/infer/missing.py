@@ -921,6 +921,14 @@ def _box_cluster(
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo):
         shape_score = 0.0
+    # a class seen as an L-shape (a truck): its short leg ends too (a building's end wall, broken into
+    # pieces by windows or an occluder, goes on in line with it)
+    if (
+        grid is not None
+        and best_name in C.MISSING_CLASS_MIN_CORNER
+        and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 < e2, po, qo)
+    ):
+        shape_score = 0.0
     whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
     if splits > 0 and size_score < C.MISSING_CLASS_FIT:  # no class fits: maybe two objects
         parts = _split(xy, c, s)
