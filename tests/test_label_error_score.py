@@ -114,9 +114,9 @@ def test_a_size_error_on_the_seen_face_orders_perfect_slight_bad(sensor, faces, 
     assert score(0.0) < score(0.25) < score(0.5)
     # too short / too narrow: the points fall outside the seen face
     assert score(0.0) < score(-0.25) < score(-0.5)
-    # a face 0.25 m beyond its points is (0.25 − FACE_GAP) / FACE_GAP_STD ≈ 2.3 standard deviations
-    # of a right label's looseness: flagged at about 0.4; 0.25 m inside them adds the fit's own pull
-    assert score(0.0) < 0.01 and score(0.5) > 0.3 and score(-0.5) > 0.9
+    # a face 0.25 m beyond its points is (0.25 − FACE_GAP) / FACE_GAP_STD ≈ 2.9 standard deviations
+    # of a right label's looseness: flagged at about 0.7; 0.25 m inside them adds the fit's own pull
+    assert score(0.0) < 0.01 and score(0.5) > 0.5 and score(-0.5) > 0.9
     # without the sensor's position the faces' gaps are not known, and the fit alone does not see a
     # loose (too long) label at all — the score before the face term
     alone = LF.fit_label(_moved(**{field: 0.5}), pts, "Car", params).label_error
@@ -150,3 +150,25 @@ def test_the_score_adds_the_seen_faces_as_degrees_of_freedom():
     # non-vehicles (no solid lower body) get no face term
     ped = LF.fit_label(CAR, pts, "Pedestrian", ModelParams(), sensor_origin=np.zeros(3))
     assert np.all(np.isnan(ped.face_gaps)) and ped.face_gap_distance == 0.0
+
+
+def test_face_gaps_count_the_lower_body_above_the_local_ground():
+    # The kernel's slab selection equals the NumPy form (ground_heights of the free space's plane):
+    # the gaps of the points within FREE_SPACE_SLAB above a sloped ground are those of that subset.
+    from labelaudit.core.freespace import FreeSpace, ground_heights
+
+    rng = np.random.default_rng(3)
+    pts = face_points(CAR, ["-x", "-y"], 300, 0.01, seed=3)
+    pts = np.vstack([pts, CAR[:3] + rng.uniform(-2.5, 2.5, (200, 3))])  # clutter at every height
+    ground = np.array([0.05, 0.03, -0.02, 0.0])  # 3 % and 2 % slopes, 5 cm up at the label's centre
+    fs = FreeSpace(np.zeros(3), np.zeros((0, 3)), ground, CAR[:2].copy(), (0.25, 0.6), 0.1)
+    h = ground_heights(pts, fs.ground, fs.ref)
+    lower = pts[(h >= 0.25) & (h <= 0.6)]
+    got, counts = LF.face_gaps(CAR, pts, np.zeros(3), fs)
+    # the same points with a flat ground far below: every one of them is in the slab
+    flat = FreeSpace(
+        np.zeros(3), np.zeros((0, 3)), np.array([-100.0, 0.0, 0.0, 0.0]), CAR[:2].copy(), (0.0, 200.0), 0.1
+    )
+    want, want_counts = LF.face_gaps(CAR, lower, np.zeros(3), flat)
+    assert np.array_equal(got, want, equal_nan=True) and np.array_equal(counts, want_counts)
+    assert 0 < counts.sum() < len(pts)
