@@ -218,6 +218,14 @@ COLUMNS: tuple[Column, ...] = (
         "model",
     ),
     Column(
+        "face_gap",
+        pa.float64(),
+        True,
+        "m",
+        "of the side faces of the label the sensor sees, the one furthest from where a right label's lies: how far it lies beyond its lower body's outer surface (positive: beyond the points, a label too long or wide there; negative: points outside it); null when no side face is seen",
+        "model",
+    ),
+    Column(
         "hull_iou",
         pa.float64(),
         True,

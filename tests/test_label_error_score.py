@@ -172,3 +172,24 @@ def test_face_gaps_count_the_lower_body_above_the_local_ground():
     want, want_counts = LF.face_gaps(CAR, lower, np.zeros(3), flat)
     assert np.array_equal(got, want, equal_nan=True) and np.array_equal(counts, want_counts)
     assert 0 < counts.sum() < len(pts)
+
+
+def test_the_row_names_the_seen_face_furthest_from_a_right_labels():
+    # A label 0.4 m too long seen from behind: its rear face lies 0.2 m beyond the points, and the
+    # row says so (the suggested box keeps the label's length: deep points do not pull a face in).
+    from labelaudit.config import resolve_config
+    from labelaudit.infer.rows import audit_object
+
+    pts = _lower_body(["-x"])
+    too_long = _moved(length=0.4)
+    fit = LF.fit_label(too_long, pts, "Car", ModelParams(), sensor_origin=BEHIND)
+    assert fit.face_gap == pytest.approx(0.2, abs=0.03) and fit.label_error > 0.3
+    row = audit_object(too_long, pts, "Car", resolve_config(None, "kitti"), BEHIND)
+    assert row["face_gap"] == pytest.approx(fit.face_gap)
+    # the most-off face is chosen by its distance from FACE_GAP, and its sign is kept
+    two = LF.fit_label(
+        _moved(length=-0.3, width=0.1), _lower_body(["-x", "-y"]), "Car", ModelParams(), sensor_origin=np.zeros(3)
+    )
+    assert two.face_gap == pytest.approx(-0.15, abs=0.03)
+    # no side face seen (the sensor's position unknown): null
+    assert np.isnan(LF.fit_label(too_long, pts, "Car", ModelParams()).face_gap)

@@ -91,6 +91,12 @@ class LabelFit:
     face_gap_distance: float = 0.0
     _residual_inputs: tuple = field(default=(), repr=False, compare=False)  # (box, points, d, params, σ)
 
+    @property
+    def face_gap(self) -> float:
+        """Of the seen faces' gaps, the one furthest from FACE_GAP (m; NaN when no side face is seen)."""
+        seen = [v for v in self.face_gaps if v == v]
+        return max(seen, key=lambda v: abs(v - C.FACE_GAP)) if seen else math.nan
+
     @functools.cached_property
     def sigma_hat(self) -> float:
         """EM noise estimate σ̂ of the points at the suggested box (NaN below 2 points)."""

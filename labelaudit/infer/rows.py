@@ -303,6 +303,7 @@ def audit_object(
         row["fit_cz"] = row["fit_height"] = float("nan")
     row["hull_iou"] = hull_iou_valid(y, points)
     row["mahalanobis"] = float(fit.mahalanobis)
+    row["face_gap"] = float(fit.face_gap)  # NaN (null) when no side face is seen
     if evidence is not None:
         (row["free_rays"], row["end_rays"]), (row["fit_free_rays"], row["fit_end_rays"]) = ray_counts(
             np.array((y, fit.box)), evidence.free_space, evidence.near_points

@@ -49,6 +49,7 @@ GALLERY_COLUMNS = (
     "sigma_hat",
     "fit_offset_m",
     "mahalanobis",
+    "face_gap",
     "hull_iou",
     "track_error",
     "track_issue",
