@@ -251,6 +251,12 @@ MISSING_FREE_SHARE = (
     0.1,
     0.4,
 )  # the free-space score falls from 1 to 0 as the share of rays passing through the box's lower body goes from the first to the second
+MISSING_PLACE_STEP = 0.25  # m; between the placements of a partly seen box's hidden extent that are tried
+MISSING_PLACE_SPOT = 0.4  # m; between the spots of its footprint whose line of sight is tested
+MISSING_PLACE_MIN_HIDDEN = (
+    1.0  # m; a box is placed by what the sensor sees empty only when this much of its length or width is hidden
+)
+MISSING_PLACE_MARGIN = 1  # spots seen empty a placement must spare over the growth away from the sensor to replace it
 MISSING_REFINE = True  # the candidate's box is refined by the label-error fit (core/fit.py) before its rays are counted
 MISSING_GROUND_RANK = (
     3  # a ground cell's floor is its this-lowest return (fewer returns below the road than this are ignored)

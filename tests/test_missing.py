@@ -542,3 +542,31 @@ def test_a_label_shifted_off_its_car_is_a_wrong_label_not_a_missing_one():
     assert _best(rows, 15.0, 3.0) == 0.0
     far = [30.0, -8.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]
     assert _best(find_missing(_frame(_car_points(15.0, 3.0), boxes=[far], names=["Car"]), cfg), 15.0, 3.0) >= 0.5
+
+
+def _hidden_behind_a_van(monkeypatch, min_hidden):
+    """A car parked across the line of sight (length 4.2 m along y, centre (30, 3.1)) whose near
+    end (y < 2.6) is hidden behind a labelled van at 18–22 m: only 2.6 m of its rear face shows."""
+    monkeypatch.setattr(C, "MISSING_PLACE_MIN_HIDDEN", min_hidden)
+    van = _face((17.9, -0.2), (17.9, 1.6), GROUND + 0.2, GROUND + 2.2, 0.08)
+    car = _face((29.1, 2.6), (29.1, 5.2), GROUND + 0.2, GROUND + 1.5, 0.08)
+    frame = _frame(van, car, boxes=[[20.0, 0.7, GROUND + 1.1, 4.2, 1.8, 2.2, 0.0]], names=["Van"])
+    rows = [r for r in find_missing(frame, RunConfig()) if math.hypot(r["cx"] - 30.0, r["cy"] - 3.9) < 3.0]
+    top = max(rows, key=lambda r: r["score"])
+    return math.hypot(top["cx"] - 30.0, top["cy"] - 3.1), top["score"]
+
+
+def test_a_partly_hidden_car_is_boxed_towards_its_occluder_not_into_the_road_seen_empty(monkeypatch):
+    """Its hidden extent goes where the van blocks the view, not past its visible end, where the
+    sensor sees the road empty; grown away from the sensor (the placement off) it lands 1.6 m off."""
+    off, score = _hidden_behind_a_van(monkeypatch, C.MISSING_PLACE_MIN_HIDDEN)
+    assert off < 1.0 and score >= 0.5
+    off_grown, _ = _hidden_behind_a_van(monkeypatch, 1e9)
+    assert off_grown > 1.0 > off
+
+
+def test_a_car_in_full_view_keeps_its_box(monkeypatch):
+    frame = _frame(_car_points(15.0, 3.0), _car_points(32.0, -6.0))
+    placed = find_missing(frame, RunConfig())
+    monkeypatch.setattr(C, "MISSING_PLACE_MIN_HIDDEN", 1e9)
+    assert find_missing(frame, RunConfig()) == placed

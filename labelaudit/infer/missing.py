@@ -574,6 +574,82 @@ def _grow(a: float, b: float, size: float, sensor: float) -> tuple[float, float]
     return mid - 0.5 * size, mid + 0.5 * size
 
 
+def _place(
+    sight: tuple,
+    centre: FloatArray,
+    c: float,
+    s: float,
+    ox: float,
+    oy: float,
+    vis: tuple[float, float, float, float],
+    size: tuple[float, float],
+    start: tuple[float, float],
+) -> tuple[float, float]:
+    """Where the hidden extent of a partly seen object goes: the low ends (A1, A2) on the axes
+    (cos θ, sin θ) and (−sin θ, cos θ) about ``centre`` of the box of ``size`` (L1, L2) (m) that
+    holds the visible rectangle ``vis`` (a1, b1, a2, b2) and covers the fewest spots the sensor
+    sees empty: a spot is seen when the straight line from the sensor (``ox``, ``oy``) to it
+    crosses no cell holding band returns or a label (``sight``: counts (nx, ny), mask (nx, ny),
+    x0, y0, cell) and holds none itself. A car hidden behind another reaches towards it, not into
+    the open road beside its visible part. Ties keep ``start`` (the growth away from the sensor):
+    an object in full view keeps its box."""
+    a1, b1, a2, b2 = vis
+    spans = [(a1, b1, size[0]), (a2, b2, size[1])]
+    if all(b - a >= L - C.MISSING_PLACE_MIN_HIDDEN for a, b, L in spans):  # seen nearly whole
+        return start
+    counts, mask, x0, y0, cell = sight
+    step = C.MISSING_PLACE_STEP
+    lows = [
+        np.linspace(b - L, a, int(math.ceil((L - b + a) / step)) + 1) if b - a < L else np.array([a])
+        for a, b, L in spans
+    ]
+    # spots on a grid over every placement's footprint, outside the visible rectangle
+    spot = C.MISSING_PLACE_SPOT
+    u = np.arange(lows[0][0] + 0.5 * spot, lows[0][-1] + max(spans[0][2], b1 - a1), spot)
+    v = np.arange(lows[1][0] + 0.5 * spot, lows[1][-1] + max(spans[1][2], b2 - a2), spot)
+    uu, vv = np.meshgrid(u, v, indexing="ij")
+    px = centre[0] + c * uu - s * vv
+    py = centre[1] + s * uu + c * vv
+    dx, dy = px - ox, py - oy
+    r = np.hypot(dx, dy)
+    # march each spot's line of sight a cell at a time, from the ego radius to the spot
+    n = int(math.ceil(float(r.max()) / cell)) + 1
+    f = np.linspace(0.0, 1.0, n)
+    keep_f = f[None, None, :] * r[..., None] >= C.MISSING_EGO_RADIUS
+    i = ((ox + dx[..., None] * f - x0) / cell).astype(np.int64)
+    j = ((oy + dy[..., None] * f - y0) / cell).astype(np.int64)
+    inside = (i >= 0) & (j >= 0) & (i < counts.shape[0]) & (j < counts.shape[1]) & keep_f
+    i, j = np.where(inside, i, 0), np.where(inside, j, 0)
+    blocked = ((counts[i, j] > 0) | (mask[i, j] != 0)) & inside
+    seen_empty = ~blocked.any(axis=2)
+    seen_empty &= ~((uu >= a1) & (uu <= b1) & (vv >= a2) & (vv <= b2))
+    empties = np.array(
+        [
+            [
+                np.count_nonzero(
+                    seen_empty & (uu >= A1) & (uu <= A1 + spans[0][2]) & (vv >= A2) & (vv <= A2 + spans[1][2])
+                )
+                for A2 in lows[1]
+            ]
+            for A1 in lows[0]
+        ]
+    )
+    # the placement with the fewest seen-empty spots, the nearest to the growth away from the sensor
+    # among equals; that growth stays unless clearly worse (nothing tells where in an occluder's
+    # shadow the object lies, and most objects are seen from their near side)
+    dist = np.abs(lows[0] - start[0])[:, None] + np.abs(lows[1] - start[1])[None, :]
+    k = np.lexsort((dist.ravel(), empties.ravel()))[0]
+    k1, k2 = divmod(int(k), empties.shape[1])
+    if empties[k1, k2] + C.MISSING_PLACE_MARGIN > _empty_at(seen_empty, uu, vv, start, spans):
+        return start
+    return float(lows[0][k1]), float(lows[1][k2])
+
+
+def _empty_at(seen_empty: NDArray, uu: NDArray, vv: NDArray, low: tuple[float, float], spans: list) -> int:
+    inb = (uu >= low[0]) & (uu <= low[0] + spans[0][2]) & (vv >= low[1]) & (vv <= low[1] + spans[1][2])
+    return int(np.count_nonzero(seen_empty & inb))
+
+
 def _fill(n: int, corners: FloatArray, ox: float, oy: float, z_lo: float, z_hi: float, rays_per_rad2: float) -> float:
     """Returns per ray that the visible rectangle (``corners`` (4, 2)) between the heights
     ``z_lo`` and ``z_hi`` (relative to the sensor) sends back: about 1 for a solid surface, less for
@@ -728,6 +804,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     )  # components of groups with a few returns at least (not stray ones)
     owner = np.where(comp >= 0, np.where(solid, group, -1)[np.maximum(comp, 0)], -1)  # the group of every occupied cell
     grid = (owner, x0, y0, cell)
+    sight = (counts, mask, x0, y0, cell)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
         out += _box_cluster(
@@ -742,6 +819,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
             grid,
             int(chosen[s]),
             C.MISSING_SPLITS,
+            sight,
         )
     return out
 
@@ -846,12 +924,14 @@ def _box_cluster(
     grid: tuple | None = None,
     own: int = -1,
     splits: int = 0,
+    sight: tuple | None = None,
 ) -> list[Cluster]:
     """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,)).
 
     A cluster that fits no class is split, up to ``splits`` times, at the emptiest slice across one
     of its axes when that slice is a gap (:func:`_split`): two cars parked side by side, a car and
-    the hedge beside it. Each part is boxed on its own, the other part
+    the hedge beside it. ``sight``: (band returns per cell, label mask, x0, y0, cell) of the
+    search grid, what blocks the sensor's view (:func:`_place`). Each part is boxed on its own, the other part
     counting as returns beside it (a wall broken by a doorway is still one wall to the continuation
     test), and the parts replace the whole when one of them scores higher than the whole.
     """
@@ -906,6 +986,9 @@ def _box_cluster(
     L1, L2 = (mean[0], mean[1]) if len_axis1 else (mean[1], mean[0])
     A1, B1 = _grow(a1, b1, L1, po)
     A2, B2 = _grow(a2, b2, L2, qo)
+    if sight is not None and size_score >= C.MISSING_CLASS_FIT:  # (only a box that may become a candidate)
+        A1, A2 = _place(sight, centre, c, s, ox, oy, (a1, b1, a2, b2), (L1, L2), (A1, A2))
+        B1, B2 = A1 + max(L1, e1), A2 + max(L2, e2)
     mx, my = 0.5 * (A1 + B1), 0.5 * (A2 + B2)
     cx, cy = centre[0] + c * mx - s * my, centre[1] + s * mx + c * my
     length, width, yaw = (B1 - A1, B2 - A2, t) if len_axis1 else (B2 - A2, B1 - A1, t + 0.5 * math.pi)
@@ -937,7 +1020,18 @@ def _box_cluster(
             for mine, other in (parts, parts[::-1]):
                 with _others_marked(grid, own, xyz[other]):
                     out += _box_cluster(
-                        xyz[mine], h[mine], sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, own, splits - 1
+                        xyz[mine],
+                        h[mine],
+                        sizes,
+                        ox,
+                        oy,
+                        oz,
+                        top_slope,
+                        rays_per_rad2,
+                        grid,
+                        own,
+                        splits - 1,
+                        sight,
                     )
             if out and max(p.score for p in out) > whole.score:  # two objects explain the returns better than one
                 return out
