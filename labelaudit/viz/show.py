@@ -361,11 +361,10 @@ def render_object(
     ax.set_ylim(view[2], view[3])
     ax.set_aspect("equal")
     caption = _caption(audit, track)
-    if not overlays:
-        ax.set_axis_off()
-        png = _png(fig)
+
+    def picture() -> ObjectPicture:  # the figure as drawn so far, with the arrays it shows
         return ObjectPicture(
-            png,
+            _png(fig),
             size,
             density,
             extent,
@@ -383,6 +382,10 @@ def render_object(
             track_corners,
             expected_corners,
         )
+
+    if not overlays:
+        ax.set_axis_off()
+        return picture()
 
     if len(context_xy):
         ax.plot(
@@ -581,26 +584,7 @@ def render_object(
     )
     leg.get_frame().set_facecolor(heat_cmap(0.0))  # the label's white line needs the heatmap's dark ground
     leg.get_frame().set_edgecolor("none")
-    png = _png(fig)
-    return ObjectPicture(
-        png,
-        size,
-        density,
-        extent,
-        pts,
-        height,
-        fit_only_xy,
-        context_xy,
-        label_corners,
-        fit_corners,
-        centres,
-        covs,
-        sensor_dir,
-        view,
-        caption,
-        track_corners,
-        expected_corners,
-    )
+    return picture()
 
 
 # --------------------------------------------------------------------------- a whole frame
