@@ -87,6 +87,20 @@ class Column(NamedTuple):
     source: str  # who fills it: identity / box (infer.rows from the Frame), model (audit_object), row, extra (Frame.extras), track (the tracks pass)
 
 
+# The box columns after cx, and the sensor distance, as the objects and the missing tables both have them.
+_BOX_AFTER_CX: tuple[Column, ...] = (
+    Column("cy", pa.float64(), False, "m", "box centre y", "box"),
+    Column("cz", pa.float64(), False, "m", "box centre z", "box"),
+    Column("length", pa.float64(), False, "m", "box length (along the heading)", "box"),
+    Column("width", pa.float64(), False, "m", "box width", "box"),
+    Column("height", pa.float64(), False, "m", "box height", "box"),
+    Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
+)
+_DISTANCE = Column(
+    "distance", pa.float64(), False, "m", "horizontal (BEV) distance from the sensor origin to the box centre", "box"
+)
+
+
 # The single definition of the results table. docs/results-schema.md documents the same list;
 # tests/test_results.py checks they agree.
 COLUMNS: tuple[Column, ...] = (
@@ -117,20 +131,8 @@ COLUMNS: tuple[Column, ...] = (
     ),
     Column("class_name", pa.string(), False, "", "class as written by the dataset", "identity"),
     Column("cx", pa.float64(), False, "m", "box centre x (LiDAR/vehicle frame, geometric centre)", "box"),
-    Column("cy", pa.float64(), False, "m", "box centre y", "box"),
-    Column("cz", pa.float64(), False, "m", "box centre z", "box"),
-    Column("length", pa.float64(), False, "m", "box length (along the heading)", "box"),
-    Column("width", pa.float64(), False, "m", "box width", "box"),
-    Column("height", pa.float64(), False, "m", "box height", "box"),
-    Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
-    Column(
-        "distance",
-        pa.float64(),
-        False,
-        "m",
-        "horizontal (BEV) distance from the sensor origin to the box centre",
-        "box",
-    ),
+    *_BOX_AFTER_CX,
+    _DISTANCE,
     Column(
         "num_points",
         pa.int32(),
@@ -425,21 +427,9 @@ MISSING_COLUMNS: tuple[Column, ...] = (
         "box centre x (LiDAR/vehicle frame, geometric centre), as in the objects table",
         "box",
     ),
-    Column("cy", pa.float64(), False, "m", "box centre y", "box"),
-    Column("cz", pa.float64(), False, "m", "box centre z", "box"),
-    Column("length", pa.float64(), False, "m", "box length (along the heading)", "box"),
-    Column("width", pa.float64(), False, "m", "box width", "box"),
-    Column("height", pa.float64(), False, "m", "box height", "box"),
-    Column("yaw", pa.float64(), False, "rad", "heading about +z, in [-π, π)", "box"),
+    *_BOX_AFTER_CX,
     Column("num_points", pa.int32(), False, "", "LiDAR points of the candidate (above the ground)", "model"),
-    Column(
-        "distance",
-        pa.float64(),
-        False,
-        "m",
-        "horizontal (BEV) distance from the sensor origin to the box centre",
-        "box",
-    ),
+    _DISTANCE,
     Column(
         "score",
         pa.float64(),
