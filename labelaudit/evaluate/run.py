@@ -496,31 +496,12 @@ def jiou_overlaps(
     use = labels.needed[pg] & det_relevant[pd] if (len(pd) and with_jiou) else np.zeros(len(pd), bool)
     inter_grown, _, _ = pair_overlaps(dets.boxes, gt.boxes, pd[use], pg[use], "bev", grow_a=grow_det, grow_b=grow_gt)
     cand = np.flatnonzero(use)[inter_grown > 0]
-    jiou = np.zeros(len(pd))
-    if with_jiou:
-        progress.stage(f"JIoU of {len(cand)} candidate (detection, label) pairs")
-    # two certain boxes: JIoU is the IoU handed in (the devkit's, for KITTI)
-    jiou[cand] = pair_jious(
-        view,
-        cfg.spatial,
-        gt.boxes,
-        labels.cov,
-        dets.boxes,
-        dets.cov,
-        dets.cov_on,
-        pg[cand],
-        pd[cand],
-        iou[cand],
-        workers=workers,
-        progress=progress.pairs,
-    )
-    jgt = labels.jiou_gt[pg] if len(pg) else np.zeros(0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(jgt > 0, jiou / jgt, 0.0)
-    overlaps = {m: {"iou": iou, "jiou": jiou, "jiou_ratio": ratio}[m] for m in metrics}
-    if dets.probabilistic and with_jiou:
-        jiou_det = np.zeros(len(pd))
-        jiou_det[cand] = pair_jious(
+
+    def candidate_jious(deterministic: bool) -> NDArray[np.float64]:
+        """JIoU of every pair (0 outside the candidates); ``deterministic``: the detections taken as certain."""
+        out = np.zeros(len(pd))
+        # two certain boxes: JIoU is the IoU handed in (the devkit's, for KITTI)
+        out[cand] = pair_jious(
             view,
             cfg.spatial,
             gt.boxes,
@@ -531,11 +512,21 @@ def jiou_overlaps(
             pg[cand],
             pd[cand],
             iou[cand],
-            deterministic=True,
+            deterministic=deterministic,
             workers=workers,
             progress=progress.pairs,
         )
-        overlaps["jiou_deterministic"] = jiou_det
+        return out
+
+    if with_jiou:
+        progress.stage(f"JIoU of {len(cand)} candidate (detection, label) pairs")
+    jiou = candidate_jious(deterministic=False)
+    jgt = labels.jiou_gt[pg] if len(pg) else np.zeros(0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(jgt > 0, jiou / jgt, 0.0)
+    overlaps = {m: {"iou": iou, "jiou": jiou, "jiou_ratio": ratio}[m] for m in metrics}
+    if dets.probabilistic and with_jiou:
+        overlaps["jiou_deterministic"] = candidate_jious(deterministic=True)
     return overlaps, len(cand)
 
 
