@@ -11,7 +11,16 @@ searched for (same rule); the unmodified frames give the candidates per frame. F
 separately for the two folders: openpcdet-pr653-kitti (looked at while the search was built) and
 kitti-object-more (held out: never looked at before the figures were final).
 
-    .venv/bin/python scripts/bench_missing.py [--frames 60] [--seed 11] [--drop-fraction 0.15] [--real [DIR]]
+    .venv/bin/python scripts/bench_missing.py [--frames 60] [--seed 11 [7 3 21]] [--drop-fraction 0.15] [--real [DIR]] [--why]
+
+``--why`` says, for every simulated miss, why: a candidate placed more than 1 m off (by how much,
+along and across the vehicle), a score under the threshold (its weakest factor), a cluster boxed but
+not written (outside the labelled region, under the kept minimum, over a label), a group of returns
+left unboxed (by which rule: points, footprint, tall, low, region), returns merged into a group boxed
+elsewhere, or no group at all; and counts the causes with their classes, points, distance and
+visible share. The pooled benchmark of docs/missing.md:
+
+    .venv/bin/python scripts/bench_missing.py --frames 60 --seed 11 7 3 21 --why
 """
 
 from __future__ import annotations
@@ -25,12 +34,15 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 REALDATA = Path(os.environ.get("LABELAUDIT_REALDATA", REPO.parent / "shared" / "realdata"))
 REAL_FOLDERS = (("openpcdet-pr653-kitti", "built with"), ("kitti-object-more", "held out"))
 VEHICLES = ("Car", "Van", "Truck")
 DIST_BINS = (0.0, 20.0, 40.0, 70.0)
 POINT_BINS = (30, 100, 300, 10**9)
+VISIBLE_BINS = (0.0, 0.3, 0.6, 1.000001)
 
 
 def _bin(value: float, edges: tuple) -> str:
@@ -40,10 +52,98 @@ def _bin(value: float, edges: tuple) -> str:
     return "other"
 
 
-def _candidates(frame, cfg):
+def _candidates(frame, cfg, trace=None):
     from labelaudit.infer.missing import find_missing
 
-    return find_missing(frame, cfg)
+    return find_missing(frame, cfg, trace=trace)
+
+
+FACTORS = ("size_score", "shape_score", "density_score", "free_space_score")
+
+
+def _weakest(c) -> str:
+    """The factor that brought a cluster's score down most (a row dict or a Cluster)."""
+    get = c.get if isinstance(c, dict) else lambda k: getattr(c, k, None)
+    vals = {k[:-6].replace("_", " "): get(k) for k in FACTORS if get(k) is not None}
+    return min(vals, key=vals.get) if vals else "?"
+
+
+def _factors(c) -> str:
+    get = c.get if isinstance(c, dict) else lambda k: getattr(c, k, None)
+    return " ".join(f"{k[:-6]} {get(k):.2f}" for k in FACTORS if get(k) is not None)
+
+
+def _in_footprint(x, y, o: dict, grow: float = 0.0):
+    """Whether BEV points (arrays) lie in the rectangle of ``o`` (``true_*`` fields) grown by ``grow``."""
+    dx, dy = x - o["true_cx"], y - o["true_cy"]
+    c, s = math.cos(o["true_yaw"]), math.sin(o["true_yaw"])
+    return (np.abs(c * dx + s * dy) <= 0.5 * o["true_length"] + grow) & (
+        np.abs(-s * dx + c * dy) <= 0.5 * o["true_width"] + grow
+    )
+
+
+def _why(o: dict, rows: list, trace, frame, threshold: float) -> tuple[str, str]:
+    """Why a dropped vehicle ``o`` (manifest row) was missed: (kind, detail). Kinds, first that applies:
+    ``placed > 1 m off`` (a candidate ≥ threshold within 3 m), ``score < threshold: <factor>`` (a
+    written row within 3 m, its weakest factor), ``dropped: <fate>`` (a boxed cluster within 3 m not
+    written: outside the labelled region, score under the kept minimum, over a label), ``unboxed:
+    <rule>`` (a group of components over the vehicle left unboxed by that rule), ``merged: boxed
+    elsewhere`` (its group's boxes all lie > 3 m off), ``no group`` (no returns clustered there)."""
+
+    def off(c):
+        return math.hypot(c[0] - o["true_cx"], c[1] - o["true_cy"])
+
+    def along_across(x, y):
+        dx, dy = x - o["true_cx"], y - o["true_cy"]
+        c, s = math.cos(o["true_yaw"]), math.sin(o["true_yaw"])
+        return abs(c * dx + s * dy), abs(-s * dx + c * dy)
+
+    good = [r for r in rows if r["score"] >= threshold and off((r["cx"], r["cy"])) <= 3.0]
+    if good:
+        r = min(good, key=lambda r: off((r["cx"], r["cy"])))
+        a, b = along_across(r["cx"], r["cy"])
+        return "placed > 1 m off", (
+            f"{off((r['cx'], r['cy'])):.1f} m off ({a:.1f} along, {b:.1f} across), boxed as {r['class_name']}"
+            f" {r['length']:.1f} × {r['width']:.1f} m (true {o['true_length']:.1f} × {o['true_width']:.1f}), score {r['score']:.2f}"
+        )
+    weak = [r for r in rows if off((r["cx"], r["cy"])) <= 3.0]
+    if weak:
+        r = min(weak, key=lambda r: off((r["cx"], r["cy"])))
+        return f"score < {threshold:g}: {_weakest(r)}", (
+            f"{off((r['cx'], r['cy'])):.1f} m off, {r['class_name']}, score {r['score']:.2f} ({_factors(r)})"
+        )
+    dropped = [(c, f) for c, f in trace.clusters if f != "kept" and off(c.box) <= 3.0]
+    if dropped:
+        c, f = min(dropped, key=lambda cf: off(cf[0].box))
+        kind = f"dropped: {f}" + (f" ({_weakest(c)})" if f == "low score" else "")
+        return kind, f"{off(c.box):.1f} m off, {c.class_name}, score {c.score:.2f} ({_factors(c)})"
+    over = [
+        g
+        for g in trace.groups
+        if g["x0"] - 0.5 <= o["true_cx"] <= g["x1"] + 0.5 and g["y0"] - 0.5 <= o["true_cy"] <= g["y1"] + 0.5
+    ]
+    if over:
+        g = max(over, key=lambda g: g["points"])
+        size = f"{g['x1'] - g['x0']:.1f} × {g['y1'] - g['y0']:.1f} m, {g['points']} returns"
+        if g["fate"] != "boxed":
+            return f"unboxed: {g['fate']}", f"its group {size}"
+        boxes = [trace.clusters[k][0] for k in g["clusters"]]
+        near = min(boxes, key=lambda c: off(c.box), default=None)
+        return (
+            "merged: boxed elsewhere",
+            f"its group {size} boxed as {len(boxes)} box(es), nearest {off(near.box):.1f} m off" if near else size,
+        )
+    # no group: its returns are explained by a neighbouring label (grown by the margin), or lie outside the band
+    from labelaudit import constants as C
+
+    pts = frame.points[:, :2]
+    mine = _in_footprint(pts[:, 0], pts[:, 1], o)
+    near = np.zeros(len(pts), dtype=bool)
+    for b in frame.boxes:
+        other = {"true_cx": b[0], "true_cy": b[1], "true_length": b[3], "true_width": b[4], "true_yaw": b[6]}
+        near |= _in_footprint(pts[:, 0], pts[:, 1], other, C.MISSING_LABEL_MARGIN)
+    n = int(mine.sum())
+    return "no group", f"{int((mine & near).sum())} of its {n} returns (BEV) within a label's margin"
 
 
 def bench_sim(
@@ -55,12 +155,15 @@ def bench_sim(
     workers: int,
     keep: Path | None,
     verbose: bool = False,
-) -> None:
+    why: bool = False,
+) -> dict:
+    """One seed's simulated benchmark; prints its figures and returns its tallies (for pooling)."""
     import pyarrow.parquet as pq
 
     from labelaudit import constants as C
     from labelaudit.config import load_config
     from labelaudit.datasets import open_dataset
+    from labelaudit.infer.missing import SearchTrace
     from labelaudit.sim.dataset import simulate_dataset
     from labelaudit.sim.scene import SceneSpec
 
@@ -93,8 +196,9 @@ def bench_sim(
     misses = []
     for n_ref, ref in enumerate(reader.list_units()):
         frame = next(reader.load_unit(ref))
+        trace = SearchTrace() if why else None
         t = time.process_time()
-        all_cands = _candidates(frame, cfg)
+        all_cands = _candidates(frame, cfg, trace)
         cands = [c for c in all_cands if c["score"] >= threshold]
         if n_ref >= 2:  # the first frames load (or compile) the kernels
             seconds += time.process_time() - t
@@ -105,31 +209,29 @@ def bench_sim(
             if not o["dropped"] or o["num_points"] < min_points:
                 continue
             hit = any(math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]) <= 1.0 for c in cands)
+            visible = 1.0 - (o["occlusion_fraction"] or 0.0)
             if not hit:
-                near = min(
-                    (c for c in all_cands),
-                    key=lambda c: math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]),
-                    default=None,
-                )
-                what = (
-                    "no cluster boxed"
-                    if near is None or math.hypot(near["cx"] - o["true_cx"], near["cy"] - o["true_cy"]) > 3.0
-                    else f"nearest candidate {math.hypot(near['cx'] - o['true_cx'], near['cy'] - o['true_cy']):.1f} m off,"
-                    f" {near['class_name']}, score {near['score']:.2f}"
-                    + "".join(
-                        f" {k[:-6]} {near[k]:.2f}"
-                        for k in ("size_score", "shape_score", "density_score", "free_space_score")
-                        if near.get(k) is not None
-                    )
+                kind, detail = (
+                    _why(o, all_cands, trace, frame, threshold) if why else ("missed", _nearest(o, all_cands))
                 )
                 misses.append(
-                    f"    {frame.frame_id} {o['class_name']} at ({o['true_cx']:.1f}, {o['true_cy']:.1f}) {o['distance']:.0f} m,"
-                    f" {o['num_points']} points, occlusion {o['occlusion_fraction'] or 0:.2f}: {what}"
+                    {
+                        "seed": seed,
+                        "kind": kind,
+                        "class": o["class_name"],
+                        "distance": o["distance"],
+                        "points": o["num_points"],
+                        "visible": visible,
+                        "text": f"    seed {seed} {frame.frame_id} {o['class_name']} at ({o['true_cx']:.1f}, {o['true_cy']:.1f}) {o['distance']:.0f} m,"
+                        f" {o['num_points']} points, {visible:.0%} visible: {kind}: {detail}",
+                    }
                 )
             for key in (
                 "all",
+                f"class {o['class_name']}",
                 f"distance {_bin(o['distance'], DIST_BINS)} m",
                 f"points {_bin(o['num_points'], POINT_BINS)}",
+                f"visible {_bin(visible, VISIBLE_BINS)}",
             ):
                 total[key] += 1
                 found[key] += hit
@@ -138,25 +240,69 @@ def bench_sim(
                 n_false += 1
                 false_by[f"distance {_bin(c['distance'], DIST_BINS)} m"] += 1
                 false_by[f"points {_bin(c['num_points'], POINT_BINS)}"] += 1
+    tally = {
+        "found": found,
+        "total": total,
+        "false": n_false,
+        "false_by": false_by,
+        "frames": n_frames,
+        "misses": misses,
+        "seconds": seconds,
+        "timed": max(n_frames - 2, 1),
+    }
+    _print_sim(f"seed {seed}, {drop:.0%} dropped", tally, threshold, min_points, verbose, why)
+    if not keep:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return tally
+
+
+def _nearest(o: dict, cands: list) -> str:
+    near = min(cands, key=lambda c: math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]), default=None)
+    d = None if near is None else math.hypot(near["cx"] - o["true_cx"], near["cy"] - o["true_cy"])
+    if d is None or d > 3.0:
+        return "no cluster boxed"
+    return f"nearest candidate {d:.1f} m off, {near['class_name']}, score {near['score']:.2f} {_factors(near)}"
+
+
+def _print_sim(title: str, t: dict, threshold: float, min_points: int, verbose: bool, why: bool) -> None:
+    found, total, frames = t["found"], t["total"], max(t["frames"], 1)
     print(
-        f"simulated, clutter, {drop:.0%} dropped, score ≥ {threshold}: dropped vehicles with ≥ {min_points} points found within 1.0 m"
+        f"simulated, clutter, {title}, score ≥ {threshold}: dropped vehicles with ≥ {min_points} points found within 1.0 m"
     )
     for key in sorted(total, key=lambda k: (k != "all", k)):
         print(f"  recall {key:22s} {found[key]:4d} / {total[key]:4d} = {found[key] / total[key]:.3f}")
     print(
-        f"  false candidates (> 2 m from every vehicle): {n_false} in {n_frames} frames = {n_false / max(n_frames, 1):.3f} per frame"
+        f"  false candidates (> 2 m from every vehicle): {t['false']} in {frames} frames = {t['false'] / frames:.3f} per frame"
     )
-    for key in sorted(false_by):
-        print(f"    {key:22s} {false_by[key] / max(n_frames, 1):.3f} per frame")
+    for key in sorted(t["false_by"]):
+        print(f"    {key:22s} {t['false_by'][key] / frames:.3f} per frame")
     print(
-        f"  search CPU time: {seconds / max(n_frames - 2, 1) * 1e3:.1f} ms per frame after the first two (this process, load {os.getloadavg()[0]:.1f}; "
+        f"  search CPU time: {t['seconds'] / t['timed'] * 1e3:.1f} ms per frame after the first two (this process, load {os.getloadavg()[0]:.1f}; "
         "frames with dropped labels and clutter: more clusters to box than a fully labelled frame)"
     )
-    if verbose:
+    if why and t["misses"]:
+        _print_why(t["misses"])
+    if verbose or why:
         print("  missed:")
-        print("\n".join(misses))
-    if not keep:
-        shutil.rmtree(tmp, ignore_errors=True)
+        print("\n".join(m["text"] for m in sorted(t["misses"], key=lambda m: (m["kind"], m["seed"], m["text"]))))
+
+
+def _print_why(misses: list) -> None:
+    """The misses by cause, each with its classes and its medians of points, distance and visible share."""
+    by = defaultdict(list)
+    for m in misses:
+        by[m["kind"]].append(m)
+    print(
+        f"  why the {len(misses)} misses were missed (cause: count; classes; median points, distance, visible share):"
+    )
+    for kind, ms in sorted(by.items(), key=lambda kv: (-len(kv[1]), kv[0])):
+        classes = ", ".join(
+            f"{c} {sum(m['class'] == c for m in ms)}" for c in VEHICLES if any(m["class"] == c for m in ms)
+        )
+        med = {k: float(np.median([m[k] for m in ms])) for k in ("points", "distance", "visible")}
+        print(
+            f"    {kind:34s} {len(ms):3d}; {classes}; {med['points']:.0f} points, {med['distance']:.0f} m, {med['visible']:.0%} visible"
+        )
 
 
 def _copy_frame(src: Path, dst: Path, fid: str, drop_line: int | None) -> None:
@@ -227,14 +373,21 @@ def bench_real(root: Path, threshold: float, min_points: int, verbose: bool) -> 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=60)
-    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument(
+        "--seed", type=int, nargs="+", default=[11], help="one or more simulator seeds (several: also pooled figures)"
+    )
     ap.add_argument("--drop-fraction", type=float, default=0.15)
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument(
         "--min-points", type=int, default=30, help="simulated: dropped vehicles with at least this many returns count"
     )
     ap.add_argument("--workers", type=int, default=2, help="simulator processes")
-    ap.add_argument("--keep", type=Path, default=None, help="keep (or reuse) the simulated data in this folder")
+    ap.add_argument(
+        "--keep",
+        type=Path,
+        default=None,
+        help="keep (or reuse) the simulated data in this folder (several seeds: one sub-folder seed-S each)",
+    )
     ap.add_argument(
         "--real",
         nargs="?",
@@ -250,18 +403,56 @@ def main() -> None:
         action="store_true",
         help="list every real candidate and removed vehicle, and every simulated miss",
     )
+    ap.add_argument(
+        "--why",
+        action="store_true",
+        help="say why each simulated miss was missed (placed off, which score factor, which rule dropped its cluster) and count the causes",
+    )
     args = ap.parse_args()
     if not args.no_sim:
-        bench_sim(
-            args.frames,
-            args.seed,
-            args.drop_fraction,
-            args.threshold,
-            args.min_points,
-            args.workers,
-            args.keep,
-            args.verbose,
-        )
+        tallies = []
+        for seed in args.seed:
+            keep = args.keep if args.keep is None or len(args.seed) == 1 else args.keep / f"seed-{seed}"
+            tallies.append(
+                bench_sim(
+                    args.frames,
+                    seed,
+                    args.drop_fraction,
+                    args.threshold,
+                    args.min_points,
+                    args.workers,
+                    keep,
+                    args.verbose,
+                    args.why,
+                )
+            )
+        if len(tallies) > 1:
+            pooled = {
+                "found": defaultdict(int),
+                "total": defaultdict(int),
+                "false_by": defaultdict(int),
+                "false": 0,
+                "frames": 0,
+                "misses": [],
+                "seconds": 0.0,
+                "timed": 0,
+            }
+            for t in tallies:
+                for k in ("found", "total", "false_by"):
+                    for key, v in t[k].items():
+                        pooled[k][key] += v
+                for k in ("false", "frames", "misses", "seconds", "timed"):
+                    pooled[k] += t[k]
+            per_seed = " / ".join(f"{t['found']['all'] / max(t['total']['all'], 1):.3f}" for t in tallies)
+            print(f"\nPOOLED over seeds {' '.join(map(str, args.seed))} (recall per seed: {per_seed})")
+            _print_sim(
+                f"{args.drop_fraction:.0%} dropped, pooled",
+                pooled,
+                args.threshold,
+                args.min_points,
+                False,
+                args.why,
+            )
     if args.real is not None:
         if args.real.is_dir():
             bench_real(args.real, args.threshold, 50, args.verbose)

@@ -18,7 +18,7 @@ from labelaudit.config import MissingParams, RunConfig
 from labelaudit.datasets import Frame, ImageView
 from labelaudit.errors import ResultsError
 from labelaudit.executors import SerialExecutor
-from labelaudit.infer.missing import FrameDetections, find_missing, in_labelled_region, search_clusters
+from labelaudit.infer.missing import FrameDetections, SearchTrace, find_missing, in_labelled_region, search_clusters
 from labelaudit.infer.run import InferRequest, run_infer
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
@@ -287,6 +287,33 @@ def test_a_car_in_a_shadow_is_measured_from_the_road_around_not_from_its_own_low
     assert abs(top["height"] - 1.5) < 0.2 and abs(top["cz"] - (GROUND + 0.75)) < 0.2
     empty = Frame("000001", np.c_[ground[~hole], np.zeros((~hole).sum())].astype(np.float32), np.zeros((0, 7)), [], [])
     assert find_missing(empty, cfg) == []
+
+
+def test_the_trace_says_what_became_of_each_cluster():
+    """A found car's group is boxed and its box kept; a low wall is left unboxed as low, a pole as
+    too small; a labelled car's returns form no group; the rows are the same with or without a trace."""
+    car = _car_points(15.0, 3.0)
+    low_wall = _face((20.0, -6.0), (24.0, -6.0), GROUND + 0.2, GROUND + 0.6, 0.05)
+    pole = _face((25.0, 8.0), (25.2, 8.0), GROUND + 0.2, GROUND + 1.6, 0.04)
+    labelled = _car_points(30.0, -3.0)
+    frame = _frame(
+        car, low_wall, pole, labelled, boxes=[[30.0, -3.0, GROUND + 0.75, 4.2, 1.8, 1.5, 0.0]], names=["Car"]
+    )
+    trace = SearchTrace()
+    rows = find_missing(frame, RunConfig(), trace=trace)
+    assert rows == find_missing(frame, RunConfig())
+
+    def group_at(x, y):
+        return [g for g in trace.groups if g["x0"] <= x <= g["x1"] and g["y0"] <= y <= g["y1"]]
+
+    (g_car,) = group_at(14.0, 2.5)
+    assert g_car["fate"] == "boxed" and g_car["clusters"]
+    kept = [trace.clusters[k] for k in g_car["clusters"]]
+    assert any(f == "kept" and math.hypot(c.box[0] - 15.0, c.box[1] - 3.0) < 1.0 for c, f in kept)
+    assert [g["fate"] for g in group_at(22.0, -6.0)] == ["low"]
+    assert [g["fate"] for g in group_at(25.1, 8.0)] == ["footprint"]
+    assert group_at(30.0, -3.0) == []
+    assert len(trace.clusters) == sum(len(g["clusters"]) for g in trace.groups)
 
 
 @pytest.mark.parametrize("splits", [0, C.MISSING_SPLITS])

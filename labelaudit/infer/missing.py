@@ -23,7 +23,7 @@ The search, in compiled passes over the frame (a few milliseconds per KITTI fram
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -41,7 +41,7 @@ from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FrameDetections", "find_missing", "search_clusters"]
+__all__ = ["FrameDetections", "SearchTrace", "find_missing", "search_clusters"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,24 @@ class Cluster:
     @property
     def score(self) -> float:
         return self.size_score * self.shape_score * self.density_score * self.free_space_score
+
+
+@dataclass
+class SearchTrace:
+    """What became of every cluster of a frame's search (``find_missing(..., trace=)``): for a
+    benchmark to say why an object was not found, not for the results.
+
+    ``groups``: one dict per group of joined components with ``x0, y0, x1, y1`` (its BEV bounding
+    rectangle, m), ``points`` and ``fate`` — ``"boxed"`` (``clusters``: the indices of its boxes in
+    ``clusters``) or the first rule that left it unboxed: ``"points"`` (fewer than ``min_points``),
+    ``"footprint"`` (diagonal beyond the largest class or below ``MISSING_MIN_EXTENT``), ``"tall"``
+    (returns above the band), ``"low"`` (highest return under ``MISSING_MIN_TOP``), ``"region"``
+    (no fragment where labels exist). ``clusters``: (cluster, fate) per box, the fate one of
+    ``"region"``, ``"low score"`` (under ``MISSING_MIN_KEPT_SCORE``), ``"label"`` (overlaps a
+    label) or ``"kept"`` (written; the cluster after the fit and its free-space score)."""
+
+    groups: list[dict[str, Any]] = field(default_factory=list)
+    clusters: list[tuple[Cluster, str]] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------- compiled passes
@@ -662,11 +680,12 @@ def _fill(n: int, corners: FloatArray, ox: float, oy: float, z_lo: float, z_hi: 
     return n / max(solid * rays_per_rad2, 1.0)
 
 
-def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
+def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = None) -> list[Cluster]:
     """The point-cloud search of one frame: clusters no label explains, boxed and scored.
 
     Returns every cluster of a plausible size (scores may be low); the caller keeps those in the
-    labelled region. Deterministic: the same frame gives the same clusters.
+    labelled region. Deterministic: the same frame gives the same clusters. ``trace`` (optional)
+    receives every group of components and what became of it (:class:`SearchTrace`).
     """
     sizes = class_sizes(cfg)
     pts = frame.points
@@ -786,6 +805,10 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
         hit = np.zeros(len(roots), dtype=bool)
         hit[np.searchsorted(roots, group[member])[inside]] = True
         keep &= hit
+    if trace is not None:
+        traced, slots = len(trace.groups), np.flatnonzero(keep)
+        rect = np.stack([i0[roots], j0[roots], i1[roots] + 1, j1[roots] + 1], axis=1) * cell + [x0, y0, x0, y0]
+        _trace_groups(trace, rect, g_points, g_over, g_top, diag, max_diag, params.min_points, keep)
     chosen_roots = roots[keep]
     if len(chosen_roots) == 0:
         return []
@@ -807,6 +830,7 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
     sight = (counts, mask, x0, y0, cell)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
+        first = len(out)
         out += _box_cluster(
             xyz[band_idx[pos]].astype(float),
             band_h[pos],
@@ -821,7 +845,41 @@ def search_clusters(frame: Frame, cfg: RunConfig) -> list[Cluster]:
             C.MISSING_SPLITS,
             sight,
         )
+        if trace is not None:
+            trace.groups[traced + int(slots[s])]["clusters"] = list(range(first, len(out)))
     return out
+
+
+def _trace_groups(
+    trace: SearchTrace,
+    rect: FloatArray,
+    points: FloatArray,
+    over: FloatArray,
+    top: FloatArray,
+    diag: FloatArray,
+    max_diag: float,
+    min_points: int,
+    boxed: NDArray,
+) -> None:
+    """Record every group (BEV rectangles ``rect`` (G, 4), per-group statistics (G,)) with the
+    first rule of :func:`search_clusters` that left it unboxed, in the order the rules apply."""
+    for k in range(len(rect)):
+        if boxed[k]:
+            fate = "boxed"
+        elif points[k] < min_points:
+            fate = "points"
+        elif not C.MISSING_MIN_EXTENT[0] <= diag[k] <= max_diag:
+            fate = "footprint"
+        elif over[k] > C.MISSING_MAX_OVER_SHARE * points[k]:
+            fate = "tall"
+        elif top[k] < C.MISSING_MIN_TOP[0]:
+            fate = "low"
+        else:
+            fate = "region"
+        x0, y0, x1, y1 = (float(v) for v in rect[k])
+        trace.groups.append(
+            {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "points": int(points[k]), "fate": fate, "clusters": []}
+        )
 
 
 def _rays_per_rad2(xyz: NDArray, ox: float, oy: float, oz: float) -> float:
@@ -1140,7 +1198,9 @@ def with_free_space(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> li
     return out
 
 
-def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | None = None) -> list[dict[str, Any]]:
+def find_missing(
+    frame: Frame, cfg: RunConfig, detections: FrameDetections | None = None, trace: SearchTrace | None = None
+) -> list[dict[str, Any]]:
     """Candidate objects without a label in ``frame``: rows of the ``missing/`` table.
 
     Parameters
@@ -1148,6 +1208,7 @@ def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | Non
     frame : points (N, ≥3) and every label of the frame (all classes), LiDAR/vehicle frame
     cfg : run configuration (``cfg.missing``, the audited classes)
     detections : the frame's detections above ``cfg.missing.detection_min_score`` (``--detections``)
+    trace : when given (empty, one per frame), it receives what became of every cluster (:class:`SearchTrace`)
 
     Returns
     -------
@@ -1163,20 +1224,35 @@ def find_missing(frame: Frame, cfg: RunConfig, detections: FrameDetections | Non
     labels = np.asarray(frame.boxes, dtype=float).reshape(-1, 7)
     labels = labels[np.all(np.isfinite(labels), axis=1)]
     regions = labels
-    clusters = search_clusters(frame, cfg)
-    if clusters:
-        inside = in_labelled_region(np.array([c.box for c in clusters]), frame, cfg.missing.max_range)
-        clusters = [c for c, ok in zip(clusters, inside) if ok and c.score >= C.MISSING_MIN_KEPT_SCORE]
+    found = search_clusters(frame, cfg, trace)
+    fates = ["region"] * len(found)
+    clusters: list[Cluster] = []
+    if found:
+        inside = in_labelled_region(np.array([c.box for c in found]), frame, cfg.missing.max_range)
+        for k, (c, ok) in enumerate(zip(found, inside)):
+            if ok and c.score >= C.MISSING_MIN_KEPT_SCORE:
+                clusters.append(c)
+                fates[k] = "kept"
+            elif ok:
+                fates[k] = "low score"
     if clusters:
         clusters = with_free_space(frame, clusters, cfg)
+    fitted = iter(clusters)
     rows: list[dict[str, Any]] = []
-    for c in clusters:
-        iou = _max_iou(c.box, regions)
-        if (
-            iou >= C.MISSING_LABEL_IOU
-        ):  # a label covers it, only not where its returns are: a wrong label (label_error), not a missing one
+    for k, fate in enumerate(fates):
+        if fate != "kept":
+            if trace is not None:
+                trace.clusters.append((found[k], fate))
             continue
-        rows.append(_row(frame, cfg, c.box, c.class_name, c.num_points, c.score, "points", c, iou))
+        c = next(fitted)
+        iou = _max_iou(c.box, regions)
+        # a label covers it, only not where its returns are: a wrong label (label_error), not a missing one
+        if iou >= C.MISSING_LABEL_IOU:
+            fate = "label"
+        else:
+            rows.append(_row(frame, cfg, c.box, c.class_name, c.num_points, c.score, "points", c, iou))
+        if trace is not None:
+            trace.clusters.append((c, fate))
     if detections is not None and len(detections.scores):
         inside = in_labelled_region(detections.boxes, frame, cfg.missing.max_range)
         for k in np.flatnonzero(inside):
