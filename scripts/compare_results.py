@@ -1,8 +1,9 @@
-"""Compare the object rows of two results folders, bit for bit or within tolerances.
+"""Compare the rows of two results folders, bit for bit or within tolerances.
 
-Prints the number of rows, and every column that differs (with the largest difference and the
-first differing row); exits 1 when anything differs, 0 when the rows are identical. Used to check
-that a change on the ``infer`` path leaves the rows untouched:
+The object rows (``objects/``) and the missing-label candidates (``missing/``, when either folder
+has any) are compared. Prints the number of rows, and every column that differs (with the largest
+difference and the first differing row); exits 1 when anything differs, 0 when the rows are
+identical. Used to check that a change on the ``infer`` path leaves the rows untouched:
 
     python scripts/compare_results.py before/ after/
 
@@ -21,8 +22,12 @@ import argparse
 import math
 import sys
 
+import pyarrow as pa
+
 from labelaudit import open_results
-from labelaudit.results import KEY_COLUMNS
+from labelaudit.results import KEY_COLUMNS, read_missing
+
+MISSING_KEYS = ("frame_id", "candidate_index")  # a candidate row's key
 
 
 def _same(a: object, b: object) -> bool:
@@ -55,11 +60,25 @@ def _floats(value: object) -> list[float] | None:
     return None
 
 
-def moved(before: str, after: str) -> tuple[dict[str, tuple[int, float, float]], list[str]]:
+def _tables(before: str, after: str, table: str) -> tuple[pa.Table, pa.Table, tuple[str, ...]]:
+    """The ``table`` ("objects" or "missing") of both folders, each sorted by its key, and that key."""
+    keys = tuple(KEY_COLUMNS) if table == "objects" else MISSING_KEYS
+    read = (lambda path: open_results(path).read()) if table == "objects" else read_missing
+    return (
+        read(before).sort_by([(k, "ascending") for k in keys]),
+        read(after).sort_by([(k, "ascending") for k in keys]),
+        keys,
+    )
+
+
+def _has_missing(*folders: str) -> bool:
+    return any(read_missing(f).num_rows for f in folders)
+
+
+def moved(before: str, after: str, table: str = "objects") -> tuple[dict[str, tuple[int, float, float]], list[str]]:
     """Per float column that differs: (rows, largest absolute, largest relative difference); and the
     violations of the tolerances (module docstring), including any other column that differs."""
-    ta = open_results(before).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
-    tb = open_results(after).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
+    ta, tb, keys = _tables(before, after, table)
     if ta.num_rows != tb.num_rows or ta.column_names != tb.column_names:
         return {}, [f"rows {ta.num_rows} vs {tb.num_rows}, columns equal: {ta.column_names == tb.column_names}"]
     stats: dict[str, tuple[int, float, float]] = {}
@@ -77,7 +96,7 @@ def moved(before: str, after: str) -> tuple[dict[str, tuple[int, float, float]],
                 or len(fx) != len(fy)
                 or any(math.isnan(a) != math.isnan(b) for a, b in zip(fx, fy))
             ):
-                key = {k: ta.column(k)[i].as_py() for k in KEY_COLUMNS}
+                key = {k: ta.column(k)[i].as_py() for k in keys}
                 bad.append(f"{name}: {x!r} vs {y!r} at {key}")
                 break
             rows += 1
@@ -89,17 +108,17 @@ def moved(before: str, after: str) -> tuple[dict[str, tuple[int, float, float]],
                 limit = TOLERANCES.get(name)
                 ok = gap <= limit if limit is not None else (rel <= FLOAT_REL or gap <= FLOAT_ABS)
                 if not ok:
-                    key = {k: ta.column(k)[i].as_py() for k in KEY_COLUMNS}
+                    key = {k: ta.column(k)[i].as_py() for k in keys}
                     bad.append(f"{name}: {a!r} vs {b!r} (difference {gap:.3g}, relative {rel:.3g}) at {key}")
         if rows:
             stats[name] = (rows, worst_abs, worst_rel)
     return stats, bad
 
 
-def compare(before: str, after: str) -> list[str]:
-    """Differences between the rows of two results folders (empty when identical)."""
-    ta = open_results(before).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
-    tb = open_results(after).read().sort_by([(k, "ascending") for k in KEY_COLUMNS])
+def compare(before: str, after: str, table: str = "objects") -> list[str]:
+    """Differences between the rows of ``table`` ("objects" or "missing") of two results folders
+    (empty when identical)."""
+    ta, tb, keys = _tables(before, after, table)
     if ta.num_rows != tb.num_rows:
         return [f"row count {ta.num_rows} vs {tb.num_rows}"]
     out = []
@@ -111,7 +130,7 @@ def compare(before: str, after: str) -> list[str]:
         bad = [i for i, (x, y) in enumerate(zip(va, vb)) if not _same(x, y)]
         if bad:
             worst = max(_gap(va[i], vb[i]) for i in bad)
-            key = {k: ta.column(k)[bad[0]].as_py() for k in KEY_COLUMNS}
+            key = {k: ta.column(k)[bad[0]].as_py() for k in keys}
             out.append(f"{name}: {len(bad)} rows differ, largest difference {worst:.3g}, first at {key}")
     return out
 
@@ -129,23 +148,27 @@ def main() -> int:
             parser.error("give folders in before/after pairs")
         failed = False
         for before, after in zip(folders[::2], folders[1::2]):
-            stats, bad = moved(before, after)
-            rows = open_results(before).dataset.count_rows()
-            verdict = "OUTSIDE THE TOLERANCES" if bad else ("within the tolerances" if stats else "bit-identical")
-            print(f"{before} → {after}: {rows} rows, {verdict}")
-            for name, (n, gap, rel) in sorted(stats.items()):
-                print(f"  {name:18s} {n:5d} rows moved, largest difference {gap:.3g} (relative {rel:.3g})")
-            for line in bad[:20]:
-                print(f"  ! {line}")
-            failed |= bool(bad)
+            for table in ("objects", "missing") if _has_missing(before, after) else ("objects",):
+                stats, bad = moved(before, after, table)
+                rows = (open_results(before).read() if table == "objects" else read_missing(before)).num_rows
+                verdict = "OUTSIDE THE TOLERANCES" if bad else ("within the tolerances" if stats else "bit-identical")
+                print(f"{before} → {after}: {table}, {rows} rows, {verdict}")
+                for name, (n, gap, rel) in sorted(stats.items()):
+                    print(f"  {name:18s} {n:5d} rows moved, largest difference {gap:.3g} (relative {rel:.3g})")
+                for line in bad[:20]:
+                    print(f"  ! {line}")
+                failed |= bool(bad)
         return 1 if failed else 0
-    diffs = compare(args.before, args.after)
-    rows = open_results(args.before).dataset.count_rows()
-    if diffs:
-        print(f"{rows} rows; DIFFERENT:\n  " + "\n  ".join(diffs))
-        return 1
-    print(f"{rows} rows, every column bit-identical")
-    return 0
+    failed = False
+    for table in ("objects", "missing") if _has_missing(args.before, args.after) else ("objects",):
+        diffs = compare(args.before, args.after, table)
+        rows = (open_results(args.before).read() if table == "objects" else read_missing(args.before)).num_rows
+        if diffs:
+            print(f"{table}: {rows} rows; DIFFERENT:\n  " + "\n  ".join(diffs))
+            failed = True
+        else:
+            print(f"{table}: {rows} rows, every column bit-identical")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
