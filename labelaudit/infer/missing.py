@@ -97,7 +97,7 @@ class SearchTrace:
 
 @kernel
 def _ground_grid(
-    xyz, ox, oy, oz, x0, y0, cell, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread
+    xyz, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread
 ):  # pragma: no cover - compiled
     """Ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
@@ -108,7 +108,8 @@ def _ground_grid(
     A cell's floor is its ``rank``-th lowest return (a few returns below the road — reflections
     off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
     floor of the 3 × 3 cells around it (one cell of such returns is ignored too), so under a vehicle,
-    whose cells hold no road returns, it comes from the road beside it."""
+    whose cells hold no road returns, it comes from the road beside it. ``inv``: 1 / ``cell`` when
+    that is exact (:func:`_exact_inverse`), else 0."""
     low = np.full((n0, n1, rank), np.inf)
     top = np.full(nbins, -np.inf)
     highest, cut = -np.inf, -np.inf
@@ -131,14 +132,14 @@ def _ground_grid(
                 b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
                 if s > top[b]:
                     top[b] = s
-        i = int((xyz[k, 0] - x0) / cell)
-        j = int((xyz[k, 1] - y0) / cell)
-        if 0 <= i < n0 and 0 <= j < n1 and z < low[i, j, rank - 1]:
-            q = rank - 1
-            while q > 0 and low[i, j, q - 1] > z:
-                low[i, j, q] = low[i, j, q - 1]
-                q -= 1
-            low[i, j, q] = z
+        i = int((xyz[k, 0] - x0) * inv if inv > 0.0 else (xyz[k, 0] - x0) / cell)
+        j = int((xyz[k, 1] - y0) * inv if inv > 0.0 else (xyz[k, 1] - y0) / cell)
+        if 0 <= i < n0 and 0 <= j < n1 and z == z:
+            # z into the cell's sorted ``rank`` lowest, the highest dropped: without a branch on z (about
+            # one return in six is among its cell's lowest so far, an unpredictable branch otherwise)
+            for q in range(rank - 1, 0, -1):
+                low[i, j, q] = max(low[i, j, q - 1], min(low[i, j, q], z))
+            low[i, j, 0] = min(low[i, j, 0], z)
     floor = np.full((n0, n1), np.inf)
     for i in range(n0):
         for j in range(n1):
@@ -189,26 +190,42 @@ def _ground_grid(
 
 
 @kernel
-def _row_min(a, reach):  # pragma: no cover - compiled
-    """(n0, n1): per cell the lowest value of ``a`` (n0, n1) within ``reach`` cells along its row
-    (the second index; inf where all are inf)."""
-    n0, n1 = a.shape
-    out = np.empty((n0, n1))
-    for i in range(n0):
-        for j in range(n1):
-            v = np.inf
-            for jj in range(max(0, j - reach), min(n1, j + reach + 1)):
-                if a[i, jj] < v:
-                    v = a[i, jj]
-            out[i, j] = v
-    return out
+def _line_min(line, reach, fwd, bwd, out):  # pragma: no cover - compiled
+    """``out`` (n,): per entry the lowest value of ``line`` (n,) within ``reach`` entries (inf where
+    all are inf). Three comparisons per entry whatever ``reach`` (van Herk / Gil-Werman): the line
+    padded with ``reach`` entries of inf (the minimum's identity) at each end is cut in blocks of
+    w = 2·reach + 1; the lowest from each block's start and from its end (``fwd``, ``bwd``: scratch
+    of at least n + 2·reach + w entries) give each window, which spans at most two blocks."""
+    n = line.shape[0]
+    w = 2 * reach + 1
+    for b0 in range(0, n + 2 * reach, w):
+        run = np.inf
+        for q in range(b0, b0 + w):
+            p = q - reach
+            run = min(run, line[p] if 0 <= p < n else np.inf)
+            fwd[q] = run
+        run = np.inf
+        for q in range(b0 + w - 1, b0 - 1, -1):
+            p = q - reach
+            run = min(run, line[p] if 0 <= p < n else np.inf)
+            bwd[q] = run
+    for j in range(n):  # the window of entry j: padded entries j … j + 2·reach
+        out[j] = min(bwd[j], fwd[j + w - 1])
 
 
 @kernel
 def _square_min(a, reach):  # pragma: no cover - compiled
     """(n0, n1): the lowest value of ``a`` within a square of side 2·reach + 1 cells around each cell."""
-    rows = _row_min(a, reach)
-    return np.ascontiguousarray(_row_min(np.ascontiguousarray(rows.T), reach).T)
+    n0, n1 = a.shape
+    size = max(n0, n1) + 4 * reach + 1
+    fwd, bwd = np.empty(size), np.empty(size)
+    rows = np.empty((n0, n1))
+    for i in range(n0):
+        _line_min(a[i], reach, fwd, bwd, rows[i])
+    out = np.empty((n0, n1))
+    for j in range(n1):
+        _line_min(rows[:, j], reach, fwd, bwd, out[:, j])
+    return out
 
 
 @kernel
@@ -236,12 +253,13 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
 
 @kernel
 def _occupancy(
-    xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, mask, x0, y0, cell, nx, ny, lo, hi, tall
+    xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, ginv, mask, x0, y0, cell, nx, ny, lo, hi, tall
 ):  # pragma: no cover - compiled
     """The returns in the search band — their indices, cells (flat index) and heights above the
     ground, (B,) each — per cell the band returns (nx, ny) and the returns above the band up to
     ``tall``, and the cells holding band returns (flat indices, ascending). All around the sensor,
-    whatever the labelled region: a wall that leaves the camera's view is still one wall."""
+    whatever the labelled region: a wall that leaves the camera's view is still one wall. ``ginv``:
+    1 / ``gcell`` when that is exact (:func:`_exact_inverse`), else 0."""
     m = xyz.shape[0]
     band_idx = np.empty(m, dtype=np.int64)
     band_cell = np.empty(m, dtype=np.int64)
@@ -252,7 +270,15 @@ def _occupancy(
     counts = np.zeros((nx, ny), dtype=np.int32)
     over = np.zeros((nx, ny), dtype=np.int32)
     for k in range(m):
-        # the cheapest tests first: most returns lie outside the grid (behind a forward camera) or under a label
+        # the height above the ground first: most returns are the road's (and the ground cells' size
+        # divides without a division when it is a power of two); the search cell's division only after
+        gi = int((xyz[k, 0] - gx0) * ginv if ginv > 0.0 else (xyz[k, 0] - gx0) / gcell)
+        gj = int((xyz[k, 1] - gy0) * ginv if ginv > 0.0 else (xyz[k, 1] - gy0) / gcell)
+        if gi < 0 or gj < 0 or gi >= ground.shape[0] or gj >= ground.shape[1]:
+            continue
+        h = xyz[k, 2] - ground[gi, gj]
+        if h < lo or h > tall:
+            continue
         i = int((xyz[k, 0] - x0) / cell)
         j = int((xyz[k, 1] - y0) / cell)
         if i < 0 or j < 0 or i >= nx or j >= ny or mask[i, j]:
@@ -260,13 +286,6 @@ def _occupancy(
         dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
         r2 = dx * dx + dy * dy
         if r2 < near2 or r2 > far2:
-            continue
-        gi = int((xyz[k, 0] - gx0) / gcell)
-        gj = int((xyz[k, 1] - gy0) / gcell)
-        if gi < 0 or gj < 0 or gi >= ground.shape[0] or gj >= ground.shape[1]:
-            continue
-        h = xyz[k, 2] - ground[gi, gj]
-        if h < lo or h > tall:
             continue
         if h <= hi:
             if counts[i, j] == 0:
@@ -445,6 +464,19 @@ def _gather(band_cell, comp_flat, wanted, starts):  # pragma: no cover - compile
             out[fill[s]] = k
             fill[s] += 1
     return out
+
+
+@kernel
+def _owners(comp, occupied, label):  # pragma: no cover - compiled
+    """In place: the component id of every occupied cell of ``comp`` (nx, ny) (the flat indices
+    ``occupied``) replaced by ``label`` of it (per component); the empty cells (−1) stay. Only
+    the occupied cells are visited (a few hundred of a grid of 10⁵)."""
+    ny = comp.shape[1]
+    for s in range(occupied.shape[0]):
+        i = occupied[s] // ny
+        j = occupied[s] % ny
+        comp[i, j] = label[comp[i, j]]
+    return comp
 
 
 @kernel
@@ -680,6 +712,12 @@ def _fill(n: int, corners: FloatArray, ox: float, oy: float, z_lo: float, z_hi: 
     return n / max(solid * rays_per_rad2, 1.0)
 
 
+def _exact_inverse(cell: float) -> float:
+    """1 / ``cell`` when multiplying by it gives what dividing by ``cell`` gives, bit for bit (a
+    power of two: both are the correctly rounded x·2⁻ᵏ), else 0 (the kernels divide)."""
+    return 1.0 / cell if math.frexp(cell)[0] == 0.5 else 0.0
+
+
 def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = None) -> list[Cluster]:
     """The point-cloud search of one frame: clusters no label explains, boxed and scored.
 
@@ -719,6 +757,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         gx0,
         gy0,
         gcell,
+        _exact_inverse(gcell),
         int(math.ceil((x1 - gx0) / gcell)),
         int(math.ceil((y1 - gy0) / gcell)),
         reach * reach,
@@ -743,6 +782,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         gx0,
         gy0,
         gcell,
+        _exact_inverse(gcell),
         mask,
         x0,
         y0,
@@ -825,7 +865,8 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     solid = (
         g_total[group] >= C.MISSING_FRAGMENT_POINTS
     )  # components of groups with a few returns at least (not stray ones)
-    owner = np.where(comp >= 0, np.where(solid, group, -1)[np.maximum(comp, 0)], -1)  # the group of every occupied cell
+    # the group of every occupied cell (−1: none), in place of its component (comp is not needed after)
+    owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
     grid = (owner, x0, y0, cell)
     sight = (counts, mask, x0, y0, cell)
     for s in range(len(chosen)):
