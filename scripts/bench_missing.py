@@ -87,8 +87,8 @@ def _why(o: dict, rows: list, trace, frame, threshold: float) -> tuple[str, str]
     ``placed > 1 m off`` (a candidate ≥ threshold within 3 m), ``score < threshold: <factor>`` (a
     written row within 3 m, its weakest factor), ``dropped: <fate>`` (a boxed cluster within 3 m not
     written: outside the labelled region, score under the kept minimum, over a label), ``unboxed:
-    <rule>`` (a group of components over the vehicle left unboxed by that rule), ``merged: boxed
-    elsewhere`` (its group's boxes all lie > 3 m off), ``no group`` (no returns clustered there)."""
+    <rule>`` (the group holding most of its returns left unboxed by that rule), ``merged: boxed
+    elsewhere`` (that group's boxes all lie > 3 m off), ``no group`` (none of its returns clustered)."""
 
     def off(c):
         return math.hypot(c[0] - o["true_cx"], c[1] - o["true_cy"])
@@ -117,26 +117,40 @@ def _why(o: dict, rows: list, trace, frame, threshold: float) -> tuple[str, str]
         c, f = min(dropped, key=lambda cf: off(cf[0].box))
         kind = f"dropped: {f}" + (f" ({_weakest(c)})" if f == "low score" else "")
         return kind, f"{off(c.box):.1f} m off, {c.class_name}, score {c.score:.2f} ({_factors(c)})"
-    over = [
-        g
+    # the group holding most of its returns (a truck seen from its rear: its returns, not its centre)
+    pts = frame.points[:, :2]
+    mine = pts[_in_footprint(pts[:, 0], pts[:, 1], o)]
+    held = [
+        (
+            int(
+                (
+                    (mine[:, 0] >= g["x0"])
+                    & (mine[:, 0] <= g["x1"])
+                    & (mine[:, 1] >= g["y0"])
+                    & (mine[:, 1] <= g["y1"])
+                ).sum()
+            ),
+            g,
+        )
         for g in trace.groups
-        if g["x0"] - 0.5 <= o["true_cx"] <= g["x1"] + 0.5 and g["y0"] - 0.5 <= o["true_cy"] <= g["y1"] + 0.5
     ]
-    if over:
-        g = max(over, key=lambda g: g["points"])
-        size = f"{g['x1'] - g['x0']:.1f} × {g['y1'] - g['y0']:.1f} m, {g['points']} returns"
+    n_held, g = max(held, key=lambda hg: hg[0], default=(0, None))
+    if n_held > 0:
+        size = f"{g['x1'] - g['x0']:.1f} × {g['y1'] - g['y0']:.1f} m, {g['points']} band returns"
         if g["fate"] != "boxed":
             return f"unboxed: {g['fate']}", f"its group {size}"
-        boxes = [trace.clusters[k][0] for k in g["clusters"]]
-        near = min(boxes, key=lambda c: off(c.box), default=None)
-        return (
-            "merged: boxed elsewhere",
-            f"its group {size} boxed as {len(boxes)} box(es), nearest {off(near.box):.1f} m off" if near else size,
+        boxes = [trace.clusters[k] for k in g["clusters"]]
+        near = min(boxes, key=lambda cf: off(cf[0].box), default=None)
+        if near is None:
+            return "merged: boxed elsewhere", f"its group {size}"
+        c, f = near
+        return "merged: boxed elsewhere", (
+            f"its group {size} boxed as {len(boxes)} box(es), the nearest {off(c.box):.1f} m off, {c.class_name},"
+            f" score {c.score:.2f} ({_factors(c)}), {f}"
         )
     # no group: its returns are explained by a neighbouring label (grown by the margin), or lie outside the band
     from labelaudit import constants as C
 
-    pts = frame.points[:, :2]
     mine = _in_footprint(pts[:, 0], pts[:, 1], o)
     near = np.zeros(len(pts), dtype=bool)
     for b in frame.boxes:
