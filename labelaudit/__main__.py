@@ -2,7 +2,9 @@
 
 Kept outside :mod:`labelaudit.cli` (whose import loads Typer and every command): for ``labelaudit infer`` the worker pool's fork server is started
 before Typer and the commands are imported, so its imports and warm-up overlap with theirs
-(about 0.3 s of a short run).
+(about 0.3 s of a short run), and the main process runs with one BLAS thread
+(:func:`labelaudit.executors.single_threaded_blas`: OpenBLAS's idle threads would spin through
+those imports).
 """
 
 from __future__ import annotations
@@ -36,6 +38,10 @@ def start_infer_fork_server(argv: list[str]) -> bool:
 
 def main() -> None:
     """Console-script entry point (``labelaudit``)."""
+    if len(sys.argv) > 1 and sys.argv[1] == "infer":  # before NumPy loads: the main process only plans and writes
+        from labelaudit.executors import single_threaded_blas
+
+        single_threaded_blas()
     start_infer_fork_server(sys.argv)
     from labelaudit.cli import main as run
 

@@ -90,6 +90,21 @@ the server skip its interpreter teardown when it exits (up to a second with numb
 during which it still holds the caller's stdout/stderr pipes)."""
 
 
+def single_threaded_blas() -> None:
+    """One BLAS/OpenMP thread in this process and its children, unless the caller's environment
+    sets a number.
+
+    For a process whose work is elsewhere: ``infer``'s main process plans, writes and reports
+    while its workers audit with one thread each. OpenBLAS starts a thread per core when NumPy
+    loads, and those threads spin while the process imports Arrow and Typer (~0.1 s of CPU on two
+    cores, taken from the fork server that imports beside it). Takes effect only before NumPy is
+    imported; results are unchanged (the audit's matrices are far below BLAS's threading sizes,
+    and the workers already run with one thread).
+    """
+    for k in _SINGLE_THREAD_ENV:
+        os.environ.setdefault(k, "1")
+
+
 @contextmanager
 def _single_threaded_children() -> Iterator[None]:
     """Workers inherit 1 BLAS/OpenMP thread each: the pool already uses every core."""

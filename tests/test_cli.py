@@ -285,6 +285,37 @@ def test_the_console_script_starts_infers_fork_server_only_when_a_pool_will_run(
     assert script.value == "labelaudit.__main__:main"
 
 
+def test_the_console_script_runs_infers_main_process_with_one_blas_thread_unless_told():
+    """``labelaudit infer``'s main process only plans and writes: it sets one BLAS thread before NumPy
+    loads (OpenBLAS's idle threads spin through the imports), keeps a number the caller set, and
+    leaves other commands alone."""
+    import os
+    import subprocess
+    import sys
+
+    probe = (
+        "import os, sys; sys.argv = {argv!r}; import labelaudit.cli as c; "
+        "c.main = lambda: print(os.environ.get('OPENBLAS_NUM_THREADS'), 'numpy' in sys.modules); "
+        "import labelaudit.__main__ as m; m.main()"
+    )
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+    }
+
+    def run(argv, **extra):
+        code = probe.format(argv=argv)
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env={**env, **extra}
+        )
+        assert done.returncode == 0, done.stderr
+        return done.stdout.split()
+
+    # set before NumPy was imported (the CLI's own modules do not load it), so OpenBLAS reads it
+    assert run(["labelaudit", "infer", "d", "--workers", "1"]) == ["1", "False"]
+    assert run(["labelaudit", "infer", "d", "--workers", "1"], OPENBLAS_NUM_THREADS="3")[0] == "3"
+    assert run(["labelaudit", "rank", "r/"])[0] == "None"
+
+
 def test_dataset_format_choices_are_the_readers():
     """``--dataset-format`` (one enum for infer and eval) offers exactly auto and the readers' formats."""
     from labelaudit.cli.app import DatasetFormat
