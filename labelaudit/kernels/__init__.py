@@ -211,6 +211,13 @@ def _test_of(i: int, key: Any, env: dict[str, Any], tag: str) -> str | None:
     if isinstance(key, str):
         env[s] = frozenset(t for t, k in _SCALAR_KEYS.items() if k == key)
         return f"type({v}) in {s}"
+    if isinstance(key, tuple) and key[0] == "T" and all(isinstance(k, str) for k in key[1:]):  # a tuple of scalars
+        items = []
+        for j, k in enumerate(key[1:]):
+            name = f"_s{i}_{j}_{tag}"
+            env[name] = frozenset(t for t, kk in _SCALAR_KEYS.items() if kk == k)
+            items.append(f"type({v}[{j}]) in {name}")
+        return f"type({v}) is tuple and len({v}) == {len(key) - 1}" + "".join(f" and {t}" for t in items)
     return None
 
 
