@@ -889,21 +889,9 @@ def jaccard(
         raise ValueError("p and q must be non-negative")
     if not pb.size:
         return 0.0
-    # NumPy's sort, not numba's: a 3D grid has 10⁴–10⁵ cells, most of them tied (the interior), and
-    # NumPy's vectorised sort takes a third of the time numba's quicksort does there
+    # NumPy's sort, not numba's: the cells are mostly tied (the interior), 10³ in BEV and 10⁴–10⁵ in
+    # 3D, and NumPy's vectorised sort takes a third to a half of the time numba's quicksort does
     return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only))
-
-
-@kernel(error_model="numpy")
-def _jaccard_kernel(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
-    """(a mass is negative, J) of :func:`jaccard` in one compiled pass — split, sort by r, sums —
-    for the BEV JIoU-GT's ~10³ cells, where numba's sort is as fast as NumPy's. Cells of equal r give
-    equal terms whatever their order (the max picks p_j/p_i = q_j/q_i), so the sort's order of
-    ties (another algorithm than NumPy's) only moves the last bits."""
-    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, p_outside, q_outside)
-    if negative or pb.size == 0:
-        return negative, 0.0
-    return False, _jaccard_sum(pb, qb, cb, np.argsort(ratio), p_only, q_only)
 
 
 @kernel(error_model="numpy")
@@ -1015,7 +1003,8 @@ def jiou_gt(post: "object", params: SpatialParams) -> float:
     Same as ``jiou(BoxDistribution.deterministic(box), BoxDistribution.from_posterior(post))``
     (a test checks it) but faster: no re-validation, and since the uniform distribution is 0
     outside the box, p_G is only rasterised inside it (the rest is 1 − its mass there). A BEV
-    posterior is one compiled pass (:func:`_jiou_gt_bev_kernel`).
+    posterior's cells come from one compiled pass (:func:`_jiou_gt_bev_kernel`), then are sorted
+    by NumPy and summed by :func:`_jaccard_sum` as in :func:`jaccard`.
     """
     ref = np.asarray(post.box, dtype=float)  # type: ignore[attr-defined]
     model = post.model  # type: ignore[attr-defined]
@@ -1023,7 +1012,7 @@ def jiou_gt(post: "object", params: SpatialParams) -> float:
     d = g.point_dim(model)
     cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     if d == 2 and params.num_samples > 1:
-        ok, value = _jiou_gt_bev_kernel(
+        ok, pb, qb, cb, ratio, p_only, q_only = _jiou_gt_bev_kernel(
             ref,
             cov,
             normal_samples(6, params.num_samples, params.seed),
@@ -1033,7 +1022,9 @@ def jiou_gt(post: "object", params: SpatialParams) -> float:
             C.SUBROWS_PER_CELL,
         )
         if ok:
-            return float(value)
+            # NumPy's sort between the two compiled passes: on the ~1.7·10³ cells, most of them tied
+            # (the interior), it takes a third to a half of the time numba's quicksort does
+            return float(_jaccard_sum(pb, qb, cb, ratio.argsort(), p_only, q_only)) if pb.size else 0.0
     return jiou_gt_generic(ref, model, cov, params)
 
 
@@ -1060,15 +1051,18 @@ def jiou_gt_generic(ref: FloatArray, model: ModelKind, cov: FloatArray, params: 
 
 @kernel(error_model="numpy")
 def _jiou_gt_bev_kernel(ref, cov, z, cells, span, max_cells, nsub):  # pragma: no cover - compiled
-    """(ok, JIoU-GT) of a BEV posterior (box ``ref`` (7,), φ covariance ``cov`` (6, 6)) from the
-    normal samples ``z`` (S, 6), S > 1: the steps of :func:`jiou_gt`'s generic form in one pass —
-    φ samples in the label's frame (φ̄ + z √(T Σ Tᵀ)), their boxes and blur, the grid over the label,
-    both rasters cleaned, the Jaccard with p_G's mass outside the label. ``ok`` is False for a
-    non-finite covariance (the generic form then raises as before)."""
+    """The cells of the Jaccard of a BEV posterior's JIoU-GT (box ``ref`` (7,), φ covariance ``cov``
+    (6, 6)) from the normal samples ``z`` (S, 6), S > 1: the steps of :func:`jiou_gt`'s generic
+    form in one pass — φ samples in the label's frame (φ̄ + z √(T Σ Tᵀ)), their boxes and blur, the
+    grid over the label, both rasters cleaned, and :func:`_jaccard_split` with p_G's mass outside
+    the label. Returns (ok, p, q, counts, r, p_only, q_only), what :func:`_jaccard_sum` takes once
+    r is sorted; ``ok`` is False for a non-finite covariance (the generic form then raises as
+    before) or a negative mass."""
+    empty = np.zeros(0)
     for i in range(6):
         for j in range(6):
             if not math.isfinite(cov[i, j]):
-                return False, 0.0
+                return False, empty, empty, empty, empty, 0.0, 0.0
     length, width = ref[3], ref[4]
     # φ in the label's own frame: the three in-plane 2-vectors turned by −yaw (T Σ Tᵀ, T = diag(Rᵀ, Rᵀ, Rᵀ))
     c0, s0 = math.cos(ref[6]), math.sin(ref[6])
@@ -1105,5 +1099,5 @@ def _jiou_gt_bev_kernel(ref, cov, z, cells, span, max_cells, nsub):  # pragma: n
     _clean_kernel(u)
     _clean_kernel(q)
     inside = linalg.pairwise_sum(q)
-    negative, value = _jaccard_kernel(u, q, np.ones(u.size), 0.0, max(0.0, 1.0 - inside))
-    return not negative, value
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(u, q, np.ones(u.size), 0.0, max(0.0, 1.0 - inside))
+    return not negative, pb, qb, cb, ratio, p_only, q_only
