@@ -49,6 +49,14 @@ def spread(values: list[float], fmt: str = "{:.2f}") -> str:
     return f"{fmt.format(statistics.median(values))} [{fmt.format(min(values))}–{fmt.format(max(values))}]"
 
 
+def like_a_worker() -> None:
+    """One BLAS/OpenMP thread in this process, as ``infer``'s workers have (the pool sets it for
+    them): OpenBLAS's idle threads would otherwise spin beside the warm process and count in its
+    CPU time. Before NumPy is imported; a number the caller set is kept."""
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(k, "1")
+
+
 def become_subreaper() -> None:
     """Orphaned descendants (the fork server, workers) are re-parented to this process, so their
     CPU time is counted in RUSAGE_CHILDREN once they are reaped (Linux; elsewhere only the
@@ -416,6 +424,7 @@ def main() -> None:
     sys.stdout.reconfigure(line_buffering=True)  # figures appear as they are measured
     become_subreaper()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    like_a_worker()  # after env: the commands measured set their own threads
     sections = set(args.only.split(","))
     with tempfile.TemporaryDirectory(prefix="bench-infer-") as name:
         tmp = Path(name)

@@ -33,7 +33,16 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_infer import REPO, become_subreaper, load, run_tree, simulate, spread, warm_stages  # noqa: E402
+from bench_infer import (  # noqa: E402
+    REPO,
+    become_subreaper,
+    like_a_worker,
+    load,
+    run_tree,
+    simulate,
+    spread,
+    warm_stages,
+)
 
 MIB = 1024 * 1024
 WAYMO_FRAMES = 1150 * 200  # segments × frames of the Waymo Open Dataset (perception, all splits)
@@ -236,6 +245,7 @@ def main() -> None:
     sections = set(args.only.split(","))
     become_subreaper()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    like_a_worker()
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as name:
         tmp = Path(name)
         print(f"machine: {os.cpu_count()} cores, {load()}")
