@@ -242,6 +242,7 @@ MISSING_TALL_MARGIN = (
 )
 MISSING_MERGE_SIDE_CELLS = 2  # fragments whose footprints come within this many cells of each other are one object too (a side broken by a dark panel or glass)
 MISSING_CORNER_DEPTH = 1.5  # m; a face is part of a larger structure too where other returns at one of its ends run this far away from the sensor, square to it (a building's corner)
+MISSING_OWN_FRAGMENT_CELLS = 6  # a group of at most this many cells inside the box a cluster would become is its own far end or roof edge seen past a gap, not a wall going on (continuation test)
 MISSING_CORNER_START = 0.6  # m; … and begin within this of the face (a building's end wall meets its front; a hedge behind a parked car begins beyond the car's width)
 MISSING_REGION_SLACK = 3.0  # m; clusters whose centroid lies this far beyond the labelled range are not boxed (a box centre may lie farther than its returns)
 MISSING_CLASS_FIT = (

@@ -316,6 +316,26 @@ def test_the_trace_says_what_became_of_each_cluster():
     assert len(trace.clusters) == sum(len(g["clusters"]) for g in trace.groups)
 
 
+@pytest.mark.parametrize("own_cells", [0, C.MISSING_OWN_FRAGMENT_CELLS])
+def test_a_car_whose_far_end_shows_past_a_gap_is_found_and_a_wall_broken_the_same_way_is_not(monkeypatch, own_cells):
+    """A car's side hidden in its middle (behind a post) shows its far end as two small fragments in
+    line with its face: they lie inside the box the car would become, so they are its own, not a
+    wall going on (without that rule the car is taken for a wall). A wall broken the same way
+    whose pieces run on for metres beyond is still a wall."""
+    monkeypatch.setattr(C, "MISSING_OWN_FRAGMENT_CELLS", own_cells)
+    x0, y0, h0, h1 = 13.05, 2.1, GROUND + 0.2, GROUND + 1.5
+    rear = _face((x0, y0), (x0, y0 + 1.8), h0, h1, 0.08)
+    near_side = _face((x0, y0), (15.2, y0), h0, h1, 0.08)
+    tips = [_face((a, y0), (a + 0.2, y0), h0, h1, 0.08) for a in (16.0, 16.6)]
+    rows = find_missing(_frame(rear, near_side, *tips), RunConfig())
+    assert (_best(rows, 15.0, 3.0, radius=1.0) >= 0.5) == (own_cells > 0)
+    wall = [_face((a, -6.0), (a + 0.2, -6.0), GROUND + 0.2, GROUND + 2.0, 0.08) for a in np.arange(15.9, 26.0, 0.7)]
+    wall_rows = find_missing(
+        _frame(_face((13.0, -6.0), (14.8, -6.0), GROUND + 0.2, GROUND + 2.0, 0.08), *wall), RunConfig()
+    )
+    assert _best(wall_rows, 14.5, -6.5, radius=2.5) < 0.5
+
+
 @pytest.mark.parametrize("splits", [0, C.MISSING_SPLITS])
 def test_two_cars_parked_side_by_side_are_two_candidates(monkeypatch, splits):
     """Two cars 0.4 m apart make one cluster no class fits (4 m wide): it is split at the gap and

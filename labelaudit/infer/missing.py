@@ -867,7 +867,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     )  # components of groups with a few returns at least (not stray ones)
     # the group of every occupied cell (−1: none), in place of its component (comp is not needed after)
     owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
-    grid = (owner, x0, y0, cell)
+    grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k))  # + each group's cells
     sight = (counts, mask, x0, y0, cell)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
@@ -944,12 +944,25 @@ def _continues(
     along1: bool,
     po: float,
     qo: float,
+    body: tuple[float, float, float, float] | None = None,
 ) -> bool:
     """Whether the cluster's longer face (the side facing the sensor, at ``po``, ``qo`` in the
     cluster's frame) goes on beyond it through returns of other clusters no label explains: a
-    stretch of a wall or a hedge, not an object of its own."""
-    owner, x0, y0, cell = grid
+    stretch of a wall or a hedge, not an object of its own. ``grid``: (owner (nx, ny), x0, y0,
+    cell, cells per group). A group of at most ``MISSING_OWN_FRAGMENT_CELLS`` cells inside ``body``
+    (A1, B1, A2, B2: the box the cluster would become, in its frame) is the object's own far end or
+    roof edge seen past a gap, not a structure going on."""
+    owner, x0, y0, cell, group_cells = grid
     nx, ny = owner.shape
+    A1, B1, A2, B2 = body if body is not None else (np.inf, -np.inf, np.inf, -np.inf)
+
+    def others(o: NDArray, p: NDArray, q: NDArray) -> NDArray:
+        """Cells of other groups, less the object's own fragments."""
+        other = (o >= 0) & (o != own)
+        small = other & (o < len(group_cells))
+        small[small] = group_cells[o[small]] <= C.MISSING_OWN_FRAGMENT_CELLS
+        return other & ~(small & (p >= A1) & (p <= B1) & (q >= A2) & (q <= B2))
+
     step = 0.5 * cell
     ts = np.arange(step, C.MISSING_CONTINUATION + step, step)
     if along1:  # the face runs along axis 1, on the side of axis 2 nearer the sensor
@@ -969,8 +982,7 @@ def _continues(
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
                 ii, jj = np.clip(i + di, 0, nx - 1), np.clip(j + dj, 0, ny - 1)
-                o = owner[ii, jj]
-                hit = ok & (o >= 0) & (o != own)
+                hit = ok & others(owner[ii, jj], p, q)
                 along |= hit
                 cells.update(zip(ii[hit].tolist(), jj[hit].tolist()))
         # the returns must run along the line (a wall going on), not cross it (a wall behind, square to the face)
@@ -1002,8 +1014,7 @@ def _continues(
         y = centre[1] + s * p + c * q
         i = np.clip(((x - x0) / cell).astype(np.int64), 0, nx - 1)
         j = np.clip(((y - y0) / cell).astype(np.int64), 0, ny - 1)
-        o = owner[i, j]
-        hit = (o >= 0) & (o != own)
+        hit = others(owner[i, j], p, q)
         # from the face's end on (a building's end wall meets its front; a hedge behind a car begins
         # only beyond the car's width)
         if np.any(hit) and depth[hit].min() <= C.MISSING_CORNER_START and np.ptp(depth[hit]) >= C.MISSING_CORNER_DEPTH:
@@ -1101,14 +1112,15 @@ def _box_cluster(
         *C.MISSING_FILL,
     )
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
-    if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo):
+    body = (A1, B1, A2, B2)
+    if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, body):
         shape_score = 0.0
     # a class seen as an L-shape (a truck): its short leg ends too (a building's end wall, broken into
     # pieces by windows or an occluder, goes on in line with it)
     if (
         grid is not None
         and best_name in C.MISSING_CLASS_MIN_CORNER
-        and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 < e2, po, qo)
+        and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 < e2, po, qo, body)
     ):
         shape_score = 0.0
     whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
@@ -1189,7 +1201,7 @@ class _others_marked:
     def __enter__(self) -> None:
         if self.grid is None:
             return
-        owner, x0, y0, cell = self.grid
+        owner, x0, y0, cell = self.grid[:4]
         i = np.clip(((self.xyz[:, 0] - x0) / cell).astype(np.int64), 0, owner.shape[0] - 1)
         j = np.clip(((self.xyz[:, 1] - y0) / cell).astype(np.int64), 0, owner.shape[1] - 1)
         self.saved = (i, j, owner[i, j].copy())
