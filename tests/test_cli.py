@@ -316,6 +316,29 @@ def test_the_console_script_runs_infers_main_process_with_one_blas_thread_unless
     assert run(["labelaudit", "rank", "r/"])[0] == "None"
 
 
+def test_the_console_script_collects_no_garbage_during_start_up_and_every_command_runs_with_the_collector_on():
+    """The console script turns the garbage collector off while it imports and builds the command
+    group; the group's callback freezes what the start-up made and turns it back on, so a command
+    (here a probe registered on the app) runs with it on. Outside the console script (Typer's test
+    runner) nothing is frozen."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import gc, sys; from labelaudit.cli import app; "
+        "app.command('probe')(lambda: print(gc.isenabled(), gc.get_freeze_count() > 0)); "
+        "sys.argv = ['labelaudit', 'probe']; import labelaudit.__main__ as m; m.main()"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True", "True"]
+    import gc
+
+    before = gc.get_freeze_count()
+    r = invoke("rank", "--help")
+    assert r.exit_code == 0 and gc.isenabled() and gc.get_freeze_count() == before
+
+
 def test_dataset_format_choices_are_the_readers():
     """``--dataset-format`` (one enum for infer and eval) offers exactly auto and the readers' formats."""
     from labelaudit.cli.app import DatasetFormat

@@ -9,6 +9,7 @@ internal error (a bug; ``--debug`` shows the traceback). Commands live in their 
 
 from __future__ import annotations
 
+import gc
 import sys
 from contextlib import contextmanager
 from enum import Enum
@@ -140,3 +141,6 @@ def _main(
     ),
 ) -> None:
     """Audit 3D LiDAR box labels from the point cloud itself."""
+    if not gc.isenabled():  # the console script's start-up (labelaudit/__main__.py): its objects live on
+        gc.freeze()
+        gc.enable()
