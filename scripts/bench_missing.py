@@ -21,6 +21,12 @@ elsewhere, or no group at all; and counts the causes with their classes, points,
 visible share. The pooled benchmark of docs/missing.md:
 
     .venv/bin/python scripts/bench_missing.py --frames 60 --seed 11 7 3 21 --why
+
+``--cost`` prints instead what the search costs, stage by stage (CPU ms per frame in one warm
+process, the allocator tuned as ``infer`` tunes it): on ``bench_infer``'s 120 frames (seed 4, its
+issue's per-frame target counts the search) and on cluttered frames with dropped labels:
+
+    .venv/bin/python scripts/bench_missing.py --cost [--keep DIR] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -384,6 +390,145 @@ def bench_real(root: Path, threshold: float, min_points: int, verbose: bool) -> 
             print("\n".join(lines_out))
 
 
+# --------------------------------------------------------------------------- cost, stage by stage
+
+COST_STAGES = (  # (label, name in labelaudit.infer.missing, the stage it is part of: None = top level)
+    ("search_clusters", "search_clusters", None),
+    ("ground grid", "_ground_grid", "search_clusters"),
+    ("label mask", "_label_mask", "search_clusters"),
+    ("occupancy", "_occupancy", "search_clusters"),
+    ("components", "_components", "search_clusters"),
+    ("component extras", "_comp_extras", "search_clusters"),
+    ("fragments joined", "_merge_fragments", "search_clusters"),
+    ("gather", "_gather", "search_clusters"),
+    ("owners", "_owners", "search_clusters"),
+    ("rays per sr", "_rays_per_rad2", "search_clusters"),
+    ("box clusters", "_box_cluster", "search_clusters"),
+    ("faces", "_faces", "_box_cluster"),
+    ("place", "_place", "_box_cluster"),
+    ("continues", "_continues", "_box_cluster"),
+    ("labelled region", "in_labelled_region", None),
+    ("free space + fit", "with_free_space", None),
+    ("frame evidence", "frame_evidence", "with_free_space"),
+    ("label-error fit", "fit_label_valid", "with_free_space"),
+    ("ray counts", "ray_counts", "with_free_space"),
+)
+
+
+def search_cost(data: Path, frames: int, warm: int = 10) -> tuple[int, float, dict[str, float], float]:
+    """CPU seconds of ``find_missing`` over ``frames`` frames of the KITTI folder ``data`` in this
+    (warm) process, after ``warm`` frames, with the seconds of each function of
+    :data:`COST_STAGES` (outermost calls only: a recursive box counts once); returns (frames,
+    total seconds, seconds per stage, clusters boxed per frame)."""
+    from labelaudit.config import load_config
+    from labelaudit.datasets import open_dataset
+    from labelaudit.executors import tune_allocator
+    from labelaudit.infer import missing as M
+
+    tune_allocator()  # where memory comes from, as in every process that audits (process_chunk calls it)
+    clock = time.process_time
+    acc: dict[str, float] = defaultdict(float)
+    depth: dict[str, int] = defaultdict(int)
+    calls = [0]
+    originals = {name: getattr(M, name) for _, name, _ in COST_STAGES}
+
+    def timed(name, f):
+        def run(*a, **k):
+            if depth[name]:  # a recursive call: its time is in the outer one's
+                return f(*a, **k)
+            depth[name] += 1
+            calls[0] += name == "_box_cluster"
+            t = clock()
+            try:
+                return f(*a, **k)
+            finally:
+                acc[name] += clock() - t
+                depth[name] -= 1
+
+        return run
+
+    cfg = load_config(None, "kitti")
+    reader = open_dataset(data, "kitti")
+    refs = reader.list_units()[: warm + frames]
+    loaded = [f for ref in refs for f in reader.load_unit(ref)]
+    for frame in loaded[:warm]:
+        M.find_missing(frame, cfg)
+    try:
+        for name, f in originals.items():
+            setattr(M, name, timed(name, f))
+        t0 = clock()
+        for frame in loaded[warm:]:
+            M.find_missing(frame, cfg)
+        total = clock() - t0
+    finally:
+        for name, f in originals.items():
+            setattr(M, name, f)
+    n = max(len(loaded) - warm, 1)
+    return n, total, dict(acc), calls[0] / n
+
+
+def bench_cost(datasets: list[tuple[str, Path]], frames: int, repeat: int) -> None:
+    """Print the search's CPU ms per frame, stage by stage, for each dataset (median of ``repeat``
+    runs, their range in brackets)."""
+    for title, data in datasets:
+        runs = [search_cost(data, frames) for _ in range(repeat)]
+        n = runs[0][0]
+
+        def ms(values: list[float]) -> str:
+            v = sorted(x / n * 1e3 for x in values)
+            return f"{v[len(v) // 2]:6.3f} [{v[0]:.3f}–{v[-1]:.3f}]" if len(v) > 1 else f"{v[0]:6.3f}"
+
+        print(
+            f"search cost, {title}: {n} frames, {runs[0][3]:.2f} clusters boxed per frame, CPU ms per frame "
+            f"(load {' '.join(f'{x:.1f}' for x in os.getloadavg())}):"
+        )
+        print(f"  find_missing              {ms([r[1] for r in runs])} ms")
+        children: dict[str | None, list[str]] = defaultdict(list)
+        for _, name, parent in COST_STAGES:
+            children[parent].append(name)
+        labels = {name: label for label, name, _ in COST_STAGES}
+
+        def show(name: str, indent: int) -> None:
+            print(f"  {' ' * indent}{labels[name]:{24 - indent}s}{ms([r[2].get(name, 0.0) for r in runs])} ms")
+            for child in children.get(name, []):
+                show(child, indent + 2)
+            if children.get(name):
+                rest = [r[2].get(name, 0.0) - sum(r[2].get(c, 0.0) for c in children[name]) for r in runs]
+                print(f"  {' ' * (indent + 2)}{'(the rest)':{22 - indent}s}{ms(rest)} ms")
+
+        for name in children[None]:
+            show(name, 2)
+        rest = [r[1] - sum(r[2].get(c, 0.0) for c in children[None]) for r in runs]
+        print(f"    {'(rows, label IoU)':22s}{ms(rest)} ms")
+
+
+def cost_datasets(keep: Path | None, frames: int, seed: int, drop: float, workers: int) -> list[tuple[str, Path]]:
+    """``bench_infer``'s frames (120, seed 4, no clutter) and ``frames`` cluttered frames of ``seed``
+    with ``drop`` of the vehicle labels dropped, simulated once into ``keep`` (or a temporary folder)."""
+    from labelaudit import constants as C
+    from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.scene import SceneSpec
+
+    tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="bench-missing-cost-"))
+    plain, cluttered = tmp / "cost-seed-4", tmp / f"cost-clutter-seed-{seed}"
+    if not (plain / "manifest.parquet").is_file():
+        simulate_dataset(plain, frames=120, seed=4, workers=workers, progress=False)
+    if not (cluttered / "manifest.parquet").is_file():
+        simulate_dataset(
+            cluttered,
+            frames=frames,
+            seed=seed,
+            scene=SceneSpec(num_clutter=C.SIM_CLUTTER),
+            drop_fraction=drop,
+            workers=workers,
+            progress=False,
+        )
+    return [
+        ("bench_infer's frames (seed 4)", plain),
+        (f"clutter, {drop:.0%} of vehicle labels dropped (seed {seed})", cluttered),
+    ]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=60)
@@ -422,7 +567,18 @@ def main() -> None:
         action="store_true",
         help="say why each simulated miss was missed (placed off, which score factor, which rule dropped its cluster) and count the causes",
     )
+    ap.add_argument(
+        "--cost",
+        action="store_true",
+        help="instead of recall: the search's CPU time per frame, stage by stage, in one warm process, on "
+        "bench_infer's 120 frames (seed 4) and on --frames cluttered frames of the first --seed",
+    )
+    ap.add_argument("--repeat", type=int, default=3, help="--cost: runs per dataset (median and range printed)")
     args = ap.parse_args()
+    if args.cost:
+        datasets = cost_datasets(args.keep, args.frames, args.seed[0], args.drop_fraction, args.workers)
+        bench_cost(datasets, 100, args.repeat)
+        return
     if not args.no_sim:
         tallies = []
         for seed in args.seed:
