@@ -665,24 +665,8 @@ def _place(
     # march each spot's line of sight a cell at a time, from the ego radius to the spot
     n = int(math.ceil(float(r.max()) / cell)) + 1
     f = np.linspace(0.0, 1.0, n)
-    keep_f = f[None, None, :] * r[..., None] >= C.MISSING_EGO_RADIUS
-    i = ((ox + dx[..., None] * f - x0) / cell).astype(np.int64)
-    j = ((oy + dy[..., None] * f - y0) / cell).astype(np.int64)
-    inside = (i >= 0) & (j >= 0) & (i < counts.shape[0]) & (j < counts.shape[1]) & keep_f
-    i, j = np.where(inside, i, 0), np.where(inside, j, 0)
-    blocked = ((counts[i, j] > 0) | (mask[i, j] != 0)) & inside
-    seen_empty = ~blocked.any(axis=2)
-    seen_empty &= ~((uu >= a1) & (uu <= b1) & (vv >= a2) & (vv <= b2))
-    empties = np.array(
-        [
-            [
-                np.count_nonzero(
-                    seen_empty & (uu >= A1) & (uu <= A1 + spans[0][2]) & (vv >= A2) & (vv <= A2 + spans[1][2])
-                )
-                for A2 in lows[1]
-            ]
-            for A1 in lows[0]
-        ]
+    seen_empty, empties = _sight_counts(
+        dx, dy, r, f, ox, oy, x0, y0, cell, counts, mask, C.MISSING_EGO_RADIUS, uu, vv, *vis, lows[0], lows[1], *size
     )
     # the placement with the fewest seen-empty spots, the nearest to the growth away from the sensor
     # among equals; that growth stays unless clearly worse (nothing tells where in an occluder's
@@ -693,6 +677,46 @@ def _place(
     if empties[k1, k2] + C.MISSING_PLACE_MARGIN > _empty_at(seen_empty, uu, vv, start, spans):
         return start
     return float(lows[0][k1]), float(lows[1][k2])
+
+
+@kernel
+def _sight_counts(
+    dx, dy, r, f, ox, oy, x0, y0, cell, counts, mask, ego, uu, vv, a1, b1, a2, b2, lows1, lows2, size1, size2
+):  # pragma: no cover - compiled
+    """:func:`_place`'s spots seen empty and its placements' counts of them. A spot (``uu``, ``vv``
+    (U, V) in the cluster's frame; ``dx``, ``dy``, ``r`` (U, V) from the sensor at ``ox``, ``oy``) is
+    seen empty when no step ``f`` (K,) of its line of sight at least ``ego`` m from the sensor lies in
+    a cell (``cell`` m from ``x0``, ``y0``) holding band returns (``counts``) or a label (``mask``),
+    and it lies outside the visible rectangle [a1, b1] × [a2, b2]. Returns that (U, V) and, per
+    placement (low ends ``lows1`` × ``lows2``, extents ``size1`` × ``size2``), the seen-empty spots
+    it covers."""
+    nu, nv = dx.shape
+    nx, ny = counts.shape
+    seen = np.zeros((nu, nv), dtype=np.bool_)
+    for a in range(nu):
+        for b in range(nv):
+            empty = True
+            for k in range(f.shape[0]):  # a cell at a time, from the sensor to the spot
+                if not f[k] * r[a, b] >= ego:
+                    continue
+                i = int((ox + dx[a, b] * f[k] - x0) / cell)
+                j = int((oy + dy[a, b] * f[k] - y0) / cell)
+                if 0 <= i < nx and 0 <= j < ny and (counts[i, j] > 0 or mask[i, j] != 0):
+                    empty = False
+                    break
+            seen[a, b] = empty and not (a1 <= uu[a, b] <= b1 and a2 <= vv[a, b] <= b2)
+    empties = np.zeros((lows1.shape[0], lows2.shape[0]), dtype=np.int64)
+    for p in range(lows1.shape[0]):
+        hi1 = lows1[p] + size1
+        for q in range(lows2.shape[0]):
+            hi2 = lows2[q] + size2
+            n = 0
+            for a in range(nu):
+                for b in range(nv):
+                    if seen[a, b] and lows1[p] <= uu[a, b] <= hi1 and lows2[q] <= vv[a, b] <= hi2:
+                        n += 1
+            empties[p, q] = n
+    return seen, empties
 
 
 def _empty_at(seen_empty: NDArray, uu: NDArray, vv: NDArray, low: tuple[float, float], spans: list) -> int:
@@ -951,73 +975,156 @@ def _continues(
     stretch of a wall or a hedge, not an object of its own. ``grid``: (owner (nx, ny), x0, y0,
     cell, cells per group). A group of at most ``MISSING_OWN_FRAGMENT_CELLS`` cells inside ``body``
     (A1, B1, A2, B2: the box the cluster would become, in its frame) is the object's own far end or
-    roof edge seen past a gap, not a structure going on."""
+    roof edge seen past a gap, not a structure going on (:func:`_continues_kernel`)."""
     owner, x0, y0, cell, group_cells = grid
-    nx, ny = owner.shape
     A1, B1, A2, B2 = body if body is not None else (np.inf, -np.inf, np.inf, -np.inf)
-
-    def others(o: NDArray, p: NDArray, q: NDArray) -> NDArray:
-        """Cells of other groups, less the object's own fragments."""
-        other = (o >= 0) & (o != own)
-        small = other & (o < len(group_cells))
-        small[small] = group_cells[o[small]] <= C.MISSING_OWN_FRAGMENT_CELLS
-        return other & ~(small & (p >= A1) & (p <= B1) & (q >= A2) & (q <= B2))
-
     step = 0.5 * cell
-    ts = np.arange(step, C.MISSING_CONTINUATION + step, step)
+    half = C.MISSING_MERGE_SIDE_CELLS * cell
+    return bool(
+        _continues_kernel(
+            owner,
+            x0,
+            y0,
+            cell,
+            own,
+            float(centre[0]),
+            float(centre[1]),
+            c,
+            s,
+            a1,
+            b1,
+            a2,
+            b2,
+            bool(along1),
+            po,
+            qo,
+            np.arange(step, C.MISSING_CONTINUATION + step, step),
+            np.linspace(-half, half, 5),
+            np.asarray(group_cells, dtype=float),
+            float(A1),
+            float(B1),
+            float(A2),
+            float(B2),
+            C.MISSING_OWN_FRAGMENT_CELLS,
+            C.MISSING_CONTINUATION_CELLS,
+            C.MISSING_CONTINUATION_RUN,
+            C.MISSING_CORNER_START,
+            C.MISSING_CORNER_DEPTH,
+        )
+    )
+
+
+@kernel
+def _other_group(o, own, group_cells, fragment, p, q, A1, B1, A2, B2):  # pragma: no cover - compiled
+    """Whether the owner ``o`` of a cell is another group than ``own``, less the object's own
+    fragments: a group of at most ``fragment`` cells (``group_cells`` per group) with the spot
+    (``p``, ``q``) inside the box [A1, B1] × [A2, B2] (the cluster's frame)."""
+    if o < 0 or o == own:
+        return False
+    small = o < group_cells.shape[0] and group_cells[o] <= fragment
+    return not (small and p >= A1 and p <= B1 and q >= A2 and q <= B2)
+
+
+@kernel
+def _continues_kernel(
+    owner,
+    x0,
+    y0,
+    cell,
+    own,
+    cx,
+    cy,
+    c,
+    s,
+    a1,
+    b1,
+    a2,
+    b2,
+    along1,
+    po,
+    qo,
+    ts,
+    across,
+    group_cells,
+    A1,
+    B1,
+    A2,
+    B2,
+    fragment,
+    min_cells,
+    min_run,
+    start,
+    deep,
+):  # pragma: no cover - compiled
+    """:func:`_continues` on the owner grid ``owner`` (nx, ny) (group per cell, −1 none; cells of
+    ``cell`` m from ``x0``, ``y0``), for the cluster ``own`` about (``cx``, ``cy``) with axes (c, s)
+    and (−s, c) and extents [a1, b1] × [a2, b2]; ``ts`` (T,): the steps beyond the face's ends,
+    ``across`` (5,): the offsets across a corner's line; ``group_cells``, ``fragment``, A1…B2: what
+    :func:`_other_group` leaves out."""
+    nx, ny = owner.shape
+    nt = ts.shape[0]
     if along1:  # the face runs along axis 1, on the side of axis 2 nearer the sensor
-        q = a2 if qo < 0.5 * (a2 + b2) else b2
-        ends = [(b1 + ts, np.full_like(ts, q)), (a1 - ts, np.full_like(ts, q))]
+        face = a2 if qo < 0.5 * (a2 + b2) else b2
     else:
-        p = a1 if po < 0.5 * (a1 + b1) else b1
-        ends = [(np.full_like(ts, p), b2 + ts), (np.full_like(ts, p), a2 - ts)]
-    for p, q in ends:
-        x = centre[0] + c * p - s * q
-        y = centre[1] + s * p + c * q
-        i = ((x - x0) / cell).astype(np.int64)
-        j = ((y - y0) / cell).astype(np.int64)
-        ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-        cells = set()
-        along = np.zeros(len(ts), dtype=bool)
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                ii, jj = np.clip(i + di, 0, nx - 1), np.clip(j + dj, 0, ny - 1)
-                hit = ok & others(owner[ii, jj], p, q)
-                along |= hit
-                cells.update(zip(ii[hit].tolist(), jj[hit].tolist()))
+        face = a1 if po < 0.5 * (a1 + b1) else b1
+    seen = np.empty(9 * nt, dtype=np.int64)
+    for end in range(2):
+        n = 0
+        lo, hi = np.inf, -np.inf  # the steps along the line with returns of another cluster beside them
+        for t in range(nt):
+            if along1:
+                p = b1 + ts[t] if end == 0 else a1 - ts[t]
+                q = face
+            else:
+                p = face
+                q = b2 + ts[t] if end == 0 else a2 - ts[t]
+            x = cx + c * p - s * q
+            y = cy + s * p + c * q
+            i = int((x - x0) / cell)
+            j = int((y - y0) / cell)
+            if i < 0 or i >= nx or j < 0 or j >= ny:
+                continue
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    ii = min(max(i + di, 0), nx - 1)
+                    jj = min(max(j + dj, 0), ny - 1)
+                    if _other_group(owner[ii, jj], own, group_cells, fragment, p, q, A1, B1, A2, B2):
+                        lo, hi = min(lo, ts[t]), max(hi, ts[t])
+                        seen[n] = ii * ny + jj
+                        n += 1
         # the returns must run along the line (a wall going on), not cross it (a wall behind, square to the face)
-        if (
-            len(cells) >= C.MISSING_CONTINUATION_CELLS
-            and np.any(along)
-            and np.ptp(ts[along]) >= C.MISSING_CONTINUATION_RUN
-        ):
-            return True
+        if n > 0 and hi - lo >= min_run:
+            cells = np.sort(seen[:n])
+            distinct = 1
+            for k in range(1, n):
+                distinct += cells[k] != cells[k - 1]
+            if distinct >= min_cells:
+                return True
     # a corner: at an end of the face, other returns run away from the sensor, square to the face
     # (the end wall of a building whose front the cluster is), deeper than a vehicle is wide
-    half = C.MISSING_MERGE_SIDE_CELLS * cell
-    across = np.linspace(-half, half, 5)
     if along1:
-        q = a2 if qo < 0.5 * (a2 + b2) else b2
-        away = 1.0 if q == a2 else -1.0
-        corners = [
-            (e + across[:, None] + 0.0 * ts[None, :], q + away * ts[None, :] + 0.0 * across[:, None]) for e in (a1, b1)
-        ]
+        away = 1.0 if face == a2 else -1.0
     else:
-        p = a1 if po < 0.5 * (a1 + b1) else b1
-        away = 1.0 if p == a1 else -1.0
-        corners = [
-            (p + away * ts[None, :] + 0.0 * across[:, None], e + across[:, None] + 0.0 * ts[None, :]) for e in (a2, b2)
-        ]
-    depth = np.broadcast_to(ts[None, :], (5, len(ts)))
-    for p, q in corners:
-        x = centre[0] + c * p - s * q
-        y = centre[1] + s * p + c * q
-        i = np.clip(((x - x0) / cell).astype(np.int64), 0, nx - 1)
-        j = np.clip(((y - y0) / cell).astype(np.int64), 0, ny - 1)
-        hit = others(owner[i, j], p, q)
+        away = 1.0 if face == a1 else -1.0
+    for e in (a1, b1) if along1 else (a2, b2):
+        lo, hi = np.inf, -np.inf
+        for u in range(across.shape[0]):
+            for t in range(nt):
+                if along1:
+                    p = e + across[u] + 0.0 * ts[t]
+                    q = face + away * ts[t] + 0.0 * across[u]
+                else:
+                    p = face + away * ts[t] + 0.0 * across[u]
+                    q = e + across[u] + 0.0 * ts[t]
+                x = cx + c * p - s * q
+                y = cy + s * p + c * q
+                i = min(max(int((x - x0) / cell), 0), nx - 1)
+                j = min(max(int((y - y0) / cell), 0), ny - 1)
+                if _other_group(owner[i, j], own, group_cells, fragment, p, q, A1, B1, A2, B2):
+                    lo, hi = min(lo, ts[t]), max(hi, ts[t])
         # from the face's end on (a building's end wall meets its front; a hedge behind a car begins
         # only beyond the car's width)
-        if np.any(hit) and depth[hit].min() <= C.MISSING_CORNER_START and np.ptp(depth[hit]) >= C.MISSING_CORNER_DEPTH:
+        if lo <= start and hi - lo >= deep:
             return True
     return False
 
