@@ -487,27 +487,34 @@ def _faces(xy, h, lo, hi, steps, width, tie):  # pragma: no cover - compiled
     it, an L-shape). Returns (θ, share, a1, b1, a2, b2) with the extents of all returns along
     (cos θ, sin θ) and (−sin θ, cos θ)."""
     m = xy.shape[0]
-    sel = np.zeros(m, dtype=np.bool_)
+    sel = np.empty(m, dtype=np.int64)  # the lower-body returns
     n = 0
     for k in range(m):
         if lo <= h[k] <= hi:
-            sel[k] = True
+            sel[n] = k
             n += 1
     if n < 3:
-        sel[:] = True
+        sel = np.arange(m)
         n = m
+    sel = sel[:n]
     shares = np.empty(steps)
     areas = np.empty(steps)
+    # each return's coordinates along the two axes of a heading, computed once per heading for the
+    # extents and the faces both
+    p = np.empty(m)
+    q = np.empty(m)
+    slices = np.empty((2, n), dtype=np.int64)
+    counts = np.empty((2, 128), dtype=np.int64)
     for s in range(steps):
         t = 0.5 * math.pi * s / steps
         c, sn = math.cos(t), math.sin(t)
-        shares[s] = _face_share(xy, sel, c, sn, width)
         a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
         for k in range(m):
-            p = c * xy[k, 0] + sn * xy[k, 1]
-            q = -sn * xy[k, 0] + c * xy[k, 1]
-            a1, b1, a2, b2 = min(a1, p), max(b1, p), min(a2, q), max(b2, q)
+            p[k] = c * xy[k, 0] + sn * xy[k, 1]
+            q[k] = -sn * xy[k, 0] + c * xy[k, 1]
+            a1, b1, a2, b2 = min(a1, p[k]), max(b1, p[k]), min(a2, q[k]), max(b2, q[k])
         areas[s] = (b1 - a1) * (b2 - a2)
+        shares[s] = _face_share(p, q, sel, width, slices, counts)
     # among the headings that explain the faces nearly as well as the best, the tightest rectangle
     # (a rear face with the roof above it, curved bumper corners: several headings tie on faces)
     best = shares.max()
@@ -519,43 +526,38 @@ def _faces(xy, h, lo, hi, steps, width, tie):  # pragma: no cover - compiled
     c, sn = math.cos(best_t), math.sin(best_t)
     a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
     for k in range(m):
-        p = c * xy[k, 0] + sn * xy[k, 1]
-        q = -sn * xy[k, 0] + c * xy[k, 1]
-        a1, b1, a2, b2 = min(a1, p), max(b1, p), min(a2, q), max(b2, q)
+        pk = c * xy[k, 0] + sn * xy[k, 1]
+        qk = -sn * xy[k, 0] + c * xy[k, 1]
+        a1, b1, a2, b2 = min(a1, pk), max(b1, pk), min(a2, qk), max(b2, qk)
     return best_t, best, a1, b1, a2, b2
 
 
 @kernel
-def _face_share(xy, sel, c, sn, width):  # pragma: no cover - compiled
-    """Share of the selected returns in the densest ``width`` slice across either axis (one face
-    square to each axis: a side, a rear, an L-shape)."""
-    m = xy.shape[0]
+def _face_share(p, q, sel, width, slices, counts):  # pragma: no cover - compiled
+    """Share of the selected returns (indices ``sel`` (n,) into ``p``, ``q``: their coordinates along
+    two square axes) in the densest ``width`` slice across either axis (one face square to each axis:
+    a side, a rear, an L-shape). ``slices`` (2, n) and ``counts`` (2, 128): scratch."""
+    n = sel.shape[0]
+    nb = counts.shape[1]
     lo1, lo2 = np.inf, np.inf
-    for k in range(m):
-        if sel[k]:
-            lo1 = min(lo1, c * xy[k, 0] + sn * xy[k, 1])
-            lo2 = min(lo2, -sn * xy[k, 0] + c * xy[k, 1])
-    nb = 128
-    h1 = np.zeros(nb, dtype=np.int64)
-    h2 = np.zeros(nb, dtype=np.int64)
-    total = 0
-    for k in range(m):
-        if sel[k]:
-            i = min(nb - 1, int((c * xy[k, 0] + sn * xy[k, 1] - lo1) / width))
-            j = min(nb - 1, int((-sn * xy[k, 0] + c * xy[k, 1] - lo2) / width))
-            h1[i] += 1
-            h2[j] += 1
-            total += 1
-    i1 = np.argmax(h1)
-    j1 = np.argmax(h2)
+    for x in range(n):
+        lo1 = min(lo1, p[sel[x]])
+        lo2 = min(lo2, q[sel[x]])
+    counts[:] = 0
+    for x in range(n):
+        i = min(nb - 1, int((p[sel[x]] - lo1) / width))
+        j = min(nb - 1, int((q[sel[x]] - lo2) / width))
+        slices[0, x] = i
+        slices[1, x] = j
+        counts[0, i] += 1
+        counts[1, j] += 1
+    i1 = np.argmax(counts[0])
+    j1 = np.argmax(counts[1])
     inside = 0
-    for k in range(m):
-        if sel[k]:
-            i = min(nb - 1, int((c * xy[k, 0] + sn * xy[k, 1] - lo1) / width))
-            j = min(nb - 1, int((-sn * xy[k, 0] + c * xy[k, 1] - lo2) / width))
-            if i == i1 or j == j1:
-                inside += 1
-    return inside / max(total, 1)
+    for x in range(n):
+        if slices[0, x] == i1 or slices[1, x] == j1:
+            inside += 1
+    return inside / max(n, 1)
 
 
 # --------------------------------------------------------------------------- the search
