@@ -195,6 +195,7 @@ MISSING_FACE_BAND = (
     0.3,
     0.7,
 )  # m above the ground: the lower body, whose returns lie on the vertical faces of a vehicle
+MISSING_FACE_MIN_LOWER = 8  # a cluster with fewer lower-body returns than this is judged on all its returns for its faces (too few low returns to tell)
 MISSING_FACE_WIDTH = 0.2  # m; slices across the box axes whose returns make a vertical face (LiDAR noise, bumpers)
 MISSING_FACE_SHARE = (
     0.6,
@@ -231,8 +232,8 @@ MISSING_MERGE_GAP = (
 )
 MISSING_MERGE_OVERLAP = 0.5  # … when their azimuth intervals overlap by this share of the narrower one
 MISSING_POINTS_RAMP = (
-    12,
-    30,
+    8,
+    20,
 )  # the density score also rises from 0 to 1 as the cluster's returns go from the first to the second (too few to tell)
 MISSING_CONTINUATION = 3.0  # m; a face whose line goes on this far beyond the cluster through other unexplained returns is part of a longer structure (a wall)
 MISSING_CONTINUATION_CELLS = 3  # … when at least this many cells along that extension hold such returns

@@ -336,6 +336,35 @@ def test_a_car_whose_far_end_shows_past_a_gap_is_found_and_a_wall_broken_the_sam
     assert _best(wall_rows, 14.5, -6.5, radius=2.5) < 0.5
 
 
+def _row_of_returns(p0, p1, z, step):
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    n = int(np.linalg.norm(p1 - p0) / step) + 1
+    t = np.linspace(0, 1, n)
+    return np.c_[p0 + t[:, None] * (p1 - p0), np.full(n, z)]
+
+
+@pytest.mark.parametrize("rules", ["before", "now"])
+def test_a_far_car_with_twenty_returns_is_found_and_a_tree_is_not_judged_by_its_trunk(monkeypatch, rules):
+    """A car 52 m off seen from behind by two beams (20 returns) is a vehicle: too few returns to
+    tell only below ``MISSING_POINTS_RAMP``. A tree whose few lower-body returns are its trunk (one
+    face) is judged on all its returns (``MISSING_FACE_MIN_LOWER``): its crown is on no face. With
+    the rules before (12–30 returns, faces from 3 lower returns) the car scored under 0.5 and the
+    tree's trunk made a perfect face."""
+    if rules == "before":
+        monkeypatch.setattr(C, "MISSING_POINTS_RAMP", (12, 30))
+        monkeypatch.setattr(C, "MISSING_FACE_MIN_LOWER", 3)
+    car = np.vstack([_row_of_returns((49.9, 5.1), (49.9, 6.9), GROUND + z, 0.19) for z in (0.5, 1.2)])
+    rng = np.random.default_rng(3)
+    trunk = np.c_[np.full(5, 30.0), np.full(5, -8.0), GROUND + np.linspace(0.35, 0.65, 5)]
+    crown = np.c_[rng.uniform(28.8, 31.2, 40), rng.uniform(-8.8, -7.2, 40), rng.uniform(GROUND + 1.2, GROUND + 2.4, 40)]
+    trace = SearchTrace()
+    rows = find_missing(_frame(car, trunk, crown), RunConfig(), trace=trace)
+    (tree_shape,) = [c.shape_score for c, _ in trace.clusters if math.hypot(c.box[0] - 30.0, c.box[1] + 8.0) < 2.0]
+    assert _best(rows, 49.9 + 1.95, 6.0, radius=1.0) >= 0.5 if rules == "now" else _best(rows, 51.85, 6.0) < 0.5
+    assert _best(rows, 30.0, -8.0, radius=2.5) < 0.5
+    assert tree_shape < 0.5 if rules == "now" else tree_shape >= 0.85
+
+
 @pytest.mark.parametrize("splits", [0, C.MISSING_SPLITS])
 def test_two_cars_parked_side_by_side_are_two_candidates(monkeypatch, splits):
     """Two cars 0.4 m apart make one cluster no class fits (4 m wide): it is split at the gap and

@@ -480,9 +480,9 @@ def _owners(comp, occupied, label):  # pragma: no cover - compiled
 
 
 @kernel
-def _faces(xy, h, lo, hi, steps, width, tie):  # pragma: no cover - compiled
+def _faces(xy, h, lo, hi, steps, width, tie, min_lower):  # pragma: no cover - compiled
     """The heading θ ∈ [0, π/2) whose axes best explain the lower-body returns (heights in
-    [lo, hi]; all returns when fewer than 3) as vertical faces: the share of them that fall in the
+    [lo, hi]; all returns when fewer than ``min_lower``) as vertical faces: the share of them that fall in the
     two densest ``width``-wide slices across either axis (a side, a rear and the cabin's rear behind
     it, an L-shape). Returns (θ, share, a1, b1, a2, b2) with the extents of all returns along
     (cos θ, sin θ) and (−sin θ, cos θ)."""
@@ -493,7 +493,7 @@ def _faces(xy, h, lo, hi, steps, width, tie):  # pragma: no cover - compiled
         if lo <= h[k] <= hi:
             sel[n] = k
             n += 1
-    if n < 3:
+    if n < min_lower:
         sel = np.arange(m)
         n = m
     sel = sel[:n]
@@ -1157,7 +1157,9 @@ def _box_cluster(
     centre = xyz[:, :2].mean(axis=0)
     xy = np.ascontiguousarray(xyz[:, :2] - centre)
     lo, hi = C.MISSING_FACE_BAND
-    t, share, a1, b1, a2, b2 = _faces(xy, h, lo, hi, C.MISSING_HEADINGS, C.MISSING_FACE_WIDTH, C.MISSING_FACE_TIE)
+    t, share, a1, b1, a2, b2 = _faces(
+        xy, h, lo, hi, C.MISSING_HEADINGS, C.MISSING_FACE_WIDTH, C.MISSING_FACE_TIE, C.MISSING_FACE_MIN_LOWER
+    )
     c, s = math.cos(t), math.sin(t)
     e1, e2 = b1 - a1, b2 - a2
     rx, ry = ox - centre[0], oy - centre[1]  # the sensor in the cluster's frame
