@@ -302,6 +302,74 @@ def test_label_ray_weights_are_the_slit_mixture_at_the_label():
     assert np.all(out == 1.0)  # no slit: every ray counts fully
 
 
+def _ray_rows(box: np.ndarray, fs: F.FreeSpace, slit: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's ray rows (a (p, active), b (active,)) of every ray of ``fs`` at ``box`` (3D fit)."""
+    ends_t, ox, oy, hz = fs.kernel_inputs()
+    m = ends_t.shape[1]
+    a, b = np.zeros((8, m)), np.zeros(m)
+    k = F.free_rows_kernel(
+        box, ends_t, ox, oy, np.r_[hz, 0.05], fs.tolerance, fs.inside_tolerance, 1.0, slit,
+        C.FIT_SMOOTHING, True, a, b, np.zeros(m), np.inf, np.empty(0),
+    )  # fmt: skip
+    return a[:, :k], b[:k]
+
+
+def _fan(box: np.ndarray) -> F.FreeSpace:
+    """Level rays in the slab (a sensor 0.45 m above the road, returns 0.4 m above it) from 10 m before
+    a box to 2–5 m behind it, over its whole width and past its sides: most enter through the near
+    (−length) face and leave through a width face, so their deepest points lie on the diagonal
+    between two faces, where both are equally deep."""
+    ys = np.linspace(-1.6, 1.6, 41)
+    ends = np.array([[x, y * x / 10.0, GROUND + 0.4] for x in (14.0, 15.5, 17.0) for y in ys])
+    origin = np.array([0.0, 0.0, GROUND + 0.45])
+    return F.FreeSpace(origin, ends, np.array([GROUND, 0.0, 0.0, 0.0]), box[:2].copy(), (0.25, 0.6), 0.1)
+
+
+def test_ray_rows_are_continuous_in_the_box():
+    """A ray's row must move by about as much as the box does: the fit's result is then a
+    continuous function of its inputs, and a last-bit change of a box or a point moves
+    ``label_error`` by as little. Where the ray's deepest point is equally deep under two faces (a
+    ray through a corner region), the hard choice of the nearest face turned the row's normal by 90°
+    on the input's last bit; the faces within FIT_SMOOTHING of the nearest now share the row."""
+    box = np.array([10.0, 0.0, GROUND + 0.75, 4.2, 1.7, 1.5, 0.0])
+    fs = _fan(box)
+    a0, b0 = _ray_rows(box, fs)
+    assert a0.shape[1] > 40  # the fan crosses the slab
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        moved = box + 1e-12 * rng.choice([-1.0, 1.0], size=7)
+        a, b = _ray_rows(moved, fs)
+        assert a.shape == a0.shape
+        assert np.abs(a - a0).max() < 1e-8 and np.abs(b - b0).max() < 1e-8
+    # a larger move changes the rows in proportion, with no jump: 1 mm sideways in steps of 0.1 mm
+    # (the blend's weights change by 0.1 mm / FIT_SMOOTHING per step at most)
+    prev = _ray_rows(box, fs)
+    for k in range(1, 11):
+        cur = _ray_rows(_moved(box, cy=1e-4 * k), fs)
+        if cur[0].shape == prev[0].shape:
+            assert np.abs(cur[0] - prev[0]).max() < 0.05 and np.abs(cur[1] - prev[1]).max() < 0.05
+        prev = cur
+
+
+def test_ray_rows_away_from_a_switch_are_the_hinge_rows():
+    """Away from every switch (one face clearly nearest, residual beyond FIT_SMOOTHING / 2, the end
+    on the road) a ray's row is the plain hinge row: its residual at the box is the ray's depth
+    beyond τ (known answer: ``ray_depths``), and its normal is the nearest face's."""
+    box = np.array([10.0, 0.0, GROUND + 0.75, 4.2, 1.7, 1.5, 0.0])
+    # rays ending on the road far behind, crossing the box along its length near y = 0: the
+    # deepest point lies under a width face, 0.85 m − |y| deep
+    ys = np.array([-0.5, -0.3, 0.3, 0.5])
+    ends = np.c_[np.full(4, 16.0), ys * 16.0 / 10.0, np.full(4, GROUND)]
+    fs = F.FreeSpace(np.zeros(3), ends, np.array([GROUND, 0.0, 0.0, 0.0]), box[:2].copy(), (0.25, 0.6), 0.1)
+    a, b = _ray_rows(box, fs)
+    depth, _ = F.ray_depths(box, fs)
+    assert a.shape[1] == 4
+    phi = np.array([box[0], box[1], box[2], box[3], 0.0, box[4], 0.0, box[5]])  # yaw 0: l·(cos, sin), w·(cos, sin)
+    residual = phi @ a - b
+    assert residual == pytest.approx(depth - fs.tolerance, abs=1e-12)
+    assert np.abs(a[0]).max() < 1e-12 and np.all(np.abs(a[1]) == 1.0)  # the ±width face's normal
+
+
 def _real_frame(realdata, frame_id: str):
     from labelaudit.datasets.kitti import KittiReader
 
@@ -315,7 +383,7 @@ def _real_frame(realdata, frame_id: str):
 def test_a_correct_real_label_with_rays_past_its_round_corner_is_not_turned(realdata, monkeypatch):
     """Real KITTI 000021:1 (a car at 14 m seen from the front): a few rays pass its rounded corner
     inside the rectangle. Plain EM steps made the fit overshoot, turn by more than 0.1 rad into free space
-    and oscillate (label_error 1.0); a step that raises the fit's cost is halved back, and the
+    and oscillate (label_error 1.0; 0.95 with the smooth ray rows); a step that raises the fit's cost is halved back, and the
     fit stays on the car."""
     frame = _real_frame(realdata, "000021")
     box = frame.boxes[1]
@@ -325,7 +393,7 @@ def test_a_correct_real_label_with_rays_past_its_round_corner_is_not_turned(real
     assert abs(fit.offsets["yaw"]) < 0.06 and fit.label_error < 0.5
     monkeypatch.setattr(C, "FIT_STEP_HALVINGS", 0)
     plain = fit_label(box, pts, "Car", CFG.model, free_space=ev.free_space)
-    assert abs(plain.offsets["yaw"]) > 0.1 and plain.label_error > 0.99
+    assert abs(plain.offsets["yaw"]) > 0.1 and plain.label_error > 0.9  # a false alarm
     # a real error of the same label is still found: shifted 0.5 m sideways
     moved = _moved(box, cy=0.5)
     ev = frame_evidence(frame.points, moved[None], np.zeros(3), CFG.crop, others=frame.boxes[[0, 2, 3, 4, 5, 6, 7]])[0]

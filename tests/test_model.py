@@ -1041,7 +1041,7 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
         )
         ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._fit_point_constants(), sigma, phi)
         if rays[0].shape[1]:
-            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays[:8], three_d, phi, rays[8])
+            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays[:9], three_d, phi, rays[9])
             assert active > 0  # the rays do add rows
             ata = ata + ata_r
             rr_want += rr_r

@@ -127,7 +127,8 @@ def _closest_form(y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: Mode
 def _closest_form_phi(
     y: FloatArray, phi_ref: FloatArray, W: FloatArray, model: ModelKind
 ) -> tuple[FloatArray, FloatArray]:
-    """:func:`_closest_form` and its φ (the first of the least costs, or of the NaN ones, as ``np.argmin``).
+    """:func:`_closest_form` and its φ (the first of the least costs — a later one must be lower by more than
+    1e-9 relative, so that a tie in exact arithmetic is not decided by rounding — or of the NaN ones).
 
     The forms and their φ are those of :func:`_equivalent_boxes` and
     :func:`~labelaudit.core.geometry.phi_of_valid_box`, written out: one cos/sin call for the four
@@ -156,7 +157,9 @@ def _closest_form_phi(
     for k in range(4):
         f = fs[k]
         cost = float(f.dot(W).dot(f))
-        if best_k < 0 or cost < best_cost or (cost != cost and best_cost == best_cost):
+        # a later form wins only by more than the rounding of the costs: two forms can be exactly as
+        # near (a rectangle turned by 90°: yaw + π/2 and yaw − π/2), and the last bit must not choose
+        if best_k < 0 or cost < best_cost - 1e-9 * abs(best_cost) or (cost != cost and best_cost == best_cost):
             best_cost, best_k = cost, k
         if cost != cost:
             break  # np.argmin stops at the first NaN
@@ -500,6 +503,7 @@ def _fit_iterate_kernel(
     floor,
     max_iter,
     halvings,
+    stall,
     ends_t,
     ox,
     oy,
@@ -508,6 +512,7 @@ def _fit_iterate_kernel(
     tau_in,
     ray_weight,
     slit,
+    smooth,
     wfloor,
 ):  # pragma: no cover - compiled
     d = 3 if three_d else 2
@@ -533,7 +538,22 @@ def _fit_iterate_kernel(
         if m:
             slack = displacement(y_cur, label, reach)
             k = free_rows_kernel(
-                y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a_r, b_r, bounds, slack, wfloor
+                y_cur,
+                ends_t,
+                ox,
+                oy,
+                hz,
+                tau,
+                tau_in,
+                ray_weight,
+                slit,
+                smooth,
+                three_d,
+                a_r,
+                b_r,
+                bounds,
+                slack,
+                wfloor,
             )
             if k:
                 ata_r, atb_r, rr_r = _gram_kernel(a_r[:, :k], b_r[:k], phi, descent)
@@ -549,15 +569,16 @@ def _fit_iterate_kernel(
                 for j in range(p):
                     acc += P0[i, j] * phi[j]
                 e_cur += phi[i] * acc
-            if e_cur > e_prev * (1.0 + 1e-12) + 1e-12 and halved < halvings:
+            if e_cur > e_prev * (1.0 + 1e-12) + 1e-12:
+                if halved >= halvings or np.max(np.abs(phi - phi_prev)) < stall:
+                    # a step shorter than ``stall`` still raises the cost: the descent has stopped at
+                    # the last point it accepted, which is returned as it is (not the trial point:
+                    # where the halving ended depends on the path, the accepted point on the data)
+                    return phi_prev, _rect_from_phi(phi_prev, three_d, label, floor), it, True
                 halved += 1
                 phi = 0.5 * (phi_prev + phi)
                 y_cur = _rect_from_phi(phi, three_d, label, floor)
                 continue
-            if halved and np.max(np.abs(phi - phi_prev)) < tol:
-                # halved until it moved less than the tolerance: the descent has stopped here (a full
-                # step from here would overshoot again, and the iteration would cycle to its cap)
-                return phi, y_cur, it, True
             halved = 0
             e_prev = e_cur
         precision = P0 + ata * inv_s2
@@ -577,13 +598,13 @@ def _fit_iterate_kernel(
 
 @kernel
 def _ray_normal_eq_kernel(
-    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor
+    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor
 ):  # pragma: no cover - compiled
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
     b = np.empty(m)
     active = free_rows_kernel(
-        y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, a, b, np.zeros(m), math.inf, wfloor
+        y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, a, b, np.zeros(m), math.inf, wfloor
     )
     ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
     return ata, atb, rr, active
@@ -609,6 +630,7 @@ def _fit_precision_kernel(
     tau_in,
     ray_weight,
     slit,
+    smooth,
     wfloor,
 ):  # pragma: no cover - compiled
     """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
@@ -618,7 +640,7 @@ def _fit_precision_kernel(
     ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
     if ends_t.shape[1]:
         ata_r, _, rr_r, _ = _ray_normal_eq_kernel(
-            y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, three_d, phi, wfloor
+            y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor
         )
         ata = ata + ata_r
         rr += rr_r
@@ -633,7 +655,7 @@ def _fit_precision_kernel(
 
 _NO_FACE_GAPS = np.full(4, np.nan)
 
-_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0, np.empty(0))
+_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0, 1.0, np.empty(0))
 """Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
 
 
@@ -656,7 +678,7 @@ def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray | 
     floor = np.empty(ends_t.shape[1] if label is not None else 0)
     if len(floor):
         label_ray_weights(label, ends_t, ox, oy, hz5, tau, tau_in, weight, slit, floor)
-    return (ends_t, ox, oy, hz5, tau, tau_in, weight, slit, floor)
+    return (ends_t, ox, oy, hz5, tau, tau_in, weight, slit, float(C.FIT_SMOOTHING), floor)
 
 
 def _fit_iterate(
@@ -674,6 +696,10 @@ def _fit_iterate(
     """EM iterations of the box fit on (d, N) points until φ moves by less than ``tol`` (at most
     FIT_MAX_ITERATIONS). Returns (φ, rectangle, iterations, converged). The arrays are float64
     (``y_cur``, ``label`` (7,), ``phi``, ``prior_eta`` (p,), ``P0`` (p, p)).
+
+    With free-space rays the iteration is a descent (docs/label-error.md, "The suggested box"): a step
+    that raises the cost is halved back (FIT_STEP_HALVINGS), and when a step shorter than
+    FIT_STALL_STEP still raises it, the fit is the last box the descent accepted (converged).
 
     The iterations only need the mean (a linear solve). When the iteration has entered an exact
     2-cycle (a point flipping between two faces, so that φ repeats bit for bit), it can never
@@ -696,6 +722,7 @@ def _fit_iterate(
         C.FIT_MIN_SIZE_FRACTION,
         C.FIT_MAX_ITERATIONS,
         int(C.FIT_STEP_HALVINGS),
+        float(C.FIT_STALL_STEP),
         *rays,
     )
     return phi, y_cur, int(it), bool(converged)

@@ -230,8 +230,8 @@ def ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compile
     """Per ray, the largest signed depth m of its empty part in the slab of box ``y`` (−inf beyond ``reach``).
 
     m moves by at most the boundary displacement H of the rectangle (:func:`displacement`), so a
-    ray with m + H below the smallest tolerance cannot be active for a box within H of ``y``: the
-    fit skips it, exactly.
+    ray with m + H below the least depth that gives a row (:func:`free_rows_kernel`) cannot be
+    active for a box within H of ``y``: the fit skips it, exactly.
     """
     c, s = math.cos(y[6]), math.sin(y[6])
     rx, ry = ox - y[0], oy - y[1]
@@ -271,7 +271,7 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
 
 @kernel
 def free_rows_kernel(
-    y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, three_d, a, b, bounds, slack, floor
+    y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, smooth, three_d, a, b, bounds, slack, floor
 ):  # pragma: no cover - compiled
     """Hinge rows of the box fit, one per ray: a (p, M) transposed like the point rows, b (M,).
 
@@ -283,13 +283,30 @@ def free_rows_kernel(
     inside a correct label (bumpers, rounded corners, loose annotation) — and gets the looser
     ``tau_in``. The rows of the active rays are written to the first columns of a and b; returns
     their number. Rays whose bound (:func:`ray_bounds`) plus ``slack`` stays below the smaller
-    tolerance are not evaluated (``slack`` = inf evaluates all).
+    tolerance less 1.5 ``smooth`` are not evaluated (``slack`` = inf evaluates all): exact, a row
+    needs a blended depth (below) more than τ − w/2, and that depth is less than w beyond d*.
+
+    The rows are continuous in the box (``smooth`` = w > 0, metres), so that the fit's result is a
+    continuous function of its inputs and a last-bit change of them moves it by as little:
+
+    - the faces within w of the nearest one at q share the row, face f with weight
+      u_f ∝ 1 − (d_f − d*)/w (normalised), and the depth is their mean Σ u_f d_f — a ray whose
+      deepest point lies on the diagonal between two faces (through a corner region) pulls both,
+      where a hard choice of the nearest face flipped on the input's last bit;
+    - the tolerance goes from τ to ``tau_in`` as the ray's end goes from the rectangle's edge to
+      w inside it (it jumped by ``tau_in`` − τ there);
+    - the hinge is rounded: with r = Σ u_f d_f − τ the residual is h(r) = (r + w/2)² / 2w for
+      |r| < w/2, r beyond (0 below), and the row is the Gauss–Newton row of h: h′(r) × the linear
+      row, whose residual at the box is r (the row switched on at full weight at r = 0 before).
+
+    What stays discontinuous: a ray exactly parallel to a face has a flat deepest stretch, and
+    which end of it is q (its position along the face) jumps as the box turns through parallel.
 
     Robust: a ray through the slab of a *right* box is possible — a gap between a truck's cab and
     its cargo box, open structure, a return through glass — and no box can exclude it (the ray
     crosses it from side to side). Each ray is therefore a mixture of the Gaussian hinge (σ) and a
     "slit" of prior probability ``slit``; its row is weighted by the responsibility of the hinge,
-    (1 − slit)·e^(−r²/2σ²) / ((1 − slit)·e^(−r²/2σ²) + slit) with r = d* − τ and σ = ``hz[4]``
+    (1 − slit)·e^(−h²/2σ²) / ((1 − slit)·e^(−h²/2σ²) + slit) with h = h(r) and σ = ``hz[4]``
     (iteratively reweighted: as the fit moves, deep rays become shallow and count again). A ray's
     weight is never below ``floor[k]``, its weight at the label (:func:`label_ray_weights`): a ray
     the label respects is no slit, and the fit cannot slide through it (without the floor a fit
@@ -301,7 +318,8 @@ def free_rows_kernel(
     hl, hw = 0.5 * y[3], 0.5 * y[4]
     d = 3 if three_d else 2
     p = a.shape[0]
-    tmin = min(tau, tau_in)
+    tmin = min(tau, tau_in) - 1.5 * smooth  # the least depth of a ray with a row (below)
+    half = 0.5 * smooth
     active = 0
     for k in range(ends_t.shape[1]):
         if bounds[k] + slack < tmin:
@@ -309,39 +327,56 @@ def free_rows_kernel(
         qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
         px, py = c * qx + s * qy, -s * qx + c * qy
         dep, t = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
-        ends_in = abs(px) <= hl and abs(py) <= hw and ends_t[2, k] >= hz[3]
-        tk = tau_in if ends_in else tau
-        if not dep > tk:
+        if not dep > tmin:
             continue
+        tk = tau
+        if ends_t[2, k] >= hz[3]:  # an end on the object, not on the road: τ → τ_in within w of the edge
+            inside = min(hl - abs(px), hw - abs(py))
+            if inside > 0.0:
+                tk = tau + (tau_in - tau) * min(inside / smooth, 1.0)
+        lx, ly = bx + t * (px - bx), by + t * (py - by)  # deepest point, box frame
+        d0, d1, d2, d3 = hl + lx, hl - lx, hw + ly, hw - ly  # its depth inside the −l, +l, −w, +w face
+        dmin = min(d0, d1, d2, d3)
+        u0 = max(0.0, 1.0 - (d0 - dmin) / smooth)
+        u1 = max(0.0, 1.0 - (d1 - dmin) / smooth)
+        u2 = max(0.0, 1.0 - (d2 - dmin) / smooth)
+        u3 = max(0.0, 1.0 - (d3 - dmin) / smooth)
+        su = u0 + u1 + u2 + u3
+        u0, u1, u2, u3 = u0 / su, u1 / su, u2 / su, u3 / su
+        r = u0 * d0 + u1 * d1 + u2 * d2 + u3 * d3 - tk
+        if not r > -half:
+            continue
+        if r < half:  # the smoothed hinge h(r) and its slope h′(r)
+            hr, dh = (r + half) * (r + half) / (2.0 * smooth), (r + half) / smooth
+        else:
+            hr, dh = r, 1.0
         j = active
         active += 1
-        r = dep - tk
-        g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
+        g = (1.0 - slit) * math.exp(-0.5 * hr * hr / (hz[4] * hz[4]))
         wk = weight * math.sqrt(g / (g + slit)) if slit > 0.0 else weight
         if floor.shape[0] and floor[k] > wk:
             wk = floor[k]
-        lx, ly = bx + t * (px - bx), by + t * (py - by)  # deepest point, box frame
-        if hl - abs(lx) <= hw - abs(ly):  # the ±length face is nearest
-            q0 = 1.0 if lx >= 0.0 else -1.0
-            q1 = 0.0
-            v0, v1 = 0.5 * q0, ly / y[4]
-        else:
-            q0 = 0.0
-            q1 = 1.0 if ly >= 0.0 else -1.0
-            v0, v1 = lx / y[3], 0.5 * q1
-        n0 = c * q0 - s * q1  # world normal
-        n1 = s * q0 + c * q1
-        wx = y[0] + c * lx - s * ly  # deepest point, world
-        wy = y[1] + s * lx + c * ly
+        # Σ u_f n_f, Σ u_f v0_f n_f, Σ u_f v1_f n_f in the box frame (n_f: the face's outward normal,
+        # (v0_f, v1_f): the unit coordinates of q's projection on it), then turned to the world
+        nx, ny = u1 - u0, u3 - u2
+        lx_, ly_ = 0.5 * (u0 + u1), lx / y[3] * ny
+        wx_, wy_ = ly / y[4] * nx, 0.5 * (u2 + u3)
+        n0, n1 = c * nx - s * ny, s * nx + c * ny
+        l0, l1 = c * lx_ - s * ly_, s * lx_ + c * ly_
+        w0, w1 = c * wx_ - s * wy_, s * wx_ + c * wy_
+        qwx = y[0] + c * lx - s * ly  # deepest point, world
+        qwy = y[1] + s * lx + c * ly
+        # Gauss–Newton row of the residual h(r): slope h′ times the linear row, whose residual is r
+        ws = wk * dh
         for i in range(p):
             a[i, j] = 0.0
-        a[0, j] = wk * n0
-        a[1, j] = wk * n1
-        a[d, j] = wk * v0 * n0
-        a[d + 1, j] = wk * v0 * n1
-        a[d + 2, j] = wk * v1 * n1
-        a[d + 3, j] = -wk * v1 * n0
-        b[j] = wk * (n0 * wx + n1 * wy + tk)
+        a[0, j] = ws * n0
+        a[1, j] = ws * n1
+        a[d, j] = ws * l0
+        a[d + 1, j] = ws * l1
+        a[d + 2, j] = ws * w1
+        a[d + 3, j] = -ws * w0
+        b[j] = ws * (n0 * qwx + n1 * qwy + tk + r) - wk * hr
     return active
 
 
@@ -349,7 +384,9 @@ def free_rows_kernel(
 def label_ray_weights(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, out):  # pragma: no cover - compiled
     """Per ray (M,), the √weight the fit's hinge row (:func:`free_rows_kernel`) has at the label ``y``:
     the slit mixture's responsibility of the hinge at the ray's depth in the label's slab beyond its
-    tolerance (0 beyond: the full ``weight`` (1 − slit)^½ at the surface, ``weight`` when the slit is off)."""
+    tolerance (0 beyond: the full ``weight`` (1 − slit)^½ at the surface, ``weight`` when the slit is off).
+    The depth and tolerance are the plain ones (nearest face, τ or τ inside by where the ray ends):
+    the fit's floor, fixed by the label and the rays, never by the fit's path."""
     m = ends_t.shape[1]
     dep = np.empty(m)
     _depths_kernel(y, ends_t, ox, oy, hz, dep, np.empty(m))
