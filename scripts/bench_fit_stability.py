@@ -7,7 +7,9 @@ config) as it is, then again after a change of its inputs far below any measurem
 - ``box_abs``: every label box field moved by ±1e-12 (m, rad; a random sign per field);
 - ``box_rel``: every label box field multiplied by 1 ± 1e-12;
 - ``points_ulp``: every point coordinate (x, y, z, as float64) moved by one unit in the last place
-  (``np.nextafter`` towards a random side).
+  (``np.nextafter`` towards a random side);
+- ``prior_ulp``: the fit's prior terms (P0, η0 and G of ``box_prior_terms``) multiplied entry by
+  entry by 1 ± 1e-15 — what a compiled prior set-up that rounds differently gives the fit.
 
 A fit whose result is a function of its inputs moves ``label_error`` by about the size of the
 change (≪ 1e-6); a fit that stops where its path happened to be moves it by far more. Printed per
@@ -42,6 +44,7 @@ import numpy as np
 import labelaudit.infer.rows as rows_module
 from labelaudit import constants as C
 from labelaudit.config import resolve_config
+from labelaudit.core.posterior import box_prior_terms
 from labelaudit.datasets.kitti import KittiReader
 from labelaudit.infer.rows import process_frame
 from labelaudit.sim.dataset import NoiseSpec, simulate_dataset
@@ -50,7 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 REAL = Path(os.environ.get("LABELAUDIT_REALDATA", REPO.parent / "shared" / "realdata"))
 REAL_FOLDERS = ("openpcdet-pr653-kitti", "kitti-object-more")
 EPS = 1e-12  # size of the box changes
-CHANGES = ("box_abs", "box_rel", "points_ulp")
+CHANGES = ("box_abs", "box_rel", "points_ulp", "prior_ulp")
 FIT_COLUMNS = ("fit_cx", "fit_cy", "fit_cz", "fit_length", "fit_width", "fit_height", "fit_yaw", "fit_offset_m")
 LIMIT = 1e-6  # the decided tolerance of label_error after a last-bit change
 
@@ -71,7 +74,7 @@ def changed(frame: Any, kind: str, rng: np.random.Generator) -> Any:
     elif kind == "points_ulp":
         side = np.where(rng.random((len(pts), 3)) < 0.5, -np.inf, np.inf)
         pts[:, :3] = np.nextafter(pts[:, :3], side)
-    elif kind != "none":
+    elif kind not in ("none", "prior_ulp"):
         raise ValueError(kind)
     return dataclasses.replace(frame, points=pts, boxes=boxes)
 
@@ -101,12 +104,41 @@ class FitTimer:
         rows_module.fit_label_valid = self._inner
 
 
-def audit(frames: list[Any], cfg: Any, kind: str, seed: int, timer: FitTimer | None = None) -> dict[str, np.ndarray]:
+class PriorNudge:
+    """Wraps the pipeline's ``fit_label_valid``: the label's prior terms of the fit's model, each entry
+    of P0, η0 and G multiplied by 1 ± 1e-15 (a random sign per entry)."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self._inner = rows_module.fit_label_valid
+
+    def _nudge(self, x: np.ndarray) -> np.ndarray:
+        return x * (1.0 + 1e-15 * self.rng.choice([-1.0, 1.0], size=np.shape(x)))
+
+    def __call__(self, y: Any, points: Any, class_name: str, params: Any, free_space: Any = None, **kw: Any) -> Any:
+        model = "3d" if points is not None and np.ndim(points) == 2 and np.shape(points)[1] >= 3 else "bev"
+        t = box_prior_terms(y, params.prior_for(class_name), params.prior_weight, model)
+        kw["prior_terms"] = dataclasses.replace(t, P0=self._nudge(t.P0), eta0=self._nudge(t.eta0), G=self._nudge(t.G))
+        return self._inner(y, points, class_name, params, free_space, **kw)
+
+    def __enter__(self) -> PriorNudge:
+        rows_module.fit_label_valid = self
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        rows_module.fit_label_valid = self._inner
+
+
+def audit(frames: list[Any], cfg: Any, kind: str, seed: int) -> dict[str, np.ndarray]:
     """Rows of every frame after change ``kind`` (keyed by frame_id:object_index, vehicles with a score)."""
     rng = np.random.default_rng(seed)
     keys, cols = [], {c: [] for c in ("label_error", "jiou_gt", *FIT_COLUMNS)}
     for frame in frames:
-        rows, _ = process_frame(changed(frame, kind, rng), cfg)
+        if kind == "prior_ulp":
+            with PriorNudge(rng):
+                rows, _ = process_frame(changed(frame, kind, rng), cfg)
+        else:
+            rows, _ = process_frame(changed(frame, kind, rng), cfg)
         for r in rows:
             if r.get("label_error") is None:
                 continue
