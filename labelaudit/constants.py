@@ -210,6 +210,7 @@ MISSING_FILL = (
 MISSING_HEADINGS = 90  # headings tried over [0, 90°) (1° steps)
 MISSING_RATE_SAMPLE = 4096  # returns sampled to estimate the sensor's rays per steradian (elevation quantiles)
 MISSING_MIN_DEPTH = 0.5  # m; KITTI: a candidate's centre must be this far in front of the camera
+MISSING_MAX_TRUNCATION = 0.9  # KITTI: a candidate whose centre projects outside image_2 is one while at most this share of its 2D box lies outside (KITTI labels objects truncated up to ~0.9 by the image's edge)
 MISSING_DONTCARE_OVERLAP = 0.5  # KITTI: a candidate whose 2D box lies this much inside a DontCare region is not one
 MISSING_LABEL_IOU = 0.1  # a cluster or a detection is a candidate only with a BEV IoU below this to every label (one that overlaps a label more is that label's error)
 MISSING_MERGE_IOU = 0.1  # a detection and a cluster overlapping this much (BEV IoU) are one candidate ("both")

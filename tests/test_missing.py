@@ -472,6 +472,27 @@ def test_kitti_only_in_the_camera_view_and_not_in_dontcare_waymo_all_around():
     assert inside.tolist() == [True, False]
 
 
+def test_kitti_a_car_truncated_by_the_image_edge_is_where_labels_exist_one_out_of_view_is_not(monkeypatch):
+    """KITTI labels objects the image's edge cuts (truncated up to ~0.9): a car whose centre
+    projects just outside image_2 but 40 % of whose 2D box is inside is a candidate; one wholly
+    outside is not, nor one whose 2D box lies more than MISSING_MAX_TRUNCATION outside."""
+    view = _camera()
+    boxes = np.array(
+        [
+            [10.0, 9.0, -1.0, 4.0, 1.8, 1.5, 0.0],  # centre 9 px left of the image, 38 % of its 2D box inside
+            [10.0, 14.0, -1.0, 4.0, 1.8, 1.5, 0.0],  # wholly left of it
+            [20.0, 3.0, -1.0, 4.0, 1.8, 1.5, 0.0],  # wholly inside
+        ]
+    )
+    share = view.in_image_share(boxes)
+    assert 0.3 < share[0] < 0.45 and share[1] == 0.0 and share[2] == 1.0
+    assert in_labelled_region(boxes, _frame(view=view), 70.0).tolist() == [True, False, True]
+    rows = find_missing(_frame(_car_points(10.0, 9.0, width=1.8), view=view), RunConfig())
+    assert _best(rows, 10.0, 9.0, radius=1.0) >= 0.5
+    monkeypatch.setattr(C, "MISSING_MAX_TRUNCATION", 0.5)  # at most half outside: the same car is not one
+    assert in_labelled_region(boxes[:1], _frame(view=view), 70.0).tolist() == [False]
+
+
 def test_detections_without_a_label_are_candidates_and_one_found_both_ways_is_one():
     cfg = RunConfig()
     label = [30.0, -6.0, GROUND + 0.75, 4.0, 1.7, 1.5, 0.0]

@@ -43,6 +43,26 @@ class ImageView:
         with np.errstate(divide="ignore", invalid="ignore"):
             return uvw[:, :2] / depth[:, None], depth
 
+    def in_image_share(self, boxes: ArrayLike, min_depth: float = 0.1) -> NDArray[np.float64]:
+        """(K,) share of each LiDAR-frame box's (K, 7) 2D projection (its corners' bounding rectangle,
+        corners nearer than ``min_depth`` to the camera plane clamped to it) that lies in the image:
+        1 − KITTI's ``truncated``."""
+        b = np.asarray(boxes, dtype=float).reshape(-1, 7)
+        c, s = np.cos(b[:, 6:7]), np.sin(b[:, 6:7])
+        sx = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * 0.5 * b[:, 3:4]
+        sy = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * 0.5 * b[:, 4:5]
+        sz = np.array([1, 1, 1, 1, -1, -1, -1, -1]) * 0.5 * b[:, 5:6]
+        corners = np.stack([b[:, 0:1] + c * sx - s * sy, b[:, 1:2] + s * sx + c * sy, b[:, 2:3] + sz], axis=-1)
+        uvw = corners @ self.projection[:, :3].T + self.projection[:, 3]  # (K, 8, 3)
+        w = np.maximum(uvw[..., 2], min_depth)
+        u, v = uvw[..., 0] / w, uvw[..., 1] / w
+        width, height = self.size
+        full = (u.max(axis=1) - u.min(axis=1)) * (v.max(axis=1) - v.min(axis=1))
+        iw = np.clip(np.minimum(u.max(axis=1), width) - np.maximum(u.min(axis=1), 0.0), 0.0, None)
+        ih = np.clip(np.minimum(v.max(axis=1), height) - np.maximum(v.min(axis=1), 0.0), 0.0, None)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(full > 0, iw * ih / full, 0.0)
+
     def box_to_image(self, box: ArrayLike, min_depth: float = 0.1) -> NDArray[np.float64]:
         """2D box (left, top, right, bottom) of a LiDAR-frame box (7,), clipped to the image; its
         corners nearer than ``min_depth`` to the camera plane are clamped to it."""
@@ -214,7 +234,17 @@ def in_labelled_region(
     depth = centre[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = centre[:, 0] / depth, centre[:, 1] / depth
-    ok &= (depth > C.MISSING_MIN_DEPTH) & (u >= -slack_px) & (u < w + slack_px) & (v >= -slack_px) & (v < h + slack_px)
+    if slack_px > 0:  # a cluster's centroid (a pre-filter before boxing)
+        ok &= (
+            (depth > C.MISSING_MIN_DEPTH)
+            & (u >= -slack_px)
+            & (u < w + slack_px)
+            & (v >= -slack_px)
+            & (v < h + slack_px)
+        )
+    else:  # a box: KITTI labels objects truncated by the image's edge, up to MISSING_MAX_TRUNCATION of their 2D box
+        centre_in = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        ok &= (depth > C.MISSING_MIN_DEPTH) & (centre_in | (view.in_image_share(b) >= 1.0 - C.MISSING_MAX_TRUNCATION))
     if dontcare and len(view.dontcare):
         for k in np.flatnonzero(ok):
             rect = view.box_to_image(b[k])
