@@ -166,6 +166,23 @@ def _why(o: dict, rows: list, trace, frame, threshold: float) -> tuple[str, str]
     return "no group", f"{int((mine & near).sum())} of its {n} returns (BEV) within a label's margin"
 
 
+def _simulate_cluttered(out: Path, frames: int, seed: int, drop: float, workers: int) -> None:
+    """``simulate --clutter --drop-fraction drop``: the benchmark's frames, into ``out``."""
+    from labelaudit import constants as C
+    from labelaudit.sim.dataset import simulate_dataset
+    from labelaudit.sim.scene import SceneSpec
+
+    simulate_dataset(
+        out,
+        frames=frames,
+        seed=seed,
+        scene=SceneSpec(num_clutter=C.SIM_CLUTTER),
+        drop_fraction=drop,
+        workers=workers,
+        progress=False,
+    )
+
+
 def bench_sim(
     frames: int,
     seed: int,
@@ -180,26 +197,15 @@ def bench_sim(
     """One seed's simulated benchmark; prints its figures and returns its tallies (for pooling)."""
     import pyarrow.parquet as pq
 
-    from labelaudit import constants as C
     from labelaudit.config import load_config
     from labelaudit.datasets import open_dataset
     from labelaudit.infer.missing import SearchTrace
-    from labelaudit.sim.dataset import simulate_dataset
-    from labelaudit.sim.scene import SceneSpec
 
     tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="bench-missing-"))
     data = tmp / "sim"
     if not (data / "manifest.parquet").is_file():
         t = time.perf_counter()
-        simulate_dataset(
-            data,
-            frames=frames,
-            seed=seed,
-            scene=SceneSpec(num_clutter=C.SIM_CLUTTER),
-            drop_fraction=drop,
-            workers=workers,
-            progress=False,
-        )
+        _simulate_cluttered(data, frames, seed, drop, workers)
         print(
             f"simulated {frames} frames with clutter, {drop:.0%} of vehicle labels dropped (seed {seed}) in {time.perf_counter() - t:.0f} s"
         )
@@ -505,24 +511,14 @@ def bench_cost(datasets: list[tuple[str, Path]], frames: int, repeat: int) -> No
 def cost_datasets(keep: Path | None, frames: int, seed: int, drop: float, workers: int) -> list[tuple[str, Path]]:
     """``bench_infer``'s frames (120, seed 4, no clutter) and ``frames`` cluttered frames of ``seed``
     with ``drop`` of the vehicle labels dropped, simulated once into ``keep`` (or a temporary folder)."""
-    from labelaudit import constants as C
     from labelaudit.sim.dataset import simulate_dataset
-    from labelaudit.sim.scene import SceneSpec
 
     tmp = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="bench-missing-cost-"))
     plain, cluttered = tmp / "cost-seed-4", tmp / f"cost-clutter-seed-{seed}"
     if not (plain / "manifest.parquet").is_file():
         simulate_dataset(plain, frames=120, seed=4, workers=workers, progress=False)
     if not (cluttered / "manifest.parquet").is_file():
-        simulate_dataset(
-            cluttered,
-            frames=frames,
-            seed=seed,
-            scene=SceneSpec(num_clutter=C.SIM_CLUTTER),
-            drop_fraction=drop,
-            workers=workers,
-            progress=False,
-        )
+        _simulate_cluttered(cluttered, frames, seed, drop, workers)
     return [
         ("bench_infer's frames (seed 4)", plain),
         (f"clutter, {drop:.0%} of vehicle labels dropped (seed {seed})", cluttered),
