@@ -370,6 +370,45 @@ def test_ray_rows_away_from_a_switch_are_the_hinge_rows():
     assert np.abs(a[0]).max() < 1e-12 and np.all(np.abs(a[1]) == 1.0)  # the ±width face's normal
 
 
+def test_with_smooth_ray_rows_perfect_beats_slightly_off_beats_badly_off():
+    """The smooth rows change where a ray's row switches, not what it says: a label slid sideways
+    over seen road scores higher the further it slid."""
+    car = _car(15.0, -4.0, yaw=-0.3)
+    points = _points(Scene(objects=[car]))
+    scores = []
+    for dy in (0.0, 0.15, 0.4):
+        box = _moved(car.box, cy=dy)
+        ev = frame_evidence(points, box[None], np.zeros(3), CFG.crop)[0]
+        scores.append(fit_label(box, points[ev.fit_idx], "Car", CFG.model, free_space=ev.free_space).label_error)
+    assert scores[0] < 0.05 and scores[0] < scores[1] < scores[2] and scores[2] > 0.9, scores
+
+
+def test_a_ray_rows_residual_is_the_rounded_hinge_of_its_depth():
+    """Known answer: with r the ray's depth beyond τ (``ray_depths``), its row's residual at the box
+    is h(r) = (r + w/2)² / 2w for |r| < w/2, r beyond, and a ray with r ≤ −w/2 has no row (w =
+    FIT_SMOOTHING); h grows with the depth. Rays from far away nearly along the box's length, in the
+    slab: their deepest point is where the near face's depth meets a width face's (both share the row,
+    equally deep)."""
+    box = np.array([10.0, 0.0, GROUND + 0.75, 4.2, 1.7, 1.5, 0.0])
+    w = C.FIT_SMOOTHING
+    targets = np.array([-0.02, -0.012, -0.006, -0.002, 0.0, 0.004, 0.009, 0.02, 0.1])  # r wanted
+    ys = 0.759 - targets  # the width face's depth less τ where the ray is deepest (found by trial)
+    ends = np.c_[np.full(len(ys), 13.0), ys, np.full(len(ys), GROUND + 0.4)]
+    origin = np.array([-400.0, 0.0, GROUND + 0.41])
+    fs = F.FreeSpace(origin, ends, np.array([GROUND, 0.0, 0.0, 0.0]), box[:2].copy(), (0.25, 0.6), 0.1)
+    depth, _ = F.ray_depths(box, fs)
+    r = depth - fs.tolerance
+    assert np.all(np.abs(r - targets) < 0.002)  # every regime: no row, the rounded band, the line
+    a, b = _ray_rows(box, fs)
+    active = r > -w / 2
+    assert a.shape[1] == active.sum() == 7
+    phi = np.array([box[0], box[1], box[2], box[3], 0.0, box[4], 0.0, box[5]])
+    h = np.where(r < w / 2, (r + w / 2) ** 2 / (2 * w), r)[active]
+    residual = phi @ a - b
+    assert residual == pytest.approx(h, abs=1e-12)
+    assert np.all(np.diff(residual) > 0)  # deeper: a larger residual
+
+
 def _real_frame(realdata, frame_id: str):
     from labelaudit.datasets.kitti import KittiReader
 
