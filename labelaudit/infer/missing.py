@@ -95,6 +95,16 @@ class SearchTrace:
 # --------------------------------------------------------------------------- compiled passes
 
 
+# A sorting network for 9 values (25 compare-exchanges, the fewest possible): every input comes out ascending
+# (checked on all 2⁹ inputs of 0s and 1s, which suffices); the ground grid sorts each 3 × 3
+# neighbourhood with it.
+_SORT9 = np.array(
+    [(0, 3), (1, 7), (2, 5), (4, 8), (0, 7), (2, 4), (3, 8), (5, 6), (0, 2), (1, 3), (4, 5), (7, 8), (1, 4)]
+    + [(3, 6), (5, 7), (0, 1), (2, 4), (3, 5), (6, 8), (2, 3), (4, 5), (6, 7), (1, 2), (3, 4), (5, 6)],
+    dtype=np.int64,
+)
+
+
 @kernel
 def _ground_grid(
     xyz, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread
@@ -154,17 +164,18 @@ def _ground_grid(
         for j in range(n1):
             if floor[i, j] == np.inf:  # no return here: no height is measured from this cell
                 continue
+            # the 3 × 3 floors (inf outside the grid or where no return fell) sorted by a network of
+            # min/max (no branch on the values): the k finite ones first, as an insertion sort has them
             k = 0
-            for a in range(max(0, i - 1), min(n0, i + 2)):
-                for b in range(max(0, j - 1), min(n1, j + 2)):
-                    v = floor[a, b]
-                    if v < np.inf:  # insertion sort of at most 9 floors
-                        q = k
-                        while q > 0 and vals[q - 1] > v:
-                            vals[q] = vals[q - 1]
-                            q -= 1
-                        vals[q] = v
-                        k += 1
+            for da in range(-1, 2):
+                for db in range(-1, 2):
+                    a, b = i + da, j + db
+                    v = floor[a, b] if 0 <= a < n0 and 0 <= b < n1 else np.inf
+                    vals[3 * (da + 1) + db + 1] = v
+                    k += v < np.inf
+            for e in range(_SORT9.shape[0]):
+                x, y = vals[_SORT9[e, 0]], vals[_SORT9[e, 1]]
+                vals[_SORT9[e, 0]], vals[_SORT9[e, 1]] = min(x, y), max(x, y)
             med = vals[k // 2] if k % 2 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
             m1 = np.inf
             for q in range(k):
