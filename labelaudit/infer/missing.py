@@ -509,30 +509,36 @@ def _faces(xy, h, lo, hi, steps, width, tie, min_lower):  # pragma: no cover - c
         n = m
     sel = sel[:n]
     shares = np.empty(steps)
-    areas = np.empty(steps)
-    # each return's coordinates along the two axes of a heading, computed once per heading for the
-    # extents and the faces both
-    p = np.empty(m)
-    q = np.empty(m)
+    # the selected returns' coordinates along the two axes of a heading
+    p = np.empty(n)
+    q = np.empty(n)
     slices = np.empty((2, n), dtype=np.int64)
     counts = np.empty((2, 128), dtype=np.int64)
     for s in range(steps):
         t = 0.5 * math.pi * s / steps
         c, sn = math.cos(t), math.sin(t)
-        a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
-        for k in range(m):
-            p[k] = c * xy[k, 0] + sn * xy[k, 1]
-            q[k] = -sn * xy[k, 0] + c * xy[k, 1]
-            a1, b1, a2, b2 = min(a1, p[k]), max(b1, p[k]), min(a2, q[k]), max(b2, q[k])
-        areas[s] = (b1 - a1) * (b2 - a2)
-        shares[s] = _face_share(p, q, sel, width, slices, counts)
+        for x in range(n):
+            k = sel[x]
+            p[x] = c * xy[k, 0] + sn * xy[k, 1]
+            q[x] = -sn * xy[k, 0] + c * xy[k, 1]
+        shares[s] = _face_share(p, q, width, slices, counts)
     # among the headings that explain the faces nearly as well as the best, the tightest rectangle
-    # (a rear face with the roof above it, curved bumper corners: several headings tie on faces)
+    # (a rear face with the roof above it, curved bumper corners: several headings tie on faces);
+    # the rectangle of all returns is measured for those headings only
     best = shares.max()
     best_s, best_area = 0, np.inf
     for s in range(steps):
-        if shares[s] >= best - tie and areas[s] < best_area:
-            best_s, best_area = s, areas[s]
+        if shares[s] >= best - tie:
+            t = 0.5 * math.pi * s / steps
+            c, sn = math.cos(t), math.sin(t)
+            a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
+            for k in range(m):
+                pk = c * xy[k, 0] + sn * xy[k, 1]
+                qk = -sn * xy[k, 0] + c * xy[k, 1]
+                a1, b1, a2, b2 = min(a1, pk), max(b1, pk), min(a2, qk), max(b2, qk)
+            area = (b1 - a1) * (b2 - a2)
+            if area < best_area:
+                best_s, best_area = s, area
     best_t = 0.5 * math.pi * best_s / steps
     c, sn = math.cos(best_t), math.sin(best_t)
     a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
@@ -544,20 +550,20 @@ def _faces(xy, h, lo, hi, steps, width, tie, min_lower):  # pragma: no cover - c
 
 
 @kernel
-def _face_share(p, q, sel, width, slices, counts):  # pragma: no cover - compiled
-    """Share of the selected returns (indices ``sel`` (n,) into ``p``, ``q``: their coordinates along
-    two square axes) in the densest ``width`` slice across either axis (one face square to each axis:
-    a side, a rear, an L-shape). ``slices`` (2, n) and ``counts`` (2, 128): scratch."""
-    n = sel.shape[0]
+def _face_share(p, q, width, slices, counts):  # pragma: no cover - compiled
+    """Share of the selected returns (their coordinates ``p``, ``q`` (n,) along two square axes) in
+    the densest ``width`` slice across either axis (one face square to each axis: a side, a rear, an
+    L-shape). ``slices`` (2, n) and ``counts`` (2, 128): scratch."""
+    n = p.shape[0]
     nb = counts.shape[1]
     lo1, lo2 = np.inf, np.inf
     for x in range(n):
-        lo1 = min(lo1, p[sel[x]])
-        lo2 = min(lo2, q[sel[x]])
+        lo1 = min(lo1, p[x])
+        lo2 = min(lo2, q[x])
     counts[:] = 0
     for x in range(n):
-        i = min(nb - 1, int((p[sel[x]] - lo1) / width))
-        j = min(nb - 1, int((q[sel[x]] - lo2) / width))
+        i = min(nb - 1, int((p[x] - lo1) / width))
+        j = min(nb - 1, int((q[x] - lo2) / width))
         slices[0, x] = i
         slices[1, x] = j
         counts[0, i] += 1
