@@ -976,23 +976,24 @@ def test_infer_label_valid_equals_infer_label(model):
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
-def test_box_prior_terms_equal_each_functions_own_set_up(model):
-    """The shared terms are bit for bit the φ, G, G⁻¹, P0 and P0 φ that infer_label and fit_label
-    computed on their own, and P0 is the public prior precision."""
+def test_box_prior_terms_are_the_numpy_set_up_within_the_last_bits(model):
+    """The shared terms' φ and G are the geometry's bit for bit; their compiled G⁻¹, P0 = sym(G⁻ᵀ w
+    Σ_ỹ⁻¹ G⁻¹) and P0 φ are LAPACK's inverse and the BLAS products within the last bits (relative
+    to each array's largest entry), on boxes of every size and yaw; P0 is symmetric and G⁻¹ inverts G."""
     rng = np.random.default_rng(11)
     params = ModelParams(kind=model)
     prior = params.prior_for("Car")
-    for _ in range(50):
-        y = g.validate_box(np.array([*rng.normal(0, 30, 3), *rng.uniform(0.2, 12, 3), rng.uniform(-7, 7)]))
+    for _ in range(200):
+        y = g.validate_box(np.array([*rng.normal(0, 30, 3), *rng.uniform(0.01, 12, 3), rng.uniform(-7, 7)]))
         t = M.box_prior_terms(y, prior, params.prior_weight, model)
         G = g.dphi_dext_valid(y, model)
         E = np.linalg.inv(G)
-        P0 = M.prior_precision_from(E, prior, params.prior_weight, model)
-        assert np.array_equal(t.phi, g.box_to_phi(y, model)) and np.array_equal(t.G, G) and np.array_equal(t.Ginv, E)
-        assert np.array_equal(t.P0, P0) and np.array_equal(
-            t.P0, M.prior_precision(y, prior, params.prior_weight, model)
-        )
-        assert np.array_equal(t.eta0, P0 @ t.phi)
+        P0 = M.prior_precision(y, prior, params.prior_weight, model)
+        assert np.array_equal(t.phi, g.box_to_phi(y, model)) and np.array_equal(t.G, G)
+        for got, want in ((t.Ginv, E), (t.P0, P0), (t.eta0, P0 @ t.phi)):
+            assert np.max(np.abs(got - want)) <= 4e-15 * np.max(np.abs(want))
+        assert np.array_equal(t.P0, t.P0.T)
+        assert np.allclose(t.Ginv @ G, np.eye(len(G)), rtol=0, atol=1e-14)
         assert t.matches(model, prior, params.prior_weight) and not t.matches(model, prior, 2 * params.prior_weight)
 
 

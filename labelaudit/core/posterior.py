@@ -835,11 +835,77 @@ def box_prior_terms(y: FloatArray, prior: ClassPrior, weight: float, model: Mode
     >>> box_prior_terms(y, params.prior_for("Car"), params.prior_weight, "3d").P0.shape
     (8, 8)
     """
-    phi = g.phi_of_valid_box(y, model)
-    G = g.dphi_dext_valid(y, model)
-    E = linalg.inv(G)  # G is invertible for l, w > 0
-    P0 = prior_precision_from(E, prior, weight, model)
-    return BoxPriorTerms(model=model, prior=prior, weight=weight, phi=phi, G=G, Ginv=E, P0=P0, eta0=P0 @ phi)
+    d = g.point_dim(model)
+    c, s = float(np.cos(y[6])), float(np.sin(y[6]))  # NumPy's, as phi_of_valid_box and dphi_dext_valid
+    phi, G, E, P0, eta0 = _prior_terms_kernel(y, c, s, d, _weighted_prior_info(prior, model, float(weight)))
+    return BoxPriorTerms(model=model, prior=prior, weight=weight, phi=phi, G=G, Ginv=E, P0=P0, eta0=eta0)
+
+
+@functools.lru_cache(maxsize=64)
+def _weighted_prior_info(prior: ClassPrior, model: ModelKind, weight: float) -> FloatArray:
+    """w Σ_ỹ⁻¹ of a class prior (read-only; cached: it does not depend on the box)."""
+    W = _prior_info_extended(prior, model) * weight
+    W.setflags(write=False)
+    return W
+
+
+@kernel
+def _prior_terms_kernel(y, c, s, d, W):  # pragma: no cover - compiled
+    """φ (p,), G = ∂φ/∂ỹ (p, p), its inverse E, P0 = sym(Eᵀ W E) and P0 φ of a valid box (7,), with
+    c, s its yaw's cosine and sine and W = w Σ_ỹ⁻¹ (p, p), p = 2d + 2, in one pass. φ and G are
+    :func:`~labelaudit.core.geometry.phi_of_valid_box` and :func:`~labelaudit.core.geometry.dphi_dext_valid`
+    bit for bit (the same products); E is G's closed-form inverse (the identity on the centre and
+    height, a 2 × 2 inverse per edge) instead of LAPACK's LU, and the products are sums in loops
+    instead of BLAS: E, P0 and P0 φ differ from :func:`prior_precision_from`'s in the last bits."""
+    p = 2 * d + 2
+    o = d - 2
+    length, width = y[3], y[4]
+    il, iw, ia, ib = d, d + 1, p - 2, p - 1
+    phi = np.empty(p)
+    for i in range(d):
+        phi[i] = y[i]
+    phi[2 + o], phi[3 + o], phi[4 + o], phi[5 + o] = length * c, length * s, width * c, width * s
+    G = np.zeros((p, p))
+    E = np.zeros((p, p))
+    for i in range(d):
+        G[i, i] = 1.0
+        E[i, i] = 1.0
+    if d == 3:
+        phi[7] = y[5]
+        G[7, 5] = 1.0
+        E[5, 7] = 1.0
+    for row, col, angle, size in ((2 + o, il, ia, length), (4 + o, iw, ib, width)):
+        # the edge (size·cos, size·sin) against (size, angle): [[c, −size·s], [s, size·c]]
+        G[row, col], G[row + 1, col] = c, s
+        G[row, angle], G[row + 1, angle] = -size * s, size * c
+        det = c * (size * c) - (-size * s) * s
+        E[col, row], E[col, row + 1] = (size * c) / det, (size * s) / det
+        E[angle, row], E[angle, row + 1] = -s / det, c / det
+    B = np.zeros((p, p))  # Eᵀ W
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += E[k, i] * W[k, j]
+            B[i, j] = acc
+    P = np.zeros((p, p))
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += B[i, k] * E[k, j]
+            P[i, j] = acc
+    P0 = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            P0[i, j] = 0.5 * (P[i, j] + P[j, i])
+    eta0 = np.empty(p)
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += P0[i, j] * phi[j]
+        eta0[i] = acc
+    return phi, G, E, P0, eta0
 
 
 def checked_prior_terms(
