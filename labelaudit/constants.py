@@ -270,6 +270,10 @@ MISSING_GROUND_DROP = (
     1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
 )
 MISSING_GROUND_OPENING = 9.0  # m; ground narrower than this square is not ground (an opening of the ground grid): an object in an occluder's shadow or between a far object's sparse road rings is not taken for the road
+MISSING_GROUND_OPENING_WIDE = 25.0  # m; … and where that square holds few cells with returns (a shadow), ground narrower than this square is not ground either
+MISSING_GROUND_MIN_CELLS = (
+    0.25  # share of the opening's square with returns under which the square is a shadow (the wider opening applies)
+)
 MISSING_SPLITS = 3  # a cluster that fits no class is split at a gap at most this many times (two cars side by side, a car and a hedge)
 MISSING_SPLIT_BIN = 0.1  # m; slices across a cluster's axes in which a gap between two objects is looked for
 MISSING_SPLIT_GAP = 0.1  # … a slice holding at most this share of the returns of an average occupied slice is a gap

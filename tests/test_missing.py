@@ -289,6 +289,32 @@ def test_a_car_in_a_shadow_is_measured_from_the_road_around_not_from_its_own_low
     assert find_missing(empty, cfg) == []
 
 
+def test_a_car_in_a_shadow_wider_than_the_ground_opening_is_found_and_a_low_wall_there_is_not(monkeypatch):
+    """A shadow wider than ``MISSING_GROUND_OPENING`` around a car whose lower body is hidden: every
+    square of the opening around it sees only its own returns. The wider opening, applied where the
+    square holds few cells with returns, takes the road past the shadow's edge: the car is found with
+    its height; without it its lowest return is the road and it is too low to be a car. A low wall in
+    such a shadow, measured from the road, is still too low."""
+    cfg = RunConfig()
+    whole = _car_points(25.0, 3.0)
+    car = whole[whole[:, 2] >= GROUND + 0.7]
+    ground = _unshadowed(_ground(), [whole])
+    hole = (np.abs(ground[:, 0] - 25.0) < 7.0) & (np.abs(ground[:, 1] - 3.0) < 7.0)  # 14 m without road returns
+
+    def frame(obj):
+        pts = np.vstack([ground[~hole], obj])
+        return Frame("000001", np.c_[pts, np.zeros(len(pts))].astype(np.float32), np.zeros((0, 7)), [], [])
+
+    rows = find_missing(frame(car), cfg)
+    assert _best(rows, 25.0, 3.0) >= 0.5
+    top = max(rows, key=lambda r: r["score"])
+    assert abs(top["height"] - 1.5) < 0.2 and abs(top["cz"] - (GROUND + 0.75)) < 0.2
+    wall = _face((22.0, 1.0), (28.0, 1.0), GROUND + 0.35, GROUND + 0.7, 0.08)  # 0.7 m high, its foot hidden
+    assert _best(find_missing(frame(wall), cfg), 25.0, 1.0, radius=3.0) == 0.0
+    monkeypatch.setattr(C, "MISSING_GROUND_MIN_CELLS", 0.0)  # the 9 m opening alone
+    assert _best(find_missing(frame(car), cfg), 25.0, 3.0) < 0.5
+
+
 def test_the_trace_says_what_became_of_each_cluster():
     """A found car's group is boxed and its box kept; a low wall is left unboxed as low, a pole as
     too small; a labelled car's returns form no group; the rows are the same with or without a trace."""

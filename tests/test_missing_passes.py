@@ -63,25 +63,29 @@ def test_the_exact_reciprocal_multiplies_as_the_division_divides_bit_for_bit():
     assert not np.array_equal(d * (1.0 / 0.2), d / 0.2)  # why: 1 / 0.2 is rounded
 
 
-def _ground(xyz: np.ndarray, rank: int = 3) -> np.ndarray:
+def _ground(
+    xyz: np.ndarray, rank: int = 3, reach: int = 2, wide: int = 2, min_cells: float = 0.0, half: int = 10
+) -> np.ndarray:
     ground, _ = M._ground_grid(
         np.ascontiguousarray(xyz, dtype=np.float32),
         0.0,
         0.0,
         0.0,
-        -10.0,
-        -10.0,
+        -float(half),
+        -float(half),
         1.0,
         M._exact_inverse(1.0),
-        20,
-        20,
+        2 * half,
+        2 * half,
         30.0**2,
         rank,
         360,
         1.5,
         math.tan(math.radians(-2.0)),
-        2,
+        reach,
         math.radians(1.5),
+        wide,
+        min_cells,
     )
     return ground
 
@@ -101,3 +105,52 @@ def test_a_cells_floor_is_its_rank_th_lowest_return_whatever_their_order():
         assert np.array_equal(_ground(xyz[rng.permutation(len(xyz))]), ground)
     # cells with fewer returns than the rank: the floor is their highest
     assert np.all(_ground(xyz[xyz[:, 2] >= -1.2])[seen] == np.float32(-1.0))
+
+
+def _cells(rows: range, cols: range, heights, half: int = 20) -> list:
+    """Returns at the given heights at the centre of every 1 m cell of the grid anchored at (−half, −half)."""
+    return [(i - half + 0.5, j - half + 0.5, z) for i in rows for j in cols for z in heights]
+
+
+def _without(points: list, rows: range, cols: range, half: int = 20) -> list:
+    return [p for p in points if not (int(p[0] + half) in rows and int(p[1] + half) in cols)]
+
+
+# the search's squares: a 9 m opening, a 17 m one where fewer than a quarter of the 9 m square's cells hold returns
+OPEN, WIDE, FEW = 4, 8, 0.25 * 81
+
+
+def test_an_object_in_a_shadow_wider_than_the_opening_stands_on_the_road_past_the_shadow():
+    # the road at 0 all around, a 13 × 13 m shadow (nothing seen) holding a car 4 × 2 m whose
+    # lowest returns are 0.7 m up: the 9 m opening's squares around it see only the car's cells
+    shadow_i, shadow_j = range(24, 37), range(14, 27)
+    car_i, car_j = range(28, 32), range(19, 21)
+    road = _without(_cells(range(40), range(40), [0.0] * 3), shadow_i, shadow_j)
+    xyz = np.array(road + _cells(car_i, car_j, [0.7, 1.0, 1.3, 1.5]))
+    xyz = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) > 2.0]
+    car = (slice(28, 32), slice(19, 21))
+    # the opening alone: the car's own floor (1.3, its third lowest) is taken for the road under it
+    before = _ground(xyz, reach=OPEN, half=20)
+    assert np.all(before[car] > 0.5)
+    # the wider opening where the square holds few cells with returns: the road's height
+    after = _ground(xyz, reach=OPEN, wide=WIDE, min_cells=FEW, half=20)
+    assert np.all(after[car] == 0.0)
+    # and nowhere else does the ground change: the road's cells are the road
+    seen = np.isfinite(after)
+    assert np.array_equal(seen, np.isfinite(before))
+    assert np.all(after[seen] == 0.0)
+
+
+def test_a_raised_stretch_of_ground_seen_whole_keeps_its_height_with_the_wider_opening():
+    # a 12 × 12 m platform 1 m high, wider than the 9 m opening and narrower than the 17 m one, its
+    # every cell seen: its squares are full of returns, so the wider opening does not apply
+    plat_i, plat_j = range(24, 36), range(4, 16)
+    road = _without(_cells(range(40), range(40), [0.0] * 3), plat_i, plat_j)
+    xyz = np.array(road + _cells(plat_i, plat_j, [1.0] * 3))
+    xyz = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) > 2.0]
+    inner = (slice(25, 35), slice(5, 15))  # its edge cells stand on the road beside them (the 3 × 3 rule)
+    ground = _ground(xyz, reach=OPEN, wide=WIDE, min_cells=FEW, half=20)
+    assert np.all(ground[inner] == 1.0)
+    # applied everywhere, the wider opening would take the platform away (why the rule asks for a shadow)
+    everywhere = _ground(xyz, reach=OPEN, wide=WIDE, min_cells=82.0, half=20)
+    assert np.all(everywhere[inner] == 0.0)

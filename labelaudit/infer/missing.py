@@ -8,7 +8,8 @@ The search, in compiled passes over the frame (a few milliseconds per KITTI fram
 
 1. ground: the lowest return of every ``MISSING_GROUND_CELL`` cell, the lowest of its 3 × 3
    neighbourhood is the ground under it (a car never covers a neighbourhood of cells), no higher
-   than a grey-scale opening of that grid (``MISSING_GROUND_OPENING``) allows;
+   than a grey-scale opening of that grid (``MISSING_GROUND_OPENING``) allows, or a wider one
+   (``MISSING_GROUND_OPENING_WIDE``) where the opening's square is mostly shadow;
 2. the returns between ``MISSING_BAND`` above that ground, within the labelled range, outside the
    ego zone and outside every label grown by ``MISSING_LABEL_MARGIN`` go into a BEV occupancy grid
    of ``MISSING_CELL`` cells; its 8-connected components are the clusters;
@@ -107,7 +108,7 @@ _SORT9 = np.array(
 
 @kernel
 def _ground_grid(
-    xyz, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread
+    xyz, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread, wide, min_cells
 ):  # pragma: no cover - compiled
     """Ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
@@ -118,8 +119,10 @@ def _ground_grid(
     A cell's floor is its ``rank``-th lowest return (a few returns below the road — reflections
     off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
     floor of the 3 × 3 cells around it (one cell of such returns is ignored too), so under a vehicle,
-    whose cells hold no road returns, it comes from the road beside it. ``inv``: 1 / ``cell`` when
-    that is exact (:func:`_exact_inverse`), else 0."""
+    whose cells hold no road returns, it comes from the road beside it. That ground is then opened
+    over squares of side 2·``reach`` + 1 cells, and where such a square holds fewer than
+    ``min_cells`` cells with returns (a shadow), over squares of side 2·``wide`` + 1 too. ``inv``:
+    1 / ``cell`` when that is exact (:func:`_exact_inverse`), else 0."""
     low = np.full((n0, n1, rank), np.inf)
     top = np.full(nbins, -np.inf)
     highest, cut = -np.inf, -np.inf
@@ -192,11 +195,30 @@ def _ground_grid(
     # returns of their own show ground (the others are +inf, never the lowest)
     negated = np.where(ground < np.inf, -eroded, np.inf)
     lowest = _square_min(negated, reach)
+    # where the square holds fewer than ``min_cells`` cells with returns (an object in a shadow wider
+    # than the square: its own cells are all the square sees), an opening over a square of side
+    # 2·wide + 1 cells too, which reaches the road past the shadow's edge
+    seen = np.zeros((n0 + 1, n1 + 1))  # cells with returns, summed from the grid's corner
+    for i in range(n0):
+        for j in range(n1):
+            seen[i + 1, j + 1] = seen[i, j + 1] + seen[i + 1, j] - seen[i, j] + (ground[i, j] < np.inf)
+    sparse = np.zeros((n0, n1), dtype=np.bool_)
+    for i in range(n0):
+        for j in range(n1):
+            if ground[i, j] < np.inf:
+                a0, a1 = max(0, i - reach), min(n0, i + reach + 1)
+                b0, b1 = max(0, j - reach), min(n1, j + reach + 1)
+                sparse[i, j] = seen[a1, b1] - seen[a0, b1] - seen[a1, b0] + seen[a0, b0] < min_cells
+    far = np.full((n0, n1), np.inf)
+    if wide > reach and sparse.any():
+        eroded_w = _square_min(ground, wide)
+        lowest_w = _square_min(np.where(ground < np.inf, -eroded_w, np.inf), wide)
+        far = np.where(sparse, -lowest_w, np.inf)
     out = np.full((n0, n1), np.inf)
     for i in range(n0):
         for j in range(n1):
             if ground[i, j] < np.inf:
-                out[i, j] = min(ground[i, j], -lowest[i, j])
+                out[i, j] = min(ground[i, j], -lowest[i, j], far[i, j])
     return out, top
 
 
@@ -810,6 +832,8 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         math.tan(math.radians(C.MISSING_CEILING_FLOOR)),
         opening,
         math.radians(C.MISSING_CEILING_SPREAD),
+        int(round(0.5 * (C.MISSING_GROUND_OPENING_WIDE / gcell - 1))),
+        C.MISSING_GROUND_MIN_CELLS * (2 * opening + 1) ** 2,
     )
     nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
