@@ -121,8 +121,24 @@ def test_the_quick_tests_take_equal_dtypes_that_are_other_objects():
 
 
 def test_the_keyed_lookup_finds_what_the_quick_tests_cannot():
-    k = _fake_kernel([((1.0, 2.0), 1.0)])  # a tuple argument has no quick test
-    assert k.dispatch((3.0, 4.0), 2.0) == ("compiled", 0, 2.0)
+    a = np.arange(3.0)
+    k = _fake_kernel([((a, 2.0), 1.0)])  # a tuple holding an array has no quick test
+    assert k.dispatch((a, 4.0), 2.0) == ("compiled", 0, 2.0)
+
+
+def test_a_tuple_of_scalars_takes_the_quick_test_and_only_its_own_types():
+    """A tuple of scalars (the posterior's EM constants) is tested inline, element by element, as
+    numba types it: a tuple of floats takes the compiled function without the keyed lookup; another
+    length, an int among the floats or a list does not."""
+    numba = pytest.importorskip("numba")
+    key = [K._type_key(numba.typeof((1.0, 2.0, 3.0))), "float64"]
+    assert key[0] == ["T", "float64", "float64", "float64"]
+    module = types.SimpleNamespace(k0=lambda t, s: ("compiled", 0, s))
+    k = _QuickOnly(_scale, {}, module, [["k0", key]])
+    assert k.dispatch((1.0, np.float64(2.0), 3.0), 2.0) == ("compiled", 0, 2.0)
+    for t in ((1.0, 2.0), (1.0, 2, 3.0), [1.0, 2.0, 3.0], (1.0, 2.0, np.float32(3.0))):
+        with pytest.raises(AssertionError, match="keyed lookup"):
+            k.dispatch(t, 2.0)
 
 
 def test_a_default_argument_is_passed_as_numba_would():
