@@ -14,6 +14,7 @@ from labelaudit.config import ClassPrior, ModelParams
 from labelaudit.core import fit as LF
 from labelaudit.core import geometry as g
 from labelaudit.core import iou as IOU
+from labelaudit.core import linalg
 from labelaudit.core import posterior as M
 
 CAR = np.array([15.0, 5.0, 0.75, 4.2, 1.7, 1.5, 0.0])  # near faces seen from the origin: −x and −y
@@ -776,6 +777,62 @@ def test_compiled_spd_solve_matches_numpy():
             ref = np.linalg.solve(P, rhs)
             assert np.allclose(x, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
     assert np.all(np.isnan(LF._solve_spd(-np.eye(6), np.ones(6))))  # not positive definite
+
+
+def test_compiled_spd_inverse_against_known_inverses_and_lapack():
+    # known answers: a diagonal matrix's inverse is its reciprocals; a 2 × 2 [[4, 2], [2, 3]] has
+    # inverse [[3, −2], [−2, 4]] / 8
+    out = np.empty((6, 6))
+    D = np.diag([1.0, 4.0, 16.0, 0.25, 64.0, 0.0625])  # squares of powers of 2: every step exact
+    assert linalg.spd_inverse_kernel(D, out)
+    assert np.array_equal(out, np.diag(1.0 / np.diag(D)))
+    out2 = np.empty((2, 2))
+    assert linalg.spd_inverse_kernel(np.array([[4.0, 2.0], [2.0, 3.0]]), out2)
+    assert np.allclose(out2, np.array([[3.0, -2.0], [-2.0, 4.0]]) / 8.0, rtol=0, atol=1e-15)
+    # a fit's badly scaled precisions: M·M⁻¹ = I, exactly symmetric, LAPACK's spd_inverse to rounding
+    rng = np.random.default_rng(5)
+    for p in (6, 8):
+        for _ in range(100):
+            A = rng.normal(size=(p, 3 * p)) * rng.uniform(0.01, 100, size=(p, 1))
+            P = A @ A.T + np.diag(rng.uniform(0.1, 10, p))
+            P = 0.5 * (P + P.T)
+            inv = np.empty((p, p))
+            assert linalg.spd_inverse_kernel(P, inv)
+            assert np.array_equal(inv, inv.T)
+            ref = M.spd_inverse(P)
+            assert np.allclose(inv, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+            assert np.allclose(P @ inv, np.eye(p), atol=1e-8)
+    # not positive definite, or NaN: refused (the caller falls back to LAPACK, which says why)
+    assert not linalg.spd_inverse_kernel(-np.eye(6), out)
+    assert not linalg.spd_inverse_kernel(np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 1.0]), out)
+    assert not linalg.spd_inverse_kernel(np.full((6, 6), np.nan), out)
+
+
+@pytest.mark.parametrize(("fit_model", "scored"), [("3d", "3d"), ("3d", "bev"), ("bev", "bev")])
+def test_scored_metrics_equal_the_numpy_metric(fit_model, scored):
+    # both label-error metrics in one compiled call = _scored_metric (LAPACK's inverse of the scored
+    # block, zero elsewhere) of cov + S_tol and of cov, to rounding; entries outside the block exactly 0
+    rng = np.random.default_rng(6)
+    p = 8 if fit_model == "3d" else 6
+    for _ in range(50):
+        A = rng.normal(size=(p, 2 * p)) * rng.uniform(0.01, 1, size=(p, 1))
+        cov = A @ A.T * 0.01 + np.diag(rng.uniform(1e-4, 1e-2, p))
+        cov = 0.5 * (cov + cov.T)
+        B = rng.normal(size=(p, p)) * 0.1
+        S_tol = B @ B.T
+        w_tol, w = LF._scored_metrics(cov, S_tol, fit_model, scored)
+        for got, want in (
+            (w_tol, LF._scored_metric(cov + S_tol, fit_model, scored)),
+            (w, LF._scored_metric(cov, fit_model, scored)),
+        ):
+            assert np.allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+            assert np.array_equal(got == 0, want == 0)
+    if fit_model != scored:  # cz and height are not scored: their rows and columns are zero
+        assert not w[2].any() and not w[:, 7].any()
+    # a scored block that is not positive definite: NumPy's general inverse, as before
+    bad = np.diag(np.r_[-1.0, np.ones(p - 1)])
+    w_tol, w = LF._scored_metrics(bad, np.zeros((p, p)), fit_model, scored)
+    assert np.array_equal(w, LF._scored_metric(bad, fit_model, scored))
 
 
 @pytest.mark.parametrize("model", ["bev", "3d"])

@@ -458,19 +458,12 @@ def _face_gaps_kernel(y, pts_t, d, sx, sy, slab, quantile, min_points, gaps, cou
 @kernel
 def _solve_spd(M, rhs):  # pragma: no cover - compiled
     """x with M x = rhs for a small symmetric positive definite M (p, p): Cholesky, two
-    triangular substitutions (scalars only; a LAPACK call from here would need scipy)."""
+    triangular substitutions (scalars only; a LAPACK call from here would need scipy). NaN when M
+    is not positive definite: the fit then reports NaN."""
     p = M.shape[0]
     L = np.zeros((p, p))
-    for j in range(p):
-        acc = M[j, j]
-        for k in range(j):
-            acc -= L[j, k] * L[j, k]
-        L[j, j] = math.sqrt(acc)  # NaN when M is not positive definite: the fit then reports NaN
-        for i in range(j + 1, p):
-            acc = M[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            L[i, j] = acc / L[j, j]
+    if not linalg.cholesky_kernel(M, L):
+        return np.full(p, np.nan)
     z = np.empty(p)
     for i in range(p):
         acc = rhs[i]
@@ -484,6 +477,32 @@ def _solve_spd(M, rhs):  # pragma: no cover - compiled
             acc -= L[k, i] * x[k]
         x[i] = acc / L[i, i]
     return x
+
+
+@kernel
+def _scored_metrics_kernel(cov, S_tol, scored, w_tol, w):  # pragma: no cover - compiled
+    """The two metrics of the label-error distances (:func:`_scored_metric`): ``w_tol`` = that of
+    cov + S_tol, ``w`` = that of cov, both (p, p): the inverse of the ``scored`` entries' block
+    (int indices, ascending), zero elsewhere. Returns False (outputs undefined) when a block is
+    not positive definite."""
+    k = scored.shape[0]
+    a = np.empty((k, k))
+    inv = np.empty((k, k))
+    w_tol[:, :] = 0.0
+    w[:, :] = 0.0
+    for with_tol in (True, False):
+        for i in range(k):
+            for j in range(k):
+                a[i, j] = (
+                    cov[scored[i], scored[j]] + S_tol[scored[i], scored[j]] if with_tol else cov[scored[i], scored[j]]
+                )
+        if not linalg.spd_inverse_kernel(a, inv):
+            return False
+        out = w_tol if with_tol else w
+        for i in range(k):
+            for j in range(k):
+                out[scored[i], scored[j]] = inv[i, j]
+    return True
 
 
 @kernel
@@ -769,7 +788,9 @@ def _fit_em(
     precision, rr, ss, sw = _fit_precision_kernel(
         y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays
     )
-    cov = spd_inverse(precision)
+    cov = np.empty_like(precision)
+    if not linalg.spd_inverse_kernel(precision, cov):
+        cov = spd_inverse(precision)  # LAPACK's verdict, or the error naming the eigenvalues
     dphi = phi_rect - phi_label
     log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi.dot(P0).dot(dphi))
     rms = (
@@ -798,6 +819,20 @@ def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> Fl
     return W
 
 
+def _scored_metrics(
+    cov: FloatArray, S_tol: FloatArray, fit_model: ModelKind, scored: ModelKind
+) -> tuple[FloatArray, FloatArray]:
+    """(:func:`_scored_metric` of cov + S_tol, of cov), both (p, p), in one compiled call (Cholesky
+    inverses of the scored block); NumPy's general inverse when a block is not positive definite."""
+    p = cov.shape[0]
+    w_tol, w = np.empty((p, p)), np.empty((p, p))
+    idx = _SCORED_ALL[p] if fit_model == scored else g.BEV_OF_3D
+    if _scored_metrics_kernel(cov, S_tol, idx, w_tol, w):
+        return w_tol, w
+    return _scored_metric(cov + S_tol, fit_model, scored), _scored_metric(cov, fit_model, scored)
+
+
+_SCORED_ALL = {p: np.arange(p) for p in (6, 8)}  # every φ entry scored (the fit's model is the run's)
 _BEV_BLOCK = np.ix_(g.BEV_OF_3D, g.BEV_OF_3D)
 _BEV_BLOCK_FLAT = (
     g.BEV_OF_3D[:, None] * 8 + g.BEV_OF_3D[None, :]
@@ -996,11 +1031,11 @@ def fit_label_valid(
             best = (alt, True)
     (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best
 
-    W = _scored_metric(cov + S_tol, model, scored)
+    W, W_fit = _scored_metrics(cov, S_tol, model, scored)
     y_fit, phi_rect = _closest_form_phi(y_rect, phi_label, W, model)
     delta = phi_label - phi_rect
     d2_tol = float(delta.dot(W).dot(delta))
-    d2 = float(delta.dot(_scored_metric(cov, model, scored)).dot(delta))
+    d2 = float(delta.dot(W_fit).dot(delta))
     k = 5 if scored == "bev" else 7
     # The seen faces' gaps, at the label: the points say where a seen face's outer surface is, and a
     # right label's face lies FACE_GAP ± FACE_GAP_STD beyond it. The fit cannot say this (points deep

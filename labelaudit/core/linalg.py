@@ -28,7 +28,18 @@ except ImportError:  # pragma: no cover - another NumPy layout: use the public A
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["cholesky", "eigh", "inv", "nan_max", "nan_min", "pairwise_sum", "solve", "sqrt_psd_kernel"]
+__all__ = [
+    "cholesky",
+    "cholesky_kernel",
+    "eigh",
+    "inv",
+    "nan_max",
+    "nan_min",
+    "pairwise_sum",
+    "solve",
+    "spd_inverse_kernel",
+    "sqrt_psd_kernel",
+]
 
 
 def inv(a: FloatArray) -> FloatArray:
@@ -235,3 +246,52 @@ def sqrt_psd_kernel(a):  # pragma: no cover - compiled
             out[i, j] = acc
             out[j, i] = acc
     return out
+
+
+@kernel
+def cholesky_kernel(M, L):  # pragma: no cover - compiled
+    """The lower Cholesky factor of a small symmetric positive definite M (p, p), read from its
+    lower triangle, written into L (p, p; zeros above the diagonal as given). Returns False at the
+    first pivot that is not positive (M not positive definite, or NaN): L is then incomplete."""
+    p = M.shape[0]
+    for j in range(p):
+        acc = M[j, j]
+        for k in range(j):
+            acc -= L[j, k] * L[j, k]
+        if not acc > 0.0:
+            return False
+        L[j, j] = math.sqrt(acc)
+        for i in range(j + 1, p):
+            acc = M[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / L[j, j]
+    return True
+
+
+@kernel
+def spd_inverse_kernel(M, out):  # pragma: no cover - compiled
+    """``out`` (p, p) = M⁻¹ of a small symmetric positive definite M (p, p), read from its lower
+    triangle: the Cholesky factor L, L⁻¹ by forward substitution, L⁻ᵀL⁻¹ (symmetric by
+    construction) — what ``posterior.spd_inverse`` does with LAPACK, in scalars, agreeing to
+    rounding. Returns False (``out`` then undefined) when M is not positive definite."""
+    p = M.shape[0]
+    L = np.zeros((p, p))
+    if not cholesky_kernel(M, L):
+        return False
+    Li = np.zeros((p, p))  # L⁻¹, lower triangular
+    for j in range(p):
+        Li[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, p):
+            acc = 0.0
+            for k in range(j, i):
+                acc -= L[i, k] * Li[k, j]
+            Li[i, j] = acc / L[i, i]
+    for i in range(p):  # (L⁻ᵀL⁻¹)_ij = Σ_(k ≥ max(i, j)) Li[k, i] Li[k, j]
+        for j in range(i + 1):
+            acc = 0.0
+            for k in range(i, p):
+                acc += Li[k, i] * Li[k, j]
+            out[i, j] = acc
+            out[j, i] = acc
+    return True
