@@ -551,24 +551,26 @@ def _faces(xy, h, lo, hi, steps, width, tie, min_lower):  # pragma: no cover - c
     best_s, best_area = 0, np.inf
     for s in range(steps):
         if shares[s] >= best - tie:
-            t = 0.5 * math.pi * s / steps
-            c, sn = math.cos(t), math.sin(t)
-            a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
-            for k in range(m):
-                pk = c * xy[k, 0] + sn * xy[k, 1]
-                qk = -sn * xy[k, 0] + c * xy[k, 1]
-                a1, b1, a2, b2 = min(a1, pk), max(b1, pk), min(a2, qk), max(b2, qk)
+            a1, b1, a2, b2 = _extents(xy, 0.5 * math.pi * s / steps)
             area = (b1 - a1) * (b2 - a2)
             if area < best_area:
                 best_s, best_area = s, area
     best_t = 0.5 * math.pi * best_s / steps
-    c, sn = math.cos(best_t), math.sin(best_t)
+    a1, b1, a2, b2 = _extents(xy, best_t)
+    return best_t, best, a1, b1, a2, b2
+
+
+@kernel
+def _extents(xy, t):  # pragma: no cover - compiled
+    """(a1, b1, a2, b2): the extents of the returns ``xy`` (M, 2) along (cos t, sin t) and
+    (−sin t, cos t)."""
+    c, sn = math.cos(t), math.sin(t)
     a1, b1, a2, b2 = np.inf, -np.inf, np.inf, -np.inf
-    for k in range(m):
+    for k in range(xy.shape[0]):
         pk = c * xy[k, 0] + sn * xy[k, 1]
         qk = -sn * xy[k, 0] + c * xy[k, 1]
         a1, b1, a2, b2 = min(a1, pk), max(b1, pk), min(a2, qk), max(b2, qk)
-    return best_t, best, a1, b1, a2, b2
+    return a1, b1, a2, b2
 
 
 @kernel
