@@ -131,43 +131,51 @@ def _closest_form_phi(
     1e-9 relative, so that a tie in exact arithmetic is not decided by rounding — or of the NaN ones).
 
     The forms and their φ are those of :func:`_equivalent_boxes` and
-    :func:`~labelaudit.core.geometry.phi_of_valid_box`, written out: one cos/sin call for the four
-    yaws (NumPy's, element by element as for a scalar), Python-float products, one array of the
-    four φ, and each cost ``fᵀ W f`` as the same two BLAS products as ``f @ W @ f`` (``ndarray.dot``:
-    the same gemv and dot, without the matmul ufunc's overhead).
+    :func:`~labelaudit.core.geometry.phi_of_valid_box`, written out in one compiled call
+    (:func:`_closest_form_kernel`).
     """
-    v = y.tolist()
-    cx, cy, cz, length, width, height, yaw = v
-    yaws = [
-        (yaw + k * np.pi / 2 + math.pi) % (2.0 * math.pi) - math.pi for k in range(4)
-    ]  # g.normalize_angle of a float
-    yaw4 = np.array(yaws)
-    cos4, sin4 = np.cos(yaw4).tolist(), np.sin(yaw4).tolist()
-    flat: list[float] = []  # the four φ, row after row (a flat list converts faster than nested ones)
+    phi = np.empty(len(phi_ref))
+    k, yaw = _closest_form_kernel(y, phi_ref, W, model == "3d", phi)
+    form = y.copy()
+    if k % 2:
+        form[3], form[4] = y[4], y[3]
+    form[6] = yaw
+    return form, phi
+
+
+@kernel
+def _closest_form_kernel(y, phi_ref, W, three_d, phi_out):  # pragma: no cover - compiled
+    """(k, yaw_k) of the equivalent form yaw + kπ/2 (l, w swapped for odd k) of rectangle ``y``
+    whose φ is nearest ``phi_ref`` in metric W (p, p), its φ written to ``phi_out`` (p,).
+    Ties within 1e-9 relative go to the first form; the first NaN cost ends the search (np.argmin's)."""
+    p = phi_ref.shape[0]
+    f = np.empty(p)
+    wf = np.empty(p)
+    best_cost, best_k, best_yaw = 0.0, -1, 0.0
     for k in range(4):
-        lk, wk = (width, length) if k % 2 else (length, width)
-        c, s = cos4[k], sin4[k]
-        if model == "bev":
-            flat += (cx, cy, lk * c, lk * s, wk * c, wk * s)
+        yaw = (y[6] + k * (math.pi / 2) + math.pi) % (2.0 * math.pi) - math.pi  # normalize_angle
+        lk, wk = (y[4], y[3]) if k % 2 else (y[3], y[4])
+        c, s = math.cos(yaw), math.sin(yaw)
+        if three_d:
+            f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7] = y[0], y[1], y[2], lk * c, lk * s, wk * c, wk * s, y[5]
         else:
-            flat += (cx, cy, cz, lk * c, lk * s, wk * c, wk * s, height)
-    phis = np.array(flat).reshape(4, -1)
-    fs = phis - phi_ref
-    best_cost, best_k = 0.0, -1
-    for k in range(4):
-        f = fs[k]
-        cost = float(f.dot(W).dot(f))
+            f[0], f[1], f[2], f[3], f[4], f[5] = y[0], y[1], lk * c, lk * s, wk * c, wk * s
+        for i in range(p):
+            acc = 0.0
+            for j in range(p):
+                acc += W[i, j] * (f[j] - phi_ref[j])
+            wf[i] = acc
+        cost = 0.0
+        for i in range(p):
+            cost += (f[i] - phi_ref[i]) * wf[i]
         # a later form wins only by more than the rounding of the costs: two forms can be exactly as
         # near (a rectangle turned by 90°: yaw + π/2 and yaw − π/2), and the last bit must not choose
         if best_k < 0 or cost < best_cost - 1e-9 * abs(best_cost) or (cost != cost and best_cost == best_cost):
-            best_cost, best_k = cost, k
+            best_cost, best_k, best_yaw = cost, k, yaw
+            phi_out[:] = f
         if cost != cost:
-            break  # np.argmin stops at the first NaN
-    form = y.copy()
-    if best_k % 2:
-        form[3], form[4] = width, length
-    form[6] = yaws[best_k]
-    return form, phis[best_k]
+            break
+    return best_k, best_yaw
 
 
 @kernel
