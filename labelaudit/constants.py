@@ -245,6 +245,15 @@ MISSING_TALL_MARGIN = (
     0.2  # m; an unseen top counts against a class only where the beams would pass this much over its mean height
 )
 MISSING_MERGE_SIDE_CELLS = 2  # fragments whose footprints come within this many cells of each other are one object too (a side broken by a dark panel or glass)
+MISSING_ROW_CELLS = 2  # fragments of at most this many cells may be joined in a row (a truck's side at a grazing angle: one column of returns per azimuth step)
+MISSING_ROW_GAP = 3  # … to another such fragment whose footprint comes within this many cells of theirs
+MISSING_ROW_MIN = 3  # … when at least this many fragments form the row
+MISSING_ROW_RESIDUAL = (
+    0.25  # m; … and their centres lie this close to one straight line (a corner's second leg turns away)
+)
+MISSING_ROW_ANGLE = (
+    30.0  # degrees; … that line runs within this of the sensor's ray to the row (the side is seen at a grazing angle)
+)
 MISSING_CORNER_DEPTH = 1.5  # m; a face is part of a larger structure too where other returns at one of its ends run this far away from the sensor, square to it (a building's corner)
 MISSING_OWN_FRAGMENT_CELLS = 6  # a group of at most this many cells inside the box a cluster would become is its own far end or roof edge seen past a gap, not a wall going on (continuation test)
 MISSING_CORNER_START = 0.6  # m; … and begin within this of the face (a building's end wall meets its front; a hedge behind a parked car begins beyond the car's width)

@@ -444,6 +444,45 @@ def test_a_truck_seen_from_a_corner_is_found_as_a_truck_and_a_wall_or_fence_as_l
     assert max(c.score for c in search_clusters(_frame(wall, sky), cfg)) >= 0.5
 
 
+def _column(x, y):
+    """One column of returns (a truck's side at a grazing angle: one azimuth step's returns)."""
+    return _face((x, y), (x + 0.01, y), GROUND + 0.3, GROUND + 3.2, 0.08)
+
+
+def test_a_truck_side_seen_at_a_grazing_angle_in_fragments_is_joined_and_found(monkeypatch):
+    """The side runs almost along the rays: one column of returns every 0.55 m (beyond the fragment
+    merge's reach), on one line. Joined to the rear it is a truck; left apart it is not."""
+    cfg = RunConfig()
+    az = np.radians(np.arange(-90.0, 90.0, 0.2))
+    sky = np.c_[60.0 * np.cos(az), 60.0 * np.sin(az), np.full(len(az), 6.0)]
+    rear = _face((22.0, 1.2), (22.0, 3.7), GROUND + 0.3, GROUND + 3.2, 0.08)
+    truck = np.vstack([rear, *[_column(22.0 + 0.55 * k, 1.2) for k in range(1, 17)]])  # 8.8 m long
+    found = [c for c in search_clusters(_frame(truck, sky), cfg) if c.score >= 0.5]
+    assert len(found) == 1 and found[0].class_name == "Truck"
+    assert math.hypot(found[0].box[0] - 26.4, found[0].box[1] - 2.45) < 1.0
+    monkeypatch.setattr(C, "MISSING_ROW_MIN", 10**6)  # without the row join: no truck
+    assert not any(c.class_name == "Truck" and c.score >= 0.5 for c in search_clusters(_frame(truck, sky), cfg))
+
+
+def test_fragments_in_a_straight_row_along_the_rays_are_joined_and_an_l_of_them_is_not(monkeypatch):
+    """The same columns as one straight row along the rays (one group) and as an L whose second
+    leg turns away from the first (a wall's corner): not joined, unless the line test is off."""
+    cfg = RunConfig()
+
+    def groups(*objects):
+        trace = SearchTrace()
+        search_clusters(_frame(*objects), cfg, trace=trace)
+        return len(trace.groups)
+
+    row = [_column(22.0 + 0.55 * k, 1.2) for k in range(14)]
+    corner = [_column(22.0 + 0.55 * k, 1.2) for k in range(7)] + [_column(25.3, 1.2 + 0.55 * k) for k in range(1, 8)]
+    assert groups(*row) == 1
+    assert groups(*corner) >= 2
+    monkeypatch.setattr(C, "MISSING_ROW_RESIDUAL", 1e9)
+    monkeypatch.setattr(C, "MISSING_ROW_ANGLE", 90.0)
+    assert groups(*corner) == 1
+
+
 def test_a_truck_sized_l_whose_short_leg_goes_on_in_line_is_a_building_corner():
     """The same L-shape as a truck seen from its corner, but its short leg (the rear) goes on in line
     past a gap: the end wall of a building broken by a window, not a truck."""

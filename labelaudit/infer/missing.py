@@ -484,6 +484,92 @@ def _merge_fragments(
     return parent
 
 
+def _join_rows(
+    stats: NDArray[np.int64],
+    extras: NDArray[np.float64],
+    group: NDArray[np.int64],
+    ox: float,
+    oy: float,
+    cell: float,
+    max_extent: float,
+) -> NDArray[np.int64]:
+    """Join the groups of small fragments that form one straight row seen at a grazing angle.
+
+    A truck's side seen nearly along the sensor's rays shows as one column of returns per azimuth
+    step, 0.4–0.6 m apart: a row of fragments of at most ``MISSING_ROW_CELLS`` cells that the
+    fragment merge does not join. Fragments within ``MISSING_ROW_GAP`` cells of each other are
+    chained; a chain of at least ``MISSING_ROW_MIN`` whose centres lie within
+    ``MISSING_ROW_RESIDUAL`` m of one line running within ``MISSING_ROW_ANGLE`` of the ray to it is
+    one object (a corner's second leg turns away from the line; a chain with it is not joined).
+
+    Parameters
+    ----------
+    stats : (k, 7) int64 — per component: returns, returns above the band, cells, i0, i1, j0, j1.
+    extras : (k, 7) float64 — per component (``_comp_extras``); columns 5, 6 sum the returns' x, y.
+    group : (k,) int64 — the group (root component) of each component after the fragment merge.
+    ox, oy : sensor position (m). cell : grid cell (m). max_extent : largest joined footprint diagonal (m).
+
+    Returns
+    -------
+    (k,) int64 — the groups with the rows joined (roots stay component ids).
+    """
+    small = np.flatnonzero((stats[:, 2] <= C.MISSING_ROW_CELLS) & (stats[:, 0] >= C.MISSING_FRAGMENT_POINTS))
+    if len(small) < C.MISSING_ROW_MIN:
+        return group
+    s = stats[small]
+    gap = np.maximum.reduce(
+        [
+            s[:, None, 3] - s[None, :, 4],
+            s[None, :, 3] - s[:, None, 4],
+            s[:, None, 5] - s[None, :, 6],
+            s[None, :, 5] - s[:, None, 6],
+        ]
+    )
+    near = gap <= C.MISSING_ROW_GAP
+    parent = np.arange(len(small))
+    for a, b in zip(*np.nonzero(np.triu(near, 1)), strict=True):
+        ra, rb = a, b
+        while parent[ra] != ra:
+            ra = parent[ra]
+        while parent[rb] != rb:
+            rb = parent[rb]
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    for q in range(len(small)):
+        r = q
+        while parent[r] != r:
+            r = parent[r]
+        parent[q] = r
+    cx = extras[small, 5] / stats[small, 0] - ox
+    cy = extras[small, 6] / stats[small, 0] - oy
+    group = group.copy()
+    cos_max = math.cos(math.radians(C.MISSING_ROW_ANGLE))
+    for r in np.unique(parent):
+        mem = np.flatnonzero(parent == r)
+        if len(mem) < C.MISSING_ROW_MIN:
+            continue
+        px, py = cx[mem], cy[mem]
+        mx, my = px.mean(), py.mean()
+        cov = np.cov(np.stack([px - mx, py - my]))
+        w, v = np.linalg.eigh(cov)
+        ux, uy = v[0, 1], v[1, 1]  # the line's direction (largest eigenvalue)
+        resid = np.abs(-(px - mx) * uy + (py - my) * ux)
+        if resid.max() > C.MISSING_ROW_RESIDUAL:
+            continue
+        if abs(ux * mx + uy * my) < cos_max * math.hypot(mx, my):
+            continue
+        roots = np.unique(group[small[mem]])
+        if len(roots) < 2:
+            continue
+        inside = np.isin(group, roots)
+        i0, i1 = stats[inside, 3].min(), stats[inside, 4].max()
+        j0, j1 = stats[inside, 5].min(), stats[inside, 6].max()
+        if math.hypot((i1 - i0 + 1) * cell, (j1 - j0 + 1) * cell) > max_extent:
+            continue
+        group[inside] = roots[0]
+    return group
+
+
 @kernel
 def _gather(band_cell, comp_flat, wanted, starts):  # pragma: no cover - compiled
     """Positions (into the band arrays) of the returns of the wanted components, component by
@@ -878,6 +964,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         max_diag,
         cell,
     )
+    group = _join_rows(stats, extras, group, ox, oy, cell, max_diag)
     k = len(stats)
     roots = np.unique(group)
     g_points = np.bincount(group, weights=stats[:, 0], minlength=k)[roots]
