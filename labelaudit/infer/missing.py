@@ -551,7 +551,7 @@ def _join_rows(
         px, py = cx[mem], cy[mem]
         mx, my = px.mean(), py.mean()
         cov = np.cov(np.stack([px - mx, py - my]))
-        w, v = np.linalg.eigh(cov)
+        _, v = np.linalg.eigh(cov)
         ux, uy = v[0, 1], v[1, 1]  # the line's direction (largest eigenvalue)
         resid = np.abs(-(px - mx) * uy + (py - my) * ux)
         if resid.max() > C.MISSING_ROW_RESIDUAL:
