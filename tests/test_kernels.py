@@ -256,3 +256,17 @@ def test_the_status_command_names_the_path():
         check=True,
     )
     assert done.stdout.split(":")[0] in ("aot", "jit")
+
+
+@needs_aot
+def test_a_kernel_fallen_to_the_jit_can_call_another_modules_kernels():
+    """A call with argument types the build never saw compiles that kernel with the JIT; the kernels
+    it reaches through a module of the package (``linalg.cholesky_kernel`` inside the fit's solve)
+    are dispatchers there too, so the call is compiled, not refused by numba's typing."""
+    from labelaudit.core import fit
+
+    M = np.asfortranarray(
+        np.diag([4.0, 16.0, 64.0])
+    )  # column-major: a layout the build never exports; exact square roots
+    x = fit._solve_spd(M, np.ones(3))
+    assert np.array_equal(x, [0.25, 0.0625, 0.015625])

@@ -221,6 +221,22 @@ def _test_of(i: int, key: Any, env: dict[str, Any], tag: str) -> str | None:
     return None
 
 
+def _jit_view(v: Any) -> Any:
+    """What a kernel's JIT copy sees for one of its globals: a kernel's dispatcher for a kernel, and
+    for a module of this package that holds kernels (``linalg.cholesky_kernel(...)`` inside a
+    kernel) a stand-in module whose kernels are dispatchers, so numba can type the call."""
+    if isinstance(getattr(v, "kernel", None), Kernel):
+        return v.kernel.jit()
+    if isinstance(v, pytypes.ModuleType) and v.__name__.startswith(__package__.partition(".")[0] + "."):
+        names = [k for k, a in vars(v).items() if isinstance(getattr(a, "kernel", None), Kernel)]
+        if names:
+            view = pytypes.ModuleType(v.__name__)
+            view.__dict__.update(vars(v))
+            view.__dict__.update({k: getattr(v, k).kernel.jit() for k in names})
+            return view
+    return v
+
+
 class Kernel:
     """A kernel on the ahead-of-time path.
 
@@ -281,12 +297,7 @@ class Kernel:
             copy = pytypes.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
             copy.__qualname__, copy.__module__, copy.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
             self._jit = numba.njit(cache=True, **self.options)(copy)
-            scope.update(
-                {
-                    k: (v.kernel.jit() if isinstance(getattr(v, "kernel", None), Kernel) else v)
-                    for k, v in fn.__globals__.items()
-                }
-            )
+            scope.update({k: _jit_view(v) for k, v in fn.__globals__.items()})
         return self._jit
 
     def __repr__(self) -> str:
