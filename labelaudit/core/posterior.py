@@ -1122,37 +1122,11 @@ def _posterior_kernel(P0, eta0, info, eta, sigma, G, S_ext, weight):  # pragma: 
     for i in range(p):
         for j in range(p):
             lam[i, j] = 0.5 * ((P0[i, j] + info[i, j] / s2) + (P0[j, i] + info[j, i] / s2))
-    L = np.zeros((p, p))
     cov = np.zeros((p, p))
     mean = np.zeros(p)
     S0 = np.zeros((p, p))
-    for j in range(p):
-        acc = lam[j, j]
-        for k in range(j):
-            acc -= L[j, k] * L[j, k]
-        if not acc > 0.0:
-            return False, cov, mean, S0
-        L[j, j] = math.sqrt(acc)
-        for i in range(j + 1, p):
-            acc = lam[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            L[i, j] = acc / L[j, j]
-    Li = np.zeros((p, p))  # L⁻¹, lower triangular, by forward substitution
-    for c in range(p):
-        Li[c, c] = 1.0 / L[c, c]
-        for i in range(c + 1, p):
-            acc = 0.0
-            for k in range(c, i):
-                acc -= L[i, k] * Li[k, c]
-            Li[i, c] = acc / L[i, i]
-    for i in range(p):
-        for j in range(i, p):
-            acc = 0.0
-            for k in range(j, p):  # (L⁻ᵀ L⁻¹)_ij = Σ_k Li_ki Li_kj, Li_kj = 0 for k < j
-                acc += Li[k, i] * Li[k, j]
-            cov[i, j] = acc
-            cov[j, i] = acc
+    if not linalg.spd_inverse_kernel(lam, cov):
+        return False, cov, mean, S0
     rhs = np.empty(p)
     for i in range(p):
         rhs[i] = eta0[i] + eta[i] / s2
