@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -1025,23 +1025,11 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
     grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k))  # + each group's cells
     sight = (counts, mask, x0, y0, cell)
+    scene = _Scene(sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, sight)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
         first = len(out)
-        out += _box_cluster(
-            xyz[band_idx[pos]].astype(float),
-            band_h[pos],
-            sizes,
-            ox,
-            oy,
-            oz,
-            top_slope,
-            rays_per_rad2,
-            grid,
-            int(chosen[s]),
-            C.MISSING_SPLITS,
-            sight,
-        )
+        out += _box_cluster(xyz[band_idx[pos]].astype(float), band_h[pos], scene, int(chosen[s]), C.MISSING_SPLITS)
         if trace is not None:
             trace.groups[traced + int(slots[s])]["clusters"] = list(range(first, len(out)))
     return out
@@ -1261,29 +1249,30 @@ def _continues_kernel(
     return False
 
 
-def _box_cluster(
-    xyz: FloatArray,
-    h: FloatArray,
-    sizes: dict,
-    ox: float,
-    oy: float,
-    oz: float,
-    top_slope: float,
-    rays_per_rad2: float,
-    grid: tuple | None = None,
-    own: int = -1,
-    splits: int = 0,
-    sight: tuple | None = None,
-) -> list[Cluster]:
-    """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,)).
+class _Scene(NamedTuple):
+    """What every cluster of one frame is boxed against (:func:`_box_cluster`)."""
+
+    sizes: dict  # class → (mean, largest) size (:func:`class_sizes`)
+    ox: float  # the sensor (m)
+    oy: float
+    oz: float
+    top_slope: FloatArray  # (B,) the highest return's slope per azimuth bin (the ceiling)
+    rays_per_rad2: float  # returns per steradian of the frame (:func:`_rays_per_rad2`)
+    grid: tuple | None  # (owner (nx, ny), x0, y0, cell, cells per group): the continuation test
+    sight: tuple | None  # (band returns per cell, label mask, x0, y0, cell): what blocks the view (:func:`_place`)
+
+
+def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, splits: int = 0) -> list[Cluster]:
+    """Box and score one cluster (its returns (M, 3) and their heights above the ground (M,)) of
+    group ``own`` in the frame ``scene``.
 
     A cluster that fits no class is split, up to ``splits`` times, at the emptiest slice across one
     of its axes when that slice is a gap (:func:`_split`): two cars parked side by side, a car and
-    the hedge beside it. ``sight``: (band returns per cell, label mask, x0, y0, cell) of the
-    search grid, what blocks the sensor's view (:func:`_place`). Each part is boxed on its own, the other part
+    the hedge beside it. Each part is boxed on its own, the other part
     counting as returns beside it (a wall broken by a doorway is still one wall to the continuation
     test), and the parts replace the whole when one of them scores higher than the whole.
     """
+    sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, sight = scene
     centre = xyz[:, :2].mean(axis=0)
     xy = np.ascontiguousarray(xyz[:, :2] - centre)
     lo, hi = C.MISSING_FACE_BAND
@@ -1371,20 +1360,7 @@ def _box_cluster(
             out = []
             for mine, other in (parts, parts[::-1]):
                 with _others_marked(grid, own, xyz[other]):
-                    out += _box_cluster(
-                        xyz[mine],
-                        h[mine],
-                        sizes,
-                        ox,
-                        oy,
-                        oz,
-                        top_slope,
-                        rays_per_rad2,
-                        grid,
-                        own,
-                        splits - 1,
-                        sight,
-                    )
+                    out += _box_cluster(xyz[mine], h[mine], scene, own, splits - 1)
             if out and max(p.score for p in out) > whole.score:  # two objects explain the returns better than one
                 return out
     return [whole]
