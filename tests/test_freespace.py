@@ -276,7 +276,7 @@ def test_process_frame_writes_the_evidence_columns():
     assert row["label_error"] < 0.05
 
 
-def test_label_ray_weights_are_the_slit_mixture_at_the_label():
+def test_label_ray_terms_weights_are_the_slit_mixture_at_the_label():
     """A ray the label does not cross keeps the full hinge weight (1 − slit)^½; one that crosses it
     deeper gets the mixture's responsibility at its depth beyond τ, smaller the deeper it is."""
     box = np.array([10.0, 0.0, GROUND + 0.75, 4.0, 1.8, 1.5, 0.0])
@@ -288,8 +288,8 @@ def test_label_ray_weights_are_the_slit_mixture_at_the_label():
     ends_t, ox, oy, hz = fs.kernel_inputs()
     sigma, slit = 0.2, 0.1
     hz5 = np.r_[hz, sigma]
-    out = np.empty(len(ends))
-    F.label_ray_weights(box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, slit, out)
+    out, bounds = np.empty(len(ends)), np.empty(len(ends))
+    F.label_ray_terms(box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, slit, 2.0, bounds, out)
     dep, _ = F.ray_depths(box, fs)
     r = np.maximum(dep - fs.tolerance, 0.0)
     g = (1 - slit) * np.exp(-0.5 * r**2 / sigma**2)
@@ -298,8 +298,37 @@ def test_label_ray_weights_are_the_slit_mixture_at_the_label():
         np.sqrt(1 - slit)
     )  # no crossing / within τ
     assert out[0] > out[2] > out[3] > out[4]  # deeper: less weight
-    F.label_ray_weights(box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, 0.0, out)
+    F.label_ray_terms(box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, 0.0, 2.0, bounds, out)
     assert np.all(out == 1.0)  # no slit: every ray counts fully
+
+
+def test_label_ray_terms_skip_no_ray_that_matters():
+    """The weights skip the depth of a ray whose bound is below both tolerances: on rays of every
+    kind (missing the box, grazing it, crossing it deep, ending on the object inside it) they equal
+    the mixture at every ray's own depth, and every bound is at least the ray's depth (the property
+    the skip rests on) — and −inf only for rays that miss the box grown by the reach."""
+    rng = np.random.default_rng(5)
+    box = np.array([12.0, 3.0, GROUND + 0.75, 4.4, 1.9, 1.5, 0.4])
+    ends = np.c_[rng.uniform(6, 20, 4000), rng.uniform(-4, 10, 4000), GROUND + rng.uniform(0.0, 1.2, 4000)]
+    fs = F.FreeSpace(
+        np.array([0.0, 0.0, 1.7]), ends, np.array([GROUND, 0.0, 0.0, 0.0]), box[:2].copy(), (0.25, 0.6), 0.1
+    )
+    ends_t, ox, oy, hz = fs.kernel_inputs()
+    sigma, slit, reach = 0.15, 0.1, 2.0
+    hz5 = np.r_[hz, sigma]
+    out, bounds = np.empty(len(ends)), np.empty(len(ends))
+    F.label_ray_terms(box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, slit, reach, bounds, out)
+    dep, _ = F.ray_depths(box, fs)
+    assert np.all(bounds >= dep)
+    assert np.isinf(dep[np.isinf(bounds)]).all()
+    c, s = np.cos(box[6]), np.sin(box[6])
+    q = ends[:, :2] - box[:2]
+    px, py = c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1]
+    ends_in = (np.abs(px) <= box[3] / 2) & (np.abs(py) <= box[4] / 2) & (ends_t[2] >= hz[3])
+    r = np.maximum(dep - np.where(ends_in, fs.inside_tolerance, fs.tolerance), 0.0)
+    g = (1 - slit) * np.exp(-0.5 * r**2 / sigma**2)
+    assert (r > 0).sum() > 50 and ends_in.sum() > 50 and (bounds < fs.tolerance).sum() > 1000  # every kind
+    assert np.allclose(out, np.sqrt(g / (g + slit)), rtol=0, atol=1e-15)
 
 
 def _ray_rows(box: np.ndarray, fs: F.FreeSpace, slit: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -1095,11 +1095,14 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
     phi, sigma = g.phi_of_valid_box(y, model), 0.05
     for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma, g.validate_box(CAR))):
         got, rr, ss, sw = LF._fit_precision_kernel(
-            y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays
+            y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays, CAR
         )
         ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._fit_point_constants(), sigma, phi)
-        if rays[0].shape[1]:
-            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(y, *rays[:9], three_d, phi, rays[9])
+        if rays[0].shape[1]:  # every ray evaluated: the bounds skip only rays without a row
+            m = rays[0].shape[1]
+            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(
+                y, *rays[:9], three_d, phi, rays[9], np.zeros(m), math.inf
+            )
             assert active > 0  # the rays do add rows
             ata = ata + ata_r
             rr_want += rr_r

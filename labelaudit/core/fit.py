@@ -24,8 +24,7 @@ from labelaudit.core.freespace import (
     FreeSpace,
     displacement,
     free_rows_kernel,
-    label_ray_weights,
-    ray_bounds,
+    label_ray_terms,
 )
 from labelaudit.core.geometry import FloatArray
 from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
@@ -513,6 +512,11 @@ def _scored_metrics_kernel(cov, S_tol, scored, w_tol, w):  # pragma: no cover - 
     return True
 
 
+_RAY_REACH = (
+    2.0  # m; rays further outside the label than this are not tracked (the candidates reach 1 m); the skip is exact
+)
+
+
 @kernel
 def _fit_iterate_kernel(
     y_cur,
@@ -541,6 +545,7 @@ def _fit_iterate_kernel(
     slit,
     smooth,
     wfloor,
+    bounds,
 ):  # pragma: no cover - compiled
     d = 3 if three_d else 2
     p, n = phi.shape[0], pts_t.shape[1]
@@ -550,10 +555,6 @@ def _fit_iterate_kernel(
     sqd = np.empty(n)
     a_r = np.empty((p, m))
     b_r = np.empty(m)
-    bounds = np.empty(m)
-    reach = 2.0  # m; rays further outside the label than this are not tracked (the candidates reach 1 m)
-    if m:
-        ray_bounds(label, ends_t, ox, oy, hz, reach, bounds)
     phi_prev = phi.copy()
     descent = halvings > 0 and m > 0  # only rays made plain steps overshoot (points alone: EM converges)
     e_prev = math.inf
@@ -563,7 +564,7 @@ def _fit_iterate_kernel(
         _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), a, b, sqd, True)
         ata, atb, rr = _gram_kernel(a, b, phi, descent)
         if m:
-            slack = displacement(y_cur, label, reach)
+            slack = displacement(y_cur, label, _RAY_REACH)
             k = free_rows_kernel(
                 y_cur,
                 ends_t,
@@ -625,13 +626,16 @@ def _fit_iterate_kernel(
 
 @kernel
 def _ray_normal_eq_kernel(
-    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor
+    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, slack
 ):  # pragma: no cover - compiled
+    """Σ aᵀa (p, p), Σ a b (p,), Σ (a·φ − b)² and the number of the ray rows of box ``y``
+    (:func:`~labelaudit.core.freespace.free_rows_kernel`; ``bounds`` and ``slack`` as there:
+    zeros and inf evaluate every ray)."""
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
     b = np.empty(m)
     active = free_rows_kernel(
-        y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, a, b, np.zeros(m), math.inf, wfloor
+        y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, a, b, bounds, slack, wfloor
     )
     ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
     return ata, atb, rr, active
@@ -659,15 +663,32 @@ def _fit_precision_kernel(
     slit,
     smooth,
     wfloor,
+    bounds,
+    label,
 ):  # pragma: no cover - compiled
     """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
     + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
     Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
-    operations in NumPy's order (no fast-math)."""
+    operations in NumPy's order (no fast-math). The rays skipped by their bounds at the ``label``
+    (as in the descent) give no row: the same rows as evaluating every ray."""
     ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
     if ends_t.shape[1]:
         ata_r, _, rr_r, _ = _ray_normal_eq_kernel(
-            y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor
+            y,
+            ends_t,
+            ox,
+            oy,
+            hz,
+            tau,
+            tau_in,
+            ray_weight,
+            slit,
+            smooth,
+            three_d,
+            phi,
+            wfloor,
+            bounds,
+            displacement(y, label, _RAY_REACH),
         )
         ata = ata + ata_r
         rr += rr_r
@@ -682,14 +703,15 @@ def _fit_precision_kernel(
 
 _NO_FACE_GAPS = np.full(4, np.nan)
 
-_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0, 1.0, np.empty(0))
+_NO_RAYS = (np.empty((3, 0)), 0.0, 0.0, np.zeros(5), 0.0, 0.0, 0.0, 0.0, 1.0, np.empty(0), np.empty(0))
 """Ray inputs of a fit without free-space evidence (the kernels' layout, see :func:`_ray_inputs`)."""
 
 
-def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray | None = None) -> tuple:
+def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray) -> tuple:
     """(ends_t (3, M), sensor x, sensor y, hz (5,) = (sensor height, slab bottom, slab top, object height, σ), τ,
-    τ inside, √weight, slit probability, the rays' √weight at the label (M,; empty without ``label``))
-    of the fit's ray rows (:func:`~labelaudit.core.freespace.free_rows_kernel`)."""
+    τ inside, √weight, slit probability, smoothing, the rays' √weight at the label (M,), their bounds at
+    the label (M,)) of the fit's ray rows (:func:`~labelaudit.core.freespace.free_rows_kernel`), for the
+    fits of one ``label`` (7,)."""
     if free_space is None or free_space.num_rays == 0:
         return _NO_RAYS
     ends_t, ox, oy, hz = free_space.kernel_inputs()
@@ -702,10 +724,10 @@ def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray | 
         float(C.FREE_SPACE_WEIGHT),
         float(C.FREE_SPACE_SLIT_PROB),
     )
-    floor = np.empty(ends_t.shape[1] if label is not None else 0)
-    if len(floor):
-        label_ray_weights(label, ends_t, ox, oy, hz5, tau, tau_in, weight, slit, floor)
-    return (ends_t, ox, oy, hz5, tau, tau_in, weight, slit, float(C.FIT_SMOOTHING), floor)
+    m = ends_t.shape[1]
+    floor, bounds = np.empty(m), np.empty(m)
+    label_ray_terms(label, ends_t, ox, oy, hz5, tau, tau_in, weight, slit, _RAY_REACH, bounds, floor)
+    return (ends_t, ox, oy, hz5, tau, tau_in, weight, slit, float(C.FIT_SMOOTHING), floor, bounds)
 
 
 def _fit_iterate(
@@ -794,7 +816,7 @@ def _fit_em(
     )
     phi_rect = g.phi_of_valid_box(y_cur, model)
     precision, rr, ss, sw = _fit_precision_kernel(
-        y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays
+        y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays, label
     )
     cov = np.empty_like(precision)
     if not linalg.spd_inverse_kernel(precision, cov):

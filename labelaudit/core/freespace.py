@@ -42,7 +42,7 @@ __all__ = [
     "azimuth_buckets",
     "behind_other_returns",
     "ground_heights",
-    "label_ray_weights",
+    "label_ray_terms",
     "neighbourhoods",
     "passing_rays",
     "ray_candidates",
@@ -226,24 +226,6 @@ def _signed_deepest(ox, oy, oh, px, py, ph, hl, hw, reach, zlo, zhi):  # pragma:
 
 
 @kernel
-def ray_bounds(y, ends_t, ox, oy, hz, reach, out):  # pragma: no cover - compiled
-    """Per ray, the largest signed depth m of its empty part in the slab of box ``y`` (−inf beyond ``reach``).
-
-    m moves by at most the boundary displacement H of the rectangle (:func:`displacement`), so a
-    ray with m + H below the least depth that gives a row (:func:`free_rows_kernel`) cannot be
-    active for a box within H of ``y``: the fit skips it, exactly.
-    """
-    c, s = math.cos(y[6]), math.sin(y[6])
-    rx, ry = ox - y[0], oy - y[1]
-    bx, by = c * rx + s * ry, -s * rx + c * ry
-    hl, hw = 0.5 * y[3], 0.5 * y[4]
-    for k in range(ends_t.shape[1]):
-        qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
-        px, py = c * qx + s * qy, -s * qx + c * qy
-        out[k] = _signed_deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, reach, hz[1], hz[2])
-
-
-@kernel
 def displacement(y, y0, reach):  # pragma: no cover - compiled
     """Upper bound on how far any point's m moves between rectangles y0 and y, for points within
     ``reach`` of y0: centre shift + half the size changes + turn × (distance of such points from the
@@ -282,7 +264,7 @@ def free_rows_kernel(
     on the object, not on the road under it) proves less — real surfaces lie up to a few decimetres
     inside a correct label (bumpers, rounded corners, loose annotation) — and gets the looser
     ``tau_in``. The rows of the active rays are written to the first columns of a and b; returns
-    their number. Rays whose bound (:func:`ray_bounds`) plus ``slack`` stays below the smaller
+    their number. Rays whose bound (:func:`label_ray_terms`) plus ``slack`` stays below the smaller
     tolerance less 1.5 ``smooth`` are not evaluated (``slack`` = inf evaluates all): exact, a row
     needs a blended depth (below) more than τ − w/2, and that depth is less than w beyond d*.
 
@@ -308,7 +290,7 @@ def free_rows_kernel(
     "slit" of prior probability ``slit``; its row is weighted by the responsibility of the hinge,
     (1 − slit)·e^(−h²/2σ²) / ((1 − slit)·e^(−h²/2σ²) + slit) with h = h(r) and σ = ``hz[4]``
     (iteratively reweighted: as the fit moves, deep rays become shallow and count again). A ray's
-    weight is never below ``floor[k]``, its weight at the label (:func:`label_ray_weights`): a ray
+    weight is never below ``floor[k]``, its weight at the label (:func:`label_ray_terms`): a ray
     the label respects is no slit, and the fit cannot slide through it (without the floor a fit
     that had jumped past a ray, into free space, stopped counting it).
     """
@@ -381,25 +363,46 @@ def free_rows_kernel(
 
 
 @kernel
-def label_ray_weights(y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, out):  # pragma: no cover - compiled
-    """Per ray (M,), the √weight the fit's hinge row (:func:`free_rows_kernel`) has at the label ``y``:
-    the slit mixture's responsibility of the hinge at the ray's depth in the label's slab beyond its
-    tolerance (0 beyond: the full ``weight`` (1 − slit)^½ at the surface, ``weight`` when the slit is off).
+def label_ray_terms(
+    y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, reach, bounds, floor
+):  # pragma: no cover - compiled
+    """What the fit needs of every ray (M,) at the label ``y``, in one pass: its bound into
+    ``bounds``, and into ``floor`` the √weight the fit's hinge row (:func:`free_rows_kernel`) has
+    at the label: the slit mixture's responsibility of the hinge at the ray's depth in the label's
+    slab beyond its tolerance (0 beyond: the full ``weight`` (1 − slit)^½ at the surface,
+    ``weight`` when the slit is off).
+
     The depth and tolerance are the plain ones (nearest face, τ or τ inside by where the ray ends):
-    the fit's floor, fixed by the label and the rays, never by the fit's path."""
-    m = ends_t.shape[1]
-    dep = np.empty(m)
-    _depths_kernel(y, ends_t, ox, oy, hz, dep, np.empty(m))
+    the fit's floor, fixed by the label and the rays, never by the fit's path.
+
+    The bound is the largest signed depth m of the ray's empty part in the slab of ``y`` (−inf
+    beyond ``reach``). m moves by at most the boundary displacement H of the rectangle
+    (:func:`displacement`), so a ray with m + H below the least depth that gives a row
+    (:func:`free_rows_kernel`) cannot be active for a box within H of ``y``: the fit skips it,
+    exactly. A ray's depth at ``y`` is at most its bound (the bound's prism holds the depth's), so a
+    ray whose bound stays below both tolerances — most rays — has the weight at the surface without
+    its depth being computed: the same value (the 1e-6 m margin is far above the rounding of either
+    maximum).
+    """
     c, s = math.cos(y[6]), math.sin(y[6])
-    for k in range(m):
+    rx, ry = ox - y[0], oy - y[1]
+    bx, by = c * rx + s * ry, -s * rx + c * ry
+    hl, hw = 0.5 * y[3], 0.5 * y[4]
+    shallow = min(tau, tau_in) - 1e-6  # a bound below this: r = 0 below
+    g0 = 1.0 - slit  # the mixture below at r = 0 (its exponential is exactly 1)
+    at_surface = weight * math.sqrt(g0 / (g0 + slit)) if slit > 0.0 else weight
+    for k in range(ends_t.shape[1]):
         qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
-        ends_in = abs(c * qx + s * qy) <= 0.5 * y[3] and abs(-s * qx + c * qy) <= 0.5 * y[4] and ends_t[2, k] >= hz[3]
-        r = max(dep[k] - (tau_in if ends_in else tau), 0.0)
-        if slit > 0.0:
-            g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
-            out[k] = weight * math.sqrt(g / (g + slit))
-        else:
-            out[k] = weight
+        px, py = c * qx + s * qy, -s * qx + c * qy
+        bounds[k] = _signed_deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, reach, hz[1], hz[2])
+        if slit <= 0.0 or not bounds[k] > shallow:
+            floor[k] = at_surface
+            continue
+        dep = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])[0]
+        ends_in = abs(px) <= hl and abs(py) <= hw and ends_t[2, k] >= hz[3]
+        r = max(dep - (tau_in if ends_in else tau), 0.0)
+        g = (1.0 - slit) * math.exp(-0.5 * r * r / (hz[4] * hz[4]))
+        floor[k] = weight * math.sqrt(g / (g + slit))
 
 
 def ray_depths(box: ArrayLike, fs: FreeSpace) -> tuple[FloatArray, FloatArray]:
