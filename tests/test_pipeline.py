@@ -488,3 +488,21 @@ def test_worker_warmup_runs_the_audit() -> None:
 
     assert "labelaudit.infer.warmup" in constants.WORKER_PRELOAD
     warm_up(strict=True)
+
+
+def test_a_run_that_audits_nothing_is_an_error_and_a_resumed_one_is_not(fake_core, sim_kitti, tmp_path):
+    from labelaudit.errors import ResultsError
+    from labelaudit.infer.run import infer_dataset
+
+    def run(out: Path, classes: tuple[str, ...] | None, **kw) -> object:
+        request = InferRequest(sim_kitti, out, classes=classes, missing=False, chunk_units=2, **kw)
+        return infer_dataset(request, executor=SerialExecutor())
+
+    with pytest.raises(ResultsError, match="no objects audited.*--classes"):
+        run(tmp_path / "none", ("NoSuchClass",))
+    first = run(tmp_path / "res", None)
+    assert first.objects > 0
+    again = run(tmp_path / "res", None)  # every chunk resumed: no row written now, the folder still has them
+    assert again.objects == 0 and again.chunks_skipped == again.chunks
+    with pytest.raises(ResultsError, match="no objects audited"):  # resumed, and nothing there either
+        run(tmp_path / "none", ("NoSuchClass",))

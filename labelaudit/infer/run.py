@@ -573,7 +573,9 @@ def infer_dataset(
     cfg = resolve_config(request.config, fmt, request.classes, request.model)
     cfg = with_missing_options(cfg, request)
     summary = run_infer(replace(request, dataset_format=fmt), cfg, progress, executor)
-    if R.open_results(summary.output).dataset.count_rows() == 0:
+    # Rows written by this run settle it; only a run that wrote none (everything resumed, or nothing
+    # audited) opens the folder to count (pyarrow.dataset: ~0.05 s at the end of every run).
+    if summary.objects == 0 and R.open_results(summary.output).dataset.count_rows() == 0:
         raise ResultsError(
             f"{summary.output}: no objects audited (classes {', '.join(cfg.classes)}); check --classes "
             f"(or pass --classes all) and {summary.output / R.ERRORS_FILE}"
