@@ -5,20 +5,29 @@ Prints, each repeated ``--repeat`` times (median and range, with the machine's l
   workers    480 simulated frames, ``labelaudit infer --workers 1`` and ``--workers 2`` (subprocesses):
              wall time, start-up (until the first shard), CPU of the process tree, speed-up 2 vs 1,
              beside what the machine gives two busy pure-Python loops in the same repeat (2.0 on two
-             free cores; a shared VM often gives less, and it varies by the minute). Target: the
-             pool's speed-up ≥ 0.9 × the machine's own.
+             free cores; a shared VM often gives less, and it varies by the minute). Each run is
+             preceded by its half of the machine's figure (one loop before ``--workers 1``, two
+             loops before ``--workers 2``), and every other repeat runs the pair in the other order,
+             so both figures of a repeat see the same minute of the machine. Target: the pool's
+             speed-up ≥ 0.9 × the machine's own.
   dask       the same run with ``--scheduler local:2`` (a LocalCluster of 2 worker processes)
              against the 2-worker pool: wall time including the cluster's start, and the span from
              the first to the last shard. Target: within 10 %.
   memory     peak RSS (and PSS, which counts pages shared with the fork server once) of each pool
-             worker, the fork server, and each Dask worker, sampled every 50 ms during those runs.
-             Target: ≤ 300 MiB per worker.
+             worker, the fork server, and each Dask worker, sampled every 50 ms during one more run
+             of each (not the timed ones: the sampler's reads of /proc/PID/smaps cost ~1.5 ms of CPU
+             per process and sample, ~0.14 of a core beside a 2-worker run, four times what it takes
+             beside one worker). Target: ≤ 300 MiB per worker.
+  timeline   one run each of ``--workers 1`` and ``--workers 2`` with every process' CPU time read
+             from /proc every 20 ms: when the workers were forked and busy, the first and last
+             shard, the exit, and each process' CPU before, during and after the workers' part —
+             CPU times hold whatever the load, walls do not.
   waymo      a simulated Waymo v2 segment at the real sensor size (5 lidars, 2 returns): CPU per
              frame in one warm process, split into the frame part (read) and the per-box part
              (crop, model, rows), and the projection to the Waymo Open Dataset (1,150 segments ×
              200 frames, ≈ 12 M boxes): frames/s per worker, worker-hours, workers for ≤ 1 h.
 
-    .venv/bin/python scripts/bench_scale.py [--frames 480] [--repeat 2] [--data DIR] [--only workers,dask,waymo]
+    .venv/bin/python scripts/bench_scale.py [--frames 480] [--repeat 2] [--data DIR] [--only workers,dask,timeline,waymo]
 """
 
 from __future__ import annotations
@@ -38,6 +47,7 @@ from bench_infer import (  # noqa: E402
     become_subreaper,
     like_a_worker,
     load,
+    reap_new,
     run_tree,
     simulate,
     spread,
@@ -131,19 +141,17 @@ def cli_run(data: Path, out: Path, env: dict[str, str], *opts: str) -> tuple[flo
 _SPIN = "import time\nt = time.perf_counter()\nx = 0\nfor i in range(20_000_000):\n    x += i\nprint(time.perf_counter() - t)"
 
 
-def machine_speedup() -> float:
-    """What this machine gives two busy processes: wall of one pure-Python loop alone, times 2,
-    over the wall of two at once (2.0 on two free cores; less where the host shares them)."""
+def busy_loops(n: int) -> float:
+    """Wall s of ``n`` pure-Python loops run at once, each in its own process. Two loops on two
+    free cores take as long as one; ``2 * busy_loops(1) / busy_loops(2)`` is what this machine
+    gives two busy processes (2.0 on two free cores; less where the host shares them)."""
     import subprocess
 
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-c", _SPIN], check=True, capture_output=True)
-    one = time.perf_counter() - t
-    t = time.perf_counter()
-    procs = [subprocess.Popen([sys.executable, "-c", _SPIN], stdout=subprocess.DEVNULL) for _ in range(2)]
+    procs = [subprocess.Popen([sys.executable, "-c", _SPIN], stdout=subprocess.DEVNULL) for _ in range(n)]
     for p in procs:
         p.wait()
-    return 2 * one / (time.perf_counter() - t)
+    return time.perf_counter() - t
 
 
 def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, env: dict[str, str]) -> None:
@@ -152,16 +160,18 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
     if with_dask:
         configs.append(("dask local:2", ("--scheduler", "local:2")))
     runs: dict[str, list[tuple[float, float, float, float]]] = {name: [] for name, _ in configs}
-    memory: dict[str, list[tuple[float, float]]] = {}
     ceiling: list[float] = []
-    for _ in range(repeat):
-        ceiling.append(machine_speedup())
-        for name, opts in configs:
-            with MemorySampler() as mem:
-                runs[name].append(cli_run(data, tmp / "out", env, *opts))
-            for role, values in mem.by_role().items():
-                memory.setdefault(f"{name}: {role}", []).extend(values)
-    print(f"workers, {frames} frames, `labelaudit infer` subprocess ({load()}):")
+    loads = [load()]
+    for k in range(repeat):
+        loops: dict[int, float] = {}
+        for name, opts in configs if k % 2 == 0 else configs[::-1]:
+            if name in ("1 worker", "2 workers"):  # this run's half of the machine's figure, just before it
+                n = int(name[0])
+                loops[n] = busy_loops(n)
+            runs[name].append(cli_run(data, tmp / "out", env, *opts))
+        ceiling.append(2 * loops[1] / loops[2])
+        loads.append(load())
+    print(f"workers, {frames} frames, `labelaudit infer` subprocess ({', '.join(loads)}):")
     for name, rs in runs.items():
         print(
             f"  {name:13s} wall {spread([r[0] for r in rs])} s (start-up to the first shard {spread([r[2] for r in rs])} s, "
@@ -171,7 +181,7 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
     speedups = [a / b for a, b in zip(w1, w2)]
     print(
         f"  speed-up 2 vs 1 workers, wall: {spread(speedups)}; the machine's own for two busy loops, "
-        f"measured before each repeat: {spread(ceiling)}"
+        f"each half measured just before its run: {spread(ceiling)}"
     )
     print(
         f"  pool's speed-up / the machine's own, per repeat: {spread([a / b for a, b in zip(speedups, ceiling)])}   (target ≥ 0.9)"
@@ -182,7 +192,13 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
             f"  dask local:2 / pool of 2, wall incl. start-up: {spread([d[0] / p[0] for d, p in zip(dk, pool)])}; "
             f"first → last shard: {spread([d[3] / p[3] for d, p in zip(dk, pool)])}   (target ≤ 1.10)"
         )
-    print("memory, peak per process (MiB):")
+    memory: dict[str, list[tuple[float, float]]] = {}
+    for name, opts in configs:  # one more run each, sampled (not timed: the sampler takes CPU)
+        with MemorySampler() as mem:
+            cli_run(data, tmp / "out", env, *opts)
+        for role, values in mem.by_role().items():
+            memory.setdefault(f"{name}: {role}", []).extend(values)
+    print(f"memory, peak per process (MiB), one sampled run each ({load()}):")
     for key, values in sorted(memory.items()):
         if key.endswith(("other", "tracker", "dask nanny")):
             continue
@@ -190,6 +206,163 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
             f"  {key:28s} RSS {max(v[0] for v in values):5.0f}   PSS {max(v[1] for v in values):5.0f}   "
             f"({len(values)} processes)   (target ≤ 300 MiB per worker)"
         )
+
+
+_TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100  # /proc/PID/stat's CPU times are in these
+
+
+def _proc_stat(pid: int) -> tuple[float, float, int] | None:
+    """(CPU s used so far, start time in s since boot, minor page faults so far) of a process, from
+    /proc/PID/stat; None once gone."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return None
+    return (
+        (int(fields[11]) + int(fields[12])) / _TICK,
+        int(fields[19]) / _TICK,
+        int(fields[7]),
+    )  # utime+stime, starttime, minflt
+
+
+def _proc_children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(c) for c in f.read().split()]
+    except OSError:
+        return []
+
+
+class CpuTimeline:
+    """CPU time of a process and its descendants, read from /proc every ``interval`` s (Linux):
+    ~40 µs per process and sample, where :class:`MemorySampler`'s smaps reads take ~1.5 ms.
+    Times are s since ``t0``, taken just before ``root`` was started (start times: the kernel's,
+    counted from ``root``'s own, in clock ticks of 10 ms)."""
+
+    def __init__(self, root: int, t0: float, interval: float = 0.02):
+        self.root, self.t0, self.interval = root, t0, interval
+        self.samples: dict[int, list[tuple[float, float]]] = {}  # pid → [(s since t0, CPU s)]
+        self.parent: dict[int, int] = {}
+        self.started: dict[int, float] = {}  # pid → s since t0, from the kernel's start time
+        self.faults: dict[int, int] = {}  # pid → minor page faults at its last sample
+        self.role: dict[int, str] = {}
+        self._root_start: float | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _role(self, pid: int) -> str:
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            return "other"
+        parent = self.role.get(self.parent.get(pid, -1), "")
+        if parent == "fork server":
+            return "pool worker"
+        if "forkserver" in cmd:
+            return "fork server"
+        if "resource_tracker" in cmd:
+            return "resource tracker"
+        return "main" if pid == self.root else "other"
+
+    def _run(self) -> None:
+        while True:
+            now = time.time() - self.t0
+            todo, seen = [self.root], set()
+            while todo:
+                pid = todo.pop()
+                seen.add(pid)
+                stat = _proc_stat(pid)
+                if stat is None:
+                    continue
+                if pid not in self.samples:
+                    self.samples[pid] = []
+                    if self._root_start is None:
+                        self._root_start = stat[1]
+                    self.started[pid] = stat[1] - self._root_start
+                    self.role[pid] = self._role(pid)
+                self.samples[pid].append((now, stat[0]))
+                self.faults[pid] = stat[2]
+                for child in _proc_children(pid):
+                    self.parent.setdefault(child, pid)
+                    todo.append(child)
+            if self._stop.wait(self.interval):
+                return
+
+    def __enter__(self) -> "CpuTimeline":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def cpu(self, pid: int, until: float | None = None) -> float:
+        """CPU s of ``pid`` at its last sample at or before ``until`` (s since t0; None: its last)."""
+        s = [c for t, c in self.samples[pid] if until is None or t <= until]
+        return s[-1] if s else 0.0
+
+    def busy(self, pid: int) -> tuple[float, float]:
+        """(first, last) sample time at which ``pid`` had used more CPU than at the sample before."""
+        s = self.samples[pid]
+        moved = [t for (t, c), (_, c0) in zip(s[1:], s) if c > c0]
+        return (moved[0], moved[-1]) if moved else (float("nan"), float("nan"))
+
+
+def bench_timeline(data: Path, tmp: Path, env: dict[str, str]) -> None:
+    """Where a run's time goes, by process: wall milestones and the CPU each process used before,
+    while and after the workers computed (the load changes the walls, hardly the CPU times)."""
+    import subprocess
+
+    frames = len(list((data / "training" / "label_2").glob("*.txt")))
+    out = tmp / "timeline-out"
+    print(f"timeline, {frames} frames, CPU read from /proc every 20 ms (s since the command started; CPU s):")
+    for workers in ("1", "2"):
+        cmd = [sys.executable, "-m", "labelaudit", "infer", str(data), "-o", str(out), "--overwrite", "-q"]
+        before = {p for p in _proc_children(os.getpid())}
+        t0 = time.time()
+        proc = subprocess.Popen([*cmd, "--workers", workers], env=env, stderr=subprocess.PIPE)
+        with CpuTimeline(proc.pid, t0) as tl:
+            _, err = proc.communicate()
+            end = time.time() - t0
+        reap_new(before)
+        if proc.returncode != 0:
+            raise SystemExit(f"infer --workers {workers} failed:\n{err.decode()}")
+        shards = sorted(p.stat().st_mtime - t0 for p in (out / "objects").glob("*.parquet"))
+        by_role: dict[str, list[int]] = {}
+        for pid, role in tl.role.items():
+            by_role.setdefault(role, []).append(pid)
+        main = proc.pid
+        workers_ = sorted(by_role.get("pool worker", []), key=tl.started.__getitem__)
+        if workers_:  # the workers' part: from the first fork to the last worker's last CPU tick
+            begin, finish = tl.started[workers_[0]], max(tl.busy(w)[1] for w in workers_)
+        else:  # serial: the main process computes from its first chunk on
+            begin, finish = shards[0] - (shards[1] - shards[0] if len(shards) > 1 else 0.0), shards[-1]
+        m0, m1, m2 = tl.cpu(main, begin), tl.cpu(main, finish), tl.cpu(main)
+        print(
+            f"  --workers {workers} ({load()}): exit {end:.2f}; first shard {shards[0]:.2f}, last {shards[-1]:.2f} "
+            f"({len(shards)} shards); CPU of the tree {sum(tl.cpu(p) for p in tl.samples):.2f}"
+        )
+        what = "workers forked at" if workers_ else "first chunk from about"
+        print(
+            f"    main            CPU {m2:.2f} = {m0:.2f} until {begin:.2f} ({what}) + {m1 - m0:.2f} "
+            f"until {finish:.2f} (work done) + {m2 - m1:.2f} after; {tl.faults[main]} minor page faults"
+        )
+        for role in ("fork server", "resource tracker"):
+            for pid in by_role.get(role, []):
+                print(
+                    f"    {role:15s} CPU {tl.cpu(pid):.2f}, started {tl.started[pid]:.2f}, busy until {tl.busy(pid)[1]:.2f}; "
+                    f"{tl.faults[pid]} minor page faults"
+                )
+        for pid in workers_:
+            a, b = tl.busy(pid)
+            print(
+                f"    pool worker     CPU {tl.cpu(pid):.2f}, forked {tl.started[pid]:.2f}, busy {a:.2f} → {b:.2f}; "
+                f"{tl.faults[pid]} minor page faults"
+            )
+        if len(workers_) > 1:
+            ends = sorted(tl.busy(w)[1] for w in workers_)
+            print(f"    tail: the first worker to finish waited {ends[-1] - ends[0]:.2f} s for the last")
 
 
 def bench_waymo(tmp: Path, frames: int, repeat: int) -> tuple[float, float] | None:
@@ -239,7 +412,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--waymo-frames", type=int, default=4)
     ap.add_argument("--data", type=Path, default=None, help="reuse (or create) the simulated KITTI dataset here")
-    ap.add_argument("--only", default="workers,dask,waymo", help="comma-separated sections (dask needs workers)")
+    ap.add_argument(
+        "--only", default="workers,dask,timeline,waymo", help="comma-separated sections (dask needs workers)"
+    )
     args = ap.parse_args()
     sys.stdout.reconfigure(line_buffering=True)  # figures appear as they are measured
     sections = set(args.only.split(","))
@@ -249,9 +424,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as name:
         tmp = Path(name)
         print(f"machine: {os.cpu_count()} cores, {load()}")
-        if "workers" in sections:
+        if sections & {"workers", "timeline"}:
             data = simulate(args.data or tmp / "sim", args.frames, args.seed)
+        if "workers" in sections:
             bench_workers_and_dask(data, tmp, args.repeat, "dask" in sections, env)
+        if "timeline" in sections:
+            bench_timeline(data, tmp, env)
         if "waymo" in sections:
             costs = bench_waymo(tmp, args.waymo_frames, args.repeat)
             if costs:
