@@ -271,6 +271,7 @@ MISSING_PLACE_MIN_HIDDEN = (
     1.0  # m; a box is placed by what the sensor sees empty only when this much of its length or width is hidden
 )
 MISSING_PLACE_MARGIN = 1  # spots seen empty a placement must spare over the growth away from the sensor to replace it
+MISSING_PLACE_SIGHT_HEIGHT = 0.85  # a spot's line of sight aims at this share of the cluster's seen top (at most the class's mean height): a label lower than the line where it crosses does not hide the spot (the sensor sees over a parked car)
 MISSING_REFINE = True  # the candidate's box is refined by the label-error fit (core/fit.py) before its rays are counted
 MISSING_GROUND_RANK = (
     3  # a ground cell's floor is its this-lowest return (fewer returns below the road than this are ignored)

@@ -732,3 +732,31 @@ def test_a_car_in_full_view_keeps_its_box(monkeypatch):
     placed = find_missing(frame, RunConfig())
     monkeypatch.setattr(C, "MISSING_PLACE_MIN_HIDDEN", 1e9)
     assert find_missing(frame, RunConfig()) == placed
+
+
+def _hidden_behind_a_van_past_a_parked_car(monkeypatch, sight_height):
+    """The car of :func:`_hidden_behind_a_van`, and a labelled car parked near the sensor (top
+    1.45 m over the road, 6–10 m off) right on the lines of sight to the road past its visible far
+    end. That parked car hides the lower 0.9 m of the far car's face (its returns start there), and
+    nothing above: the sensor, 1.73 m up, sees over it."""
+    monkeypatch.setattr(C, "MISSING_PLACE_SIGHT_HEIGHT", sight_height)
+    van = _face((17.9, -0.2), (17.9, 1.6), GROUND + 0.2, GROUND + 2.2, 0.08)
+    car = _face((29.1, 2.6), (29.1, 5.2), GROUND + 0.9, GROUND + 1.5, 0.08)
+    parked = _face((6.0, 1.1), (6.0, 2.3), GROUND + 0.2, GROUND + 1.45, 0.08)
+    labels = [[20.0, 0.7, GROUND + 1.1, 4.2, 1.8, 2.2, 0.0], [8.0, 1.7, GROUND + 0.725, 4.0, 1.2, 1.45, 0.0]]
+    frame = _frame(van, car, parked, boxes=labels, names=["Van", "Car"])
+    rows = [r for r in find_missing(frame, RunConfig()) if math.hypot(r["cx"] - 30.0, r["cy"] - 3.9) < 3.0]
+    top = max(rows, key=lambda r: r["score"])
+    return math.hypot(top["cx"] - 30.0, top["cy"] - 3.1), top["score"]
+
+
+def test_a_parked_car_the_sensor_sees_over_does_not_hide_the_road_past_a_far_car(monkeypatch):
+    """Aimed at the far car's height, the lines of sight to the road past its visible end pass over
+    the labelled car parked near the sensor: that road is seen empty, and the hidden extent goes
+    towards the van (found). Aimed at the road itself (height share 0), the parked car hides those
+    spots as a label at every height did: nothing tells, and the box grows away from the sensor,
+    over the road, more than 1 m off."""
+    off, score = _hidden_behind_a_van_past_a_parked_car(monkeypatch, C.MISSING_PLACE_SIGHT_HEIGHT)
+    assert off < 1.0 and score >= 0.5
+    off_low, _ = _hidden_behind_a_van_past_a_parked_car(monkeypatch, 0.0)
+    assert off_low > 1.0 > off

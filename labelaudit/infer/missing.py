@@ -263,8 +263,11 @@ def _square_min(a, reach):  # pragma: no cover - compiled
 
 @kernel
 def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - compiled
-    """(nx, ny) uint8: 1 where the cell's centre lies in a label's rectangle grown by ``margin``."""
+    """(nx, ny) uint8: 1 where the cell's centre lies in a label's rectangle grown by ``margin``;
+    and (nx, ny) float64: there, the highest top (z, m) of those labels (elsewhere unset: read it
+    only where the mask is 1)."""
     mask = np.zeros((nx, ny), dtype=np.uint8)
+    top = np.empty((nx, ny))
     for b in range(boxes.shape[0]):
         cx, cy = boxes[b, 0], boxes[b, 1]
         hl, hw = 0.5 * boxes[b, 3] + margin, 0.5 * boxes[b, 4] + margin
@@ -275,13 +278,15 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
         i1 = min(nx - 1, int((cx + ex - x0) / cell))
         j0 = max(0, int((cy - ey - y0) / cell))
         j1 = min(ny - 1, int((cy + ey - y0) / cell))
+        zt = boxes[b, 2] + 0.5 * boxes[b, 5]
         for i in range(i0, i1 + 1):
             px = x0 + (i + 0.5) * cell - cx
             for j in range(j0, j1 + 1):
                 py = y0 + (j + 0.5) * cell - cy
                 if abs(c * px + s * py) <= hl and abs(-s * px + c * py) <= hw:
+                    top[i, j] = zt if mask[i, j] == 0 else max(top[i, j], zt)
                     mask[i, j] = 1
-    return mask
+    return mask, top
 
 
 @kernel
@@ -763,20 +768,24 @@ def _place(
     vis: tuple[float, float, float, float],
     size: tuple[float, float],
     start: tuple[float, float],
+    oz: float,
+    aim: float,
 ) -> tuple[float, float]:
     """Where the hidden extent of a partly seen object goes: the low ends (A1, A2) on the axes
     (cos θ, sin θ) and (−sin θ, cos θ) about ``centre`` of the box of ``size`` (L1, L2) (m) that
     holds the visible rectangle ``vis`` (a1, b1, a2, b2) and covers the fewest spots the sensor
-    sees empty: a spot is seen when the straight line from the sensor (``ox``, ``oy``) to it
-    crosses no cell holding band returns or a label (``sight``: counts (nx, ny), mask (nx, ny),
-    x0, y0, cell) and holds none itself. A car hidden behind another reaches towards it, not into
-    the open road beside its visible part. Ties keep ``start`` (the growth away from the sensor):
-    an object in full view keeps its box."""
+    sees empty: a spot is seen when the straight line from the sensor (``ox``, ``oy``, ``oz``) to
+    it, at the height ``aim`` (z, m) there, crosses no cell holding band returns nor a label whose
+    top is above the line where it crosses (``sight``: counts (nx, ny), label mask (nx, ny), label
+    tops (nx, ny), x0, y0, cell) and holds none itself. A car hidden behind another reaches towards
+    it, not into the open road beside its visible part; a parked car the line passes over hides
+    nothing. Ties keep ``start`` (the growth away from the sensor): an object in full view keeps
+    its box."""
     a1, b1, a2, b2 = vis
     spans = [(a1, b1, size[0]), (a2, b2, size[1])]
     if all(b - a >= L - C.MISSING_PLACE_MIN_HIDDEN for a, b, L in spans):  # seen nearly whole
         return start
-    counts, mask, x0, y0, cell = sight
+    counts, mask, top, x0, y0, cell = sight
     step = C.MISSING_PLACE_STEP
     lows = [
         np.linspace(b - L, a, int(math.ceil((L - b + a) / step)) + 1) if b - a < L else np.array([a])
@@ -795,7 +804,7 @@ def _place(
     n = int(math.ceil(float(r.max()) / cell)) + 1
     f = np.linspace(0.0, 1.0, n)
     seen_empty, empties = _sight_counts(
-        dx, dy, r, f, ox, oy, x0, y0, cell, counts, mask, C.MISSING_EGO_RADIUS, uu, vv, *vis, lows[0], lows[1], *size
+        dx, dy, r, f, ox, oy, oz, aim, x0, y0, cell, counts, mask, top, C.MISSING_EGO_RADIUS, uu, vv, *vis, *lows, *size
     )
     # the placement with the fewest seen-empty spots, the nearest to the growth away from the sensor
     # among equals; that growth stays unless clearly worse (nothing tells where in an occluder's
@@ -810,15 +819,40 @@ def _place(
 
 @kernel
 def _sight_counts(
-    dx, dy, r, f, ox, oy, x0, y0, cell, counts, mask, ego, uu, vv, a1, b1, a2, b2, lows1, lows2, size1, size2
+    dx,
+    dy,
+    r,
+    f,
+    ox,
+    oy,
+    oz,
+    aim,
+    x0,
+    y0,
+    cell,
+    counts,
+    mask,
+    top,
+    ego,
+    uu,
+    vv,
+    a1,
+    b1,
+    a2,
+    b2,
+    lows1,
+    lows2,
+    size1,
+    size2,
 ):  # pragma: no cover - compiled
     """:func:`_place`'s spots seen empty and its placements' counts of them. A spot (``uu``, ``vv``
-    (U, V) in the cluster's frame; ``dx``, ``dy``, ``r`` (U, V) from the sensor at ``ox``, ``oy``) is
-    seen empty when no step ``f`` (K,) of its line of sight at least ``ego`` m from the sensor lies in
-    a cell (``cell`` m from ``x0``, ``y0``) holding band returns (``counts``) or a label (``mask``),
-    and it lies outside the visible rectangle [a1, b1] × [a2, b2]. Returns that (U, V) and, per
-    placement (low ends ``lows1`` × ``lows2``, extents ``size1`` × ``size2``), the seen-empty spots
-    it covers."""
+    (U, V) in the cluster's frame; ``dx``, ``dy``, ``r`` (U, V) from the sensor at ``ox``, ``oy``,
+    ``oz``; the line aimed at the height ``aim``) is seen empty when no step ``f`` (K,) of its line
+    of sight at least ``ego`` m from the sensor lies in a cell (``cell`` m from ``x0``, ``y0``)
+    holding band returns (``counts``) or a label (``mask``) whose top (``top``) is above the line
+    there, and it lies outside the visible rectangle [a1, b1] × [a2, b2]. Returns that (U, V) and,
+    per placement (low ends ``lows1`` × ``lows2``, extents ``size1`` × ``size2``), the seen-empty
+    spots it covers."""
     nu, nv = dx.shape
     nx, ny = counts.shape
     seen = np.zeros((nu, nv), dtype=np.bool_)
@@ -830,7 +864,11 @@ def _sight_counts(
                     continue
                 i = int((ox + dx[a, b] * f[k] - x0) / cell)
                 j = int((oy + dy[a, b] * f[k] - y0) / cell)
-                if 0 <= i < nx and 0 <= j < ny and (counts[i, j] > 0 or mask[i, j] != 0):
+                if (
+                    0 <= i < nx
+                    and 0 <= j < ny
+                    and (counts[i, j] > 0 or (mask[i, j] != 0 and top[i, j] > oz + (aim - oz) * f[k]))
+                ):
                     empty = False
                     break
             seen[a, b] = empty and not (a1 <= uu[a, b] <= b1 and a2 <= vv[a, b] <= b2)
@@ -925,7 +963,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     )
     nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
-    mask = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
+    mask, label_top = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
     lo, hi = C.MISSING_BAND
     band_idx, band_cell, band_h, counts, over, occupied = _occupancy(
         xyz,
@@ -1024,7 +1062,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     # the group of every occupied cell (−1: none), in place of its component (comp is not needed after)
     owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
     grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k))  # + each group's cells
-    sight = (counts, mask, x0, y0, cell)
+    sight = (counts, mask, label_top, x0, y0, cell)
     scene = _Scene(sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, sight)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
@@ -1259,7 +1297,9 @@ class _Scene(NamedTuple):
     top_slope: FloatArray  # (B,) the highest return's slope per azimuth bin (the ceiling)
     rays_per_rad2: float  # returns per steradian of the frame (:func:`_rays_per_rad2`)
     grid: tuple | None  # (owner (nx, ny), x0, y0, cell, cells per group): the continuation test
-    sight: tuple | None  # (band returns per cell, label mask, x0, y0, cell): what blocks the view (:func:`_place`)
+    sight: (
+        tuple | None
+    )  # (band returns per cell, label mask, label tops, x0, y0, cell): what blocks the view (:func:`_place`)
 
 
 def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, splits: int = 0) -> list[Cluster]:
@@ -1327,7 +1367,8 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     A1, B1 = _grow(a1, b1, L1, po)
     A2, B2 = _grow(a2, b2, L2, qo)
     if sight is not None and size_score >= C.MISSING_CLASS_FIT:  # (only a box that may become a candidate)
-        A1, A2 = _place(sight, centre, c, s, ox, oy, (a1, b1, a2, b2), (L1, L2), (A1, A2))
+        aim = ground_z + C.MISSING_PLACE_SIGHT_HEIGHT * min(top, mean[2])  # where the object would be seen
+        A1, A2 = _place(sight, centre, c, s, ox, oy, (a1, b1, a2, b2), (L1, L2), (A1, A2), oz, aim)
         B1, B2 = A1 + max(L1, e1), A2 + max(L2, e2)
     mx, my = 0.5 * (A1 + B1), 0.5 * (A2 + B2)
     cx, cy = centre[0] + c * mx - s * my, centre[1] + s * mx + c * my
