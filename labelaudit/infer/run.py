@@ -380,8 +380,13 @@ def _run_locked(
     chunks = plan_chunks(refs, chunk_units)
     shard_dir, err_dir, missing_dir = output / R.OBJECTS_DIR, output / R.ERRORS_DIR, output / R.MISSING_DIR
     search = cfg.missing.enabled
+    # A chunk without its object shard is to run; only written shards are looked into (and a new
+    # folder's first look at a footer, importing pyarrow.parquet, waits until the workers compute).
+    written = {p.name for p in shard_dir.glob("*.parquet")} if shard_dir.is_dir() else set()
     state = {
         name: R.chunk_state(shard_dir / name, err_dir / name, missing_dir / name if search else None)
+        if name in written
+        else "missing"
         for name, _ in chunks
     }
     done = {name for name, s in state.items() if s == "done"}
