@@ -339,6 +339,49 @@ def test_the_console_script_collects_no_garbage_during_start_up_and_every_comman
     assert r.exit_code == 0 and gc.isenabled() and gc.get_freeze_count() == before
 
 
+def test_infer_ends_without_the_interpreters_teardown_and_loses_nothing():
+    """``labelaudit infer`` exits without tearing down its modules (an object held by a module is never
+    finalised), after the exit handlers ran and buffered output was flushed, with the command's exit
+    code; another command, a text exit code or a non-daemon thread still running take the usual exit."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import atexit, sys, threading, time\n"
+        "class Held:\n"
+        "    def __del__(self):\n"
+        "        print('torn down', flush=True)\n"
+        "held = Held()\n"
+        "sys.argv = {argv!r}\n"
+        "import labelaudit.cli as c\n"
+        "def command():\n"
+        "    atexit.register(print, 'exit handler')\n"
+        "    print('written')\n"
+        "    {extra}\n"
+        "    raise SystemExit({code!r})\n"
+        "c.main = command\n"
+        "import labelaudit.__main__ as m; m.main()\n"
+    )
+
+    def run(argv, code, extra="pass"):
+        done = subprocess.run(
+            [sys.executable, "-c", probe.format(argv=argv, code=code, extra=extra)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        return done.returncode, done.stdout.split("\n")[:-1], done.stderr
+
+    infer = ["labelaudit", "infer", "d", "--workers", "1"]
+    assert run(infer, 3)[:2] == (3, ["written", "exit handler"])
+    assert run(infer, None)[:2] == (0, ["written", "exit handler"])
+    assert run(["labelaudit", "rank", "r/"], 3)[:2] == (3, ["written", "exit handler", "torn down"])
+    late = "threading.Thread(target=time.sleep, args=(0.2,)).start()"
+    assert run(infer, 3, late)[:2] == (3, ["written", "exit handler", "torn down"])
+    code, out, err = run(infer, "a message")
+    assert (code, out) == (1, ["written", "exit handler", "torn down"]) and "a message" in err
+
+
 def test_dataset_format_choices_are_the_readers():
     """``--dataset-format`` (one enum for infer and eval) offers exactly auto and the readers' formats."""
     from labelaudit.cli.app import DatasetFormat
