@@ -389,6 +389,56 @@ def _information_kernel(vstar, resp, points, B, BB):  # pragma: no cover - compi
     return info, eta
 
 
+@kernel
+def _exp_information_kernel(vstar, x, points, B, BB):  # pragma: no cover - compiled
+    """:func:`_information_kernel` of the responsibilities exp(x) / Σ_m exp(x) (x: the exponents of
+    :func:`_resp_exponents`, N × M), formed point by point as the moments are summed: the same
+    operations in the same order as ``math.exp``, :func:`_normalise_rows` and
+    :func:`_information_kernel` one after the other, without the (N, M) responsibilities. The
+    moments of ṽ₀ = 1 are the responsibilities themselves (1 · r = r exactly)."""
+    n, m, d = vstar.shape
+    p = B.shape[2]
+    moments = np.zeros((d + 1, d + 1))
+    cross = np.zeros((d + 1, d))
+    e = np.empty(m)
+    rsum = np.empty(d + 1)
+    for k in range(n):
+        norm = 0.0
+        for j in range(m):
+            e[j] = math.exp(x[k, j])
+            norm += e[j]
+        for a in range(d + 1):
+            rsum[a] = 0.0
+        for j in range(m):
+            r = e[j] / norm
+            rsum[0] += r
+            moments[0, 0] += r
+            for b in range(d):
+                moments[0, b + 1] += r * vstar[k, j, b]
+            for a in range(d):
+                ra = vstar[k, j, a] * r
+                rsum[a + 1] += ra
+                moments[a + 1, 0] += ra
+                for b in range(d):
+                    moments[a + 1, b + 1] += ra * vstar[k, j, b]
+        for a in range(d + 1):
+            for b in range(d):
+                cross[a, b] += rsum[a] * points[k, b]
+    info = np.zeros((p, p))
+    eta = np.zeros(p)
+    for a in range(d + 1):
+        for b in range(d + 1):
+            w = moments[a, b]
+            for i in range(p):
+                for j in range(p):
+                    info[i, j] += w * BB[a, b, i, j]
+        for b in range(d):
+            w = cross[a, b]
+            for i in range(p):
+                eta[i] += w * B[a, b, i]
+    return info, eta
+
+
 # ----------------------------------------------------------------------------------------------
 # Prior
 # ----------------------------------------------------------------------------------------------
@@ -1099,11 +1149,7 @@ def _posterior_no_outliers_kernel(
         if estimate and n >= min_points and math.isfinite(sigma_hat):
             sigma = max(sigma_hat, floor)
             x = _resp_exponents(sqd, 2.0 * sigma**2)
-    for k in range(n):
-        for j in range(m):
-            x[k, j] = math.exp(x[k, j])
-    resp = _normalise_rows(x)
-    info, eta = _information_kernel(vstar, resp, pts, B, BB)
+    info, eta = _exp_information_kernel(vstar, x, pts, B, BB)
     ok, cov, mean, S0 = _posterior_kernel(P0, eta0, info, eta, sigma, G, S_ext, weight)
     if not ok:
         return False, sigma, sigma_hat, cov, mean, S0, np.zeros(0), np.zeros(0)
