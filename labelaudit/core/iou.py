@@ -131,15 +131,20 @@ def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
 
 def _hull_candidates(pts: FloatArray) -> FloatArray:
     """The points (N, 2) that can be convex-hull vertices (Akl–Toussaint): a point strictly inside
-    the quadrilateral of the extreme points in x and y is inside the hull and is dropped. Exact;
-    dense boxes keep a few percent of their points, so the hull gets little to do."""
+    the octagon of the extreme points along x, x + y, y and x − y (both ways) is inside the hull and
+    is dropped. Exact; the points of a simulated car keep an eighth of their number (79 of 637 on
+    average; 202 with the quadrilateral of the x and y extremes alone), so the sort and the hull
+    get little to do."""
     if len(pts) < 8:
         return pts
     x, y = pts[:, 0], pts[:, 1]
-    quad = pts[[x.argmin(), y.argmin(), x.argmax(), y.argmax()]]  # counter-clockwise
+    s, d = x + y, x - y
+    octagon = pts[  # counter-clockwise
+        [x.argmin(), s.argmin(), y.argmin(), d.argmax(), x.argmax(), s.argmax(), y.argmax(), d.argmin()]
+    ]
     keep = np.zeros(len(pts), dtype=bool)
     edges = 0
-    for (qx, qy), (rx, ry) in zip(quad, np.roll(quad, -1, axis=0)):
+    for (qx, qy), (rx, ry) in zip(octagon, np.roll(octagon, -1, axis=0)):
         ex, ey = rx - qx, ry - qy
         if ex == 0.0 and ey == 0.0:
             continue  # two extremes are the same point: the polygon has fewer sides
@@ -165,28 +170,37 @@ def _sorted_candidates_kernel(pts, cx, cy):  # pragma: no cover - compiled
             m += 1
     keep = np.ones(m, dtype=np.bool_)
     if m >= 8:
-        ext = np.zeros(
-            4, dtype=np.int64
-        )  # argmin x, argmin y, argmax x, argmax y (first occurrence): counter-clockwise
+        # the extreme points along x, x + y, y, x − y and their opposites (first occurrence), in
+        # counter-clockwise order: :func:`_hull_candidates`' octagon
+        ext = np.zeros(8, dtype=np.int64)  # min x, min x+y, min y, max x−y, max x, max x+y, max y, min x−y
         for k in range(1, m):
-            if xs[k] < xs[ext[0]]:
+            x, y = xs[k], ys[k]
+            if x < xs[ext[0]]:
                 ext[0] = k
-            if ys[k] < ys[ext[1]]:
+            if x + y < xs[ext[1]] + ys[ext[1]]:
                 ext[1] = k
-            if xs[k] > xs[ext[2]]:
+            if y < ys[ext[2]]:
                 ext[2] = k
-            if ys[k] > ys[ext[3]]:
+            if x - y > xs[ext[3]] - ys[ext[3]]:
                 ext[3] = k
+            if x > xs[ext[4]]:
+                ext[4] = k
+            if x + y > xs[ext[5]] + ys[ext[5]]:
+                ext[5] = k
+            if y > ys[ext[6]]:
+                ext[6] = k
+            if x - y < xs[ext[7]] - ys[ext[7]]:
+                ext[7] = k
         keep[:] = False
         edges = 0
-        for e in range(4):
+        for e in range(8):
             qx, qy = xs[ext[e]], ys[ext[e]]
-            rx, ry = xs[ext[(e + 1) % 4]], ys[ext[(e + 1) % 4]]
+            rx, ry = xs[ext[(e + 1) % 8]], ys[ext[(e + 1) % 8]]
             ex, ey = rx - qx, ry - qy
             if ex == 0.0 and ey == 0.0:
                 continue
             edges += 1
-            for k in range(m):
+            for k in range(m):  # not strictly left of this side (on it: kept)
                 if not keep[k] and ex * (ys[k] - qy) - ey * (xs[k] - qx) <= 0.0:
                     keep[k] = True
         if edges == 0:
