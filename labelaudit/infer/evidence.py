@@ -110,6 +110,8 @@ class BoxEvidence:
         surface outside the label that runs out of the crop
     through_rays : rays through the box's slab that passed beyond its own returns (see-through:
         under a chassis, through glass), left out of ``free_space``
+    near_xyz : the neighbourhood's points (n, 3) float64, ``points[near_idx, :3]`` converted
+        exactly (gathered once for the crops); None: gathered from the frame when needed
     """
 
     model_idx: IndexArray
@@ -120,12 +122,14 @@ class BoxEvidence:
     neighbour_points: int
     scenery_points: int = 0
     through_rays: int = 0
+    near_xyz: FloatArray | None = None
 
     def for_object(self, points: NDArray) -> ObjectEvidence:
-        """The :class:`ObjectEvidence` of this box, given the frame's points."""
+        """The :class:`ObjectEvidence` of this box, given the frame's points (its neighbourhood's
+        xyz when :func:`frame_evidence` kept them: the counts read x, y, z only)."""
         return ObjectEvidence(
             self.free_space,
-            points[self.near_idx],
+            points[self.near_idx] if self.near_xyz is None else self.near_xyz,
             self.neighbour_points,
             self.ground_z,
             self.scenery_points,
@@ -244,7 +248,17 @@ def frame_evidence(
         if through.any():
             fs = replace(fs, ends=fs.ends[~through])
         out.append(
-            BoxEvidence(model_idx, fit_idx, idx, fs, ground_list[j], int(n_foreign), int(n_scenery), int(through.sum()))
+            BoxEvidence(
+                model_idx,
+                fit_idx,
+                idx,
+                fs,
+                ground_list[j],
+                int(n_foreign),
+                int(n_scenery),
+                int(through.sum()),
+                near_xyz[j],
+            )
         )
     return out
 
