@@ -54,6 +54,19 @@ def _moved(box: np.ndarray, **delta: float) -> np.ndarray:
     return out
 
 
+def test_an_objects_near_points_are_its_neighbourhood_rows_and_count_alike():
+    """The evidence hands each object its neighbourhood's xyz as the frame pass gathered them
+    (float64, no second gather): the frame's rows ``near_idx``, x, y, z, and the same ray counts."""
+    cars = [_car(12.0, 2.0, 0.2), _car(20.0, -4.0, 1.2)]
+    points = _points(Scene(objects=cars)).astype(np.float32)
+    boxes = np.array([car.box for car in cars])
+    for box, ev in zip(boxes, frame_evidence(points, boxes, np.zeros(3), CFG.crop)):
+        near = ev.for_object(points).near_points
+        assert len(ev.near_idx) > 50 and near.dtype == np.float64
+        assert np.array_equal(near, points[ev.near_idx, :3].astype(np.float64))
+        assert F.ray_counts(box, ev.free_space, near) == F.ray_counts(box, ev.free_space, points[ev.near_idx])
+
+
 # ------------------------------------------------------------------------------- hand-made scenes
 
 

@@ -435,6 +435,28 @@ def test_missing_and_bad_calib(tmp_path: Path) -> None:
     assert all(e.path.endswith(f"calib/{k}.txt") for k, e in failed.items())
 
 
+def test_a_calibration_rotation_is_tested_by_its_determinant(tmp_path: Path) -> None:
+    """R0_rect and Tr_velo_to_cam's rotation need |det| within 0.05 of 1 (KITTI prints 7 digits): a
+    scaled, a singular and a huge matrix (whose determinant overflows to NaN) are refused, naming
+    the key and the determinant; a slightly non-orthonormal one, as printed, is read."""
+    text = format_calib(SIMPLE_CALIB)
+    r0 = next(l for l in text.splitlines() if l.startswith("R0_rect:"))
+    cases = {
+        "000001": "R0_rect: 1.0000001 0 0 0 0.9999999 0 0 0 1.00000005",  # printed, nearly orthonormal
+        "000002": "R0_rect: 2 0 0 0 1 0 0 0 1",  # determinant 2
+        "000003": "R0_rect: 1 0 0 1 0 0 0 0 1",  # singular
+        "000004": "R0_rect: " + " ".join(["1e300"] * 9),  # overflows: NaN
+    }
+    for fid, line in cases.items():
+        write_frame(tmp_path, fid, random_points(), [GOOD_LINE])
+        (tmp_path / f"training/calib/{fid}.txt").write_text(text.replace(r0, line))
+    ok, failed = _load_all(KittiReader(tmp_path))
+    assert list(ok) == ["000001"]
+    assert "R0_rect rotation part is not a rotation (determinant 2)" in str(failed["000002"])
+    assert "(determinant 0)" in str(failed["000003"])
+    assert "(determinant nan)" in str(failed["000004"])
+
+
 def test_label_without_point_cloud(tmp_path: Path) -> None:
     write_frame(tmp_path, "000001", random_points(), [GOOD_LINE])
     write_frame(tmp_path, "000002", random_points(), [GOOD_LINE])

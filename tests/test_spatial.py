@@ -612,3 +612,32 @@ def test_compiled_axis_edges_refuse_non_finite_input():
         sp.axis_edges(1.0, -np.inf, 1.0, 0.1)
     with pytest.raises(ValueError, match="cell > 0"):
         sp.axis_edges(1.0, -1.0, 1.0, 0.0)
+
+
+def test_jaccard_split_runs_merges_equal_neighbours_of_a_row_only():
+    """The BEV JIoU-GT's split merges consecutive equal cells of a row into one cell with its count
+    (never across rows, never cells that differ), keeps the totals of the unmerged cells, and its
+    Jaccard equals the unmerged cells' within the rounding of the sums."""
+    p = np.array([[1.0, 1.0, 1.0, 0.5], [1.0, 1.0, 0.0, 1.0], [2.0, 2.0, 2.0, 2.0]]).ravel()
+    q = np.array([[0.2, 0.2, 0.2, 0.2], [0.2, 0.2, 0.3, 0.0], [0.1, 0.1, 0.3, 0.1]]).ravel()
+    negative, pb, qb, cb, ratio, p_only, q_only = sp._jaccard_split_runs(p, q, 4, 0.25)
+    assert not negative
+    assert cb.tolist() == [3.0, 1.0, 2.0, 2.0, 1.0, 1.0]  # the run ends at the row's end and at 0.5
+    assert pb.tolist() == [1.0, 0.5, 1.0, 2.0, 2.0, 2.0] and qb.tolist() == [0.2, 0.2, 0.2, 0.1, 0.3, 0.1]
+    assert p_only == 1.0 and q_only == 0.3 + 0.25  # p where q = 0; q where p = 0, plus q outside
+    rng = np.random.default_rng(3)
+    for _ in range(20):  # rasters with long runs, as the interior of a JIoU-GT raster
+        nx = int(rng.integers(2, 30))
+        p = np.repeat(rng.choice([0.0, 0.5, 1.0], 60), rng.integers(1, 6, 60))[: 12 * nx]
+        q = np.repeat(rng.choice([0.0, 0.2, 0.7], 60), rng.integers(1, 6, 60))[: 12 * nx]
+        n = min(len(p), len(q)) // nx * nx
+        p, q = p[:n], q[:n]
+        merged = sp._jaccard_split_runs(p, q, nx, 0.0)
+        plain = sp._jaccard_split(p, q, np.ones(n), 0.0, 0.0)
+        assert merged[3].sum() == plain[3].size  # every cell counted once
+        assert (merged[1] * merged[3]).sum() == pytest.approx(plain[1].sum(), rel=1e-13)  # and its mass
+        assert merged[5:] == plain[5:]
+        if plain[1].size:
+            want = sp._jaccard_sum(*plain[1:4], plain[4].argsort(), *plain[5:])
+            got = sp._jaccard_sum(*merged[1:4], merged[4].argsort(), *merged[5:])
+            assert got == pytest.approx(want, rel=1e-13)
