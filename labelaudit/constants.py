@@ -276,6 +276,7 @@ MISSING_REFINE = True  # the candidate's box is refined by the label-error fit (
 MISSING_GROUND_RANK = (
     3  # a ground cell's floor is its this-lowest return (fewer returns below the road than this are ignored)
 )
+MISSING_GROUND_SHARE = 0.05  # … unless fewer than this share of the cell's returns lie within MISSING_BAND[0] above it (a layer under the road: its mirror image of a number plate or tail-light, a dozen returns of the hundreds near the sensor): then the return this share lie under
 MISSING_GROUND_DROP = (
     1.5  # m; a ground cell's floor this far below the median of its 3 × 3 neighbourhood is stray returns, not the road
 )

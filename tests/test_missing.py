@@ -315,6 +315,45 @@ def test_a_car_in_a_shadow_wider_than_the_ground_opening_is_found_and_a_low_wall
     assert _best(find_missing(frame(car), cfg), 25.0, 3.0) < 0.5
 
 
+def _plate_ghosts(pts: np.ndarray, hit: np.ndarray, k: int, every: int = 5) -> np.ndarray:
+    """The road's mirror image of the number plate of simulated object ``k`` (a wet or glossy road
+    reflects the beam onto it): a fifth of its returns 0.63–0.78 m up within 0.25 m of its return
+    nearest the sensor, mirrored in the ground plane (as far under the road as the plate is above)."""
+    own = pts[hit == k, :3]
+    n = own[np.argmin(np.hypot(own[:, 0], own[:, 1]))]
+    plate = own[(np.hypot(own[:, 0] - n[0], own[:, 1] - n[1]) <= 0.25) & (np.abs(own[:, 2] - (GROUND + 0.7)) <= 0.075)]
+    ghosts = plate[::every].copy()
+    ghosts[:, 2] = 2 * GROUND - ghosts[:, 2]
+    return np.c_[ghosts, np.zeros(len(ghosts))].astype(np.float32)
+
+
+@pytest.mark.parametrize("share", [0.0, C.MISSING_GROUND_SHARE])
+def test_a_car_beside_the_sensor_is_found_over_a_plates_mirror_image_under_the_road(monkeypatch, share):
+    """Two cars parked 4–9 m from the sensor (simulated sweep), the farther one labelled; the road
+    mirrors a dozen returns of its number plate 0.7 m under the road. Those returns are a few of
+    the hundreds in their ground cell: as the cell's floor (its third-lowest return) they sink the
+    ground 0.8 m over 3 × 3 m, the road there rises into the search band and joins the unlabelled
+    car, which is then too big for a car and its face a wall's. Ignored by their share of the
+    cell's returns, the car is found; a low wall beside the sensor is still none, with or without."""
+    from labelaudit.sim.raycast import LidarSpec, render_range_image
+    from labelaudit.sim.scene import Scene, SimObject, make_object
+
+    monkeypatch.setattr(C, "MISSING_GROUND_SHARE", share)
+    free = make_object("Car", (4.6, 3.0), -0.28, np.array([3.9, 1.6, 1.55]), GROUND, np.random.default_rng(0))
+    labelled = make_object("Car", (8.6, 0.9), 2.85, np.array([3.9, 1.6, 1.55]), GROUND, np.random.default_rng(1))
+    wall_box = np.array([7.0, -4.5, GROUND + 0.3, 6.0, 0.3, 0.6, 0.0])  # 0.6 m high
+    wall = SimObject("Building", wall_box, wall_box[None].copy(), np.array([0.5]))
+    pts, hit = render_range_image(Scene(objects=[free, labelled], clutter=[wall]), LidarSpec()).points()
+    ghosts = _plate_ghosts(pts, hit, 1)
+    assert 8 <= len(ghosts) <= 16
+    frame = Frame("000001", np.vstack([pts, ghosts]), labelled.box[None], ["Car"], ["000001:0"])
+    rows = find_missing(frame, RunConfig())
+    assert (_best(rows, 4.6, 3.0, radius=1.0) >= 0.5) == (share > 0)
+    assert _best(rows, 7.0, -4.5, radius=3.0) < 0.5
+    clean = Frame("000001", pts, labelled.box[None], ["Car"], ["000001:0"])  # no mirror image: found either way
+    assert _best(find_missing(clean, RunConfig()), 4.6, 3.0, radius=1.0) >= 0.5
+
+
 def test_the_trace_says_what_became_of_each_cluster():
     """A found car's group is boxed and its box kept; a low wall is left unboxed as low, a pole as
     too small; a labelled car's returns form no group; the rows are the same with or without a trace."""

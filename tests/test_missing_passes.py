@@ -64,7 +64,13 @@ def test_the_exact_reciprocal_multiplies_as_the_division_divides_bit_for_bit():
 
 
 def _ground(
-    xyz: np.ndarray, rank: int = 3, reach: int = 2, wide: int = 2, min_cells: float = 0.0, half: int = 10
+    xyz: np.ndarray,
+    rank: int = 3,
+    reach: int = 2,
+    wide: int = 2,
+    min_cells: float = 0.0,
+    half: int = 10,
+    share: float = 0.0,
 ) -> np.ndarray:
     ground, _ = M._ground_grid(
         np.ascontiguousarray(xyz, dtype=np.float32),
@@ -79,6 +85,7 @@ def _ground(
         2 * half,
         30.0**2,
         rank,
+        share,
         360,
         1.5,
         math.tan(math.radians(-2.0)),
@@ -86,6 +93,7 @@ def _ground(
         math.radians(1.5),
         wide,
         min_cells,
+        0.3,
     )
     return ground
 
@@ -105,6 +113,27 @@ def test_a_cells_floor_is_its_rank_th_lowest_return_whatever_their_order():
         assert np.array_equal(_ground(xyz[rng.permutation(len(xyz))]), ground)
     # cells with fewer returns than the rank: the floor is their highest
     assert np.all(_ground(xyz[xyz[:, 2] >= -1.2])[seen] == np.float32(-1.0))
+
+
+def test_a_dozen_returns_under_the_road_in_a_cell_of_hundreds_are_not_its_floor():
+    # the road at −1.7 m, 300 returns in every cell; one cell 6 m from the sensor also holds 12
+    # returns 0.8 m below the road (its mirror image of a number plate): with the rank alone they are
+    # that cell's floor and the ground of the 3 × 3 cells around it; with the share they are ignored
+    cx, cy = np.meshgrid(np.arange(-10, 10) + 0.5, np.arange(-10, 10) + 0.5, indexing="ij")
+    road = np.repeat(np.c_[cx.ravel(), cy.ravel(), np.full(cx.size, -1.7)], 300, axis=0)
+    road = road[np.hypot(road[:, 0], road[:, 1]) > 3.0]
+    ghosts = np.c_[np.full(12, 6.5), np.full(12, 1.5), np.linspace(-2.55, -2.45, 12)]
+    xyz = np.vstack([road, ghosts])
+    pit = (slice(15, 18), slice(10, 13))  # the 3 × 3 cells around the one at (6.5, 1.5)
+    assert np.all(_ground(xyz)[pit] == np.float32(-2.55 + 0.1 * 2 / 11))  # the third lowest ghost
+    shared = _ground(xyz, share=0.05)
+    seen = np.isfinite(shared)
+    assert np.all(shared[seen] == np.float32(-1.7))
+    assert np.array_equal(shared, _ground(road, share=0.05))  # as if they were not there
+    assert np.array_equal(_ground(road, share=0.05), _ground(road))  # a cell whose floor is the road keeps it
+    # a cell of few returns keeps the rank rule (the share of 5 returns is less than 3 of them)
+    few = np.vstack([road[np.hypot(road[:, 0] - 6.5, road[:, 1] - 1.5) > 1.0], [[6.5, 1.5, -1.7]] * 2, ghosts[:3]])
+    assert _ground(few, share=0.05)[16, 11] == np.float32(ghosts[2, 2])
 
 
 def _cells(rows: range, cols: range, heights, half: int = 20) -> list:

@@ -108,7 +108,27 @@ _SORT9 = np.array(
 
 @kernel
 def _ground_grid(
-    xyz, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, rank, nbins, drop, slope_floor, reach, spread, wide, min_cells
+    xyz,
+    ox,
+    oy,
+    oz,
+    x0,
+    y0,
+    cell,
+    inv,
+    n0,
+    n1,
+    reach2,
+    rank,
+    share,
+    nbins,
+    drop,
+    slope_floor,
+    reach,
+    spread,
+    wide,
+    min_cells,
+    near,
 ):  # pragma: no cover - compiled
     """Ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
@@ -117,13 +137,19 @@ def _ground_grid(
     value (its users take it no lower than that).
 
     A cell's floor is its ``rank``-th lowest return (a few returns below the road — reflections
-    off wet asphalt or glossy paint — are ignored); the ground under a cell is the second lowest
-    floor of the 3 × 3 cells around it (one cell of such returns is ignored too), so under a vehicle,
-    whose cells hold no road returns, it comes from the road beside it. That ground is then opened
+    off wet asphalt or glossy paint — are ignored). Near the sensor a cell holds hundreds of
+    returns, and a dozen may lie under the road — the road's mirror image of a number plate or a
+    tail-light: where fewer than a ``share`` of the cell's returns lie within ``near`` above that
+    floor, it is such a layer, and the floor is the return that ``share`` of them lie under
+    (:func:`_deep_floors`). The ground under a cell is the lowest floor of the 3 × 3 cells around it
+    not more than ``drop`` under their median (one cell of such returns is ignored too), so under a
+    vehicle, whose cells hold no road returns, it comes from the road beside it. That ground is then opened
     over squares of side 2·``reach`` + 1 cells, and where such a square holds fewer than
     ``min_cells`` cells with returns (a shadow), over squares of side 2·``wide`` + 1 too. ``inv``:
     1 / ``cell`` when that is exact (:func:`_exact_inverse`), else 0."""
     low = np.full((n0, n1, rank), np.inf)
+    num = np.zeros((n0, n1), dtype=np.int64)  # returns per cell
+    at = np.full(xyz.shape[0], -1, dtype=np.int64)  # each return's cell (flat; −1: none)
     top = np.full(nbins, -np.inf)
     highest, cut = -np.inf, -np.inf
     for k in range(xyz.shape[0]):
@@ -153,6 +179,8 @@ def _ground_grid(
             for q in range(rank - 1, 0, -1):
                 low[i, j, q] = max(low[i, j, q - 1], min(low[i, j, q], z))
             low[i, j, 0] = min(low[i, j, 0], z)
+            num[i, j] += 1
+            at[k] = i * n1 + j
     floor = np.full((n0, n1), np.inf)
     for i in range(n0):
         for j in range(n1):
@@ -161,6 +189,7 @@ def _ground_grid(
                 if low[i, j, q] < np.inf:
                     f = low[i, j, q]
             floor[i, j] = f
+    _deep_floors(xyz, at, num, rank, share, near, floor)
     ground = np.full((n0, n1), np.inf)
     vals = np.empty(9)
     for i in range(n0):
@@ -220,6 +249,69 @@ def _ground_grid(
             if ground[i, j] < np.inf:
                 out[i, j] = min(ground[i, j], -lowest[i, j], far[i, j])
     return out, top
+
+
+@kernel
+def _deep_floors(xyz, at, num, rank, share, near, floor):  # pragma: no cover - compiled
+    """In place: a cell's floor (n0, n1), its ``rank``-th lowest return, under which fewer than a
+    ``share`` of its ``num`` returns lie within ``near`` (m) is a thin layer of stray returns below
+    the road: it becomes the cell's m-th lowest return, m = ⌈share · num⌉ (> ``rank``). ``at`` (N,):
+    each return's flat cell (−1 none). A pass counting the returns near each floor; only where
+    some cell has too few, one more keeping those cells' m lowest in a max-heap each."""
+    n1 = floor.shape[1]
+    flat = num.ravel()
+    floors = floor.ravel()
+    m = np.zeros(flat.shape[0], dtype=np.int64)  # the rank wanted per cell (0: the floor stands)
+    any_dense = False
+    for c in range(flat.shape[0]):
+        want = int(math.ceil(share * flat[c])) if share > 0.0 else 0
+        if want > rank:
+            m[c] = want
+            any_dense = True
+    if not any_dense:
+        return
+    close = np.zeros(flat.shape[0], dtype=np.int64)  # returns within ``near`` above the floor
+    for k in range(at.shape[0]):
+        c = at[k]
+        if c >= 0 and m[c] > 0 and xyz[k, 2] <= floors[c] + near:
+            close[c] += 1
+    start = np.zeros(flat.shape[0] + 1, dtype=np.int64)  # each thin-layer cell's heap in ``heap``
+    for c in range(flat.shape[0]):
+        start[c + 1] = start[c] + (m[c] if 0 < m[c] and close[c] < m[c] else 0)
+    if start[-1] == 0:
+        return
+    heap = np.empty(start[-1])
+    size = np.zeros(flat.shape[0], dtype=np.int64)
+    for k in range(at.shape[0]):
+        c = at[k]
+        if c < 0 or start[c + 1] == start[c]:
+            continue
+        a, w = start[c], start[c + 1] - start[c]
+        z = xyz[k, 2]
+        n = size[c]
+        if n < w:  # not full: z goes in at the bottom and up while above its parent
+            q = n
+            while q > 0 and heap[a + (q - 1) // 2] < z:
+                heap[a + q] = heap[a + (q - 1) // 2]
+                q = (q - 1) // 2
+            heap[a + q] = z
+            size[c] = n + 1
+        elif z < heap[a]:  # full: z replaces the top and goes down while below a child
+            q = 0
+            while True:
+                child = 2 * q + 1
+                if child >= w:
+                    break
+                if child + 1 < w and heap[a + child + 1] > heap[a + child]:
+                    child += 1
+                if heap[a + child] <= z:
+                    break
+                heap[a + q] = heap[a + child]
+                q = child
+            heap[a + q] = z
+    for c in range(flat.shape[0]):
+        if start[c + 1] > start[c]:
+            floor[c // n1, c % n1] = heap[start[c]]  # the top: the m-th lowest
 
 
 @kernel
@@ -953,6 +1045,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         int(math.ceil((y1 - gy0) / gcell)),
         reach * reach,
         C.MISSING_GROUND_RANK,
+        C.MISSING_GROUND_SHARE,
         C.MISSING_CEILING_BINS,
         C.MISSING_GROUND_DROP,
         math.tan(math.radians(C.MISSING_CEILING_FLOOR)),
@@ -960,6 +1053,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         math.radians(C.MISSING_CEILING_SPREAD),
         int(round(0.5 * (C.MISSING_GROUND_OPENING_WIDE / gcell - 1))),
         C.MISSING_GROUND_MIN_CELLS * (2 * opening + 1) ** 2,
+        C.MISSING_BAND[0],
     )
     nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
