@@ -4,8 +4,8 @@ Prints, each repeated ``--repeat`` times (median and range, with the machine's l
 
   start-up   a 1-frame dataset, ``infer --workers 2`` as a subprocess: wall time until it exits, until
              its stdout/stderr pipes close (what a CI log reader waits for), and the CPU time of the
-             whole process tree (main, fork server, workers; reaped as a child subreaper).
-             Target: wall ≤ 1.0 s.
+             whole process tree (main, fork server, workers; reaped as a child subreaper); then
+             one more run with each process' CPU read from /proc. Target: wall ≤ 1.0 s.
   warm       one warm process on the simulated frames: ms per frame, every stage listed (read, crop,
              infer_label, jiou_gt, fit_label, hull_iou, rows, Arrow table, Parquet bytes); CPU time.
              Target: ≤ 10 ms per frame on the 9.2-box frames of ``simulate --seed 4``.
@@ -33,6 +33,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -130,6 +131,125 @@ def simulate(out: Path, frames: int, seed: int) -> Path:
     return out
 
 
+_TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100  # /proc/PID/stat's CPU times are in these
+
+
+def proc_stat(pid: int) -> tuple[float, float, int] | None:
+    """(CPU s used so far, start time in s since boot, minor page faults so far) of a process, from
+    /proc/PID/stat; None once gone."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return None
+    return (
+        (int(fields[11]) + int(fields[12])) / _TICK,
+        int(fields[19]) / _TICK,
+        int(fields[7]),
+    )  # utime+stime, starttime, minflt
+
+
+def proc_children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(c) for c in f.read().split()]
+    except OSError:
+        return []
+
+
+class CpuTimeline:
+    """CPU time of a process and its descendants, read from /proc every ``interval`` s (Linux):
+    ~40 µs per process and sample, where bench_scale's smaps reads (memory) take ~1.5 ms.
+    Times are s since ``t0``, taken just before ``root`` was started (start times: the kernel's,
+    counted from ``root``'s own, in clock ticks of 10 ms)."""
+
+    def __init__(self, root: int, t0: float, interval: float = 0.02):
+        self.root, self.t0, self.interval = root, t0, interval
+        self.samples: dict[int, list[tuple[float, float]]] = {}  # pid → [(s since t0, CPU s)]
+        self.parent: dict[int, int] = {}
+        self.started: dict[int, float] = {}  # pid → s since t0, from the kernel's start time
+        self.faults: dict[int, int] = {}  # pid → minor page faults at its last sample
+        self.role: dict[int, str] = {}
+        self._root_start: float | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _role(self, pid: int) -> str:
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            return "other"
+        parent = self.role.get(self.parent.get(pid, -1), "")
+        if parent == "fork server":
+            return "pool worker"
+        if "forkserver" in cmd:
+            return "fork server"
+        if "resource_tracker" in cmd:
+            return "resource tracker"
+        return "main" if pid == self.root else "other"
+
+    def _run(self) -> None:
+        while True:
+            now = time.time() - self.t0
+            todo = [self.root]
+            while todo:
+                pid = todo.pop()
+                stat = proc_stat(pid)
+                if stat is None:
+                    continue
+                if pid not in self.samples:
+                    self.samples[pid] = []
+                    if self._root_start is None:
+                        self._root_start = stat[1]
+                    self.started[pid] = stat[1] - self._root_start
+                if self.role.get(pid, "other") == "other":  # a fresh child runs its parent's command until it execs
+                    self.role[pid] = self._role(pid)
+                self.samples[pid].append((now, stat[0]))
+                self.faults[pid] = stat[2]
+                for child in proc_children(pid):
+                    self.parent.setdefault(child, pid)
+                    todo.append(child)
+            if self._stop.wait(self.interval):
+                return
+
+    def __enter__(self) -> "CpuTimeline":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def cpu(self, pid: int, until: float | None = None) -> float:
+        """CPU s of ``pid`` at its last sample at or before ``until`` (s since t0; None: its last)."""
+        s = [c for t, c in self.samples[pid] if until is None or t <= until]
+        return s[-1] if s else 0.0
+
+    def busy(self, pid: int) -> tuple[float, float]:
+        """(first, last) sample time at which ``pid`` had used more CPU than at the sample before."""
+        s = self.samples[pid]
+        moved = [t for (t, c), (_, c0) in zip(s[1:], s) if c > c0]
+        return (moved[0], moved[-1]) if moved else (float("nan"), float("nan"))
+
+
+def traced_run(cmd: list[str], env: dict[str, str], interval: float = 0.02) -> tuple[CpuTimeline, float, float]:
+    """Run ``cmd`` with a :class:`CpuTimeline`: (the timeline, wall s until it exited, its exact CPU s,
+    from ``wait4``: the timeline's last sample of a process misses up to ``interval`` of its CPU)."""
+    before = set(proc_children(os.getpid()))
+    with tempfile.TemporaryFile() as err:
+        t0 = time.time()
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=err)
+        with CpuTimeline(proc.pid, t0, interval) as tl:
+            _, status, usage = os.wait4(proc.pid, 0)
+            wall = time.time() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        reap_new(before)
+        if proc.returncode != 0:
+            err.seek(0)
+            raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{err.read().decode()}")
+    return tl, wall, usage.ru_utime + usage.ru_stime
+
+
 # --------------------------------------------------------------------------- start-up
 
 
@@ -143,6 +263,18 @@ def bench_startup(tmp: Path, seed: int, repeat: int, env: dict[str, str]) -> Non
     print(f"  wall until exit        {spread([r[0] for r in rows])} s   (target ≤ 1.0 s)")
     print(f"  wall until pipes close {spread([r[1] for r in rows])} s   (target ≤ 1.0 s)")
     print(f"  CPU, whole tree        {spread([r[2] for r in rows])} s")
+    tl, wall, main_cpu = traced_run(  # one more, its processes' CPU read from /proc
+        cli(str(data), "-o", str(tmp / "startup-out"), "--workers", "2", "--overwrite", "-q"), env, 0.01
+    )
+    parts = [f"main {main_cpu:.2f}"] + [
+        f"{tl.role[p]} {tl.cpu(p):.2f}" for p in sorted(tl.samples, key=tl.started.__getitem__) if p != tl.root
+    ]
+    workers = [p for p in tl.samples if tl.role[p] == "pool worker"]
+    handed = f"; the worker forked at {min(tl.started[p] for p in workers):.2f} s" if workers else ""
+    print(
+        f"  CPU by process, one more run (wall {wall:.2f} s{handed}): {', '.join(parts)} s "
+        "(read every 10 ms, the main's exact)"
+    )
 
 
 # --------------------------------------------------------------------------- one warm process

@@ -47,10 +47,10 @@ from bench_infer import (  # noqa: E402
     become_subreaper,
     like_a_worker,
     load,
-    reap_new,
     run_tree,
     simulate,
     spread,
+    traced_run,
     warm_stages,
 )
 
@@ -208,145 +208,36 @@ def bench_workers_and_dask(data: Path, tmp: Path, repeat: int, with_dask: bool, 
         )
 
 
-_TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100  # /proc/PID/stat's CPU times are in these
-
-
-def _proc_stat(pid: int) -> tuple[float, float, int] | None:
-    """(CPU s used so far, start time in s since boot, minor page faults so far) of a process, from
-    /proc/PID/stat; None once gone."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
-    except OSError:
-        return None
-    return (
-        (int(fields[11]) + int(fields[12])) / _TICK,
-        int(fields[19]) / _TICK,
-        int(fields[7]),
-    )  # utime+stime, starttime, minflt
-
-
-def _proc_children(pid: int) -> list[int]:
-    try:
-        with open(f"/proc/{pid}/task/{pid}/children") as f:
-            return [int(c) for c in f.read().split()]
-    except OSError:
-        return []
-
-
-class CpuTimeline:
-    """CPU time of a process and its descendants, read from /proc every ``interval`` s (Linux):
-    ~40 µs per process and sample, where :class:`MemorySampler`'s smaps reads take ~1.5 ms.
-    Times are s since ``t0``, taken just before ``root`` was started (start times: the kernel's,
-    counted from ``root``'s own, in clock ticks of 10 ms)."""
-
-    def __init__(self, root: int, t0: float, interval: float = 0.02):
-        self.root, self.t0, self.interval = root, t0, interval
-        self.samples: dict[int, list[tuple[float, float]]] = {}  # pid → [(s since t0, CPU s)]
-        self.parent: dict[int, int] = {}
-        self.started: dict[int, float] = {}  # pid → s since t0, from the kernel's start time
-        self.faults: dict[int, int] = {}  # pid → minor page faults at its last sample
-        self.role: dict[int, str] = {}
-        self._root_start: float | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _role(self, pid: int) -> str:
-        try:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            return "other"
-        parent = self.role.get(self.parent.get(pid, -1), "")
-        if parent == "fork server":
-            return "pool worker"
-        if "forkserver" in cmd:
-            return "fork server"
-        if "resource_tracker" in cmd:
-            return "resource tracker"
-        return "main" if pid == self.root else "other"
-
-    def _run(self) -> None:
-        while True:
-            now = time.time() - self.t0
-            todo, seen = [self.root], set()
-            while todo:
-                pid = todo.pop()
-                seen.add(pid)
-                stat = _proc_stat(pid)
-                if stat is None:
-                    continue
-                if pid not in self.samples:
-                    self.samples[pid] = []
-                    if self._root_start is None:
-                        self._root_start = stat[1]
-                    self.started[pid] = stat[1] - self._root_start
-                    self.role[pid] = self._role(pid)
-                self.samples[pid].append((now, stat[0]))
-                self.faults[pid] = stat[2]
-                for child in _proc_children(pid):
-                    self.parent.setdefault(child, pid)
-                    todo.append(child)
-            if self._stop.wait(self.interval):
-                return
-
-    def __enter__(self) -> "CpuTimeline":
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def cpu(self, pid: int, until: float | None = None) -> float:
-        """CPU s of ``pid`` at its last sample at or before ``until`` (s since t0; None: its last)."""
-        s = [c for t, c in self.samples[pid] if until is None or t <= until]
-        return s[-1] if s else 0.0
-
-    def busy(self, pid: int) -> tuple[float, float]:
-        """(first, last) sample time at which ``pid`` had used more CPU than at the sample before."""
-        s = self.samples[pid]
-        moved = [t for (t, c), (_, c0) in zip(s[1:], s) if c > c0]
-        return (moved[0], moved[-1]) if moved else (float("nan"), float("nan"))
-
-
 def bench_timeline(data: Path, tmp: Path, env: dict[str, str]) -> None:
     """Where a run's time goes, by process: wall milestones and the CPU each process used before,
     while and after the workers computed (the load changes the walls, hardly the CPU times)."""
-    import subprocess
-
     frames = len(list((data / "training" / "label_2").glob("*.txt")))
     out = tmp / "timeline-out"
     print(f"timeline, {frames} frames, CPU read from /proc every 20 ms (s since the command started; CPU s):")
     for workers in ("1", "2"):
         cmd = [sys.executable, "-m", "labelaudit", "infer", str(data), "-o", str(out), "--overwrite", "-q"]
-        before = {p for p in _proc_children(os.getpid())}
         t0 = time.time()
-        proc = subprocess.Popen([*cmd, "--workers", workers], env=env, stderr=subprocess.PIPE)
-        with CpuTimeline(proc.pid, t0) as tl:
-            _, err = proc.communicate()
-            end = time.time() - t0
-        reap_new(before)
-        if proc.returncode != 0:
-            raise SystemExit(f"infer --workers {workers} failed:\n{err.decode()}")
+        tl, end, main_cpu = traced_run([*cmd, "--workers", workers], env)
         shards = sorted(p.stat().st_mtime - t0 for p in (out / "objects").glob("*.parquet"))
         by_role: dict[str, list[int]] = {}
         for pid, role in tl.role.items():
             by_role.setdefault(role, []).append(pid)
-        main = proc.pid
+        main = tl.root
         workers_ = sorted(by_role.get("pool worker", []), key=tl.started.__getitem__)
         if workers_:  # the workers' part: from the first fork to the last worker's last CPU tick
             begin, finish = tl.started[workers_[0]], max(tl.busy(w)[1] for w in workers_)
         else:  # serial: the main process computes from its first chunk on
             begin, finish = shards[0] - (shards[1] - shards[0] if len(shards) > 1 else 0.0), shards[-1]
-        m0, m1, m2 = tl.cpu(main, begin), tl.cpu(main, finish), tl.cpu(main)
+        m0, m1 = tl.cpu(main, begin), tl.cpu(main, finish)
+        others = sum(tl.cpu(p) for p in tl.samples if p != main)
         print(
             f"  --workers {workers} ({load()}): exit {end:.2f}; first shard {shards[0]:.2f}, last {shards[-1]:.2f} "
-            f"({len(shards)} shards); CPU of the tree {sum(tl.cpu(p) for p in tl.samples):.2f}"
+            f"({len(shards)} shards); CPU of the tree {main_cpu + others:.2f}"
         )
         what = "workers forked at" if workers_ else "first chunk from about"
         print(
-            f"    main            CPU {m2:.2f} = {m0:.2f} until {begin:.2f} ({what}) + {m1 - m0:.2f} "
-            f"until {finish:.2f} (work done) + {m2 - m1:.2f} after; {tl.faults[main]} minor page faults"
+            f"    main            CPU {main_cpu:.2f} = {m0:.2f} until {begin:.2f} ({what}) + {m1 - m0:.2f} "
+            f"until {finish:.2f} (work done) + {main_cpu - m1:.2f} after; {tl.faults[main]} minor page faults"
         )
         for role in ("fork server", "resource tracker"):
             for pid in by_role.get(role, []):
