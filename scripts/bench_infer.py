@@ -157,22 +157,47 @@ def proc_children(pid: int) -> list[int]:
         return []
 
 
-class CpuTimeline:
+class Sampler:
+    """Calls :meth:`sample` every ``interval`` s in a thread while used as a context manager."""
+
+    def __init__(self, interval: float):
+        self.interval = interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def sample(self) -> None:
+        raise NotImplementedError
+
+    def _run(self) -> None:
+        while True:
+            self.sample()
+            if self._stop.wait(self.interval):
+                return
+
+    def __enter__(self) -> "Sampler":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+class CpuTimeline(Sampler):
     """CPU time of a process and its descendants, read from /proc every ``interval`` s (Linux):
     ~40 µs per process and sample, where bench_scale's smaps reads (memory) take ~1.5 ms.
     Times are s since ``t0``, taken just before ``root`` was started (start times: the kernel's,
     counted from ``root``'s own, in clock ticks of 10 ms)."""
 
     def __init__(self, root: int, t0: float, interval: float = 0.02):
-        self.root, self.t0, self.interval = root, t0, interval
+        super().__init__(interval)
+        self.root, self.t0 = root, t0
         self.samples: dict[int, list[tuple[float, float]]] = {}  # pid → [(s since t0, CPU s)]
         self.parent: dict[int, int] = {}
         self.started: dict[int, float] = {}  # pid → s since t0, from the kernel's start time
         self.faults: dict[int, int] = {}  # pid → minor page faults at its last sample
         self.role: dict[int, str] = {}
         self._root_start: float | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _role(self, pid: int) -> str:
         try:
@@ -188,37 +213,26 @@ class CpuTimeline:
             return "resource tracker"
         return "main" if pid == self.root else "other"
 
-    def _run(self) -> None:
-        while True:
-            now = time.time() - self.t0
-            todo = [self.root]
-            while todo:
-                pid = todo.pop()
-                stat = proc_stat(pid)
-                if stat is None:
-                    continue
-                if pid not in self.samples:
-                    self.samples[pid] = []
-                    if self._root_start is None:
-                        self._root_start = stat[1]
-                    self.started[pid] = stat[1] - self._root_start
-                if self.role.get(pid, "other") == "other":  # a fresh child runs its parent's command until it execs
-                    self.role[pid] = self._role(pid)
-                self.samples[pid].append((now, stat[0]))
-                self.faults[pid] = stat[2]
-                for child in proc_children(pid):
-                    self.parent.setdefault(child, pid)
-                    todo.append(child)
-            if self._stop.wait(self.interval):
-                return
-
-    def __enter__(self) -> "CpuTimeline":
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
+    def sample(self) -> None:
+        now = time.time() - self.t0
+        todo = [self.root]
+        while todo:
+            pid = todo.pop()
+            stat = proc_stat(pid)
+            if stat is None:
+                continue
+            if pid not in self.samples:
+                self.samples[pid] = []
+                if self._root_start is None:
+                    self._root_start = stat[1]
+                self.started[pid] = stat[1] - self._root_start
+            if self.role.get(pid, "other") == "other":  # a fresh child runs its parent's command until it execs
+                self.role[pid] = self._role(pid)
+            self.samples[pid].append((now, stat[0]))
+            self.faults[pid] = stat[2]
+            for child in proc_children(pid):
+                self.parent.setdefault(child, pid)
+                todo.append(child)
 
     def cpu(self, pid: int, until: float | None = None) -> float:
         """CPU s of ``pid`` at its last sample at or before ``until`` (s since t0; None: its last)."""

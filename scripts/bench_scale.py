@@ -37,13 +37,13 @@ import os
 import statistics
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_infer import (  # noqa: E402
     REPO,
+    Sampler,
     become_subreaper,
     like_a_worker,
     load,
@@ -59,19 +59,17 @@ WAYMO_FRAMES = 1150 * 200  # segments × frames of the Waymo Open Dataset (perce
 WAYMO_BOXES = 12_000_000  # 3D lidar labels, all classes (≈ 52 per frame)
 
 
-class MemorySampler:
+class MemorySampler(Sampler):
     """Peak RSS / PSS per descendant process of this one, by role, sampled in a thread."""
 
     def __init__(self, interval: float = 0.05):
         import psutil
 
+        super().__init__(interval)
         self.psutil = psutil
         self.me = psutil.Process()
-        self.interval = interval
         self.peak: dict[int, tuple[str, float, float]] = {}
         self.before = {p.pid for p in self.me.children()}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _role(self, p) -> str:
         cmd = " ".join(p.cmdline())
@@ -99,26 +97,16 @@ class MemorySampler:
                     continue
         return out
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            for p in self._processes():
-                try:
-                    role = self._role(p)
-                    mem = p.memory_full_info()
-                    rss, pss = mem.rss / MIB, getattr(mem, "pss", mem.rss) / MIB
-                except (self.psutil.NoSuchProcess, self.psutil.AccessDenied, self.psutil.ZombieProcess):
-                    continue
-                old = self.peak.get(p.pid, (role, 0.0, 0.0))
-                self.peak[p.pid] = (role, max(old[1], rss), max(old[2], pss))
-            self._stop.wait(self.interval)
-
-    def __enter__(self) -> "MemorySampler":
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
+    def sample(self) -> None:
+        for p in self._processes():
+            try:
+                role = self._role(p)
+                mem = p.memory_full_info()
+                rss, pss = mem.rss / MIB, getattr(mem, "pss", mem.rss) / MIB
+            except (self.psutil.NoSuchProcess, self.psutil.AccessDenied, self.psutil.ZombieProcess):
+                continue
+            old = self.peak.get(p.pid, (role, 0.0, 0.0))
+            self.peak[p.pid] = (role, max(old[1], rss), max(old[2], pss))
 
     def by_role(self) -> dict[str, list[tuple[float, float]]]:
         out: dict[str, list[tuple[float, float]]] = {}
