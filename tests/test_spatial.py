@@ -614,13 +614,13 @@ def test_compiled_axis_edges_refuse_non_finite_input():
         sp.axis_edges(1.0, -1.0, 1.0, 0.0)
 
 
-def test_jaccard_split_runs_merges_equal_neighbours_of_a_row_only():
+def test_jaccard_split_merges_equal_neighbours_of_a_row_only():
     """The BEV JIoU-GT's split merges consecutive equal cells of a row into one cell with its count
     (never across rows, never cells that differ), keeps the totals of the unmerged cells, and its
     Jaccard equals the unmerged cells' within the rounding of the sums."""
     p = np.array([[1.0, 1.0, 1.0, 0.5], [1.0, 1.0, 0.0, 1.0], [2.0, 2.0, 2.0, 2.0]]).ravel()
     q = np.array([[0.2, 0.2, 0.2, 0.2], [0.2, 0.2, 0.3, 0.0], [0.1, 0.1, 0.3, 0.1]]).ravel()
-    negative, pb, qb, cb, ratio, p_only, q_only = sp._jaccard_split_runs(p, q, 4, 0.25)
+    negative, pb, qb, cb, ratio, p_only, q_only = sp._jaccard_split(p, q, np.ones(p.size), 0.0, 0.25, 4)
     assert not negative
     assert cb.tolist() == [3.0, 1.0, 2.0, 2.0, 1.0, 1.0]  # the run ends at the row's end and at 0.5
     assert pb.tolist() == [1.0, 0.5, 1.0, 2.0, 2.0, 2.0] and qb.tolist() == [0.2, 0.2, 0.2, 0.1, 0.3, 0.1]
@@ -632,8 +632,8 @@ def test_jaccard_split_runs_merges_equal_neighbours_of_a_row_only():
         q = np.repeat(rng.choice([0.0, 0.2, 0.7], 60), rng.integers(1, 6, 60))[: 12 * nx]
         n = min(len(p), len(q)) // nx * nx
         p, q = p[:n], q[:n]
-        merged = sp._jaccard_split_runs(p, q, nx, 0.0)
-        plain = sp._jaccard_split(p, q, np.ones(n), 0.0, 0.0)
+        merged = sp._jaccard_split(p, q, np.ones(n), 0.0, 0.0, nx)
+        plain = sp._jaccard_split(p, q, np.ones(n), 0.0, 0.0, 0)
         assert merged[3].sum() == plain[3].size  # every cell counted once
         assert (merged[1] * merged[3]).sum() == pytest.approx(plain[1].sum(), rel=1e-13)  # and its mass
         assert merged[5:] == plain[5:]

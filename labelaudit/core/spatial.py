@@ -890,7 +890,7 @@ def jaccard(
         raise ValueError(f"p, q (and counts) must have the same number of cells, got {p.size}, {q.size}, {c.size}")
     # Cells with q = 0 (r = ∞) are in every p-suffix, cells with p = 0 (r = 0) in every q-prefix:
     # only the cells where both are positive need sorting.
-    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, float(p_outside), float(q_outside))
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(p, q, c, float(p_outside), float(q_outside), 0)
     if negative:
         raise ValueError("p and q must be non-negative")
     if not pb.size:
@@ -901,10 +901,17 @@ def jaccard(
 
 
 @kernel(error_model="numpy")
-def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compiled
+def _jaccard_split(p, q, c, p_outside, q_outside, row):  # pragma: no cover - compiled
     """The cells of :func:`jaccard` where both masses are positive (p, q, counts, r = p/q), and the
     totals p_only = Σ_{q=0} c·p + p_outside, q_only = Σ_{p=0} c·q + q_outside, summed in NumPy's
-    (pairwise) order over the same arrays as the NumPy form; the flag says a mass is negative."""
+    (pairwise) order over the same arrays as the NumPy form; the flag says a mass is negative.
+
+    ``row`` > 0: the cells are a raster, row-major with rows of ``row`` cells, and consecutive equal
+    cells of a row are merged into one cell with their counts added. The interior of a JIoU-GT
+    raster is such a run (every sample covers it, the running sum does not move), and
+    :func:`_jaccard_sum` makes c equal cells in one entry the same term as c cells in a row (only
+    the rounding of the sums moves), so fewer cells are sorted and summed; the totals are the
+    unmerged cells' all the same. 0: every cell is kept."""
     n = p.size
     negative = False
     for i in range(n):
@@ -917,6 +924,7 @@ def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compile
     p_rest = np.empty(n)
     q_rest = np.empty(n)
     nb = n_p = n_q = 0
+    last = -2  # the cell of the last entry
     for i in range(n):
         if q[i] == 0:
             p_rest[n_p] = c[i] * p[i]
@@ -925,8 +933,12 @@ def _jaccard_split(p, q, c, p_outside, q_outside):  # pragma: no cover - compile
             q_rest[n_q] = c[i] * q[i]
             n_q += 1
         if p[i] > 0 and q[i] > 0:
-            pb[nb], qb[nb], cb[nb], ratio[nb] = p[i], q[i], c[i], p[i] / q[i]
-            nb += 1
+            if row > 0 and last == i - 1 and i % row != 0 and p[i] == pb[nb - 1] and q[i] == qb[nb - 1]:
+                cb[nb - 1] += c[i]
+            else:
+                pb[nb], qb[nb], cb[nb], ratio[nb] = p[i], q[i], c[i], p[i] / q[i]
+                nb += 1
+            last = i
     p_only = linalg.pairwise_sum(p_rest[:n_p]) + p_outside
     q_only = linalg.pairwise_sum(q_rest[:n_q]) + q_outside
     return negative, pb[:nb], qb[:nb], cb[:nb], ratio[:nb], p_only, q_only
@@ -1105,45 +1117,5 @@ def _jiou_gt_bev_kernel(ref, cov, z, cells, span, max_cells, nsub):  # pragma: n
     _clean_kernel(u)
     _clean_kernel(q)
     inside = linalg.pairwise_sum(q)
-    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split_runs(u, q, nx, max(0.0, 1.0 - inside))
+    negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(u, q, np.ones(u.size), 0.0, max(0.0, 1.0 - inside), nx)
     return not negative, pb, qb, cb, ratio, p_only, q_only
-
-
-@kernel(error_model="numpy")
-def _jaccard_split_runs(p, q, nx, q_outside):  # pragma: no cover - compiled
-    """:func:`_jaccard_split` of a raster (row-major, rows of ``nx`` cells, counts 1) with the
-    consecutive equal cells of a row merged into one cell and its count: the interior of a
-    JIoU-GT raster is such a run (every sample covers it, the running sum does not move), and
-    :func:`_jaccard_sum` makes a run of c equal cells the same term as c cells in a row (only the
-    rounding of the sums moves), so fewer cells are sorted and summed. The totals are summed over
-    the unmerged cells, as :func:`_jaccard_split` does."""
-    n = p.size
-    negative = False
-    for i in range(n):
-        if p[i] < 0 or q[i] < 0:
-            negative = True
-    pb = np.empty(n)
-    qb = np.empty(n)
-    cb = np.empty(n)
-    ratio = np.empty(n)
-    p_rest = np.empty(n)
-    q_rest = np.empty(n)
-    nb = n_p = n_q = 0
-    last = -2  # the cell behind the last kept entry
-    for i in range(n):
-        if q[i] == 0:
-            p_rest[n_p] = p[i]
-            n_p += 1
-        if p[i] == 0:
-            q_rest[n_q] = q[i]
-            n_q += 1
-        if p[i] > 0 and q[i] > 0:
-            if last == i - 1 and i % nx != 0 and p[i] == pb[nb - 1] and q[i] == qb[nb - 1]:
-                cb[nb - 1] += 1.0
-            else:
-                pb[nb], qb[nb], cb[nb], ratio[nb] = p[i], q[i], 1.0, p[i] / q[i]
-                nb += 1
-            last = i
-    p_only = linalg.pairwise_sum(p_rest[:n_p])
-    q_only = linalg.pairwise_sum(q_rest[:n_q]) + q_outside
-    return negative, pb[:nb], qb[:nb], cb[:nb], ratio[:nb], p_only, q_only
