@@ -351,9 +351,8 @@ def registration_information(reg: Registration, model: ModelKind) -> tuple[Float
 def _information_kernel(vstar, resp, points, B, BB):  # pragma: no cover - compiled
     """With ṽ = (1, v*): moments Σ_km r ṽ ṽᵀ (d+1, d+1) and cross Σ_k (Σ_m r ṽ) x_kᵀ (d+1, d),
     then contracted with the design basis: info = Σ_ab moments_ab BB_ab (p, p), eta = Σ_ab
-    cross_ab B_ab (p,). Sums run in point, candidate order."""
+    cross_ab B_ab (p,) (:func:`_contract_basis`). Sums run in point, candidate order."""
     n, m, d = vstar.shape
-    p = B.shape[2]
     moments = np.zeros((d + 1, d + 1))
     cross = np.zeros((d + 1, d))
     vt = np.empty(d + 1)
@@ -374,6 +373,15 @@ def _information_kernel(vstar, resp, points, B, BB):  # pragma: no cover - compi
         for a in range(d + 1):
             for b in range(d):
                 cross[a, b] += rsum[a] * points[k, b]
+    return _contract_basis(moments, cross, B, BB)
+
+
+@kernel
+def _contract_basis(moments, cross, B, BB):  # pragma: no cover - compiled
+    """info = Σ_ab moments_ab BB_ab (p, p) and eta = Σ_ab cross_ab B_ab (p,): the moments of ṽ
+    ((d+1, d+1) and (d+1, d)) contracted with the design basis, in a, b order."""
+    d = cross.shape[1]
+    p = B.shape[2]
     info = np.zeros((p, p))
     eta = np.zeros(p)
     for a in range(d + 1):
@@ -397,7 +405,6 @@ def _exp_information_kernel(vstar, x, points, B, BB):  # pragma: no cover - comp
     :func:`_information_kernel` one after the other, without the (N, M) responsibilities. The
     moments of ṽ₀ = 1 are the responsibilities themselves (1 · r = r exactly)."""
     n, m, d = vstar.shape
-    p = B.shape[2]
     moments = np.zeros((d + 1, d + 1))
     cross = np.zeros((d + 1, d))
     e = np.empty(m)
@@ -424,19 +431,7 @@ def _exp_information_kernel(vstar, x, points, B, BB):  # pragma: no cover - comp
         for a in range(d + 1):
             for b in range(d):
                 cross[a, b] += rsum[a] * points[k, b]
-    info = np.zeros((p, p))
-    eta = np.zeros(p)
-    for a in range(d + 1):
-        for b in range(d + 1):
-            w = moments[a, b]
-            for i in range(p):
-                for j in range(p):
-                    info[i, j] += w * BB[a, b, i, j]
-        for b in range(d):
-            w = cross[a, b]
-            for i in range(p):
-                eta[i] += w * B[a, b, i]
-    return info, eta
+    return _contract_basis(moments, cross, B, BB)
 
 
 # ----------------------------------------------------------------------------------------------
