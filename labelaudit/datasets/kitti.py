@@ -201,7 +201,8 @@ def read_calib(path: str | Path) -> Calibration:
         if ":" not in line:
             raise DatasetError(path, f"expected 'key: numbers', got {line[:60]!r}", lineno)
         key, _, rest = line.partition(":")
-        key = _CALIB_ALIASES.get(key.strip(), key.strip())
+        key = key.strip()
+        key = _CALIB_ALIASES.get(key, key)
         if key not in _CALIB_SHAPES:
             continue  # other keys (e.g. from raw-data calib files) are not needed
         try:

@@ -239,14 +239,15 @@ def frame_evidence(
         # rays that passed beyond the box's own returns saw through the object (under its chassis,
         # through glass), and second returns went on through something nearer: not empty space inside the box
         crossing = passing_rays(box, fs)
-        through = np.zeros(fs.num_rays, dtype=bool)
+        n_through = 0
         if crossing[0].any():  # most right labels have no ray through them at all
             own = _own_returns(near_xyz[j], box, planes[j], tau, crop.ground_cut)
             through = through_own_returns(box, fs, own, C.FREE_SPACE_SIGHT_ANGLE, crossing) | behind_other_returns(
                 box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE, crossing
             )
-        if through.any():
-            fs = replace(fs, ends=fs.ends[~through])
+            n_through = int(through.sum())
+            if n_through:
+                fs = replace(fs, ends=fs.ends[~through])
         out.append(
             BoxEvidence(
                 model_idx,
@@ -256,7 +257,7 @@ def frame_evidence(
                 ground_list[j],
                 int(n_foreign),
                 int(n_scenery),
-                int(through.sum()),
+                n_through,
                 near_xyz[j],
             )
         )
