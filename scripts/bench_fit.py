@@ -103,11 +103,9 @@ PARTS = (
     ("labelaudit.core.fit", "em_sigma"),
     ("labelaudit.core.fit", "_ray_inputs"),
     ("labelaudit.core.fit", "_fit_em"),
-    ("labelaudit.core.fit", "_fit_iterate_kernel"),
-    ("labelaudit.core.fit", "_fit_precision_kernel"),
+    ("labelaudit.core.fit", "_fit_em_kernel"),
     ("labelaudit.core.fit", "_closest_form"),
-    ("labelaudit.core.fit", "_scored_metrics"),
-    ("labelaudit.core.fit", "_closest_form_phi"),
+    ("labelaudit.core.fit", "_label_distances_kernel"),
     ("labelaudit.core.fit", "_slab_face_gaps"),
     ("labelaudit.core.fit", "prior_cov_extended_cached"),
     ("labelaudit.core.fit", "label_ray_terms"),
@@ -152,19 +150,19 @@ def parts(calls: list[tuple[tuple, dict]], frames: int) -> None:
 def counts(calls: list[tuple[tuple, dict]], fits: list[Any]) -> None:
     from labelaudit.core import fit as F
 
-    inner = F._fit_iterate_kernel
+    inner = F._fit_em_kernel
     per_descent: list[tuple[int, int, int]] = []  # (iterations, points, rays)
 
     def spy(*a: Any) -> Any:
         out = inner(*a)
-        per_descent.append((int(out[2]), a[2].shape[1], a[16].shape[1]))
+        per_descent.append((int(out[2]), a[2].shape[1], a[18].shape[1]))
         return out
 
-    F._fit_iterate_kernel = spy
+    F._fit_em_kernel = spy
     try:
         replay(calls)
     finally:
-        F._fit_iterate_kernel = inner
+        F._fit_em_kernel = inner
     it = np.array([d[0] for d in per_descent])
     pts = np.array([d[1] for d in per_descent])
     rays = np.array([d[2] for d in per_descent])

@@ -1101,7 +1101,7 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
         if rays[0].shape[1]:  # every ray evaluated: the bounds skip only rays without a row
             m = rays[0].shape[1]
             ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(
-                y, *rays[:9], three_d, phi, rays[9], np.zeros(m), math.inf
+                y, *rays[:9], three_d, phi, rays[9], np.full(m, math.inf), y
             )
             assert active > 0  # the rays do add rows
             ata = ata + ata_r
@@ -1109,6 +1109,42 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
         precision = terms.P0 + ata * (1.0 / sigma**2)
         assert got.tobytes() == (0.5 * (precision + precision.T)).tobytes()
         assert (rr, ss, sw) == (rr_want, ss_want, sw_want)
+
+
+@pytest.mark.parametrize("model", ["bev", "3d"])
+def test_point_normal_equations_equal_the_rows_gram(model):
+    """The point pass's one-pass sums (no rows written; deep points centred on the sums) equal the
+    rows' Gram product (the rows of :func:`_rows_kernel`, deep points centred row by row) up to
+    rounding: points on the faces, beyond edges and corners, deep inside (a loose box, every face's
+    deep points centred), exactly on the surface, in world coordinates far from the origin."""
+    rng = np.random.default_rng(8)
+    three_d = model == "3d"
+    d = 3 if three_d else 2
+    box = np.array([41.3, -17.9, 0.8, 4.4, 1.8, 1.6, 2.3])
+    loose = box + np.r_[0.3, -0.2, 0.05, 0.9, 0.6, 0.4, 0.08]  # most points deep inside it
+    pts = np.vstack(
+        [
+            face_points(box, ["-x", "+x", "-y", "+y", "+z"], 60, noise=0.03, seed=8),
+            box[:3] + rng.uniform(-3, 3, (80, 3)),  # beyond edges and corners, and inside
+            face_points(box, ["-y"], 5, noise=0.0, seed=9),  # exactly on the surface
+        ]
+    )
+    pts_t = np.ascontiguousarray(pts[:, :d].T)
+    free_depth, deep_weight, _ = LF._fit_point_constants()
+    for y in (box, loose):
+        phi = g.phi_of_valid_box(y + np.r_[0.02, -0.01, 0.01, 0.0, 0.0, 0.0, 0.01], model)
+        a = np.empty((2 * d + 2, pts_t.shape[1]))
+        b, sqd = np.empty(pts_t.shape[1]), np.empty(pts_t.shape[1])
+        LF._rows_kernel(y, pts_t, d, free_depth, deep_weight, 0.0, 0.05, a, b, sqd, True)
+        assert (sqd < 0).sum() > (20 if y is loose else -1)  # deep points, centred
+        keep = sqd >= 0
+        w2 = (a[:3] ** 2).sum(0) if three_d else (a[:2] ** 2).sum(0)
+        want = (a @ a.T, a @ b, ((a.T @ phi - b) ** 2).sum(), (w2 * sqd)[keep].sum(), w2[keep].sum())
+        got = LF._normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, 0.0, 0.05, phi)
+        scale = np.abs(want[0]).max()
+        assert np.abs(got[0] - want[0]).max() <= 1e-12 * scale
+        assert np.abs(got[1] - want[1]).max() <= 1e-12 * np.abs(want[1]).max()
+        assert got[2:] == pytest.approx(want[2:], rel=1e-10, abs=0)
 
 
 def test_corner_covariances_known_answer_and_one_formula():

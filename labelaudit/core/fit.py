@@ -135,11 +135,16 @@ def _closest_form_phi(
     """
     phi = np.empty(len(phi_ref))
     k, yaw = _closest_form_kernel(y, phi_ref, W, model == "3d", phi)
+    return _form(y, k, yaw), phi
+
+
+def _form(y: FloatArray, k: int, yaw: float) -> FloatArray:
+    """The equivalent form k of rectangle ``y`` (7,) (:func:`_equivalent_boxes`), its yaw ``yaw``."""
     form = y.copy()
     if k % 2:
         form[3], form[4] = y[4], y[3]
     form[6] = yaw
-    return form, phi
+    return form
 
 
 @kernel
@@ -383,22 +388,269 @@ def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
 @kernel
 def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi):  # pragma: no cover - compiled
     """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
-    :func:`_plane_rows` for points (d, N), deep points centred per face."""
+    :func:`_plane_rows` for points (d, N), deep points centred per face (the last two over the
+    points that are not deep inside; weight² = |the row's normal part|², a unit vector).
+
+    Without outliers (``outlier`` = 0, the default) the sums are taken in one vectorised pass that
+    never writes the rows (:func:`_point_sums_kernel`), and the deep points' centring is applied to
+    the sums: Σ (a − ā)(a − ā)ᵀ = Σ a aᵀ − n ā āᵀ per face (a deep point's row is its face's normal
+    and its coordinate along the face), the residuals' Σ (r − r̄)² from r. The pass works about the
+    box's centre (b and the residuals from small numbers, then Σ a b = Σ a b̃ + Σ a aᵀ o), which
+    rounds less than the rows' world coordinates. The same sums as the rows' (:func:`_rows_kernel`,
+    :func:`_gram_kernel`), which outlier weights (an exponential per point) still take, up to rounding."""
     n = pts_t.shape[1]
-    a = np.empty((2 * d + 2, n))
-    b = np.empty(n)
-    sqd = np.empty(n)
-    _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, True)
-    ata, atb, rr = _gram_kernel(a, b, phi, True)
-    ss = sw = (
-        0.0  # over the points that are not deep inside; weighted: weight² = |the row's normal part|² (a unit vector)
-    )
+    if outlier > 0.0:
+        a = np.empty((2 * d + 2, n))
+        b = np.empty(n)
+        sqd = np.empty(n)
+        _rows_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, a, b, sqd, True)
+        ata, atb, rr = _gram_kernel(a, b, phi, True)
+        ss = sw = 0.0
+        for k in range(n):
+            if sqd[k] < 0.0:
+                continue
+            w2 = a[0, k] * a[0, k] + a[1, k] * a[1, k] + (a[2, k] * a[2, k] if d == 3 else 0.0)
+            ss += w2 * sqd[k]
+            sw += w2
+        return ata, atb, rr, ss, sw
+    three = d == 3
+    face = np.empty(n, dtype=np.int64)
+    along, bs, rs = np.empty(n), np.empty(n), np.empty(n)
+    ata, atb, rr, ss, sw = _point_sums_kernel(y, pts_t, three, free_depth, deep_weight, phi, face, along, bs, rs)
+    cnt = np.zeros(6)
+    s_along = np.zeros(6)
+    sb = np.zeros(6)
+    sr = np.zeros(6)
     for k in range(n):
-        if sqd[k] < 0.0:
+        f = face[k]
+        if f >= 0:
+            cnt[f] += 1.0
+            s_along[f] += along[k]
+            sb[f] += bs[k]
+            sr[f] += rs[k]
+    c, s = math.cos(y[6]), math.sin(y[6])
+    w = deep_weight
+    u = np.empty(8)  # a face's mean deep row ā (3D layout)
+    for f in range(6):
+        if cnt[f] == 0.0:
             continue
-        w2 = a[0, k] * a[0, k] + a[1, k] * a[1, k] + (a[2, k] * a[2, k] if d == 3 else 0.0)
-        ss += w2 * sqd[k]
+        sg = 1.0 if f % 2 else -1.0  # the face's side; a deep point's normal points inside: −sg
+        vm = s_along[f] / cnt[f]
+        u[:] = 0.0
+        if f < 2:
+            n0, n1 = -c * sg, -s * sg
+            u[0], u[1], u[3], u[4] = w * n0, w * n1, w * 0.5 * sg * n0, w * 0.5 * sg * n1
+            u[5], u[6] = w * vm * n1, -w * vm * n0
+        elif f < 4:
+            n0, n1 = s * sg, -c * sg
+            u[0], u[1], u[3], u[4] = w * n0, w * n1, w * vm * n0, w * vm * n1
+            u[5], u[6] = w * 0.5 * sg * n1, -w * 0.5 * sg * n0
+        else:
+            u[2], u[7] = -w * sg, -w * 0.5
+        for i in range(8):
+            atb[i] -= u[i] * sb[f]
+            for j in range(8):
+                ata[i, j] -= cnt[f] * u[i] * u[j]
+    for k in range(n):
+        f = face[k]
+        if f >= 0:
+            r = rs[k] - sr[f] / cnt[f]
+            rr += r * r
+    o = (y[0], y[1], y[2] if three else 0.0)
+    for i in range(8):  # Σ a b = Σ a b̃ + (Σ a aᵀ) (o, 0, …), the centred sums alike
+        atb[i] += ata[i, 0] * o[0] + ata[i, 1] * o[1] + ata[i, 2] * o[2]
+    if three:
+        return ata, atb, rr, ss, sw
+    ata2, atb2 = np.empty((6, 6)), np.empty(6)  # the 2D layout: no z, no height
+    for i in range(6):
+        ii = i if i < 2 else i + 1
+        atb2[i] = atb[ii]
+        for j in range(6):
+            ata2[i, j] = ata[ii, j if j < 2 else j + 1]
+    return ata2, atb2, rr, ss, sw
+
+
+@kernel(error_model="numpy", fastmath={"reassoc"})
+def _point_sums_kernel(
+    y, pts_t, three, free_depth, deep_weight, phi, face, along, bs, rs
+):  # pragma: no cover - compiled
+    """Σ a aᵀ (8, 8) and Σ a b̃ (8,) — the 3D layout, zero z and height in 2D — of the point rows of
+    :func:`_rows_kernel` (without outliers, deep points not centred) about the box's centre o,
+    b̃ = b − a·(o, 0, …) = w nᵀ(x − o), and over the points that are not deep inside Σ (a·φ − b)²,
+    Σ w²‖x − v̄‖², Σ w²; per point into ``face`` the face of a deep point (else −1), into ``along``
+    its unit coordinate along the face (that of the first tangent axis), ``bs`` b̃ and ``rs``
+    a·φ − b.
+
+    The same arithmetic per point as :func:`_rows_kernel`, written without branches and with the
+    sums in scalars (reassociation only), so that the loop vectorises: ~2× the rows and their Gram
+    product, which write and read back p + 2 arrays per point."""
+    n = pts_t.shape[1]
+    c, s = math.cos(y[6]), math.sin(y[6])
+    h0, h1 = 0.5 * y[3], 0.5 * y[4]
+    h2 = 0.5 * y[5] if three else 0.0
+    big = max(y[3], y[4], y[5]) if three else max(y[3], y[4])
+    thr = 1e-9 * big
+    y0, y1, y2, y3, y4, y5 = y[0], y[1], y[2], y[3], y[4], y[5]
+    # φ about the box's centre o, in the 3D layout's places (2D: no z, no height)
+    if three:
+        f0, f1, f2, f3, f4, f5, f6, f7 = phi[0] - y0, phi[1] - y1, phi[2] - y2, phi[3], phi[4], phi[5], phi[6], phi[7]
+    else:
+        f0, f1, f2, f3, f4, f5, f6, f7 = phi[0] - y0, phi[1] - y1, 0.0, phi[2], phi[3], phi[4], phi[5], 0.0
+    s00 = s01 = s02 = s03 = s04 = s05 = s06 = s07 = s11 = s12 = s13 = s14 = s15 = s16 = s17 = s22 = s23 = s24 = 0.0
+    s25 = s26 = s27 = s33 = s34 = s35 = s36 = s37 = s44 = s45 = s46 = s47 = s55 = s56 = s57 = s66 = s67 = s77 = 0.0
+    ab0 = ab1 = ab2 = ab3 = ab4 = ab5 = ab6 = ab7 = 0.0
+    rr = ss = sw = 0.0
+    for k in range(n):
+        xk, yk = pts_t[0, k], pts_t[1, k]
+        zk = pts_t[2, k] if three else 0.0
+        rx, ry = xk - y0, yk - y1
+        l0 = c * rx + s * ry  # box frame, metres: Rᵀ (x − c)
+        l1 = -s * rx + c * ry
+        l2 = zk - y2 if three else 0.0
+        m0 = min(max(l0, -h0), h0)
+        m1 = min(max(l1, -h1), h1)
+        m2 = min(max(l2, -h2), h2)
+        inside = (m0 == l0) & (m1 == l1) & (m2 == l2)
+        strict = (abs(l0) < h0) & (abs(l1) < h1) & ((abs(l2) < h2) | (not three))
+        # inside: the nearest face, the smallest (x ∓ half)² of each axis' nearer face (ties: the lower axis)
+        t0, t1, t2 = h0 - abs(l0), h1 - abs(l1), h2 - abs(l2)
+        g0, g1 = t0 * t0, t1 * t1
+        g2 = t2 * t2 if three else math.inf
+        p0 = inside & (g0 <= g1) & (g0 <= g2)
+        p1 = inside & (not p0) & (g1 <= g2)
+        p2 = inside & (not p0) & (not p1)
+        m0 = (h0 if l0 > 0 else -h0) if p0 else m0
+        m1 = (h1 if l1 > 0 else -h1) if p1 else m1
+        m2 = (h2 if l2 > 0 else -h2) if p2 else m2
+        f_in = (1 if l0 > 0 else 0) if p0 else ((3 if l1 > 0 else 2) if p1 else (5 if l2 > 0 else 4))
+        r0, r1, r2 = l0 - m0, l1 - m1, l2 - m2
+        sq = r0 * r0 + r1 * r1 + r2 * r2
+        norm = math.sqrt(sq)
+        v0, v1 = m0 / y3, m1 / y4  # unit coordinates of the nearest surface point
+        v2 = m2 / y5 if three else 0.0
+        # n: the direction point − surface; on the surface (zero residual): the normal of the face
+        # the point lies on (the largest unit coordinate; ties: y before z before x)
+        av0, av1, av2 = abs(v0), abs(v1), abs(v2)
+        fb1 = (av1 > av0) & ((not three) | (av1 >= av2))
+        fb2 = (not fb1) & three & (av2 > av0) & (av2 > av1)
+        fb0 = (not fb1) & (not fb2)
+        on = not norm > thr
+        q0 = (math.copysign(1.0, v0) if (fb0 & (v0 != 0)) else 0.0) if on else r0 / norm
+        q1 = (math.copysign(1.0, v1) if (fb1 & (v1 != 0)) else 0.0) if on else r1 / norm
+        q2 = (math.copysign(1.0, v2) if (fb2 & (v2 != 0)) else 0.0) if on else r2 / norm
+        n0 = c * q0 - s * q1  # to the world frame (z unchanged)
+        n1 = s * q0 + c * q1
+        deep = strict & (norm > free_depth)
+        w = deep_weight if deep else 1.0
+        # a = J(v*)ᵀ n (geometry.design_matrix), 3D layout; b = w nᵀx
+        u0 = w * n0
+        u1 = w * n1
+        u2 = w * q2
+        u3 = w * v0 * n0
+        u4 = w * v0 * n1
+        u5 = w * v1 * n1
+        u6 = -w * v1 * n0
+        u7 = w * v2 * q2
+        bk = w * (q0 * l0 + q1 * l1 + q2 * l2)  # b − a·(o, 0…) = w nᵀ(x − o): small numbers, no cancellation
+        rk = u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5 + u6 * f6 + u7 * f7 - bk
+        face[k] = f_in if deep else -1
+        along[k] = v1 if f_in < 2 else v0  # a deep point's row: its face and this coordinate
+        bs[k] = bk
+        rs[k] = rk
+        s00 += u0 * u0
+        s01 += u0 * u1
+        s02 += u0 * u2
+        s03 += u0 * u3
+        s04 += u0 * u4
+        s05 += u0 * u5
+        s06 += u0 * u6
+        s07 += u0 * u7
+        s11 += u1 * u1
+        s12 += u1 * u2
+        s13 += u1 * u3
+        s14 += u1 * u4
+        s15 += u1 * u5
+        s16 += u1 * u6
+        s17 += u1 * u7
+        s22 += u2 * u2
+        s23 += u2 * u3
+        s24 += u2 * u4
+        s25 += u2 * u5
+        s26 += u2 * u6
+        s27 += u2 * u7
+        s33 += u3 * u3
+        s34 += u3 * u4
+        s35 += u3 * u5
+        s36 += u3 * u6
+        s37 += u3 * u7
+        s44 += u4 * u4
+        s45 += u4 * u5
+        s46 += u4 * u6
+        s47 += u4 * u7
+        s55 += u5 * u5
+        s56 += u5 * u6
+        s57 += u5 * u7
+        s66 += u6 * u6
+        s67 += u6 * u7
+        s77 += u7 * u7
+        ab0 += u0 * bk
+        ab1 += u1 * bk
+        ab2 += u2 * bk
+        ab3 += u3 * bk
+        ab4 += u4 * bk
+        ab5 += u5 * bk
+        ab6 += u6 * bk
+        ab7 += u7 * bk
+        rr += 0.0 if deep else rk * rk
+        w2 = 0.0 if deep else u0 * u0 + u1 * u1 + u2 * u2
+        ss += w2 * sq
         sw += w2
+    ata = np.empty((8, 8))
+    atb = np.empty(8)
+    ata[0, 0] = ata[0, 0] = s00
+    ata[0, 1] = ata[1, 0] = s01
+    ata[0, 2] = ata[2, 0] = s02
+    ata[0, 3] = ata[3, 0] = s03
+    ata[0, 4] = ata[4, 0] = s04
+    ata[0, 5] = ata[5, 0] = s05
+    ata[0, 6] = ata[6, 0] = s06
+    ata[0, 7] = ata[7, 0] = s07
+    ata[1, 1] = ata[1, 1] = s11
+    ata[1, 2] = ata[2, 1] = s12
+    ata[1, 3] = ata[3, 1] = s13
+    ata[1, 4] = ata[4, 1] = s14
+    ata[1, 5] = ata[5, 1] = s15
+    ata[1, 6] = ata[6, 1] = s16
+    ata[1, 7] = ata[7, 1] = s17
+    ata[2, 2] = ata[2, 2] = s22
+    ata[2, 3] = ata[3, 2] = s23
+    ata[2, 4] = ata[4, 2] = s24
+    ata[2, 5] = ata[5, 2] = s25
+    ata[2, 6] = ata[6, 2] = s26
+    ata[2, 7] = ata[7, 2] = s27
+    ata[3, 3] = ata[3, 3] = s33
+    ata[3, 4] = ata[4, 3] = s34
+    ata[3, 5] = ata[5, 3] = s35
+    ata[3, 6] = ata[6, 3] = s36
+    ata[3, 7] = ata[7, 3] = s37
+    ata[4, 4] = ata[4, 4] = s44
+    ata[4, 5] = ata[5, 4] = s45
+    ata[4, 6] = ata[6, 4] = s46
+    ata[4, 7] = ata[7, 4] = s47
+    ata[5, 5] = ata[5, 5] = s55
+    ata[5, 6] = ata[6, 5] = s56
+    ata[5, 7] = ata[7, 5] = s57
+    ata[6, 6] = ata[6, 6] = s66
+    ata[6, 7] = ata[7, 6] = s67
+    ata[7, 7] = ata[7, 7] = s77
+    atb[0] = ab0
+    atb[1] = ab1
+    atb[2] = ab2
+    atb[3] = ab3
+    atb[4] = ab4
+    atb[5] = ab5
+    atb[6] = ab6
+    atb[7] = ab7
     return ata, atb, rr, ss, sw
 
 
@@ -512,6 +764,46 @@ def _scored_metrics_kernel(cov, S_tol, scored, w_tol, w):  # pragma: no cover - 
     return True
 
 
+@kernel
+def _label_distances_kernel(
+    cov, G, tol_cov, scored, y_rect, phi_label, three_d, phi_out
+):  # pragma: no cover - compiled
+    """The label-error distances of a fit, in one call: S_tol = G tol_cov Gᵀ (the tolerance in φ),
+    the two metrics of :func:`_scored_metrics_kernel` (of cov + S_tol and of cov; ``scored``: the
+    scored φ entries), the form of ``y_rect`` closest to ``phi_label`` in the first
+    (:func:`_closest_form_kernel`, its φ into ``phi_out``) and the squared distances
+    δᵀ W δ of δ = φ_label − φ_form in both. Returns (ok, k, yaw_k, d² with the tolerance, d²);
+    ok False when a block is not positive definite (the rest undefined)."""
+    p = cov.shape[0]
+    gt = np.empty((p, p))  # tol_cov Gᵀ
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += tol_cov[i, k] * G[j, k]
+            gt[i, j] = acc
+    s_tol = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += G[i, k] * gt[k, j]
+            s_tol[i, j] = acc
+    w_tol, w = np.empty((p, p)), np.empty((p, p))
+    if not _scored_metrics_kernel(cov, s_tol, scored, w_tol, w):
+        return False, 0, 0.0, 0.0, 0.0
+    k, yaw = _closest_form_kernel(y_rect, phi_label, w_tol, three_d, phi_out)
+    d2_tol = d2 = 0.0
+    for i in range(p):
+        acc_tol = acc = 0.0
+        for j in range(p):
+            acc_tol += w_tol[i, j] * (phi_label[j] - phi_out[j])
+            acc += w[i, j] * (phi_label[j] - phi_out[j])
+        d2_tol += (phi_label[i] - phi_out[i]) * acc_tol
+        d2 += (phi_label[i] - phi_out[i]) * acc
+    return True, k, yaw, d2_tol, d2
+
+
 _RAY_REACH = (
     2.0  # m; rays further outside the label than this are not tracked (the candidates reach 1 m); the skip is exact
 )
@@ -547,44 +839,37 @@ def _fit_iterate_kernel(
     wfloor,
     bounds,
 ):  # pragma: no cover - compiled
+    """EM iterations of the box fit on (d, N) points from rectangle ``y_cur`` (φ ``phi``) until φ
+    moves by less than ``tol`` (at most ``max_iter``). Returns (φ, rectangle, iterations, converged).
+
+    With free-space rays the iteration is a descent (docs/label-error.md, "The suggested box"): a
+    step that raises the cost is halved back (up to ``halvings`` times), and when a step shorter
+    than ``stall`` still raises it, the fit is the last box the descent accepted (converged).
+
+    The iterations only need the mean (a linear solve). When the iteration has entered an exact
+    2-cycle (a point flipping between two faces, so that φ repeats bit for bit), it can never
+    converge: the state the iteration cap would end on is known, and is returned without running
+    the remaining iterations. Point pass, free-space ray rows, Gram product, the p × p solve and
+    the rectangle of φ are all compiled: per iteration, NumPy calls around the point pass would
+    cost as much as the pass itself.
+    """
     d = 3 if three_d else 2
-    p, n = phi.shape[0], pts_t.shape[1]
+    p = phi.shape[0]
     m = ends_t.shape[1]
-    a = np.empty((p, n))
-    b = np.empty(n)
-    sqd = np.empty(n)
-    a_r = np.empty((p, m))
-    b_r = np.empty(m)
     phi_prev = phi.copy()
     descent = halvings > 0 and m > 0  # only rays made plain steps overshoot (points alone: EM converges)
     e_prev = math.inf
     halved = 0
     it = 0
     for it in range(1, max_iter + 1):
-        _rows_kernel(y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), a, b, sqd, True)
-        ata, atb, rr = _gram_kernel(a, b, phi, descent)
+        ata, atb, rr, _, _ = _normal_eq_kernel(
+            y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), phi
+        )
         if m:
-            slack = displacement(y_cur, label, _RAY_REACH)
-            k = free_rows_kernel(
-                y_cur,
-                ends_t,
-                ox,
-                oy,
-                hz,
-                tau,
-                tau_in,
-                ray_weight,
-                slit,
-                smooth,
-                three_d,
-                a_r,
-                b_r,
-                bounds,
-                slack,
-                wfloor,
+            ata_r, atb_r, rr_r, k = _ray_normal_eq_kernel(
+                y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label
             )
             if k:
-                ata_r, atb_r, rr_r = _gram_kernel(a_r[:, :k], b_r[:k], phi, descent)
                 ata += ata_r
                 atb += atb_r
                 rr += rr_r
@@ -626,14 +911,16 @@ def _fit_iterate_kernel(
 
 @kernel
 def _ray_normal_eq_kernel(
-    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, slack
+    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label
 ):  # pragma: no cover - compiled
     """Σ aᵀa (p, p), Σ a b (p,), Σ (a·φ − b)² and the number of the ray rows of box ``y``
-    (:func:`~labelaudit.core.freespace.free_rows_kernel`; ``bounds`` and ``slack`` as there:
-    zeros and inf evaluate every ray)."""
+    (:func:`~labelaudit.core.freespace.free_rows_kernel`), skipping the rays whose ``bounds`` at
+    the ``label`` (:func:`~labelaudit.core.freespace.label_ray_terms`) rule them out — exact (bounds
+    of +inf evaluate every ray)."""
     p, m = phi.shape[0], ends_t.shape[1]
     a = np.empty((p, m))
     b = np.empty(m)
+    slack = displacement(y, label, _RAY_REACH)
     active = free_rows_kernel(
         y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, a, b, bounds, slack, wfloor
     )
@@ -674,21 +961,7 @@ def _fit_precision_kernel(
     ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
     if ends_t.shape[1]:
         ata_r, _, rr_r, _ = _ray_normal_eq_kernel(
-            y,
-            ends_t,
-            ox,
-            oy,
-            hz,
-            tau,
-            tau_in,
-            ray_weight,
-            slit,
-            smooth,
-            three_d,
-            phi,
-            wfloor,
-            bounds,
-            displacement(y, label, _RAY_REACH),
+            y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label
         )
         ata = ata + ata_r
         rr += rr_r
@@ -699,6 +972,119 @@ def _fit_precision_kernel(
         for j in range(p):
             out[i, j] = 0.5 * (prec[i, j] + prec[j, i])
     return out, rr, ss, sw
+
+
+@kernel
+def _phi_of_rect(y, three_d):  # pragma: no cover - compiled
+    """φ (p,) of a rectangle (7,) known to be valid: :func:`~labelaudit.core.geometry.phi_of_valid_box`."""
+    c, s = math.cos(y[6]), math.sin(y[6])
+    if three_d:
+        return np.array([y[0], y[1], y[2], y[3] * c, y[3] * s, y[4] * c, y[4] * s, y[5]])
+    return np.array([y[0], y[1], y[3] * c, y[3] * s, y[4] * c, y[4] * s])
+
+
+@kernel
+def _fit_em_kernel(
+    start,
+    phi,
+    pts_t,
+    three_d,
+    free_depth,
+    deep_weight,
+    outlier,
+    tol,
+    P0,
+    prior_eta,
+    phi_label,
+    label,
+    sigma,
+    inv_s2,
+    floor,
+    max_iter,
+    halvings,
+    stall,
+    ends_t,
+    ox,
+    oy,
+    hz,
+    tau,
+    tau_in,
+    ray_weight,
+    slit,
+    smooth,
+    wfloor,
+    bounds,
+    cov,
+):  # pragma: no cover - compiled
+    """One start of the box fit (:func:`_fit_em`): the descent from rectangle ``start`` (φ ``phi``),
+    the precision at the fitted rectangle, its inverse into ``cov`` (p, p). Returns (φ, fitted
+    rectangle, iterations, converged, log posterior, RMS of the points that count, whether the
+    precision was positive definite, the precision)."""
+    phi, y_cur, it, converged = _fit_iterate_kernel(
+        start,
+        phi,
+        pts_t,
+        three_d,
+        free_depth,
+        deep_weight,
+        outlier,
+        tol,
+        P0,
+        prior_eta,
+        label,
+        inv_s2,
+        floor,
+        max_iter,
+        halvings,
+        stall,
+        ends_t,
+        ox,
+        oy,
+        hz,
+        tau,
+        tau_in,
+        ray_weight,
+        slit,
+        smooth,
+        wfloor,
+        bounds,
+    )
+    phi_rect = _phi_of_rect(y_cur, three_d)
+    precision, rr, ss, sw = _fit_precision_kernel(
+        y_cur,
+        pts_t,
+        three_d,
+        free_depth,
+        deep_weight,
+        outlier,
+        sigma,
+        phi_rect,
+        P0,
+        inv_s2,
+        ends_t,
+        ox,
+        oy,
+        hz,
+        tau,
+        tau_in,
+        ray_weight,
+        slit,
+        smooth,
+        wfloor,
+        bounds,
+        label,
+    )
+    ok = linalg.spd_inverse_kernel(precision, cov)
+    p = phi_rect.shape[0]
+    quad = 0.0  # (φ_rect − φ_label)ᵀ P0 (φ_rect − φ_label)
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += P0[i, j] * (phi_rect[j] - phi_label[j])
+        quad += (phi_rect[i] - phi_label[i]) * acc
+    log_post = -0.5 * rr * inv_s2 - 0.5 * quad
+    rms = math.sqrt(ss / sw) if sw > 0 else 0.0  # distance to the surface of the points that count (not deep ones)
+    return phi, y_cur, it, converged, log_post, rms, ok, precision
 
 
 _NO_FACE_GAPS = np.full(4, np.nan)
@@ -728,53 +1114,6 @@ def _ray_inputs(free_space: FreeSpace | None, sigma: float, label: FloatArray) -
     floor, bounds = np.empty(m), np.empty(m)
     label_ray_terms(label, ends_t, ox, oy, hz5, tau, tau_in, weight, slit, _RAY_REACH, bounds, floor)
     return (ends_t, ox, oy, hz5, tau, tau_in, weight, slit, float(C.FIT_SMOOTHING), floor, bounds)
-
-
-def _fit_iterate(
-    y_cur: FloatArray,
-    phi: FloatArray,
-    pts: FloatArray,
-    tol: float,
-    P0: FloatArray,
-    prior_eta: FloatArray,
-    label: FloatArray,
-    inv_s2: float,
-    model: ModelKind,
-    rays: tuple = _NO_RAYS,
-) -> tuple[FloatArray, FloatArray, int, bool]:
-    """EM iterations of the box fit on (d, N) points until φ moves by less than ``tol`` (at most
-    FIT_MAX_ITERATIONS). Returns (φ, rectangle, iterations, converged). The arrays are float64
-    (``y_cur``, ``label`` (7,), ``phi``, ``prior_eta`` (p,), ``P0`` (p, p)).
-
-    With free-space rays the iteration is a descent (docs/label-error.md, "The suggested box"): a step
-    that raises the cost is halved back (FIT_STEP_HALVINGS), and when a step shorter than
-    FIT_STALL_STEP still raises it, the fit is the last box the descent accepted (converged).
-
-    The iterations only need the mean (a linear solve). When the iteration has entered an exact
-    2-cycle (a point flipping between two faces, so that φ repeats bit for bit), it can never
-    converge: the state the iteration cap would end on is known, and is returned without running
-    the remaining iterations. The whole loop — point pass, free-space ray rows, Gram product, the
-    p × p solve and the rectangle of φ — is one compiled call (:func:`_fit_iterate_kernel`): per
-    iteration, the NumPy calls around the point pass cost as much as the pass itself.
-    """
-    phi, y_cur, it, converged = _fit_iterate_kernel(
-        y_cur,
-        phi,
-        pts,
-        model == "3d",
-        *_fit_point_constants(),
-        float(tol),
-        P0,
-        prior_eta,
-        label,
-        float(inv_s2),
-        C.FIT_MIN_SIZE_FRACTION,
-        C.FIT_MAX_ITERATIONS,
-        int(C.FIT_STEP_HALVINGS),
-        float(C.FIT_STALL_STEP),
-        *rays,
-    )
-    return phi, y_cur, int(it), bool(converged)
 
 
 def _fit_point_constants() -> tuple[float, float, float]:
@@ -810,23 +1149,30 @@ def _fit_em(
     phi = g.phi_of_valid_box(start, model) if phi_start is None else phi_start
     if prior_eta is None:
         prior_eta = P0 @ phi_label
-    inv_s2 = 1.0 / sigma**2
-    phi, y_cur, it, converged = _fit_iterate(
-        start, phi, pts, C.FIT_TOLERANCE, P0, prior_eta, label, inv_s2, model, rays
+    cov = np.empty(P0.shape)
+    phi, y_cur, it, converged, log_post, rms, ok, precision = _fit_em_kernel(
+        start,
+        phi,
+        pts,
+        model == "3d",
+        *_fit_point_constants(),
+        float(C.FIT_TOLERANCE),
+        P0,
+        prior_eta,
+        phi_label,
+        label,
+        float(sigma),
+        1.0 / sigma**2,
+        C.FIT_MIN_SIZE_FRACTION,
+        C.FIT_MAX_ITERATIONS,
+        int(C.FIT_STEP_HALVINGS),
+        float(C.FIT_STALL_STEP),
+        *rays,
+        cov,
     )
-    phi_rect = g.phi_of_valid_box(y_cur, model)
-    precision, rr, ss, sw = _fit_precision_kernel(
-        y_cur, pts, model == "3d", *_fit_point_constants(), sigma, phi_rect, P0, inv_s2, *rays, label
-    )
-    cov = np.empty_like(precision)
-    if not linalg.spd_inverse_kernel(precision, cov):
+    if not ok:
         cov = spd_inverse(precision)  # LAPACK's verdict, or the error naming the eigenvalues
-    dphi = phi_rect - phi_label
-    log_post = -0.5 * rr * inv_s2 - 0.5 * float(dphi.dot(P0).dot(dphi))
-    rms = (
-        math.sqrt(ss / sw) if sw > 0 else 0.0
-    )  # distance to the surface of the points that count (deep-inside ones do not)
-    return phi, cov, it, converged, log_post, y_cur, rms
+    return phi, cov, int(it), bool(converged), float(log_post), y_cur, float(rms)
 
 
 def _scored_metric(S: FloatArray, fit_model: ModelKind, scored: ModelKind) -> FloatArray:
@@ -1033,9 +1379,6 @@ def fit_label_valid(
     if terms is None or not terms.matches(model, prior, params.prior_weight):  # e.g. a BEV run's, or points without z
         terms = box_prior_terms(y, prior, params.prior_weight, model)
     phi_label, P0 = terms.phi, terms.P0
-    S_tol = terms.G.dot(prior_cov_extended_cached(_tolerance_prior(), model)).dot(
-        terms.G.T
-    )  # ndarray.dot: the BLAS products of @, less overhead
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM
@@ -1061,11 +1404,26 @@ def fit_label_valid(
             best = (alt, True)
     (phi_fit, cov, iterations, converged, _, y_rect, _), is_swapped = best
 
-    W, W_fit = _scored_metrics(cov, S_tol, model, scored)
-    y_fit, phi_rect = _closest_form_phi(y_rect, phi_label, W, model)
-    delta = phi_label - phi_rect
-    d2_tol = float(delta.dot(W).dot(delta))
-    d2 = float(delta.dot(W_fit).dot(delta))
+    tol_cov = prior_cov_extended_cached(_tolerance_prior(), model)
+    phi_rect = np.empty(len(phi_label))
+    ok, k_form, yaw, d2_tol, d2 = _label_distances_kernel(
+        cov,
+        terms.G,
+        tol_cov,
+        _SCORED_ALL[len(phi_label)] if model == scored else g.BEV_OF_3D,
+        y_rect,
+        phi_label,
+        d == 3,
+        phi_rect,
+    )
+    if ok:
+        y_fit = _form(y_rect, k_form, yaw)
+    else:  # a block not positive definite: NumPy's general inverses (or LAPACK's error)
+        S_tol = terms.G.dot(tol_cov).dot(terms.G.T)
+        W, W_fit = _scored_metrics(cov, S_tol, model, scored)
+        y_fit, phi_rect = _closest_form_phi(y_rect, phi_label, W, model)
+        delta = phi_label - phi_rect
+        d2_tol, d2 = float(delta.dot(W).dot(delta)), float(delta.dot(W_fit).dot(delta))
     k = 5 if scored == "bev" else 7
     # The seen faces' gaps, at the label: the points say where a seen face's outer surface is, and a
     # right label's face lies FACE_GAP ± FACE_GAP_STD beyond it. The fit cannot say this (points deep
