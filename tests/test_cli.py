@@ -342,7 +342,8 @@ def test_the_console_script_collects_no_garbage_during_start_up_and_every_comman
 def test_infer_ends_without_the_interpreters_teardown_and_loses_nothing():
     """``labelaudit infer`` exits without tearing down its modules (an object held by a module is never
     finalised), after the exit handlers ran and buffered output was flushed, with the command's exit
-    code; another command, a text exit code or a non-daemon thread still running take the usual exit."""
+    code; another command, a text exit code, a non-daemon thread or a child process still running take
+    the usual exit."""
     import subprocess
     import sys
 
@@ -378,6 +379,8 @@ def test_infer_ends_without_the_interpreters_teardown_and_loses_nothing():
     assert run(["labelaudit", "rank", "r/"], 3)[:2] == (3, ["written", "exit handler", "torn down"])
     late = "threading.Thread(target=time.sleep, args=(0.2,)).start()"
     assert run(infer, 3, late)[:2] == (3, ["written", "exit handler", "torn down"])
+    child = "__import__('multiprocessing').get_context('fork').Process(target=time.sleep, args=(0.3,)).start()"
+    assert run(infer, 3, child)[:2] == (3, ["written", "exit handler", "torn down"])
     code, out, err = run(infer, "a message")
     assert (code, out) == (1, ["written", "exit handler", "torn down"]) and "a message" in err
 
