@@ -762,12 +762,14 @@ def _tmp_name(path: Path) -> Path:
 
 def write_parquet(table: pa.Table, sink: Any) -> None:
     """Write ``table`` as Parquet to ``sink`` (a path or a file object), as every results file is
-    written: zstd, dictionary encoding for the text columns only (a float column is all distinct
-    values: its dictionary pages cost about a third of the write and make the file larger)."""
+    written: Snappy (zstd creates a compression context per column, about half of a small shard's
+    write, for files only 2–11 % smaller), dictionary encoding for the text columns only (a float
+    column is all distinct values: its dictionary pages cost about a third of the write and make
+    the file larger)."""
     import pyarrow.parquet as pq
 
     text = [f.name for f in table.schema if pa.types.is_string(f.type) or pa.types.is_large_string(f.type)]
-    pq.write_table(table, sink, compression="zstd", use_dictionary=text)
+    pq.write_table(table, sink, compression="snappy", use_dictionary=text)
 
 
 def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
