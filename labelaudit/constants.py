@@ -203,6 +203,9 @@ MISSING_FACE_SHARE = (
     0.6,
     0.85,
 )  # the shape score rises from 0 to 1 as the share of lower-body returns on vertical faces (two slices per axis) goes from the first to the second
+MISSING_FACE_SHARE_ALL = {
+    "Car": (0.4, 0.7)
+}  # … for a cluster of these classes judged on all its returns (fewer than MISSING_FACE_MIN_LOWER lower-body returns): a car's cabin is set back from its body's ends and sides, off the body's faces
 MISSING_FILL = (
     0.1,
     0.3,

@@ -799,3 +799,35 @@ def test_a_parked_car_the_sensor_sees_over_does_not_hide_the_road_past_a_far_car
     assert off < 1.0 and score >= 0.5
     off_low, _ = _hidden_behind_a_van_past_a_parked_car(monkeypatch, 0.0)
     assert off_low > 1.0 > off
+
+
+def _car_above_its_lower_body(x0, width=1.7, step=0.1):
+    """A car straight ahead of the sensor, seen from behind (rear face at ``x0``), whose lower body
+    is hidden (behind something low ahead of it): only returns from 0.75 m up. Its body reaches
+    1.0 m; its cabin above, to 1.5 m, 0.2 m narrower, is set back 0.6 m from the rear (a simulated
+    car's cabin, :mod:`labelaudit.sim.scene`)."""
+    body = _face((x0, -width / 2), (x0, width / 2), GROUND + 0.75, GROUND + 1.0, step)
+    cabin = _face((x0 + 0.6, -width / 2 + 0.1), (x0 + 0.6, width / 2 - 0.1), GROUND + 1.05, GROUND + 1.5, step)
+    return np.vstack([body, cabin])
+
+
+@pytest.mark.parametrize("rules", ["before", "now"])
+def test_a_car_judged_on_all_its_returns_is_found_with_its_cabin_off_the_faces_and_a_bush_is_not(monkeypatch, rules):
+    """A car with no lower-body return is judged on all its returns: seen from behind, its body's
+    rear and its cabin's rear, set back, are two parallel faces and only one is counted. A car's
+    ramp on all returns (``MISSING_FACE_SHARE_ALL``) finds it; with the lower body's ramp (the rules
+    before) it scored under 0.5. A bush of a car's size whose returns are scattered in depth, judged
+    on all its returns too, is still no candidate."""
+    if rules == "before":
+        monkeypatch.setattr(C, "MISSING_FACE_SHARE_ALL", {})
+    car = _car_above_its_lower_body(28.0)
+    rng = np.random.default_rng(5)
+    bush = np.c_[
+        rng.uniform(26.0, 29.5, 400), rng.uniform(-7.5, -5.8, 400), rng.uniform(GROUND + 0.8, GROUND + 1.6, 400)
+    ]
+    trace = SearchTrace()
+    rows = find_missing(_frame(car, bush), RunConfig(), trace=trace)
+    (car_cluster,) = [c for c, _ in trace.clusters if math.hypot(c.box[0] - 30.0, c.box[1]) < 1.5]
+    assert car_cluster.class_name == "Car" and 0.0 < car_cluster.shape_score < 1.0  # share between the ramps' ends
+    assert _best(rows, 30.0, 0.0, radius=1.0) >= 0.5 if rules == "now" else _best(rows, 30.0, 0.0) < 0.5
+    assert _best(rows, 27.75, -6.65, radius=2.5) < 0.5

@@ -1469,7 +1469,11 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     length, width, yaw = (B1 - A1, B2 - A2, t) if len_axis1 else (B2 - A2, B1 - A1, t + 0.5 * math.pi)
     height = top if top_seen else max(top, mean[2])
     box = np.array([cx, cy, ground_z + 0.5 * height, length, width, height, float(g.normalize_angle(yaw))])
-    shape_score = _ramp(share, *C.MISSING_FACE_SHARE)
+    # judged on all its returns, a car's cabin (windows, roof), set back from its body's ends and
+    # sides, is on no face of the body: its share is lower than a boxy van's or truck's
+    on_all = int(np.count_nonzero((h >= lo) & (h <= hi))) < C.MISSING_FACE_MIN_LOWER
+    ramp = C.MISSING_FACE_SHARE_ALL.get(best_name, C.MISSING_FACE_SHARE) if on_all else C.MISSING_FACE_SHARE
+    shape_score = _ramp(share, *ramp)
     rect = np.array([[a1, a2], [b1, a2], [b1, b2], [a1, b2]])
     corners = centre + rect @ np.array([[c, s], [-s, c]])
     density_score = _ramp(
