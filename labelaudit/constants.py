@@ -210,6 +210,7 @@ MISSING_FILL = (
     0.1,
     0.3,
 )  # the density score rises from 0 to 1 as returns per ray over the cluster's angular extent go from the first to the second
+MISSING_FILL_SAMPLES = 9  # points along each side of a visible rectangle facing the sensor, over which its returns per ray are integrated (each direction at its own range)
 MISSING_HEADINGS = 90  # headings tried over [0, 90°) (1° steps)
 MISSING_RATE_SAMPLE = 4096  # returns sampled to estimate the sensor's rays per steradian (elevation quantiles)
 MISSING_MIN_DEPTH = 0.5  # m; KITTI: a candidate's centre must be this far in front of the camera

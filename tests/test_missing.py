@@ -12,6 +12,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+import labelaudit.infer.missing as M
 from labelaudit import constants as C
 from labelaudit import results as R
 from labelaudit.config import MissingParams, RunConfig
@@ -352,6 +353,42 @@ def test_a_car_beside_the_sensor_is_found_over_a_plates_mirror_image_under_the_r
     assert _best(rows, 7.0, -4.5, radius=3.0) < 0.5
     clean = Frame("000001", pts, labelled.box[None], ["Car"], ["000001:0"])  # no mirror image: found either way
     assert _best(find_missing(clean, RunConfig()), 4.6, 3.0, radius=1.0) >= 0.5
+
+
+@pytest.mark.parametrize("near_rays", [False, True])
+def test_a_car_parked_beside_the_sensor_is_found_and_a_bush_there_is_not(monkeypatch, near_rays):
+    """Cars parked in the next lane, 2.3–2.8 m beside the sensor (simulated sweeps): their near end
+    lies in the ego zone (no return there is searched) and their lower body under the lowest beam,
+    and their near end subtends several times the angle of their far end. Returns per ray counted
+    over the sides facing the sensor at each direction's own range, outside the ego zone and within
+    the beams, they are a solid surface and found; counted over the whole rectangle at its nearest
+    range (the rule before) they looked like a porous fragment. A bush as long beside the sensor is
+    still no candidate either way."""
+    from labelaudit.sim.raycast import LidarSpec, render_range_image
+    from labelaudit.sim.scene import VEGETATION, Scene, SimObject, make_object
+
+    if not near_rays:  # the rule before: the whole rectangle at its nearest range, every elevation
+
+        def nearest_range(n, corners, ox, oy, z_lo, z_hi, rate, elevations=None):
+            az = np.arctan2(corners[:, 1] - oy, corners[:, 0] - ox)
+            az = (az - az[0] + np.pi) % (2 * np.pi) - np.pi
+            d = float(np.min(np.hypot(corners[:, 0] - ox, corners[:, 1] - oy)))
+            solid = float(az.max() - az.min()) * max(math.atan2(z_hi, d) - math.atan2(z_lo, d), 0.0)
+            return n / max(solid * rate, 1.0)
+
+        monkeypatch.setattr(M, "_fill", nearest_range)
+
+    def best(objects, clutter, x, y):
+        scene = Scene(objects=objects, clutter=clutter)  # foliage is porous only with a generator
+        pts, _ = render_range_image(scene, LidarSpec(), None, np.random.default_rng(1)).points()
+        return _best(find_missing(Frame("000001", pts, np.zeros((0, 7)), [], []), RunConfig()), x, y, radius=1.0)
+
+    for x, y, yaw in ((1.5, -2.8, 0.3), (3.0, 2.3, 0.0), (-1.5, 2.8, 0.0)):
+        car = make_object("Car", (x, y), yaw, np.array([3.9, 1.6, 1.55]), GROUND, np.random.default_rng(0))
+        assert (best([car], [], x, y) >= 0.5) == near_rays, (x, y)
+        box = np.array([x, y, GROUND + 0.75, 3.9, 1.6, 1.5, yaw])
+        bush = SimObject(VEGETATION, box, box[None].copy(), np.array([0.4]))
+        assert best([], [bush], x, y) < 0.5, (x, y)
 
 
 def test_the_trace_says_what_became_of_each_cluster():

@@ -983,15 +983,46 @@ def _empty_at(seen_empty: NDArray, uu: NDArray, vv: NDArray, low: tuple[float, f
     return int(np.count_nonzero(seen_empty & inb))
 
 
-def _fill(n: int, corners: FloatArray, ox: float, oy: float, z_lo: float, z_hi: float, rays_per_rad2: float) -> float:
+def _fill(
+    n: int,
+    corners: FloatArray,
+    ox: float,
+    oy: float,
+    z_lo: float,
+    z_hi: float,
+    rays_per_rad2: float,
+    elevations: tuple[float, float] = (-math.pi / 2, math.pi / 2),
+) -> float:
     """Returns per ray that the visible rectangle (``corners`` (4, 2)) between the heights
     ``z_lo`` and ``z_hi`` (relative to the sensor) sends back: about 1 for a solid surface, less for
-    a porous one (vegetation, fences) or a loose fragment: the points against what the range allows."""
-    az = np.arctan2(corners[:, 1] - oy, corners[:, 0] - ox)
+    a porous one (vegetation, fences) or a loose fragment: the points against what the range allows.
+    The rays are counted over the rectangle's sides that face the sensor, each direction at its own
+    range (beside the sensor a car's near end subtends several times the angle of its far end),
+    outside the ego zone (whose returns are not searched) and within the sensor's beams
+    (``elevations``, radians: its lowest and highest): there a car's lower body lies under the
+    lowest beam, which sends no ray to it."""
+    rel = corners - np.array([ox, oy])
+    # the sides facing the sensor (the outward normal of a counter-clockwise side points away from
+    # the rectangle's inside; the sensor lies on its outer side)
+    if (rel[1, 0] - rel[0, 0]) * (rel[2, 1] - rel[0, 1]) - (rel[1, 1] - rel[0, 1]) * (rel[2, 0] - rel[0, 0]) < 0:
+        rel = rel[::-1]
+    t = np.linspace(0.0, 1.0, C.MISSING_FILL_SAMPLES)[:, None]
+    pts = []
+    for k in range(4):
+        e = rel[(k + 1) % 4] - rel[k]
+        if e[0] * rel[k, 1] - e[1] * rel[k, 0] > 0:  # the sensor (the origin) lies right of the side: outside
+            pts.append(rel[k] + t * e)
+    if not pts:
+        return 0.0
+    xy = np.vstack(pts)
+    az = np.arctan2(xy[:, 1], xy[:, 0])
     az = (az - az[0] + np.pi) % (2 * np.pi) - np.pi
-    d = float(np.min(np.hypot(corners[:, 0] - ox, corners[:, 1] - oy)))
-    el = math.atan2(z_hi, d) - math.atan2(z_lo, d)
-    solid = float(az.max() - az.min()) * max(el, 0.0)
+    d = np.hypot(xy[:, 0], xy[:, 1])
+    el = np.minimum(np.arctan2(z_hi, d), elevations[1]) - np.maximum(np.arctan2(z_lo, d), elevations[0])
+    el[d < C.MISSING_EGO_RADIUS] = 0.0  # no return there is searched (the ego zone)
+    order = np.argsort(az, kind="stable")
+    az, el = az[order], np.maximum(el[order], 0.0)
+    solid = float(np.sum(0.5 * (el[1:] + el[:-1]) * np.diff(az)))
     return n / max(solid * rays_per_rad2, 1.0)
 
 
@@ -1147,7 +1178,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     chosen = chosen_roots
     order = _gather(band_cell, comp.ravel(), wanted, starts)
     # rays per steradian of the sensor, from the frame: its returns over the band of elevations it covers
-    rays_per_rad2 = _rays_per_rad2(xyz, ox, oy, oz)
+    rays_per_rad2, elevations = _rays_per_rad2(xyz, ox, oy, oz)
     out = []
     g_total = np.bincount(group, weights=stats[:, 0], minlength=k)
     solid = (
@@ -1157,7 +1188,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
     grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k))  # + each group's cells
     sight = (counts, mask, label_top, x0, y0, cell)
-    scene = _Scene(sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, sight)
+    scene = _Scene(sizes, ox, oy, oz, top_slope, rays_per_rad2, elevations, grid, sight)
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
         first = len(out)
@@ -1199,12 +1230,14 @@ def _trace_groups(
         )
 
 
-def _rays_per_rad2(xyz: NDArray, ox: float, oy: float, oz: float) -> float:
+def _rays_per_rad2(xyz: NDArray, ox: float, oy: float, oz: float) -> tuple[float, tuple[float, float]]:
+    """The sensor's returns per steradian and the elevations its beams cover (radians, lowest and
+    highest; the 1 % and 99 % quantiles of a sample of the frame's returns)."""
     sub = np.asarray(xyz[:: max(1, len(xyz) // C.MISSING_RATE_SAMPLE)], dtype=float)
     r = np.hypot(sub[:, 0] - ox, sub[:, 1] - oy)
     el = np.arctan2(sub[:, 2] - oz, np.maximum(r, 1e-6))
     lo, hi = np.quantile(el, [0.01, 0.99])
-    return len(xyz) / max(2 * np.pi * float(hi - lo), 1e-6)
+    return len(xyz) / max(2 * np.pi * float(hi - lo), 1e-6), (float(lo), float(hi))
 
 
 def _continues(
@@ -1390,6 +1423,7 @@ class _Scene(NamedTuple):
     oz: float
     top_slope: FloatArray  # (B,) the highest return's slope per azimuth bin (the ceiling)
     rays_per_rad2: float  # returns per steradian of the frame (:func:`_rays_per_rad2`)
+    elevations: tuple[float, float]  # the lowest and highest elevation its beams cover (radians)
     grid: tuple | None  # (owner (nx, ny), x0, y0, cell, cells per group): the continuation test
     sight: (
         tuple | None
@@ -1406,7 +1440,7 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     counting as returns beside it (a wall broken by a doorway is still one wall to the continuation
     test), and the parts replace the whole when one of them scores higher than the whole.
     """
-    sizes, ox, oy, oz, top_slope, rays_per_rad2, grid, sight = scene
+    sizes, ox, oy, oz, top_slope, rays_per_rad2, elevations, grid, sight = scene
     centre = xyz[:, :2].mean(axis=0)
     xy = np.ascontiguousarray(xyz[:, :2] - centre)
     lo, hi = C.MISSING_FACE_BAND
@@ -1477,7 +1511,9 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     rect = np.array([[a1, a2], [b1, a2], [b1, b2], [a1, b2]])
     corners = centre + rect @ np.array([[c, s], [-s, c]])
     density_score = _ramp(
-        _fill(len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2),
+        _fill(
+            len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2, elevations
+        ),
         *C.MISSING_FILL,
     )
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
