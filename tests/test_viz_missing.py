@@ -102,8 +102,9 @@ def test_candidate_close_up_holds_the_dropped_cars_points(dropped):
     assert len(weak_pic.points_xy) < len(pic.points_xy)
 
 
-def test_show_command_with_candidates(dropped, tmp_path):
+def test_show_command_with_candidates(dropped, tmp_path, monkeypatch):
     _, results, _ = dropped
+    monkeypatch.chdir(tmp_path)  # the default name is written to the working folder, not the repository's
     out = tmp_path / "c.png"
     result = invoke("show", results, FRAME, "--candidate", "0", "-o", out)
     assert result.exit_code == 0, result.output
@@ -112,6 +113,7 @@ def test_show_command_with_candidates(dropped, tmp_path):
     assert result.exit_code == 0, result.output
     default_name = invoke("show", results, FRAME, "--candidate", "1")
     assert default_name.exit_code == 0 and default_name.stdout.strip() == f"show-{FRAME}-missing-1.png"
+    assert (tmp_path / f"show-{FRAME}-missing-1.png").is_file()
     for args, needle in (
         ((FRAME, "--candidate", "7"), "no candidate 7; its candidates: 0 (Car, score 0.93), 1 (Car, score 0.55)"),
         (("000000", "--candidate", "0"), "no missing-label candidate; frames with candidates nearest to it: 000001"),
