@@ -67,3 +67,21 @@ def test_compiled_symmetric_root_equals_the_lapack_form(p: int) -> None:
         assert np.abs(got - want).max() <= 1e-13 * scale * max(1.0, scale / small), trial
         np.testing.assert_allclose(got @ got, P, atol=1e-12 * lam.max())
     assert np.isnan(linalg.sqrt_psd_kernel(np.full((p, p), np.nan))).all()
+
+
+def test_matmul_kernel_sums_each_entry_in_order_and_takes_transposes() -> None:
+    """The small product the compiled kernels share: each entry is the in-order sum of its
+    products (as a Python loop writes it), so it equals a @ b to rounding and a loop exactly."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=(6, 4)), rng.normal(size=(4, 5))
+    out = np.empty((6, 5))
+    linalg.matmul_kernel(a, b, out)
+    loop = np.array([[sum((a[i, k] * b[k, j] for k in range(4)), 0.0) for j in range(5)] for i in range(6)])
+    assert np.array_equal(out, loop)
+    np.testing.assert_allclose(out, a @ b, rtol=1e-14, atol=1e-14)
+    square = rng.normal(size=(5, 5))
+    t = np.empty((5, 5))
+    linalg.matmul_kernel(square.T, square, t)  # EᵀW as the prior terms form it: a transposed view
+    tloop = [[sum((square[k, i] * square[k, j] for k in range(5)), 0.0) for j in range(5)] for i in range(5)]
+    assert np.array_equal(t, np.array(tloop))
+    np.testing.assert_allclose(t, square.T @ square, rtol=1e-14, atol=1e-14)

@@ -776,19 +776,9 @@ def _label_distances_kernel(
     ok False when a block is not positive definite (the rest undefined)."""
     p = cov.shape[0]
     gt = np.empty((p, p))  # tol_cov Gᵀ
-    for i in range(p):
-        for j in range(p):
-            acc = 0.0
-            for k in range(p):
-                acc += tol_cov[i, k] * G[j, k]
-            gt[i, j] = acc
+    linalg.matmul_kernel(tol_cov, G.T, gt)
     s_tol = np.empty((p, p))
-    for i in range(p):
-        for j in range(p):
-            acc = 0.0
-            for k in range(p):
-                acc += G[i, k] * gt[k, j]
-            s_tol[i, j] = acc
+    linalg.matmul_kernel(G, gt, s_tol)
     w_tol, w = np.empty((p, p)), np.empty((p, p))
     if not _scored_metrics_kernel(cov, s_tol, scored, w_tol, w):
         return False, 0, 0.0, 0.0, 0.0

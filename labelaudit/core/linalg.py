@@ -249,6 +249,19 @@ def sqrt_psd_kernel(a):  # pragma: no cover - compiled
 
 
 @kernel
+def matmul_kernel(a, b, out):  # pragma: no cover - compiled
+    """``out`` (n, m) = a (n, q) · b (q, m) of small matrices, each entry summed over q in order
+    (no BLAS: the same sums wherever it is called, so the kernels that share it stay bit for bit
+    reproducible). Pass a transpose as ``a.T`` or ``b.T``."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[1]):
+            acc = 0.0
+            for k in range(a.shape[1]):
+                acc += a[i, k] * b[k, j]
+            out[i, j] = acc
+
+
+@kernel
 def cholesky_kernel(M, L):  # pragma: no cover - compiled
     """The lower Cholesky factor of a small symmetric positive definite M (p, p), read from its
     lower triangle, written into L (p, p; zeros above the diagonal as given). Returns False at the

@@ -927,19 +927,9 @@ def _prior_terms_kernel(y, c, s, d, W):  # pragma: no cover - compiled
         E[col, row], E[col, row + 1] = (size * c) / det, (size * s) / det
         E[angle, row], E[angle, row + 1] = -s / det, c / det
     B = np.zeros((p, p))  # Eᵀ W
-    for i in range(p):
-        for j in range(p):
-            acc = 0.0
-            for k in range(p):
-                acc += E[k, i] * W[k, j]
-            B[i, j] = acc
+    linalg.matmul_kernel(E.T, W, B)
     P = np.zeros((p, p))
-    for i in range(p):
-        for j in range(p):
-            acc = 0.0
-            for k in range(p):
-                acc += B[i, k] * E[k, j]
-            P[i, j] = acc
+    linalg.matmul_kernel(B, E, P)
     P0 = np.empty((p, p))
     for i in range(p):
         for j in range(p):
