@@ -208,6 +208,74 @@ def test_ray_candidates_equal_brute_force_across_the_azimuth_seam():
         assert np.array_equal(got[j], want), j
 
 
+def test_passing_parts_equal_passing_rays_and_kernel_inputs_box_by_box():
+    """The frame's one call gives every box the rays through its slab and the kernels' layout that
+    passing_rays and FreeSpace.kernel_inputs give box by box, bit for bit (a sloped ground, a box
+    with no rays, rays that end in a box and rays that pass under it)."""
+    rng = np.random.default_rng(11)
+    boxes = np.array(
+        [
+            [15, 0.2, -1.0, 4, 1.8, 1.5, 0.1],
+            [-12, 3, -1.0, 4.5, 2, 1.6, 2.0],
+            [6, -9, -1, 4, 1.7, 1.5, -1.2],
+            [40, 40, -1, 4, 1.7, 1.5, 0.3],
+        ]
+    )
+    sizes = [300, 0, 120, 57]
+    ends = np.concatenate(
+        [np.c_[b[:2] + rng.normal(0, 3, (n, 2)), rng.uniform(-1.8, 0.5, n)] for b, n in zip(boxes[:3], sizes)]
+        + [np.c_[boxes[3, :2] + rng.uniform(-0.5, 0.5, (57, 2)), rng.uniform(-1.2, -0.4, 57)]]  # all end on the box
+    )
+    starts = np.r_[0, np.cumsum(sizes)]
+    grounds = np.c_[GROUND + rng.normal(0, 0.1, 4), rng.normal(0, 0.03, 4), rng.normal(0, 0.03, 4)]
+    slabs = np.c_[np.full(4, 0.25), 0.6 * boxes[:, 5]]
+    origin = np.array([0.3, -0.2, 0.1])
+    got = F.passing_parts(boxes, ends, starts, grounds, slabs, origin, 0.1, 0.3)
+    assert got.any_passing.tolist() == [True, False, True, False]
+    for j, box in enumerate(boxes):
+        s, e = starts[j], starts[j + 1]
+        fs = F.FreeSpace(
+            origin, ends[s:e], np.r_[grounds[j], 0.0], box[:2].copy(), tuple(slabs[j]), 0.1, object_height=0.3
+        )
+        passing, reach = F.passing_rays(box, fs)
+        assert np.array_equal(got.passing[s:e], passing)
+        assert np.array_equal(got.reach[s:e], reach, equal_nan=True)
+        ends_t, ox, oy, hz = fs.kernel_inputs()
+        assert np.array_equal(got.ends_t[3 * s : 3 * e].reshape(3, e - s), ends_t)
+        assert np.array_equal(got.hz[j], hz) and (ox, oy) == tuple(origin[:2])
+        preset = F.FreeSpace(
+            origin, ends[s:e], np.r_[grounds[j], 0.0], box[:2].copy(), tuple(slabs[j]), 0.1, object_height=0.3
+        )
+        preset.set_kernel_inputs(got.ends_t[3 * s : 3 * e].reshape(3, e - s), got.hz[j])
+        assert F.ray_counts(box, preset, ends[s:e]) == F.ray_counts(box, fs, ends[s:e])
+
+
+def test_neighbourhood_parts_equal_a_brute_force_crop():
+    rng = np.random.default_rng(3)
+    pts = np.c_[rng.uniform(-30, 30, (20_000, 2)), rng.uniform(-2.5, 1.0, 20_000)].astype(np.float32)
+    boxes = np.array(
+        [[15, 0.2, -1.0, 4, 1.8, 1.5, 0.1], [-12, 3, -1.0, 4.5, 2, 1.6, 2.0], [20, -1, -1, 4, 1.7, 1.5, 0.5]]
+    )
+    buckets = F.azimuth_buckets(pts, np.zeros(3), boxes, 1.5)
+    parts = F.neighbourhood_parts(buckets, boxes[1:], 1.0, 0.5, 0.2, first=1)
+    for j, box in enumerate(boxes[1:]):
+        p = pts.astype(np.float64)
+        c, s = np.cos(box[6]), np.sin(box[6])
+        qx, qy = p[:, 0] - box[0], p[:, 1] - box[1]
+        inside = (
+            (np.abs(c * qx + s * qy) <= box[3] / 2 + 1.0)
+            & (np.abs(-s * qx + c * qy) <= box[4] / 2 + 1.0)
+            & (p[:, 2] >= box[2] - box[5] / 2 - 0.5)
+            & (p[:, 2] <= box[2] + box[5] / 2 + 0.2)
+        )
+        want = np.flatnonzero(inside)
+        assert len(want) > 50
+        assert np.array_equal(parts.index_list()[j], want)
+        assert np.array_equal(parts.xyz_list()[j], p[want])
+    with pytest.raises(ValueError, match="reach"):
+        F.neighbourhood_parts(buckets, boxes, 2.0, 0.5, 0.2)
+
+
 # ------------------------------------------------------------------------ ground, neighbours, walls
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -39,12 +40,17 @@ IndexArray = NDArray[np.int64]
 __all__ = [
     "AzimuthBuckets",
     "FreeSpace",
+    "PassingParts",
+    "PointParts",
     "azimuth_buckets",
     "behind_other_returns",
     "ground_heights",
     "label_ray_terms",
+    "neighbourhood_parts",
     "neighbourhoods",
+    "passing_parts",
     "passing_rays",
+    "ray_candidate_parts",
     "ray_candidates",
     "ray_counts",
     "ray_depths",
@@ -108,6 +114,11 @@ class FreeSpace:
         the sensor's x, y; hz = (sensor height above the ground, slab bottom, slab top, object
         height). Computed once per box (the fit and both counts use it)."""
         return self._inputs
+
+    def set_kernel_inputs(self, ends_t: FloatArray, hz: FloatArray) -> None:
+        """Hand over :meth:`kernel_inputs`' ``ends_t`` (3, M) and ``hz`` (4,) computed elsewhere with
+        the same operations (:func:`passing_parts`), instead of computing them on first use."""
+        self.__dict__["_inputs"] = (ends_t, float(self.origin[0]), float(self.origin[1]), hz)
 
 
 def ground_heights(points: ArrayLike, ground: ArrayLike, ref: ArrayLike) -> FloatArray:
@@ -461,6 +472,99 @@ def _passing_kernel(y, ends, o, dep, t, tau, h_end, object_height, passing, reac
         dx, dy, dz = ends[k, 0] - o[0], ends[k, 1] - o[1], ends[k, 2] - o[2]
         passing[k] = True
         reach[k] = t[k] * math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+class PassingParts(NamedTuple):
+    """:func:`passing_parts` of B boxes whose rays are the parts ``starts`` of a flat (M, 3) array.
+
+    Attributes
+    ----------
+    ends_t : (3 M,) box j's :meth:`FreeSpace.kernel_inputs` ``ends_t`` is ``ends_t[3 s:3 e]`` as (3, e − s),
+        with s, e = starts[j], starts[j + 1]
+    hz : (B, 4) each box's ``hz`` of :meth:`FreeSpace.kernel_inputs`
+    passing, reach : (M,) :func:`passing_rays` of every box's rays, in the rays' order
+    any_passing : (B,) whether a ray of the box passes
+    """
+
+    ends_t: FloatArray
+    hz: FloatArray
+    passing: NDArray[np.bool_]
+    reach: FloatArray
+    any_passing: NDArray[np.bool_]
+
+
+def passing_parts(
+    boxes: ArrayLike,
+    ends: FloatArray,
+    starts: IndexArray,
+    grounds: ArrayLike,
+    slabs: ArrayLike,
+    origin: ArrayLike,
+    tolerance: float,
+    object_height: float,
+) -> PassingParts:
+    """:func:`passing_rays` and the kernels' layout (:meth:`FreeSpace.kernel_inputs`) of B boxes in
+    one compiled call: box j's rays are ``ends[starts[j]:starts[j + 1]]`` (float64), its
+    :class:`FreeSpace` has the ground ``grounds[j]`` (g0, gx, gy) about its BEV centre, the slab
+    ``slabs[j]``, the sensor ``origin`` and τ = ``tolerance``. The same operations, in the same
+    order, as those functions box by box."""
+    b = np.ascontiguousarray(boxes, dtype=float).reshape(-1, 7)
+    e = np.ascontiguousarray(ends, dtype=float).reshape(-1, 3)
+    m = len(e)
+    out = PassingParts(
+        np.empty(3 * m),
+        np.empty((len(b), 4)),
+        np.zeros(m, dtype=np.bool_),
+        np.full(m, np.nan),
+        np.zeros(len(b), dtype=np.bool_),
+    )
+    _passing_parts_kernel(
+        b,
+        e,
+        np.ascontiguousarray(starts, dtype=np.int64),
+        np.ascontiguousarray(np.asarray(grounds, dtype=float)[:, :3]),
+        np.ascontiguousarray(slabs, dtype=float),
+        np.asarray(origin, dtype=float).reshape(3),
+        float(tolerance),
+        float(object_height),
+        *out,
+    )
+    return out
+
+
+@kernel
+def _passing_parts_kernel(
+    boxes, ends, starts, grounds, slabs, o, tau, object_height, ends_t, hz, passing, reach, any_passing
+):  # pragma: no cover - compiled
+    """:func:`passing_parts`: per box, :func:`height_layout` of its rays and the sensor's height
+    about its centre (as :meth:`FreeSpace.kernel_inputs`), then :func:`ray_depths` and
+    :func:`passing_rays`."""
+    for j in range(boxes.shape[0]):
+        y = boxes[j]
+        s, e = starts[j], starts[j + 1]
+        m = e - s
+        g0, gx, gy = grounds[j, 0], grounds[j, 1], grounds[j, 2]
+        hz[j, 0] = o[2] - (g0 + gx * (o[0] - y[0]) + gy * (o[1] - y[1]))
+        hz[j, 1], hz[j, 2], hz[j, 3] = slabs[j, 0], slabs[j, 1], object_height
+        if m == 0:
+            continue
+        lay = np.empty((3, m))
+        for k in range(m):
+            x, yk, zk = ends[s + k, 0], ends[s + k, 1], ends[s + k, 2]
+            lay[0, k] = x
+            lay[1, k] = yk
+            lay[2, k] = zk - (g0 + gx * (x - y[0]) + gy * (yk - y[1]))
+        for r in range(3):
+            for k in range(m):
+                ends_t[3 * s + r * m + k] = lay[r, k]
+        dep = np.empty(m)
+        t = np.empty(m)
+        _depths_kernel(y, lay, o[0], o[1], hz[j], dep, t)
+        _passing_kernel(y, ends[s:e], o, dep, t, tau, lay[2], object_height, passing[s:e], reach[s:e])
+        for k in range(s, e):
+            if passing[k]:
+                any_passing[j] = True
+                break
 
 
 def through_own_returns(
@@ -899,55 +1003,87 @@ def ray_candidates(
         return [np.empty(0, dtype=np.int64) for _ in range(k)], [np.empty((0, 3)) for _ in range(k)]
     if buckets is None or buckets.reach < reach:
         buckets = azimuth_buckets(points, o, b, reach, nbins)
-    bk = buckets
     g = np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3])
     sl = np.ascontiguousarray(slabs, dtype=float)
-    sizes = bk.window_sizes()
     result: list[IndexArray] = []
     ends: list[FloatArray] = []
     for j0 in range(0, k, _BATCH):  # batches bound the buffer in frames of thousands of boxes
         j1 = min(k, j0 + _BATCH)
-        out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
-        counts = np.zeros(j1 - j0, dtype=np.int64)
-        pos = _select_kernel(
-            bk.sorted_xyz,
-            bk.order,
-            bk.starts,
-            bk.ranges[j0:j1],
-            bk.near2[j0:j1],
-            b[j0:j1],
-            g[j0:j1],
-            o[0],
-            o[1],
-            o[2],
-            float(reach),
-            sl[j0:j1],
-            out,
-            counts,
-        )
-        _split(bk.xyz, out[:pos], counts, result, ends)  # the kernel writes the boxes' candidates one after the other
+        parts = ray_candidate_parts(buckets, b[j0:j1], g[j0:j1], sl[j0:j1], o, reach, first=j0)
+        result.extend(parts.index_list())
+        ends.extend(parts.xyz_list())
     return result, ends
 
 
-def _split(
-    pts: NDArray, idx: IndexArray, counts: IndexArray, out_idx: list[IndexArray], out_xyz: list[FloatArray]
-) -> None:
-    """Append each box's part of the kernels' flat output (its ``counts[j]`` entries, one box after
-    the other), sorted, and its points ``pts[part, :3]`` as float64. The sort is NumPy's (SIMD), not
+@dataclass(frozen=True)
+class PointParts:
+    """A selection of the frame's points for each of B boxes, in one flat buffer: box j's part is
+    ``idx[starts[j]:starts[j + 1]]`` (sorted indices into the frame) and the same rows of ``xyz``
+    (their x, y, z as float64, converted exactly)."""
+
+    idx: IndexArray
+    xyz: FloatArray
+    starts: IndexArray
+
+    def index_list(self) -> list[IndexArray]:
+        """Each box's indices (views of ``idx``)."""
+        s = self.starts.tolist()
+        return [self.idx[a:b] for a, b in zip(s, s[1:])]
+
+    def xyz_list(self) -> list[FloatArray]:
+        """Each box's points (n_j, 3) (views of ``xyz``)."""
+        s = self.starts.tolist()
+        return [self.xyz[a:b] for a, b in zip(s, s[1:])]
+
+
+def ray_candidate_parts(
+    buckets: AzimuthBuckets,
+    boxes: ArrayLike,
+    ground: ArrayLike,
+    slabs: ArrayLike,
+    origin: ArrayLike,
+    reach: float,
+    first: int = 0,
+) -> PointParts:
+    """:func:`ray_candidates` of the boxes (B, 7) that are boxes ``first`` … ``first + B − 1`` of
+    ``buckets`` (made with at least this reach), as one :class:`PointParts` (B bounds its buffer)."""
+    b = np.ascontiguousarray(boxes, dtype=float).reshape(-1, 7)
+    o = np.asarray(origin, dtype=float).reshape(3)
+    if buckets.reach < reach:
+        raise ValueError(f"buckets reach {buckets.reach} m, the ray candidates need {reach} m")
+    j0, j1 = first, first + len(b)
+    bk = buckets
+    out = np.empty(int(bk.window_sizes()[j0:j1].sum()), dtype=np.int64)
+    counts = np.zeros(len(b), dtype=np.int64)
+    pos = _select_kernel(
+        bk.sorted_xyz,
+        bk.order,
+        bk.starts,
+        bk.ranges[j0:j1],
+        bk.near2[j0:j1],
+        b,
+        np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3]),
+        o[0],
+        o[1],
+        o[2],
+        float(reach),
+        np.ascontiguousarray(slabs, dtype=float),
+        out,
+        counts,
+    )
+    return _parts(bk.xyz, out[:pos], counts)  # the kernel writes the boxes' candidates one after the other
+
+
+def _parts(pts: NDArray, idx: IndexArray, counts: IndexArray) -> PointParts:
+    """The kernels' flat output (box after box, ``counts[j]`` entries each) with each box's part
+    sorted in place, and the points ``pts[idx, :3]`` as float64. The sort is NumPy's (SIMD), not
     numba's, which is several times slower on these sizes."""
-    pos = 0
-    parts = []
-    for c in counts.tolist():
-        part = idx[pos : pos + c]
-        part.sort()
-        parts.append(part)
-        pos += c
-    xyz = _gather_xyz(pts, idx[:pos])
-    pos = 0
-    for part in parts:
-        out_idx.append(part)
-        out_xyz.append(xyz[pos : pos + len(part)])
-        pos += len(part)
+    starts = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
+    s = starts.tolist()
+    for a, b in zip(s, s[1:]):
+        idx[a:b].sort()
+    return PointParts(idx, _gather_xyz(pts, idx), starts)
 
 
 @kernel
@@ -969,29 +1105,39 @@ def neighbourhoods(
     the frame per box. Returns the indices (views of one buffer: copy one to keep it alone) and the points'
     xyz (n_j, 3) float64 of each box."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
-    if buckets.reach < margin:
-        raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
-    sizes = buckets.window_sizes()
     result: list[IndexArray] = []
     xyz: list[FloatArray] = []
     for j0 in range(0, len(b), _BATCH):
-        j1 = min(len(b), j0 + _BATCH)
-        out = np.empty(int(sizes[j0:j1].sum()), dtype=np.int64)
-        counts = np.zeros(j1 - j0, dtype=np.int64)
-        pos = _region_kernel(
-            buckets.sorted_xyz,
-            buckets.order,
-            buckets.starts,
-            np.ascontiguousarray(buckets.ranges[j0:j1]),
-            b[j0:j1],
-            float(margin),
-            float(below),
-            float(above),
-            out,
-            counts,
-        )
-        _split(buckets.xyz, out[:pos], counts, result, xyz)
+        parts = neighbourhood_parts(buckets, b[j0 : j0 + _BATCH], margin, below, above, first=j0)
+        result.extend(parts.index_list())
+        xyz.extend(parts.xyz_list())
     return result, xyz
+
+
+def neighbourhood_parts(
+    buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float, first: int = 0
+) -> PointParts:
+    """:func:`neighbourhoods` of the boxes (B, 7) that are boxes ``first`` … ``first + B − 1`` of
+    ``buckets``, as one :class:`PointParts` (B bounds its buffer)."""
+    b = np.ascontiguousarray(boxes, dtype=float).reshape(-1, 7)
+    if buckets.reach < margin:
+        raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
+    j0, j1 = first, first + len(b)
+    out = np.empty(int(buckets.window_sizes()[j0:j1].sum()), dtype=np.int64)
+    counts = np.zeros(len(b), dtype=np.int64)
+    pos = _region_kernel(
+        buckets.sorted_xyz,
+        buckets.order,
+        buckets.starts,
+        np.ascontiguousarray(buckets.ranges[j0:j1]),
+        b,
+        float(margin),
+        float(below),
+        float(above),
+        out,
+        counts,
+    )
+    return _parts(buckets.xyz, out[:pos], counts)
 
 
 _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (frames of thousands of boxes)

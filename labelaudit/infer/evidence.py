@@ -44,9 +44,9 @@ from labelaudit.core.freespace import (
     azimuth_buckets,
     behind_other_returns,
     ground_heights,
-    neighbourhoods,
-    passing_rays,
-    ray_candidates,
+    neighbourhood_parts,
+    passing_parts,
+    ray_candidate_parts,
     through_own_returns,
 )
 from labelaudit.core.geometry import rotation_z
@@ -175,93 +175,190 @@ def frame_evidence(
     wide = max(crop.fit_margin, crop.margin, C.GROUND_MARGIN, tau)
     # one pass sorts the frame's points by azimuth; every box's neighbourhood and rays come from its window
     buckets = azimuth_buckets(points, origin, b, max(wide, C.FREE_SPACE_REACH))
-    # each neighbourhood's indices and its points as float64 (converted exactly), gathered once
-    near, near_xyz = neighbourhoods(buckets, b, wide, C.GROUND_WINDOW, tau)
     sel = selection_boxes(b, crop.margin, crop.ground_cut)  # the model's crop regions, as Open3D sees them
     rotations = rotation_z(sel[:, 6])
-    grounds = np.empty((len(b), 3))
-    ground_z = np.full(len(b), np.nan)
-    for j, box in enumerate(b):
-        plane = ground_plane(near_xyz[j], box)
-        if plane is None:
-            grounds[j] = (box[2] - box[5] / 2, 0.0, 0.0)
-        else:
-            grounds[j] = plane
-            ground_z[j] = plane[0]
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
-    ray_idx, ray_ends = ray_candidates(points, origin, b, grounds, slabs, C.FREE_SPACE_REACH, buckets=buckets)
-    if ray_mask is not None:  # e.g. Waymo: other lidars and second returns are no rays from the origin
-        mask = np.asarray(ray_mask, dtype=bool)
-        ray_ends = [ends[mask[idx]] for idx, ends in zip(ray_idx, ray_ends)]
-    out = []
     o = np.asarray(origin, dtype=float).reshape(3)
-    planes = np.zeros((len(b), 4))  # (g0, gx, gy, unused)
-    planes[:, :3] = grounds
-    slab_list = slabs.tolist()
-    ground_list = ground_z.tolist()
-    close_all = np.zeros((0, len(others)), dtype=bool)
-    for j, box in enumerate(b):
-        if j % _BATCH == 0:  # the other labels the fit margins of the next boxes can reach (never the box itself)
-            bb = b[j : j + _BATCH]
-            reach = (
-                np.hypot(bb[:, 3], bb[:, 4])[:, None] / 2
-                + np.hypot(others[:, 3], others[:, 4])[None, :] / 2
-                + crop.fit_margin
-                + C.NEIGHBOUR_MARGIN
-            )
-            close_all = np.hypot(bb[:, None, 0] - others[None, :, 0], bb[:, None, 1] - others[None, :, 1]) <= reach
-            close_all &= ~np.all(bb[:, None, :] == others[None, :, :], axis=2)
-        idx = near[j]
-        model_idx, fit_idx, n_foreign, n_scenery = _box_crops(
-            near_xyz[j],
-            idx,
-            box,
-            grounds[j],
-            others[close_all[j % _BATCH]],
+    mask = None if ray_mask is None else np.asarray(ray_mask, dtype=bool)
+    out: list[BoxEvidence] = []
+    for j0 in range(0, len(b), _BATCH):  # batches bound the buffers in frames of thousands of boxes
+        bb = b[j0 : j0 + _BATCH]
+        # each neighbourhood's indices and its points as float64 (converted exactly), gathered once
+        near = neighbourhood_parts(buckets, bb, wide, C.GROUND_WINDOW, tau, first=j0)
+        # the other labels the fit margins of these boxes can reach (never the box itself)
+        reach = (
+            np.hypot(bb[:, 3], bb[:, 4])[:, None] / 2
+            + np.hypot(others[:, 3], others[:, 4])[None, :] / 2
+            + crop.fit_margin
+            + C.NEIGHBOUR_MARGIN
+        )
+        close = np.hypot(bb[:, None, 0] - others[None, :, 0], bb[:, None, 1] - others[None, :, 1]) <= reach
+        close &= ~np.all(bb[:, None, :] == others[None, :, :], axis=2)
+        # every box's local ground and both crops, in one compiled call
+        grounds = np.empty((len(bb), 3))
+        found = np.zeros(len(bb), dtype=np.bool_)
+        counts = np.zeros((len(bb), 4), dtype=np.int64)
+        model_flat, fit_flat = _crops_kernel(
+            near.xyz,
+            near.idx,
+            near.starts,
+            bb,
+            others,
+            close,
             crop.fit_margin,
             crop.ground_cut,
             C.NEIGHBOUR_MARGIN,
             C.SCENERY_VOXEL,
+            sel[j0 : j0 + _BATCH],
+            rotations[j0 : j0 + _BATCH],
+            _GROUND_DRAWS,
+            C.GROUND_SCORED,
+            C.GROUND_MARGIN,
+            C.GROUND_WINDOW,
+            C.GROUND_INLIER,
+            C.GROUND_MIN_POINTS,
+            C.GROUND_MAX_SLOPE,
+            grounds,
+            found,
+            counts,
+        )
+        rays = ray_candidate_parts(buckets, bb, grounds, slabs[j0 : j0 + _BATCH], o, C.FREE_SPACE_REACH, first=j0)
+        ends, starts = rays.xyz, rays.starts
+        if mask is not None:  # e.g. Waymo: other lidars and second returns are no rays from the origin
+            keep = mask[rays.idx]
+            ends = ends[keep]
+            starts = np.concatenate([[0], np.cumsum(keep)])[starts]
+        # every box's rays in the kernels' layout, and the ones that pass through its slab
+        crossing = passing_parts(bb, ends, starts, grounds, slabs[j0 : j0 + _BATCH], o, tau, crop.ground_cut)
+        ground_z = np.where(found, grounds[:, 0], np.nan).tolist()
+        planes = np.zeros((len(bb), 4))  # (g0, gx, gy, unused)
+        planes[:, :3] = grounds
+        s_near, s_ray = near.starts.tolist(), starts.tolist()
+        model_at = np.zeros(len(bb) + 1, dtype=np.int64)
+        fit_at = np.zeros(len(bb) + 1, dtype=np.int64)
+        np.cumsum(counts[:, 0], out=model_at[1:])
+        np.cumsum(counts[:, 1], out=fit_at[1:])
+        m_at, f_at = model_at.tolist(), fit_at.tolist()
+        for j, (box, (slab0, slab1), (n_foreign, n_scenery), seen) in enumerate(
+            zip(bb, slabs[j0 : j0 + _BATCH].tolist(), counts[:, 2:].tolist(), crossing.any_passing.tolist())
+        ):
+            r0, r1 = s_ray[j], s_ray[j + 1]
+            fs = FreeSpace(
+                origin=o,
+                ends=ends[r0:r1],
+                ground=planes[j],
+                ref=box[:2].copy(),
+                slab=(slab0, slab1),
+                tolerance=tau,
+                inside_tolerance=tau_in,
+                object_height=crop.ground_cut,
+            )
+            fs.set_kernel_inputs(crossing.ends_t[3 * r0 : 3 * r1].reshape(3, r1 - r0), crossing.hz[j])
+            near_xyz = near.xyz[s_near[j] : s_near[j + 1]]
+            # rays that passed beyond the box's own returns saw through the object (under its chassis,
+            # through glass), and second returns went on through something nearer: not empty space inside the box
+            n_through = 0
+            if seen:  # most right labels have no ray through them at all
+                own = _own_returns(near_xyz, box, planes[j], tau, crop.ground_cut)
+                passing = (crossing.passing[r0:r1], crossing.reach[r0:r1])
+                through = through_own_returns(box, fs, own, C.FREE_SPACE_SIGHT_ANGLE, passing) | behind_other_returns(
+                    box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE, passing
+                )
+                n_through = int(through.sum())
+                if n_through:
+                    fs = replace(fs, ends=fs.ends[~through])
+            out.append(
+                BoxEvidence(
+                    model_flat[m_at[j] : m_at[j + 1]],
+                    fit_flat[f_at[j] : f_at[j + 1]],
+                    near.idx[s_near[j] : s_near[j + 1]],
+                    fs,
+                    ground_z[j],
+                    n_foreign,
+                    n_scenery,
+                    n_through,
+                    near_xyz,
+                )
+            )
+    return out
+
+
+@kernel
+def _crops_kernel(
+    xyz,
+    idx,
+    starts,
+    boxes,
+    others,
+    close,
+    fit_margin,
+    cut,
+    nb_margin,
+    cell,
+    sel,
+    R,
+    draws,
+    scored,
+    g_margin,
+    g_window,
+    g_inlier,
+    g_min_points,
+    g_max_slope,
+    grounds,
+    found,
+    counts,
+):  # pragma: no cover - compiled
+    """Every box's local ground (:func:`ground_plane`; the box bottom where none is found) and crops
+    (:func:`_box_crops` against the other labels ``close`` to it) from its neighbourhood, the part
+    ``starts[j]:starts[j + 1]`` of ``xyz`` (n, 3) and ``idx`` (n,): the grounds (B, 3), whether
+    each was found (B,), per box (model crop size, fit crop size, foreign points, scenery points)
+    (B, 4), and the model's and the fit's crops, box after box (flat)."""
+    n_all = xyz.shape[0]
+    model_flat = np.empty(n_all, dtype=np.int64)
+    fit_flat = np.empty(n_all, dtype=np.int64)
+    near = np.empty((others.shape[0], 7))
+    plane = np.empty(3)
+    a = c = 0
+    for j in range(boxes.shape[0]):
+        box = boxes[j]
+        s, e = starts[j], starts[j + 1]
+        pts = xyz[s:e]
+        if _ground_kernel(pts, box, draws, scored, g_margin, g_window, g_inlier, g_min_points, g_max_slope, plane):
+            grounds[j, 0], grounds[j, 1], grounds[j, 2] = plane[0], plane[1], plane[2]
+            found[j] = True
+        else:
+            grounds[j, 0], grounds[j, 1], grounds[j, 2] = box[2] - box[5] / 2, 0.0, 0.0
+        m = 0
+        for i in range(others.shape[0]):
+            if close[j, i]:
+                for f in range(7):
+                    near[m, f] = others[i, f]
+                m += 1
+        model_idx, fit_idx, n_foreign, n_scenery = _box_crops(
+            pts,
+            idx[s:e],
+            box,
+            grounds[j],
+            near[:m],
+            fit_margin,
+            cut,
+            nb_margin,
+            cell,
             sel[j],
-            rotations[j],
+            R[j],
             sel[j, 5] > 0,
         )
-        fs = FreeSpace(
-            origin=o,
-            ends=ray_ends[j],
-            ground=planes[j],
-            ref=box[:2].copy(),
-            slab=(slab_list[j][0], slab_list[j][1]),
-            tolerance=tau,
-            inside_tolerance=tau_in,
-            object_height=crop.ground_cut,
+        model_flat[a : a + model_idx.shape[0]] = model_idx
+        fit_flat[c : c + fit_idx.shape[0]] = fit_idx
+        a += model_idx.shape[0]
+        c += fit_idx.shape[0]
+        counts[j, 0], counts[j, 1], counts[j, 2], counts[j, 3] = (
+            model_idx.shape[0],
+            fit_idx.shape[0],
+            n_foreign,
+            n_scenery,
         )
-        # rays that passed beyond the box's own returns saw through the object (under its chassis,
-        # through glass), and second returns went on through something nearer: not empty space inside the box
-        crossing = passing_rays(box, fs)
-        n_through = 0
-        if crossing[0].any():  # most right labels have no ray through them at all
-            own = _own_returns(near_xyz[j], box, planes[j], tau, crop.ground_cut)
-            through = through_own_returns(box, fs, own, C.FREE_SPACE_SIGHT_ANGLE, crossing) | behind_other_returns(
-                box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE, crossing
-            )
-            n_through = int(through.sum())
-            if n_through:
-                fs = replace(fs, ends=fs.ends[~through])
-        out.append(
-            BoxEvidence(
-                model_idx,
-                fit_idx,
-                idx,
-                fs,
-                ground_list[j],
-                int(n_foreign),
-                int(n_scenery),
-                n_through,
-                near_xyz[j],
-            )
-        )
-    return out
+    return model_flat[:a], fit_flat[:c]
 
 
 def _own_returns(xyz: FloatArray, box: FloatArray, plane: FloatArray, tau: float, cut: float) -> FloatArray:
