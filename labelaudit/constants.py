@@ -232,6 +232,10 @@ MISSING_CLASS_MIN_TOP = {
 MISSING_CLASS_MIN_CORNER = {
     "Truck": (1.0, 1.5)
 }  # m; classes seen only as an L-shape: the size score rises from 0 to 1 as the shorter leg (the rear or the front beside the side) goes from the first to the second (a stretch of wall has one face)
+MISSING_CLASS_REAR_WIDTH = {
+    "Truck": 2.2
+}  # m; a face at least this wide (and no wider than the class's largest width) whose returns reach the class's roof (MISSING_CLASS_MIN_TOP, or the beams' reach) is that class seen from behind or ahead: no L-shape asked, and it is chosen over smaller classes (KITTI widths: Van 1.90 ± 0.12, Truck 2.58 ± 0.15 m; 2.2 m lies as many deviations from either)
+MISSING_REAR_FILL = 0.7  # … and whose returns per ray over it (MISSING_FILL's measure) reach this: a truck's rear is one solid panel square to the rays (a building's front with windows or glass sends back a third)
 MISSING_IMAGE_SLACK = 100.0  # px; KITTI: clusters whose centroid projects this far outside image_2 are not boxed (a candidate's centre must project inside)
 MISSING_FRAGMENT_POINTS = 3  # components with fewer returns are not joined to others (noise)
 MISSING_MERGE_GAP = (

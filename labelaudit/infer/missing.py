@@ -837,6 +837,33 @@ def _size_match(
     return s
 
 
+def _rear_view(
+    vis_l: float,
+    facing: bool,
+    top: float,
+    fill: float,
+    width: float,
+    rear_width: float | None,
+    min_top: float | None,
+) -> bool:
+    """Whether a cluster is a class seen from behind or ahead by its face alone: its longer visible
+    side (m) as wide as the class (at least ``rear_width``, at most its largest ``width``) and
+    ``facing`` the sensor (the line of sight nearer that side's normal than the side itself: a rear
+    seen from behind; a wall seen at a grazing angle is a side), its returns reaching the class's
+    roof (``top`` ≥ ``min_top``, m above the ground; near the sensor the beams' reach says nothing:
+    a car reaches it there) and sending back at least ``MISSING_REAR_FILL`` returns per ray
+    (``fill``, :func:`_fill`). A truck's rear is wider than any van's, as high as a truck and one
+    solid panel square to the rays; its side is hidden behind it, so it shows no L-shape."""
+    return (
+        rear_width is not None
+        and min_top is not None
+        and facing
+        and rear_width <= vis_l <= width
+        and top >= min_top
+        and fill >= C.MISSING_REAR_FILL
+    )
+
+
 def _grow(a: float, b: float, size: float, sensor: float) -> tuple[float, float]:
     """Grow the visible extent [a, b] along one axis to ``size``, away from the sensor (its
     projection ``sensor``): the sides the sensor cannot see are behind the visible ones."""
@@ -1473,17 +1500,24 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     # smaller and would place the box far off), else the best-fitting one
     gap = near * math.tan(math.radians(C.MISSING_BEAM_GAP))
     corner = min(_face_lengths(xy, c, s, C.MISSING_FACE_WIDTH))  # the shorter leg of an L-shape (≈ 0: one face)
-    fits = [
-        (
-            _size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap, C.MISSING_CLASS_MIN_TOP.get(name))
-            * _ramp(corner, *C.MISSING_CLASS_MIN_CORNER.get(name, (0.0, 0.0))),
-            name,
-        )
-        for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0])
-    ]
+    rect = np.array([[a1, a2], [b1, a2], [b1, b2], [a1, b2]])
+    corners = centre + rect @ np.array([[c, s], [-s, c]])
+    fill = _fill(
+        len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2, elevations
+    )
+    facing = (e1 >= e2) != (abs(po) >= abs(qo))  # the longer side square to the line of sight (a rear, not a side)
+    fits = []
+    for name, (mean, largest) in sorted(sizes.items(), key=lambda kv: kv[1][0][0]):
+        min_top = C.MISSING_CLASS_MIN_TOP.get(name)
+        m = _size_match(vis_l, vis_w, top, top_seen, ceiling, mean, largest, gap, min_top)
+        rear = _rear_view(vis_l, facing, top + gap, fill, largest[1], C.MISSING_CLASS_REAR_WIDTH.get(name), min_top)
+        if not rear:
+            m *= _ramp(corner, *C.MISSING_CLASS_MIN_CORNER.get(name, (0.0, 0.0)))
+        fits.append((m, name, rear))
     size_score, best_name = next(
-        ((m, name) for m, name in fits if m >= C.MISSING_CLASS_FIT), max(fits, key=lambda f: f[0])
-    )  # ties: the smaller
+        ((m, name) for m, name, rear in fits if rear and m >= C.MISSING_CLASS_FIT),
+        next(((m, name) for m, name, _ in fits if m >= C.MISSING_CLASS_FIT), max(fits, key=lambda f: f[0])[:2]),
+    )  # a class seen from behind first, then the smallest that fits (ties: the smaller)
     mean, _ = sizes[best_name]
     # which axis is the length: the longer visible one, unless both fit in a width (a car seen
     # head-on or from behind): then the axis nearer the line of sight
@@ -1508,14 +1542,7 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     on_all = int(np.count_nonzero((h >= lo) & (h <= hi))) < C.MISSING_FACE_MIN_LOWER
     ramp = C.MISSING_FACE_SHARE_ALL.get(best_name, C.MISSING_FACE_SHARE) if on_all else C.MISSING_FACE_SHARE
     shape_score = _ramp(share, *ramp)
-    rect = np.array([[a1, a2], [b1, a2], [b1, b2], [a1, b2]])
-    corners = centre + rect @ np.array([[c, s], [-s, c]])
-    density_score = _ramp(
-        _fill(
-            len(xyz), corners, ox, oy, ground_z + C.MISSING_BAND[0] - oz, ground_z + top - oz, rays_per_rad2, elevations
-        ),
-        *C.MISSING_FILL,
-    )
+    density_score = _ramp(fill, *C.MISSING_FILL)
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     body = (A1, B1, A2, B2)
     if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, body):
