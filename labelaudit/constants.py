@@ -308,6 +308,13 @@ MISSING_CEILING_SPREAD = 1.5  # deg; the top beam in a direction is taken no low
 MISSING_FACE_TIE = (
     0.1  # headings whose face share is within this of the best one tie; the tightest rectangle among them wins
 )
+MISSING_SURFACE_ROUGH = (
+    0.035,
+    0.06,
+)  # m; the shape score is scaled from 1 to 0 as the median distance of a cluster's returns from the line of their neighbours along the beam goes from the first to the second (a car's body: the range noise, ~0.01–0.02; foliage: returns from anywhere in its depth)
+MISSING_SURFACE_BEAM_GAP = 0.1  # deg; returns closer than this in elevation seen from the sensor are one beam's (HDL-64E beams are 0.33–0.5° apart)
+MISSING_SURFACE_STEP = 1.0  # deg; a beam's neighbouring return farther than this in azimuth is on another surface
+MISSING_SURFACE_MIN_RETURNS = 8  # a cluster with fewer returns between beam neighbours keeps its shape score
 
 # --- KITTI (official object devkit, evaluate_object.cpp) ---
 KITTI_IMAGE_SIZE = (

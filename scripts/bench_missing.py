@@ -220,6 +220,7 @@ def bench_sim(
     n_false = n_frames = 0
     seconds = 0.0
     misses = []
+    falses = []
     for n_ref, ref in enumerate(reader.list_units()):
         frame = next(reader.load_unit(ref))
         trace = SearchTrace() if why else None
@@ -264,6 +265,10 @@ def bench_sim(
         for c in cands:
             if all(math.hypot(c["cx"] - o["true_cx"], c["cy"] - o["true_cy"]) > 2.0 for o in vehicles):
                 n_false += 1
+                falses.append(
+                    f"    seed {seed} {frame.frame_id} candidate {c['class_name']} at ({c['cx']:.1f}, {c['cy']:.1f})"
+                    f" {c['distance']:.0f} m, {c['num_points']} points, score {c['score']:.2f} ({_factors(c)})"
+                )
                 false_by[f"distance {_bin(c['distance'], DIST_BINS)} m"] += 1
                 false_by[f"points {_bin(c['num_points'], POINT_BINS)}"] += 1
     tally = {
@@ -273,6 +278,7 @@ def bench_sim(
         "false_by": false_by,
         "frames": n_frames,
         "misses": misses,
+        "falses": falses,
         "seconds": seconds,
         "timed": max(n_frames - 2, 1),
     }
@@ -311,6 +317,9 @@ def _print_sim(title: str, t: dict, threshold: float, min_points: int, verbose: 
     if verbose or why:
         print("  missed:")
         print("\n".join(m["text"] for m in sorted(t["misses"], key=lambda m: (m["kind"], m["seed"], m["text"]))))
+    if verbose and t.get("falses"):
+        print("  false candidates:")
+        print("\n".join(t["falses"]))
 
 
 def _print_why(misses: list) -> None:
@@ -413,6 +422,7 @@ COST_STAGES = (  # (label, name in labelaudit.infer.missing, the stage it is par
     ("faces", "_faces", "_box_cluster"),
     ("place", "_place", "_box_cluster"),
     ("continues", "_continues", "_box_cluster"),
+    ("roughness", "_roughness", "_box_cluster"),
     ("labelled region", "in_labelled_region", None),
     ("labelled region", "in_labelled_region@search_clusters", "search_clusters"),  # (its fragments, before boxing)
     ("free space + fit", "with_free_space", None),

@@ -455,6 +455,7 @@ def test_a_far_car_with_twenty_returns_is_found_and_a_tree_is_not_judged_by_its_
     if rules == "before":
         monkeypatch.setattr(C, "MISSING_POINTS_RAMP", (12, 30))
         monkeypatch.setattr(C, "MISSING_FACE_MIN_LOWER", 3)
+        monkeypatch.setattr(C, "MISSING_SURFACE_ROUGH", (np.inf, np.inf))  # (the crown's scatter, judged later)
     car = np.vstack([_row_of_returns((49.9, 5.1), (49.9, 6.9), GROUND + z, 0.19) for z in (0.5, 1.2)])
     rng = np.random.default_rng(3)
     trunk = np.c_[np.full(5, 30.0), np.full(5, -8.0), GROUND + np.linspace(0.35, 0.65, 5)]
@@ -897,3 +898,27 @@ def test_a_car_judged_on_all_its_returns_is_found_with_its_cabin_off_the_faces_a
     assert car_cluster.class_name == "Car" and 0.0 < car_cluster.shape_score < 1.0  # share between the ramps' ends
     assert _best(rows, 30.0, 0.0, radius=1.0) >= 0.5 if rules == "now" else _best(rows, 30.0, 0.0) < 0.5
     assert _best(rows, 27.75, -6.65, radius=2.5) < 0.5
+
+
+@pytest.mark.parametrize("rule", [False, True])
+def test_a_car_sized_bush_is_no_candidate_by_its_scatter_along_the_beams_and_a_car_still_is(monkeypatch, rule):
+    """Car-sized bushes at 50 and 60 m (simulated sweeps: foliage returns from anywhere in its depth
+    and lets some rays through): at that range a few dozen returns fall on its sides' slices as
+    a car's would, and without the surface rule they are candidates. Along each beam their returns
+    lie tens of centimetres off their neighbours' line — a car's lie within the range noise — and
+    with ``MISSING_SURFACE_ROUGH`` they are none. Cars in their place across the road are found
+    either way."""
+    from labelaudit.sim.raycast import LidarSpec, render_range_image
+    from labelaudit.sim.scene import VEGETATION, Scene, SimObject, make_object
+
+    if not rule:
+        monkeypatch.setattr(C, "MISSING_SURFACE_ROUGH", (np.inf, np.inf))
+    for x, y, yaw in ((50.0, 5.0, 0.0), (60.0, 8.0, 0.2)):
+        box = np.array([x, y, GROUND + 0.8, 3.8, 1.7, 1.6, yaw])
+        bush = SimObject(VEGETATION, box, box[None].copy(), np.array([0.4]))
+        car = make_object("Car", (x, -y), yaw, np.array([3.9, 1.6, 1.55]), GROUND, np.random.default_rng(0))
+        scene = Scene(objects=[car], clutter=[bush])  # foliage is porous only with a generator
+        pts, _ = render_range_image(scene, LidarSpec(), None, np.random.default_rng(0)).points()
+        rows = find_missing(Frame("000001", pts, np.zeros((0, 7)), [], []), RunConfig())
+        assert (_best(rows, x, y) < 0.5) == rule, (x, y)
+        assert _best(rows, x, -y, radius=1.0) >= 0.5, (x, -y)

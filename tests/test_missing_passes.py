@@ -183,3 +183,41 @@ def test_a_raised_stretch_of_ground_seen_whole_keeps_its_height_with_the_wider_o
     # applied everywhere, the wider opening would take the platform away (why the rule asks for a shadow)
     everywhere = _ground(xyz, reach=OPEN, wide=WIDE, min_cells=82.0, half=20)
     assert np.all(everywhere[inner] == 0.0)
+
+
+def _beams(ranges: np.ndarray, azimuths_deg: np.ndarray, elevations_deg: np.ndarray) -> np.ndarray:
+    """Returns at ``ranges`` (E, A) (m, bird's-eye) along the rays of a sensor at the origin:
+    one beam per elevation, one column per azimuth."""
+    el, az = np.radians(elevations_deg)[:, None], np.radians(azimuths_deg)[None, :]
+    return np.stack([ranges * np.cos(az), ranges * np.sin(az), ranges * np.tan(el)], axis=-1).reshape(-1, 3)
+
+
+def test_roughness_is_the_depth_scatter_along_each_beam_and_zero_on_a_plane():
+    """A flat face square to the sensor at 20 m (four beams, 0.17° apart in azimuth) lies on its
+    beams' lines: 0. Every other column 0.3 m deeper (foliage's scatter): a return is 0.3 m off the
+    line of its two nearest neighbours and, from the line of the two on one side of it (through the
+    0.3 m step, h = 20 m · 0.17° apart), 2·0.3·h / √(h² + 0.3²) — the least of the three; farther
+    away the returns are farther apart and the scatter shows more. A face that steps back 1 m
+    halfway along (a body and a cabin behind glass) keeps 0: every return continues the line of its
+    own side. Too few returns with beam neighbours: −1 (nothing to tell)."""
+    az = np.arange(-2.0, 2.0, 0.17)
+    el = np.array([-3.0, -2.6, -2.2, -1.8])
+    gap, step = math.radians(0.1), math.radians(1.0)
+
+    def rough(ranges, azimuths=az, elevations=el):
+        return M._roughness(_beams(ranges, azimuths, elevations), 0.0, 0.0, 0.0, gap, step, 8)
+
+    def face(x):  # the ranges of the plane at x along each beam
+        return x / np.cos(np.radians(az))[None, :].repeat(len(el), axis=0)
+
+    assert rough(face(20.0)) == pytest.approx(0.0, abs=1e-9)
+    zigzag = 0.3 * (np.arange(len(az)) % 2)[None, :]
+    h = 20.0 * math.radians(0.17)
+    assert rough(face(20.0) + zigzag) == pytest.approx(0.6 * h / math.hypot(h, 0.3), rel=0.02)
+    assert rough(face(20.0) + zigzag) < rough(face(60.0) + zigzag) < 0.3 + 1e-9
+    assert rough(np.where(az >= 0.0, face(21.0), face(20.0))) == pytest.approx(0.0, abs=1e-9)
+    # the beams are told apart by elevation: one beam of scatter among three flat ones is a quarter
+    mixed = face(20.0)
+    mixed[0] += zigzag[0]
+    assert rough(mixed) == pytest.approx(0.0, abs=1e-9)
+    assert rough((face(20.0) + zigzag)[:1, :7], az[:7], el[:1]) == -1.0  # 7 returns

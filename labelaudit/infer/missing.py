@@ -784,6 +784,63 @@ def _face_share(p, q, width, slices, counts):  # pragma: no cover - compiled
     return inside / max(n, 1)
 
 
+@kernel
+def _roughness(xyz, ox, oy, oz, gap, step, min_returns):  # pragma: no cover - compiled
+    """The median distance (m, bird's-eye) of a cluster's returns ``xyz`` (M, 3) from the line their
+    neighbours along the same beam make, or −1 when fewer than ``min_returns`` returns have such
+    neighbours. A beam's returns are those within ``gap`` (radians) of each other in elevation seen
+    from the sensor (``ox``, ``oy``, ``oz``) — a return lies along its ray whatever its depth, so its
+    elevation is its beam's —, in azimuth order; a neighbour more than ``step`` (radians) away in
+    azimuth is on another surface. Each return's distance is the least from three lines: through its
+    two nearest neighbours, through the two before it, through the two after it (a return at a
+    surface's edge, or next to one seen through glass, continues one of its sides). A solid surface
+    gives the range noise (a few cm); foliage returns from anywhere in its depth (tens of cm)."""
+    m = xyz.shape[0]
+    el = np.empty(m)
+    az = np.empty(m)
+    ref = math.atan2(xyz[0, 1] - oy, xyz[0, 0] - ox) if m > 0 else 0.0
+    for k in range(m):
+        dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
+        el[k] = math.atan2(xyz[k, 2] - oz, math.sqrt(dx * dx + dy * dy))
+        a = math.atan2(dy, dx) - ref  # about the first return's azimuth: no wrap within a cluster
+        if a > math.pi:
+            a -= 2.0 * math.pi
+        elif a < -math.pi:
+            a += 2.0 * math.pi
+        az[k] = a
+    order = np.argsort(el, kind="mergesort")
+    devs = np.empty(m)
+    n = 0
+    start = 0
+    for e in range(1, m + 1):
+        if e < m and el[order[e]] - el[order[e - 1]] <= gap:
+            continue
+        ring = order[start:e]
+        start = e
+        w = ring.shape[0]
+        if w < 3:
+            continue
+        ring = ring[np.argsort(az[ring], kind="mergesort")]
+        for q in range(w):
+            best = np.inf
+            for lo, hi in ((q - 1, q + 1), (q - 2, q - 1), (q + 1, q + 2)):
+                if lo < 0 or hi >= w:
+                    continue
+                if max(abs(az[ring[lo]] - az[ring[q]]), abs(az[ring[hi]] - az[ring[q]])) > step:
+                    continue
+                ax, ay = xyz[ring[lo], 0], xyz[ring[lo], 1]
+                ex, ey = xyz[ring[hi], 0] - ax, xyz[ring[hi], 1] - ay
+                norm = math.sqrt(ex * ex + ey * ey)
+                if norm > 0.0:
+                    best = min(best, abs(ex * (xyz[ring[q], 1] - ay) - ey * (xyz[ring[q], 0] - ax)) / norm)
+            if best < np.inf:
+                devs[n] = best
+                n += 1
+    if n < min_returns:
+        return -1.0
+    return np.median(devs[:n])
+
+
 # --------------------------------------------------------------------------- the search
 
 
@@ -1542,6 +1599,19 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     on_all = int(np.count_nonzero((h >= lo) & (h <= hi))) < C.MISSING_FACE_MIN_LOWER
     ramp = C.MISSING_FACE_SHARE_ALL.get(best_name, C.MISSING_FACE_SHARE) if on_all else C.MISSING_FACE_SHARE
     shape_score = _ramp(share, *ramp)
+    # a vehicle's body is a solid surface: along each beam its returns lie on a smooth line (foliage
+    # returns from anywhere in its depth)
+    rough = _roughness(
+        xyz,
+        ox,
+        oy,
+        oz,
+        math.radians(C.MISSING_SURFACE_BEAM_GAP),
+        math.radians(C.MISSING_SURFACE_STEP),
+        C.MISSING_SURFACE_MIN_RETURNS,
+    )
+    if rough >= 0.0:
+        shape_score *= 1.0 - _ramp(rough, *C.MISSING_SURFACE_ROUGH)
     density_score = _ramp(fill, *C.MISSING_FILL)
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     body = (A1, B1, A2, B2)
