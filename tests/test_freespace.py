@@ -67,6 +67,36 @@ def test_an_objects_near_points_are_its_neighbourhood_rows_and_count_alike():
         assert F.ray_counts(box, ev.free_space, near) == F.ray_counts(box, ev.free_space, points[ev.near_idx])
 
 
+def test_a_box_gets_the_same_evidence_in_any_batch_of_a_frame_of_many_boxes():
+    """Frames of hundreds of labels run in batches of 256 boxes: a box's crops, ground, rays and
+    counts are those it gets when its evidence is computed alone against the same labels,
+    whichever batch it falls in (the first, the second, the last partial one)."""
+    cars = [_car(12.0, 2.0, 0.2), _car(20.0, -4.0, 1.2), _car(-9.0, 6.0, 2.5), _car(7.0, -11.0, -0.4)]
+    points = _points(Scene(objects=cars)).astype(np.float32)
+    rng = np.random.default_rng(2)
+    base = np.array([car.box for car in cars])
+    boxes = base[rng.integers(0, 4, 600)].copy()
+    boxes[:, :2] += rng.normal(0.0, 0.3, (600, 2))  # 600 distinct labels, most of them overlapping others
+    boxes[:, 6] += rng.normal(0.0, 0.1, 600)
+    every = frame_evidence(points, boxes, np.zeros(3), CFG.crop)
+    for j in (0, 1, 255, 256, 257, 511, 512, 599):
+        (alone,) = frame_evidence(points, boxes[j : j + 1], np.zeros(3), CFG.crop, others=boxes)
+        got = every[j]
+        for name in ("model_idx", "fit_idx", "near_idx", "near_xyz"):
+            assert np.array_equal(getattr(got, name), getattr(alone, name)), (j, name)
+        assert len(got.model_idx) > 20 and got.neighbour_points > 0
+        assert np.array_equal([got.ground_z], [alone.ground_z], equal_nan=True)
+        assert (got.neighbour_points, got.scenery_points, got.through_rays) == (
+            alone.neighbour_points,
+            alone.scenery_points,
+            alone.through_rays,
+        )
+        assert np.array_equal(got.free_space.ends, alone.free_space.ends)
+        assert np.array_equal(got.free_space.ground, alone.free_space.ground)
+        near = got.for_object(points).near_points
+        assert F.ray_counts(boxes[j], got.free_space, near) == F.ray_counts(boxes[j], alone.free_space, near)
+
+
 # ------------------------------------------------------------------------------- hand-made scenes
 
 
