@@ -132,3 +132,24 @@ def test_exact_ious():
     rotated = a.copy()
     rotated[6] = np.pi  # same rectangle
     assert IOU.bev_iou_exact(a, rotated) == pytest.approx(1.0)
+
+
+def test_clean_columns_is_clean_points_transposed():
+    """The fit's (d, N) layout of a crop: the finite rows' first d coordinates as columns, exactly
+    clean_points' values, whatever the input type; float crops take the compiled pass."""
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(50, 4)) * 20.0
+    pts[[3, 17], 1] = np.nan
+    pts[8, 2] = np.inf
+    for arr in (pts, pts.astype(np.float32), np.round(pts[:, :3]).astype(np.int64).clip(-9, 9), pts.tolist()):
+        for d in (2, 3):
+            want = g.clean_points(arr, d)
+            got = g.clean_columns(arr, d)
+            assert got.shape == (d, len(want)) and got.dtype == np.float64 and got.flags.c_contiguous
+            assert got.tobytes() == np.ascontiguousarray(want.T).tobytes()
+    assert g.clean_columns(pts, 3).shape == (3, 47)  # the rows with a NaN or inf in x, y, z are dropped
+    assert g.clean_columns(pts, 2).shape == (2, 48)  # the inf in z does not count in 2D
+    for empty in (None, np.zeros((0, 3)), np.zeros((0, 3), dtype=np.float32)):
+        assert g.clean_columns(empty, 3).shape == (3, 0)
+    with pytest.raises(ValueError):
+        g.clean_columns(np.zeros((4, 2)), 3)

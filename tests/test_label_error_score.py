@@ -193,3 +193,33 @@ def test_the_row_names_the_seen_face_furthest_from_a_right_labels():
     assert two.face_gap == pytest.approx(-0.15, abs=0.03)
     # no side face seen (the sensor's position unknown): null
     assert np.isnan(LF.fit_label(too_long, pts, "Car", ModelParams()).face_gap)
+
+
+def test_face_gap_is_the_order_statistic_of_the_registered_depths():
+    """Each seen face's gap is the FACE_GAP_QUANTILE order statistic (rank ⌊q (n − 1)⌋, ascending) of
+    the depths of the points registered to it, here computed by a full sort in NumPy."""
+    from labelaudit import constants as C
+
+    rng = np.random.default_rng(11)
+    for trial in range(20):
+        box = _moved(yaw=rng.uniform(-0.2, 0.2))
+        pts = face_points(box, ["-x", "-y"], int(rng.integers(5, 200)), 0.05, seed=trial)
+        pts = pts[(pts[:, 2] > box[2] - 0.5 * box[5] + C.FREE_SPACE_SLAB[0] + 0.01)]
+        pts = pts[pts[:, 2] < box[2] - 0.5 * box[5] + C.FREE_SPACE_SLAB[1] * box[5] - 0.01]  # all in the lower body
+        gaps, counts = LF.face_gaps(box, pts, np.zeros(3))
+        c, s = np.cos(box[6]), np.sin(box[6])
+        q = pts[:, :2] - box[:2]
+        lx, ly = c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1]
+        ex, ey = np.abs(lx) - box[3] / 2, np.abs(ly) - box[4] / 2
+        face = np.where(ex >= ey, np.where(lx > 0, 1, 0), np.where(ly > 0, 3, 2))
+        depth = -np.where(ex >= ey, ex, ey)
+        bx, by = -c * box[0] - s * box[1], s * box[0] - c * box[1]  # the sensor (the origin) in the box frame
+        seen = (-bx > box[3] / 2, bx > box[3] / 2, -by > box[4] / 2, by > box[4] / 2)
+        assert seen[0] and seen[2]
+        for f in (0, 2):  # the faces the sensor sees
+            dep = np.sort(depth[face == f])
+            assert counts[f] == len(dep)
+            if len(dep) >= C.FACE_GAP_MIN_POINTS:
+                assert gaps[f] == dep[int(C.FACE_GAP_QUANTILE * (len(dep) - 1))]
+            else:
+                assert np.isnan(gaps[f])

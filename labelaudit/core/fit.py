@@ -102,7 +102,7 @@ class LabelFit:
         if not self._residual_inputs:
             return float("nan")
         y_fit, pts, d, params, sigma = self._residual_inputs
-        reg = register_validated(y_fit, pts, d, params.num_nearest, sigma, params.outlier_prob)
+        reg = register_validated(y_fit, np.ascontiguousarray(pts), d, params.num_nearest, sigma, params.outlier_prob)
         return em_sigma([(reg.sqdist, outlier_log_density(y_fit, d))], d, sigma, params.outlier_prob)
 
 
@@ -667,7 +667,7 @@ def _face_gaps_kernel(y, pts_t, d, sx, sy, slab, quantile, min_points, gaps, cou
     (the operations of :func:`~labelaudit.core.freespace.ground_heights`). A point is registered
     to the side face it lies furthest beyond, or, inside, nearest under (its largest signed
     distance |x| − l/2 or |y| − w/2); a point nearer the top or bottom face (3D) is no side's. The
-    quantile is the order statistic of rank ⌊q (n − 1)⌋ (0-based, ascending).
+    quantile is the order statistic of rank ⌊q (n − 1)⌋ (0-based, ascending), found by selection.
     """
     c, s = math.cos(y[6]), math.sin(y[6])
     h0, h1 = 0.5 * y[3], 0.5 * y[4]
@@ -710,8 +710,8 @@ def _face_gaps_kernel(y, pts_t, d, sx, sy, slab, quantile, min_points, gaps, cou
             if face[k] == f:
                 dep[j] = depth[k]
                 j += 1
-        dep.sort()
-        gaps[f] = dep[int(quantile * (m - 1))]
+        rank = int(quantile * (m - 1))
+        gaps[f] = np.partition(dep, rank)[rank]  # the order statistic alone: a sort's value, without the sort
 
 
 @kernel
@@ -1252,34 +1252,32 @@ def face_gaps(
     y = g.validate_box(box)
     pts = np.asarray(points, dtype=float)
     d = 3 if pts.ndim == 2 and pts.shape[1] >= 3 else 2
-    return _slab_face_gaps(y, np.ascontiguousarray(g.clean_points(pts, d).T), sensor_origin, free_space)
+    return _slab_face_gaps(y, g.clean_columns(pts, d), sensor_origin, free_space)
 
 
 def _slab_face_gaps(
     y: FloatArray, pts_t: FloatArray, origin: ArrayLike, free_space: FreeSpace | None
 ) -> tuple[FloatArray, NDArray[np.int64]]:
     """:func:`face_gaps` of a valid box (7,) and clean points (d, N) (the fit's layout)."""
+    slab = np.empty(7)  # (g0, gx, gy, x0, y0, lo, hi)
     if free_space is not None:
-        (g0, gx, gy), (x0, y0) = np.asarray(free_space.ground, dtype=float)[:3], np.asarray(free_space.ref)[:2]
-        lo, hi = free_space.slab
+        slab[:3] = free_space.ground[:3]
+        slab[3:5] = free_space.ref[:2]
+        slab[5:] = free_space.slab
     else:  # above the box bottom
-        g0, gx, gy, x0, y0 = y[2] - 0.5 * y[5], 0.0, 0.0, 0.0, 0.0
-        lo, hi = C.FREE_SPACE_SLAB[0], C.FREE_SPACE_SLAB[1] * y[5]
-    o = np.asarray(origin, dtype=float).reshape(-1)
+        slab[:] = (y[2] - 0.5 * y[5], 0.0, 0.0, 0.0, 0.0, C.FREE_SPACE_SLAB[0], C.FREE_SPACE_SLAB[1] * y[5])
+    sx, sy = (float(v) for v in origin[:2]) if isinstance(origin, np.ndarray) and origin.ndim == 1 else _xy(origin)
     gaps, counts = np.empty(4), np.empty(4, dtype=np.int64)
     _face_gaps_kernel(
-        y,
-        pts_t,
-        pts_t.shape[0],
-        float(o[0]),
-        float(o[1]),
-        np.array([g0, gx, gy, x0, y0, lo, hi], dtype=float),
-        C.FACE_GAP_QUANTILE,
-        int(C.FACE_GAP_MIN_POINTS),
-        gaps,
-        counts,
+        y, pts_t, pts_t.shape[0], sx, sy, slab, C.FACE_GAP_QUANTILE, int(C.FACE_GAP_MIN_POINTS), gaps, counts
     )
     return gaps, counts
+
+
+def _xy(origin: ArrayLike) -> tuple[float, float]:
+    """The sensor's x, y of a position given in any array-like form."""
+    o = np.asarray(origin, dtype=float).reshape(-1)
+    return float(o[0]), float(o[1])
 
 
 def _face_gap_d2(gaps: FloatArray) -> tuple[float, int]:
@@ -1362,7 +1360,8 @@ def fit_label_valid(
     if model != params.kind:
         params = _params_of_kind(params, model)
     d = 3 if model == "3d" else 2
-    pts = g.clean_points(arr, d)  # float crops: the d columns converted, not the whole rows
+    pts_t = g.clean_columns(arr, d)  # (d, N), the fit's layout (_normal_eq_kernel): float crops in one pass
+    pts = pts_t.T  # (N, d), a view
     n = pts.shape[0]
     prior = params.prior_for(class_name)
     terms = prior_terms
@@ -1372,12 +1371,11 @@ def fit_label_valid(
     sigma = float(params.sigma)
     if params.estimate_sigma and n >= max(params.min_points, 2):
         # estimate_sigma(y, pts, model, …) on points already clean: the same registration and EM
-        reg = register_validated(y, pts, d, params.num_nearest, sigma, params.outlier_prob)
+        reg = register_validated(y, np.ascontiguousarray(pts), d, params.num_nearest, sigma, params.outlier_prob)
         s_hat = em_sigma([(reg.sqdist, outlier_log_density(y, d))], d, sigma, params.outlier_prob)
         if np.isfinite(s_hat):
             sigma = max(s_hat, C.SIGMA_FLOOR)
 
-    pts_t = np.ascontiguousarray(pts.T)  # (d, N): the fit's layout (_normal_eq_kernel)
     rays = _ray_inputs(free_space, sigma, y)
     prior_eta = terms.eta0  # P0 φ_label
     best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)

@@ -96,9 +96,9 @@ class FreeSpace:
     @functools.cached_property
     def _inputs(self) -> tuple[FloatArray, float, float, FloatArray]:
         ends_t, _ = height_layout(self.ends, self.ground, self.ref)  # the rows of heights(), in one compiled pass
-        (ox, oy, oz), (g0, gx, gy), (x0, y0) = (
-            np.asarray(v, dtype=float)[:k].tolist() for v, k in ((self.origin, 3), (self.ground, 3), (self.ref, 2))
-        )
+        ox, oy, oz = _floats(self.origin, 3)
+        g0, gx, gy = _floats(self.ground, 3)
+        x0, y0 = _floats(self.ref, 2)
         h0 = oz - (
             g0 + gx * (ox - x0) + gy * (oy - y0)
         )  # ground_heights of the sensor, in Python floats (the same IEEE operations)
@@ -119,6 +119,13 @@ class FreeSpace:
         """Hand over :meth:`kernel_inputs`' ``ends_t`` (3, M) and ``hz`` (4,) computed elsewhere with
         the same operations (:func:`passing_parts`), instead of computing them on first use."""
         self.__dict__["_inputs"] = (ends_t, float(self.origin[0]), float(self.origin[1]), hz)
+
+
+def _floats(v: ArrayLike, k: int) -> list[float]:
+    """The first ``k`` values of a vector as Python floats (converted exactly)."""
+    if type(v) is np.ndarray and v.ndim == 1 and (v.dtype == np.float64 or v.dtype == np.float32):
+        return v[:k].tolist()
+    return np.asarray(v, dtype=float)[:k].tolist()
 
 
 def ground_heights(points: ArrayLike, ground: ArrayLike, ref: ArrayLike) -> FloatArray:

@@ -489,6 +489,20 @@ def clean_points(points: ArrayLike | None, d: int) -> FloatArray:
     )  # non-finite returns cannot be registered
 
 
+def clean_columns(points: ArrayLike | None, d: int) -> FloatArray:
+    """:func:`clean_points` transposed: a float64 (d, M) C-contiguous array, the finite rows' first
+    ``d`` coordinates as columns; float32/float64 crops in one compiled pass."""
+    pts = None if points is None else np.asarray(points)
+    if pts is not None and pts.ndim == 2 and pts.shape[1] >= d and pts.size and pts.dtype in _NATIVE_FLOATS:
+        from labelaudit.core.pointops import finite_columns_f64
+
+        return finite_columns_f64(pts, d)
+    return np.ascontiguousarray(clean_points(points, d).T)
+
+
+_NATIVE_FLOATS = (np.dtype(np.float32), np.dtype(np.float64))  # what the compiled passes read as they are
+
+
 def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:
     """:func:`box_to_phi` of a box (7,) float64 known to be valid (labels
     after ``validate_box``, the fit's own rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost

@@ -34,3 +34,28 @@ def finite_rows_f64(pts, d):  # pragma: no cover - compiled
                 out[q, j] = pts[k, j]
             q += 1
     return out
+
+
+@kernel
+def finite_columns_f64(pts, d):  # pragma: no cover - compiled
+    """:func:`finite_rows_f64` transposed: the finite rows' first ``d`` values as a float64 (d, M)
+    C-contiguous array (converted exactly), the layout of the label-error fit's point passes,
+    without the (M, d) copy and its transposed copy."""
+    n = pts.shape[0]
+    keep = np.empty(n, dtype=np.bool_)
+    m = 0
+    for k in range(n):
+        ok = True
+        for j in range(d):
+            if not math.isfinite(pts[k, j]):
+                ok = False
+        keep[k] = ok
+        m += ok
+    out = np.empty((d, m))
+    q = 0
+    for k in range(n):
+        if keep[k]:
+            for j in range(d):
+                out[j, q] = pts[k, j]
+            q += 1
+    return out
