@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from labelaudit import constants as C
 from labelaudit.infer import missing as M
 
 
@@ -72,7 +73,7 @@ def _ground(
     half: int = 10,
     share: float = 0.0,
 ) -> np.ndarray:
-    ground, _ = M._ground_grid(
+    ground, _, _ = M._ground_grid(
         np.ascontiguousarray(xyz, dtype=np.float32),
         0.0,
         0.0,
@@ -115,6 +116,78 @@ def test_a_cells_floor_is_its_rank_th_lowest_return_whatever_their_order():
     assert np.all(_ground(xyz[xyz[:, 2] >= -1.2])[seen] == np.float32(-1.0))
 
 
+@pytest.mark.parametrize("rank", [1, 2, 3, 4])
+def test_a_cells_floor_is_its_rank_th_lowest_for_every_rank_the_grid_keeps(rank):
+    heights = np.array([-1.0, -3.0, -1.5, -1.2, -2.0])
+    cx, cy = np.meshgrid(np.arange(-10, 10) + 0.5, np.arange(-10, 10) + 0.5, indexing="ij")
+    xyz = np.array([(x, y, z) for x, y in zip(cx.ravel(), cy.ravel()) for z in heights])
+    xyz = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) > 3.0]
+    ground = _ground(xyz, rank=rank)
+    seen = np.isfinite(ground)
+    assert seen.sum() > 300 and np.all(ground[seen] == np.float32(np.sort(heights)[rank - 1]))
+
+
+def test_a_rank_beyond_the_four_lowest_kept_is_refused():
+    with pytest.raises(ValueError, match="rank"):
+        _ground(np.array([[5.0, 5.0, -1.0]]), rank=5)
+
+
+def _frame_points(seed: int) -> np.ndarray:
+    from labelaudit.sim.dataset import simulate_frame
+
+    return simulate_frame(0, seed=seed, drop_fraction=0.3).points
+
+
+@pytest.mark.parametrize("seed", [3, 8])
+def test_the_occupancy_passing_over_whole_runs_keeps_every_band_return(seed):
+    # a simulated frame's returns come in runs of one ground cell (along a beam): the occupancy pass
+    # skips a run whose highest return lies under the band or whose lowest lies above it. Against
+    # every return looked at one by one (runs of one return, each taking its cell from x, y): the
+    # same band returns, in the same order, the same counts
+    pts = _frame_points(seed)
+    xyz = pts[:, :3]
+    half = 40
+    out = M._ground_grid(
+        xyz,
+        0.0,
+        0.0,
+        1.73,
+        -float(half),
+        -float(half),
+        1.0,
+        1.0,
+        2 * half,
+        2 * half,
+        38.0**2,
+        3,
+        0.05,
+        360,
+        1.5,
+        math.tan(math.radians(-2.0)),
+        4,
+        math.radians(1.5),
+        12,
+        0.25 * 81,
+        0.3,
+    )
+    ground, runs = out[0], out[2]
+    start, code, _ = runs
+    assert len(code) < len(xyz) / 5  # long runs: most returns follow one of their own cell
+    inside = np.zeros(len(xyz), dtype=np.int64) - 1
+    for r, c in enumerate(code):
+        inside[start[r] : start[r + 1]] = -1 if c == -1 else -2
+    single = (np.arange(len(xyz) + 1, dtype=np.int64), inside, np.zeros((len(xyz), 2)))
+    cell = C.MISSING_CELL
+    args = (0.0, 0.0, 9.0, 36.0**2, ground, -float(half), -float(half), 1.0, 1.0)
+    mask = np.zeros((int(2 * half / cell), int(2 * half / cell)), dtype=np.uint8)
+    rest = (mask, -float(half), -float(half), cell, mask.shape[0], mask.shape[1], 0.3, 4.4, 6.0)
+    fast = M._occupancy(xyz, runs, *args, *rest)
+    slow = M._occupancy(xyz, single, *args, *rest)
+    assert len(fast[0]) > 200  # the frame's vehicles and clutter are in the band
+    for a, b in zip(fast, slow, strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_a_dozen_returns_under_the_road_in_a_cell_of_hundreds_are_not_its_floor():
     # the road at −1.7 m, 300 returns in every cell; one cell 6 m from the sensor also holds 12
     # returns 0.8 m below the road (its mirror image of a number plate): with the rank alone they are
@@ -131,6 +204,9 @@ def test_a_dozen_returns_under_the_road_in_a_cell_of_hundreds_are_not_its_floor(
     assert np.all(shared[seen] == np.float32(-1.7))
     assert np.array_equal(shared, _ground(road, share=0.05))  # as if they were not there
     assert np.array_equal(_ground(road, share=0.05), _ground(road))  # a cell whose floor is the road keeps it
+    # the returns in long runs of one cell (as above) or shuffled (runs of one return): the same floors
+    rng = np.random.default_rng(2)
+    assert np.array_equal(_ground(xyz[rng.permutation(len(xyz))], share=0.05), shared)
     # a cell of few returns keeps the rank rule (the share of 5 returns is less than 3 of them)
     few = np.vstack([road[np.hypot(road[:, 0] - 6.5, road[:, 1] - 1.5) > 1.0], [[6.5, 1.5, -1.7]] * 2, ghosts[:3]])
     assert _ground(few, share=0.05)[16, 11] == np.float32(ghosts[2, 2])

@@ -146,41 +146,85 @@ def _ground_grid(
     vehicle, whose cells hold no road returns, it comes from the road beside it. That ground is then opened
     over squares of side 2·``reach`` + 1 cells, and where such a square holds fewer than
     ``min_cells`` cells with returns (a shadow), over squares of side 2·``wide`` + 1 too. ``inv``:
-    1 / ``cell`` when that is exact (:func:`_exact_inverse`), else 0."""
-    low = np.full((n0, n1, rank), np.inf)
+    1 / ``cell`` when that is exact (:func:`_exact_inverse`), else 0.
+
+    Also returns the returns' runs, for the passes after it: maximal runs of consecutive returns with
+    one code — starts (R + 1,), codes (R,): the flat cell (≥ 0) of a return the ground counts, −2 for
+    one in the grid it leaves out (beyond ``reach2``, no height), −1 outside the grid — and per run
+    the lowest and highest z of its counted returns (R, 2)."""
+    if not 1 <= rank <= 4:
+        raise ValueError("the ground's rank must be 1 to 4 (a cell's lowest returns are kept in four registers)")
+    low = np.full((n0, n1, 4), np.inf)  # per cell its 4 lowest returns, ascending
     num = np.zeros((n0, n1), dtype=np.int64)  # returns per cell
-    at = np.full(xyz.shape[0], -1, dtype=np.int64)  # each return's cell (flat; −1: none)
+    m = xyz.shape[0]
+    start = np.empty(m + 1, dtype=np.int64)
+    code = np.empty(m, dtype=np.int64)
+    zs = np.empty((m, 2))
     top = np.full(nbins, -np.inf)
     highest, cut = -np.inf, -np.inf
-    for k in range(xyz.shape[0]):
-        dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
-        r2 = dx * dx + dy * dy
-        if r2 > reach2:
-            continue
-        z = xyz[k, 2]
-        dz = z - oz
-        # only returns above the sensor's lower beams can be a top beam's (spares a sqrt and an atan2 per return)
-        if r2 > 4.0 and (dz >= 0.0 or dz * dz < slope_floor * slope_floor * r2):
-            s = dz / math.sqrt(r2)
-            if s > highest:
-                highest = s
-                cut = math.tan(math.atan(highest) - spread)
-            # a direction's top beam is used no lower than ``spread`` under the frame's highest: below
-            # that its value does not matter (spares the atan2 of most returns)
-            if s >= cut:
-                b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
-                if s > top[b]:
-                    top[b] = s
-        i = int((xyz[k, 0] - x0) * inv if inv > 0.0 else (xyz[k, 0] - x0) / cell)
-        j = int((xyz[k, 1] - y0) * inv if inv > 0.0 else (xyz[k, 1] - y0) / cell)
-        if 0 <= i < n0 and 0 <= j < n1 and z == z:
-            # z into the cell's sorted ``rank`` lowest, the highest dropped: without a branch on z (about
-            # one return in six is among its cell's lowest so far, an unpredictable branch otherwise)
-            for q in range(rank - 1, 0, -1):
-                low[i, j, q] = max(low[i, j, q - 1], min(low[i, j, q], z))
-            low[i, j, 0] = min(low[i, j, 0], z)
-            num[i, j] += 1
-            at[k] = i * n1 + j
+    nr = 0
+    cur = -3  # the run's code (none yet)
+    # the run's own 4 lowest, ascending, its lowest and highest and its count, in registers: a cell's
+    # returns come one after the other along a beam (19 in 20 returns are in the previous one's cell),
+    # and a network on the cell's slots in memory waits on its own stores from one return to the next
+    l0 = l1 = l2 = l3 = zlo = np.inf
+    zhi = -np.inf
+    cnt = 0
+    for k in range(m + 1):
+        c = -3  # past the last return: ends the last run
+        if k < m:
+            x, y, z = xyz[k, 0], xyz[k, 1], xyz[k, 2]
+            dx, dy = x - ox, y - oy
+            r2 = dx * dx + dy * dy
+            i = int((x - x0) * inv if inv > 0.0 else (x - x0) / cell)
+            j = int((y - y0) * inv if inv > 0.0 else (y - y0) / cell)
+            inside = 0 <= i < n0 and 0 <= j < n1
+            c = i * n1 + j if inside else -1
+            if r2 > reach2 or z != z:  # not the ground's (the occupancy still looks at it)
+                c = -2 if inside else -1
+            if r2 <= reach2:
+                dz = z - oz
+                # only returns above the sensor's lower beams can be a top beam's (spares a sqrt and an atan2 per return)
+                if r2 > 4.0 and (dz >= 0.0 or dz * dz < slope_floor * slope_floor * r2):
+                    s = dz / math.sqrt(r2)
+                    if s > highest:
+                        highest = s
+                        cut = math.tan(math.atan(highest) - spread)
+                    # a direction's top beam is used no lower than ``spread`` under the frame's highest: below
+                    # that its value does not matter (spares the atan2 of most returns)
+                    if s >= cut:
+                        b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
+                        if s > top[b]:
+                            top[b] = s
+        if c != cur:
+            if cur >= 0:  # the run's lowest into its cell's (the same values whatever the order they came in)
+                a, e = cur // n1, cur % n1
+                num[a, e] += cnt
+                for v in (l0, l1, l2, l3):
+                    for q in range(3, 0, -1):
+                        low[a, e, q] = max(low[a, e, q - 1], min(low[a, e, q], v))
+                    low[a, e, 0] = min(low[a, e, 0], v)
+            if nr > 0:
+                zs[nr - 1, 0], zs[nr - 1, 1] = zlo, zhi
+            if k == m:
+                break
+            start[nr], code[nr] = k, c
+            nr += 1
+            cur = c
+            l0 = l1 = l2 = l3 = zlo = np.inf
+            zhi = -np.inf
+            cnt = 0
+        if c >= 0:
+            # z into the run's sorted lowest without a branch on it (about one return in six is among the
+            # lowest so far: an unpredictable branch otherwise)
+            l3 = max(l2, min(l3, z))
+            l2 = max(l1, min(l2, z))
+            l1 = max(l0, min(l1, z))
+            l0 = min(l0, z)
+            zlo, zhi = min(zlo, z), max(zhi, z)
+            cnt += 1
+    start[nr] = m
+    runs = (start[: nr + 1].copy(), code[:nr].copy(), zs[:nr].copy())
     floor = np.full((n0, n1), np.inf)
     for i in range(n0):
         for j in range(n1):
@@ -189,7 +233,7 @@ def _ground_grid(
                 if low[i, j, q] < np.inf:
                     f = low[i, j, q]
             floor[i, j] = f
-    _deep_floors(xyz, at, num, rank, share, near, floor)
+    _deep_floors(xyz, runs, num, rank, share, near, floor)
     ground = np.full((n0, n1), np.inf)
     vals = np.empty(9)
     for i in range(n0):
@@ -248,16 +292,18 @@ def _ground_grid(
         for j in range(n1):
             if ground[i, j] < np.inf:
                 out[i, j] = min(ground[i, j], -lowest[i, j], far[i, j])
-    return out, top
+    return out, top, runs
 
 
 @kernel
-def _deep_floors(xyz, at, num, rank, share, near, floor):  # pragma: no cover - compiled
+def _deep_floors(xyz, runs, num, rank, share, near, floor):  # pragma: no cover - compiled
     """In place: a cell's floor (n0, n1), its ``rank``-th lowest return, under which fewer than a
     ``share`` of its ``num`` returns lie within ``near`` (m) is a thin layer of stray returns below
-    the road: it becomes the cell's m-th lowest return, m = ⌈share · num⌉ (> ``rank``). ``at`` (N,):
-    each return's flat cell (−1 none). A pass counting the returns near each floor; only where
+    the road: it becomes the cell's m-th lowest return, m = ⌈share · num⌉ (> ``rank``). ``runs``
+    (:func:`_ground_grid`): the returns in runs of one cell each. A pass counting the returns near
+    each floor, run by run (a run wholly below or above that height is counted at once); only where
     some cell has too few, one more keeping those cells' m lowest in a max-heap each."""
+    start, code, zs = runs
     n1 = floor.shape[1]
     flat = num.ravel()
     floors = floor.ravel()
@@ -271,86 +317,89 @@ def _deep_floors(xyz, at, num, rank, share, near, floor):  # pragma: no cover - 
     if not any_dense:
         return
     close = np.zeros(flat.shape[0], dtype=np.int64)  # returns within ``near`` above the floor
-    for k in range(at.shape[0]):
-        c = at[k]
-        if c >= 0 and m[c] > 0 and xyz[k, 2] <= floors[c] + near:
-            close[c] += 1
-    start = np.zeros(flat.shape[0] + 1, dtype=np.int64)  # each thin-layer cell's heap in ``heap``
-    for c in range(flat.shape[0]):
-        start[c + 1] = start[c] + (m[c] if 0 < m[c] and close[c] < m[c] else 0)
-    if start[-1] == 0:
-        return
-    heap = np.empty(start[-1])
-    size = np.zeros(flat.shape[0], dtype=np.int64)
-    for k in range(at.shape[0]):
-        c = at[k]
-        if c < 0 or start[c + 1] == start[c]:
+    for r in range(code.shape[0]):
+        c = code[r]
+        if c < 0 or m[c] == 0:
             continue
-        a, w = start[c], start[c + 1] - start[c]
-        z = xyz[k, 2]
-        n = size[c]
-        if n < w:  # not full: z goes in at the bottom and up while above its parent
-            q = n
-            while q > 0 and heap[a + (q - 1) // 2] < z:
-                heap[a + q] = heap[a + (q - 1) // 2]
-                q = (q - 1) // 2
-            heap[a + q] = z
-            size[c] = n + 1
-        elif z < heap[a]:  # full: z replaces the top and goes down while below a child
-            q = 0
-            while True:
-                child = 2 * q + 1
-                if child >= w:
-                    break
-                if child + 1 < w and heap[a + child + 1] > heap[a + child]:
-                    child += 1
-                if heap[a + child] <= z:
-                    break
-                heap[a + q] = heap[a + child]
-                q = child
-            heap[a + q] = z
+        lim = floors[c] + near
+        if zs[r, 1] <= lim:
+            close[c] += start[r + 1] - start[r]
+        elif zs[r, 0] <= lim:
+            for k in range(start[r], start[r + 1]):
+                close[c] += xyz[k, 2] <= lim
+    heap_at = np.zeros(flat.shape[0] + 1, dtype=np.int64)  # each thin-layer cell's heap in ``heap``
     for c in range(flat.shape[0]):
-        if start[c + 1] > start[c]:
-            floor[c // n1, c % n1] = heap[start[c]]  # the top: the m-th lowest
+        heap_at[c + 1] = heap_at[c] + (m[c] if 0 < m[c] and close[c] < m[c] else 0)
+    if heap_at[-1] == 0:
+        return
+    heap = np.empty(heap_at[-1])
+    size = np.zeros(flat.shape[0], dtype=np.int64)
+    for r in range(code.shape[0]):
+        c = code[r]
+        if c < 0 or heap_at[c + 1] == heap_at[c]:
+            continue
+        a, w = heap_at[c], heap_at[c + 1] - heap_at[c]
+        for k in range(start[r], start[r + 1]):
+            z = xyz[k, 2]
+            n = size[c]
+            if n < w:  # not full: z goes in at the bottom and up while above its parent
+                q = n
+                while q > 0 and heap[a + (q - 1) // 2] < z:
+                    heap[a + q] = heap[a + (q - 1) // 2]
+                    q = (q - 1) // 2
+                heap[a + q] = z
+                size[c] = n + 1
+            elif z < heap[a]:  # full: z replaces the top and goes down while below a child
+                q = 0
+                while True:
+                    child = 2 * q + 1
+                    if child >= w:
+                        break
+                    if child + 1 < w and heap[a + child + 1] > heap[a + child]:
+                        child += 1
+                    if heap[a + child] <= z:
+                        break
+                    heap[a + q] = heap[a + child]
+                    q = child
+                heap[a + q] = z
+    for c in range(flat.shape[0]):
+        if heap_at[c + 1] > heap_at[c]:
+            floor[c // n1, c % n1] = heap[heap_at[c]]  # the top: the m-th lowest
 
 
 @kernel
-def _line_min(line, reach, fwd, bwd, out):  # pragma: no cover - compiled
-    """``out`` (n,): per entry the lowest value of ``line`` (n,) within ``reach`` entries (inf where
-    all are inf). Three comparisons per entry whatever ``reach`` (van Herk / Gil-Werman): the line
-    padded with ``reach`` entries of inf (the minimum's identity) at each end is cut in blocks of
-    w = 2·reach + 1; the lowest from each block's start and from its end (``fwd``, ``bwd``: scratch
-    of at least n + 2·reach + w entries) give each window, which spans at most two blocks."""
-    n = line.shape[0]
-    w = 2 * reach + 1
-    for b0 in range(0, n + 2 * reach, w):
-        run = np.inf
-        for q in range(b0, b0 + w):
-            p = q - reach
-            run = min(run, line[p] if 0 <= p < n else np.inf)
-            fwd[q] = run
-        run = np.inf
-        for q in range(b0 + w - 1, b0 - 1, -1):
-            p = q - reach
-            run = min(run, line[p] if 0 <= p < n else np.inf)
-            bwd[q] = run
-    for j in range(n):  # the window of entry j: padded entries j … j + 2·reach
-        out[j] = min(bwd[j], fwd[j + w - 1])
+def _runs_min(src, dst, shift, n):  # pragma: no cover - compiled
+    """``dst[j] = min(src[j], src[j + shift])`` for j < ``n`` (a loop the compiler vectorises)."""
+    a = src[:n]
+    b = src[shift : shift + n]
+    for j in range(n):
+        dst[j] = min(a[j], b[j])
 
 
 @kernel
 def _square_min(a, reach):  # pragma: no cover - compiled
-    """(n0, n1): the lowest value of ``a`` within a square of side 2·reach + 1 cells around each cell."""
+    """(n0, n1): the lowest value of ``a`` within a square of side w = 2·reach + 1 cells around each
+    cell (inf where all are inf). The grid padded with ``reach`` cells of inf (the minimum's
+    identity) on every side; along its rows, then its columns, the lowest of runs of 1, 2, 4 … cells,
+    then of the two runs of the largest such length s ≤ w that together cover w (the minimum is
+    exact: the overlap changes nothing) — whole-grid passes of one comparison per cell each, which
+    the compiler vectorises, instead of a scan along each line, whose every step waits on the last."""
     n0, n1 = a.shape
-    size = max(n0, n1) + 4 * reach + 1
-    fwd, bwd = np.empty(size), np.empty(size)
-    rows = np.empty((n0, n1))
-    for i in range(n0):
-        _line_min(a[i], reach, fwd, bwd, rows[i])
-    out = np.empty((n0, n1))
-    for j in range(n1):
-        _line_min(rows[:, j], reach, fwd, bwd, out[:, j])
-    return out
+    w = 2 * reach + 1
+    m0, m1 = n0 + 2 * reach, n1 + 2 * reach
+    p = np.full((m0, m1), np.inf)
+    p[reach : reach + n0, reach : reach + n1] = a
+    src, dst = p.ravel(), np.full(m0 * m1, np.inf)
+    # along the rows, on the flat grid: the cells a padded row's first n1 windows use are its own
+    for step in (1, m1):
+        span = 1
+        while 2 * span <= w:
+            _runs_min(src, dst, span * step, m0 * m1 - span * step)
+            src, dst = dst, src
+            span *= 2
+        _runs_min(src, dst, (w - span) * step, m0 * m1 - (w - span) * step)
+        src, dst = dst, src
+    return src.reshape(m0, m1)[:n0, :n1].copy()
 
 
 @kernel
@@ -383,13 +432,16 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
 
 @kernel
 def _occupancy(
-    xyz, ox, oy, near2, far2, ground, gx0, gy0, gcell, ginv, mask, x0, y0, cell, nx, ny, lo, hi, tall
+    xyz, runs, ox, oy, near2, far2, ground, gx0, gy0, gcell, ginv, mask, x0, y0, cell, nx, ny, lo, hi, tall
 ):  # pragma: no cover - compiled
     """The returns in the search band — their indices, cells (flat index) and heights above the
     ground, (B,) each — per cell the band returns (nx, ny) and the returns above the band up to
     ``tall``, and the cells holding band returns (flat indices, ascending). All around the sensor,
-    whatever the labelled region: a wall that leaves the camera's view is still one wall. ``ginv``:
-    1 / ``gcell`` when that is exact (:func:`_exact_inverse`), else 0."""
+    whatever the labelled region: a wall that leaves the camera's view is still one wall. ``runs``
+    (:func:`_ground_grid`): the returns in runs of one ground cell each; a run whose highest return
+    lies below the band, or whose lowest lies above ``tall`` (most runs: the road), is passed over
+    whole. ``ginv``: 1 / ``gcell`` when that is exact (:func:`_exact_inverse`), else 0."""
+    start, code, zs = runs
     m = xyz.shape[0]
     band_idx = np.empty(m, dtype=np.int64)
     band_cell = np.empty(m, dtype=np.int64)
@@ -399,35 +451,43 @@ def _occupancy(
     no = 0
     counts = np.zeros((nx, ny), dtype=np.int32)
     over = np.zeros((nx, ny), dtype=np.int32)
-    for k in range(m):
-        # the height above the ground first: most returns are the road's (and the ground cells' size
-        # divides without a division when it is a power of two); the search cell's division only after
-        gi = int((xyz[k, 0] - gx0) * ginv if ginv > 0.0 else (xyz[k, 0] - gx0) / gcell)
-        gj = int((xyz[k, 1] - gy0) * ginv if ginv > 0.0 else (xyz[k, 1] - gy0) / gcell)
-        if gi < 0 or gj < 0 or gi >= ground.shape[0] or gj >= ground.shape[1]:
+    flat = ground.ravel()
+    for r in range(code.shape[0]):
+        c = code[r]
+        if c == -1:  # outside the ground grid
             continue
-        h = xyz[k, 2] - ground[gi, gj]
-        if h < lo or h > tall:
+        g = flat[c] if c >= 0 else 0.0
+        # z − g rounds monotonically: the run's extremes bound its returns' heights
+        if c >= 0 and (zs[r, 1] - g < lo or zs[r, 0] - g > tall):
             continue
-        i = int((xyz[k, 0] - x0) / cell)
-        j = int((xyz[k, 1] - y0) / cell)
-        if i < 0 or j < 0 or i >= nx or j >= ny or mask[i, j]:
-            continue
-        dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
-        r2 = dx * dx + dy * dy
-        if r2 < near2 or r2 > far2:
-            continue
-        if h <= hi:
-            if counts[i, j] == 0:
-                occupied[no] = i * ny + j
-                no += 1
-            counts[i, j] += 1
-            band_idx[nb] = k
-            band_cell[nb] = i * ny + j
-            band_h[nb] = h
-            nb += 1
-        else:
-            over[i, j] += 1
+        for k in range(start[r], start[r + 1]):
+            if c >= 0:
+                h = xyz[k, 2] - g
+            else:  # a return the ground left out (beyond its reach, or no height): its cell from x, y
+                gi = int((xyz[k, 0] - gx0) * ginv if ginv > 0.0 else (xyz[k, 0] - gx0) / gcell)
+                gj = int((xyz[k, 1] - gy0) * ginv if ginv > 0.0 else (xyz[k, 1] - gy0) / gcell)
+                h = xyz[k, 2] - ground[gi, gj]
+            if h < lo or h > tall:
+                continue
+            i = int((xyz[k, 0] - x0) / cell)
+            j = int((xyz[k, 1] - y0) / cell)
+            if i < 0 or j < 0 or i >= nx or j >= ny or mask[i, j]:
+                continue
+            dx, dy = xyz[k, 0] - ox, xyz[k, 1] - oy
+            r2 = dx * dx + dy * dy
+            if r2 < near2 or r2 > far2:
+                continue
+            if h <= hi:
+                if counts[i, j] == 0:
+                    occupied[no] = i * ny + j
+                    no += 1
+                counts[i, j] += 1
+                band_idx[nb] = k
+                band_cell[nb] = i * ny + j
+                band_h[nb] = h
+                nb += 1
+            else:
+                over[i, j] += 1
     return band_idx[:nb], band_cell[:nb], band_h[:nb], counts, over, np.sort(occupied[:no])
 
 
@@ -1147,7 +1207,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     # the ground cells the search grid needs, and the opening's reach around them (cells anchored at ox − reach)
     skip = max(0, math.floor((x0 - (opening + 2) * gcell - (ox - reach)) / gcell))
     gx0, gy0 = ox - reach + skip * gcell, oy - reach
-    ground, top_slope = _ground_grid(
+    ground, top_slope, runs = _ground_grid(
         xyz,
         ox,
         oy,
@@ -1176,6 +1236,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     lo, hi = C.MISSING_BAND
     band_idx, band_cell, band_h, counts, over, occupied = _occupancy(
         xyz,
+        runs,
         ox,
         oy,
         C.MISSING_EGO_RADIUS**2,
