@@ -264,6 +264,9 @@ MISSING_ROW_ANGLE = (
 )
 MISSING_CORNER_DEPTH = 1.5  # m; a face is part of a larger structure too where other returns at one of its ends run this far away from the sensor, square to it (a building's corner)
 MISSING_OWN_FRAGMENT_CELLS = 6  # a group of at most this many cells inside the box a cluster would become is its own far end or roof edge seen past a gap, not a wall going on (continuation test)
+MISSING_CLASS_OWN_REACH = (
+    "Truck",
+)  # classes whose groups in line with their side within the class's largest length are their own (a truck's cab past the gap between cab and box, its far end past an occluder), not a wall going on (continuation test)
 MISSING_CORNER_START = 0.6  # m; … and begin within this of the face (a building's end wall meets its front; a hedge behind a parked car begins beyond the car's width)
 MISSING_REGION_SLACK = 3.0  # m; clusters whose centroid lies this far beyond the labelled range are not boxed (a box centre may lie farther than its returns)
 MISSING_CLASS_FIT = (

@@ -548,6 +548,30 @@ def test_a_truck_seen_from_behind_is_a_truck_and_a_porous_face_or_one_seen_at_a_
     assert not truck(rear)
 
 
+def test_a_truck_whose_cab_shows_past_a_gap_is_found_and_an_l_whose_side_goes_on_past_a_truck_is_not(monkeypatch):
+    """A truck seen from a corner (its rear and 8 m of its box's side) with its cab, lower, past the
+    0.6 m gap between cab and box: the cab is a group in line with the side, within a truck's largest
+    length, and the truck's own (found where its box stands). The same L whose side's line goes on
+    past a truck's largest length (a building's front) is no truck; nor is the truck when groups in
+    line are not looked at as its own."""
+    cfg = RunConfig()
+    az = np.radians(np.arange(-90.0, 90.0, 0.2))
+    sky = np.c_[60.0 * np.cos(az), 60.0 * np.sin(az), np.full(len(az), 6.0)]
+    rear = _face((17.0, 4.75), (17.0, 7.25), GROUND + 0.3, GROUND + 3.2, 0.1)
+    side = _face((17.0, 4.75), (25.0, 4.75), GROUND + 0.3, GROUND + 3.2, 0.1)
+    cab = _face((25.6, 4.8), (27.6, 4.8), GROUND + 0.3, GROUND + 2.6, 0.1)
+    front = _face((25.6, 4.75), (36.0, 4.75), GROUND + 0.3, GROUND + 3.2, 0.1)
+
+    def trucks(*objects):
+        return [c for c in search_clusters(_frame(*objects, sky), cfg) if c.class_name == "Truck" and c.score >= 0.5]
+
+    found = trucks(rear, side, cab)
+    assert len(found) == 1 and math.hypot(found[0].box[0] - 22.3, found[0].box[1] - 6.0) < 1.0
+    assert not trucks(rear, side, front)
+    monkeypatch.setattr(C, "MISSING_CLASS_OWN_REACH", ())
+    assert not trucks(rear, side, cab)
+
+
 def _column(x, y):
     """One column of returns (a truck's side at a grazing angle: one azimuth step's returns)."""
     return _face((x, y), (x + 0.01, y), GROUND + 0.3, GROUND + 3.2, 0.08)

@@ -1399,13 +1399,18 @@ def _continues(
     po: float,
     qo: float,
     body: tuple[float, float, float, float] | None = None,
+    fragment: int | None = None,
+    extra: float = 0.0,
 ) -> bool:
     """Whether the cluster's longer face (the side facing the sensor, at ``po``, ``qo`` in the
     cluster's frame) goes on beyond it through returns of other clusters no label explains: a
     stretch of a wall or a hedge, not an object of its own. ``grid``: (owner (nx, ny), x0, y0,
-    cell, cells per group). A group of at most ``MISSING_OWN_FRAGMENT_CELLS`` cells inside ``body``
-    (A1, B1, A2, B2: the box the cluster would become, in its frame) is the object's own far end or
-    roof edge seen past a gap, not a structure going on (:func:`_continues_kernel`)."""
+    cell, cells per group). A group of at most ``fragment`` cells (default
+    ``MISSING_OWN_FRAGMENT_CELLS``) inside ``body`` (A1, B1, A2, B2: the box the cluster would
+    become, in its frame) is the object's own far end or roof edge seen past a gap, not a structure
+    going on (:func:`_continues_kernel`). The line is followed ``MISSING_CONTINUATION`` + ``extra``
+    (m) past the face's ends (past a ``body`` reaching farther than the face)."""
+    fragment = C.MISSING_OWN_FRAGMENT_CELLS if fragment is None else fragment
     owner, x0, y0, cell, group_cells = grid
     A1, B1, A2, B2 = body if body is not None else (np.inf, -np.inf, np.inf, -np.inf)
     step = 0.5 * cell
@@ -1428,14 +1433,14 @@ def _continues(
             bool(along1),
             po,
             qo,
-            np.arange(step, C.MISSING_CONTINUATION + step, step),
+            np.arange(step, C.MISSING_CONTINUATION + extra + step, step),
             np.linspace(-half, half, 5),
             np.asarray(group_cells, dtype=float),
             float(A1),
             float(B1),
             float(A2),
             float(B2),
-            C.MISSING_OWN_FRAGMENT_CELLS,
+            fragment,
             C.MISSING_CONTINUATION_CELLS,
             C.MISSING_CONTINUATION_RUN,
             C.MISSING_CORNER_START,
@@ -1676,7 +1681,24 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     density_score = _ramp(fill, *C.MISSING_FILL)
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     body = (A1, B1, A2, B2)
-    if grid is not None and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, body):
+    # a truck's cab seen past the gap between cab and box, or its far end past an occluder, is a group
+    # in line with its side but its own: within the class's largest length nothing counts as a wall
+    # going on; past it the test looks on as usual
+    reach, fragment, extra = body, C.MISSING_OWN_FRAGMENT_CELLS, 0.0
+    if best_name in C.MISSING_CLASS_OWN_REACH and size_score >= C.MISSING_CLASS_FIT:
+        longest = sizes[best_name][1][0]
+        if len_axis1:
+            reach = (*_grow(A1, B1, longest, po), A2, B2)
+        else:
+            reach = (A1, B1, *_grow(A2, B2, longest, qo))
+        fragment = np.iinfo(np.int64).max
+        if e1 >= e2:
+            extra = max(reach[1] - b1, a1 - reach[0], 0.0)
+        else:
+            extra = max(reach[3] - b2, a2 - reach[2], 0.0)
+    if grid is not None and _continues(
+        grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, reach, fragment, extra
+    ):
         shape_score = 0.0
     # a class seen as an L-shape (a truck): its short leg ends too (a building's end wall, broken into
     # pieces by windows or an occluder, goes on in line with it)
