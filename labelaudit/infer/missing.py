@@ -1665,19 +1665,6 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     on_all = int(np.count_nonzero((h >= lo) & (h <= hi))) < C.MISSING_FACE_MIN_LOWER
     ramp = C.MISSING_FACE_SHARE_ALL.get(best_name, C.MISSING_FACE_SHARE) if on_all else C.MISSING_FACE_SHARE
     shape_score = _ramp(share, *ramp)
-    # a vehicle's body is a solid surface: along each beam its returns lie on a smooth line (foliage
-    # returns from anywhere in its depth)
-    rough = _roughness(
-        xyz,
-        ox,
-        oy,
-        oz,
-        math.radians(C.MISSING_SURFACE_BEAM_GAP),
-        math.radians(C.MISSING_SURFACE_STEP),
-        C.MISSING_SURFACE_MIN_RETURNS,
-    )
-    if rough >= 0.0:
-        shape_score *= 1.0 - _ramp(rough, *C.MISSING_SURFACE_ROUGH)
     density_score = _ramp(fill, *C.MISSING_FILL)
     density_score *= _ramp(len(xyz), *C.MISSING_POINTS_RAMP)
     body = (A1, B1, A2, B2)
@@ -1708,6 +1695,22 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
         and _continues(grid, own, centre, c, s, a1, b1, a2, b2, e1 < e2, po, qo, body)
     ):
         shape_score = 0.0
+    # a vehicle's body is a solid surface: along each beam its returns lie on a smooth line (foliage
+    # returns from anywhere in its depth). Measured only where it can matter: a score already under
+    # the kept minimum stays under it (no row changes, and a part replaces such a whole only when
+    # neither is kept or the part is kept either way)
+    if size_score * shape_score * density_score >= C.MISSING_MIN_KEPT_SCORE:
+        rough = _roughness(
+            xyz,
+            ox,
+            oy,
+            oz,
+            math.radians(C.MISSING_SURFACE_BEAM_GAP),
+            math.radians(C.MISSING_SURFACE_STEP),
+            C.MISSING_SURFACE_MIN_RETURNS,
+        )
+        if rough >= 0.0:
+            shape_score *= 1.0 - _ramp(rough, *C.MISSING_SURFACE_ROUGH)
     whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
     if splits > 0 and size_score < C.MISSING_CLASS_FIT:  # no class fits: maybe two objects
         parts = _split(xy, c, s)
