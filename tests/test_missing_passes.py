@@ -74,7 +74,7 @@ def _ground(
     share: float = 0.0,
 ) -> np.ndarray:
     ground, _, _ = M._ground_grid(
-        np.ascontiguousarray(xyz, dtype=np.float32),
+        M._four_columns(np.ascontiguousarray(xyz, dtype=np.float32)),
         0.0,
         0.0,
         0.0,
@@ -148,7 +148,7 @@ def test_the_occupancy_passing_over_whole_runs_keeps_every_band_return(seed):
     xyz = pts[:, :3]
     half = 40
     out = M._ground_grid(
-        xyz,
+        M._four_columns(pts),
         0.0,
         0.0,
         1.73,
@@ -186,6 +186,25 @@ def test_the_occupancy_passing_over_whole_runs_keeps_every_band_return(seed):
     assert len(fast[0]) > 200  # the frame's vehicles and clutter are in the band
     for a, b in zip(fast, slow, strict=True):
         assert np.array_equal(a, b)
+
+
+def test_the_ground_pass_reads_the_frames_own_rows_of_four_and_a_copy_of_any_other_layout():
+    pts = _frame_points(3)  # x, y, z, intensity, float32 (a KITTI scan)
+    assert M._four_columns(pts) is pts  # no copy of the frame
+    xyz = pts[:, :3].astype(np.float64)
+    rows = M._four_columns(xyz)
+    assert rows.shape == (len(xyz), 4) and rows.dtype == np.float64 and rows.flags.c_contiguous
+    assert np.array_equal(rows[:, :3], xyz)
+    args = (0.0, 0.0, 1.73, -40.0, -40.0, 1.0, 1.0, 80, 80, 38.0**2, 3, 0.05, 360, 1.5)
+    args += (math.tan(math.radians(-2.0)), 4, math.radians(1.5), 12, 0.25 * 81, 0.3)
+    ground, top, _ = M._ground_grid(pts, *args)
+    other = pts.copy()
+    other[:, 3] = -7.0  # the fourth column is not read
+    for same in (other, rows, M._four_columns(np.asfortranarray(pts[:, :3]))):
+        g, t, _ = M._ground_grid(same, *args)
+        assert np.array_equal(g, ground) and np.array_equal(t, top)
+    with pytest.raises(ValueError, match="rows of 4"):
+        M._ground_grid(np.ascontiguousarray(pts[:, :3]), *args)
 
 
 def test_a_dozen_returns_under_the_road_in_a_cell_of_hundreds_are_not_its_floor():

@@ -107,8 +107,31 @@ _SORT9 = np.array(
 
 
 @kernel
+def _ground_codes(
+    flat, m, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, sf2, codes, sky
+):  # pragma: no cover - compiled
+    """Per return k (x, y, z at ``flat[4·k]``…, ``m`` returns): ``codes[k]`` its ground cell's flat
+    index (n0 × n1 grid at x0, y0), −2 for one in the grid the ground leaves out (beyond ``reach2``,
+    no height), −1 outside the grid; ``sky[k]``: farther than 2 m and above the elevation whose
+    slope squared is ``sf2`` (a top beam's candidate). Selections only, no branch, and a constant
+    stride: the compiler vectorises it. ``inv``: 1 / ``cell`` when exact, else 0 (divide)."""
+    for k in range(m):
+        x, y, z = flat[4 * k], flat[4 * k + 1], flat[4 * k + 2]
+        dx, dy = x - ox, y - oy
+        r2 = dx * dx + dy * dy
+        i = int((x - x0) * inv if inv > 0.0 else (x - x0) / cell)
+        j = int((y - y0) * inv if inv > 0.0 else (y - y0) / cell)
+        inside = (i >= 0) & (i < n0) & (j >= 0) & (j < n1)
+        counted = (r2 <= reach2) & (z == z)
+        codes[k] = np.int32(i * n1 + j) if inside & counted else np.int32(-2 if inside else -1)
+        dz = z - oz
+        # only returns above the sensor's lower beams can be a top beam's (spares a sqrt and an atan2 per return)
+        sky[k] = (r2 <= reach2) & (r2 > 4.0) & ((dz >= 0.0) | (dz * dz < sf2 * r2))
+
+
+@kernel
 def _ground_grid(
-    xyz,
+    pts,
     ox,
     oy,
     oz,
@@ -130,7 +153,8 @@ def _ground_grid(
     min_cells,
     near,
 ):  # pragma: no cover - compiled
-    """Ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
+    """Of the returns ``pts`` (N, 4: x, y, z, anything; C-contiguous, :func:`_four_columns`): the
+    ground height per cell (n0, n1) (inf where unknown) and, per azimuth bin (nbins,), the steepest
     upward slope (z − oz) / r of a return farther than 2 m: the top beam's elevation there, how
     high the sensor sees at a range (a tilted sensor sees higher on one side than on the other);
     a bin whose top lies more than ``spread`` (radians) under the frame's highest holds some lower
@@ -156,46 +180,44 @@ def _ground_grid(
         raise ValueError("the ground's rank must be 1 to 4 (a cell's lowest returns are kept in four registers)")
     low = np.full((n0, n1, 4), np.inf)  # per cell its 4 lowest returns, ascending
     num = np.zeros((n0, n1), dtype=np.int64)  # returns per cell
-    m = xyz.shape[0]
+    if pts.shape[1] != 4:
+        raise ValueError("the ground pass reads rows of 4 (x, y, z, anything): see _four_columns")
+    m = pts.shape[0]
+    flat = pts.ravel()
     start = np.empty(m + 1, dtype=np.int64)
     code = np.empty(m, dtype=np.int64)
     zs = np.empty((m, 2))
+    # each return's code and whether it can be a top beam's, in a pass without branches (vectorised)
+    codes = np.empty(m, dtype=np.int32)
+    sky = np.empty(m, dtype=np.bool_)
+    _ground_codes(flat, m, ox, oy, oz, x0, y0, cell, inv, n0, n1, reach2, slope_floor * slope_floor, codes, sky)
     top = np.full(nbins, -np.inf)
     highest, cut = -np.inf, -np.inf
     nr = 0
     cur = -3  # the run's code (none yet)
-    # the run's own 4 lowest, ascending, its lowest and highest and its count, in registers: a cell's
-    # returns come one after the other along a beam (19 in 20 returns are in the previous one's cell),
-    # and a network on the cell's slots in memory waits on its own stores from one return to the next
-    l0 = l1 = l2 = l3 = zlo = np.inf
+    # the run's own 4 lowest, ascending (l0 its lowest), its highest and its count, in registers: a
+    # cell's returns come one after the other along a beam (19 in 20 returns are in the previous one's
+    # cell), and a network on the cell's slots in memory waits on its own stores from one return to the next
+    l0 = l1 = l2 = l3 = np.inf
     zhi = -np.inf
     cnt = 0
     for k in range(m + 1):
         c = -3  # past the last return: ends the last run
         if k < m:
-            x, y, z = xyz[k, 0], xyz[k, 1], xyz[k, 2]
-            dx, dy = x - ox, y - oy
-            r2 = dx * dx + dy * dy
-            i = int((x - x0) * inv if inv > 0.0 else (x - x0) / cell)
-            j = int((y - y0) * inv if inv > 0.0 else (y - y0) / cell)
-            inside = 0 <= i < n0 and 0 <= j < n1
-            c = i * n1 + j if inside else -1
-            if r2 > reach2 or z != z:  # not the ground's (the occupancy still looks at it)
-                c = -2 if inside else -1
-            if r2 <= reach2:
-                dz = z - oz
-                # only returns above the sensor's lower beams can be a top beam's (spares a sqrt and an atan2 per return)
-                if r2 > 4.0 and (dz >= 0.0 or dz * dz < slope_floor * slope_floor * r2):
-                    s = dz / math.sqrt(r2)
-                    if s > highest:
-                        highest = s
-                        cut = math.tan(math.atan(highest) - spread)
-                    # a direction's top beam is used no lower than ``spread`` under the frame's highest: below
-                    # that its value does not matter (spares the atan2 of most returns)
-                    if s >= cut:
-                        b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
-                        if s > top[b]:
-                            top[b] = s
+            c = codes[k]
+            z = flat[4 * k + 2]
+            if sky[k]:
+                dx, dy = flat[4 * k] - ox, flat[4 * k + 1] - oy
+                s = (z - oz) / math.sqrt(dx * dx + dy * dy)
+                if s > highest:
+                    highest = s
+                    cut = math.tan(math.atan(highest) - spread)
+                # a direction's top beam is used no lower than ``spread`` under the frame's highest: below
+                # that its value does not matter (spares the atan2 of most returns)
+                if s >= cut:
+                    b = min(nbins - 1, int((math.atan2(dy, dx) + math.pi) / (2.0 * math.pi) * nbins))
+                    if s > top[b]:
+                        top[b] = s
         if c != cur:
             if cur >= 0:  # the run's lowest into its cell's (the same values whatever the order they came in)
                 a, e = cur // n1, cur % n1
@@ -205,13 +227,13 @@ def _ground_grid(
                         low[a, e, q] = max(low[a, e, q - 1], min(low[a, e, q], v))
                     low[a, e, 0] = min(low[a, e, 0], v)
             if nr > 0:
-                zs[nr - 1, 0], zs[nr - 1, 1] = zlo, zhi
+                zs[nr - 1, 0], zs[nr - 1, 1] = l0, zhi
             if k == m:
                 break
             start[nr], code[nr] = k, c
             nr += 1
             cur = c
-            l0 = l1 = l2 = l3 = zlo = np.inf
+            l0 = l1 = l2 = l3 = np.inf
             zhi = -np.inf
             cnt = 0
         if c >= 0:
@@ -221,7 +243,7 @@ def _ground_grid(
             l2 = max(l1, min(l2, z))
             l1 = max(l0, min(l1, z))
             l0 = min(l0, z)
-            zlo, zhi = min(zlo, z), max(zhi, z)
+            zhi = max(zhi, z)
             cnt += 1
     start[nr] = m
     runs = (start[: nr + 1].copy(), code[:nr].copy(), zs[:nr].copy())
@@ -233,7 +255,7 @@ def _ground_grid(
                 if low[i, j, q] < np.inf:
                     f = low[i, j, q]
             floor[i, j] = f
-    _deep_floors(xyz, runs, num, rank, share, near, floor)
+    _deep_floors(pts, runs, num, rank, share, near, floor)
     ground = np.full((n0, n1), np.inf)
     vals = np.empty(9)
     for i in range(n0):
@@ -263,11 +285,7 @@ def _ground_grid(
     # — a slope, a raised pavement, the road — and takes away what is narrower: an object whose 3 × 3
     # cells hold only its own returns (in an occluder's shadow, or between a far object's sparse road
     # rings), whose lowest return would otherwise be taken for the road
-    eroded = _square_min(ground, reach)
-    # the highest of those over the square, as minus the lowest of their negatives; only cells with
-    # returns of their own show ground (the others are +inf, never the lowest)
-    negated = np.where(ground < np.inf, -eroded, np.inf)
-    lowest = _square_min(negated, reach)
+    lowest = _opening_negated(ground, reach)
     # where the square holds fewer than ``min_cells`` cells with returns (an object in a shadow wider
     # than the square: its own cells are all the square sees), an opening over a square of side
     # 2·wide + 1 cells too, which reaches the road past the shadow's edge
@@ -276,23 +294,34 @@ def _ground_grid(
         for j in range(n1):
             seen[i + 1, j + 1] = seen[i, j + 1] + seen[i + 1, j] - seen[i, j] + (ground[i, j] < np.inf)
     sparse = np.zeros((n0, n1), dtype=np.bool_)
+    any_sparse = False
     for i in range(n0):
         for j in range(n1):
             if ground[i, j] < np.inf:
                 a0, a1 = max(0, i - reach), min(n0, i + reach + 1)
                 b0, b1 = max(0, j - reach), min(n1, j + reach + 1)
                 sparse[i, j] = seen[a1, b1] - seen[a0, b1] - seen[a1, b0] + seen[a0, b0] < min_cells
-    far = np.full((n0, n1), np.inf)
-    if wide > reach and sparse.any():
-        eroded_w = _square_min(ground, wide)
-        lowest_w = _square_min(np.where(ground < np.inf, -eroded_w, np.inf), wide)
-        far = np.where(sparse, -lowest_w, np.inf)
+                any_sparse |= sparse[i, j]
+    lowest_w = _opening_negated(ground, wide) if wide > reach and any_sparse else lowest
     out = np.full((n0, n1), np.inf)
     for i in range(n0):
         for j in range(n1):
             if ground[i, j] < np.inf:
-                out[i, j] = min(ground[i, j], -lowest[i, j], far[i, j])
+                out[i, j] = min(ground[i, j], -lowest[i, j], -lowest_w[i, j] if sparse[i, j] else np.inf)
     return out, top, runs
+
+
+@kernel
+def _opening_negated(ground, reach):  # pragma: no cover - compiled
+    """Minus the opening of ``ground`` (n0, n1) over squares of side 2·reach + 1 cells: the lowest
+    value over the square, then the highest of those over the same square, as minus the lowest of
+    their negatives. Only cells with returns of their own show ground (the others are +inf, never
+    the lowest); read it only there."""
+    eroded = _square_min(ground, reach)
+    g, e = ground.ravel(), eroded.ravel()
+    for c in range(g.shape[0]):
+        e[c] = -e[c] if g[c] < np.inf else np.inf
+    return _square_min(eroded, reach)
 
 
 @kernel
@@ -1176,6 +1205,17 @@ def _exact_inverse(cell: float) -> float:
     return 1.0 / cell if math.frexp(cell)[0] == 0.5 else 0.0
 
 
+def _four_columns(points: NDArray) -> NDArray:
+    """The points as C-contiguous rows of 4 (x, y, z, then anything): the frame's own array when it
+    is so (KITTI's x, y, z, intensity: no copy), else a copy of x, y, z (its dtype kept, so every
+    value is the same); the ground pass reads them with a constant stride."""
+    if points.shape[1] == 4 and points.flags.c_contiguous:
+        return points
+    out = np.zeros((len(points), 4), dtype=points.dtype)
+    out[:, :3] = points[:, :3]
+    return out
+
+
 def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = None) -> list[Cluster]:
     """The point-cloud search of one frame: clusters no label explains, boxed and scored.
 
@@ -1208,7 +1248,7 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     skip = max(0, math.floor((x0 - (opening + 2) * gcell - (ox - reach)) / gcell))
     gx0, gy0 = ox - reach + skip * gcell, oy - reach
     ground, top_slope, runs = _ground_grid(
-        xyz,
+        _four_columns(pts),
         ox,
         oy,
         oz,
