@@ -211,13 +211,7 @@ def frame_evidence(
             C.SCENERY_VOXEL,
             sel[j0 : j0 + _BATCH],
             rotations[j0 : j0 + _BATCH],
-            _GROUND_DRAWS,
-            C.GROUND_SCORED,
-            C.GROUND_MARGIN,
-            C.GROUND_WINDOW,
-            C.GROUND_INLIER,
-            C.GROUND_MIN_POINTS,
-            C.GROUND_MAX_SLOPE,
+            *_ground_args(),
             grounds,
             found,
             counts,
@@ -584,13 +578,7 @@ def ground_plane(xyz: FloatArray, box: FloatArray) -> FloatArray | None:
     ok = _ground_kernel(
         np.ascontiguousarray(xyz, dtype=np.float64),
         np.asarray(box, dtype=float),
-        _GROUND_DRAWS,
-        C.GROUND_SCORED,
-        C.GROUND_MARGIN,
-        C.GROUND_WINDOW,
-        C.GROUND_INLIER,
-        C.GROUND_MIN_POINTS,
-        C.GROUND_MAX_SLOPE,
+        *_ground_args(),
         out,
     )
     return out if ok else None
@@ -598,6 +586,19 @@ def ground_plane(xyz: FloatArray, box: FloatArray) -> FloatArray | None:
 
 _GROUND_DRAWS = np.random.default_rng(0).random((C.GROUND_HYPOTHESES, 4))
 """Fixed uniform numbers of the RANSAC draws: three points and one level plane per hypothesis."""
+
+
+def _ground_args() -> tuple:
+    """The ground fit's fixed inputs, in the order its kernels take them (read at call time)."""
+    return (
+        _GROUND_DRAWS,
+        C.GROUND_SCORED,
+        C.GROUND_MARGIN,
+        C.GROUND_WINDOW,
+        C.GROUND_INLIER,
+        C.GROUND_MIN_POINTS,
+        C.GROUND_MAX_SLOPE,
+    )
 
 
 @kernel
