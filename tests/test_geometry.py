@@ -141,7 +141,12 @@ def test_clean_columns_is_clean_points_transposed():
     pts = rng.normal(size=(50, 4)) * 20.0
     pts[[3, 17], 1] = np.nan
     pts[8, 2] = np.inf
-    for arr in (pts, pts.astype(np.float32), np.round(pts[:, :3]).astype(np.int64).clip(-9, 9), pts.tolist()):
+    for arr in (
+        pts,
+        pts.astype(np.float32),
+        np.round(np.nan_to_num(pts[:, :3])).clip(-9, 9).astype(np.int64),
+        pts.tolist(),
+    ):
         for d in (2, 3):
             want = g.clean_points(arr, d)
             got = g.clean_columns(arr, d)
