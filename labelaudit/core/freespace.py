@@ -47,7 +47,6 @@ __all__ = [
     "ground_heights",
     "label_ray_terms",
     "neighbourhood_parts",
-    "neighbourhoods",
     "passing_parts",
     "passing_rays",
     "ray_candidate_parts",
@@ -1103,29 +1102,14 @@ def _gather_xyz(pts, idx):  # pragma: no cover - compiled
     return out
 
 
-def neighbourhoods(
-    buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float
-) -> tuple[list[IndexArray], list[FloatArray]]:
-    """Indices (sorted) of the points in each box grown by ``margin`` in BEV, from ``below`` under its
-    bottom to ``above`` over its top, taken from the boxes' azimuth windows (``buckets`` must reach
-    at least ``margin``): one compiled pass over the windows instead of a test of every point of
-    the frame per box. Returns the indices (views of one buffer: copy one to keep it alone) and the points'
-    xyz (n_j, 3) float64 of each box."""
-    b = np.asarray(boxes, dtype=float).reshape(-1, 7)
-    result: list[IndexArray] = []
-    xyz: list[FloatArray] = []
-    for j0 in range(0, len(b), _BATCH):
-        parts = neighbourhood_parts(buckets, b[j0 : j0 + _BATCH], margin, below, above, first=j0)
-        result.extend(parts.index_list())
-        xyz.extend(parts.xyz_list())
-    return result, xyz
-
-
 def neighbourhood_parts(
     buckets: AzimuthBuckets, boxes: ArrayLike, margin: float, below: float, above: float, first: int = 0
 ) -> PointParts:
-    """:func:`neighbourhoods` of the boxes (B, 7) that are boxes ``first`` … ``first + B − 1`` of
-    ``buckets``, as one :class:`PointParts` (B bounds its buffer)."""
+    """Indices (sorted per box) of the points in each box grown by ``margin`` in BEV, from ``below``
+    under its bottom to ``above`` over its top, for the boxes (B, 7) that are boxes ``first`` …
+    ``first + B − 1`` of ``buckets`` (which must reach at least ``margin``), as one
+    :class:`PointParts` (B bounds its buffer): one compiled pass over the boxes' azimuth windows
+    instead of a test of every point of the frame per box."""
     b = np.ascontiguousarray(boxes, dtype=float).reshape(-1, 7)
     if buckets.reach < margin:
         raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
@@ -1153,7 +1137,7 @@ _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (f
 @kernel
 def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out, counts):  # pragma: no cover - compiled
     """For each box, the points of its azimuth window (``pts`` in bucket order, ``order`` their
-    indices) inside the grown box of :func:`neighbourhoods`: indices into ``out`` (flat, in window
+    indices) inside the grown box of :func:`neighbourhood_parts`: indices into ``out`` (flat, in window
     order: the caller sorts each box's part), number per box into ``counts``."""
     pos = 0
     for j in range(boxes.shape[0]):
