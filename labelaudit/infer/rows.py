@@ -68,11 +68,23 @@ def frame_note(
     return {"unit": unit, "frame_id": frame_id, "file": file, "line": line, "level": level, "message": message}
 
 
+def _present_extras(frame: Frame) -> list[tuple[str, Any]]:
+    """The frame's (name, values) of :data:`~labelaudit.results.EXTRA_COLUMNS`, an array's values as
+    a list of Python scalars (one conversion per frame instead of a NumPy scalar per object; the
+    row's normalisation gives both the same value)."""
+    present = []
+    for name in R.EXTRA_COLUMNS:
+        if name in frame.extras:
+            values = frame.extras[name]
+            present.append((name, values.tolist() if isinstance(values, np.ndarray) else values))
+    return present
+
+
 def _extras_for(frame: Frame, i: int, present: list[tuple[str, Any]] | None = None) -> dict[str, Any]:
-    """The extra columns of label ``i``; ``present``: the frame's (name, values) of :data:`~labelaudit.results.EXTRA_COLUMNS`, looked up once per frame."""
+    """The extra columns of label ``i``; ``present``: :func:`_present_extras` of the frame, looked up once per frame."""
     out: dict[str, Any] = {}
     if present is None:
-        present = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
+        present = _present_extras(frame)
     for name, values in present:
         value = values[i]
         if name == "difficulty" and not isinstance(value, str):
@@ -128,22 +140,26 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     """
     notes = [frame_note(frame.frame_id, frame.frame_id, w, level="warning") for w in frame.warnings]
     origin = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    ox, oy = origin[:2].tolist()
     selected = [i for i, name in enumerate(frame.class_names) if wants_class(cfg, name)]
     rows: dict[int, dict[str, Any]] = {}
     final: set[int] = set()  # indices whose row is already normalised
     to_audit: list[int] = []
-    extras = [(name, frame.extras[name]) for name in R.EXTRA_COLUMNS if name in frame.extras]
+    extras = _present_extras(frame)
     world = world_boxes(frame, selected)
+    # the labels as Python floats, converted once per frame: the row's box columns, the distance and
+    # the validity test take the same values (and the same float64 operations) as NumPy scalars would
+    values = np.asarray(frame.boxes, dtype=float).reshape(-1, 7).tolist()
     for i in selected:
-        box = frame.boxes[i]
+        v = values[i]
         row: dict[str, Any] = {
             "dataset": cfg.dataset_format,
             "frame_id": frame.frame_id,
             "object_index": i,
             "object_id": frame.object_ids[i],
             "class_name": frame.class_names[i],
-            **dict(zip(R.BOX_COLUMNS, np.asarray(box, dtype=float).tolist())),
-            "distance": float(math.hypot(box[0] - origin[0], box[1] - origin[1])),
+            **dict(zip(R.BOX_COLUMNS, v)),
+            "distance": math.hypot(v[0] - ox, v[1] - oy),
             "model": cfg.model.kind,
             "sigma": cfg.model.sigma,
             **_extras_for(frame, i, extras),
@@ -154,12 +170,13 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         if problem is not None:
             row.update(status="error", message=problem)
             continue
-        try:
-            g.validate_box(box)
-        except ValueError as exc:
-            row.update(status="error", message=f"{label_where(frame, i)}: invalid box: {exc}")
-            continue
-        length = float(box[3])
+        if not (all(map(math.isfinite, v)) and v[3] > 0 and v[4] > 0 and v[5] > 0):  # validate_box's test
+            try:
+                g.validate_box(frame.boxes[i])
+            except ValueError as exc:
+                row.update(status="error", message=f"{label_where(frame, i)}: invalid box: {exc}")
+                continue
+        length = v[3]
         if not (cfg.min_length <= length <= cfg.max_length):
             row.update(
                 status="skipped", message=f"length {length:.2f} m outside [{cfg.min_length:g}, {cfg.max_length:g}] m"
@@ -178,18 +195,19 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
             evidence = frame_evidence(
                 frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask
             )
+            points = np.asarray(frame.points)
             for i, ev in zip(to_audit, evidence):
                 row = rows[i]
                 idx = ev.model_idx
                 try:
                     result = audit_object(
                         frame.boxes[i],
-                        frame.points[idx],
+                        points.take(idx, axis=0),  # the crops' rows (take: a tenth of indexing's cost here)
                         frame.class_names[i],
                         cfg,
                         origin,
-                        fit_points=frame.points[ev.fit_idx],
-                        evidence=ev.for_object(frame.points),
+                        fit_points=points.take(ev.fit_idx, axis=0),
+                        evidence=ev.for_object(points),
                     )
                     check_finite(result)
                     # values the schema cannot hold fail here, per object; the row is final after this
@@ -279,6 +297,7 @@ def audit_object(
         prior_terms=terms,
         sensor_origin=sensor_origin,
     )
+    fit_box, label = fit.box.tolist(), y.tolist()
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
@@ -288,7 +307,7 @@ def audit_object(
         if class_name in C.LABEL_ERROR_CLASSES
         else None,  # null: not validated for the class
         "sigma_hat": float(post.sigma_hat),
-        "fit_offset_m": float(np.hypot(*(fit.box[:2] - y[:2]))),
+        "fit_offset_m": float(np.hypot(fit_box[0] - label[0], fit_box[1] - label[1])),
         "corner_tv": post.corner_tv.tolist(),
     }
     std = post.std_box
@@ -297,7 +316,7 @@ def audit_object(
     row["cov"] = np.asarray(post.cov).ravel().tolist()
     row["cov_dim"] = int(post.cov.shape[0])
     row["model"] = post.model
-    for name, value in zip(_FIT_COLUMNS, fit.box.tolist()):
+    for name, value in zip(_FIT_COLUMNS, fit_box):
         row[name] = value
     if fit.model == "bev":  # points without z: the fit does not touch cz and height
         row["fit_cz"] = row["fit_height"] = float("nan")
