@@ -303,7 +303,7 @@ class DaskExecutor:
       address after :data:`~labelaudit.constants.DASK_CONNECT_TIMEOUT` s; then every worker's
       labelaudit version and constants digest must equal the client's (:func:`code_fingerprint`),
       else :class:`ClusterError` naming both. Tasks check it again (workers that join later).
-    - **Run**: one task per unit, results (Arrow tables inside the chunk results) streamed back as
+    - **Run**: one task per unit, results (the chunks' Parquet shards as bytes) streamed back as
       tasks complete, each yielded exactly once and released on the cluster at once. A worker lost
       mid-run has its tasks rescheduled by Dask; a task present at more worker deaths than the
       scheduler's ``allowed-failures`` raises :class:`WorkerCrashed`.

@@ -772,6 +772,15 @@ def write_parquet(table: pa.Table, sink: Any) -> None:
     pq.write_table(table, sink, compression="snappy", use_dictionary=text)
 
 
+def parquet_bytes(table: pa.Table) -> bytes:
+    """``table`` as the bytes of a Parquet file, exactly as :func:`write_parquet` writes it to a file
+    (a worker encodes its chunk's shards so the process that writes them only stores bytes:
+    :func:`write_bytes_atomic`)."""
+    sink = pa.BufferOutputStream()
+    write_parquet(table, sink)
+    return sink.getvalue().to_pybytes()
+
+
 def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
     """Write ``table`` to ``path`` through a temporary dot-file and :func:`os.replace` (:func:`write_parquet`).
 
@@ -792,6 +801,21 @@ def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
 def write_json_atomic(data: Mapping[str, Any], path: str | Path) -> Path:
     """Write JSON through a temporary file and rename (same guarantee as Parquet shards)."""
     return write_text_atomic(json.dumps(data, indent=2, sort_keys=True) + "\n", path)
+
+
+def write_bytes_atomic(data: bytes, path: str | Path) -> Path:
+    """Write ``data`` (e.g. :func:`parquet_bytes`) through a temporary dot-file and :func:`os.replace`
+    (no temporary is left on failure)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_name(path)
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
 
 
 def write_text_atomic(text: str, path: str | Path) -> Path:

@@ -428,6 +428,53 @@ def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tm
     assert err["frame_id"] == "seg:1" and "crop exploded" in err["message"] and err["unit"] == "seg"
 
 
+def test_a_chunk_encoded_by_its_worker_is_the_files_written_from_its_tables(fake_core, monkeypatch, tmp_path):
+    """encode_chunk's bytes are the shards write_parquet_atomic writes from the tables, byte for byte
+    (objects with the chunk record, missing-label candidates, errors), and its --strict message is
+    the one of the tables."""
+    import labelaudit.infer.run as P
+    from labelaudit.infer.run import ChunkTask, chunk_failure, encode_chunk, process_chunk
+
+    frames = [replace(_frame(), frame_id=f"seg:{t}") for t in range(3)]
+
+    class Reader:
+        def load_unit(self, ref):
+            yield from frames
+
+    monkeypatch.setattr(P, "open_dataset", lambda root, fmt, **options: Reader())
+    real = P.process_frame
+
+    def flaky(frame, cfg):
+        if frame.frame_id == "seg:1":
+            raise RuntimeError("crop exploded")
+        return real(frame, cfg)
+
+    monkeypatch.setattr(P, "process_frame", flaky)
+    monkeypatch.setattr(P, "missing_of_frame", lambda frame, cfg, detections=None: [])
+    metadata = {"tool": "labelaudit", "param_hash": "abc"}
+    refs = (FrameRef("fake", "/r", "seg"),)
+    plain = process_chunk(ChunkTask("x.parquet", refs, RunConfig()))
+    encoded = process_chunk(ChunkTask("x.parquet", refs, RunConfig(), metadata=metadata))
+    assert plain.shards is None and plain.table is not None and plain.table.num_rows > 0
+    assert encoded.table is None and encoded.missing is None  # only bytes travel back
+    assert (encoded.frames, encoded.objects, encoded.errors) == (plain.frames, plain.objects, plain.errors)
+    chunk = R.chunk_record(plain.table, plain.errors)
+    expected = {
+        R.OBJECTS_DIR: R.write_parquet_atomic(
+            R.with_metadata(plain.table, {**metadata, "chunk": chunk}), tmp_path / "objects.parquet"
+        ),
+        R.MISSING_DIR: R.write_parquet_atomic(R.with_metadata(plain.missing, metadata), tmp_path / "missing.parquet"),
+        R.ERRORS_DIR: R.write_parquet_atomic(R.errors_to_table(plain.errors, metadata), tmp_path / "errors.parquet"),
+    }
+    assert set(encoded.shards) == set(expected)
+    for folder, path in expected.items():
+        assert encoded.shards[folder] == path.read_bytes(), folder
+    assert encoded.failure == chunk_failure(plain) and "crop exploded" in encoded.failure
+    assert encode_chunk(encoded, metadata) is encoded  # encoding twice is a no-op
+    clean = encode_chunk(replace(plain, errors=[]), metadata)
+    assert clean.failure is None and R.ERRORS_DIR not in clean.shards  # no notes: no errors part
+
+
 def test_a_second_writer_is_refused_and_a_stale_lock_taken_over(fake_core, sim_kitti, tmp_path):
     import os
     import subprocess

@@ -2,11 +2,12 @@
 
 :func:`run_infer` plans fixed chunks of units (independent of the worker count), skips those already
 written (``--resume``), hands the rest to an :class:`~labelaudit.executors.Executor` and writes each
-returned table as an atomic shard. :func:`process_chunk` is the pure function a worker runs: a
-:class:`ChunkTask` (a few :class:`~labelaudit.datasets.FrameRef` s and the config) in, a
-:class:`ChunkResult` (an Arrow table and the errors) out; it loads its own frames, so it runs in any
-process or cluster node. Rows are built by :mod:`labelaudit.infer.rows`; the folder layout, lock and
-resume checks belong to :mod:`labelaudit.results`. Nothing here prints.
+returned chunk as atomic shards. :func:`process_chunk` is the pure function a worker runs: a
+:class:`ChunkTask` (a few :class:`~labelaudit.datasets.FrameRef` s, the config and the run's shard
+metadata) in, a :class:`ChunkResult` (the chunk's shards as Parquet bytes, :func:`encode_chunk`, and
+its errors) out; it loads its own frames, so it runs in any process or cluster node. Rows are built
+by :mod:`labelaudit.infer.rows`; the folder layout, lock and resume checks belong to
+:mod:`labelaudit.results`. Nothing here prints.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ class ChunkTask:
     max_frames_per_unit: int | None = None
     debug: bool = False
     detections: Mapping[str, Any] = field(default_factory=dict)  # frame id → the frame's detections (--detections)
+    metadata: Mapping[str, Any] | None = None  # the run's shard metadata: the worker encodes the shards (encode_chunk)
 
 
 @dataclass
@@ -67,7 +69,7 @@ class ChunkResult:
     """What a worker returns for one chunk."""
 
     name: str
-    table: pa.Table
+    table: pa.Table | None  # None once encoded (shards)
     errors: list[dict[str, Any]]
     units: int
     frames: int
@@ -75,6 +77,8 @@ class ChunkResult:
     seconds: float
     sources: dict[str, str] = field(default_factory=dict)  # frame id → the file its labels came from
     missing: pa.Table | None = None  # missing-label candidates of the chunk (None: the search is off)
+    shards: dict[str, bytes] | None = None  # folder → the chunk's Parquet file there, once encoded (encode_chunk)
+    failure: str | None = None  # once encoded: --strict's message for the chunk's first failure (None: none)
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -176,9 +180,34 @@ def process_chunk(task: ChunkTask) -> ChunkResult:
             )
     table = R.rows_to_table(rows, normalized=True)  # process_frame's rows are normalised
     missing = R.missing_rows_to_table(candidates) if search else None
-    return ChunkResult(
+    result = ChunkResult(
         task.name, table, errors, len(task.refs), frames, table.num_rows, time.perf_counter() - start, sources, missing
     )
+    return result if task.metadata is None else encode_chunk(result, task.metadata)
+
+
+def encode_chunk(result: ChunkResult, metadata: Mapping[str, Any]) -> ChunkResult:
+    """``result`` with its shards encoded as Parquet bytes (:attr:`ChunkResult.shards`, by folder:
+    the objects shard with its :func:`~labelaudit.results.chunk_record`, the missing-label shard
+    when the chunk was searched, the errors part when it has notes), its ``--strict`` message
+    (:attr:`ChunkResult.failure`), and no tables.
+
+    Run by the worker (:attr:`ChunkTask.metadata`): the process that writes the shards then only
+    stores bytes, and the bytes cost less to send than the tables. The files are the ones
+    :func:`~labelaudit.results.write_parquet_atomic` writes from the tables, byte for byte.
+    """
+    if result.shards is not None:
+        return result
+    shards = {
+        R.OBJECTS_DIR: R.parquet_bytes(
+            R.with_metadata(result.table, {**metadata, "chunk": R.chunk_record(result.table, result.errors)})
+        )
+    }
+    if result.missing is not None:  # an empty shard too: it says the chunk was searched
+        shards[R.MISSING_DIR] = R.parquet_bytes(R.with_metadata(result.missing, metadata))
+    if result.errors:
+        shards[R.ERRORS_DIR] = R.parquet_bytes(R.errors_to_table(result.errors, metadata))
+    return replace(result, table=None, missing=None, shards=shards, failure=chunk_failure(result))
 
 
 # --------------------------------------------------------------------------- layer 3: a run
@@ -407,6 +436,7 @@ def _run_locked(
             request.limit if fmt != "kitti" else None,
             request.debug,
             detections_of_chunk(detections, c, fmt),
+            metadata,
         )
         for name, c in chunks
         if name not in done
@@ -414,19 +444,22 @@ def _run_locked(
     frames = objects = 0
     progress.start(len(refs), sum(len(c) for name, c in chunks if name in done))
     try:
-        for result in executor.run(tasks, process_chunk):
-            if request.strict:
-                _raise_if_failed(result)
-            if result.errors:
-                R.write_parquet_atomic(R.errors_to_table(result.errors, metadata), err_dir / result.name)
+        for k, result in enumerate(executor.run(tasks, process_chunk)):
+            result = encode_chunk(result, metadata)  # the worker has (ChunkTask.metadata): then a no-op
+            if request.strict and result.failure is not None:
+                raise StrictError(result.failure)
+            shards = result.shards or {}  # encoded: never empty
+            if R.ERRORS_DIR in shards:
+                R.write_bytes_atomic(shards[R.ERRORS_DIR], err_dir / result.name)
             else:
                 (err_dir / result.name).unlink(missing_ok=True)
-            if result.missing is not None:  # an empty shard too: it says the chunk was searched
-                R.write_parquet_atomic(R.with_metadata(result.missing, metadata), missing_dir / result.name)
+            if R.MISSING_DIR in shards:
+                R.write_bytes_atomic(shards[R.MISSING_DIR], missing_dir / result.name)
             # The object shard is written last: its presence marks the chunk complete for --resume,
             # and it records what the chunk's errors part must hold (R.chunk_state).
-            chunk = R.chunk_record(result.table, result.errors)
-            R.write_parquet_atomic(R.with_metadata(result.table, {**metadata, "chunk": chunk}), shard_dir / result.name)
+            R.write_bytes_atomic(shards[R.OBJECTS_DIR], shard_dir / result.name)
+            if k == 0:
+                _import_for_the_end()
             frames += result.frames
             objects += result.objects
             progress.advance(result)
@@ -474,13 +507,25 @@ def _run_locked(
     )
 
 
-def _raise_if_failed(result: ChunkResult) -> None:
-    """``--strict``: the first failed frame or object of a chunk as a one-line :class:`StrictError` naming its file."""
+def _import_for_the_end() -> None:
+    """Import what the end of a run needs (the tracks pass; Parquet's writer for ``errors.parquet``)
+    once the first chunk is back: while the workers compute, not on the run's tail, where the
+    writing process is all that runs (~20 ms)."""
+    import pyarrow.parquet  # noqa: F401
+
+    import labelaudit.infer.tracks  # noqa: F401
+
+
+def chunk_failure(result: ChunkResult) -> str | None:
+    """``--strict``'s one-line message for the first failed frame or object of a chunk (naming its
+    file), or None when nothing failed; from the chunk's tables (:func:`encode_chunk` keeps it)."""
+    if result.table is None:
+        return result.failure
     failed = result.failed
     if failed:
         e = failed[0]
         where = "" if not e["file"] or str(e["file"]) in e["message"] else f"{e['file']}: "
-        raise StrictError(one_line(f"--strict: unit {e['unit']} failed: {where}{e['message']}"))
+        return one_line(f"--strict: unit {e['unit']} failed: {where}{e['message']}")
     if result.table.num_rows:
         status = result.table.column("status").to_pylist()
         if "error" in status:
@@ -489,11 +534,10 @@ def _raise_if_failed(result: ChunkResult) -> None:
             source = result.sources.get(row["frame_id"], "")
             line = f" (line {row['label_line']})" if row.get("label_line") is not None else ""
             where = "" if not source or source in (row["message"] or "") else f"{source}{line}: "
-            raise StrictError(
-                one_line(
-                    f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"
-                )
+            return one_line(
+                f"--strict: frame {row['frame_id']} object {row['object_index']} failed: {where}{row['message']}"
             )
+    return None
 
 
 def read_missing_detections(

@@ -37,8 +37,9 @@ def fast_exit_in_fork_server() -> bool:
 
 
 def warm_up(strict: bool = False) -> None:
-    """Audit a synthetic frame of two boxes (BEV and 3D: crops, ground, rays, covariance, JIoU-GT, box fit, hull IoU)
-    and search it for missing labels.
+    """Audit a synthetic frame of two boxes (BEV and 3D: crops, ground, rays, covariance, JIoU-GT, box fit, hull IoU),
+    search it for missing labels (with the exact overlap the search takes against labels), and encode
+    the rows and candidates as a chunk's shards.
 
     Never raises unless ``strict`` (tests): a failed warm-up only means workers load lazily.
     """
@@ -59,15 +60,24 @@ def warm_up(strict: bool = False) -> None:
         road = np.c_[rng.uniform(5, 25, (256, 2)) - [0, 10], np.full(256, -0.1)]  # ground and rays behind the box
         pts = np.c_[np.vstack([box[:3] + rng.normal(0.0, 1.0, (64, 3)), road]), np.zeros(320)].astype(np.float32)
         base = load_config(None, "kitti")
+        rows: list = []
         for model in ("bev", "3d"):  # crops, ground, rays, neighbours, the fit with rays, counts: every kernel
             cfg = base.with_overrides(model=replace(base.model, kind=model))
-            process_frame(
+            rows += process_frame(
                 Frame("warm-up", pts, np.stack([box, box + [0, 2.5, 0, 0, 0, 0, 0]]), ["Car", "Car"], ["a", "b"]), cfg
-            )
+            )[0]
         from labelaudit.infer.missing import find_missing
 
         # the missing-label search: the same returns with no label, so a cluster is boxed and its rays counted
-        find_missing(Frame("warm-up", pts, np.zeros((0, 7)), [], []), base)
+        candidates = find_missing(Frame("warm-up", pts, np.zeros((0, 7)), [], []), base)
+        from labelaudit.core.iou import bev_iou_exact
+
+        bev_iou_exact(box, box + [0.5, 0, 0, 0, 0, 0, 0])  # the search's overlap with a frame's labels (shapely)
+        from labelaudit import results as R
+
+        # a chunk's shards, as the worker encodes them (Arrow tables, pyarrow.parquet's writer)
+        R.parquet_bytes(R.rows_to_table(rows, normalized=True))
+        R.parquet_bytes(R.missing_rows_to_table(candidates))
     except Exception:  # a warm-up must never stop the fork server; workers then load lazily
         if strict:
             raise
