@@ -435,6 +435,31 @@ def test_missing_and_bad_calib(tmp_path: Path) -> None:
     assert all(e.path.endswith(f"calib/{k}.txt") for k, e in failed.items())
 
 
+def test_frames_sharing_a_calibration_get_its_matrices_and_a_bad_copy_still_fails(tmp_path: Path) -> None:
+    """The reader derives a calibration's matrices once per file content: frames with the same
+    content get exactly read_calib's T_velo_cam and P2 · T_cam_velo (read-only), another content
+    its own, and a later file that cannot be parsed fails although an earlier one was good."""
+    shared, other = realistic_calib(1), realistic_calib(2)
+    for fid, calib in (("000001", shared), ("000002", other), ("000003", shared), ("000004", shared)):
+        write_frame(tmp_path, fid, random_points(), [GOOD_LINE], calib)
+    text = (tmp_path / "training/calib/000001.txt").read_text()
+    (tmp_path / "training/calib/000004.txt").write_text(text.replace("P2: ", "P2: x "))
+    reader = KittiReader(tmp_path)
+    ok, failed = _load_all(reader)
+    assert list(ok) == ["000001", "000002", "000003"] and list(failed) == ["000004"]
+    assert "calibration P2: expected numbers" in str(failed["000004"])
+    for fid in ("000001", "000002", "000003"):
+        calib = read_calib(reader.calib_path(fid))
+        velo_from_cam, projection = reader.calibration(reader.calib_path(fid))
+        assert np.array_equal(velo_from_cam, calib.T_velo_cam)
+        assert np.array_equal(projection, calib.P2 @ calib.T_cam_velo)
+        assert np.array_equal(ok[fid].image_view.projection, projection)
+        assert not velo_from_cam.flags.writeable and not projection.flags.writeable
+    assert reader.calibration(reader.calib_path("000001"))[0] is reader.calibration(reader.calib_path("000003"))[0]
+    assert not np.array_equal(ok["000001"].image_view.projection, ok["000002"].image_view.projection)
+    np.testing.assert_array_equal(ok["000001"].boxes, ok["000003"].boxes)
+
+
 def test_a_calibration_rotation_is_tested_by_its_determinant(tmp_path: Path) -> None:
     """R0_rect and Tr_velo_to_cam's rotation need |det| within 0.05 of 1 (KITTI prints 7 digits): a
     scaled, a singular and a huge matrix (whose determinant overflows to NaN) are refused, naming

@@ -305,12 +305,14 @@ BOX_FIELD_KINDS = ("centre", "centre", "centre", "size", "size", "size", "angle"
 
 
 @functools.lru_cache(maxsize=16)
-def _field_limits(kinds: tuple[str, ...]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The limit (F,) of every field kind and which are sizes (F,): built once per kinds tuple (read only)."""
+def _field_limits(kinds: tuple[str, ...]) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+    """The limit (F,) of every field kind, which are sizes (F,) and the lower bound (F,: MIN_BOX_SIZE
+    for a size, −inf else): built once per kinds tuple (read only)."""
     limit = np.array([{"centre": C.MAX_BOX_CENTRE, "size": C.MAX_BOX_SIZE, "angle": C.MAX_BOX_ANGLE}[k] for k in kinds])
     is_size = np.array([k == "size" for k in kinds])
-    limit.flags.writeable = is_size.flags.writeable = False
-    return limit, is_size
+    lower = np.where(is_size, C.MIN_BOX_SIZE, -np.inf)
+    limit.flags.writeable = is_size.flags.writeable = lower.flags.writeable = False
+    return limit, is_size, lower
 
 
 def box_problems(values: ArrayLike, names: Sequence[str], kinds: Sequence[str] = BOX_FIELD_KINDS) -> dict[int, str]:
@@ -330,9 +332,11 @@ def box_problems(values: ArrayLike, names: Sequence[str], kinds: Sequence[str] =
     problems are absent); vectorised, the loop runs over bad rows only.
     """
     v = np.asarray(values, dtype=np.float64).reshape(-1, len(names))
-    limit, is_size = _field_limits(tuple(kinds))
-    with np.errstate(invalid="ignore"):
-        bad = ~(np.abs(v) <= limit) | (is_size & (v < C.MIN_BOX_SIZE))  # not ≤: NaN and ±inf are bad too
+    limit, is_size, lower = _field_limits(tuple(kinds))
+    ok = (np.abs(v) <= limit) & (v >= lower)  # NaN and ±inf fail the first test
+    if ok.all():  # the usual frame: no label to name
+        return {}
+    bad = ~ok
     out: dict[int, str] = {}
     for r in np.flatnonzero(bad.any(axis=1)):
         parts = []

@@ -162,10 +162,19 @@ def read_text_lines(path: Path, what: str) -> list[str]:
     DatasetError
         The file cannot be read or is not UTF-8 text (the message names the byte offset).
     """
+    return text_lines(read_file_bytes(path, what), path, what)
+
+
+def read_file_bytes(path: Path, what: str) -> bytes:
+    """The bytes of a file; :class:`DatasetError` naming ``what`` when it cannot be read."""
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except OSError as exc:
         raise DatasetError(path, f"cannot read {what}: {exc.strerror or exc}") from None
+
+
+def text_lines(data: bytes, path: Path, what: str) -> list[str]:
+    """:func:`read_text_lines` of bytes already read from ``path`` (named in errors)."""
     bom = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
     try:
         text = data[bom:].decode("utf-8")
@@ -189,12 +198,22 @@ def read_calib(path: str | Path) -> Calibration:
         missing required key (P2, R0_rect, Tr_velo_to_cam); the message names the key and line.
     """
     path = path if isinstance(path, Path) else Path(path)
+    return parse_calib(read_calib_bytes(path), path)
+
+
+def read_calib_bytes(path: Path) -> bytes:
+    """The bytes of a calibration file (:func:`read_calib`'s errors for a missing or unreadable one)."""
     if not path.is_file():
         raise DatasetError(
             path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)"
         )
+    return read_file_bytes(path, "calibration file")
+
+
+def parse_calib(data: bytes, path: Path) -> Calibration:
+    """:func:`read_calib` of the bytes of the calibration file ``path`` (named in errors)."""
     values: dict[str, FloatArray] = {}
-    for lineno, raw in enumerate(read_text_lines(path, "calibration file"), start=1):
+    for lineno, raw in enumerate(text_lines(data, path, "calibration file"), start=1):
         line = raw.strip()
         if not line:
             continue
@@ -271,10 +290,15 @@ def boxes_camera_to_lidar(
     -------
     boxes : (K, 7) cx, cy, cz, l, w, h, yaw in the LiDAR frame
     """
+    return camera_to_lidar(locations, dims_hwl, rotation_y, calib.T_velo_cam)
+
+
+def camera_to_lidar(locations: ArrayLike, dims_hwl: ArrayLike, rotation_y: ArrayLike, T: FloatArray) -> FloatArray:
+    """:func:`boxes_camera_to_lidar` with the calibration's :attr:`~Calibration.T_velo_cam` ``T`` (4, 4)
+    already computed (a reader derives it once per calibration file)."""
     loc = np.asarray(locations, dtype=float).reshape(-1, 3)
     dims = np.asarray(dims_hwl, dtype=float).reshape(-1, 3)
     ry = np.asarray(rotation_y, dtype=float).reshape(-1)
-    T = calib.T_velo_cam
     out = np.empty((len(loc), 7))  # filled column by column: np.c_ costs more than the arithmetic
     with np.errstate(invalid="ignore", over="ignore"):  # a NaN/inf label stays NaN/inf; the reader reports it
         bottom = loc @ T[:3, :3].T + T[:3, 3]
@@ -636,6 +660,8 @@ class KittiReader:
         self.velodyne_dir = velodyne_dir
         if not (self.data_dir / "label_2").is_dir():
             raise DatasetError(self.data_dir / "label_2", "label folder not found (labelaudit audits labelled frames)")
+        self._calibrations: dict[bytes, tuple[FloatArray, FloatArray]] = {}
+        self._has_images = (self.data_dir / "image_2").is_dir()  # else every frame has KITTI's usual size
 
     # -- paths ------------------------------------------------------------------------------
 
@@ -701,7 +727,7 @@ class KittiReader:
         if not velo_path.is_file():
             raise DatasetError(velo_path, f"point cloud not found for label file {label_path}")
         calib_path = self.calib_path(frame_id)
-        calib = read_calib(calib_path)
+        velo_from_cam, projection = self.calibration(calib_path)
 
         not_dontcare = np.array([n != "DontCare" for n in labels.class_names], dtype=bool)
         index = np.cumsum(not_dontcare) - 1  # position among the non-DontCare rows
@@ -721,7 +747,7 @@ class KittiReader:
             points = points[finite]
             warnings.append(f"{velo_path}: dropped {n_bad} of {n_bad + len(points)} points with NaN/inf coordinates")
 
-        boxes = boxes_camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], calib)
+        boxes = camera_to_lidar(labels.location[rows], dims, labels.rotation_y[rows], velo_from_cam)
         object_errors = _label_problems(labels, rows, boxes, label_path, calib_path)
         for name in {labels.class_names[r] for r in rows if not labels.class_names[r].isprintable()}:
             at = ", ".join(str(labels.line[r]) for r in rows if labels.class_names[r] == name)
@@ -742,7 +768,7 @@ class KittiReader:
             "label_line": labels.line[rows],
         }
         dontcare = labels.bbox2d[~not_dontcare].reshape(-1, 4)
-        view = ImageView(calib.P2 @ calib.T_cam_velo, self.image_size(frame_id), np.asarray(dontcare, dtype=float))
+        view = ImageView(projection, self.image_size(frame_id), np.asarray(dontcare, dtype=float))
         return Frame(
             frame_id=frame_id,
             points=np.ascontiguousarray(points, dtype=np.float32),
@@ -757,9 +783,34 @@ class KittiReader:
             image_view=view,
         )
 
+    def calibration(self, path: Path) -> tuple[FloatArray, FloatArray]:
+        """(T_velo_cam (4, 4), the LiDAR → image_2 projection P2 · T_cam_velo (3, 4)) of a
+        calibration file, read-only: parsed and derived once per distinct file content (a KITTI
+        drive's frames share one calibration; the file is still read, and checked, every time).
+
+        Raises
+        ------
+        DatasetError
+            As :func:`read_calib`.
+        """
+        data = read_calib_bytes(path)
+        derived = self._calibrations.get(data)
+        if derived is None:
+            calib = parse_calib(data, path)
+            cam_from_velo = calib.T_cam_velo
+            derived = (np.linalg.inv(cam_from_velo), calib.P2 @ cam_from_velo)  # T_velo_cam, the projection
+            for a in derived:
+                a.flags.writeable = False  # shared by the frames of the calibration
+            if len(self._calibrations) >= _CALIBRATIONS_KEPT:
+                self._calibrations.clear()
+            self._calibrations[data] = derived
+        return derived
+
     def image_size(self, frame_id: str) -> tuple[int, int]:
         """(width, height) of ``image_2/<frame_id>.png`` from its header; KITTI's usual size
         (:data:`~labelaudit.constants.KITTI_IMAGE_SIZE`) when there is no readable image."""
+        if not self._has_images:
+            return C.KITTI_IMAGE_SIZE
         try:
             with open(self.data_dir.joinpath("image_2", f"{frame_id}.png"), "rb") as f:
                 head = f.read(24)
@@ -771,6 +822,8 @@ class KittiReader:
                 return width, height
         return C.KITTI_IMAGE_SIZE
 
+
+_CALIBRATIONS_KEPT = 64  # distinct calibration files a reader keeps derived (KITTI object: one per drive day)
 
 _LABEL_BOX_FIELDS = ("height", "width", "length", "x", "y", "z", "rotation_y")
 _LABEL_BOX_KINDS = ("size", "size", "size", "centre", "centre", "centre", "angle")
