@@ -121,9 +121,12 @@ def test_resolve_config_overrides():
 def test_chunks_do_not_depend_on_anything_but_the_unit_list():
     refs = [FrameRef("kitti", "/d", f"{i:06d}") for i in range(20)]
     plan = plan_chunks(refs, 8)
-    assert [len(c) for _, c in plan] == [8, 8, 4]
+    assert [len(c) for _, c in plan] == [8, 6, 3, 2, 1]  # the last chunks halve: the workers end together
+    assert [r for _, c in plan for r in c] == refs  # every unit once, in list order
     assert plan[0][0] == chunk_name(refs[:8]) != chunk_name(refs[1:9])
     assert plan == plan_chunks(list(refs), 8)
+    assert [len(c) for _, c in plan_chunks(refs * 6, 8)] == [8] * 14 + [4, 2, 1, 1]
+    assert [len(c) for _, c in plan_chunks(refs, 1)] == [1] * 20  # one unit per chunk: as before
 
 
 # --------------------------------------------------------------------------- runs on simulated KITTI
