@@ -873,8 +873,8 @@ def _registration_numpy(y, pts, d, m, sigma):
 
 
 def _em_numpy(*sqds):
-    """The σ̂ EM (pooled over registrations) in its NumPy/Python form: every candidate through exp
-    (math.exp, as the kernel)."""
+    """The σ̂ EM (pooled over registrations) in its NumPy/Python form: every candidate through
+    ``math.exp`` (the kernel's vectorised exp is within 1 ulp of it), the points' sum in order."""
     sqd = np.concatenate(sqds)
     n = len(sqd)
     sqd0 = np.where(np.isfinite(sqd), sqd, 0.0)
@@ -902,8 +902,8 @@ def _em_numpy(*sqds):
 
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
-    """register_validated and the per-object EM give their NumPy forms' arrays bit for bit;
-    registration_information (compiled, its own summation order) within 1e-13 of the BLAS form
+    """register_validated gives its NumPy form's arrays bit for bit, the per-object EM its σ̂ within
+    1e-13 (its own exp and summation order: the last bits); registration_information (compiled, its own summation order) within 1e-13 of the BLAS form
     (points around, on and inside rotated boxes; 1 to 3 candidates)."""
     assert (C.SIGMA_FLOOR, C.EM_TOLERANCE, C.EM_MAX_ITERATIONS, C.EM_RESIDUAL_DOF) == (
         0.01,
@@ -926,9 +926,10 @@ def test_compiled_registration_em_and_information_equal_the_numpy_forms(model):
             np.array_equal(reg.vstar, vstar) and np.array_equal(reg.sqdist, sqd) and np.array_equal(reg.resp, resp)
         ), trial
         if trial < 8:
-            assert M.em_sigma([(sqd, 0.0)], d, sigma, 0.0) == _em_numpy(sqd), trial
+            assert M.em_sigma([(sqd, 0.0)], d, sigma, 0.0) == pytest.approx(_em_numpy(sqd), rel=1e-13, abs=0), trial
             h = len(sqd) // 2  # pooled over two registrations
-            assert M.em_sigma([(sqd[:h], 0.0), (sqd[h:], 0.0)], d, sigma, 0.0) == _em_numpy(sqd[:h], sqd[h:]), trial
+            pooled = M.em_sigma([(sqd[:h], 0.0), (sqd[h:], 0.0)], d, sigma, 0.0)
+            assert pooled == pytest.approx(_em_numpy(sqd[:h], sqd[h:]), rel=1e-13, abs=0), trial
         n = len(pts)
         vt = np.empty((n, m, d + 1))
         vt[..., 0] = 1.0
@@ -1173,8 +1174,8 @@ def test_corner_covariances_known_answer_and_one_formula():
 def test_one_pass_posterior_equals_the_general_steps(model, monkeypatch):
     """infer_label's one compiled pass (no outlier component) gives the general steps' posterior:
     the registration, σ, σ̂, corner order and sample count exactly, the covariance, corner variances,
-    stds, Gaussian mean and prior covariance within the last bits (its exponentials are numba's,
-    not NumPy's), for 0, 1, few and many points, with and without σ̂ replacing σ."""
+    stds, Gaussian mean and prior covariance within the last bits (its exponentials are
+    linalg.exp_kernel's, not NumPy's), for 0, 1, few and many points, with and without σ̂ replacing σ."""
     rng = np.random.default_rng(21)
     box = np.array([14.0, -3.0, 0.8, 4.3, 1.8, 1.5, 0.6])
     cases = []
@@ -1193,6 +1194,8 @@ def test_one_pass_posterior_equals_the_general_steps(model, monkeypatch):
         assert a.num_points == b.num_points and a.sigma == b.sigma
         assert a.sigma_hat == b.sigma_hat or (math.isnan(a.sigma_hat) and math.isnan(b.sigma_hat))
         assert np.array_equal(a.corner_order, b.corner_order) and np.array_equal(a.phi, b.phi)
-        for x, y in ((a.cov, b.cov), (a.corner_tv, b.corner_tv), (a.fit_mean, b.fit_mean), (a.prior_cov, b.prior_cov)):
+        for x, y in ((a.cov, b.cov), (a.corner_tv, b.corner_tv), (a.prior_cov, b.prior_cov)):
             np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-15 * np.abs(y).max())
+        # the mean Σ(η0 + η/σ²) adds large terms that cancel: the responsibilities' last bits weigh more
+        np.testing.assert_allclose(a.fit_mean, b.fit_mean, rtol=1e-10)
         np.testing.assert_allclose(list(a.std_box.values()), list(b.std_box.values()), rtol=1e-12)

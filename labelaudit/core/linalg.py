@@ -7,7 +7,8 @@ signature) directly, so their results are bit-identical to ``np.linalg`` (a test
 fall back to ``np.linalg`` when that module is not there. Errors stay errors: a matrix that is not
 positive definite or is singular raises, as in ``np.linalg``. It also holds :func:`pairwise_sum`,
 NumPy's summation order, and :func:`nan_max` / :func:`nan_min` (``np.maximum`` / ``np.minimum`` of two
-floats), for compiled kernels that must reproduce NumPy's results (numba's cache does not see a
+floats), for compiled kernels that must reproduce NumPy's results, and :func:`exp_kernel`, an
+``exp`` of a whole array that the compiler vectorises (numba's cache does not see a
 change here from the kernels of other modules that inline them: clear their ``__pycache__/*.nb*``
 after editing these). No I/O.
 """
@@ -32,6 +33,7 @@ __all__ = [
     "cholesky",
     "cholesky_kernel",
     "eigh",
+    "exp_kernel",
     "inv",
     "nan_max",
     "nan_min",
@@ -308,3 +310,42 @@ def spd_inverse_kernel(M, out):  # pragma: no cover - compiled
             out[i, j] = acc
             out[j, i] = acc
     return True
+
+
+# exp(x) = 2^k exp(r), x = k ln 2 + r: ln 2 split as fdlibm's (k · _LN2_HI is exact for |k| < 2^11)
+_LOG2E = 1.4426950408889634
+_LN2_HI = 6.93147180369123816490e-01
+_LN2_LO = 1.90821492927058770002e-10
+_LOG_MAX = 709.782712893384  # ln of the largest float64
+_EXP_TAYLOR = tuple(1.0 / math.factorial(j) for j in range(13, -1, -1))  # 1/13!, …, 1/1!, 1/0!
+
+
+@kernel(error_model="numpy", fastmath={"contract"})
+def exp_kernel(x, out, bits):  # pragma: no cover - compiled
+    """``out[i] = exp(x[i])`` over 1-D float64 arrays of n values, x ≤ 709, in loops the compiler
+    vectorises — ``math.exp`` is a call into libm per value, several times dearer — when ``out`` is
+    not ``x`` (in place they run value by value). Within 1 ulp of libm's exp (~10 % of the values
+    differ in the last bit), except that a result below e^−708 (≈ 3.3e-308, x < −708) is 0:
+    subnormal numbers would cost a microcode assist per operation, here and in the sums that read
+    them. exp(0) = 1 exactly, NaN gives NaN, x > ln(max float) gives inf. ``bits``: int64 scratch
+    of n values.
+
+    x = k ln 2 + r with |r| ≤ ½ ln 2 (Cody–Waite), exp(r) by its Taylor polynomial to degree 13
+    (remainder < 5e-18 of the value), times 2^k written into ``bits`` as an exponent field. Its
+    fused multiply-adds (``contract``) are the same on every run, ahead of time and JIT."""
+    n = x.size
+    for i in range(n):
+        v = x[i]
+        v = -708.0 if v < -708.0 else (709.0 if v > 709.0 else v)  # NaN stays NaN
+        kf = math.floor(v * _LOG2E + 0.5)
+        kf = 0.0 if kf != kf else kf
+        r = (v - kf * _LN2_HI) - kf * _LN2_LO
+        poly = 0.0
+        for c in _EXP_TAYLOR:
+            poly = poly * r + c
+        bits[i] = (np.int64(kf) + 1023) << 52
+        out[i] = poly if x[i] >= -708.0 else (0.0 if x[i] < -708.0 else poly)  # NaN: poly is NaN
+    scale = bits.view(np.float64)
+    for i in range(n):
+        e = out[i] * scale[i]
+        out[i] = math.inf if x[i] > _LOG_MAX else e

@@ -401,23 +401,29 @@ def _contract_basis(moments, cross, B, BB):  # pragma: no cover - compiled
 def _exp_information_kernel(vstar, x, points, B, BB):  # pragma: no cover - compiled
     """:func:`_information_kernel` of the responsibilities exp(x) / Σ_m exp(x) (x: the exponents of
     :func:`_resp_exponents`, N × M), formed point by point as the moments are summed: the same
-    operations in the same order as ``math.exp``, :func:`_normalise_rows` and
+    operations in the same order as the exponentials, :func:`_normalise_rows` and
     :func:`_information_kernel` one after the other, without the (N, M) responsibilities. The
-    moments of ṽ₀ = 1 are the responsibilities themselves (1 · r = r exactly)."""
+    exponentials are taken first, all in one vectorised pass (:func:`~labelaudit.core.linalg.exp_kernel`,
+    within 1 ulp of ``math.exp``). The moments of ṽ₀ = 1 are the responsibilities themselves
+    (1 · r = r exactly)."""
     n, m, d = vstar.shape
     moments = np.zeros((d + 1, d + 1))
     cross = np.zeros((d + 1, d))
-    e = np.empty(m)
+    xf = np.empty(n * m)
+    for k in range(n):
+        for j in range(m):
+            xf[k * m + j] = x[k, j]
+    ex = np.empty(n * m)
+    linalg.exp_kernel(xf, ex, np.empty(n * m, dtype=np.int64))
     rsum = np.empty(d + 1)
     for k in range(n):
         norm = 0.0
         for j in range(m):
-            e[j] = math.exp(x[k, j])
-            norm += e[j]
+            norm += ex[k * m + j]
         for a in range(d + 1):
             rsum[a] = 0.0
         for j in range(m):
-            r = e[j] / norm
+            r = ex[k * m + j] / norm
             rsum[0] += r
             moments[0, 0] += r
             for b in range(d):
@@ -591,35 +597,65 @@ def _em_one_kernel(sqd, floor, tol, max_iter, dof):  # pragma: no cover - compil
     return True, _em_fast_kernel(sqd, sigma, start, floor, tol, max_iter, dof)
 
 
-@kernel
+@kernel(error_model="numpy")
 def _em_fast_kernel(sqd, sigma, estimate, floor, tol, max_iter, dof):  # pragma: no cover - compiled
     """The EM of :func:`em_sigma` without outliers over squared distances (N, M): per point the
     responsibility-weighted d² over its candidates, the weights exp(−(d² − min d²)/2σ²) (missing
-    candidates, d² = inf, weigh 0 and count as 0). The same operations, point by point, as the
-    NumPy set-up it replaced (differences and finite distances formed first)."""
+    candidates, d² = inf, weigh 0 and count as 0).
+
+    Each iteration is a few passes over the (M, N) candidates that the compiler vectorises: the
+    exponents, their exponentials (:func:`~labelaudit.core.linalg.exp_kernel`, within 1 ulp of
+    ``math.exp``; a weight below e^−708 is 0), each point's Σ e and Σ e·d² in the candidates' order,
+    and the points' Σ (Σ e·d²)/(Σ e) in NumPy's pairwise order. When every point's first candidate
+    is its nearest, its weight exp(0) = 1 is not computed."""
     n, m = sqd.shape
+    if m == 0:  # no candidates: 0/0 per point
+        return math.nan
     lo = np.empty(n)  # np.min per point (NaN propagates)
     for k in range(n):
         v = np.inf
         for j in range(m):
             v = linalg.nan_min(v, sqd[k, j])
         lo[k] = v
+    dif = np.empty(m * n)  # candidate-major: d² − min d², and d² where finite (else 0)
+    fin = np.empty(m * n)
+    nearest = 0
+    for k in range(n):
+        nearest += sqd[k, 0] == lo[k]
+    first_nearest = 1 if nearest == n else 0
+    for j in range(m):
+        for k in range(n):
+            v = sqd[k, j]
+            dif[j * n + k] = v - lo[k]
+            fin[j * n + k] = v if math.isfinite(v) else 0.0
+    t = np.empty(m * n)  # exponents, then weights (apart: in place, exp_kernel's loops would not vectorise)
+    e = np.empty(m * n)
+    bits = np.empty(m * n, dtype=np.int64)
+    se = np.empty(n)
+    sw = np.empty(n)
     den = dof * n
     for _ in range(max_iter):
         scale = -0.5 / sigma**2
-        exact_one = math.isfinite(scale)  # then exp(0 · scale) = 1
-        num = 0.0
+        j0 = first_nearest if math.isfinite(scale) else 0  # else 0 · scale is not 0
+        lo_i = j0 * n
+        for i in range(lo_i, m * n):
+            t[i] = dif[i] * scale
+        linalg.exp_kernel(t[lo_i:], e[lo_i:], bits[lo_i:])
+        if j0:
+            for k in range(n):
+                se[k] = 1.0
+                sw[k] = 0.0 + fin[k]
+        else:
+            for k in range(n):
+                se[k] = 0.0 + e[k]
+                sw[k] = 0.0 + e[k] * fin[k]
+        for j in range(1, m):
+            for k in range(n):
+                se[k] += e[j * n + k]
+                sw[k] += e[j * n + k] * fin[j * n + k]
         for k in range(n):
-            se = 0.0
-            s = 0.0
-            for j in range(m):
-                v = sqd[k, j]
-                diff = v - lo[k]
-                # exp(0) = 1 exactly (the nearest candidate); missing candidates (inf) give 0
-                e = 1.0 if diff == 0.0 and exact_one else math.exp(diff * scale)
-                se += e
-                s += e * (v if math.isfinite(v) else 0.0)
-            num += s / se
+            sw[k] = sw[k] / se[k]
+        num = linalg.pairwise_sum(sw)
         if den <= 0:
             return math.nan
         new = math.sqrt(num / den)
@@ -1112,8 +1148,8 @@ def _posterior_no_outliers_kernel(
     depend on σ), the information (:func:`_information_kernel`), the posterior
     (:func:`_posterior_kernel`), the corners' total variances (box_corners' order) and the variances
     K Σ Kᵀ of the box parameters. ``em`` = (σ floor, tolerance, residual dof). The exponentials are
-    numba's (``math.exp``), not NumPy's SIMD ``np.exp``: the responsibilities, and so Σ, differ in
-    the last bits. Returns (ok, σ, σ̂, Σ, mean, Σ0, tv, var); ok is False when σ̂ cannot be formed
+    :func:`~labelaudit.core.linalg.exp_kernel`'s, not NumPy's SIMD ``np.exp``: the
+    responsibilities, and so Σ, differ in the last bits. Returns (ok, σ, σ̂, Σ, mean, Σ0, tv, var); ok is False when σ̂ cannot be formed
     this way or Σ's factorisation fails (the caller then takes the general steps)."""
     n, d = pts.shape
     floor, tol, dof = em
