@@ -655,8 +655,9 @@ def _raster_bev(s: Samples, xe: FloatArray, ye: FloatArray) -> FloatArray:
 
 @kernel
 def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, nsub):  # pragma: no cover - compiled
-    """:func:`events_kernel` and :func:`_raster_bev_kernel` in one pass: each interval is added to
-    the difference arrays as it is found (the same sums in the same order, no (S, R) event arrays)."""
+    """:func:`events_kernel` and :func:`_raster_bev_kernel` in one pass (the same sums in the same
+    order, no (S, R) event arrays): per sample, its intervals on every row in one loop (no stores
+    into the raster: the compiler vectorises it), then their additions to the difference arrays."""
     nb = ny * (nx + 1)
     lo_dx = np.zeros(nb)
     hi_dx = np.zeros(nb)
@@ -665,6 +666,10 @@ def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, n
     R = ny * nsub
     sub = dy / nsub
     inv_dx = 1.0 / dx
+    i_lo = np.empty(R, dtype=np.int64)
+    i_hi = np.empty(R, dtype=np.int64)
+    f_lo = np.empty(R)
+    f_hi = np.empty(R)
     for k in range(A.shape[0]):
         det, h0, h1, m0, m1, half_y = _sample_slabs(A, k)
         cx, cy = centres[k, 0], centres[k, 1]
@@ -675,10 +680,15 @@ def _raster_bev_events_kernel(A, centres, weights, x0, x1, y0, dx, dy, nx, ny, n
                 (y0 + (r + 0.5) * sub) - cy, cx, det, h0, h1, m0, m1, half_y, x0, x1, dx, inv_dx, nx
             )
             base = (r if nsub == 1 else r // nsub) * (nx + 1)
-            lo_dx[base + k_lo] += wdx
-            hi_dx[base + k_hi] += wdx
-            hi_f[base + k_hi] += w * hi_off
-            lo_f[base + k_lo] += w * lo_off
+            i_lo[r] = base + k_lo
+            i_hi[r] = base + k_hi
+            f_lo[r] = w * lo_off
+            f_hi[r] = w * hi_off
+        for r in range(R):
+            lo_dx[i_lo[r]] += wdx
+            hi_dx[i_hi[r]] += wdx
+            hi_f[i_hi[r]] += f_hi[r]
+            lo_f[i_lo[r]] += f_lo[r]
     return _raster_rows(lo_dx, hi_dx, hi_f, lo_f, dy / nsub, ny, nx)
 
 
