@@ -24,6 +24,7 @@ The search, in compiled passes over the frame (a few milliseconds per KITTI fram
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -1371,9 +1372,15 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     )  # components of groups with a few returns at least (not stray ones)
     # the group of every occupied cell (−1: none), in place of its component (comp is not needed after)
     owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
-    grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k))  # + each group's cells
+    # + each group's cells and its rectangle of cells (indexed by group)
+    grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k), np.stack([i0, i1, j0, j1]))
     sight = (counts, mask, label_top, x0, y0, cell)
-    scene = _Scene(sizes, ox, oy, oz, top_slope, rays_per_rad2, elevations, grid, sight)
+
+    def returns(g: int) -> FloatArray | None:
+        slot = int(slot_of_root[g])
+        return None if slot < 0 else xyz[band_idx[order[starts[slot] : starts[slot + 1]]]].astype(float)
+
+    scene = _Scene(sizes, ox, oy, oz, top_slope, rays_per_rad2, elevations, grid, sight, returns, {})
     for s in range(len(chosen)):
         pos = order[starts[s] : starts[s + 1]]
         first = len(out)
@@ -1441,6 +1448,8 @@ def _continues(
     body: tuple[float, float, float, float] | None = None,
     fragment: int | None = None,
     extra: float = 0.0,
+    whole: tuple[float, float, float, float] | None = None,
+    skip: NDArray | None = None,
 ) -> bool:
     """Whether the cluster's longer face (the side facing the sensor, at ``po``, ``qo`` in the
     cluster's frame) goes on beyond it through returns of other clusters no label explains: a
@@ -1448,11 +1457,18 @@ def _continues(
     cell, cells per group). A group of at most ``fragment`` cells (default
     ``MISSING_OWN_FRAGMENT_CELLS``) inside ``body`` (A1, B1, A2, B2: the box the cluster would
     become, in its frame) is the object's own far end or roof edge seen past a gap, not a structure
-    going on (:func:`_continues_kernel`). The line is followed ``MISSING_CONTINUATION`` + ``extra``
-    (m) past the face's ends (past a ``body`` reaching farther than the face)."""
+    going on (:func:`_continues_kernel`), and so is a group of any size whose every cell touches
+    ``whole`` (the box the cluster would become, in its frame): its far end or far side seen past a
+    gap or an occluder's shadow, while a wall's pieces run on beyond it. The
+    line is followed ``MISSING_CONTINUATION`` + ``extra`` (m) past the face's ends (past a ``body``
+    reaching farther than the face). Groups in ``skip`` (ids) are no structure either."""
     fragment = C.MISSING_OWN_FRAGMENT_CELLS if fragment is None else fragment
-    owner, x0, y0, cell, group_cells = grid
+    owner, x0, y0, cell, group_cells, group_rect = grid
     A1, B1, A2, B2 = body if body is not None else (np.inf, -np.inf, np.inf, -np.inf)
+    W1, V1, W2, V2 = whole if whole is not None else (np.inf, -np.inf, np.inf, -np.inf)
+    known = np.full(group_rect.shape[1], -1, dtype=np.int8)
+    if skip is not None:
+        known[skip] = 1
     step = 0.5 * cell
     half = C.MISSING_MERGE_SIDE_CELLS * cell
     return bool(
@@ -1476,10 +1492,16 @@ def _continues(
             np.arange(step, C.MISSING_CONTINUATION + extra + step, step),
             np.linspace(-half, half, 5),
             np.asarray(group_cells, dtype=float),
+            group_rect,
+            known,
             float(A1),
             float(B1),
             float(A2),
             float(B2),
+            float(W1),
+            float(V1),
+            float(W2),
+            float(V2),
             fragment,
             C.MISSING_CONTINUATION_CELLS,
             C.MISSING_CONTINUATION_RUN,
@@ -1490,14 +1512,38 @@ def _continues(
 
 
 @kernel
-def _other_group(o, own, group_cells, fragment, p, q, A1, B1, A2, B2):  # pragma: no cover - compiled
+def _other_group(o, own, group_cells, fragment, p, q, A1, B1, A2, B2, inside):  # pragma: no cover - compiled
     """Whether the owner ``o`` of a cell is another group than ``own``, less the object's own
     fragments: a group of at most ``fragment`` cells (``group_cells`` per group) with the spot
-    (``p``, ``q``) inside the box [A1, B1] × [A2, B2] (the cluster's frame)."""
+    (``p``, ``q``) inside the box [A1, B1] × [A2, B2] (the cluster's frame), or a group whose
+    every cell lies inside the vehicle (``inside[o]`` = 1, :func:`_inside_whole`)."""
     if o < 0 or o == own:
+        return False
+    if o < inside.shape[0] and inside[o] == 1:
         return False
     small = o < group_cells.shape[0] and group_cells[o] <= fragment
     return not (small and p >= A1 and p <= B1 and q >= A2 and q <= B2)
+
+
+@kernel
+def _inside_whole(owner, x0, y0, cell, o, rect, cx, cy, c, s, W1, V1, W2, V2):  # pragma: no cover - compiled
+    """Whether every cell of group ``o`` (its rectangle of cells ``rect[:, o]``: i0, i1, j0, j1)
+    touches the box [W1, V1] × [W2, V2] of the frame about (``cx``, ``cy``) with axes (c, s) and
+    (−s, c): its centre within half a cell's diagonal of it (a group on the line of the box's side
+    straddles it)."""
+    tol = 0.5 * cell * math.sqrt(2.0)
+    W1, V1, W2, V2 = W1 - tol, V1 + tol, W2 - tol, V2 + tol
+    for i in range(rect[0, o], rect[1, o] + 1):
+        for j in range(rect[2, o], rect[3, o] + 1):
+            if owner[i, j] != o:
+                continue
+            dx = x0 + (i + 0.5) * cell - cx
+            dy = y0 + (j + 0.5) * cell - cy
+            p = c * dx + s * dy
+            q = -s * dx + c * dy
+            if p < W1 or p > V1 or q < W2 or q > V2:
+                return False
+    return True
 
 
 @kernel
@@ -1521,10 +1567,16 @@ def _continues_kernel(
     ts,
     across,
     group_cells,
+    group_rect,
+    known,
     A1,
     B1,
     A2,
     B2,
+    W1,
+    V1,
+    W2,
+    V2,
     fragment,
     min_cells,
     min_run,
@@ -1534,10 +1586,16 @@ def _continues_kernel(
     """:func:`_continues` on the owner grid ``owner`` (nx, ny) (group per cell, −1 none; cells of
     ``cell`` m from ``x0``, ``y0``), for the cluster ``own`` about (``cx``, ``cy``) with axes (c, s)
     and (−s, c) and extents [a1, b1] × [a2, b2]; ``ts`` (T,): the steps beyond the face's ends,
-    ``across`` (5,): the offsets across a corner's line; ``group_cells``, ``fragment``, A1…B2: what
-    :func:`_other_group` leaves out."""
+    ``across`` (5,): the offsets across a corner's line; ``group_cells``, ``fragment``, A1…B2, the
+    groups wholly inside W1…V2 (``group_rect`` (4, G): each group's rectangle of cells) and those
+    ``known`` (G,) to be none (1): what :func:`_other_group` leaves out."""
     nx, ny = owner.shape
     nt = ts.shape[0]
+    # per group: 1 when not another structure (known, or wholly inside W1…V2), 0 when it is, −1 not
+    # yet looked at
+    inside = known.copy()
+    if W1 > V1:
+        inside[inside < 0] = 0
     if along1:  # the face runs along axis 1, on the side of axis 2 nearer the sensor
         face = a2 if qo < 0.5 * (a2 + b2) else b2
     else:
@@ -1563,7 +1621,12 @@ def _continues_kernel(
                 for dj in range(-1, 2):
                     ii = min(max(i + di, 0), nx - 1)
                     jj = min(max(j + dj, 0), ny - 1)
-                    if _other_group(owner[ii, jj], own, group_cells, fragment, p, q, A1, B1, A2, B2):
+                    o = owner[ii, jj]
+                    if 0 <= o < inside.shape[0] and o != own and inside[o] < 0:
+                        inside[o] = (
+                            1 if _inside_whole(owner, x0, y0, cell, o, group_rect, cx, cy, c, s, W1, V1, W2, V2) else 0
+                        )
+                    if _other_group(o, own, group_cells, fragment, p, q, A1, B1, A2, B2, inside):
                         lo, hi = min(lo, ts[t]), max(hi, ts[t])
                         seen[n] = ii * ny + jj
                         n += 1
@@ -1595,7 +1658,12 @@ def _continues_kernel(
                 y = cy + s * p + c * q
                 i = min(max(int((x - x0) / cell), 0), nx - 1)
                 j = min(max(int((y - y0) / cell), 0), ny - 1)
-                if _other_group(owner[i, j], own, group_cells, fragment, p, q, A1, B1, A2, B2):
+                o = owner[i, j]
+                if 0 <= o < inside.shape[0] and o != own and inside[o] < 0:
+                    inside[o] = (
+                        1 if _inside_whole(owner, x0, y0, cell, o, group_rect, cx, cy, c, s, W1, V1, W2, V2) else 0
+                    )
+                if _other_group(o, own, group_cells, fragment, p, q, A1, B1, A2, B2, inside):
                     lo, hi = min(lo, ts[t]), max(hi, ts[t])
         # from the face's end on (a building's end wall meets its front; a hedge behind a car begins
         # only beyond the car's width)
@@ -1618,6 +1686,8 @@ class _Scene(NamedTuple):
     sight: (
         tuple | None
     )  # (band returns per cell, label mask, label tops, x0, y0, cell): what blocks the view (:func:`_place`)
+    returns: Callable[[int], FloatArray | None] | None = None  # a searched group's returns (M, 3), else None
+    rough: dict | None = None  # group → its roughness (:func:`_roughness`), as measured
 
 
 def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, splits: int = 0) -> list[Cluster]:
@@ -1630,7 +1700,7 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     counting as returns beside it (a wall broken by a doorway is still one wall to the continuation
     test), and the parts replace the whole when one of them scores higher than the whole.
     """
-    sizes, ox, oy, oz, top_slope, rays_per_rad2, elevations, grid, sight = scene
+    sizes, ox, oy, oz, top_slope, rays_per_rad2, elevations, grid, sight = scene[:9]
     centre = xyz[:, :2].mean(axis=0)
     xy = np.ascontiguousarray(xyz[:, :2] - centre)
     lo, hi = C.MISSING_FACE_BAND
@@ -1711,7 +1781,15 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     # a truck's cab seen past the gap between cab and box, or its far end past an occluder, is a group
     # in line with its side but its own: within the class's largest length nothing counts as a wall
     # going on; past it the test looks on as usual
-    reach, fragment, extra = body, C.MISSING_OWN_FRAGMENT_CELLS, 0.0
+    reach, fragment, extra, own_box = body, C.MISSING_OWN_FRAGMENT_CELLS, 0.0, None
+    if size_score >= C.MISSING_CLASS_FIT:
+        # a group of any size wholly inside the box is the vehicle's own far end or far side seen past
+        # a gap or an occluder's shadow; a wall's pieces run on beyond it, where the line is followed
+        own_box = body
+        if e1 >= e2:
+            extra = max(B1 - b1, a1 - A1, 0.0)
+        else:
+            extra = max(B2 - b2, a2 - A2, 0.0)
     if best_name in C.MISSING_CLASS_OWN_REACH and size_score >= C.MISSING_CLASS_FIT:
         longest = sizes[best_name][1][0]
         if len_axis1:
@@ -1723,10 +1801,23 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
             extra = max(reach[1] - b1, a1 - reach[0], 0.0)
         else:
             extra = max(reach[3] - b2, a2 - reach[2], 0.0)
+    rough = None
     if grid is not None and _continues(
-        grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, reach, fragment, extra
+        grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, reach, fragment, extra, own_box
     ):
-        shape_score = 0.0
+        # foliage in line with a solid surface is not a structure the surface is part of (a car
+        # parked with a bush in line with its side); a hedge's own piece is no solid surface
+        foliage: list[int] = []
+        if size_score * shape_score * density_score >= C.MISSING_MIN_KEPT_SCORE:
+            rough = _surface_roughness(xyz, scene)
+            if 0.0 <= rough < C.MISSING_SURFACE_ROUGH[0]:
+                # (the test looks this far from the visible rectangle: along the line, and across a corner's)
+                near = (a1, b1, a2, b2, C.MISSING_CONTINUATION + extra + C.MISSING_MERGE_SIDE_CELLS * C.MISSING_CELL)
+                foliage = _foliage_near(scene, own, centre, c, s, near)
+        if not foliage or _continues(
+            grid, own, centre, c, s, a1, b1, a2, b2, e1 >= e2, po, qo, reach, fragment, extra, own_box, foliage
+        ):
+            shape_score = 0.0
     # a class seen as an L-shape (a truck): its short leg ends too (a building's end wall, broken into
     # pieces by windows or an occluder, goes on in line with it)
     if (
@@ -1740,15 +1831,8 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     # the kept minimum stays under it (no row changes, and a part replaces such a whole only when
     # neither is kept or the part is kept either way)
     if size_score * shape_score * density_score >= C.MISSING_MIN_KEPT_SCORE:
-        rough = _roughness(
-            xyz,
-            ox,
-            oy,
-            oz,
-            math.radians(C.MISSING_SURFACE_BEAM_GAP),
-            math.radians(C.MISSING_SURFACE_STEP),
-            C.MISSING_SURFACE_MIN_RETURNS,
-        )
+        if rough is None:
+            rough = _surface_roughness(xyz, scene)
         if rough >= 0.0:
             shape_score *= 1.0 - _ramp(rough, *C.MISSING_SURFACE_ROUGH)
     whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
@@ -1762,6 +1846,49 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
             if out and max(p.score for p in out) > whole.score:  # two objects explain the returns better than one
                 return out
     return [whole]
+
+
+def _surface_roughness(xyz: FloatArray, scene: _Scene) -> float:
+    """:func:`_roughness` of returns ``xyz`` (M, 3) seen from the scene's sensor (−1: too few)."""
+    return float(
+        _roughness(
+            xyz,
+            scene.ox,
+            scene.oy,
+            scene.oz,
+            math.radians(C.MISSING_SURFACE_BEAM_GAP),
+            math.radians(C.MISSING_SURFACE_STEP),
+            C.MISSING_SURFACE_MIN_RETURNS,
+        )
+    )
+
+
+def _foliage_near(
+    scene: _Scene, own: int, centre: FloatArray, c: float, s: float, near: tuple[float, float, float, float, float]
+) -> list[int]:
+    """The searched groups other than ``own`` within ``near`` = (a1, b1, a2, b2, reach): the
+    rectangle [a1, b1] × [a2, b2] of the frame about ``centre`` with axes (c, s), (−s, c) grown by
+    ``reach`` m, whose returns are foliage: as rough as the surface factor's end
+    (``MISSING_SURFACE_ROUGH[1]``), where it takes a cluster's shape score to 0."""
+    if scene.grid is None or scene.returns is None or scene.rough is None:
+        return []
+    _, x0, y0, cell, _, rect = scene.grid
+    a1, b1, a2, b2, r = near
+    corners = np.array([[a1 - r, a2 - r], [b1 + r, a2 - r], [b1 + r, b2 + r], [a1 - r, b2 + r]])
+    xy = centre + corners @ np.array([[c, s], [-s, c]])
+    lo_i, hi_i = (xy[:, 0].min() - x0) / cell, (xy[:, 0].max() - x0) / cell
+    lo_j, hi_j = (xy[:, 1].min() - y0) / cell, (xy[:, 1].max() - y0) / cell
+    hit = (rect[1] >= lo_i) & (rect[0] <= hi_i) & (rect[3] >= lo_j) & (rect[2] <= hi_j)
+    out = []
+    for other in np.flatnonzero(hit).tolist():
+        if other == own:
+            continue
+        if other not in scene.rough:
+            pts = scene.returns(other)
+            scene.rough[other] = -1.0 if pts is None else _surface_roughness(pts, scene)
+        if scene.rough[other] >= C.MISSING_SURFACE_ROUGH[1]:
+            out.append(other)
+    return out
 
 
 def _face_lengths(xy: FloatArray, c: float, s: float, width: float) -> tuple[float, float]:
