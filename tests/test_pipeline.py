@@ -540,6 +540,41 @@ def test_worker_warmup_runs_the_audit() -> None:
     warm_up(strict=True)
 
 
+_CHUNK_AFTER_PRELOAD = """
+import sys, importlib
+from pathlib import Path
+import multiprocessing.forkserver
+from labelaudit import constants
+for name in constants.WORKER_PRELOAD:  # what the fork server imports (and warms up) before it forks a worker
+    importlib.import_module(name)
+from labelaudit.config import resolve_config
+from labelaudit.datasets import open_dataset
+from labelaudit.infer.run import ChunkTask, plan_chunks, process_chunk
+root = Path(sys.argv[1])
+cfg = resolve_config(None, "kitti")
+refs = open_dataset(root, "kitti").list_units()
+before = set(sys.modules)
+for name, chunk in plan_chunks(refs, len(refs)):
+    result = process_chunk(ChunkTask(name, chunk, cfg, metadata={"run": "test"}))
+    assert result.objects > 0 and result.shards, result
+print(" ".join(sorted(set(sys.modules) - before)))
+"""
+
+
+def test_a_worker_forked_from_the_warm_fork_server_imports_nothing(sim_kitti):
+    """Every module a chunk needs (the audit, the missing-label search with the labels' exact overlap,
+    the shards' Parquet writer) is imported by the fork server's preload and warm-up, once, rather
+    than by every worker in its first chunk."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-c", _CHUNK_AFTER_PRELOAD, str(sim_kitti)], capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == []
+
+
 def test_a_run_that_audits_nothing_is_an_error_and_a_resumed_one_is_not(fake_core, sim_kitti, tmp_path):
     from labelaudit.errors import ResultsError
     from labelaudit.infer.run import infer_dataset
