@@ -111,6 +111,21 @@ def test_process_frame_all_classes_and_invalid_box(fake_core):
     assert rows[0]["status"] == "error" and "invalid box" in rows[0]["message"]
 
 
+def test_check_finite_refuses_nan_and_inf_in_the_covariance_but_not_a_sum_that_overflows():
+    from labelaudit.infer.rows import check_finite
+
+    check_finite({"jiou_gt": 0.5, "cov": [1e308, 1e308, 1.0]})  # finite terms whose sum overflows: accepted
+    check_finite({"jiou_gt": 0.5, "cov": [1.0, -1e308, -1e308]})
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        with pytest.raises(FloatingPointError, match="covariance finite: False"):
+            check_finite({"jiou_gt": 0.5, "cov": [1.0, bad, 2.0]})
+    with pytest.raises(FloatingPointError, match="covariance finite: False"):
+        check_finite({"jiou_gt": 0.5, "cov": [float("inf"), -float("inf")]})  # a NaN sum
+    with pytest.raises(FloatingPointError, match="jiou_gt=nan"):
+        check_finite({"jiou_gt": float("nan"), "cov": [1.0]})
+    check_finite({"jiou_gt": 0.5, "cov": np.eye(2)})  # an array: NumPy's test
+
+
 def test_resolve_config_overrides():
     cfg = resolve_config(None, "kitti", ["Car", " Van"], "3d")
     assert cfg.classes == ("Car", "Van") and cfg.model.kind == "3d" and cfg.dataset_format == "kitti"

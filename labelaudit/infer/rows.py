@@ -26,7 +26,7 @@ from labelaudit.core.posterior import box_prior_terms, infer_label_valid
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
 from labelaudit.errors import one_line
-from labelaudit.infer.evidence import ObjectEvidence, fit_free_space, frame_evidence, label_boxes
+from labelaudit.infer.evidence import ObjectEvidence, fit_free_space, frame_evidence
 
 DIFFICULTY_NAMES = {0: "Easy", 1: "Moderate", 2: "Hard"}
 _FLOAT_TYPE = frozenset((float,))
@@ -43,11 +43,19 @@ def check_finite(result: dict[str, Any]) -> None:
     if cov is None:
         cov_ok = True
     elif type(cov) is list and set(map(type, cov)) <= _FLOAT_TYPE:  # audit_object's flat list: no NumPy round trip
-        cov_ok = all(map(math.isfinite, cov))
+        # a finite sum has only finite terms (a NaN or ±inf term makes it NaN or ±inf); only a sum
+        # that overflowed needs the terms one by one
+        cov_ok = math.isfinite(sum(cov)) or all(map(math.isfinite, cov))
     else:
         cov_ok = bool(np.all(np.isfinite(cov)))
     if (jiou is not None and not math.isfinite(jiou)) or not cov_ok:
         raise FloatingPointError(f"non-finite model output (jiou_gt={jiou}, covariance finite: {cov_ok})")
+
+
+def _usable(v: list[float]) -> bool:
+    """Whether a label's 7 values (Python floats) make a box: :func:`~labelaudit.core.geometry.validate_box`'s
+    test (finite, length, width and height > 0), also :func:`~labelaudit.infer.evidence.label_boxes`' rule."""
+    return all(map(math.isfinite, v)) and v[3] > 0 and v[4] > 0 and v[5] > 0
 
 
 def label_where(frame: Frame, i: int) -> str:
@@ -149,7 +157,9 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
     world = world_boxes(frame, selected)
     # the labels as Python floats, converted once per frame: the row's box columns, the distance and
     # the validity test take the same values (and the same float64 operations) as NumPy scalars would
-    values = np.asarray(frame.boxes, dtype=float).reshape(-1, 7).tolist()
+    labels = np.asarray(frame.boxes, dtype=float).reshape(-1, 7)
+    values = labels.tolist()
+    usable = [_usable(v) for v in values]
     for i in selected:
         v = values[i]
         row: dict[str, Any] = {
@@ -170,7 +180,7 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         if problem is not None:
             row.update(status="error", message=problem)
             continue
-        if not (all(map(math.isfinite, v)) and v[3] > 0 and v[4] > 0 and v[5] > 0):  # validate_box's test
+        if not usable[i]:
             try:
                 g.validate_box(frame.boxes[i])
             except ValueError as exc:
@@ -192,9 +202,9 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         # errstate: extreme but valid boxes (1e38 m) overflow the geometry harmlessly, and it changes
         # no value: a non-finite result is refused per object (check_finite), not warned about on stderr
         with np.errstate(all="ignore"):
-            evidence = frame_evidence(
-                frame.points, boxes, origin, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask
-            )
+            # every usable label can own points (label_boxes, from the flags already computed)
+            others = labels if all(usable) else labels[np.array(usable, dtype=bool)]
+            evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=others, ray_mask=frame.ray_mask)
             points = np.asarray(frame.points)
             for i, ev in zip(to_audit, evidence):
                 row = rows[i]
