@@ -192,6 +192,20 @@ def range_image_to_points(
     if ri.ndim != 3 or ri.shape[2] < 2:
         raise ValueError(f"range image must be (H, W, C>=2), got shape {ri.shape}")
     h, w = ri.shape[:2]
+    if ri.dtype == np.float32 and h and w:  # as the readers give them: the compiled pass
+        return _range_image_points(ri, calibration, pixel_pose, frame_pose)
+    return _range_image_points_numpy(ri, calibration, pixel_pose, frame_pose)
+
+
+def _range_image_points_numpy(
+    ri: NDArray[np.floating],
+    calibration: LidarCalibration,
+    pixel_pose: NDArray[np.floating] | None,
+    frame_pose: NDArray[np.floating] | None,
+) -> NDArray[np.float32]:
+    """:func:`range_image_to_points` of a checked range image (H, W, C ≥ 2) in NumPy passes: any
+    float type, and pixel poses that vary within a column."""
+    h, w = ri.shape[:2]
     valid = ri[..., 0] > 0  # NaN compares False: dropped too
     r = ri[..., 0][valid].astype(np.float64)
     extrinsic = np.asarray(calibration.extrinsic, dtype=np.float64)
@@ -220,6 +234,53 @@ def range_image_to_points(
     out[:, :3] = p
     out[:, 3] = ri[..., 1][valid]
     return out
+
+
+def _range_image_points(
+    ri: NDArray[np.float32],
+    calibration: LidarCalibration,
+    pixel_pose: NDArray[np.floating] | None,
+    frame_pose: NDArray[np.floating] | None,
+) -> NDArray[np.float32]:
+    """:func:`range_image_to_points` of a float32 range image (H, W, C ≥ 2), H, W ≥ 1: the same
+    float64 operations in the same order, the points in one compiled pass
+    (:func:`~labelaudit.core.pointops.range_image_points`); pixel poses that vary within a column
+    take the NumPy path."""
+    from labelaudit.core.pointops import range_image_points, rows_equal_first
+
+    h, w = ri.shape[:2]
+    extrinsic = np.asarray(calibration.extrinsic, dtype=np.float64)
+    dirs = ray_directions(calibration, h, w)
+    t = np.ascontiguousarray(extrinsic[:3, 3])
+    rot, trans = _NO_ROT, _NO_TRANS
+    if pixel_pose is not None:
+        if frame_pose is None:
+            raise ValueError("a per-pixel pose needs the frame pose (vehicle → world)")
+        pp = np.asarray(pixel_pose)
+        if pp.shape[:2] != (h, w) or pp.shape[2] < 6:
+            raise ValueError(f"pixel pose shape {pp.shape} does not match range image {(h, w)} x 6")
+        if not (pp.dtype == np.float32 and rows_equal_first(_read_only(pp))):
+            return _range_image_points_numpy(ri, calibration, pixel_pose, frame_pose)
+        fp = np.asarray(frame_pose, dtype=np.float64)
+        f_rot_t = fp[:3, :3].T
+        col = pp[0].astype(np.float64)  # one capture time per azimuth: one transform per column
+        rot = np.ascontiguousarray(f_rot_t @ euler_to_matrix(col[:, 0], col[:, 1], col[:, 2]))
+        trans = np.ascontiguousarray(
+            (col[:, 3:6] - fp[:3, 3]) @ f_rot_t.T
+        )  # subtract first: keeps precision at large t
+    return range_image_points(_read_only(ri), dirs, t, rot, trans, pixel_pose is not None)
+
+
+def _read_only(a: NDArray) -> NDArray:
+    """A C-contiguous read-only view (or copy) of ``a``: the kernels' one argument type, whether
+    the image came from Arrow (read-only) or was decoded into a writable array."""
+    v = np.ascontiguousarray(a).view()
+    v.flags.writeable = False
+    return v
+
+
+_NO_ROT = np.zeros((1, 3, 3))  # the kernel's column transforms when the image has no pixel poses
+_NO_TRANS = np.zeros((1, 3))
 
 
 @dataclass

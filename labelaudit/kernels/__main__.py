@@ -24,10 +24,11 @@ from labelaudit import kernels as K
 def workload() -> None:
     """Run what the commands run, in this process, so every kernel is compiled at the types it is
     called with: ``infer`` (KITTI and Waymo, BEV and 3D, rays), ``eval`` (BEV and 3D overlaps,
-    JIoU, matching) on a small simulated dataset with detections, and the crops of ``show``."""
+    JIoU, matching) on a small simulated dataset with detections, the crops of ``show``, and a
+    simulated Waymo v2 segment read (its range images)."""
     from labelaudit.cli import app
     from labelaudit.config import load_config, resolve_config
-    from labelaudit.datasets import Frame
+    from labelaudit.datasets import Frame, open_dataset
     from labelaudit.evaluate.warmup import warm_up as eval_warm_up
     from labelaudit.infer.crop import crop_frame
     from labelaudit.infer.missing import find_missing
@@ -65,8 +66,12 @@ def workload() -> None:
             ["simulate", data, "--frames", "3", "--seed", "1", "--detections", "-q"],
             ["eval", data, f"{data}/detections", "--workers", "1", "-q"],
             ["eval", data, f"{data}/detections", "--workers", "1", "--metric", "3d", "-q"],
+            ["simulate", f"{tmp}/waymo", "--dataset-format", "waymo-v2", "--frames", "1", "--size", "small", "-q"],
         ):
             app(argv, standalone_mode=False)
+        waymo = open_dataset(f"{tmp}/waymo", "waymo-v2")  # its range images become points
+        for ref in waymo.list_units():
+            list(waymo.load_unit(ref))
 
 
 def main(argv: list[str] | None = None) -> int:
