@@ -6,20 +6,32 @@ What ``infer`` prints at the end of a run (and what a report opens with). Reads 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from labelaudit import results as R
 from labelaudit.results import Results
 
+SUMMARY_COLUMNS = ("class_name", "status", "jiou_gt")
+"""The objects columns a summary is made of (:func:`summarize_columns`)."""
+
 
 def summarize(results: Results) -> dict[str, Any]:
     """Counts by status, median JIoU-GT per class and failed frames (for the end-of-run summary)."""
-    t = results.read(["class_name", "status", "jiou_gt"])
-    status = np.asarray(t.column("status").to_pylist(), dtype=object)
-    classes = np.asarray(t.column("class_name").to_pylist(), dtype=object)
-    jiou = t.column("jiou_gt").to_numpy(zero_copy_only=False).astype(float)
+    t = results.read(list(SUMMARY_COLUMNS))
+    return summarize_columns(*(t.column(c).to_pylist() for c in SUMMARY_COLUMNS), results.failed_frames())
+
+
+def summarize_columns(
+    class_name: Sequence[str], status: Sequence[str], jiou_gt: Sequence[float | None], failed_frames: int
+) -> dict[str, Any]:
+    """:func:`summarize` of the rows' :data:`SUMMARY_COLUMNS` (any row order; a null JIoU-GT is
+    None) and the number of failed frames: what a run that wrote every row itself summarises
+    without reading them back."""
+    status = np.asarray(status, dtype=object)
+    classes = np.asarray(class_name, dtype=object)
+    jiou = np.array([np.nan if v is None else v for v in jiou_gt], dtype=float)
     by_status = {s: int(np.sum(status == s)) for s in R.STATUSES if np.any(status == s)}
     per_class = {}
     for name in sorted(set(classes.tolist())):
@@ -29,8 +41,8 @@ def summarize(results: Results) -> dict[str, Any]:
             "median_jiou_gt": float(np.median(v)) if len(v) else None,
         }
     return {
-        "objects": t.num_rows,
+        "objects": len(status),
         "by_status": by_status,
         "classes": per_class,
-        "failed_frames": results.failed_frames(),
+        "failed_frames": failed_frames,
     }

@@ -201,6 +201,28 @@ def test_resume_skips_done_shards_and_cleans_temp_files(fake_core, sim_kitti, tm
     assert _rows(out) == before
 
 
+def test_a_run_that_wrote_every_row_summarises_them_as_the_folder_does(fake_core, sim_kitti, tmp_path):
+    """The end-of-run summary from the rows' columns the workers sent back equals the one read from
+    the folder (counts, per-class median JIoU-GT, failed frames); a resumed run has none to offer."""
+    from labelaudit.summary import summarize, summarize_columns
+
+    out = tmp_path / "res"
+    first = _run(sim_kitti, out)
+    c = first.columns
+    assert c is not None and len(c["status"]) == first.objects > 0
+    from_rows = summarize_columns(c["class_name"], c["status"], c["jiou_gt"], first.failed_frames)
+    assert from_rows == summarize(R.open_results(out))
+    assert from_rows["classes"] and all(v["median_jiou_gt"] is not None for v in from_rows["classes"].values())
+    assert _run(sim_kitti, out).columns is None  # everything resumed: the rows are only in the folder
+    known = summarize_columns(["Car", "Van", "Car", "Car"], ["ok", "ok", "few_points", "ok"], [0.5, 0.9, None, 0.7], 2)
+    assert known == {
+        "objects": 4,
+        "by_status": {"ok": 3, "few_points": 1},
+        "classes": {"Car": {"objects": 3, "median_jiou_gt": 0.6}, "Van": {"objects": 1, "median_jiou_gt": 0.9}},
+        "failed_frames": 2,
+    }
+
+
 def test_resume_refuses_other_parameters_unless_overwrite(fake_core, sim_kitti, tmp_path):
     out = tmp_path / "res"
     _run(sim_kitti, out)

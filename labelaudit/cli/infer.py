@@ -158,9 +158,15 @@ def run_and_report(request: object, quiet: bool, executor: object | None = None)
     from labelaudit.cli.display import RichProgress, print_run_summary
     from labelaudit.infer.run import NoProgress, infer_dataset
     from labelaudit.results import open_results
-    from labelaudit.summary import summarize
+    from labelaudit.summary import summarize, summarize_columns
 
     console = err()
     summary = infer_dataset(request, NoProgress() if quiet else RichProgress(console), executor)  # type: ignore[arg-type]
-    if not quiet:
-        print_run_summary(console, summary, summarize(open_results(summary.output)))
+    if not quiet:  # a run that wrote every row has their columns; a resumed one reads the folder (~0.1 s)
+        c = summary.columns
+        stats = (
+            summarize(open_results(summary.output))
+            if c is None
+            else summarize_columns(c["class_name"], c["status"], c["jiou_gt"], summary.failed_frames)
+        )
+        print_run_summary(console, summary, stats)

@@ -28,6 +28,7 @@ from labelaudit.config import RunConfig, hash_inputs, resolve_config, validate_c
 from labelaudit.datasets import DatasetError, FrameFailure, FrameRef, open_dataset, resolve_format
 from labelaudit.errors import InferError, ResultsError, StrictError, one_line
 from labelaudit.executors import Executor, make_executor
+from labelaudit.summary import SUMMARY_COLUMNS
 
 # labelaudit.infer.rows (the core: numba kernels) is imported where a chunk is processed, so the
 # process that only plans, writes and reports (the main process, a Dask client) never loads it.
@@ -79,6 +80,7 @@ class ChunkResult:
     missing: pa.Table | None = None  # missing-label candidates of the chunk (None: the search is off)
     shards: dict[str, bytes] | None = None  # folder → the chunk's Parquet file there, once encoded (encode_chunk)
     failure: str | None = None  # once encoded: --strict's message for the chunk's first failure (None: none)
+    summary: dict[str, list[Any]] | None = None  # once encoded: the rows' SUMMARY_COLUMNS, for the end-of-run summary
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -190,7 +192,8 @@ def encode_chunk(result: ChunkResult, metadata: Mapping[str, Any]) -> ChunkResul
     """``result`` with its shards encoded as Parquet bytes (:attr:`ChunkResult.shards`, by folder:
     the objects shard with its :func:`~labelaudit.results.chunk_record`, the missing-label shard
     when the chunk was searched, the errors part when it has notes), its ``--strict`` message
-    (:attr:`ChunkResult.failure`), and no tables.
+    (:attr:`ChunkResult.failure`), the columns of the end-of-run summary (:attr:`ChunkResult.summary`),
+    and no tables.
 
     Run by the worker (:attr:`ChunkTask.metadata`): the process that writes the shards then only
     stores bytes, and the bytes cost less to send than the tables. The files are the ones
@@ -207,7 +210,8 @@ def encode_chunk(result: ChunkResult, metadata: Mapping[str, Any]) -> ChunkResul
         shards[R.MISSING_DIR] = R.parquet_bytes(R.with_metadata(result.missing, metadata))
     if result.errors:
         shards[R.ERRORS_DIR] = R.parquet_bytes(R.errors_to_table(result.errors, metadata))
-    return replace(result, table=None, missing=None, shards=shards, failure=chunk_failure(result))
+    summary = {c: result.table.column(c).to_pylist() for c in SUMMARY_COLUMNS}
+    return replace(result, table=None, missing=None, shards=shards, failure=chunk_failure(result), summary=summary)
 
 
 # --------------------------------------------------------------------------- layer 3: a run
@@ -257,6 +261,7 @@ class RunSummary:
     warnings: int
     wall_seconds: float
     chunks_retried: int = 0  # shards of an earlier run run again: they had failed frames or objects
+    columns: dict[str, list[Any]] | None = None  # every row's SUMMARY_COLUMNS, this run wrote them all (else None)
 
 
 class Progress(Protocol):
@@ -458,6 +463,7 @@ def _run_locked(
         if name not in done
     ]
     frames = objects = 0
+    columns: dict[str, list[Any]] = {c: [] for c in SUMMARY_COLUMNS}  # for the end-of-run summary
     progress.start(len(refs), sum(len(c) for name, c in chunks if name in done))
     try:
         for k, result in enumerate(executor.run(tasks, process_chunk)):
@@ -476,6 +482,8 @@ def _run_locked(
             R.write_bytes_atomic(shards[R.OBJECTS_DIR], shard_dir / result.name)
             if k == 0:
                 _import_for_the_end()
+            for c, values in (result.summary or {}).items():
+                columns[c].extend(values)
             frames += result.frames
             objects += result.objects
             progress.advance(result)
@@ -520,6 +528,7 @@ def _run_locked(
         errors.num_rows - failed,
         wall,
         retried,
+        columns if not done else None,  # resumed chunks' rows are only in the folder
     )
 
 
