@@ -973,6 +973,35 @@ def test_a_truck_whose_far_end_is_seen_is_boxed_as_long_as_the_rays_past_it_allo
     assert abs(length - 7.0) < 0.5 < abs(length_grown - 7.0)
 
 
+@pytest.mark.parametrize("yaw", [-1.31, -1.2])
+def test_a_car_seen_from_its_corner_with_most_of_its_side_hidden_gets_its_length_where_the_rays_allow(monkeypatch, yaw):
+    """A car 20 m ahead whose side faces the sensor at about 65°, hidden behind a labelled van but
+    for its rear and 0.8 m of its side: the visible rectangle (1.6 × 0.8 m) fits a car's width both
+    ways, and the length taken along the axis nearer the line of sight (a car seen from one end)
+    puts the box across the car, more than 1 m off. Weighing the placements with the length on
+    either axis, the rays past its rear's far corner and in front of its side rule that one out:
+    found within 0.5 m, heading along its length."""
+    from labelaudit.sim.raycast import LidarSpec, render_range_image
+    from labelaudit.sim.scene import Scene, make_object
+
+    car = make_object("Car", (20.0, -3.0), yaw, np.array([4.1, 1.64, 1.5]), GROUND, np.random.default_rng(0))
+    van = make_object("Van", (10.5, -2.32), 0.0, np.array([5.0, 1.9, 2.2]), GROUND, np.random.default_rng(1))
+    pts, _ = render_range_image(Scene(objects=[car, van]), LidarSpec(), None, np.random.default_rng(0)).points()
+    frame = Frame("000001", pts, van.box[None, :], ["Van"], ["000001:0"])
+
+    def placed():
+        (row,) = [r for r in find_missing(frame, RunConfig()) if math.hypot(r["cx"] - 20.0, r["cy"] + 3.0) < 4.0]
+        turn = abs((row["yaw"] - yaw + 0.5 * math.pi) % math.pi - 0.5 * math.pi)
+        return math.hypot(row["cx"] - 20.0, row["cy"] + 3.0), turn
+
+    off, turn = placed()
+    assert off < 0.5 and turn < 0.1
+    one_axis = M._Hidden
+    monkeypatch.setattr(M, "_Hidden", lambda *fields: one_axis(*fields[:-1], False))  # the length's axis as chosen
+    off_one_axis, _ = placed()
+    assert off_one_axis > 1.0 > off
+
+
 def _hidden_behind_a_van_past_a_parked_car(monkeypatch, sight_height, rays=False):
     """The car of :func:`_hidden_behind_a_van`, and a labelled car parked near the sensor (top
     1.45 m over the road, 6–10 m off) right on the lines of sight to the road past its visible far

@@ -63,7 +63,9 @@ class _Hidden(NamedTuple):
     :func:`_place_by_rays`: the cluster's frame (centre (m) and heading t (rad): axes (cos t, sin t)
     and (−sin t, cos t)), its visible rectangle (a1, b1, a2, b2) on them, the class's mean size
     on them (L1, L2), the low ends of the box as placed (A1, A2), which axis is the length, and the
-    class's mean and largest length."""
+    class's mean and largest length; ``either_axis``: the visible rectangle fits the class's width
+    both ways (a car seen from one end, or most of its side hidden), so the length may lie on the
+    other axis."""
 
     cx: float
     cy: float
@@ -74,6 +76,7 @@ class _Hidden(NamedTuple):
     len_axis1: bool
     mean_length: float
     largest_length: float
+    either_axis: bool = False
 
 
 @dataclass(frozen=True)
@@ -1862,7 +1865,16 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     ):
         largest = sizes[best_name][1][0]
         hidden = _Hidden(
-            float(centre[0]), float(centre[1]), t, (a1, b1, a2, b2), (L1, L2), (A1, A2), len_axis1, mean[0], largest
+            float(centre[0]),
+            float(centre[1]),
+            t,
+            (a1, b1, a2, b2),
+            (L1, L2),
+            (A1, A2),
+            len_axis1,
+            mean[0],
+            largest,
+            not vis_l > mean[1] + C.MISSING_SIZE_SLACK,  # the length may lie on either axis
         )
     whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0, hidden)
     if splits > 0 and size_score < C.MISSING_CLASS_FIT:  # no class fits: maybe two objects
@@ -2063,8 +2075,11 @@ def _place_by_rays(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> lis
     from the class's mean and largest, ``MISSING_LENGTH_SPREAD``). So a box keeps an end that is
     seen — the space past it is crossed by rays — and reaches over what no ray crossed (an
     occluder's shadow), towards the sensor too; where rays cross the space past both ends, the
-    length is what they leave. The placement of :func:`_box_cluster` stays unless another costs at
-    least ``MISSING_PLACE_RAY_MARGIN`` rays less (among equals, the nearest to it)."""
+    length is what they leave. Where the visible rectangle fits the class's width both ways, the
+    placements with the length on the other axis are weighed too (:func:`_box_cluster` chose the
+    axis nearer the line of sight: a car seen from one end; the rays tell a car seen from its corner
+    with most of its side hidden). The placement of :func:`_box_cluster` stays unless another costs
+    at least ``MISSING_PLACE_RAY_MARGIN`` rays less (among equals, the nearest to it)."""
     todo = [k for k, c in enumerate(clusters) if c.hidden is not None]
     if not todo:
         return clusters
@@ -2074,6 +2089,8 @@ def _place_by_rays(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> lis
         hid, box = clusters[k].hidden, clusters[k].box
         a1, b1, a2, b2 = hid.vis
         L1, L2 = hid.size
+        if hid.either_axis:
+            L1 = L2 = max(L1, L2)
         low = (min(a1, b1 - L1), min(a2, b2 - L2))
         envelopes.append(
             _rect_box(hid, low, (max(b1, a1 + L1) - low[0], max(b2, a2 + L2) - low[1]), float(box[2]), float(box[5]))
@@ -2089,6 +2106,12 @@ def _place_by_rays(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> lis
         hid = cl.hidden
         z, h = float(cl.box[2]), float(cl.box[5])
         boxes, meta = _placements(hid, z, h)
+        meta = [m + (hid,) for m in meta]
+        if hid.either_axis:
+            other = hid._replace(size=hid.size[::-1], len_axis1=not hid.len_axis1)
+            b2_, m2 = _placements(other, z, h)
+            boxes = np.vstack([boxes, b2_])
+            meta += [m + (other,) for m in m2]
         a1, b1, a2, b2 = hid.vis
         start_ext = (max(hid.size[0], b1 - a1), max(hid.size[1], b2 - a2))
         boxes = np.vstack([boxes, _rect_box(hid, hid.low, start_ext, z, h)[None, :]])
@@ -2101,9 +2124,9 @@ def _place_by_rays(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> lis
         dist = np.array([abs(m[0] - hid.low[0]) + abs(m[1] - hid.low[1]) for m in meta])
         best = int(np.lexsort((dist, cost[:-1]))[0])
         if cost[best] + C.MISSING_PLACE_RAY_MARGIN * ray_cost <= cost[-1]:
-            p, q, ext, _ = meta[best]
+            p, q, ext, _, chosen = meta[best]
             box = _rect_box(hid, (p, q), ext, z, h)
-            if not hid.len_axis1:  # the length on the second axis
+            if not chosen.len_axis1:  # the length on the second axis
                 box[3], box[4], box[6] = ext[1], ext[0], hid.t + 0.5 * math.pi
             box[6] = float(g.normalize_angle(box[6]))
             out[k] = replace(cl, box=box)
