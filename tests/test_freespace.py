@@ -6,6 +6,7 @@ box over empty road, a box behind an occluder and a box seen on two faces.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -191,7 +192,7 @@ def _deepest_reference(o, p, box, lo, hi, n=20001):
     """Deepest BEV depth of the segment o → p inside the slab prism of ``box``, by dense sampling."""
     t = np.linspace(0.0, 1.0, n)[:, None]
     q = o + t * (p - o)
-    c, s = np.cos(box[6]), np.sin(box[6])
+    c, s = math.cos(box[6]), math.sin(box[6])
     dx, dy = q[:, 0] - box[0], q[:, 1] - box[1]
     lx, ly = c * dx + s * dy, -s * dx + c * dy
     dep = np.minimum(box[3] / 2 - np.abs(lx), box[4] / 2 - np.abs(ly))
@@ -290,7 +291,7 @@ def test_neighbourhood_parts_equal_a_brute_force_crop():
     parts = F.neighbourhood_parts(buckets, boxes[1:], 1.0, 0.5, 0.2, first=1)
     for j, box in enumerate(boxes[1:]):
         p = pts.astype(np.float64)
-        c, s = np.cos(box[6]), np.sin(box[6])
+        c, s = math.cos(box[6]), math.sin(box[6])
         qx, qy = p[:, 0] - box[0], p[:, 1] - box[1]
         inside = (
             (np.abs(c * qx + s * qy) <= box[3] / 2 + 1.0)
@@ -432,7 +433,7 @@ def test_label_ray_terms_skip_no_ray_that_matters():
     dep, _ = F.ray_depths(box, fs)
     assert np.all(bounds >= dep)
     assert np.isinf(dep[np.isinf(bounds)]).all()
-    c, s = np.cos(box[6]), np.sin(box[6])
+    c, s = math.cos(box[6]), math.sin(box[6])
     q = ends[:, :2] - box[:2]
     px, py = c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1]
     ends_in = (np.abs(px) <= box[3] / 2) & (np.abs(py) <= box[4] / 2) & (ends_t[2] >= hz[3])
@@ -713,3 +714,62 @@ def test_the_road_seen_through_every_vehicle_does_not_call_correct_labels_wrong(
     monkeypatch.setattr(C, "FREE_SPACE_SIGHT_ANGLE", 0.0)
     trusted = _audit(points, car.box)  # every point taken for the end of an empty ray
     assert trusted["free_rays"] > 300 and trusted["label_error"] < 0.5
+
+
+def test_own_returns_compiled_equals_numpy_form():
+    """The box's own returns (``_own_returns``, one compiled pass) are exactly the rows the NumPy
+    form keeps: within τ of the rotated rectangle, at least the cut above the sloped ground, at
+    most τ over the top; points on a boundary (to the last bit) and NaN rows decided the same."""
+    from labelaudit.infer import evidence as E
+
+    rng = np.random.default_rng(3)
+    box = np.array([12.0, -3.0, -0.8, 4.2, 1.8, 1.6, 0.7])
+    plane = np.array([-1.6, 0.02, -0.01, 0.0])
+    tau, cut = 0.1, 0.2
+    xyz = np.c_[rng.uniform(8, 16, 4000), rng.uniform(-7, 1, 4000), rng.uniform(-2.0, 0.5, 4000)]
+    xyz[:5] = np.nan
+    c, s = math.cos(box[6]), math.sin(box[6])
+    for k, (u, v) in enumerate([(2.2, 0.0), (-2.2, 0.3), (0.5, 1.0), (0.0, -1.0)]):  # on the grown faces
+        xyz[10 + k, :2] = box[:2] + [c * u - s * v, s * u + c * v]
+    xyz[20, 2] = box[2] + box[5] / 2 + tau  # on the top
+
+    def numpy_form(p):
+        q = p[:, :2] - box[:2]
+        h = F.ground_heights(p, plane, box[:2])
+        keep = (
+            (np.abs(c * q[:, 0] + s * q[:, 1]) <= box[3] / 2 + tau)
+            & (np.abs(-s * q[:, 0] + c * q[:, 1]) <= box[4] / 2 + tau)
+            & (h >= cut)
+            & (p[:, 2] <= box[2] + box[5] / 2 + tau)
+        )
+        return p[keep]
+
+    want = numpy_form(xyz)
+    got = E._own_returns(xyz, box, plane, tau, cut)
+    assert 50 < len(want) < len(xyz)  # some in, most out
+    assert got.dtype == np.float64 and got.shape == want.shape
+    assert np.array_equal(got, want)
+    assert E._own_returns(xyz[:0], box, plane, tau, cut).shape == (0, 3)
+
+
+def test_through_own_returns_ignores_the_order_of_returns():
+    """See-through is decided from the set of the object's returns: returns in columns (equal
+    azimuths, several heights and ranges) give the same rays in any order, and the known answer
+    (a ray with nearer returns 1 mrad either side of it is see-through, one without is not)."""
+    box = np.array([10.0, 0.0, 0.75, 4.0, 2.0, 1.5, 0.0])
+    ray_az = np.arctan2(np.linspace(-0.6, 0.6, 7), 14.0)  # 14 mrad apart, to the road at 14 m
+    fs = F.FreeSpace(
+        origin=np.array([0.0, 0.0, 1.73]),
+        ends=np.c_[14.0 * np.ones(7), 14.0 * np.tan(ray_az), np.zeros(7)],
+        ground=np.zeros(4),
+        ref=box[:2].copy(),
+        slab=(0.25, 0.6),
+        tolerance=0.1,
+    )
+    cols = [a + d for a in ray_az[::2] for d in (-0.001, 0.0, 0.001)]  # about every other ray
+    own = np.array([[r * np.cos(a), r * np.sin(a), z] for a in cols for z in (0.3, 0.9, 1.5) for r in (8.0, 8.2)])
+    want = F.through_own_returns(box, fs, own, 0.004)
+    assert want.tolist() == [True, False, True, False, True, False, True]
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        assert F.through_own_returns(box, fs, own[rng.permutation(len(own))], 0.004).tolist() == want.tolist()

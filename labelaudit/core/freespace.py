@@ -616,7 +616,10 @@ def through_own_returns(
     o = fs.origin
     centre = math.atan2(y[1] - o[1], y[0] - o[0])
     az = np.angle(np.exp(1j * (np.arctan2(pts[:, 1] - o[1], pts[:, 0] - o[0]) - centre)))
-    order = np.argsort(az, kind="stable")
+    # any sort will do: the kernel's answer for a ray depends on the set of returns in its window, not
+    # on the order of equal azimuths (NumPy's default sort is ~2.5x faster than the stable one here)
+    order = np.argsort(az)
+    near = pts.take(order, axis=0)  # take: a fraction of fancy indexing's cost on 2-D arrays
     out = np.zeros(m, dtype=np.bool_)
     _through_kernel(
         fs.ends,
@@ -625,8 +628,8 @@ def through_own_returns(
         crossing,
         reach,
         fs.tolerance,
-        np.ascontiguousarray(az[order]),
-        np.ascontiguousarray(np.hypot(pts[order, 0] - o[0], pts[order, 1] - o[1])),
+        az.take(order),
+        np.hypot(near[:, 0] - o[0], near[:, 1] - o[1]),
         float(angle),
         out,
     )
