@@ -641,3 +641,20 @@ def test_jaccard_split_merges_equal_neighbours_of_a_row_only():
             want = sp._jaccard_sum(*plain[1:4], plain[4].argsort(), *plain[5:])
             got = sp._jaccard_sum(*merged[1:4], merged[4].argsort(), *merged[5:])
             assert got == pytest.approx(want, rel=1e-13)
+
+
+def test_ratio_keys_order_the_cells_by_ratio():
+    """The BEV JIoU-GT's sort keys (_ratio_keys): sorted, they give back a permutation of the cells
+    in the order of their ratios (ties and ratios within the dropped low bits by cell index)."""
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 990, 5000):
+        ratio = np.concatenate([rng.uniform(1e-3, 1e3, n - n // 3), np.full(n // 3, 2.5)])
+        rng.shuffle(ratio)
+        keys, shift = sp._ratio_keys(ratio)
+        assert (1 << shift) >= n > (1 << shift) // 2 or n == 1
+        order = np.sort(keys).view(np.int64) & ((1 << shift) - 1)
+        assert np.array_equal(np.sort(order), np.arange(n))
+        r = ratio[order]
+        assert np.all(r[1:] >= r[:-1] * (1.0 - 2.0 ** (shift - 52)))  # by ratio, up to the dropped bits
+        tied = order[r == 2.5]
+        assert np.all(np.diff(tied) > 0)  # equal ratios: by cell
