@@ -1199,3 +1199,22 @@ def test_one_pass_posterior_equals_the_general_steps(model, monkeypatch):
         # the mean Σ(η0 + η/σ²) adds large terms that cancel: the responsibilities' last bits weigh more
         np.testing.assert_allclose(a.fit_mean, b.fit_mean, rtol=1e-10)
         np.testing.assert_allclose(list(a.std_box.values()), list(b.std_box.values()), rtol=1e-12)
+
+
+def test_branch_free_nearest_edges_equal_the_sorting_loop():
+    """The BEV registration's branch-free pass (a sorting network on (distance, edge)) gives the
+    stable insertion sort's arrays bit for bit: points inside, outside, exactly on edges and
+    corners, on both sides within the tolerance, at equal distance from two edges; m = 1 … 4."""
+    rng = np.random.default_rng(8)
+    for trial in range(40):
+        half = rng.uniform(0.2, 3.0, 2)
+        if trial % 4 == 0:
+            half[1] = half[0]  # a square: ties between the edges of both axes
+        scale = rng.choice([0.0, 0.3, 1.0, 1.0 + 1e-12, 1.0 - 1e-12, 1.7, 4.0], (300, 2))
+        local = rng.choice([-1.0, 1.0], (300, 2)) * half * scale
+        local[:50] = rng.uniform(-2, 2, (50, 2)) * half
+        tol = 1e-9 * float(half.max())
+        for m in range(1, 5):
+            fast = M._nearest_edges_kernel(local, half, m, tol)
+            loop = M._nearest_faces_loop(local, half, m, tol)
+            assert np.array_equal(fast[0], loop[0]) and np.array_equal(fast[1], loop[1]), (trial, m)

@@ -272,8 +272,72 @@ def _register_kernel(pts, cx, cy, cz, c, s, half, m, tol, two_var):  # pragma: n
     return vstar, sqd, _resp_exponents(sqd, two_var)
 
 
+@kernel(inline="always")
+def _order2(ka, ia, kb, ib):  # pragma: no cover - compiled
+    """Two (distance, face) pairs in lexicographic order: a stable sort's order, branch-free."""
+    swap = (ka > kb) | ((ka == kb) & (ia > ib))
+    return (kb if swap else ka), (ib if swap else ia), (ka if swap else kb), (ia if swap else ib)
+
+
+@kernel
+def _nearest_edges_kernel(local, half, m, tol):  # pragma: no cover - compiled
+    """:func:`_nearest_faces_kernel` of BEV points (d = 2, four edges), without branches: the same
+    distances, and the same order of the edges — a sorting network on (distance, edge) pairs, whose
+    lexicographic order is the stable insertion sort's — so the same arrays bit for bit."""
+    n = local.shape[0]
+    vstar = np.empty((n, m, 2))
+    sqd = np.empty((n, m))
+    h0, h1 = half[0], half[1]
+    w0, w1 = 2.0 * h0, 2.0 * h1
+    inf = np.inf
+    for k in range(n):
+        x0, x1 = local[k, 0], local[k, 1]
+        c0 = min(max(x0, -h0), h0)
+        c1 = min(max(x1, -h1), h1)
+        e0 = (x0 - c0) * (x0 - c0)
+        e1 = (x1 - c1) * (x1 - c1)
+        total = 0.0 + e0 + e1
+        b0, b1 = total - e0, total - e1
+        lo0, hi0, lo1, hi1 = x0 + h0, x0 - h0, x1 + h1, x1 - h1
+        s0 = x0 <= -h0 + tol  # the point is outside of (or on) this edge; only the first such counts
+        s1 = x0 >= h0 - tol
+        s2 = x1 <= -h1 + tol
+        s3 = x1 >= h1 - tol
+        n1 = np.int64(s0) + np.int64(s1)
+        n2 = n1 + np.int64(s2)
+        n3 = n2 + np.int64(s3)
+        q0 = b0 + lo0 * lo0
+        q1 = inf if (s1 and n1 > 1) else b0 + hi0 * hi0
+        q2 = inf if (s2 and n2 > 1) else b1 + lo1 * lo1
+        q3 = inf if (s3 and n3 > 1) else b1 + hi1 * hi1
+        k0, i0, k1, i1 = _order2(q0, 0, q1, 1)
+        k2, i2, k3, i3 = _order2(q2, 2, q3, 3)
+        k0, i0, k2, i2 = _order2(k0, i0, k2, i2)
+        k1, i1, k3, i3 = _order2(k1, i1, k3, i3)
+        k1, i1, k2, i2 = _order2(k1, i1, k2, i2)
+        u0, u1 = c0 / w0, c1 / w1
+        for j in range(m):
+            face = i0 if j == 0 else (i1 if j == 1 else (i2 if j == 2 else i3))
+            sqd[k, j] = k0 if j == 0 else (k1 if j == 1 else (k2 if j == 2 else k3))
+            side = 0.5 if face % 2 == 1 else -0.5
+            vstar[k, j, 0] = side if face < 2 else u0
+            vstar[k, j, 1] = side if face >= 2 else u1
+    return vstar, sqd
+
+
 @kernel
 def _nearest_faces_kernel(local, half, m, tol):  # pragma: no cover - compiled
+    """:func:`_nearest_faces`' pass: BEV points by :func:`_nearest_edges_kernel`, 3D ones by
+    :func:`_nearest_faces_loop` (the same arrays either way)."""
+    if local.shape[1] == 2 and m <= 4:
+        return _nearest_edges_kernel(local, half, m, tol)
+    return _nearest_faces_loop(local, half, m, tol)
+
+
+@kernel
+def _nearest_faces_loop(local, half, m, tol):  # pragma: no cover - compiled
+    """Point by point: the 2d faces' squared distances, a stable insertion sort of them, the m
+    nearest (:func:`_nearest_faces`)."""
     n, d = local.shape
     f = 2 * d
     vstar = np.empty((n, m, d))
