@@ -15,9 +15,7 @@ The search, in compiled passes over the frame (a few milliseconds per KITTI fram
    of ``MISSING_CELL`` cells; its 8-connected components are the clusters;
 3. a cluster of plausible size gets a box: an L-shape fit (the rectangle whose sides the points
    hug, searched over the heading) grown to the class's size away from the sensor (the hidden
-   sides) or where lines of sight show no empty road; a box kept so far is then placed, and its
-   length chosen, where the frame's rays let its solid body be (:func:`_place_by_rays`), then the
-   label-error fit of :mod:`labelaudit.core.fit` from it;
+   sides), then the label-error fit of :mod:`labelaudit.core.fit` from it;
 4. its ``score`` multiplies four factors in [0, 1]: size against the class prior, points on one or
    two vertical faces (planar side / L-shape), points against range, and free space (rays that
    pass through the would-be body).
@@ -37,7 +35,7 @@ from labelaudit import constants as C
 from labelaudit.config import ALL_CLASSES, RunConfig
 from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
-from labelaudit.core.freespace import FreeSpace, ground_heights, ray_counts
+from labelaudit.core.freespace import ray_counts
 from labelaudit.core.iou import bev_iou_exact
 from labelaudit.datasets import Frame, in_labelled_region
 from labelaudit.infer.evidence import frame_evidence, label_boxes
@@ -58,27 +56,6 @@ class FrameDetections:
     sources: list[str]  # "file:line" per detection
 
 
-class _Hidden(NamedTuple):
-    """How a partly seen cluster's box was grown over its hidden extent (:func:`_box_cluster`), for
-    :func:`_place_by_rays`: the cluster's frame (centre (m) and heading t (rad): axes (cos t, sin t)
-    and (−sin t, cos t)), its visible rectangle (a1, b1, a2, b2) on them, the class's mean size
-    on them (L1, L2), the low ends of the box as placed (A1, A2), which axis is the length, and the
-    class's mean and largest length; ``either_axis``: the visible rectangle fits the class's width
-    both ways (a car seen from one end, or most of its side hidden), so the length may lie on the
-    other axis."""
-
-    cx: float
-    cy: float
-    t: float
-    vis: tuple[float, float, float, float]
-    size: tuple[float, float]
-    low: tuple[float, float]
-    len_axis1: bool
-    mean_length: float
-    largest_length: float
-    either_axis: bool = False
-
-
 @dataclass(frozen=True)
 class Cluster:
     """One candidate from the points: its box and the evidence behind its score."""
@@ -93,7 +70,6 @@ class Cluster:
     free_space_score: float
     free_rays: int
     end_rays: int
-    hidden: _Hidden | None = None  # how its box was grown over a hidden extent (:func:`_place_by_rays`); not written
 
     @property
     def score(self) -> float:
@@ -1863,24 +1839,7 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
             rough = _surface_roughness(xyz, scene)
         if rough >= 0.0:
             shape_score *= 1.0 - _ramp(rough, *C.MISSING_SURFACE_ROUGH)
-    hidden = None
-    if size_score >= C.MISSING_CLASS_FIT and any(
-        b - a < L - C.MISSING_PLACE_MIN_HIDDEN for a, b, L in ((a1, b1, L1), (a2, b2, L2))
-    ):
-        largest = sizes[best_name][1][0]
-        hidden = _Hidden(
-            float(centre[0]),
-            float(centre[1]),
-            t,
-            (a1, b1, a2, b2),
-            (L1, L2),
-            (A1, A2),
-            len_axis1,
-            mean[0],
-            largest,
-            not vis_l > mean[1] + C.MISSING_SIZE_SLACK,  # the length may lie on either axis
-        )
-    whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0, hidden)
+    whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
     if splits > 0 and size_score < C.MISSING_CLASS_FIT:  # no class fits: maybe two objects
         parts = _split(xy, c, s)
         if parts is not None:
@@ -2012,131 +1971,6 @@ def _max_iou(box: FloatArray, others: FloatArray) -> float:
     return best
 
 
-def _rect_box(hid: _Hidden, low: tuple[float, float], ext: tuple[float, float], z: float, h: float) -> FloatArray:
-    """The box (7,) spanning ``low`` + [0, ``ext``] on the cluster's axes, yaw its heading."""
-    c, s = math.cos(hid.t), math.sin(hid.t)
-    mx, my = low[0] + 0.5 * ext[0], low[1] + 0.5 * ext[1]
-    return np.array([hid.cx + c * mx - s * my, hid.cy + s * mx + c * my, z, ext[0], ext[1], h, hid.t])
-
-
-def _placements(
-    hid: _Hidden, z: float, h: float
-) -> tuple[FloatArray, list[tuple[float, float, tuple[float, float], float]]]:
-    """Every box :func:`_place_by_rays` weighs: the hidden extent on either axis placed every
-    ``MISSING_PLACE_STEP`` (holding the visible rectangle), with the length from the class's mean
-    down to the visible length in the same steps. Returns the boxes (K, 7) and per box (A1, A2,
-    extents, length)."""
-    a1, b1, a2, b2 = hid.vis
-    ax = 0 if hid.len_axis1 else 1
-    seen = (b1 - a1, b2 - a2)[ax]
-    step = C.MISSING_PLACE_STEP
-    # no shorter than the class's mean less as much as its largest lies above it (the prior's support)
-    shortest = max(seen, 2.0 * hid.mean_length - hid.largest_length)
-    lengths = [hid.size[ax]]
-    if shortest < hid.size[ax]:
-        lengths += list(np.arange(hid.size[ax] - step, shortest, -step)) + [shortest]
-    boxes, meta = [], []
-    for length in lengths:
-        size = (length, hid.size[1]) if ax == 0 else (hid.size[0], length)
-        ext = (max(size[0], b1 - a1), max(size[1], b2 - a2))
-        lows = [
-            np.linspace(b - L, a, int(math.ceil((L - b + a) / step)) + 1) if b - a < L else np.array([a])
-            for a, b, L in ((a1, b1, size[0]), (a2, b2, size[1]))
-        ]
-        for p in lows[0].tolist():
-            for q in lows[1].tolist():
-                boxes.append(_rect_box(hid, (p, q), ext, z, h))
-                meta.append((p, q, ext, float(length)))
-    return np.array(boxes), meta
-
-
-def _inside_counts(boxes: FloatArray, points: NDArray, fs: FreeSpace) -> FloatArray:
-    """Per box (K, 7), the returns (N, ≥3) in its solid lower body (``fs.slab`` above ``fs``'s
-    ground) deeper than ``FREE_SPACE_INSIDE_TOLERANCE`` inside its rectangle: each ray that ends
-    there crossed the body to reach it (a box reaching past a face the sensor sees, towards it)."""
-    if len(points) == 0:
-        return np.zeros(len(boxes))
-    xyz = np.asarray(points[:, :3], dtype=float)
-    h = ground_heights(xyz, fs.ground, fs.ref)
-    xy = xyz[(h >= fs.slab[0]) & (h <= fs.slab[1]), :2]
-    if len(xy) == 0:
-        return np.zeros(len(boxes))
-    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
-    dx, dy = xy[None, :, 0] - boxes[:, 0:1], xy[None, :, 1] - boxes[:, 1:2]
-    depth = np.minimum(0.5 * boxes[:, 3:4] - np.abs(c * dx + s * dy), 0.5 * boxes[:, 4:5] - np.abs(-s * dx + c * dy))
-    return np.count_nonzero(depth > C.FREE_SPACE_INSIDE_TOLERANCE, axis=1).astype(float)
-
-
-def _place_by_rays(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> list[Cluster]:
-    """The clusters with each partly hidden box placed where the frame's rays let it be.
-
-    A ray that passes through a vehicle's solid lower body (the label-error fit's slab,
-    ``FREE_SPACE_SLAB``) and ends behind it says the body is not there, unless it went through a
-    slit (``FREE_SPACE_SLIT_PROB``: the gap between a truck's cab and box); a ray an occluder
-    stopped says nothing. Among the placements of the hidden extent (:func:`_placements`) the box
-    takes the most probable: each free ray through it costs −log ``FREE_SPACE_SLIT_PROB``, and a
-    length short of the class's mean costs what a normal prior on the length says (its spread
-    from the class's mean and largest, ``MISSING_LENGTH_SPREAD``). So a box keeps an end that is
-    seen — the space past it is crossed by rays — and reaches over what no ray crossed (an
-    occluder's shadow), towards the sensor too; where rays cross the space past both ends, the
-    length is what they leave. Where the visible rectangle fits the class's width both ways, the
-    placements with the length on the other axis are weighed too (:func:`_box_cluster` chose the
-    axis nearer the line of sight: a car seen from one end; the rays tell a car seen from its corner
-    with most of its side hidden). The placement of :func:`_box_cluster` stays unless another costs
-    at least ``MISSING_PLACE_RAY_MARGIN`` rays less (among equals, the nearest to it)."""
-    todo = [k for k, c in enumerate(clusters) if c.hidden is not None]
-    if not todo:
-        return clusters
-    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
-    envelopes = []
-    for k in todo:
-        hid, box = clusters[k].hidden, clusters[k].box
-        a1, b1, a2, b2 = hid.vis
-        L1, L2 = hid.size
-        if hid.either_axis:
-            L1 = L2 = max(L1, L2)
-        low = (min(a1, b1 - L1), min(a2, b2 - L2))
-        envelopes.append(
-            _rect_box(hid, low, (max(b1, a1 + L1) - low[0], max(b2, a2 + L2) - low[1]), float(box[2]), float(box[5]))
-        )
-    with np.errstate(all="ignore"):
-        evidence = frame_evidence(
-            frame.points, np.array(envelopes), o, cfg.crop, others=label_boxes(frame.boxes), ray_mask=frame.ray_mask
-        )
-    ray_cost = -math.log(C.FREE_SPACE_SLIT_PROB)
-    out = list(clusters)
-    for k, ev in zip(todo, evidence):
-        cl = clusters[k]
-        hid = cl.hidden
-        z, h = float(cl.box[2]), float(cl.box[5])
-        boxes, meta = _placements(hid, z, h)
-        meta = [m + (hid,) for m in meta]
-        if hid.either_axis:
-            other = hid._replace(size=hid.size[::-1], len_axis1=not hid.len_axis1)
-            b2_, m2 = _placements(other, z, h)
-            boxes = np.vstack([boxes, b2_])
-            meta += [m + (other,) for m in m2]
-        a1, b1, a2, b2 = hid.vis
-        start_ext = (max(hid.size[0], b1 - a1), max(hid.size[1], b2 - a2))
-        boxes = np.vstack([boxes, _rect_box(hid, hid.low, start_ext, z, h)[None, :]])
-        near = frame.points[ev.near_idx]
-        free = np.array([f for f, _ in ray_counts(boxes, ev.free_space, near)], dtype=float)
-        free += _inside_counts(boxes, near, ev.free_space)
-        spread = (hid.largest_length - hid.mean_length) / C.MISSING_LENGTH_SPREAD
-        lengths = np.array([m[3] for m in meta] + [hid.mean_length])
-        cost = free * ray_cost + 0.5 * ((lengths - hid.mean_length) / spread) ** 2
-        dist = np.array([abs(m[0] - hid.low[0]) + abs(m[1] - hid.low[1]) for m in meta])
-        best = int(np.lexsort((dist, cost[:-1]))[0])
-        if cost[best] + C.MISSING_PLACE_RAY_MARGIN * ray_cost <= cost[-1]:
-            p, q, ext, _, chosen = meta[best]
-            box = _rect_box(hid, (p, q), ext, z, h)
-            if not chosen.len_axis1:  # the length on the second axis
-                box[3], box[4], box[6] = ext[1], ext[0], hid.t + 0.5 * math.pi
-            box[6] = float(g.normalize_angle(box[6]))
-            out[k] = replace(cl, box=box)
-    return out
-
-
 def with_free_space(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> list[Cluster]:
     """The clusters with their free-space evidence: the label-error fit of :mod:`labelaudit.core.fit`
     moves each box onto its points (free-space rays included, as for a label), then the rays
@@ -2201,7 +2035,6 @@ def find_missing(
             elif ok:
                 fates[k] = "low score"
     if clusters:
-        clusters = _place_by_rays(frame, clusters, cfg)
         clusters = with_free_space(frame, clusters, cfg)
     fitted = iter(clusters)
     rows: list[dict[str, Any]] = []
