@@ -442,9 +442,9 @@ def test_chunk_size_depends_on_the_unit_count_only():
     assert chunk_size_for("waymo-v2", 800) == 1  # a segment is already ~200 frames
 
 
-def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tmp_path):
+def _three_frames_the_second_failing(monkeypatch) -> None:
+    """One unit "seg" of three frames read by any reader; process_frame raises on the second."""
     import labelaudit.infer.run as P
-    from labelaudit.infer.run import ChunkTask, process_chunk
 
     frames = [replace(_frame(), frame_id=f"seg:{t}") for t in range(3)]
 
@@ -461,6 +461,12 @@ def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tm
         return real(frame, cfg)
 
     monkeypatch.setattr(P, "process_frame", flaky)
+
+
+def test_a_failing_frame_does_not_take_its_unit_along(fake_core, monkeypatch, tmp_path):
+    from labelaudit.infer.run import ChunkTask, process_chunk
+
+    _three_frames_the_second_failing(monkeypatch)
     result = process_chunk(ChunkTask("x", (FrameRef("fake", "/r", "seg"),), RunConfig()))
     assert result.frames == 2
     assert set(result.table.column("frame_id").to_pylist()) == {"seg:0", "seg:2"}
@@ -475,21 +481,7 @@ def test_a_chunk_encoded_by_its_worker_is_the_files_written_from_its_tables(fake
     import labelaudit.infer.run as P
     from labelaudit.infer.run import ChunkTask, chunk_failure, encode_chunk, process_chunk
 
-    frames = [replace(_frame(), frame_id=f"seg:{t}") for t in range(3)]
-
-    class Reader:
-        def load_unit(self, ref):
-            yield from frames
-
-    monkeypatch.setattr(P, "open_dataset", lambda root, fmt, **options: Reader())
-    real = P.process_frame
-
-    def flaky(frame, cfg):
-        if frame.frame_id == "seg:1":
-            raise RuntimeError("crop exploded")
-        return real(frame, cfg)
-
-    monkeypatch.setattr(P, "process_frame", flaky)
+    _three_frames_the_second_failing(monkeypatch)
     monkeypatch.setattr(P, "missing_of_frame", lambda frame, cfg, detections=None: [])
     metadata = {"tool": "labelaudit", "param_hash": "abc"}
     refs = (FrameRef("fake", "/r", "seg"),)

@@ -192,6 +192,12 @@ def range_image_to_points(
     if ri.ndim != 3 or ri.shape[2] < 2:
         raise ValueError(f"range image must be (H, W, C>=2), got shape {ri.shape}")
     h, w = ri.shape[:2]
+    if pixel_pose is not None:
+        if frame_pose is None:
+            raise ValueError("a per-pixel pose needs the frame pose (vehicle → world)")
+        pp = np.asarray(pixel_pose)
+        if pp.shape[:2] != (h, w) or pp.shape[2] < 6:
+            raise ValueError(f"pixel pose shape {pp.shape} does not match range image {(h, w)} x 6")
     if ri.dtype == np.float32 and h and w:  # as the readers give them: the compiled pass
         return _range_image_points(ri, calibration, pixel_pose, frame_pose)
     return _range_image_points_numpy(ri, calibration, pixel_pose, frame_pose)
@@ -211,19 +217,13 @@ def _range_image_points_numpy(
     extrinsic = np.asarray(calibration.extrinsic, dtype=np.float64)
     p = ray_directions(calibration, h, w)[valid] * r[:, None] + extrinsic[:3, 3]
     if pixel_pose is not None:
-        if frame_pose is None:
-            raise ValueError("a per-pixel pose needs the frame pose (vehicle → world)")
         pp = np.asarray(pixel_pose)
-        if pp.shape[:2] != (h, w) or pp.shape[2] < 6:
-            raise ValueError(f"pixel pose shape {pp.shape} does not match range image {(h, w)} x 6")
         fp = np.asarray(frame_pose, dtype=np.float64)
         f_rot_t = fp[:3, :3].T
         if (pp == pp[:1]).all():
             # Poses vary by column only (one capture time per azimuth): compose per column, then
             # gather — W rotations instead of one per point.
-            col = pp[0].astype(np.float64)
-            rot = f_rot_t @ euler_to_matrix(col[:, 0], col[:, 1], col[:, 2])
-            trans = (col[:, 3:6] - fp[:3, 3]) @ f_rot_t.T  # subtract first: keeps precision at large t
+            rot, trans = _column_transforms(pp[0], fp)
             cols = np.nonzero(valid)[1]
             p = _apply(rot[cols], trans[cols], p)
         else:
@@ -254,21 +254,26 @@ def _range_image_points(
     t = np.ascontiguousarray(extrinsic[:3, 3])
     rot, trans = _NO_ROT, _NO_TRANS
     if pixel_pose is not None:
-        if frame_pose is None:
-            raise ValueError("a per-pixel pose needs the frame pose (vehicle → world)")
         pp = np.asarray(pixel_pose)
-        if pp.shape[:2] != (h, w) or pp.shape[2] < 6:
-            raise ValueError(f"pixel pose shape {pp.shape} does not match range image {(h, w)} x 6")
         if not (pp.dtype == np.float32 and rows_equal_first(_read_only(pp))):
             return _range_image_points_numpy(ri, calibration, pixel_pose, frame_pose)
-        fp = np.asarray(frame_pose, dtype=np.float64)
-        f_rot_t = fp[:3, :3].T
-        col = pp[0].astype(np.float64)  # one capture time per azimuth: one transform per column
-        rot = np.ascontiguousarray(f_rot_t @ euler_to_matrix(col[:, 0], col[:, 1], col[:, 2]))
-        trans = np.ascontiguousarray(
-            (col[:, 3:6] - fp[:3, 3]) @ f_rot_t.T
-        )  # subtract first: keeps precision at large t
+        # one capture time per azimuth: one transform per column
+        rot, trans = _column_transforms(pp[0], np.asarray(frame_pose, dtype=np.float64))
+        rot, trans = np.ascontiguousarray(rot), np.ascontiguousarray(trans)
     return range_image_points(_read_only(ri), dirs, t, rot, trans, pixel_pose is not None)
+
+
+def _column_transforms(
+    col_pose: NDArray[np.floating], frame_pose: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per column, the rotation (W, 3, 3) and translation (W, 3) from the vehicle frame at the
+    column's capture time (``col_pose`` (W, ≥6): roll, pitch, yaw, x, y, z → world) to the
+    vehicle frame at the frame's timestamp (``frame_pose`` (4, 4))."""
+    col = col_pose.astype(np.float64)
+    f_rot_t = frame_pose[:3, :3].T
+    rot = f_rot_t @ euler_to_matrix(col[:, 0], col[:, 1], col[:, 2])
+    trans = (col[:, 3:6] - frame_pose[:3, 3]) @ f_rot_t.T  # subtract first: keeps precision at large t
+    return rot, trans
 
 
 def _read_only(a: NDArray) -> NDArray:
