@@ -47,7 +47,7 @@ import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Mapping, NamedTuple, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -781,21 +781,27 @@ def parquet_bytes(table: pa.Table) -> bytes:
     return sink.getvalue().to_pybytes()
 
 
-def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
-    """Write ``table`` to ``path`` through a temporary dot-file and :func:`os.replace` (:func:`write_parquet`).
-
-    A killed writer leaves at most a dot-file that readers ignore and the next run removes.
-    """
+def _write_atomic(path: str | Path, write: Callable[[Path], object]) -> Path:
+    """``write`` a temporary dot-file beside ``path``, then :func:`os.replace` it onto ``path``; no
+    temporary is left on failure (a killed writer leaves at most a dot-file readers ignore)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_name(path)
     try:
-        write_parquet(table, tmp)
+        write(tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def write_parquet_atomic(table: pa.Table, path: str | Path) -> Path:
+    """Write ``table`` to ``path`` through a temporary dot-file and :func:`os.replace` (:func:`write_parquet`).
+
+    A killed writer leaves at most a dot-file that readers ignore and the next run removes.
+    """
+    return _write_atomic(path, lambda tmp: write_parquet(table, tmp))
 
 
 def write_json_atomic(data: Mapping[str, Any], path: str | Path) -> Path:
@@ -806,30 +812,12 @@ def write_json_atomic(data: Mapping[str, Any], path: str | Path) -> Path:
 def write_bytes_atomic(data: bytes, path: str | Path) -> Path:
     """Write ``data`` (e.g. :func:`parquet_bytes`) through a temporary dot-file and :func:`os.replace`
     (no temporary is left on failure)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_name(path)
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return _write_atomic(path, lambda tmp: tmp.write_bytes(data))
 
 
 def write_text_atomic(text: str, path: str | Path) -> Path:
     """Write UTF-8 text through a temporary dot-file and :func:`os.replace` (no temporary is left on failure)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_name(path)
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return _write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
 def remove_temp_files(root: str | Path) -> list[Path]:

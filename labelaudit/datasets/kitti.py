@@ -797,8 +797,7 @@ class KittiReader:
         derived = self._calibrations.get(data)
         if derived is None:
             calib = parse_calib(data, path)
-            cam_from_velo = calib.T_cam_velo
-            derived = (np.linalg.inv(cam_from_velo), calib.P2 @ cam_from_velo)  # T_velo_cam, the projection
+            derived = (calib.T_velo_cam, calib.P2 @ calib.T_cam_velo)
             for a in derived:
                 a.flags.writeable = False  # shared by the frames of the calibration
             if len(self._calibrations) >= _CALIBRATIONS_KEPT:
