@@ -496,25 +496,7 @@ def render_object(
     if compact:  # the scale bar gives the metres and the report prints the numbers beside the picture: ticks and glyphs cost most of the drawing
         ax.set_xticks([])
         ax.set_yticks([])
-        return ObjectPicture(
-            _png(fig),
-            size,
-            density,
-            extent,
-            pts,
-            height,
-            fit_only_xy,
-            context_xy,
-            label_corners,
-            fit_corners,
-            centres,
-            covs,
-            sensor_dir,
-            view,
-            caption,
-            track_corners,
-            expected_corners,
-        )
+        return picture()
     fig.text(ax_rect[0], 0.985, caption, ha="left", va="top", fontsize=9)
     ax.tick_params(labelsize=7)
     ax.set_xlabel("along the label's length (m)", fontsize=8)
