@@ -158,3 +158,16 @@ def test_clean_columns_is_clean_points_transposed():
         assert g.clean_columns(empty, 3).shape == (3, 0)
     with pytest.raises(ValueError):
         g.clean_columns(np.zeros((4, 2)), 3)
+
+
+def test_cos_sin_is_numpys_and_keeps_the_sign_of_zero():
+    """cos_sin gives NumPy's values whether or not the yaw was the last one asked, and a yaw of
+    −0.0 after 0.0 (equal as floats) gets sin −0.0, not the kept 0.0."""
+    rng = np.random.default_rng(2)
+    for yaw in [*rng.uniform(-7, 7, 200), 0.0, -0.0, 0.0, np.pi, np.pi]:
+        for _ in range(2):  # asked again: the kept values
+            c, s = g.cos_sin(yaw)
+            assert np.float64(c).tobytes() == np.cos(yaw).tobytes()
+            assert np.float64(s).tobytes() == np.sin(yaw).tobytes()
+    g.cos_sin(0.0)
+    assert str(g.cos_sin(-0.0)[1]) == "-0.0" and str(g.cos_sin(np.float64(0.0))[1]) == "0.0"

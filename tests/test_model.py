@@ -529,6 +529,32 @@ def test_hull_iou_equals_qhull_and_shapely():
         assert IOU.hull_iou(box, pts) == pytest.approx(expected, rel=1e-10, abs=1e-12), trial
 
 
+def test_hull_iou_corners_as_numpy():
+    """The hull kernel's box corners are NumPy's ``J @ φ − centre`` bit for bit (boxes of every
+    heading, size and place, and exact zeros)."""
+    rng = np.random.default_rng(5)
+    boxes = [np.array([0.0, -0.0, 0.0, 4.0, 2.0, 1.5, 0.0]), np.array([-3.0, 2.0, 0.0, 1.0, 1.0, 1.0, np.pi / 2])]
+    for _ in range(2000):
+        boxes.append(
+            np.array(
+                [
+                    rng.uniform(-90, 90),
+                    rng.uniform(-90, 90),
+                    0.0,
+                    rng.uniform(0.2, 15),
+                    rng.uniform(0.2, 4),
+                    1.5,
+                    rng.uniform(-7, 7),
+                ]
+            )
+        )
+    for box in boxes:
+        phi = g.phi_of_valid_box(box, "bev")
+        expected = IOU._BEV_CORNER_J @ phi - box[:2]
+        got = IOU._local_corners(IOU._BEV_CORNER_J, phi, float(box[0]), float(box[1]))
+        assert np.array_equal(got.view(np.int64), expected.view(np.int64)), box
+
+
 def test_hull_iou_baseline():
     rng = np.random.default_rng(0)
     inside = g.unit_to_world(rng.uniform(-0.5, 0.5, (500, 2)), CAR, "bev")
@@ -1199,6 +1225,25 @@ def test_one_pass_posterior_equals_the_general_steps(model, monkeypatch):
         # the mean Σ(η0 + η/σ²) adds large terms that cancel: the responsibilities' last bits weigh more
         np.testing.assert_allclose(a.fit_mean, b.fit_mean, rtol=1e-10)
         np.testing.assert_allclose(list(a.std_box.values()), list(b.std_box.values()), rtol=1e-12)
+
+
+def test_compiled_corner_order_equals_the_python_order():
+    """The one pass's corner order (libm's cos, sin, hypot and an insertion sort) is
+    :func:`_corner_order`'s: random boxes and sensors, and equal distances (a sensor on a box's
+    axis, at its centre), where the stable order keeps the corners' own order."""
+    rng = np.random.default_rng(3)
+    cases = [
+        (np.array([10.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0]), (0.0, 0.0)),
+        (np.array([0.0, 10.0, 0.0, 4.0, 2.0, 1.5, np.pi / 2]), (0.0, 0.0)),
+        (np.array([3.0, -2.0, 0.0, 4.0, 2.0, 1.5, 0.3]), (3.0, -2.0)),
+        (np.array([5.0, 5.0, 0.0, 2.0, 2.0, 1.5, np.pi / 4]), (0.0, 0.0)),
+    ]
+    for _ in range(3000):
+        box = np.array([*rng.uniform(-60, 60, 2), 0.0, *rng.uniform(0.2, 12, 2), 1.5, rng.uniform(-7, 7)])
+        cases.append((box, tuple(rng.uniform(-3, 3, 2))))
+    for box, (ox, oy) in cases:
+        expected = M._corner_order(box, (ox, oy, 0.0))
+        assert np.array_equal(M._corner_order_kernel(box, ox, oy), expected), (box, ox, oy)
 
 
 def test_branch_free_nearest_edges_equal_the_sorting_loop():

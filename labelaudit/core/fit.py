@@ -1266,18 +1266,12 @@ def _slab_face_gaps(
         slab[5:] = free_space.slab
     else:  # above the box bottom
         slab[:] = (y[2] - 0.5 * y[5], 0.0, 0.0, 0.0, 0.0, C.FREE_SPACE_SLAB[0], C.FREE_SPACE_SLAB[1] * y[5])
-    sx, sy = (float(v) for v in origin[:2]) if isinstance(origin, np.ndarray) and origin.ndim == 1 else _xy(origin)
+    sx, sy = g.sensor_xy(origin)
     gaps, counts = np.empty(4), np.empty(4, dtype=np.int64)
     _face_gaps_kernel(
         y, pts_t, pts_t.shape[0], sx, sy, slab, C.FACE_GAP_QUANTILE, int(C.FACE_GAP_MIN_POINTS), gaps, counts
     )
     return gaps, counts
-
-
-def _xy(origin: ArrayLike) -> tuple[float, float]:
-    """The sensor's x, y of a position given in any array-like form."""
-    o = np.asarray(origin, dtype=float).reshape(-1)
-    return float(o[0]), float(o[1])
 
 
 def _face_gap_d2(gaps: FloatArray) -> tuple[float, int]:

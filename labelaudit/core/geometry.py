@@ -223,9 +223,35 @@ def dphi_dext(box: ArrayLike, model: ModelKind) -> FloatArray:
     return dphi_dext_valid(validate_box(box), model)
 
 
+def sensor_xy(origin: ArrayLike) -> tuple[float, float]:
+    """A sensor position's x, y as Python floats: the values ``np.asarray(origin, dtype=float)``
+    holds, without the conversion when it is a float64 vector already."""
+    if type(origin) is np.ndarray and origin.dtype == np.float64 and origin.ndim == 1:
+        ox, oy = origin[:2].tolist()
+        return ox, oy
+    o = np.asarray(origin, dtype=float).reshape(-1)
+    return float(o[0]), float(o[1])
+
+
+_LAST_COS_SIN: list[tuple[float, float, float]] = [(0.0, 1.0, 0.0)]  # (yaw, cos, sin) of the last yaw asked
+
+
+def cos_sin(yaw: float) -> tuple[float, float]:
+    """NumPy's ``np.cos(yaw)``, ``np.sin(yaw)`` as Python floats (NumPy's, not math's: NumPy may
+    use SIMD kernels), the last yaw's kept: a label's φ, Jacobians and prior terms ask for the same
+    yaw several times per object. The same values as calling NumPy each time (a yaw of −0.0 is not
+    taken for 0.0: sin keeps the sign)."""
+    last = _LAST_COS_SIN[0]  # one read: safe with threads
+    if yaw == last[0] and math.copysign(1.0, yaw) == math.copysign(1.0, last[0]):
+        return last[1], last[2]
+    c, s = float(np.cos(yaw)), float(np.sin(yaw))
+    _LAST_COS_SIN[0] = (float(yaw), c, s)
+    return c, s
+
+
 def dphi_dext_valid(y: FloatArray, model: ModelKind) -> FloatArray:
     """:func:`dphi_dext` of a box (7,) float64 known to be valid (after :func:`validate_box`)."""
-    c, s = float(np.cos(y[6])), float(np.sin(y[6]))
+    c, s = cos_sin(y[6])
     length, width = float(y[3]), float(y[4])
     d, p = _check_model(model)
     G = np.zeros(p * p)
@@ -507,7 +533,7 @@ def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:
     """:func:`box_to_phi` of a box (7,) float64 known to be valid (labels
     after ``validate_box``, the fit's own rectangles: finite, sizes floored above 0): the same arithmetic without the checks, which cost
     more than φ itself at a dozen calls per fit."""
-    c, s = float(np.cos(y[6])), float(np.sin(y[6]))  # NumPy's cos/sin (not math's: NumPy may use SIMD kernels)
+    c, s = cos_sin(y[6])  # NumPy's cos/sin (not math's: NumPy may use SIMD kernels)
     cx, cy, cz, length, width, height, _ = (
         y.tolist()
     )  # Python floats: the same IEEE products, at a fraction of the cost

@@ -47,10 +47,8 @@ def hull_iou_valid(y: FloatArray, points: ArrayLike | None) -> float:
         local = _sorted_candidates_kernel(arr, float(y[0]), float(y[1]))
         if len(local) < 3:
             return 0.0
-    corners = (
-        _BEV_CORNER_J @ g.phi_of_valid_box(y, "bev") - y[:2]
-    )  # = box_corners(y, "bev") − centre, counter-clockwise
-    return float(_hull_iou_kernel(local, np.ascontiguousarray(corners)))
+    # the box's corners relative to its centre, counter-clockwise, formed in the kernel
+    return float(_hull_iou_kernel(local, _BEV_CORNER_J, g.phi_of_valid_box(y, "bev"), float(y[0]), float(y[1])))
 
 
 _KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))  # native floats: what the compiled pass reads as is
@@ -72,10 +70,26 @@ def _shoelace(poly, m):  # pragma: no cover - compiled
     return 0.5 * s
 
 
+@kernel(inline="always")
+def _local_corners(J, phi, cx, cy):  # pragma: no cover - compiled
+    """``J · φ − (cx, cy)`` (4, 2) for J (4, 2, p), φ (p,): each corner's products added left to
+    right from 0, as NumPy's ``J @ φ`` adds them for these sizes (tested bit for bit)."""
+    corners = np.empty((J.shape[0], 2))
+    for c in range(J.shape[0]):
+        for d in range(2):
+            acc = 0.0
+            for k in range(J.shape[2]):
+                acc += J[c, d, k] * phi[k]
+            corners[c, d] = acc - (cx if d == 0 else cy)
+    return corners
+
+
 @kernel
-def _hull_iou_kernel(pts, corners):  # pragma: no cover - compiled
-    """IoU of the convex hull of ``pts`` (N, 2), sorted by x then y, and the convex polygon
-    ``corners`` (4, 2), counter-clockwise; 0.0 when the hull has no area."""
+def _hull_iou_kernel(pts, J, phi, cx, cy):  # pragma: no cover - compiled
+    """IoU of the convex hull of ``pts`` (N, 2), sorted by x then y, and the box whose corners are
+    ``J · φ − (cx, cy)`` (J (4, 2, 6), φ (6,): :func:`~labelaudit.core.geometry.box_corners` relative
+    to the centre, counter-clockwise, :func:`_local_corners`); 0.0 when the hull has no area."""
+    corners = _local_corners(J, phi, cx, cy)
     n = pts.shape[0]
     hull = np.empty((2 * n + 1, 2))
     k = 0

@@ -226,12 +226,10 @@ def register_validated(
 ) -> Registration:
     """:func:`register` for a validated box and clean (N, d) points."""
     half = 0.5 * y[3 : 3 + d]
-    c, s = np.cos(y[6]), np.sin(y[6])
+    c, s = g.cos_sin(y[6])
     m = min(int(num_nearest), 2 * d)
     tol = 1e-9 * max(half.tolist())
-    vstar, sqd, x = _register_kernel(
-        pts, float(y[0]), float(y[1]), float(y[2]), float(c), float(s), half, m, tol, 2.0 * sigma**2
-    )
+    vstar, sqd, x = _register_kernel(pts, float(y[0]), float(y[1]), float(y[2]), c, s, half, m, tol, 2.0 * sigma**2)
     if not outlier_prob > 0:  # _responsibilities without outliers, from the kernel's exponents
         resp = _normalise_rows(np.exp(x, out=x)) if sqd.size else np.zeros_like(sqd)
     else:
@@ -981,7 +979,7 @@ def box_prior_terms(y: FloatArray, prior: ClassPrior, weight: float, model: Mode
     (8, 8)
     """
     d = g.point_dim(model)
-    c, s = float(np.cos(y[6])), float(np.sin(y[6]))  # NumPy's, as phi_of_valid_box and dphi_dext_valid
+    c, s = g.cos_sin(y[6])  # NumPy's, as phi_of_valid_box and dphi_dext_valid
     phi, G, E, P0, eta0 = _prior_terms_kernel(y, c, s, d, _weighted_prior_info(prior, model, float(weight)))
     return BoxPriorTerms(model=model, prior=prior, weight=weight, phi=phi, G=G, Ginv=E, P0=P0, eta0=eta0)
 
@@ -1111,17 +1109,18 @@ def infer_label_valid(
     phi, G, E, P0 = terms.phi, terms.G, terms.Ginv, terms.P0
 
     if not params.outlier_prob > 0:
-        c, s = np.cos(y[6]), np.sin(y[6])
+        c, s = g.cos_sin(y[6])
         B, BB = _BASIS[model]
         p = phi.size
         K = np.empty((p - 1, p))  # as geometry.box_param_jacobian
         K[: p - 2] = E[: p - 2]
         K[p - 2] = 0.5 * (E[p - 2] + E[p - 1])
-        ok, sigma, sigma_hat, cov, fit_mean, S0, tv, var = _posterior_no_outliers_kernel(
+        ox, oy = g.sensor_xy(sensor_origin)
+        ok, sigma, sigma_hat, cov, fit_mean, S0, tv, var, order = _posterior_no_outliers_kernel(
             pts,
             y,
-            float(c),
-            float(s),
+            c,
+            s,
             min(int(params.num_nearest), 2 * d),
             float(params.sigma),
             bool(params.estimate_sigma),
@@ -1137,9 +1136,10 @@ def infer_label_valid(
             float(params.prior_weight),
             _CORNER_J[model],
             K,
+            ox,
+            oy,
         )
         if ok:
-            order = _corner_order(y, sensor_origin)
             return LabelPosterior(
                 model=model,
                 box=y,
@@ -1148,7 +1148,7 @@ def infer_label_valid(
                 sigma=float(sigma),
                 num_points=n,
                 std_box=_std_of(var, model),
-                corner_tv=tv[order],
+                corner_tv=tv,
                 sigma_hat=float(sigma_hat),
                 prior_cov=S0,
                 corner_order=order,
@@ -1204,7 +1204,7 @@ def infer_label_valid(
 
 @kernel
 def _posterior_no_outliers_kernel(
-    pts, y, c, s, m, sigma, estimate, min_points, em, max_iter, B, BB, P0, eta0, G, S_ext, weight, J, K
+    pts, y, c, s, m, sigma, estimate, min_points, em, max_iter, B, BB, P0, eta0, G, S_ext, weight, J, K, ox, oy
 ):  # pragma: no cover - compiled
     """:func:`infer_label_valid` without the outlier component, in one pass: the registration
     (:func:`_register_kernel`), σ̂ (:func:`_em_one_kernel`; σ = max(σ̂, floor) with ``estimate``
@@ -1213,12 +1213,15 @@ def _posterior_no_outliers_kernel(
     (:func:`_posterior_kernel`), the corners' total variances (box_corners' order) and the variances
     K Σ Kᵀ of the box parameters. ``em`` = (σ floor, tolerance, residual dof). The exponentials are
     :func:`~labelaudit.core.linalg.exp_kernel`'s, not NumPy's SIMD ``np.exp``: the
-    responsibilities, and so Σ, differ in the last bits. Returns (ok, σ, σ̂, Σ, mean, Σ0, tv, var); ok is False when σ̂ cannot be formed
-    this way or Σ's factorisation fails (the caller then takes the general steps)."""
+    responsibilities, and so Σ, differ in the last bits. Returns (ok, σ, σ̂, Σ, mean, Σ0, tv, var,
+    order): tv in the corners' order from the sensor at (``ox``, ``oy``) (:func:`_corner_order_kernel`),
+    nearest first; ok is False when σ̂ cannot be formed this way or Σ's factorisation fails (the
+    caller then takes the general steps)."""
     n, d = pts.shape
     floor, tol, dof = em
+    none = np.zeros(0, dtype=np.int64)
     if m < 1:  # no candidates: the general steps
-        return False, sigma, math.nan, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0), np.zeros(0)
+        return False, sigma, math.nan, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0), np.zeros(0), none
     half = np.empty(d)
     for a in range(d):
         half[a] = 0.5 * y[3 + a]
@@ -1230,15 +1233,52 @@ def _posterior_no_outliers_kernel(
     if n >= 2:
         ok, sigma_hat = _em_one_kernel(sqd, floor, tol, max_iter, dof)
         if not ok:
-            return False, sigma, sigma_hat, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0), np.zeros(0)
+            return (
+                False,
+                sigma,
+                sigma_hat,
+                np.zeros((0, 0)),
+                np.zeros(0),
+                np.zeros((0, 0)),
+                np.zeros(0),
+                np.zeros(0),
+                none,
+            )
         if estimate and n >= min_points and math.isfinite(sigma_hat):
             sigma = max(sigma_hat, floor)
             x = _resp_exponents(sqd, 2.0 * sigma**2)
     info, eta = _exp_information_kernel(vstar, x, pts, B, BB)
     ok, cov, mean, S0 = _posterior_kernel(P0, eta0, info, eta, sigma, G, S_ext, weight)
     if not ok:
-        return False, sigma, sigma_hat, cov, mean, S0, np.zeros(0), np.zeros(0)
-    return True, sigma, sigma_hat, cov, mean, S0, _corner_quad_forms(J, cov), _quad_forms(K, cov)
+        return False, sigma, sigma_hat, cov, mean, S0, np.zeros(0), np.zeros(0), none
+    tv = _corner_quad_forms(J, cov)
+    order = _corner_order_kernel(y, ox, oy)
+    tv_ordered = np.empty(4)
+    for i in range(4):
+        tv_ordered[i] = tv[order[i]]
+    return True, sigma, sigma_hat, cov, mean, S0, tv_ordered, _quad_forms(K, cov), order
+
+
+@kernel(inline="always")
+def _corner_order_kernel(y, ox, oy):  # pragma: no cover - compiled
+    """:func:`_corner_order` of box ``y`` (7,) seen from (``ox``, ``oy``): the same operations (libm's
+    cos, sin and hypot, as Python's math and NumPy's ``np.hypot`` call), and the stable order by
+    an insertion sort (equal distances keep the corners' order)."""
+    c, s = math.cos(y[6]), math.sin(y[6])
+    dist = np.empty(4)
+    for k in range(4):
+        ux = (0.5 if k == 0 or k == 3 else -0.5) * y[3]
+        uy = (0.5 if k < 2 else -0.5) * y[4]
+        dist[k] = math.hypot((c * ux - s * uy + y[0]) - ox, (s * ux + c * uy + y[1]) - oy)
+    order = np.arange(4)
+    for i in range(1, 4):
+        k = order[i]
+        j = i - 1
+        while j >= 0 and dist[order[j]] > dist[k]:
+            order[j + 1] = order[j]
+            j -= 1
+        order[j + 1] = k
+    return order
 
 
 @kernel
