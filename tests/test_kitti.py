@@ -23,6 +23,7 @@ from labelaudit.datasets.kitti import (
     project_box_to_image,
     read_calib,
     read_label,
+    read_scan,
     read_velodyne,
     write_velodyne,
 )
@@ -612,3 +613,28 @@ def test_pointgnn_result_files(realdata: Path, tmp_path: Path) -> None:
     f1, f5 = (reader.load_frame(k) for k in ("000001", "000005"))
     np.testing.assert_allclose(f1.extras["score"], lab.score)
     assert f5.num_objects == 0 and f5.boxes.shape == (0, 7) and len(f5.points) == 125086
+
+
+def test_read_scan_tests_every_part_for_finiteness(tmp_path: Path) -> None:
+    """read_scan reads the scan in parts and tests each: a NaN or inf anywhere (the first value,
+    a later part, the last value, a reflectance) is seen; the values are the file's, as np.fromfile
+    reads them; an empty scan is finite; a missing file gets the given message."""
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-50, 50, (50_000, 4)).astype(np.float32)  # 800,000 bytes: four parts
+    path = tmp_path / "scan.bin"
+    write_velodyne(path, pts)
+    got, finite = read_scan(path)
+    assert finite and got.dtype == np.float32 and np.array_equal(got, np.fromfile(path, "<f4").reshape(-1, 4))
+    for row, col, bad in ((0, 0, np.nan), (33_000, 1, np.inf), (49_999, 3, -np.inf), (16_384, 3, np.nan)):
+        broken = pts.copy()
+        broken[row, col] = bad
+        write_velodyne(path, broken)
+        got, finite = read_scan(path)
+        assert not finite and np.array_equal(got, broken, equal_nan=True), (row, col)
+    write_velodyne(path, np.zeros((0, 4)))
+    got, finite = read_scan(path)
+    assert finite and got.shape == (0, 4)
+    with pytest.raises(DatasetError, match="no scan here"):
+        read_scan(tmp_path / "absent.bin", missing="no scan here")
+    with pytest.raises(DatasetError, match="point cloud file not found"):
+        read_velodyne(tmp_path)  # a folder is no scan

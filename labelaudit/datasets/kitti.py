@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import codecs
 import math
+import os
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -53,6 +54,7 @@ __all__ = [
     "project_box_to_image",
     "read_calib",
     "read_label",
+    "read_scan",
     "read_velodyne",
     "write_velodyne",
 ]
@@ -165,10 +167,16 @@ def read_text_lines(path: Path, what: str) -> list[str]:
     return text_lines(read_file_bytes(path, what), path, what)
 
 
-def read_file_bytes(path: Path, what: str) -> bytes:
-    """The bytes of a file; :class:`DatasetError` naming ``what`` when it cannot be read."""
+def read_file_bytes(path: Path, what: str, missing: str | None = None) -> bytes:
+    """The bytes of a file; :class:`DatasetError` naming ``what`` when it cannot be read, with the
+    message ``missing`` (when given) when there is no such file (a folder is not one)."""
     try:
-        return path.read_bytes()
+        with open(path, "rb") as f:
+            return f.read()
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError) as exc:
+        if missing is not None:
+            raise DatasetError(path, missing) from None
+        raise DatasetError(path, f"cannot read {what}: {exc.strerror or exc}") from None
     except OSError as exc:
         raise DatasetError(path, f"cannot read {what}: {exc.strerror or exc}") from None
 
@@ -203,11 +211,11 @@ def read_calib(path: str | Path) -> Calibration:
 
 def read_calib_bytes(path: Path) -> bytes:
     """The bytes of a calibration file (:func:`read_calib`'s errors for a missing or unreadable one)."""
-    if not path.is_file():
-        raise DatasetError(
-            path, "calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)"
-        )
-    return read_file_bytes(path, "calibration file")
+    return read_file_bytes(
+        path,
+        "calibration file",
+        missing="calibration file not found (expected calib/<frame>.txt with P2, R0_rect, Tr_velo_to_cam)",
+    )
 
 
 def parse_calib(data: bytes, path: Path) -> Calibration:
@@ -483,12 +491,11 @@ def read_label(path: str | Path) -> KittiLabels:
         message names the column) or an occlusion level other than -1, 0, 1, 2, 3.
     """
     path = path if isinstance(path, Path) else Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "label file not found")
     names: list[str] = []
     rows: list[list[float]] = []
     lines: list[int] = []
-    for lineno, raw in enumerate(read_text_lines(path, "label file"), start=1):
+    text = text_lines(read_file_bytes(path, "label file", missing="label file not found"), path, "label file")
+    for lineno, raw in enumerate(text, start=1):
         tokens = raw.split()
         if not tokens:
             continue
@@ -574,15 +581,42 @@ def read_velodyne(path: str | Path) -> NDArray[np.float32]:
     DatasetError
         Missing file, or a size that is not a multiple of 16 bytes.
     """
+    return read_scan(path)[0]
+
+
+def read_scan(path: str | Path, missing: str = "point cloud file not found") -> tuple[NDArray[np.float32], bool]:
+    """:func:`read_velodyne`, and whether every value of the scan is finite.
+
+    The file is read in parts of :data:`_SCAN_PART` bytes into the array, and each part is tested
+    while it is still in the cache: the test costs no second pass over the scan from memory.
+    ``missing``: the message when there is no such file.
+    """
     path = path if isinstance(path, Path) else Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "point cloud file not found")
-    size = path.stat().st_size
-    if size % 16:
-        raise DatasetError(
-            path, f"file size {size} bytes is not a multiple of 16 (4 float32 per point: x, y, z, reflectance)"
-        )
-    return np.fromfile(path, dtype="<f4").reshape(-1, 4).astype(np.float32, copy=False)
+    try:
+        f = open(path, "rb", buffering=0)
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+        raise DatasetError(path, missing) from None
+    with f:
+        size = os.fstat(f.fileno()).st_size
+        if size % 16:
+            raise DatasetError(
+                path, f"file size {size} bytes is not a multiple of 16 (4 float32 per point: x, y, z, reflectance)"
+            )
+        flat = np.empty(size // 4, dtype="<f4")
+        view = memoryview(flat).cast("B")
+        finite, pos, tested = True, 0, 0
+        while pos < size:
+            got = f.readinto(view[pos : pos + _SCAN_PART])
+            if not got:
+                raise DatasetError(path, f"file ended after {pos} of its {size} bytes (changed while read?)")
+            pos += got
+            if finite:  # the whole values read so far that are not tested yet
+                finite = bool(np.isfinite(flat[tested : pos // 4]).all())
+                tested = pos // 4
+    return flat.reshape(-1, 4).astype(np.float32, copy=False), finite
+
+
+_SCAN_PART = 1 << 18  # bytes read (and tested for finiteness) at a time: a part stays in the cache
 
 
 def write_velodyne(path: str | Path, points: ArrayLike) -> None:
@@ -724,8 +758,7 @@ class KittiReader:
         label_path = self.label_path(frame_id)
         velo_path = self.velodyne_path(frame_id)
         labels = read_label(label_path)
-        if not velo_path.is_file():
-            raise DatasetError(velo_path, f"point cloud not found for label file {label_path}")
+        points, all_finite = read_scan(velo_path, missing=f"point cloud not found for label file {label_path}")
         calib_path = self.calib_path(frame_id)
         velo_from_cam, projection = self.calibration(calib_path)
 
@@ -738,10 +771,9 @@ class KittiReader:
 
         dims = labels.dims_hwl[rows]
         warnings: list[str] = []
-        points = read_velodyne(velo_path)
-        # One pass over the whole contiguous array first (~0.1 ms); the per-row test (~2 ms) only
-        # when something is not finite (possibly just a reflectance, which is kept).
-        finite = None if np.isfinite(points).all() else np.all(np.isfinite(points[:, :3]), axis=1)
+        # The whole scan was tested while read; the per-row test (~2 ms) only when something is not
+        # finite (possibly just a reflectance, which is kept).
+        finite = None if all_finite else np.all(np.isfinite(points[:, :3]), axis=1)
         n_bad = 0 if finite is None else int(len(points) - finite.sum())
         if n_bad:
             points = points[finite]
