@@ -282,6 +282,9 @@ MISSING_PLACE_MIN_HIDDEN = (
     1.0  # m; a box is placed by what the sensor sees empty only when this much of its length or width is hidden
 )
 MISSING_PLACE_MARGIN = 1  # spots seen empty a placement must spare over the growth away from the sensor to replace it
+MISSING_PLACE_RAY_MARGIN = 1  # free rays (each costing −log FREE_SPACE_SLIT_PROB) a placement of a partly hidden box must spare over the one grown by lines of sight to replace it
+MISSING_LENGTH_SPREAD = 3.0  # a class's largest length lies this many standard deviations above its mean: the spread of the prior on a partly hidden box's length (KITTI: Car (5.3 − 3.9) / 3 = 0.47 m against 0.43 measured, Van 0.47 against 0.50, Truck 1.97 against 2.0)
+MISSING_PLACE_MIN_SCORE = 0.5  # a partly hidden box is placed by the frame's rays only when its score before the free space reaches this (the free-space factor only lowers it; below it a candidate is not one a review reads: rank --missing --min-score 0.5, the benchmarks' threshold)
 MISSING_PLACE_SIGHT_HEIGHT = 0.85  # a spot's line of sight aims at this share of the cluster's seen top (at most the class's mean height): a label lower than the line where it crosses does not hide the spot (the sensor sees over a parked car)
 MISSING_REFINE = True  # the candidate's box is refined by the label-error fit (core/fit.py) before its rays are counted
 MISSING_GROUND_RANK = (

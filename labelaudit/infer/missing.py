@@ -15,7 +15,9 @@ The search, in compiled passes over the frame (a few milliseconds per KITTI fram
    of ``MISSING_CELL`` cells; its 8-connected components are the clusters;
 3. a cluster of plausible size gets a box: an L-shape fit (the rectangle whose sides the points
    hug, searched over the heading) grown to the class's size away from the sensor (the hidden
-   sides), then the label-error fit of :mod:`labelaudit.core.fit` from it;
+   sides) or where lines of sight show no empty road; a box kept so far is then placed, and its
+   length chosen, where the frame's rays let its solid body be (:func:`_place_by_rays`), then the
+   label-error fit of :mod:`labelaudit.core.fit` from it;
 4. its ``score`` multiplies four factors in [0, 1]: size against the class prior, points on one or
    two vertical faces (planar side / L-shape), points against range, and free space (rays that
    pass through the would-be body).
@@ -56,6 +58,27 @@ class FrameDetections:
     sources: list[str]  # "file:line" per detection
 
 
+class _Hidden(NamedTuple):
+    """How a partly seen cluster's box was grown over its hidden extent (:func:`_box_cluster`), for
+    :func:`_place_by_rays`: the cluster's frame (centre (m) and heading t (rad): axes (cos t, sin t)
+    and (−sin t, cos t)), its visible rectangle (a1, b1, a2, b2) on them, the class's mean size
+    on them (L1, L2), the low ends of the box as placed (A1, A2), which axis is the length, and the
+    class's mean and largest length; ``either_axis``: the visible rectangle fits the class's width
+    both ways (a car seen from one end, or most of its side hidden), so the length may lie on the
+    other axis."""
+
+    cx: float
+    cy: float
+    t: float
+    vis: tuple[float, float, float, float]
+    size: tuple[float, float]
+    low: tuple[float, float]
+    len_axis1: bool
+    mean_length: float
+    largest_length: float
+    either_axis: bool = False
+
+
 @dataclass(frozen=True)
 class Cluster:
     """One candidate from the points: its box and the evidence behind its score."""
@@ -70,6 +93,7 @@ class Cluster:
     free_space_score: float
     free_rays: int
     end_rays: int
+    hidden: _Hidden | None = None  # how its box was grown over a hidden extent (:func:`_place_by_rays`); not written
 
     @property
     def score(self) -> float:
@@ -1839,7 +1863,24 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
             rough = _surface_roughness(xyz, scene)
         if rough >= 0.0:
             shape_score *= 1.0 - _ramp(rough, *C.MISSING_SURFACE_ROUGH)
-    whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0)
+    hidden = None
+    if size_score >= C.MISSING_CLASS_FIT and any(
+        b - a < L - C.MISSING_PLACE_MIN_HIDDEN for a, b, L in ((a1, b1, L1), (a2, b2, L2))
+    ):
+        largest = sizes[best_name][1][0]
+        hidden = _Hidden(
+            float(centre[0]),
+            float(centre[1]),
+            t,
+            (a1, b1, a2, b2),
+            (L1, L2),
+            (A1, A2),
+            len_axis1,
+            mean[0],
+            largest,
+            not vis_l > mean[1] + C.MISSING_SIZE_SLACK,  # the length may lie on either axis
+        )
+    whole = Cluster(box, best_name, len(xyz), ground_z, size_score, shape_score, density_score, 1.0, 0, 0, hidden)
     if splits > 0 and size_score < C.MISSING_CLASS_FIT:  # no class fits: maybe two objects
         parts = _split(xy, c, s)
         if parts is not None:
@@ -1971,6 +2012,386 @@ def _max_iou(box: FloatArray, others: FloatArray) -> float:
     return best
 
 
+def _rect_box(hid: _Hidden, low: tuple[float, float], ext: tuple[float, float], z: float, h: float) -> FloatArray:
+    """The box (7,) spanning ``low`` + [0, ``ext``] on the cluster's axes, yaw its heading."""
+    c, s = math.cos(hid.t), math.sin(hid.t)
+    mx, my = low[0] + 0.5 * ext[0], low[1] + 0.5 * ext[1]
+    return np.array([hid.cx + c * mx - s * my, hid.cy + s * mx + c * my, z, ext[0], ext[1], h, hid.t])
+
+
+def _lows(a: float, b: float, size: float) -> FloatArray:
+    """The low ends of every placement of an extent ``size`` that holds the visible [a, b] on one
+    axis, ``MISSING_PLACE_STEP`` apart (just ``a`` when nothing of it is hidden)."""
+    if b - a < size:
+        return np.linspace(b - size, a, int(math.ceil((size - b + a) / C.MISSING_PLACE_STEP)) + 1)
+    return np.array([a])
+
+
+def _variants(hid: _Hidden) -> list[tuple[bool, float, FloatArray, FloatArray, tuple[float, float]]]:
+    """Every (way the length lies, length) :func:`_place_by_rays` weighs, in its order: the length
+    from the class's mean down to the visible length in ``MISSING_PLACE_STEP`` steps (no shorter than
+    the mean less as much as the largest lies above it: the prior's support), on the axis
+    :func:`_box_cluster` chose and, where the visible rectangle fits the class's width both ways, on
+    the other too. Per entry: whether the length lies on the first axis, the length, the low ends on
+    either axis and the box's extents on them."""
+    out = []
+    a1, b1, a2, b2 = hid.vis
+    step = C.MISSING_PLACE_STEP
+    for len_axis1 in (hid.len_axis1, not hid.len_axis1) if hid.either_axis else (hid.len_axis1,):
+        size = hid.size if len_axis1 == hid.len_axis1 else hid.size[::-1]
+        ax = 0 if len_axis1 else 1
+        shortest = max((b1 - a1, b2 - a2)[ax], 2.0 * hid.mean_length - hid.largest_length)
+        lengths = [size[ax]]
+        if shortest < size[ax]:
+            lengths += np.arange(size[ax] - step, shortest, -step).tolist() + [shortest]
+        other = _lows(a2, b2, size[1]) if ax == 0 else _lows(a1, b1, size[0])
+        for length in lengths:
+            ext = (
+                (max(length, b1 - a1), max(size[1], b2 - a2))
+                if ax == 0
+                else (max(size[0], b1 - a1), max(length, b2 - a2))
+            )
+            lows = _lows(a1, b1, length) if ax == 0 else _lows(a2, b2, length)
+            out.append((len_axis1, float(length), *((lows, other) if ax == 0 else (other, lows)), ext))
+    return out
+
+
+@kernel(inline="always")
+def _count_below(g, first, num, g0, d, v, strict):  # pragma: no cover - compiled
+    """How many of the ascending low ends ``g[first:first + num]`` (about ``g0`` + i ``d``, as
+    ``np.linspace`` writes them) lie below ``v`` (``strict``) or at ``v`` or below (else): a guess
+    from the step, corrected on the values themselves (a binary search's answer)."""
+    i = 0
+    if num > 1 and d > 0.0:
+        f = (v - g0) / d
+        if f >= num:
+            i = num
+        elif f > 0.0:
+            i = int(f)
+    while i > 0 and (g[first + i - 1] >= v if strict else g[first + i - 1] > v):
+        i -= 1
+    while i < num and (g[first + i] < v if strict else g[first + i] <= v):
+        i += 1
+    return i
+
+
+@kernel
+def _placement_counts(
+    flat, m, mask, ox, oy, oz, env, bands_f, bands_i, rows_f, rows_i, grids, tau, tau_in, object_height
+):  # pragma: no cover - compiled
+    """Per placement of :func:`_place_by_rays`, its rays through the solid lower body that end
+    behind it plus its returns inside that body, in one pass over the frame per cluster.
+
+    The placements of one cluster are rectangles on its axes (u, v). A *band* (``bands_f`` (B, 2):
+    its extent across the swept axis and its low end there; ``bands_i`` (B, 4): the swept axis, 0
+    for u and 1 for v, its rows' range and its cluster) holds those that share their extent and
+    position across the swept axis; a row of it (``rows_f`` (R, 3): the extent along the swept
+    axis, the first low end and the step between them; ``rows_i`` (R, 2): where its ascending low
+    ends start in ``grids``, their number) those that share their extent along it too and differ
+    only in their low end. ``env`` (H, 17) per cluster: centre x, y, cos and sin of its heading, the
+    envelope of its placements (u0, u1, v0, v1), the ground's z (flat), the slab's bottom and top
+    above it, the box's top z, the cone of azimuths the envelope fills seen from the sensor (its
+    edges' directions: x, y clockwise, then x, y anticlockwise) and the envelope's least squared
+    distance from the sensor (0: the sensor is inside, every direction).
+
+    A return of the frame (``flat``: ``m`` rows of 4, x, y, z and anything; ``mask`` (m,) or empty:
+    which end a ray from the sensor) counts against a placement when (a) its ray passes through the
+    slab deeper than ``tau`` inside the rectangle and it does not end on or in it (within ``tau`` of
+    the rectangle, at least ``object_height`` above the ground and at most ``tau`` over the box's
+    top) — the free rays of :func:`labelaudit.core.freespace.ray_counts` —, or (b) it lies in the
+    slab deeper than ``tau_in`` inside the rectangle. Each return is projected once on the
+    cluster's axes and its ray clipped once per band; per row the low ends for which it counts form
+    an interval (less the interval where it ends on the box), added to a difference array: O(rows)
+    per return instead of a test per placement. Returns the counts, in the layout of ``grids``."""
+    diff = np.zeros(grids.shape[0] + rows_i.shape[0], dtype=np.int64)
+    use_mask = mask.shape[0] == m
+    near = np.empty(m, dtype=np.bool_)
+    b = 0
+    for h in range(env.shape[0]):
+        cx, cy, c, s = env[h, 0], env[h, 1], env[h, 2], env[h, 3]
+        u0, u1, v0, v1 = env[h, 4], env[h, 5], env[h, 6], env[h, 7]
+        gz, slo, shi, top = env[h, 8], env[h, 9], env[h, 10], env[h, 11]
+        lx, ly, hx, hy, near2 = env[h, 12], env[h, 13], env[h, 14], env[h, 15], env[h, 16]
+        b0 = b
+        while b < bands_i.shape[0] and bands_i[b, 3] == h:
+            b += 1
+        b1 = b
+        rx, ry = ox - cx, oy - cy
+        su, sv, sh = c * rx + s * ry, -s * rx + c * ry, oz - gz
+        # the returns in the envelope's cone, not nearer than it (no branch, a constant stride: vectorised)
+        for k in range(m):
+            dx, dy = np.float64(flat[4 * k]) - ox, np.float64(flat[4 * k + 1]) - oy
+            near[k] = (dx * dx + dy * dy >= near2) & (lx * dy - ly * dx >= 0.0) & (dx * hy - dy * hx >= 0.0)
+        if not near2 > 0.0:
+            near[:] = True
+        for k in range(m):
+            if not near[k]:
+                continue
+            x, y, z = np.float64(flat[4 * k]), np.float64(flat[4 * k + 1]), np.float64(flat[4 * k + 2])
+            if not (x == x and y == y and z == z):
+                continue
+            hp = z - gz
+            qx, qy = x - cx, y - cy
+            pu, pv = c * qx + s * qy, -s * qx + c * qy
+            # (b) a return in the slab inside the envelope
+            inside = slo <= hp <= shi and u0 + tau_in < pu < u1 - tau_in and v0 + tau_in < pv < v1 - tau_in
+            # (a) its ray's stretch in the slab [t0, t1], when it passes the envelope shrunk by tau there
+            t0, t1 = 0.0, 1.0
+            ray = not use_mask or mask[k]
+            if ray:
+                dh = hp - sh
+                if dh == 0.0:
+                    ray = slo <= sh <= shi
+                else:
+                    ta, tb = (slo - sh) / dh, (shi - sh) / dh
+                    t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+                    ray = t0 < t1
+            if ray:
+                for lo, hi, start, d in ((u0 + tau, u1 - tau, su, pu - su), (v0 + tau, v1 - tau, sv, pv - sv)):
+                    if d == 0.0:
+                        ray = ray and lo < start < hi
+                    else:
+                        ta, tb = (lo - start) / d, (hi - start) / d
+                        ray = ray and max(t0, min(ta, tb)) < min(t1, max(ta, tb))
+            if not ray and not inside:
+                continue
+            on = hp >= object_height and z <= top + tau
+            for q in range(b0, b1):
+                eo, other = bands_f[q, 0], bands_f[q, 1]
+                if bands_i[q, 0] == 0:
+                    ps, po, ss, so = pu, pv, su, sv
+                else:
+                    ps, po, ss, so = pv, pu, sv, su
+                r0, r1 = bands_i[q, 1], bands_i[q, 2]
+                if inside and other + tau_in < po < other + eo - tau_in:
+                    for r in range(r0, r1):  # low ends p with p + tau_in < ps < p + es − tau_in
+                        es, g0, d = rows_f[r, 0], rows_f[r, 1], rows_f[r, 2]
+                        first, num = rows_i[r, 0], rows_i[r, 1]
+                        i0 = _count_below(grids, first, num, g0, d, ps - es + tau_in, False)
+                        i1 = _count_below(grids, first, num, g0, d, ps - tau_in, True)
+                        if i0 < i1:
+                            diff[first + r + i0] += 1
+                            diff[first + r + i1] -= 1
+                if not ray:
+                    continue
+                # the stretch where the ray lies across the band deeper than tau, and its span along it
+                d_o = po - so
+                a, e = t0, t1
+                if d_o == 0.0:
+                    if not other + tau < so < other + eo - tau:
+                        continue
+                else:
+                    ta, tb = (other + tau - so) / d_o, (other + eo - tau - so) / d_o
+                    a, e = max(a, min(ta, tb)), min(e, max(ta, tb))
+                    if not a < e:
+                        continue
+                d_s = ps - ss
+                sa, sb = ss + a * d_s, ss + e * d_s
+                smin, smax = min(sa, sb), max(sa, sb)
+                ends_on = on and other - tau <= po <= other + eo + tau  # its end in the band grown by tau
+                for r in range(r0, r1):
+                    es, g0, d = rows_f[r, 0], rows_f[r, 1], rows_f[r, 2]
+                    first, num = rows_i[r, 0], rows_i[r, 1]
+                    # low ends p with smin < p + es − tau and p + tau < smax
+                    i0 = _count_below(grids, first, num, g0, d, smin - es + tau, False)
+                    i1 = _count_below(grids, first, num, g0, d, smax - tau, True)
+                    if i0 >= i1:
+                        continue
+                    diff[first + r + i0] += 1
+                    diff[first + r + i1] -= 1
+                    if ends_on:  # less those whose rectangle grown by tau holds its end: p − tau ≤ ps ≤ p + es + tau
+                        j0 = max(i0, _count_below(grids, first, num, g0, d, ps - es - tau, True))
+                        j1 = min(i1, _count_below(grids, first, num, g0, d, ps + tau, False))
+                        if j0 < j1:
+                            diff[first + r + j0] -= 1
+                            diff[first + r + j1] += 1
+    counts = np.zeros(grids.shape[0], dtype=np.int64)
+    for r in range(rows_i.shape[0]):
+        first, num = rows_i[r, 0], rows_i[r, 1]
+        run = 0
+        for i in range(num):
+            run += diff[first + r + i]
+            counts[first + i] = run
+    return counts
+
+
+def _cone(su: float, sv: float, c: float, s: float, rect: tuple[float, float, float, float]) -> tuple[float, ...]:
+    """The rectangle ``rect`` (u0, u1, v0, v1) on a cluster's axes (heading cos ``c``, sin ``s``)
+    seen from the sensor at (``su``, ``sv``) on them: the directions (x, y) of its clockwise-most and
+    anticlockwise-most corners and its least squared distance (a hair less; 0 when the sensor is
+    inside), as :func:`_placement_counts` reads them."""
+    u0, u1, v0, v1 = rect
+    du, dv = max(u0 - su, su - u1, 0.0), max(v0 - sv, sv - v1, 0.0)
+    near2 = (du * du + dv * dv) * (1.0 - 1e-9)
+    corners = [(u - su, v - sv) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
+    dirs = [(c * u - s * v, s * u + c * v) for u, v in corners]
+    mid = math.atan2(sum(d[1] for d in dirs), sum(d[0] for d in dirs))
+    rel = [math.remainder(math.atan2(y, x) - mid, 2.0 * math.pi) for x, y in dirs]
+    lo, hi = dirs[rel.index(min(rel))], dirs[rel.index(max(rel))]
+    return (lo[0], lo[1], hi[0], hi[1], near2)
+
+
+class _Weighed(NamedTuple):
+    """The placements of one partly hidden cluster that :func:`_placement_costs` counts: the
+    rectangle holding all of them on the cluster's axes (u0, u1, v0, v1), and per group of them the
+    low ends on either axis (P, Q) and the extents (on u, on v) they share."""
+
+    cluster: Cluster
+    envelope: tuple[float, float, float, float]
+    groups: list[tuple[FloatArray, FloatArray, tuple[float, float]]]
+
+
+def _placement_costs(frame: Frame, cfg: RunConfig, weighed: list[_Weighed]) -> list[list[NDArray]]:
+    """Per cluster of ``weighed``, per group, the count (|P|, |Q|) of every placement's rays through
+    its solid lower body that end behind it and returns inside that body (:func:`_placement_counts`,
+    one pass over the frame per cluster; the slab over the cluster's ground, flat)."""
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
+    env, bands_f, bands_i, rows_f, rows_i, grids = [], [], [], [], [], []
+    used = 0
+    where = []  # per cluster, per group and low end across the swept axis: where its counts start
+    for h, w in enumerate(weighed):
+        hid, box = w.cluster.hidden, w.cluster.box
+        c, s = math.cos(hid.t), math.sin(hid.t)
+        rx, ry = ox - hid.cx, oy - hid.cy
+        height = float(box[5])
+        env.append(
+            [hid.cx, hid.cy, c, s, *w.envelope, w.cluster.ground_z, C.FREE_SPACE_SLAB[0]]
+            + [C.FREE_SPACE_SLAB[1] * height, float(box[2]) + 0.5 * height]
+            + list(_cone(c * rx + s * ry, -s * rx + c * ry, c, s, w.envelope))
+        )
+        # a band per low end across the axis with more placements (shared by the groups of one extent
+        # across it), a row per group in it, along that axis
+        bands: dict[tuple[int, float, float], list[tuple[int, int, FloatArray, float]]] = {}
+        for v, (P, Q, ext) in enumerate(w.groups):
+            along_u = len(P) >= len(Q)
+            swept, across, es, eo = (P, Q, ext[0], ext[1]) if along_u else (Q, P, ext[1], ext[0])
+            for j, other in enumerate(across.tolist()):
+                bands.setdefault((0 if along_u else 1, eo, other), []).append((v, j, swept, es))
+        at: dict[tuple[int, int], int] = {}
+        for (axis, eo, other), rows in bands.items():
+            r0 = len(rows_f)
+            for v, j, swept, es in rows:
+                g0, num = float(swept[0]), len(swept)
+                rows_f.append((es, g0, (float(swept[-1]) - g0) / (num - 1) if num > 1 else 0.0))
+                rows_i.append((used, num))
+                grids.append(swept)
+                at[v, j] = used
+                used += num
+            bands_f.append((eo, other))
+            bands_i.append((axis, r0, len(rows_f), h))
+        where.append(at)
+    mask = np.zeros(0, dtype=np.bool_) if frame.ray_mask is None else np.asarray(frame.ray_mask, dtype=np.bool_)
+    counts = _placement_counts(
+        _four_columns(frame.points).ravel(),
+        len(frame.points),
+        mask,
+        ox,
+        oy,
+        oz,
+        np.array(env),
+        np.array(bands_f),
+        np.array(bands_i, dtype=np.int64),
+        np.array(rows_f),
+        np.array(rows_i, dtype=np.int64),
+        np.concatenate(grids),
+        C.FREE_SPACE_TOLERANCE,
+        C.FREE_SPACE_INSIDE_TOLERANCE,
+        float(cfg.crop.ground_cut),
+    )
+    out = []
+    for w, at in zip(weighed, where):
+        per = []
+        for v, (P, Q, _) in enumerate(w.groups):
+            if len(P) >= len(Q):  # a row along P per low end on Q
+                per.append(np.stack([counts[at[v, j] : at[v, j] + len(P)] for j in range(len(Q))], axis=1))
+            else:
+                per.append(np.stack([counts[at[v, j] : at[v, j] + len(Q)] for j in range(len(P))], axis=0))
+        out.append(per)
+    return out
+
+
+def _place_by_rays(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> list[Cluster]:
+    """The clusters with each partly hidden box placed where the frame's rays let it be.
+
+    A ray that passes through a vehicle's solid lower body (the label-error fit's slab,
+    ``FREE_SPACE_SLAB``, over the cluster's ground) and ends behind it says the body is not there,
+    unless it went through a slit (``FREE_SPACE_SLIT_PROB``: the gap between a truck's cab and box);
+    a ray an occluder stopped says nothing; a return deeper than ``FREE_SPACE_INSIDE_TOLERANCE``
+    inside the body was reached through it. Among the placements of the hidden extent
+    (:func:`_variants`, every ``MISSING_PLACE_STEP``) the box takes the most probable: each such
+    ray or return costs −log ``FREE_SPACE_SLIT_PROB``, and a length short of the class's mean costs
+    what a normal prior on the length says (its spread from the class's mean and largest,
+    ``MISSING_LENGTH_SPREAD``). So a box keeps an end that is seen — the space past it is crossed
+    by rays — and reaches over what no ray crossed (an occluder's shadow), towards the sensor too;
+    where rays cross the space past both ends, the length is what they leave. Where the visible
+    rectangle fits the class's width both ways, the placements with the length on the other axis
+    are weighed too (:func:`_box_cluster` chose the axis nearer the line of sight: a car seen from
+    one end; the rays tell a car seen from its corner with most of its side hidden). The placement
+    of :func:`_box_cluster` stays unless another costs at least ``MISSING_PLACE_RAY_MARGIN`` rays
+    less (among equals, the nearest to it).
+
+    Weighed only for clusters whose score before the free space reaches ``MISSING_PLACE_MIN_SCORE``
+    (the free-space factor only lowers it), and only where the placement :func:`_box_cluster` made
+    costs at least that margin itself (no placement costs less than nothing): that one is counted
+    first, alone, the others where it costs (:func:`_placement_costs`)."""
+    todo = [k for k, c in enumerate(clusters) if c.hidden is not None and c.score >= C.MISSING_PLACE_MIN_SCORE]
+    if not todo:
+        return clusters
+    made = []
+    for k in todo:
+        cl = clusters[k]
+        hid = cl.hidden
+        a1, b1, a2, b2 = hid.vis
+        ext = (max(hid.size[0], b1 - a1), max(hid.size[1], b2 - a2))
+        (A1, A2) = hid.low
+        made.append(_Weighed(cl, (A1, A1 + ext[0], A2, A2 + ext[1]), [(np.array([A1]), np.array([A2]), ext)]))
+    own = {k: int(c[0][0, 0]) for k, c in zip(todo, _placement_costs(frame, cfg, made))}
+    weighed, lengths, which = [], [], []
+    for k in todo:
+        if own[k] < C.MISSING_PLACE_RAY_MARGIN:
+            continue
+        cl = clusters[k]
+        hid = cl.hidden
+        a1, b1, a2, b2 = hid.vis
+        variants = _variants(hid)
+        L1, L2 = (max(hid.size),) * 2 if hid.either_axis else hid.size  # every placement lies within
+        envelope = (min(a1, b1 - L1), max(b1, a1 + L1), min(a2, b2 - L2), max(b2, a2 + L2))
+        weighed.append(_Weighed(cl, envelope, [(P, Q, ext) for _, _, P, Q, ext in variants]))
+        lengths.append(variants)
+        which.append(k)
+    if not weighed:
+        return clusters
+    ray_cost = -math.log(C.FREE_SPACE_SLIT_PROB)
+    out = list(clusters)
+    for k, w, variants, counts in zip(which, weighed, lengths, _placement_costs(frame, cfg, weighed)):
+        cl = w.cluster
+        hid = cl.hidden
+        spread = (hid.largest_length - hid.mean_length) / C.MISSING_LENGTH_SPREAD
+        cost = np.concatenate(
+            [
+                (n * ray_cost + 0.5 * ((length - hid.mean_length) / spread) ** 2).ravel()
+                for (_, length, _, _, _), n in zip(variants, counts)
+            ]
+        )
+        dist = np.concatenate(
+            [(np.abs(P - hid.low[0])[:, None] + np.abs(Q - hid.low[1])[None, :]).ravel() for _, _, P, Q, _ in variants]
+        )
+        best = int(np.lexsort((dist, cost))[0])
+        if cost[best] + C.MISSING_PLACE_RAY_MARGIN * ray_cost <= own[k] * ray_cost:
+            sizes = np.cumsum([len(P) * len(Q) for _, _, P, Q, _ in variants])
+            v = int(np.searchsorted(sizes, best, side="right"))  # the variant of placement ``best``
+            len_axis1, _, P, Q, ext = variants[v]
+            best -= int(sizes[v - 1]) if v else 0
+            p, q = float(P[best // len(Q)]), float(Q[best % len(Q)])
+            box = _rect_box(hid, (p, q), ext, float(cl.box[2]), float(cl.box[5]))
+            if not len_axis1:  # the length on the second axis
+                box[3], box[4], box[6] = ext[1], ext[0], hid.t + 0.5 * math.pi
+            box[6] = float(g.normalize_angle(box[6]))
+            out[k] = replace(cl, box=box)
+    return out
+
+
 def with_free_space(frame: Frame, clusters: list[Cluster], cfg: RunConfig) -> list[Cluster]:
     """The clusters with their free-space evidence: the label-error fit of :mod:`labelaudit.core.fit`
     moves each box onto its points (free-space rays included, as for a label), then the rays
@@ -2035,6 +2456,7 @@ def find_missing(
             elif ok:
                 fates[k] = "low score"
     if clusters:
+        clusters = _place_by_rays(frame, clusters, cfg)
         clusters = with_free_space(frame, clusters, cfg)
     fitted = iter(clusters)
     rows: list[dict[str, Any]] = []
