@@ -122,7 +122,7 @@ def _single_threaded_children() -> Iterator[None]:
                 os.environ[k] = v
 
 
-def start_fork_server(preload: Sequence[str]) -> bool:
+def start_fork_server(preload: Sequence[str], fork: bool = False) -> bool:
     """Launch this process' ``multiprocessing`` fork server, importing ``preload``; False where
     there is none (Windows). Returns at once: the server imports while the caller goes on.
 
@@ -130,6 +130,11 @@ def start_fork_server(preload: Sequence[str]) -> bool:
     running keeps its own (its children then import what they miss). The pool's workers and a
     LocalCluster's Dask workers both fork from it, so they start with the core and its compiled
     kernels loaded.
+
+    ``fork``: start the server as a fork of this process (:func:`fork_the_fork_server`) where that
+    is safe, so it inherits the interpreter and whatever this process has imported; for a process
+    that knows itself small and clean (the console script, before its command's imports). Otherwise,
+    and by default, a new interpreter, as ``multiprocessing`` starts it.
     """
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return False
@@ -137,7 +142,131 @@ def start_fork_server(preload: Sequence[str]) -> bool:
 
     multiprocessing.get_context("forkserver").set_forkserver_preload(list(preload))  # missing modules are skipped
     with _single_threaded_children():
-        forkserver.ensure_running()
+        if not (fork and fork_the_fork_server(preload)):
+            forkserver.ensure_running()
+    return True
+
+
+def single_threaded() -> bool:
+    """True when this process runs one thread, native ones included (Linux's /proc; else False)."""
+    try:
+        return len(os.listdir(f"/proc/{os.getpid()}/task")) == 1
+    except OSError:
+        return False
+
+
+FORKED_SERVER_NAME, FORKED_TRACKER_NAME = "la-forkserver", "la-rtracker"
+"""Process names (``/proc/PID/comm``: ``ps -o comm``, ``top``) of a fork server and a resource tracker
+forked from the console script (:func:`fork_the_fork_server`), whose command line is the main process'
+own: the benchmarks tell them apart by these."""
+
+
+def _name_this_process(name: str) -> None:
+    """Set this process' name as ``ps``/``top`` show it (Linux; elsewhere nothing happens)."""
+    try:
+        with open("/proc/self/comm", "w") as f:
+            f.write(name)
+    except OSError:
+        pass
+
+
+def _fork_the_resource_tracker() -> bool:
+    """Start ``multiprocessing``'s resource tracker (which unlinks the pool's semaphores if a process
+    dies holding them) as a fork of this single-threaded process, as :func:`fork_the_fork_server`
+    does the server: the stdlib's ``resource_tracker.main`` on a pipe whose write end only this
+    process holds (and passes to its children). False where one runs already."""
+    import signal
+    import sys
+    from multiprocessing import resource_tracker
+
+    tracker = resource_tracker._resource_tracker
+    with tracker._lock:
+        if tracker._fd is not None:
+            return False
+        blocked = (signal.SIGINT, signal.SIGTERM)  # as the stdlib's start: ignored once main() runs
+        r, w = os.pipe()
+        signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+        pid = -1
+        try:
+            pid = os.fork()
+        finally:
+            if pid != 0:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
+        if pid == 0:  # the tracker
+            code = 1
+            try:
+                os.close(w)
+                _name_this_process(FORKED_TRACKER_NAME)
+                resource_tracker.main(r)
+                code = 0
+            except BaseException:
+                sys.excepthook(*sys.exc_info())
+            finally:
+                os._exit(code)
+        os.close(r)
+        tracker._fd, tracker._pid = w, pid
+    return True
+
+
+def fork_the_fork_server(preload: Sequence[str]) -> bool:
+    """Start this process' ``multiprocessing`` fork server as a fork of this process instead of a new
+    interpreter; False (nothing done) where that is not safe or not known to work, and the caller
+    then starts it the usual way.
+
+    What the usual start does again in a new interpreter (~30 ms of CPU: the interpreter, ``site``,
+    ``multiprocessing``; ~15 ms for the resource tracker, forked the same way), the fork inherits;
+    the server then imports ``preload`` exactly as the usual one does, speaks the same protocol on
+    the same kind of socket (the stdlib's ``forkserver.main``) and forks the workers the same way,
+    so they run the same code on the same modules. Only while this process runs a single thread (a fork of a process with other threads,
+    e.g. Arrow's or BLAS's, may inherit a held lock) and on the CPython versions whose fork-server
+    protocol this follows (3.11–3.13; 3.14 adds an authentication key).
+    """
+    import sys
+
+    if not ((3, 11) <= sys.version_info[:2] <= (3, 13)) or not single_threaded():
+        return False
+    import gc
+    import socket
+    import threading
+    from multiprocessing import connection, forkserver, resource_tracker, util
+
+    server = forkserver._forkserver
+    with server._lock:
+        if server._forkserver_pid is not None:
+            return False  # one already started (the stdlib checks that it still runs)
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()  # nothing buffered here is written again by a child
+            except (AttributeError, OSError, ValueError):
+                pass
+        if not _fork_the_resource_tracker():
+            resource_tracker.ensure_running()  # the workers share it, as with the usual start
+        with socket.socket(socket.AF_UNIX) as listener:
+            address = connection.arbitrary_address("AF_UNIX")
+            listener.bind(address)
+            if not util.is_abstract_socket_namespace(address):
+                os.chmod(address, 0o600)
+            listener.listen()
+            alive_r, alive_w = os.pipe()  # every client holds the write end; EOF ends the server
+            pid = os.fork()
+            if pid == 0:  # the server
+                code = 1
+                try:
+                    os.close(alive_w)
+                    _name_this_process(FORKED_SERVER_NAME)
+                    server._lock = threading.Lock()  # held by the parent at the fork
+                    gc.enable()  # a new interpreter's server collects; the console script's start-up does not
+                    forkserver.main(listener.fileno(), alive_r, list(preload))
+                except SystemExit:  # its clients are gone
+                    code = 0
+                except BaseException:
+                    sys.excepthook(*sys.exc_info())
+                finally:
+                    os._exit(code)
+            os.close(alive_r)
+        server._forkserver_address = address
+        server._forkserver_alive_fd = alive_w
+        server._forkserver_pid = pid
     return True
 
 

@@ -39,6 +39,9 @@ from collections import defaultdict
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+FORKED_SERVER_NAME, FORKED_TRACKER_NAME = "la-forkserver", "la-rtracker"  # labelaudit.executors': the
+# process names of a fork server and a resource tracker forked from the console script (their command
+# line is the main process' own)
 
 
 def load() -> str:
@@ -202,14 +205,16 @@ class CpuTimeline(Sampler):
     def _role(self, pid: int) -> str:
         try:
             cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            comm = Path(f"/proc/{pid}/comm").read_text().strip()
         except OSError:
             return "other"
         parent = self.role.get(self.parent.get(pid, -1), "")
         if parent == "fork server":
             return "pool worker"
-        if "forkserver" in cmd:
+        # a new interpreter's, or a fork of the console script (named: executors.fork_the_fork_server)
+        if "forkserver" in cmd or comm == FORKED_SERVER_NAME:
             return "fork server"
-        if "resource_tracker" in cmd:
+        if "resource_tracker" in cmd or comm == FORKED_TRACKER_NAME:
             return "resource tracker"
         return "main" if pid == self.root else "other"
 

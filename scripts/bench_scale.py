@@ -42,6 +42,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_infer import (  # noqa: E402
+    FORKED_SERVER_NAME,
+    FORKED_TRACKER_NAME,
     REPO,
     Sampler,
     become_subreaper,
@@ -75,11 +77,13 @@ class MemorySampler(Sampler):
         cmd = " ".join(p.cmdline())
         parent = p.parent()
         pcmd = " ".join(parent.cmdline()) if parent else ""
-        if "forkserver" in pcmd:  # forked workers keep the server's command line
-            return "pool worker"
-        if "forkserver" in cmd:
+        # The console script may fork its fork server and resource tracker (executors.fork_the_fork_server):
+        # they keep the main process' command line, under their own process names.
+        if "forkserver" in pcmd or (parent is not None and parent.name() == FORKED_SERVER_NAME):
+            return "pool worker"  # forked workers keep the server's command line
+        if "forkserver" in cmd or p.name() == FORKED_SERVER_NAME:
             return "fork server"
-        if "resource_tracker" in cmd:
+        if "resource_tracker" in cmd or p.name() == FORKED_TRACKER_NAME:
             return "resource tracker"
         if "spawn_main" in cmd:  # LocalCluster: the nannies live in the client, each spawns its worker
             return "dask worker"
