@@ -1246,6 +1246,18 @@ def test_compiled_corner_order_equals_the_python_order():
         assert np.array_equal(M._corner_order_kernel(box, ox, oy), expected), (box, ox, oy)
 
 
+def test_compiled_box_jacobian_equals_numpys():
+    """The one pass's K (E's box rows, the two angle rows averaged) is the general steps' NumPy K bit for bit."""
+    rng = np.random.default_rng(6)
+    for p in (6, 8):
+        for _ in range(50):
+            E = rng.normal(size=(p, p)) * 10.0 ** rng.integers(-8, 8)
+            K = np.empty((p - 1, p))
+            K[: p - 2] = E[: p - 2]
+            K[p - 2] = 0.5 * (E[p - 2] + E[p - 1])
+            assert M._box_jacobian_of(E).tobytes() == K.tobytes()
+
+
 def test_branch_free_nearest_edges_equal_the_sorting_loop():
     """The BEV registration's branch-free pass (a sorting network on (distance, edge)) gives the
     stable insertion sort's arrays bit for bit: points inside, outside, exactly on edges and

@@ -501,12 +501,8 @@ def clean_points(points: ArrayLike | None, d: int) -> FloatArray:
         return np.zeros((0, d))
     if pts.ndim != 2 or pts.shape[1] < d:
         raise ValueError(f"points must be an (N, ≥{d}) array, got shape {pts.shape}")
-    if (
-        pts.dtype == np.float32 or pts.dtype == np.float64
-    ):  # the pipeline's crops: one compiled pass (numba, imported here)
-        from labelaudit.core.pointops import finite_rows_f64
-
-        return finite_rows_f64(pts, d)
+    if pts.dtype == np.float32 or pts.dtype == np.float64:  # the pipeline's crops: one compiled pass
+        return _pointops().finite_rows_f64(pts, d)
     pts = pts[:, :d]  # other float types are converted after the cut (exactly): d columns, not all of them
     if np.isfinite(pts).all():  # the usual case: one test, a contiguous copy (as the masked copy below)
         return pts.astype(np.float64, order="C")
@@ -520,13 +516,22 @@ def clean_columns(points: ArrayLike | None, d: int) -> FloatArray:
     ``d`` coordinates as columns; float32/float64 crops in one compiled pass."""
     pts = None if points is None else np.asarray(points)
     if pts is not None and pts.ndim == 2 and pts.shape[1] >= d and pts.size and pts.dtype in _NATIVE_FLOATS:
-        from labelaudit.core.pointops import finite_columns_f64
-
-        return finite_columns_f64(pts, d)
+        return _pointops().finite_columns_f64(pts, d)
     return np.ascontiguousarray(clean_points(points, d).T)
 
 
 _NATIVE_FLOATS = (np.dtype(np.float32), np.dtype(np.float64))  # what the compiled passes read as they are
+_POINTOPS: list = []  # labelaudit.core.pointops once imported
+
+
+def _pointops():  # noqa: ANN202 - a module
+    """:mod:`labelaudit.core.pointops`, imported on first use (importing the geometry, as the CLI
+    does, never loads the compiled kernels) and kept: an import statement costs ~1 µs per call."""
+    if not _POINTOPS:
+        from labelaudit.core import pointops
+
+        _POINTOPS.append(pointops)
+    return _POINTOPS[0]
 
 
 def phi_of_valid_box(y: FloatArray, model: ModelKind) -> FloatArray:

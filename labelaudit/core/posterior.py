@@ -852,11 +852,13 @@ def _std_from_K(K: FloatArray, cov: ArrayLike, model: ModelKind) -> dict[str, fl
 
 def _std_of(var: FloatArray, model: ModelKind) -> dict[str, float]:
     """The std per box field from the variances K Σ Kᵀ of the model's parameters (NaN for cz, height in BEV)."""
-    names = ("cx", "cy", "length", "width", "yaw") if g.point_dim(model) == 2 else g.BOX_FIELDS
-    out = dict.fromkeys(g.BOX_FIELDS, float("nan"))
-    for name, v in zip(names, var.tolist()):
+    out = dict.fromkeys(g.BOX_FIELDS, math.nan)
+    for name, v in zip(_STD_NAMES[model], var.tolist()):
         out[name] = math.sqrt(max(v, 0.0))  # IEEE square roots are exact-rounded: = np.sqrt
     return out
+
+
+_STD_NAMES = {"bev": ("cx", "cy", "length", "width", "yaw"), "3d": g.BOX_FIELDS}  # the fields K Σ Kᵀ holds, in order
 
 
 @kernel
@@ -1111,10 +1113,6 @@ def infer_label_valid(
     if not params.outlier_prob > 0:
         c, s = g.cos_sin(y[6])
         B, BB = _BASIS[model]
-        p = phi.size
-        K = np.empty((p - 1, p))  # as geometry.box_param_jacobian
-        K[: p - 2] = E[: p - 2]
-        K[p - 2] = 0.5 * (E[p - 2] + E[p - 1])
         ox, oy = g.sensor_xy(sensor_origin)
         ok, sigma, sigma_hat, cov, fit_mean, S0, tv, var, order = _posterior_no_outliers_kernel(
             pts,
@@ -1135,7 +1133,7 @@ def infer_label_valid(
             prior_cov_extended_cached(prior, model),
             float(params.prior_weight),
             _CORNER_J[model],
-            K,
+            E,
             ox,
             oy,
         )
@@ -1204,14 +1202,15 @@ def infer_label_valid(
 
 @kernel
 def _posterior_no_outliers_kernel(
-    pts, y, c, s, m, sigma, estimate, min_points, em, max_iter, B, BB, P0, eta0, G, S_ext, weight, J, K, ox, oy
+    pts, y, c, s, m, sigma, estimate, min_points, em, max_iter, B, BB, P0, eta0, G, S_ext, weight, J, E, ox, oy
 ):  # pragma: no cover - compiled
     """:func:`infer_label_valid` without the outlier component, in one pass: the registration
     (:func:`_register_kernel`), σ̂ (:func:`_em_one_kernel`; σ = max(σ̂, floor) with ``estimate``
     and ≥ ``min_points`` points, the responsibilities re-weighted with it: the nearest faces do not
     depend on σ), the information (:func:`_information_kernel`), the posterior
     (:func:`_posterior_kernel`), the corners' total variances (box_corners' order) and the variances
-    K Σ Kᵀ of the box parameters. ``em`` = (σ floor, tolerance, residual dof). The exponentials are
+    K Σ Kᵀ of the box parameters (K: :func:`_box_jacobian_of` E = ∂ỹ/∂φ, as
+    :func:`~labelaudit.core.geometry.box_param_jacobian`). ``em`` = (σ floor, tolerance, residual dof). The exponentials are
     :func:`~labelaudit.core.linalg.exp_kernel`'s, not NumPy's SIMD ``np.exp``: the
     responsibilities, and so Σ, differ in the last bits. Returns (ok, σ, σ̂, Σ, mean, Σ0, tv, var,
     order): tv in the corners' order from the sensor at (``ox``, ``oy``) (:func:`_corner_order_kernel`),
@@ -1256,7 +1255,21 @@ def _posterior_no_outliers_kernel(
     tv_ordered = np.empty(4)
     for i in range(4):
         tv_ordered[i] = tv[order[i]]
-    return True, sigma, sigma_hat, cov, mean, S0, tv_ordered, _quad_forms(K, cov), order
+    return True, sigma, sigma_hat, cov, mean, S0, tv_ordered, _quad_forms(_box_jacobian_of(E), cov), order
+
+
+@kernel(inline="always")
+def _box_jacobian_of(E):  # pragma: no cover - compiled
+    """K (p − 1, p), the box parameters' rows of E = ∂ỹ/∂φ (p, p) with its two angle rows averaged
+    (0.5 (a + b), the yaw): what :func:`infer_label_valid`'s general steps build with NumPy."""
+    p = E.shape[0]
+    K = np.empty((p - 1, p))
+    for i in range(p - 2):
+        for j in range(p):
+            K[i, j] = E[i, j]
+    for j in range(p):
+        K[p - 2, j] = 0.5 * (E[p - 2, j] + E[p - 1, j])
+    return K
 
 
 @kernel(inline="always")

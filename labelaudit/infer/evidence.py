@@ -257,7 +257,7 @@ def frame_evidence(
                 through = through_own_returns(box, fs, own, C.FREE_SPACE_SIGHT_ANGLE, passing) | behind_other_returns(
                     box, fs, buckets, C.FREE_SPACE_SAME_RAY_ANGLE, passing
                 )
-                n_through = int(through.sum())
+                n_through = int(np.count_nonzero(through))
                 if n_through:
                     fs = replace(fs, ends=fs.ends[~through])
             out.append(
