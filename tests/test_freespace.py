@@ -773,3 +773,28 @@ def test_through_own_returns_ignores_the_order_of_returns():
     rng = np.random.default_rng(5)
     for _ in range(5):
         assert F.through_own_returns(box, fs, own[rng.permutation(len(own))], 0.004).tolist() == want.tolist()
+
+
+def test_compiled_azimuth_windows_equal_the_numpy_ones():
+    """The azimuth windows' compiled passes give the NumPy form's bin ranges and distances bit for
+    bit: boxes all around the sensor (windows across the ±π seam and past bin 0), boxes the sensor
+    lies in, tiny and huge boxes, a sensor away from the origin, frames of 1 to 300 boxes."""
+    rng = np.random.default_rng(12)
+    for trial in range(200):
+        k = int(rng.integers(1, 300)) if trial % 4 else 1
+        boxes = np.c_[
+            rng.uniform(-80, 80, (k, 2)) * (0.05 if trial % 7 == 0 else 1.0),  # some near the sensor
+            rng.uniform(-2, 1, k),
+            rng.uniform(0.1, 15, k),
+            rng.uniform(0.1, 4, k),
+            rng.uniform(0.5, 4, k),
+            rng.uniform(-7, 7, k),
+        ]
+        boxes[: k // 10, 1] = 0.0  # on the seam behind or ahead of the sensor
+        origin = np.array([0.0, 0.0, 1.7]) if trial % 3 else rng.uniform(-5, 5, 3)
+        for reach in (C.FREE_SPACE_REACH, 0.0):
+            for nbins in (C.FREE_SPACE_AZIMUTH_BINS, 7):
+                want = F._azimuth_ranges_numpy(boxes, origin, reach, nbins)
+                got = F._azimuth_ranges(boxes, origin, reach, nbins)
+                assert np.array_equal(got[0], want[0]), (trial, reach, nbins)
+                assert got[1].tobytes() == want[1].tobytes(), (trial, reach, nbins)

@@ -1171,7 +1171,97 @@ def _azimuth_ranges(
 ) -> tuple[NDArray[np.int64], FloatArray]:
     """Bin ranges (K, 4): up to two inclusive [lo, hi] bin ranges per box (the second when the
     azimuth window wraps past 0; all bins when the sensor lies inside the grown rectangle), and the
-    squared BEV distance (K,) from the sensor to each grown rectangle (0 inside)."""
+    squared BEV distance (K,) from the sensor to each grown rectangle (0 inside).
+
+    The angles are NumPy's (``cos``, ``sin``, ``arctan2``, the complex ``exp``, ``mod``: SIMD
+    forms here, whose last bits a compiled pass would not reproduce, and the bins must not move),
+    each called on the same values in the same layout as :func:`_azimuth_ranges_numpy`; the
+    arithmetic between them is three compiled passes (the same operations) instead of ~40 NumPy
+    calls on (K, 4) arrays."""
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    ox, oy = float(origin[0]), float(origin[1])
+    cx, cy, dx, dy = _window_corners(boxes, c, s, ox, oy, float(reach))
+    centre = np.arctan2(dy, dx)
+    rel = np.angle(np.exp(1j * (np.arctan2(cy, cx) - centre[:, None])))
+    a = np.mod(_window_edges(centre, rel), 2.0 * np.pi)  # the windows' first angles (K,), then their last (K,)
+    return _window_ranges(boxes, c, s, ox, oy, float(reach), np.cos(a), np.sin(a), nbins)
+
+
+@kernel
+def _window_corners(boxes, c, s, ox, oy, reach):  # pragma: no cover - compiled
+    """The grown rectangles' corners (K, 4) relative to the sensor, x and y, and the boxes' centres
+    relative to it (K,), x and y: :func:`_azimuth_ranges_numpy`'s operations in its order."""
+    k = boxes.shape[0]
+    cx, cy = np.empty((k, 4)), np.empty((k, 4))
+    dx, dy = np.empty(k), np.empty(k)
+    for j in range(k):
+        hl, hw = boxes[j, 3] / 2 + reach, boxes[j, 4] / 2 + reach
+        for q in range(4):
+            lx = (1.0 if q == 0 or q == 3 else -1.0) * hl  # _CORNER_SX, _CORNER_SY
+            ly = (1.0 if q < 2 else -1.0) * hw
+            cx[j, q] = boxes[j, 0] + c[j] * lx - s[j] * ly - ox
+            cy[j, q] = boxes[j, 1] + s[j] * lx + c[j] * ly - oy
+        dy[j] = boxes[j, 1] - oy
+        dx[j] = boxes[j, 0] - ox
+    return cx, cy, dx, dy
+
+
+@kernel
+def _window_edges(centre, rel):  # pragma: no cover - compiled
+    """(2K,): centre + the smallest relative angle of each box's corners, then centre + the largest."""
+    k = centre.shape[0]
+    out = np.empty(2 * k)
+    for j in range(k):
+        lo = hi = rel[j, 0]
+        for q in range(1, rel.shape[1]):
+            v = rel[j, q]
+            if v < lo or v != v:  # a NaN stays (as NumPy's min and max)
+                lo = v
+            if v > hi or v != v:
+                hi = v
+        out[j] = centre[j] + lo
+        out[k + j] = centre[j] + hi
+    return out
+
+
+@kernel
+def _window_ranges(boxes, c, s, ox, oy, reach, x, y, nbins):  # pragma: no cover - compiled
+    """The bins of the windows' edge angles (their cos ``x`` and sin ``y``, (2K,): a pseudo-angle,
+    truncated and clipped), the ranges (K, 4) they make, and the squared distance (K,) from the
+    sensor to each grown rectangle: :func:`_azimuth_ranges_numpy`'s operations."""
+    k = boxes.shape[0]
+    bins = np.empty(2 * k, dtype=np.int64)
+    scale = nbins / 4.0
+    for i in range(2 * k):
+        t = y[i] / (abs(x[i]) + abs(y[i]))
+        pa = (2.0 - t) if x[i] < 0 else (t if y[i] >= 0 else 4.0 + t)
+        bins[i] = min(max(np.int64(pa * scale), 0), nbins - 1)
+    ranges = np.empty((k, 4), dtype=np.int64)
+    near2 = np.empty(k)
+    for j in range(k):
+        hl, hw = boxes[j, 3] / 2 + reach, boxes[j, 4] / 2 + reach
+        bx, by = (
+            c[j] * (ox - boxes[j, 0]) + s[j] * (oy - boxes[j, 1]),
+            -s[j] * (ox - boxes[j, 0]) + c[j] * (oy - boxes[j, 1]),
+        )
+        lo, hi = bins[j], bins[k + j]
+        if abs(bx) <= hl and abs(by) <= hw:  # the sensor inside the grown rectangle: every direction
+            ranges[j, 0], ranges[j, 1], ranges[j, 2], ranges[j, 3] = 0, nbins - 1, 1, 0
+        elif lo > hi:  # wraps past 0
+            ranges[j, 0], ranges[j, 1], ranges[j, 2], ranges[j, 3] = 0, hi, lo, nbins - 1
+        else:
+            ranges[j, 0], ranges[j, 1], ranges[j, 2], ranges[j, 3] = lo, hi, 1, 0
+        gx, gy = abs(bx) - hl, abs(by) - hw
+        gx = gx if gx > 0.0 or gx != gx else 0.0  # np.maximum(·, 0.0)
+        gy = gy if gy > 0.0 or gy != gy else 0.0
+        near2[j] = (gx * gx + gy * gy) * (1.0 - 1e-9)  # a hair nearer: rounding never drops a ray
+    return ranges, near2
+
+
+def _azimuth_ranges_numpy(
+    boxes: FloatArray, origin: FloatArray, reach: float, nbins: int
+) -> tuple[NDArray[np.int64], FloatArray]:
+    """:func:`_azimuth_ranges` in NumPy alone (the reference its compiled passes are tested against)."""
     k = len(boxes)
     half = boxes[:, 3:5] / 2 + reach
     c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
