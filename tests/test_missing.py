@@ -1158,3 +1158,33 @@ def test_a_car_sized_bush_is_no_candidate_by_its_scatter_along_the_beams_and_a_c
             y,
         )  # (foliage has no solid body to place: its box may land metres off)
         assert _best(rows, x, -y, radius=1.0) >= 0.5, (x, -y)
+
+
+def test_the_search_grids_kept_from_one_frame_to_the_next_come_back_clean(monkeypatch):
+    """The search keeps its 0.2 m grids per thread and puts back only the cells a frame wrote: a
+    frame searched after another gives the rows it gives alone, and the grids are all clean after
+    each frame; a search that fails drops them (the next one starts from new grids)."""
+    from labelaudit.sim.dataset import simulate_frame
+
+    frames = []
+    for seed in (3, 5):
+        sim = simulate_frame(0, seed=seed)
+        half = len(sim.written_boxes) // 2  # half the labels left out: clusters are found and boxed
+        names = list(sim.scene.class_names)[:half]
+        frames.append(Frame("000000", sim.points, sim.written_boxes[:half], names, [str(i) for i in range(half)]))
+
+    def clean():
+        grids = M._Grids._local.grids
+        return not grids.mask.any() and not grids.counts.any() and not grids.over.any() and (grids.comp == -1).all()
+
+    first = find_missing(frames[0], RunConfig())
+    assert first and clean()
+    second = find_missing(frames[1], RunConfig())
+    assert second and clean()
+    assert find_missing(frames[0], RunConfig()) == first
+    monkeypatch.setattr(M, "_comp_extras", lambda *a: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        find_missing(frames[1], RunConfig())
+    assert M._Grids._local.grids is None
+    monkeypatch.undo()
+    assert find_missing(frames[1], RunConfig()) == second and clean()

@@ -180,11 +180,12 @@ def test_the_occupancy_passing_over_whole_runs_keeps_every_band_return(seed):
     cell = C.MISSING_CELL
     args = (0.0, 0.0, 9.0, 36.0**2, ground, -float(half), -float(half), 1.0, 1.0)
     mask = np.zeros((int(2 * half / cell), int(2 * half / cell)), dtype=np.uint8)
-    rest = (mask, -float(half), -float(half), cell, mask.shape[0], mask.shape[1], 0.3, 4.4, 6.0)
-    fast = M._occupancy(xyz, runs, *args, *rest)
-    slow = M._occupancy(xyz, single, *args, *rest)
+    rest = (mask, -float(half), -float(half), cell, 0.3, 4.4, 6.0)
+    grids = [(np.zeros(mask.shape, dtype=np.int32), np.zeros(mask.shape, dtype=np.int32)) for _ in range(2)]
+    fast = M._occupancy(xyz, runs, *args, *rest, *grids[0])
+    slow = M._occupancy(xyz, single, *args, *rest, *grids[1])
     assert len(fast[0]) > 200  # the frame's vehicles and clutter are in the band
-    for a, b in zip(fast, slow, strict=True):
+    for a, b in zip(fast + grids[0], slow + grids[1], strict=True):
         assert np.array_equal(a, b)
 
 

@@ -26,6 +26,7 @@ The search, in compiled passes over the frame (a few milliseconds per KITTI fram
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
@@ -461,12 +462,13 @@ def _square_min(a, reach):  # pragma: no cover - compiled
 
 
 @kernel
-def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - compiled
-    """(nx, ny) uint8: 1 where the cell's centre lies in a label's rectangle grown by ``margin``;
-    and (nx, ny) float64: there, the highest top (z, m) of those labels (elsewhere unset: read it
-    only where the mask is 1)."""
-    mask = np.zeros((nx, ny), dtype=np.uint8)
-    top = np.empty((nx, ny))
+def _label_mask(boxes, margin, x0, y0, cell, mask, top):  # pragma: no cover - compiled
+    """In place, ``mask`` (nx, ny) uint8 (all 0 before): 1 where the cell's centre lies in a label's
+    rectangle grown by ``margin``; ``top`` (nx, ny) float64: there, the highest top (z, m) of those
+    labels (elsewhere unset: read it only where the mask is 1). Returns the ranges of cells each
+    label visited (B, 4: i0, i1, j0, j1, inclusive; empty when i0 > i1), all the mask was written in."""
+    nx, ny = mask.shape
+    spans = np.empty((boxes.shape[0], 4), dtype=np.int64)
     for b in range(boxes.shape[0]):
         cx, cy = boxes[b, 0], boxes[b, 1]
         hl, hw = 0.5 * boxes[b, 3] + margin, 0.5 * boxes[b, 4] + margin
@@ -478,6 +480,7 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
         j0 = max(0, int((cy - ey - y0) / cell))
         j1 = min(ny - 1, int((cy + ey - y0) / cell))
         zt = boxes[b, 2] + 0.5 * boxes[b, 5]
+        spans[b, 0], spans[b, 1], spans[b, 2], spans[b, 3] = i0, i1, j0, j1
         for i in range(i0, i1 + 1):
             px = x0 + (i + 0.5) * cell - cx
             for j in range(j0, j1 + 1):
@@ -485,16 +488,17 @@ def _label_mask(boxes, margin, x0, y0, cell, nx, ny):  # pragma: no cover - comp
                 if abs(c * px + s * py) <= hl and abs(-s * px + c * py) <= hw:
                     top[i, j] = zt if mask[i, j] == 0 else max(top[i, j], zt)
                     mask[i, j] = 1
-    return mask, top
+    return spans
 
 
 @kernel
 def _occupancy(
-    xyz, runs, ox, oy, near2, far2, ground, gx0, gy0, gcell, ginv, mask, x0, y0, cell, nx, ny, lo, hi, tall
+    xyz, runs, ox, oy, near2, far2, ground, gx0, gy0, gcell, ginv, mask, x0, y0, cell, lo, hi, tall, counts, over
 ):  # pragma: no cover - compiled
     """The returns in the search band — their indices, cells (flat index) and heights above the
-    ground, (B,) each — per cell the band returns (nx, ny) and the returns above the band up to
-    ``tall``, and the cells holding band returns (flat indices, ascending). All around the sensor,
+    ground, (B,) each —, counted in place per cell (``counts`` (nx, ny), all 0 before) and the
+    returns above the band up to ``tall`` (``over``, all 0 before), the cells holding band returns
+    (flat indices, ascending) and the cells holding returns over the band. All around the sensor,
     whatever the labelled region: a wall that leaves the camera's view is still one wall. ``runs``
     (:func:`_ground_grid`): the returns in runs of one ground cell each; a run whose highest return
     lies below the band, or whose lowest lies above ``tall`` (most runs: the road), is passed over
@@ -505,10 +509,11 @@ def _occupancy(
     band_cell = np.empty(m, dtype=np.int64)
     band_h = np.empty(m)
     occupied = np.empty(m, dtype=np.int64)
+    over_cells = np.empty(m, dtype=np.int64)
     nb = 0
     no = 0
-    counts = np.zeros((nx, ny), dtype=np.int32)
-    over = np.zeros((nx, ny), dtype=np.int32)
+    nu = 0
+    nx, ny = counts.shape
     flat = ground.ravel()
     for r in range(code.shape[0]):
         c = code[r]
@@ -545,16 +550,19 @@ def _occupancy(
                 band_h[nb] = h
                 nb += 1
             else:
+                if over[i, j] == 0:
+                    over_cells[nu] = i * ny + j
+                    nu += 1
                 over[i, j] += 1
-    return band_idx[:nb], band_cell[:nb], band_h[:nb], counts, over, np.sort(occupied[:no])
+    return band_idx[:nb], band_cell[:nb], band_h[:nb], np.sort(occupied[:no]), over_cells[:nu]
 
 
 @kernel
-def _components(counts, over, occupied):  # pragma: no cover - compiled
+def _components(counts, over, occupied, comp):  # pragma: no cover - compiled
     """8-connected components of the occupied cells (``occupied``: their flat indices, ascending):
-    (nx, ny) component id (−1 empty) and per component (points, over-band points, cells, i0, i1, j0, j1)."""
+    in place, their component id in ``comp`` (nx, ny) (all −1 before; only the occupied cells are
+    written), and per component (points, over-band points, cells, i0, i1, j0, j1)."""
     nx, ny = counts.shape
-    comp = np.full((nx, ny), -1, dtype=np.int32)
     m = occupied.shape[0]
     stack = np.empty(m, dtype=np.int64)
     stats = np.zeros((m, 7), dtype=np.int64)
@@ -591,7 +599,7 @@ def _components(counts, over, occupied):  # pragma: no cover - compiled
                         stack[top] = u * ny + v
                         top += 1
         k += 1
-    return comp, stats[:k]
+    return stats[:k]
 
 
 @kernel
@@ -1245,6 +1253,48 @@ def _four_columns(points: NDArray) -> NDArray:
     return out
 
 
+class _Grids:
+    """The search's 0.2 m grids of one thread (label mask and tops, band and over-band counts,
+    component ids), kept from frame to frame: allocating and zeroing them (a few MB) cost more than
+    the search's use of them, which writes a few thousand cells. Each use records the cells it
+    wrote (``spans``, ``cells``) and :meth:`give_back` puts back those alone; grids a failed search
+    did not give back are dropped, never reused."""
+
+    _local = threading.local()
+
+    def __init__(self, nx: int, ny: int):
+        self.mask = np.zeros((nx, ny), dtype=np.uint8)
+        self.top = np.empty((nx, ny))
+        self.counts = np.zeros((nx, ny), dtype=np.int32)
+        self.over = np.zeros((nx, ny), dtype=np.int32)
+        self.comp = np.full((nx, ny), -1, dtype=np.int32)
+        self.spans: NDArray | None = None  # the label mask's cells written (B, 4: i0, i1, j0, j1)
+        self.cells: tuple[NDArray, NDArray] | None = None  # band cells and over-band cells written (flat)
+
+    @classmethod
+    def take(cls, nx: int, ny: int) -> _Grids:
+        """This thread's grids of (nx, ny) cells, clean, now in use (until given back)."""
+        grids = getattr(cls._local, "grids", None)
+        if grids is None or grids.mask.shape != (nx, ny):
+            grids = cls(nx, ny)
+        cls._local.grids = None
+        return grids
+
+    def give_back(self) -> None:
+        """Put back the recorded cells (mask 0, counts 0, component −1) and keep the grids."""
+        if self.spans is not None:
+            for i0, i1, j0, j1 in self.spans.tolist():
+                if i0 <= i1 and j0 <= j1:
+                    self.mask[i0 : i1 + 1, j0 : j1 + 1] = 0
+        if self.cells is not None:
+            band, over = self.cells
+            self.counts.ravel()[band] = 0
+            self.comp.ravel()[band] = -1
+            self.over.ravel()[over] = 0
+        self.spans = self.cells = None
+        type(self)._local.grids = self
+
+
 def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = None) -> list[Cluster]:
     """The point-cloud search of one frame: clusters no label explains, boxed and scored.
 
@@ -1259,7 +1309,6 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
     params = cfg.missing
     o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
     ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
-    xyz = pts[:, :3]
     reach = params.max_range + C.MISSING_GROUND_CELL * 2
     cell = C.MISSING_CELL
     x0, y0 = ox - reach, oy - reach
@@ -1300,10 +1349,37 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         C.MISSING_BAND[0],
     )
     nx, ny = int(math.ceil((x1 - x0) / cell)), int(math.ceil((y1 - y0) / cell))
+    grids = _Grids.take(nx, ny)
+    out = _boxed_clusters(frame, cfg, trace, grids, ground, runs, top_slope, (x0, y0, gx0, gy0))
+    grids.give_back()  # (a search that fails does not: its grids are dropped)
+    return out
+
+
+def _boxed_clusters(
+    frame: Frame,
+    cfg: RunConfig,
+    trace: SearchTrace | None,
+    grids: _Grids,
+    ground: FloatArray,
+    runs: tuple,
+    top_slope: FloatArray,
+    corners: tuple[float, float, float, float],
+) -> list[Cluster]:
+    """The rest of :func:`search_clusters`, on the frame's ground (``ground``, ``runs``,
+    ``top_slope`` of :func:`_ground_grid`; ``corners``: the search grid's and the ground grid's
+    x0, y0) and in ``grids`` (clean; every cell written is recorded in them)."""
+    sizes = class_sizes(cfg)
+    params = cfg.missing
+    o = np.asarray(frame.sensor_origin, dtype=float).reshape(3)
+    ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
+    xyz = frame.points[:, :3]
+    x0, y0, gx0, gy0 = corners
+    cell, gcell = C.MISSING_CELL, C.MISSING_GROUND_CELL
+    mask, label_top, counts, over, comp = grids.mask, grids.top, grids.counts, grids.over, grids.comp
     labels = np.ascontiguousarray(frame.boxes[np.all(np.isfinite(frame.boxes), axis=1)], dtype=float).reshape(-1, 7)
-    mask, label_top = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, nx, ny)
+    grids.spans = _label_mask(labels, C.MISSING_LABEL_MARGIN, x0, y0, cell, mask, label_top)
     lo, hi = C.MISSING_BAND
-    band_idx, band_cell, band_h, counts, over, occupied = _occupancy(
+    band_idx, band_cell, band_h, occupied, over_cells = _occupancy(
         xyz,
         runs,
         ox,
@@ -1319,13 +1395,14 @@ def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = No
         x0,
         y0,
         cell,
-        nx,
-        ny,
         lo,
         hi,
         C.MISSING_TALL,
+        counts,
+        over,
     )
-    comp, stats = _components(counts, over, occupied)
+    grids.cells = (occupied, over_cells)
+    stats = _components(counts, over, occupied, comp)
     if len(stats) == 0:
         return []
     extras = _comp_extras(xyz, band_idx, band_cell, band_h, comp.ravel(), len(stats), ox, oy)
