@@ -223,3 +223,29 @@ def test_face_gap_is_the_order_statistic_of_the_registered_depths():
                 assert gaps[f] == dep[int(C.FACE_GAP_QUANTILE * (len(dep) - 1))]
             else:
                 assert np.isnan(gaps[f])
+
+
+def test_face_gap_is_the_first_seen_gap_furthest_from_a_right_labels():
+    """face_gap: of the non-NaN gaps, the first one furthest from FACE_GAP (ties: the earlier face);
+    NaN when none is seen."""
+    import dataclasses
+    import math
+
+    from labelaudit import constants as C
+
+    fit = LF.fit_label(CAR, _lower_body(["-x"]), "Car", ModelParams())
+    g0 = C.FACE_GAP
+    cases = [
+        ((g0 + 0.25, g0 - 0.25, math.nan, math.nan), g0 + 0.25),  # equally far: the first
+        ((math.nan, g0 - 0.1, g0 + 0.3, g0 - 0.3), g0 + 0.3),
+        ((math.nan,) * 4, math.nan),
+        ((g0, math.nan, g0, math.nan), g0),
+    ]
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        gaps = tuple(float(v) if rng.random() < 0.7 else math.nan for v in rng.normal(g0, 0.2, 4))
+        seen = [v for v in gaps if v == v]
+        cases.append((gaps, max(seen, key=lambda v: abs(v - g0)) if seen else math.nan))
+    for gaps, want in cases:
+        got = dataclasses.replace(fit, face_gaps=gaps).face_gap
+        assert (got == want) or (math.isnan(got) and math.isnan(want)), gaps

@@ -93,8 +93,11 @@ class LabelFit:
     @property
     def face_gap(self) -> float:
         """Of the seen faces' gaps, the one furthest from FACE_GAP (m; NaN when no side face is seen)."""
-        seen = [v for v in self.face_gaps if v == v]
-        return max(seen, key=lambda v: abs(v - C.FACE_GAP)) if seen else math.nan
+        best, far = math.nan, -1.0  # the first of the furthest, as max(seen, key=…) takes it
+        for v in self.face_gaps:
+            if v == v and abs(v - C.FACE_GAP) > far:
+                best, far = v, abs(v - C.FACE_GAP)
+        return best
 
     @functools.cached_property
     def sigma_hat(self) -> float:
