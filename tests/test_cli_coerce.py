@@ -8,6 +8,7 @@ from enum import Enum
 from pathlib import Path
 
 import pytest
+import typer
 import typer.core
 from typer.main import get_command
 
@@ -101,3 +102,9 @@ def test_a_value_typer_must_word_still_gets_typer_s_message():
 
 def test_install_is_idempotent():
     assert coerce.install() and typer.core.build_runtime_param is PLAIN
+
+
+def test_another_typer_release_line_is_left_untouched(monkeypatch):
+    monkeypatch.setattr(typer, "__version__", "0.30.0")
+    assert not coerce.install()
+    assert typer.core.build_runtime_param is PLAIN  # what an earlier install did stays; nothing new is wrapped

@@ -1,4 +1,4 @@
-"""Option values converted without pydantic where the conversion is plain (Typer ≥ 0.29).
+"""Option values converted without pydantic where the conversion is plain (Typer 0.29).
 
 Typer 0.29 converts every command-line value through a pydantic ``TypeAdapter``; importing
 pydantic for it was ~45 ms of CPU in every command's start-up, on the critical path of ``infer``
@@ -10,7 +10,8 @@ path string) is converted directly, to the very value Typer's own converter retu
 error, a bound, a custom parser, a spelling such as ``1_000`` — goes to Typer's converter, which
 then imports pydantic and answers as before, error messages included.
 
-Older Typer versions (no pydantic) are left alone.
+Only the Typer release line it was tested on (:data:`TESTED_TYPER`) is wrapped: the wrap uses Typer's private
+converter API, so any other release runs untouched (and its start-up imports pydantic again).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, Callable
 
+TESTED_TYPER = "0.29."  # the Typer release line whose private converter builder this wraps; others run untouched
 _INT = re.compile(r"[+-]?[0-9]+")  # no blanks, underscores or fractions: those go to pydantic
 _FLOAT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
@@ -129,8 +131,13 @@ def _make_plain_param(runtime_param: type, original: Callable[[Any], Any]) -> ty
 
 
 def install() -> bool:
-    """Make Typer convert plain option values without pydantic; True if installed (Typer ≥ 0.29),
-    False where Typer has no pydantic converter to spare (then nothing changes). Idempotent."""
+    """Make Typer convert plain option values without pydantic; True if installed (Typer 0.29.x),
+    False on another Typer release line than :data:`TESTED_TYPER` or where Typer has no pydantic converter
+    to spare (then nothing changes). Idempotent."""
+    import typer
+
+    if not typer.__version__.startswith(TESTED_TYPER):  # the wrap reads Typer's private converter API
+        return False
     try:
         import typer.core as core
         from typer._coercion import RuntimeParam
