@@ -209,6 +209,8 @@ def _ground_grid(
         raise ValueError("the ground's rank must be 1 to 4 (a cell's lowest returns are kept in four registers)")
     low = np.full((n0, n1, 4), np.inf)  # per cell its 4 lowest returns, ascending
     num = np.zeros((n0, n1), dtype=np.int64)  # returns per cell
+    # the same two by the runs' flat cell index (no division per run)
+    low_flat, num_flat = low.reshape(n0 * n1, 4), num.ravel()
     if pts.shape[1] != 4:
         raise ValueError("the ground pass reads rows of 4 (x, y, z, anything): see _four_columns")
     m = pts.shape[0]
@@ -250,12 +252,11 @@ def _ground_grid(
                         top[b] = s
         if c != cur:
             if cur >= 0:  # the run's lowest into its cell's (the same values whatever the order they came in)
-                a, e = cur // n1, cur % n1
-                num[a, e] += cnt
+                num_flat[cur] += cnt
                 for v in (l0, l1, l2, l3):
                     for q in range(3, 0, -1):
-                        low[a, e, q] = max(low[a, e, q - 1], min(low[a, e, q], v))
-                    low[a, e, 0] = min(low[a, e, 0], v)
+                        low_flat[cur, q] = max(low_flat[cur, q - 1], min(low_flat[cur, q], v))
+                    low_flat[cur, 0] = min(low_flat[cur, 0], v)
             if nr > 0:
                 zs[nr - 1, 0], zs[nr - 1, 1] = l0, zhi
             if k == m:
@@ -268,10 +269,12 @@ def _ground_grid(
             cnt = 0
         if c >= 0:
             # z into the run's sorted lowest without a branch on it (about one return in six is among the
-            # lowest so far: an unpredictable branch otherwise)
-            l3 = max(l2, min(l3, z))
-            l2 = max(l1, min(l2, z))
-            l1 = max(l0, min(l1, z))
+            # lowest so far: an unpredictable branch otherwise), each slot clamped as min(slot, max(slot
+            # below, z)) — the value max(slot below, min(slot, z)) gives — so that it waits on its own
+            # last value through one operation, not two
+            l3 = min(l3, max(l2, z))
+            l2 = min(l2, max(l1, z))
+            l1 = min(l1, max(l0, z))
             l0 = min(l0, z)
             zhi = max(zhi, z)
             cnt += 1
