@@ -163,7 +163,9 @@ def comparable(rows: list[dict]) -> list[dict]:
 # --------------------------------------------------------------------------- a fast stand-in for the core
 
 
-def quick_audit(box, points, class_name, cfg, sensor_origin=(0.0, 0.0, 0.0), *, fit_points=None, evidence=None):
+def quick_audit(
+    box, points, class_name, cfg, sensor_origin=(0.0, 0.0, 0.0), *, fit_points=None, evidence=None, clean=False
+):
     """Stand-in for :func:`labelaudit.infer.rows.audit_object` with the real input checks and a
     row of the real shape, in microseconds instead of ~13 ms: the fuzz's many cases exercise
     readers, rows and the CLI; one batch per input kind still runs the real core."""

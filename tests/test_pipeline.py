@@ -23,7 +23,7 @@ from labelaudit.infer.rows import process_frame
 from labelaudit.infer.run import InferRequest, chunk_name, plan_chunks, run_infer
 
 
-def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None):
+def _fake_audit(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None, clean=False):
     """Stand-in for the core: more points → higher JIoU-GT; raises for a marker class."""
     assert fit_points is not None  # the fit's own crop (wider, cut above the local ground, neighbours dropped)
     if class_name == "Boom":
@@ -545,8 +545,10 @@ def test_every_column_the_core_returns_has_a_place_in_the_schema():
 def test_the_label_error_fit_gets_the_wider_crop(fake_core, monkeypatch):
     seen = {}
 
-    def recording(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None):
-        seen[class_name, round(float(box[0]))] = (len(points), len(fit_points))
+    def recording(box, points, class_name, cfg, sensor_origin, *, fit_points=None, evidence=None, clean=False):
+        # the pipeline hands the crops cleaned: the model's as rows, the fit's as (3, M) columns
+        assert clean and points.shape[1] == 2 and fit_points.shape[0] == 3
+        seen[class_name, round(float(box[0]))] = (len(points), fit_points.shape[1])
         return _fake_audit(box, points, class_name, cfg, sensor_origin, fit_points=fit_points, evidence=evidence)
 
     monkeypatch.setattr(fake_core, "audit_object", recording)

@@ -1338,9 +1338,14 @@ def fit_label_valid(
     *,
     prior_terms: BoxPriorTerms | None = None,
     sensor_origin: ArrayLike | None = None,
+    columns: FloatArray | None = None,
 ) -> LabelFit:
     """:func:`fit_label` of a box (7,) float64 known to be valid (after
     :func:`~labelaudit.core.geometry.validate_box`): the pipeline validates each label once.
+
+    ``columns``: the points already as the fit takes them, ``clean_columns(points, d)`` (d, N)
+    float64 C-contiguous (d = 3: a 3D fit), when the caller made them (the pipeline's crop pass);
+    ``points`` is then not read.
 
     ``prior_terms``: the label's :class:`~labelaudit.core.posterior.BoxPriorTerms` of the fit's
     model (3D when the points have z) when the caller has them, e.g. from a 3D run's posterior
@@ -1348,16 +1353,21 @@ def fit_label_valid(
     weight (a BEV run's) are not used, and None: computed here."""
     # The fit is 3D whenever the points have a z: in BEV, roof and hood points lie *inside* the
     # rectangle and would pull its edges inwards; in 3D they register to the top face.
-    arr = None if points is None else np.asarray(points)
+    arr = None if points is None or columns is not None else np.asarray(points)
     if arr is not None and arr.dtype.kind != "f":
         arr = np.asarray(points, dtype=float)
-    model: ModelKind = "3d" if arr is not None and arr.ndim == 2 and arr.shape[1] >= 3 else "bev"
+    if columns is not None:
+        model: ModelKind = "3d" if columns.shape[0] == 3 else "bev"
+    else:
+        model = "3d" if arr is not None and arr.ndim == 2 and arr.shape[1] >= 3 else "bev"
     # The run's model decides what is scored: a BEV run scores the BEV marginal of the 3D fit.
     scored: ModelKind = "bev" if model == "bev" or params.kind == "bev" else "3d"
     if model != params.kind:
         params = _params_of_kind(params, model)
     d = 3 if model == "3d" else 2
-    pts_t = g.clean_columns(arr, d)  # (d, N), the fit's layout (_normal_eq_kernel): float crops in one pass
+    pts_t = (
+        columns if columns is not None else g.clean_columns(arr, d)
+    )  # (d, N), the fit's layout (_normal_eq_kernel): float crops in one pass
     pts = pts_t.T  # (N, d), a view
     n = pts.shape[0]
     prior = params.prior_for(class_name)

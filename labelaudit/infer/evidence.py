@@ -111,6 +111,10 @@ class BoxEvidence:
         under a chassis, through glass), left out of ``free_space``
     near_xyz : the neighbourhood's points (n, 3) float64, ``points[near_idx, :3]`` converted
         exactly (gathered once for the crops); None: gathered from the frame when needed
+    model_pts : the model's crop as the posterior takes it, ``clean_points(points[model_idx],
+        model_dim)`` (m, model_dim) float64, from the same pass; None: not made
+    fit_cols : the fit's crop as the fit takes it, ``clean_columns(points[fit_idx], 3)`` (3, f)
+        float64, from the same pass; None: not made
     """
 
     model_idx: IndexArray
@@ -122,6 +126,8 @@ class BoxEvidence:
     scenery_points: int = 0
     through_rays: int = 0
     near_xyz: FloatArray | None = None
+    model_pts: FloatArray | None = None
+    fit_cols: FloatArray | None = None
 
     def for_object(self, points: NDArray) -> ObjectEvidence:
         """The :class:`ObjectEvidence` of this box, given the frame's points (its neighbourhood's
@@ -143,6 +149,7 @@ def frame_evidence(
     crop: CropParams,
     others: NDArray | None = None,
     ray_mask: NDArray | None = None,
+    model_dim: int = 3,
 ) -> list[BoxEvidence]:
     """Crops, local ground, neighbours and candidate rays of every box of a frame.
 
@@ -157,6 +164,8 @@ def frame_evidence(
     ray_mask : (N,) bool, the points that end an empty ray from ``origin``
         (:attr:`~labelaudit.datasets.Frame.ray_mask`); None = all. Only they count as rays; every
         point is still in the crops
+    model_dim : the point dimension of the model's crop rows handed out
+        (:attr:`BoxEvidence.model_pts`): 2 for a BEV model, 3 for a 3D one
 
     Returns
     -------
@@ -196,8 +205,8 @@ def frame_evidence(
         # every box's local ground and both crops, in one compiled call
         grounds = np.empty((len(bb), 3))
         found = np.zeros(len(bb), dtype=np.bool_)
-        counts = np.zeros((len(bb), 4), dtype=np.int64)
-        model_flat, fit_flat = _crops_kernel(
+        counts = np.zeros((len(bb), 6), dtype=np.int64)
+        model_flat, fit_flat, model_rows, fit_cols = _crops_kernel(
             near.xyz,
             near.idx,
             near.starts,
@@ -214,6 +223,7 @@ def frame_evidence(
             grounds,
             found,
             counts,
+            model_dim,
         )
         rays = ray_candidate_parts(buckets, bb, grounds, slabs[j0 : j0 + _BATCH], o, C.FREE_SPACE_REACH, first=j0)
         ends, starts = rays.xyz, rays.starts
@@ -232,8 +242,13 @@ def frame_evidence(
         np.cumsum(counts[:, 0], out=model_at[1:])
         np.cumsum(counts[:, 1], out=fit_at[1:])
         m_at, f_at = model_at.tolist(), fit_at.tolist()
+        rows_at = np.zeros(len(bb) + 1, dtype=np.int64)  # the finite rows of each crop, as the model takes them
+        cols_at = np.zeros(len(bb) + 1, dtype=np.int64)
+        np.cumsum(counts[:, 4], out=rows_at[1:])
+        np.cumsum(counts[:, 5], out=cols_at[1:])
+        r_at, c_at = rows_at.tolist(), cols_at.tolist()
         for j, (box, (slab0, slab1), (n_foreign, n_scenery), seen) in enumerate(
-            zip(bb, slabs[j0 : j0 + _BATCH].tolist(), counts[:, 2:].tolist(), crossing.any_passing.tolist())
+            zip(bb, slabs[j0 : j0 + _BATCH].tolist(), counts[:, 2:4].tolist(), crossing.any_passing.tolist())
         ):
             r0, r1 = s_ray[j], s_ray[j + 1]
             fs = FreeSpace(
@@ -271,6 +286,8 @@ def frame_evidence(
                     n_scenery,
                     n_through,
                     near_xyz,
+                    model_rows[r_at[j] : r_at[j + 1]],
+                    fit_cols[3 * c_at[j] : 3 * c_at[j + 1]].reshape(3, c_at[j + 1] - c_at[j]),
                 )
             )
     return out
@@ -300,15 +317,23 @@ def _crops_kernel(
     grounds,
     found,
     counts,
+    dim,
 ):  # pragma: no cover - compiled
     """Every box's local ground (:func:`ground_plane`; the box bottom where none is found) and crops
     (:func:`_box_crops` against the other labels ``close`` to it) from its neighbourhood, the part
     ``starts[j]:starts[j + 1]`` of ``xyz`` (n, 3) and ``idx`` (n,): the grounds (B, 3), whether
-    each was found (B,), per box (model crop size, fit crop size, foreign points, scenery points)
-    (B, 4), and the model's and the fit's crops, box after box (flat)."""
+    each was found (B,), per box (model crop size, fit crop size, foreign points, scenery points,
+    the model crop's rows with ``dim`` finite coordinates, the fit crop's rows with 3) (B, 6), the
+    model's and the fit's crops, box after box (flat), and the same crops as the model's passes
+    take them: the model crop's finite rows' first ``dim`` coordinates (flat (·, dim)) and the fit
+    crop's finite rows as (3, f) columns, box after box (flat)
+    (:func:`~labelaudit.core.geometry.clean_points` and ``clean_columns`` of the gathered rows)."""
     n_all = xyz.shape[0]
     model_flat = np.empty(n_all, dtype=np.int64)
     fit_flat = np.empty(n_all, dtype=np.int64)
+    model_rows = np.empty((n_all, dim))
+    fit_cols = np.empty(3 * n_all)
+    r = q = 0
     near = np.empty((others.shape[0], 7))
     plane = np.empty(3)
     a = c = 0
@@ -327,7 +352,7 @@ def _crops_kernel(
                 for f in range(7):
                     near[m, f] = others[i, f]
                 m += 1
-        model_idx, fit_idx, n_foreign, n_scenery = _box_crops(
+        model_idx, fit_idx, n_foreign, n_scenery, model_k, fit_k = _box_crops(
             pts,
             idx[s:e],
             box,
@@ -345,13 +370,34 @@ def _crops_kernel(
         fit_flat[c : c + fit_idx.shape[0]] = fit_idx
         a += model_idx.shape[0]
         c += fit_idx.shape[0]
-        counts[j, 0], counts[j, 1], counts[j, 2], counts[j, 3] = (
+        r0 = r
+        for k in model_k:  # the crop's rows in its order, the finite ones (clean_points)
+            ok = True
+            for t in range(dim):
+                ok = ok and math.isfinite(pts[k, t])
+            if ok:
+                for t in range(dim):
+                    model_rows[r, t] = pts[k, t]
+                r += 1
+        f = 0
+        for k in fit_k:  # clean_columns: the finite rows' x, y, z as columns
+            if math.isfinite(pts[k, 0]) and math.isfinite(pts[k, 1]) and math.isfinite(pts[k, 2]):
+                f += 1
+        i = 0
+        for k in fit_k:
+            if math.isfinite(pts[k, 0]) and math.isfinite(pts[k, 1]) and math.isfinite(pts[k, 2]):
+                fit_cols[q + i], fit_cols[q + f + i], fit_cols[q + 2 * f + i] = pts[k, 0], pts[k, 1], pts[k, 2]
+                i += 1
+        q += 3 * f
+        counts[j, 0], counts[j, 1], counts[j, 2], counts[j, 3], counts[j, 4], counts[j, 5] = (
             model_idx.shape[0],
             fit_idx.shape[0],
             n_foreign,
             n_scenery,
+            r - r0,
+            f,
         )
-    return model_flat[:a], fit_flat[:c]
+    return model_flat[:a], fit_flat[:c], model_rows[:r], fit_cols[:q]
 
 
 def _own_returns(xyz: FloatArray, box: FloatArray, plane: FloatArray, tau: float, cut: float) -> FloatArray:
@@ -391,8 +437,9 @@ def _box_crops(
 ):  # pragma: no cover - compiled
     """One box's crops from its neighbourhood (n, 3) and indices ``idx`` (n,): the model's crop
     (:func:`_open3d_inside` of the selection box ``sel``, rotation ``R``; none unless ``with_model``)
-    without other labels' points, the fit's crop (:func:`_box_kernel`), and the number of points
-    dropped from the fit's crop as another label's and as unlabelled surfaces."""
+    without other labels' points, the fit's crop (:func:`_box_kernel`), the number of points
+    dropped from the fit's crop as another label's and as unlabelled surfaces, and both crops'
+    positions in the neighbourhood."""
     n = xyz.shape[0]
     flags = np.zeros(n, dtype=np.uint8)
     _box_kernel(xyz, box, plane, others, fit_margin, cut, nb_margin, cell, flags)
@@ -410,16 +457,20 @@ def _box_crops(
             n_scenery += 1
     model_idx = np.empty(n_model, dtype=np.int64)
     fit_idx = np.empty(n_fit, dtype=np.int64)
+    model_k = np.empty(n_model, dtype=np.int64)
+    fit_k = np.empty(n_fit, dtype=np.int64)
     a = c = 0
     for k in range(n):
         f = flags[k]
         if inside[k] and not (f & 2):
             model_idx[a] = idx[k]
+            model_k[a] = k
             a += 1
         if f & 1:
             fit_idx[c] = idx[k]
+            fit_k[c] = k
             c += 1
-    return model_idx, fit_idx, n_foreign, n_scenery
+    return model_idx, fit_idx, n_foreign, n_scenery, model_k, fit_k
 
 
 _FIT, _FOREIGN, _FIT_FOREIGN, _FIT_SCENERY = 1, 2, 4, 8  # flags of _box_kernel

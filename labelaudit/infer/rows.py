@@ -204,20 +204,31 @@ def process_frame(frame: Frame, cfg: RunConfig) -> tuple[list[dict[str, Any]], l
         with np.errstate(all="ignore"):
             # every usable label can own points (label_boxes, from the flags already computed)
             others = labels if all(usable) else labels[np.array(usable, dtype=bool)]
-            evidence = frame_evidence(frame.points, boxes, origin, cfg.crop, others=others, ray_mask=frame.ray_mask)
+            evidence = frame_evidence(
+                frame.points,
+                boxes,
+                origin,
+                cfg.crop,
+                others=others,
+                ray_mask=frame.ray_mask,
+                model_dim=g.point_dim(cfg.model.kind),
+            )
             points = np.asarray(frame.points)
             for i, ev in zip(to_audit, evidence):
                 row = rows[i]
                 idx = ev.model_idx
                 try:
+                    # the crops as the model's passes take them, made by the evidence's pass (no
+                    # gathering of the frame's rows and no cleaning per box)
                     result = audit_object(
                         frame.boxes[i],
-                        points.take(idx, axis=0),  # the crops' rows (take: a tenth of indexing's cost here)
+                        ev.model_pts,
                         frame.class_names[i],
                         cfg,
                         origin,
-                        fit_points=points.take(ev.fit_idx, axis=0),
+                        fit_points=ev.fit_cols,
                         evidence=ev.for_object(points),
+                        clean=True,
                     )
                     check_finite(result)
                     # values the schema cannot hold fail here, per object; the row is final after this
@@ -241,6 +252,7 @@ def audit_object(
     *,
     fit_points: ArrayLike | None = None,
     evidence: ObjectEvidence | None = None,
+    clean: bool = False,
 ) -> dict[str, Any]:
     """Audit one labeled box against its LiDAR points.
 
@@ -258,6 +270,9 @@ def audit_object(
         (:func:`labelaudit.infer.evidence.frame_evidence`); the rays enter the label-error fit and
         are counted for the label and the suggested box. None: no free-space evidence, the ray
         columns are null.
+    clean : the crops come as the model's passes take them (:func:`~labelaudit.infer.evidence.frame_evidence`'s
+        ``model_pts`` and ``fit_cols``): ``points`` (N, d) float64 finite rows of the model's point
+        dimension, C-contiguous, and ``fit_points`` (3, M) float64 finite columns; not cleaned again.
 
     Returns
     -------
@@ -287,9 +302,8 @@ def audit_object(
     # Validated once here: the posterior takes the clean points, and a 3D run's posterior and the
     # label-error fit (3D) share the label's φ, Jacobians and prior precision (a BEV run's are not used).
     terms = box_prior_terms(y, params.prior_for(class_name), params.prior_weight, params.kind)
-    post = infer_label_valid(
-        y, g.clean_points(points, g.point_dim(params.kind)), class_name, params, sensor_origin, prior_terms=terms
-    )
+    pts = points if clean else g.clean_points(points, g.point_dim(params.kind))
+    post = infer_label_valid(y, pts, class_name, params, sensor_origin, prior_terms=terms)
     n = post.num_points
     if n == 0:
         status = "no_points"
@@ -300,12 +314,13 @@ def audit_object(
     fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
     fit = fit_label_valid(
         y,
-        points if fit_points is None else fit_points,
+        None if clean else (points if fit_points is None else fit_points),
         class_name,
         params,
         free_space=fs,
         prior_terms=terms,
         sensor_origin=sensor_origin,
+        columns=fit_points if clean else None,
     )
     fit_box, label = fit.box.tolist(), y.tolist()
     row: dict[str, Any] = {
@@ -330,7 +345,7 @@ def audit_object(
         row[name] = value
     if fit.model == "bev":  # points without z: the fit does not touch cz and height
         row["fit_cz"] = row["fit_height"] = float("nan")
-    row["hull_iou"] = hull_iou_valid(y, points)
+    row["hull_iou"] = hull_iou_valid(y, pts if clean else points)  # the same x, y (converted exactly)
     row["mahalanobis"] = float(fit.mahalanobis)
     row["face_gap"] = float(fit.face_gap)  # NaN (null) when no side face is seen
     if evidence is not None:

@@ -66,6 +66,9 @@ def warm_up(strict: bool = False) -> None:
             rows += process_frame(
                 Frame("warm-up", pts, np.stack([box, box + [0, 2.5, 0, 0, 0, 0, 0]]), ["Car", "Car"], ["a", "b"]), cfg
             )[0]
+        # the crops' cleaning passes (geometry loads them on first use): the audit above hands its
+        # crops cleaned already, the search's fits still clean theirs
+        from labelaudit.core import pointops  # noqa: F401
         from labelaudit.infer.missing import find_missing
 
         # the missing-label search: the same returns with no label, so a cluster is boxed and its rays counted

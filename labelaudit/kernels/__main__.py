@@ -32,7 +32,7 @@ def workload() -> None:
     from labelaudit.evaluate.warmup import warm_up as eval_warm_up
     from labelaudit.infer.crop import crop_frame
     from labelaudit.infer.missing import find_missing
-    from labelaudit.infer.rows import process_frame
+    from labelaudit.infer.rows import audit_object, process_frame
     from labelaudit.infer.warmup import warm_up
     from labelaudit.sim.dataset import simulate_frame
 
@@ -50,6 +50,9 @@ def workload() -> None:
             as_read = [n if fmt == "kitti" or n in classes else "Vehicle" for n in names]
             frame = Frame("build", sim.points, boxes, as_read, [str(i) for i in range(len(boxes))], ray_mask=mask)
             process_frame(frame, cfg)
+            # a box audited from the frame's own float32 rows, as show and the API do (the
+            # pipeline hands the model crops it made as float64 itself)
+            audit_object(boxes[0], sim.points[:400], as_read[0], cfg, fit_points=sim.points[:600])
             half = len(boxes) // 2  # the missing-label search: half the labels left out, so clusters are boxed
             find_missing(
                 Frame("build", sim.points, boxes[:half], as_read[:half], [str(i) for i in range(half)], ray_mask=mask),
