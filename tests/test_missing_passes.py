@@ -46,6 +46,20 @@ def test_the_sorting_network_sorts_every_input_of_nine():
     assert any(_network(broken, list(bits)) != sorted(bits) for bits in itertools.product((0.0, 1.0), repeat=9))
 
 
+def test_the_ground_grid_runs_the_sorting_network_in_its_order():
+    # the ground pass spells the network out (in registers); it must be _SORT9's pairs, in order
+    import inspect
+    import re
+
+    src = inspect.getsource(M._ground_grid.py_func if hasattr(M._ground_grid, "py_func") else M._ground_grid)
+    pairs = [
+        (int(a), int(b))
+        for a, b, a2, b2, a3, b3 in re.findall(r"v(\d), v(\d) = min\(v(\d), v(\d)\), max\(v(\d), v(\d)\)", src)
+        if a == a2 == a3 and b == b2 == b3
+    ]
+    assert pairs == [tuple(p) for p in M._SORT9.tolist()]
+
+
 def _network(net: np.ndarray, v: list) -> list:
     for a, b in net:
         v[a], v[b] = min(v[a], v[b]), max(v[a], v[b])

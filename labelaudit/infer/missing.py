@@ -291,22 +291,48 @@ def _ground_grid(
     _deep_floors(pts, runs, num, rank, share, near, floor)
     ground = np.full((n0, n1), np.inf)
     vals = np.empty(9)
+    pad = np.full((n0 + 2, n1 + 2), np.inf)  # the floors with a border of inf: a cell's 3 × 3 without bounds tests
+    pad[1 : n0 + 1, 1 : n1 + 1] = floor
     for i in range(n0):
         for j in range(n1):
             if floor[i, j] == np.inf:  # no return here: no height is measured from this cell
                 continue
-            # the 3 × 3 floors (inf outside the grid or where no return fell) sorted by a network of
-            # min/max (no branch on the values): the k finite ones first, as an insertion sort has them
+            # the 3 × 3 floors (inf outside the grid or where no return fell) sorted by the network of
+            # min/max of _SORT9, its pairs in its order, in registers (no branch on the values): the k
+            # finite ones first, as an insertion sort has them
+            v0, v1, v2 = pad[i, j], pad[i, j + 1], pad[i, j + 2]
+            v3, v4, v5 = pad[i + 1, j], pad[i + 1, j + 1], pad[i + 1, j + 2]
+            v6, v7, v8 = pad[i + 2, j], pad[i + 2, j + 1], pad[i + 2, j + 2]
             k = 0
-            for da in range(-1, 2):
-                for db in range(-1, 2):
-                    a, b = i + da, j + db
-                    v = floor[a, b] if 0 <= a < n0 and 0 <= b < n1 else np.inf
-                    vals[3 * (da + 1) + db + 1] = v
-                    k += v < np.inf
-            for e in range(_SORT9.shape[0]):
-                x, y = vals[_SORT9[e, 0]], vals[_SORT9[e, 1]]
-                vals[_SORT9[e, 0]], vals[_SORT9[e, 1]] = min(x, y), max(x, y)
+            for v in (v0, v1, v2, v3, v4, v5, v6, v7, v8):
+                k += v < np.inf
+            v0, v3 = min(v0, v3), max(v0, v3)
+            v1, v7 = min(v1, v7), max(v1, v7)
+            v2, v5 = min(v2, v5), max(v2, v5)
+            v4, v8 = min(v4, v8), max(v4, v8)
+            v0, v7 = min(v0, v7), max(v0, v7)
+            v2, v4 = min(v2, v4), max(v2, v4)
+            v3, v8 = min(v3, v8), max(v3, v8)
+            v5, v6 = min(v5, v6), max(v5, v6)
+            v0, v2 = min(v0, v2), max(v0, v2)
+            v1, v3 = min(v1, v3), max(v1, v3)
+            v4, v5 = min(v4, v5), max(v4, v5)
+            v7, v8 = min(v7, v8), max(v7, v8)
+            v1, v4 = min(v1, v4), max(v1, v4)
+            v3, v6 = min(v3, v6), max(v3, v6)
+            v5, v7 = min(v5, v7), max(v5, v7)
+            v0, v1 = min(v0, v1), max(v0, v1)
+            v2, v4 = min(v2, v4), max(v2, v4)
+            v3, v5 = min(v3, v5), max(v3, v5)
+            v6, v8 = min(v6, v8), max(v6, v8)
+            v2, v3 = min(v2, v3), max(v2, v3)
+            v4, v5 = min(v4, v5), max(v4, v5)
+            v6, v7 = min(v6, v7), max(v6, v7)
+            v1, v2 = min(v1, v2), max(v1, v2)
+            v3, v4 = min(v3, v4), max(v3, v4)
+            v5, v6 = min(v5, v6), max(v5, v6)
+            vals[0], vals[1], vals[2], vals[3], vals[4] = v0, v1, v2, v3, v4
+            vals[5], vals[6], vals[7], vals[8] = v5, v6, v7, v8
             med = vals[k // 2] if k % 2 else 0.5 * (vals[k // 2 - 1] + vals[k // 2])
             m1 = np.inf
             for q in range(k):
