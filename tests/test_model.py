@@ -1081,6 +1081,28 @@ def test_box_prior_terms_are_the_numpy_set_up_within_the_last_bits(model):
         assert t.matches(model, prior, params.prior_weight) and not t.matches(model, prior, 2 * params.prior_weight)
 
 
+def test_box_prior_terms_bev_3d_are_each_models_own_bit_for_bit():
+    """The BEV and 3D terms made in one call are box_prior_terms' of each model bit for bit (every
+    array, shape included), on boxes of every size and yaw, two weights and three class priors;
+    a known answer: a yaw-0 box's φ is (cx, cy, l, 0, w, 0) in BEV and (cx, cy, cz, l, 0, w, 0, h) in 3D."""
+    rng = np.random.default_rng(23)
+    params = ModelParams(kind="bev")
+    for k in range(300):
+        cls = ("Car", "Pedestrian", "Cyclist")[k % 3]
+        prior, weight = params.prior_for(cls), (params.prior_weight, 0.5)[k % 2]
+        y = g.validate_box(np.array([*rng.normal(0, 30, 3), *rng.uniform(0.01, 12, 3), rng.uniform(-7, 7)]))
+        pair = M.box_prior_terms_bev_3d(y, prior, weight)
+        for got, model in zip(pair, ("bev", "3d")):
+            want = M.box_prior_terms(y, prior, weight, model)
+            assert got.matches(model, prior, weight) and got.model == model
+            for f in ("phi", "G", "Ginv", "P0", "eta0"):
+                a, b = getattr(got, f), getattr(want, f)
+                assert a.shape == b.shape and np.array_equal(a, b) and a.tobytes() == b.tobytes(), (k, model, f)
+    bev, three = M.box_prior_terms_bev_3d(g.validate_box([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.0]), prior, 1.0)
+    assert bev.phi.tolist() == [1.0, 2.0, 4.0, 0.0, 5.0, 0.0]
+    assert three.phi.tolist() == [1.0, 2.0, 3.0, 4.0, 0.0, 5.0, 0.0, 6.0]
+
+
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_fit_label_with_shared_terms_equals_its_own(model):
     """fit_label_valid with a run's prior terms is the fit without them; a BEV run's terms (the fit

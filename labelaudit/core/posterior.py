@@ -986,6 +986,23 @@ def box_prior_terms(y: FloatArray, prior: ClassPrior, weight: float, model: Mode
     return BoxPriorTerms(model=model, prior=prior, weight=weight, phi=phi, G=G, Ginv=E, P0=P0, eta0=eta0)
 
 
+def box_prior_terms_bev_3d(y: FloatArray, prior: ClassPrior, weight: float) -> tuple[BoxPriorTerms, BoxPriorTerms]:
+    """The BEV and the 3D :class:`BoxPriorTerms` of a box (7,) float64 known to be valid, in one
+    compiled call: a BEV run's posterior takes the first, the label-error fit (3D whenever the
+    points have z) the second. Each is :func:`box_prior_terms`'s of its model bit for bit (the same
+    kernel body on the same values); one call instead of two spares a dispatch and its glue per box.
+    """
+    c, s = g.cos_sin(y[6])  # NumPy's, as phi_of_valid_box and dphi_dext_valid
+    w = float(weight)
+    b, t = _prior_terms_bev_3d_kernel(
+        y, c, s, _weighted_prior_info(prior, "bev", w), _weighted_prior_info(prior, "3d", w)
+    )
+    return (
+        BoxPriorTerms(model="bev", prior=prior, weight=weight, phi=b[0], G=b[1], Ginv=b[2], P0=b[3], eta0=b[4]),
+        BoxPriorTerms(model="3d", prior=prior, weight=weight, phi=t[0], G=t[1], Ginv=t[2], P0=t[3], eta0=t[4]),
+    )
+
+
 @functools.lru_cache(maxsize=64)
 def _weighted_prior_info(prior: ClassPrior, model: ModelKind, weight: float) -> FloatArray:
     """w Σ_ỹ⁻¹ of a class prior (read-only; cached: it does not depend on the box)."""
@@ -1041,6 +1058,13 @@ def _prior_terms_kernel(y, c, s, d, W):  # pragma: no cover - compiled
             acc += P0[i, j] * phi[j]
         eta0[i] = acc
     return phi, G, E, P0, eta0
+
+
+@kernel
+def _prior_terms_bev_3d_kernel(y, c, s, W2, W3):  # pragma: no cover - compiled
+    """:func:`_prior_terms_kernel` of the box for d = 2 (W2, 6 × 6) and d = 3 (W3, 8 × 8): two tuples
+    (φ, G, E, P0, P0 φ)."""
+    return _prior_terms_kernel(y, c, s, 2, W2), _prior_terms_kernel(y, c, s, 3, W3)
 
 
 def checked_prior_terms(

@@ -22,7 +22,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
 from labelaudit.core.freespace import ray_counts
 from labelaudit.core.iou import hull_iou_valid
-from labelaudit.core.posterior import box_prior_terms, infer_label_valid
+from labelaudit.core.posterior import box_prior_terms, box_prior_terms_bev_3d, infer_label_valid
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
 from labelaudit.errors import one_line
@@ -300,8 +300,15 @@ def audit_object(
     y = g.validate_box(box)
     params = cfg.model
     # Validated once here: the posterior takes the clean points, and a 3D run's posterior and the
-    # label-error fit (3D) share the label's φ, Jacobians and prior precision (a BEV run's are not used).
-    terms = box_prior_terms(y, params.prior_for(class_name), params.prior_weight, params.kind)
+    # label-error fit (3D) share the label's φ, Jacobians and prior precision; a BEV run's posterior
+    # and the 3D fit each take their own, made in one compiled call.
+    prior = params.prior_for(class_name)
+    fit_terms = None
+    if clean and params.kind == "bev" and isinstance(fit_points, np.ndarray) and fit_points.shape[0] == 3:
+        # the fit is 3D (the points have z): both sets of terms in one compiled call
+        terms, fit_terms = box_prior_terms_bev_3d(y, prior, params.prior_weight)
+    else:
+        terms = box_prior_terms(y, prior, params.prior_weight, params.kind)
     pts = points if clean else g.clean_points(points, g.point_dim(params.kind))
     post = infer_label_valid(y, pts, class_name, params, sensor_origin, prior_terms=terms)
     n = post.num_points
@@ -318,7 +325,7 @@ def audit_object(
         class_name,
         params,
         free_space=fs,
-        prior_terms=terms,
+        prior_terms=terms if fit_terms is None else fit_terms,
         sensor_origin=sensor_origin,
         columns=fit_points if clean else None,
     )
