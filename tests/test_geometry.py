@@ -161,11 +161,11 @@ def test_clean_columns_is_clean_points_transposed():
 
 
 def test_cos_sin_is_numpys_and_keeps_the_sign_of_zero():
-    """cos_sin gives NumPy's values whether or not the yaw was the last one asked, and a yaw of
-    −0.0 after 0.0 (equal as floats) gets sin −0.0, not the kept 0.0."""
+    """cos_sin gives NumPy's values, asked once or twice in a row, and a yaw of −0.0 after 0.0
+    (equal as floats) gets sin −0.0."""
     rng = np.random.default_rng(2)
     for yaw in [*rng.uniform(-7, 7, 200), 0.0, -0.0, 0.0, np.pi, np.pi]:
-        for _ in range(2):  # asked again: the kept values
+        for _ in range(2):  # asked again: the same values
             c, s = g.cos_sin(yaw)
             assert np.float64(c).tobytes() == np.cos(yaw).tobytes()
             assert np.float64(s).tobytes() == np.sin(yaw).tobytes()

@@ -233,20 +233,10 @@ def sensor_xy(origin: ArrayLike) -> tuple[float, float]:
     return float(o[0]), float(o[1])
 
 
-_LAST_COS_SIN: list[tuple[float, float, float]] = [(0.0, 1.0, 0.0)]  # (yaw, cos, sin) of the last yaw asked
-
-
 def cos_sin(yaw: float) -> tuple[float, float]:
     """NumPy's ``np.cos(yaw)``, ``np.sin(yaw)`` as Python floats (NumPy's, not math's: NumPy may
-    use SIMD kernels), the last yaw's kept: a label's φ, Jacobians and prior terms ask for the same
-    yaw several times per object. The same values as calling NumPy each time (a yaw of −0.0 is not
-    taken for 0.0: sin keeps the sign)."""
-    last = _LAST_COS_SIN[0]  # one read: safe with threads
-    if yaw == last[0] and math.copysign(1.0, yaw) == math.copysign(1.0, last[0]):
-        return last[1], last[2]
-    c, s = float(np.cos(yaw)), float(np.sin(yaw))
-    _LAST_COS_SIN[0] = (float(yaw), c, s)
-    return c, s
+    use SIMD kernels, and a label's φ, Jacobians and prior terms must agree bit for bit)."""
+    return float(np.cos(yaw)), float(np.sin(yaw))
 
 
 def dphi_dext_valid(y: FloatArray, model: ModelKind) -> FloatArray:
