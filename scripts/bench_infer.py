@@ -7,7 +7,9 @@ Prints, each repeated ``--repeat`` times (median and range, with the machine's l
              whole process tree (main, fork server, workers; reaped as a child subreaper); then
              one more run with each process' CPU read from /proc. Target: wall ≤ 1.0 s.
   warm       one warm process on the simulated frames: ms per frame, every stage listed (read, crop,
-             infer_label, jiou_gt, fit_label, hull_iou, rows, Arrow table, Parquet bytes); CPU time.
+             scores, infer_label, jiou_gt, fit_label, hull_iou, rows, Arrow table, Parquet bytes); CPU time.
+             `scores`: a BEV run's prior terms, posterior, JIoU-GT and hull IoU in one call
+             (posterior.bev_label_scores; infer_label, jiou_gt and hull_iou then read 0).
              Target: ≤ 10 ms per frame on the 9.2-box frames of ``simulate --seed 4``.
   ratio      ``infer --workers 2`` on 120 frames (subprocess, wall time including start-up) against
              two lean single-core floors measured in the same run, the same job both: np.fromfile +
@@ -299,7 +301,20 @@ def bench_startup(tmp: Path, seed: int, repeat: int, env: dict[str, str]) -> Non
 # --------------------------------------------------------------------------- one warm process
 
 WARM_FRAMES = 10  # frames run before the timed ones (fewer when the dataset has no more to spare)
-STAGES = ("read", "crop", "infer_label", "jiou_gt", "fit_label", "hull_iou", "rows", "missing", "arrow", "parquet")
+STAGES = (
+    "read",
+    "crop",
+    "scores",
+    "infer_label",
+    "jiou_gt",
+    "fit_label",
+    "hull_iou",
+    "rows",
+    "missing",
+    "arrow",
+    "parquet",
+)
+MODEL_STAGES = ("crop", "scores", "infer_label", "jiou_gt", "fit_label", "hull_iou")  # timed inside process_frame
 
 
 def warm_stages(
@@ -351,6 +366,9 @@ def warm_stages(
         return f"{name}_valid" if hasattr(rows_mod, f"{name}_valid") else name
 
     for name, stage in (
+        # a BEV run's prior terms, posterior, JIoU-GT and hull IoU in one call (the general steps
+        # below are then not called)
+        *((("bev_label_scores", "scores"),) if hasattr(rows_mod, "bev_label_scores") else ()),
         (crop_name, "crop"),
         (called("infer_label"), "infer_label"),
         ("jiou_gt", "jiou_gt"),
@@ -410,7 +428,7 @@ def warm_stages(
         gc.callbacks.remove(gc_clock)
         for name, f in originals.items():
             setattr(rows_mod, name, f)
-    acc["rows"] = acc.pop("frame") - sum(acc[s] for s in ("crop", "infer_label", "jiou_gt", "fit_label", "hull_iou"))
+    acc["rows"] = acc.pop("frame") - sum(acc[s] for s in MODEL_STAGES)
     return n_frames, n_obj, dict(acc), total
 
 

@@ -1103,6 +1103,68 @@ def test_box_prior_terms_bev_3d_are_each_models_own_bit_for_bit():
     assert three.phi.tolist() == [1.0, 2.0, 3.0, 4.0, 0.0, 5.0, 0.0, 6.0]
 
 
+def test_bev_label_scores_are_the_general_steps_bit_for_bit():
+    """bev_label_scores (two compiled calls) gives box_prior_terms_bev_3d's 3D terms,
+    infer_label_valid's σ, σ̂, Σ, corner variances and std, jiou_gt's and hull_iou_valid's values bit
+    for bit: 0, 1, 2, few and many points, three classes, σ̂ on and off, boxes of every yaw and
+    size; a box seen on two faces as a known answer (JIoU-GT in (0.5, 1), a hull inside the box)."""
+    from labelaudit.config import SpatialParams
+    from labelaudit.core.iou import hull_iou_valid
+    from labelaudit.core.spatial import jiou_gt
+
+    rng = np.random.default_rng(31)
+    spatial = SpatialParams()
+    checked = 0
+    for k in range(60):
+        cls = ("Car", "Pedestrian", "Cyclist")[k % 3]
+        params = ModelParams(kind="bev", estimate_sigma=k % 2 == 0)
+        box = np.array([*rng.normal(0, 25, 2), 0.8, *rng.uniform(0.3, 9, 3), rng.uniform(-7, 7)])
+        y = g.validate_box(box)
+        n = (0, 1, 2, 5, 40, 300)[k % 6]
+        pts = np.ascontiguousarray(face_points(y, ["-x", "-y", "+y"][: 1 + k % 3], max(n, 1), 0.04, seed=k)[:n, :2])
+        origin = (float(rng.normal(0, 3)), float(rng.normal(0, 3)), 1.7)
+        prior = params.prior_for(cls)
+        got = M.bev_label_scores(y, pts, prior, params, spatial, origin[0], origin[1])
+        assert got is not None, k
+        terms, fit_terms = M.box_prior_terms_bev_3d(y, prior, params.prior_weight)
+        post = M.infer_label_valid(y, pts, cls, params, origin, prior_terms=terms)
+        assert got.num_points == post.num_points == n and got.sigma == post.sigma
+        assert got.sigma_hat == post.sigma_hat or (math.isnan(got.sigma_hat) and math.isnan(post.sigma_hat))
+        for a, b in ((got.cov, post.cov), (got.corner_tv, post.corner_tv)):
+            assert a.shape == b.shape and a.tobytes() == b.tobytes(), k
+        assert got.std_box.keys() == post.std_box.keys()
+        assert np.array_equal(list(got.std_box.values()), list(post.std_box.values()), equal_nan=True)
+        assert got.jiou_gt == jiou_gt(post, spatial) and got.hull_iou == hull_iou_valid(y, pts), k
+        assert got.fit_terms.matches("3d", prior, params.prior_weight)
+        for f in ("phi", "G", "Ginv", "P0", "eta0"):
+            assert getattr(got.fit_terms, f).tobytes() == getattr(fit_terms, f).tobytes(), (k, f)
+        checked += 1
+    assert checked == 60
+    params = ModelParams(kind="bev")
+    seen = face_points(CAR, ["-x", "-y"], 100, 0.03)[:, :2].copy()
+    known = M.bev_label_scores(g.validate_box(CAR), seen, params.prior_for("Car"), params, spatial, 0.0, 0.0)
+    assert 0.5 < known.jiou_gt < 1.0 and 0.0 < known.hull_iou < 1.0 and known.corner_tv[0] < known.corner_tv[3]
+
+
+def test_audit_object_takes_the_general_steps_when_the_one_pass_cannot(monkeypatch):
+    """When bev_label_scores cannot answer (None), audit_object's row is the same from the general steps."""
+    from labelaudit.infer import rows as rows_mod
+
+    cfg = load_config(None, "kitti")
+    pts = face_points(CAR, ["-x", "-y"], 100, 0.03)
+    model_pts, fit_cols = np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, :3].T)
+    calls = []
+    real = rows_mod.bev_label_scores
+    monkeypatch.setattr(rows_mod, "bev_label_scores", lambda *a: calls.append(1) or real(*a))
+    fast = audit_object(CAR, model_pts, "Car", cfg, fit_points=fit_cols, clean=True)
+    monkeypatch.setattr(rows_mod, "bev_label_scores", lambda *a: calls.append(0))
+    general = audit_object(CAR, model_pts, "Car", cfg, fit_points=fit_cols, clean=True)
+    assert calls == [1, 0] and list(fast) == list(general)
+    for key, value in fast.items():
+        other = general[key]
+        assert value == other or (value != value and other != other), key
+
+
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_fit_label_with_shared_terms_equals_its_own(model):
     """fit_label_valid with a run's prior terms is the fit without them; a BEV run's terms (the fit

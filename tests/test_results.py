@@ -57,6 +57,29 @@ def test_rows_to_table_sorts_by_frame_then_index_and_keeps_the_schema():
     assert R.rows_to_table([]).num_rows == 0
 
 
+def test_table_of_rows_is_from_pylist_table_and_errors():
+    """The struct conversion gives from_pylist's table (values, nulls, lists, schema) and raises the
+    same error types for values the schema cannot hold; keys outside the schema are ignored."""
+    rows = [
+        R.normalize_row(make_row("000002", i, std_cz=float("nan"), corner_tv=[0.1, None, 0.2, 0.3])) for i in range(3)
+    ]
+    rows[1]["label_error"] = None
+    rows[2]["cov"] = []
+    for schema, some in ((R.SCHEMA, rows), (R.SCHEMA, []), (R.SCHEMA, [{**rows[0], "not_a_column": 5}])):
+        want, got = pa.Table.from_pylist(some, schema=schema), R.table_of_rows(some, schema)
+        assert got.equals(want) and got.schema.equals(want.schema, check_metadata=True)
+    assert R.table_of_rows(rows, R.SCHEMA).column("corner_tv").to_pylist()[0] == [0.1, None, 0.2, 0.3]
+    for bad in ({"frame_id": "a\udcff"}, {"num_points": 2**40}, {"cx": "x"}):
+        with pytest.raises(Exception) as want:
+            pa.Table.from_pylist([{**rows[0], **bad}], schema=R.SCHEMA)
+        with pytest.raises(type(want.value)):
+            R.table_of_rows([{**rows[0], **bad}], R.SCHEMA)
+    candidates = [{n: None for n in R.MISSING_SCHEMA.names}]
+    assert R.table_of_rows(candidates, R.MISSING_SCHEMA).equals(
+        pa.Table.from_pylist(candidates, schema=R.MISSING_SCHEMA)
+    )
+
+
 def test_atomic_write_leaves_no_temp_file_and_keeps_metadata(tmp_path):
     meta = R.run_metadata({"a": 1}, "feedbeef", "/in", "kitti")
     path = R.write_parquet_atomic(

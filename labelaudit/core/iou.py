@@ -268,3 +268,10 @@ def iou_3d_exact(box_a: ArrayLike, box_b: ArrayLike) -> float:
     inter = pa.intersection(pb).area * max(0.0, z_hi - z_lo)
     union = a[3] * a[4] * a[5] + b[3] * b[4] * b[5] - inter
     return float(inter / union) if union > 0 else 0.0
+
+
+# public for labelaudit.core.posterior.bev_label_scores, which calls them from its own compiled pass
+# (hull_iou_valid's steps for float64 points: the sorted candidates, then the clipped hull's IoU)
+hull_candidates_sorted = _sorted_candidates_kernel
+hull_iou_sorted = _hull_iou_kernel
+BEV_CORNER_J = _BEV_CORNER_J

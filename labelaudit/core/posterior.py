@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,7 +25,9 @@ from numpy.typing import ArrayLike, NDArray
 from labelaudit import constants as C
 from labelaudit.core import geometry as g
 from labelaudit.core import linalg
-from labelaudit.core.params import ClassPrior, ModelKind, ModelParams
+from labelaudit.core.iou import BEV_CORNER_J, hull_candidates_sorted, hull_iou_sorted
+from labelaudit.core.params import ClassPrior, ModelKind, ModelParams, SpatialParams
+from labelaudit.core.spatial import jaccard_sum_sorted_keys, jiou_gt_bev_cells, normal_samples
 from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
@@ -1358,3 +1360,145 @@ def _posterior_kernel(P0, eta0, info, eta, sigma, G, S_ext, weight):  # pragma: 
             S0[i, j] = acc
             S0[j, i] = acc
     return True, cov, mean, S0
+
+
+# ----------------------------------------------------------------------------------------------
+# A BEV label's scores in two compiled calls (the pipeline's path)
+# ----------------------------------------------------------------------------------------------
+
+
+class BevLabelScores(NamedTuple):
+    """What a result row takes of a BEV label's posterior, JIoU-GT and hull IoU
+    (:func:`bev_label_scores`): :class:`LabelPosterior`'s ``sigma``, ``sigma_hat``, ``num_points``,
+    ``cov`` (6, 6), ``corner_tv`` (4,) C1 first and ``std_box``; :func:`~labelaudit.core.spatial.jiou_gt`'s
+    ``jiou_gt``; :func:`~labelaudit.core.iou.hull_iou_valid`'s ``hull_iou``; and the label's 3D
+    :class:`BoxPriorTerms` for the label-error fit (``fit_terms``)."""
+
+    sigma: float
+    sigma_hat: float
+    num_points: int
+    cov: FloatArray
+    corner_tv: FloatArray
+    std_box: dict[str, float]
+    jiou_gt: float
+    hull_iou: float
+    fit_terms: BoxPriorTerms
+
+
+def bev_label_scores(
+    y: FloatArray,
+    pts: FloatArray,
+    prior: ClassPrior,
+    params: ModelParams,
+    spatial: SpatialParams,
+    ox: float,
+    oy: float,
+) -> BevLabelScores | None:
+    """A BEV label's posterior, JIoU-GT and hull IoU, and its 3D prior terms, in two compiled calls
+    with NumPy's sort of the JIoU-GT cells between them: the values of :func:`box_prior_terms_bev_3d`,
+    :func:`infer_label_valid`, :func:`~labelaudit.core.spatial.jiou_gt` and
+    :func:`~labelaudit.core.iou.hull_iou_valid` bit for bit (the same kernels on the same values),
+    without their six dispatches and the Python between them (~25 µs per box).
+
+    ``y``: a box (7,) float64 known to be valid; ``pts``: clean points (N, 2) float64, C-contiguous;
+    ``params``: a BEV model without the outlier component, ``spatial.num_samples`` > 1; (``ox``,
+    ``oy``): the sensor. None when the one pass cannot answer (σ̂ or Σ not formed that way, or a
+    non-finite Σ): the caller then takes the general steps, which give the same values or the error.
+    """
+    c, s = g.cos_sin(y[6])  # NumPy's, as box_prior_terms_bev_3d
+    w = float(params.prior_weight)
+    B, BB = _BASIS["bev"]
+    ok, sigma, sigma_hat, cov, tv, var, phi, t, pb, qb, cb, keys, shift, p_only, q_only = _bev_scores_kernel(
+        y,
+        c,
+        s,
+        _weighted_prior_info(prior, "bev", w),
+        _weighted_prior_info(prior, "3d", w),
+        pts,
+        min(int(params.num_nearest), 4),
+        float(params.sigma),
+        bool(params.estimate_sigma),
+        int(max(params.min_points, 2)),
+        (C.SIGMA_FLOOR, C.EM_TOLERANCE, float(C.EM_RESIDUAL_DOF)),
+        C.EM_MAX_ITERATIONS,
+        B,
+        BB,
+        prior_cov_extended_cached(prior, "bev"),
+        w,
+        _CORNER_J["bev"],
+        ox,
+        oy,
+        normal_samples(6, spatial.num_samples, spatial.seed),
+        float(max(spatial.cells_per_side * 1.0, 1.0)),
+        C.CELL_STD_SPAN,
+        C.MAX_CELLS_PER_AXIS,
+        C.SUBROWS_PER_CELL,
+    )
+    if not ok:
+        return None
+    keys.sort()  # NumPy's sort, in place, as jiou_gt sorts them (the keys are distinct)
+    jiou, hull = _bev_jaccard_hull_kernel(
+        pb, qb, cb, keys, shift, p_only, q_only, pts, float(y[0]), float(y[1]), BEV_CORNER_J, phi
+    )
+    fit_terms = BoxPriorTerms(
+        model="3d", prior=prior, weight=params.prior_weight, phi=t[0], G=t[1], Ginv=t[2], P0=t[3], eta0=t[4]
+    )
+    return BevLabelScores(
+        float(sigma), float(sigma_hat), pts.shape[0], cov, tv, _std_of(var, "bev"), float(jiou), float(hull), fit_terms
+    )
+
+
+@kernel
+def _bev_scores_kernel(
+    y,
+    c,
+    s,
+    W2,
+    W3,
+    pts,
+    m,
+    sigma,
+    estimate,
+    min_points,
+    em,
+    max_iter,
+    B,
+    BB,
+    S_ext,
+    weight,
+    J,
+    ox,
+    oy,
+    z,
+    cells,
+    span,
+    max_cells,
+    nsub,
+):  # pragma: no cover - compiled
+    """:func:`bev_label_scores`' first pass: the BEV and 3D prior terms (:func:`_prior_terms_bev_3d_kernel`),
+    the posterior (:func:`_posterior_no_outliers_kernel` with the BEV terms) and, when it is formed,
+    JIoU-GT's cells (:func:`~labelaudit.core.spatial.jiou_gt_bev_cells`). Returns (ok, σ, σ̂, Σ, tv,
+    var, φ, the 3D terms, then the cells: p, q, counts, keys, shift, p_only, q_only)."""
+    b, t = _prior_terms_bev_3d_kernel(y, c, s, W2, W3)
+    phi, G, E, P0, eta0 = b
+    ok, sigma, sigma_hat, cov, _, _, tv, var, _ = _posterior_no_outliers_kernel(
+        pts, y, c, s, m, sigma, estimate, min_points, em, max_iter, B, BB, P0, eta0, G, S_ext, weight, J, E, ox, oy
+    )
+    empty = np.zeros(0)
+    if not ok:
+        return False, sigma, sigma_hat, cov, tv, var, phi, t, empty, empty, empty, empty, 0, 0.0, 0.0
+    jok, pb, qb, cb, keys, shift, p_only, q_only = jiou_gt_bev_cells(y, cov, z, cells, span, max_cells, nsub)
+    return jok, sigma, sigma_hat, cov, tv, var, phi, t, pb, qb, cb, keys, shift, p_only, q_only
+
+
+@kernel
+def _bev_jaccard_hull_kernel(
+    pb, qb, cb, keys, shift, p_only, q_only, pts, cx, cy, J, phi
+):  # pragma: no cover - compiled
+    """:func:`bev_label_scores`' second pass: JIoU-GT's sum over the sorted cells (0 without cells,
+    as :func:`~labelaudit.core.spatial.jiou_gt`) and the hull IoU of the points (N, 2) float64
+    (:func:`~labelaudit.core.iou.hull_iou_valid`'s steps: 0 below three hull candidates)."""
+    jiou = jaccard_sum_sorted_keys(pb, qb, cb, keys, shift, p_only, q_only) if pb.size else 0.0
+    local = hull_candidates_sorted(pts, cx, cy)
+    hull = hull_iou_sorted(local, J, phi, cx, cy) if local.shape[0] >= 3 else 0.0
+    return jiou, hull

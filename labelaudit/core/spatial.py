@@ -1008,6 +1008,11 @@ def _jaccard_sum_keys(pb, qb, cb, keys, shift, p_only, q_only):  # pragma: no co
     return _jaccard_sum(pb, qb, cb, order, p_only, q_only)
 
 
+jaccard_sum_sorted_keys = _jaccard_sum_keys
+"""The Jaccard sum of :func:`jiou_gt_bev_cells`' cells once their keys are sorted (compiled; public
+for :func:`labelaudit.core.posterior.bev_label_scores`, which calls it from its own compiled pass)."""
+
+
 def spatial_distribution(
     dist: BoxDistribution, params: SpatialParams, grid: Grid | None = None
 ) -> tuple[Grid, FloatArray]:
@@ -1161,3 +1166,8 @@ def _jiou_gt_bev_kernel(ref, cov, z, cells, span, max_cells, nsub):  # pragma: n
     negative, pb, qb, cb, ratio, p_only, q_only = _jaccard_split(u, q, np.ones(u.size), 0.0, max(0.0, 1.0 - inside), nx)
     keys, shift = _ratio_keys(ratio)
     return not negative, pb, qb, cb, keys, shift, p_only, q_only
+
+
+jiou_gt_bev_cells = _jiou_gt_bev_kernel
+"""A BEV posterior's JIoU-GT cells before their sort (compiled: :func:`jiou_gt`'s first pass; public
+for :func:`labelaudit.core.posterior.bev_label_scores`, which calls it from its own compiled pass)."""

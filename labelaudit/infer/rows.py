@@ -22,7 +22,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core.fit import fit_label_valid
 from labelaudit.core.freespace import ray_counts
 from labelaudit.core.iou import hull_iou_valid
-from labelaudit.core.posterior import box_prior_terms, box_prior_terms_bev_3d, infer_label_valid
+from labelaudit.core.posterior import bev_label_scores, box_prior_terms, box_prior_terms_bev_3d, infer_label_valid
 from labelaudit.core.spatial import jiou_gt
 from labelaudit.datasets import Frame
 from labelaudit.errors import one_line
@@ -303,29 +303,58 @@ def audit_object(
     # label-error fit (3D) share the label's φ, Jacobians and prior precision; a BEV run's posterior
     # and the 3D fit each take their own, made in one compiled call.
     prior = params.prior_for(class_name)
-    fit_terms = None
-    if clean and params.kind == "bev" and isinstance(fit_points, np.ndarray) and fit_points.shape[0] == 3:
-        # the fit is 3D (the points have z): both sets of terms in one compiled call
-        terms, fit_terms = box_prior_terms_bev_3d(y, prior, params.prior_weight)
+    fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
+    scores = None
+    if (
+        clean
+        and params.kind == "bev"
+        and not params.outlier_prob > 0
+        and cfg.spatial.num_samples > 1
+        and isinstance(fit_points, np.ndarray)
+        and fit_points.shape[0] == 3
+    ):
+        # the pipeline's BEV path: both sets of prior terms, the posterior, JIoU-GT and the hull
+        # IoU in two compiled calls (the values of the general steps below, bit for bit)
+        ox, oy = g.sensor_xy(sensor_origin)
+        scores = bev_label_scores(y, points, prior, params, cfg.spatial, ox, oy)
+    if scores is not None:
+        n = scores.num_points
+        fit_terms = scores.fit_terms
+        sigma, sigma_hat, cov, corner_tv, std = (
+            scores.sigma,
+            scores.sigma_hat,
+            scores.cov,
+            scores.corner_tv,
+            scores.std_box,
+        )
+        jiou, hull, model = scores.jiou_gt, scores.hull_iou, "bev"
     else:
-        terms = box_prior_terms(y, prior, params.prior_weight, params.kind)
-    pts = points if clean else g.clean_points(points, g.point_dim(params.kind))
-    post = infer_label_valid(y, pts, class_name, params, sensor_origin, prior_terms=terms)
-    n = post.num_points
+        fit_terms = None
+        if clean and params.kind == "bev" and isinstance(fit_points, np.ndarray) and fit_points.shape[0] == 3:
+            # the fit is 3D (the points have z): both sets of terms in one compiled call
+            terms, fit_terms = box_prior_terms_bev_3d(y, prior, params.prior_weight)
+        else:
+            terms = box_prior_terms(y, prior, params.prior_weight, params.kind)
+        pts = points if clean else g.clean_points(points, g.point_dim(params.kind))
+        post = infer_label_valid(y, pts, class_name, params, sensor_origin, prior_terms=terms)
+        n = post.num_points
+        fit_terms = terms if fit_terms is None else fit_terms
+        sigma, sigma_hat, cov, corner_tv, std = post.sigma, post.sigma_hat, post.cov, post.corner_tv, post.std_box
+        jiou, model = jiou_gt(post, cfg.spatial), post.model
+        hull = hull_iou_valid(y, pts if clean else points)  # the same x, y (converted exactly)
     if n == 0:
         status = "no_points"
     elif n < cfg.model.min_points:
         status = "few_points"
     else:
         status = "ok"
-    fs = None if evidence is None else fit_free_space(class_name, evidence.free_space)
     fit = fit_label_valid(
         y,
         None if clean else (points if fit_points is None else fit_points),
         class_name,
         params,
         free_space=fs,
-        prior_terms=terms if fit_terms is None else fit_terms,
+        prior_terms=fit_terms,
         sensor_origin=sensor_origin,
         columns=fit_points if clean else None,
     )
@@ -333,26 +362,25 @@ def audit_object(
     row: dict[str, Any] = {
         "status": status,
         "num_points": int(n),
-        "sigma": float(post.sigma),
-        "jiou_gt": float(jiou_gt(post, cfg.spatial)),
+        "sigma": float(sigma),
+        "jiou_gt": float(jiou),
         "label_error": float(fit.label_error)
         if class_name in C.LABEL_ERROR_CLASSES
         else None,  # null: not validated for the class
-        "sigma_hat": float(post.sigma_hat),
+        "sigma_hat": float(sigma_hat),
         "fit_offset_m": float(np.hypot(fit_box[0] - label[0], fit_box[1] - label[1])),
-        "corner_tv": post.corner_tv.tolist(),
+        "corner_tv": corner_tv.tolist(),
     }
-    std = post.std_box
     for name, column in zip(g.BOX_FIELDS, _STD_COLUMNS):
         row[column] = float(std[name])
-    row["cov"] = np.asarray(post.cov).ravel().tolist()
-    row["cov_dim"] = int(post.cov.shape[0])
-    row["model"] = post.model
+    row["cov"] = np.asarray(cov).ravel().tolist()
+    row["cov_dim"] = int(cov.shape[0])
+    row["model"] = model
     for name, value in zip(_FIT_COLUMNS, fit_box):
         row[name] = value
     if fit.model == "bev":  # points without z: the fit does not touch cz and height
         row["fit_cz"] = row["fit_height"] = float("nan")
-    row["hull_iou"] = hull_iou_valid(y, pts if clean else points)  # the same x, y (converted exactly)
+    row["hull_iou"] = hull
     row["mahalanobis"] = float(fit.mahalanobis)
     row["face_gap"] = float(fit.face_gap)  # NaN (null) when no side face is seen
     if evidence is not None:
