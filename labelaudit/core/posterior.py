@@ -1408,12 +1408,13 @@ def bev_label_scores(
     c, s = g.cos_sin(y[6])  # NumPy's, as box_prior_terms_bev_3d
     w = float(params.prior_weight)
     B, BB = _BASIS["bev"]
+    W2, W3, S_ext, z, cells = _bev_scores_inputs(prior, w, spatial.num_samples, spatial.seed, spatial.cells_per_side)
     ok, sigma, sigma_hat, cov, tv, var, phi, t, pb, qb, cb, keys, shift, p_only, q_only = _bev_scores_kernel(
         y,
         c,
         s,
-        _weighted_prior_info(prior, "bev", w),
-        _weighted_prior_info(prior, "3d", w),
+        W2,
+        W3,
         pts,
         min(int(params.num_nearest), 4),
         float(params.sigma),
@@ -1423,13 +1424,13 @@ def bev_label_scores(
         C.EM_MAX_ITERATIONS,
         B,
         BB,
-        prior_cov_extended_cached(prior, "bev"),
+        S_ext,
         w,
         _CORNER_J["bev"],
         ox,
         oy,
-        normal_samples(6, spatial.num_samples, spatial.seed),
-        float(max(spatial.cells_per_side * 1.0, 1.0)),
+        z,
+        cells,
         C.CELL_STD_SPAN,
         C.MAX_CELLS_PER_AXIS,
         C.SUBROWS_PER_CELL,
@@ -1445,6 +1446,22 @@ def bev_label_scores(
     )
     return BevLabelScores(
         float(sigma), float(sigma_hat), pts.shape[0], cov, tv, _std_of(var, "bev"), float(jiou), float(hull), fit_terms
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _bev_scores_inputs(
+    prior: ClassPrior, weight: float, num_samples: int, seed: int, cells_per_side: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
+    """The box-independent inputs of :func:`bev_label_scores`, looked up once per box instead of
+    four caches: w Σ_ỹ⁻¹ of the BEV and 3D models, the BEV Σ_ỹ, JIoU-GT's normal samples and its
+    cells per side (:func:`~labelaudit.core.spatial.jiou_gt`'s, for d = 2). Read-only arrays."""
+    return (
+        _weighted_prior_info(prior, "bev", weight),
+        _weighted_prior_info(prior, "3d", weight),
+        prior_cov_extended_cached(prior, "bev"),
+        normal_samples(6, num_samples, seed),
+        float(max(cells_per_side * 1.0, 1.0)),
     )
 
 
