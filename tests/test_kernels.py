@@ -103,6 +103,23 @@ def test_the_dispatch_calls_the_signature_numba_would_pick_and_jit_for_the_rest(
     assert k._jit is not None
 
 
+def test_the_dispatch_is_generated_on_its_first_call_into_the_same_function():
+    """Before its first call a kernel's dispatch holds only a stub's code (nothing generated at
+    import); the first call gives the same function object the generated code, which later calls
+    run. A module that bound the name at import keeps calling that one object."""
+    f8 = np.arange(5.0)
+    k = _fake_kernel([(f8, 1.0)], fn=_scale_by_two)
+    dispatch = k.dispatch
+    assert dispatch.__code__ is K._first_call.__code__
+    assert dispatch.__wrapped__ is _scale_by_two and dispatch.kernel is k and dispatch.__name__ == "_scale_by_two"
+    assert dispatch(f8) == ("compiled", 0, 2.0)  # the default, as the generated code passes it
+    assert k.dispatch is dispatch and dispatch.__code__ is not K._first_call.__code__
+    assert dispatch.__code__.co_argcount == 2 and dispatch.__defaults__ == (2.0,)
+    assert dispatch(f8, 5.0) == ("compiled", 0, 5.0)
+    generated = dispatch.__code__
+    assert k._install() is dispatch and dispatch.__code__ is generated  # once only
+
+
 class _QuickOnly(K.Kernel):
     def call_by_key(self, *args):
         raise AssertionError("took the keyed lookup")

@@ -237,6 +237,12 @@ def _jit_view(v: Any) -> Any:
     return v
 
 
+def _first_call(*args: Any, **kwargs: Any) -> Any:
+    """The code of a kernel's dispatch before its first call (:meth:`Kernel._first_call_stub`);
+    ``_install`` is its kernel's, from the function's own globals."""
+    return _install()(*args, **kwargs)  # noqa: F821 - defined in the stub's globals
+
+
 class Kernel:
     """A kernel on the ahead-of-time path.
 
@@ -253,14 +259,42 @@ class Kernel:
         self._exports = [(getattr(module, symbol), _freeze(key)) for symbol, key in exports]
         self._by_key = {key: f for f, key in self._exports}
         self._jit: Any = None
-        self.dispatch = self._make_dispatch()
+        self.dispatch = self._first_call_stub()
 
-    def _make_dispatch(self) -> Callable[..., Any]:
+    def _first_call_stub(self) -> Callable[..., Any]:
+        """:attr:`dispatch` before its first call: a function that generates the dispatch code
+        (:meth:`_make_dispatch`), takes it over as its own (``__code__``, ``__defaults__``) and
+        calls it. Generating it (a ``compile`` per kernel, ~0.17 ms) at import cost every process
+        that imports the core ~20 ms for ~125 kernels, most of which a process never calls; later
+        calls run the generated code itself, through the same function object (the name a module
+        bound at import)."""
+        fn = self.py_func
+        env: dict[str, Any] = {"__builtins__": __builtins__, "_install": self._install}
+        stub = pytypes.FunctionType(_first_call.__code__, env, fn.__name__)
+        stub.__qualname__, stub.__module__, stub.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
+        stub.__wrapped__ = fn  # type: ignore[attr-defined]
+        stub.py_func = fn  # type: ignore[attr-defined]
+        stub.kernel = self  # type: ignore[attr-defined]
+        return stub
+
+    def _install(self) -> Callable[..., Any]:
+        """Give :attr:`dispatch` its generated code (once; a second thread's call finds it done)."""
+        stub = self.dispatch
+        if stub.__code__ is _first_call.__code__:
+            made = self._make_dispatch(stub.__globals__)
+            stub.__defaults__ = made.__defaults__
+            stub.__code__ = made.__code__
+        return stub
+
+    def _make_dispatch(self, env: dict[str, Any] | None = None) -> Callable[..., Any]:
+        """The generated dispatch function, its names defined in ``env`` (its globals; a new dict
+        by default)."""
         fn = self.py_func
         nargs = fn.__code__.co_argcount
         args = ", ".join(f"a{i}" for i in range(nargs))
         defaults = fn.__defaults__ or ()
-        env: dict[str, Any] = {"_ndarray": np.ndarray, "_slow": self.call_by_key}
+        env = {} if env is None else env
+        env.update({"_ndarray": np.ndarray, "_slow": self.call_by_key})
         params = [f"a{i}" if i < nargs - len(defaults) else f"a{i}=_default{i}" for i in range(nargs)]
         env.update({f"_default{nargs - len(defaults) + j}": v for j, v in enumerate(defaults)})
         lines = [f"def {fn.__name__}({', '.join(params)}):"]
@@ -272,12 +306,7 @@ class Kernel:
             lines.append(f"    if {' and '.join(tests) or 'True'}:\n        return _k{j}({args})")
         lines.append(f"    return _slow({args})")
         exec("\n".join(lines), env)  # noqa: S102 - a template over the build's own table
-        dispatch = env[fn.__name__]
-        dispatch.__qualname__, dispatch.__module__, dispatch.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
-        dispatch.__wrapped__ = fn
-        dispatch.py_func = fn
-        dispatch.kernel = self
-        return dispatch
+        return env.pop(fn.__name__)
 
     def call_by_key(self, *args: Any) -> Any:
         """The compiled function for these arguments' types, or numba's JIT."""
