@@ -19,7 +19,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 _SERVER = """
-import os, sys, threading, time
+import gc, os, sys, threading, time
 if sys.argv[1] == "thread":  # another thread: the fork is not safe, the usual server starts
     threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
 from concurrent.futures import ProcessPoolExecutor
@@ -34,13 +34,15 @@ forked = [open(f"/proc/{p}/cmdline", "rb").read() == me for p in (server, tracke
 with ProcessPoolExecutor(2, mp_context=mp.get_context("forkserver")) as pool:  # semaphores: the tracker's
     parents = {pool.submit(os.getppid).result() for _ in range(4)}
     got = pool.submit(pow, 3, 4).result()
+    collects = pool.submit(gc.isenabled).result()  # a worker inherits the server's collector
+    frozen = pool.submit(gc.get_freeze_count).result() > 0
 for _ in range(100):  # a forked one names itself once it runs
     names = [open(f"/proc/{p}/comm").read().strip() for p in (server, tracker)]
     named = names == [E.FORKED_SERVER_NAME, E.FORKED_TRACKER_NAME]
     if named or not forked[0]:
         break
     time.sleep(0.05)
-print(server, tracker, forked[0] == forked[1] == named, forked[0], parents == {server}, got)
+print(server, tracker, forked[0] == forked[1] == named, forked[0], parents == {server}, got, collects, frozen)
 """
 
 
@@ -61,8 +63,11 @@ def _gone(pid: int, timeout: float = 10.0) -> bool:
 def test_the_fork_server_is_a_fork_only_of_a_single_threaded_process_and_ends_with_it(case, forked):
     done = subprocess.run([sys.executable, "-c", _SERVER, case], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    server, tracker, alike, was_forked, from_server, got = done.stdout.split()
+    server, tracker, alike, was_forked, from_server, got, collects, frozen = done.stdout.split()
     assert alike == "True" and was_forked == str(forked) and from_server == "True" and got == "81"
+    # the forked server imports its preload with the collector off, then freezes what it holds and
+    # collects again: its workers collect, without walking the server's objects
+    assert collects == "True" and frozen == str(forked)
     assert _gone(int(server)) and _gone(int(tracker))  # their parent exited: so did they
     assert done.stderr == ""  # no leaked semaphore, no traceback
 
