@@ -7,6 +7,7 @@ the real core, simulator and KITTI reader.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -404,6 +405,36 @@ def test_pool_executor_returns_every_result_and_reports_a_dead_worker():
     assert sorted(PoolExecutor(2).run([1, 2, 3], _square)) == [1, 4, 9]
     with pytest.raises(WorkerCrashed, match="rerun the same command to resume"):
         list(PoolExecutor(2).run([1, 2], _die))
+
+
+_LINGER = 2.0  # s a worker of the test below takes to exit
+
+
+def _square_then_linger(x: int) -> int:
+    from multiprocessing import util
+
+    if not getattr(util, "_labelaudit_test_linger", False):  # once per worker: a slow exit
+        util._labelaudit_test_linger = True
+        util.Finalize(None, time.sleep, args=(_LINGER,), exitpriority=0)
+    return x * x
+
+
+def test_a_finished_pool_run_lets_the_caller_go_on_while_its_workers_stop_and_close_waits_for_them():
+    """Once every result is back the pool's workers are stopped in the background: the caller
+    (infer: the end of the run) goes on at once, and close() returns when every worker has exited."""
+    import multiprocessing
+
+    from labelaudit.executors import PoolExecutor
+
+    pool = PoolExecutor(2)
+    results = pool.run([1, 2, 3, 4], _square_then_linger)
+    got = [next(results) for _ in range(4)]
+    t = time.perf_counter()
+    assert next(results, None) is None  # exhausted: the workers are not waited for here
+    assert time.perf_counter() - t < _LINGER / 2
+    pool.close()
+    assert time.perf_counter() - t >= _LINGER * 0.9 and not multiprocessing.active_children()
+    assert sorted(got) == [1, 4, 9, 16]
 
 
 def test_waymo_v1_and_v2_give_the_same_rows(fake_core, tmp_path):

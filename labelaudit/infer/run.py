@@ -465,7 +465,7 @@ def _run_locked(
     frames = objects = 0
     columns: dict[str, list[Any]] = {c: [] for c in SUMMARY_COLUMNS}  # for the end-of-run summary
     progress.start(len(refs), sum(len(c) for name, c in chunks if name in done))
-    try:
+    try:  # the executor is closed after the end below: a pool's workers stop meanwhile
         for k, result in enumerate(executor.run(tasks, process_chunk)):
             result = encode_chunk(result, metadata)  # the worker has (ChunkTask.metadata): then a no-op
             if request.strict and result.failure is not None:
@@ -481,14 +481,16 @@ def _run_locked(
             # and it records what the chunk's errors part must hold (R.chunk_state).
             R.write_bytes_atomic(shards[R.OBJECTS_DIR], shard_dir / result.name)
             if k == 0:
-                _import_for_the_end()
+                _import_for_the_end(fmt)
             for c, values in (result.summary or {}).items():
                 columns[c].extend(values)
             frames += result.frames
             objects += result.objects
             progress.advance(result)
-    finally:
+    except BaseException:
         executor.close()
+        raise
+    finally:
         progress.stop()
 
     # Shards of an earlier plan (e.g. another --limit) would mix into the results: remove them.
@@ -498,10 +500,12 @@ def _run_locked(
             for p in d.glob("*.parquet"):
                 if p.name not in keep:
                     p.unlink()
-    # Tracks span chunks: judged once, over every written row (labelaudit/infer/tracks.py).
-    from labelaudit.infer.tracks import run_tracks_pass
+    # Tracks span chunks: judged once, over every written row (labelaudit/infer/tracks.py). For a
+    # format without tracks the pass only removes an older run's tracks file: not imported otherwise.
+    if metadata.get("format") in C.TRACK_FORMATS or (output / R.TRACKS_FILE).exists():
+        from labelaudit.infer.tracks import run_tracks_pass
 
-    run_tracks_pass(output, cfg, metadata)
+        run_tracks_pass(output, cfg, metadata)
     error_parts = sorted(err_dir.glob("*.parquet")) if err_dir.is_dir() else []
     errors = R.read_error_tables(error_parts)
     R.write_parquet_atomic(R.with_metadata(errors, metadata), output / R.ERRORS_FILE)
@@ -516,6 +520,7 @@ def _run_locked(
         "wall_seconds_last_run": round(wall, 3),
     }
     R.write_json_atomic(manifest, output / R.MANIFEST_NAME)
+    executor.close()
     return RunSummary(
         output,
         manifest,
@@ -532,13 +537,14 @@ def _run_locked(
     )
 
 
-def _import_for_the_end() -> None:
-    """Import what the end of a run needs (the tracks pass; Parquet's writer for ``errors.parquet``)
-    once the first chunk is back: while the workers compute, not on the run's tail, where the
-    writing process is all that runs (~20 ms)."""
+def _import_for_the_end(fmt: str) -> None:
+    """Import what the end of a run needs (the tracks pass of a format with tracks; Parquet's
+    writer for ``errors.parquet``) once the first chunk is back: while the workers compute, not on
+    the run's tail, where the writing process is all that runs (~20 ms)."""
     import pyarrow.parquet  # noqa: F401
 
-    import labelaudit.infer.tracks  # noqa: F401
+    if fmt in C.TRACK_FORMATS:
+        import labelaudit.infer.tracks  # noqa: F401
 
 
 def chunk_failure(result: ChunkResult) -> str | None:
