@@ -594,7 +594,8 @@ def test_the_label_error_fit_gets_the_wider_crop(fake_core, monkeypatch):
 
 
 def test_worker_warmup_runs_the_audit() -> None:
-    """The fork server's warm-up (constants.WORKER_PRELOAD) really audits an object, in both models."""
+    """The fork server's warm-up (constants.WORKER_PRELOAD) really audits an object (in the BEV model,
+    and in the 3D one too on numba's JIT path)."""
     from labelaudit import constants
     from labelaudit.infer.warmup import warm_up
 
