@@ -466,6 +466,45 @@ def _fan(box: np.ndarray) -> F.FreeSpace:
     return F.FreeSpace(origin, ends, np.array([GROUND, 0.0, 0.0, 0.0]), box[:2].copy(), (0.25, 0.6), 0.1)
 
 
+def test_ray_rows_early_skips_are_exact(monkeypatch):
+    """The ray rows skip a ray before its deepest point when both its ends lie on one side of an
+    axis deep enough to keep it above the least depth with a row, and before the faces' blend when
+    its tolerance keeps it short of a row: on rays of every kind (missing the box, grazing it,
+    crossing it deep, ending on the object inside it), at boxes about the label, the rows are those
+    of every ray evaluated in full (the kernel's own code run without the skips: the same rays,
+    rows equal to the last bits)."""
+    rng = np.random.default_rng(11)
+    label = np.array([12.0, 3.0, GROUND + 0.75, 4.4, 1.9, 1.5, 0.4])
+    ends = np.c_[rng.uniform(6, 20, 3000), rng.uniform(-4, 10, 3000), GROUND + rng.uniform(0.0, 1.2, 3000)]
+    fs = F.FreeSpace(
+        np.array([0.0, 0.0, 1.7]), ends, np.array([GROUND, 0.0, 0.0, 0.0]), label[:2].copy(), (0.25, 0.6), 0.1
+    )
+    ends_t, ox, oy, hz = fs.kernel_inputs()
+    hz5, m, smooth = np.r_[hz, 0.05], ends_t.shape[1], C.FIT_SMOOTHING
+    tmin = min(fs.tolerance, fs.inside_tolerance) - 1.5 * smooth
+    axis_skips = 0
+    for _ in range(12):
+        box = label + np.r_[rng.normal(0, 0.15, 2), 0.0, rng.normal(0, 0.2, 2), 0.0, rng.normal(0, 0.05)]
+        args = (box, ends_t, ox, oy, hz5, fs.tolerance, fs.inside_tolerance, 1.0, 0.1, smooth, True)
+        a, b = np.zeros((8, m)), np.zeros(m)
+        got = F.free_rows_kernel(*args, a, b, np.zeros(m), np.inf, np.empty(0))
+        with monkeypatch.context() as mp:
+            mp.setattr(F, "_ROW_MARGIN", math.inf)  # every ray through _deepest and the blend
+            a_ref, b_ref = np.zeros((8, m)), np.zeros(m)
+            want = F.free_rows_kernel.py_func(*args, a_ref, b_ref, np.zeros(m), np.inf, np.empty(0))
+        assert got == want and got > 20
+        assert np.allclose(a[:, :got], a_ref[:, :want], rtol=1e-13, atol=1e-15)
+        assert np.allclose(b[:got], b_ref[:want], rtol=1e-13, atol=1e-15)
+        c, s = math.cos(box[6]), math.sin(box[6])
+        bx, by = c * (ox - box[0]) + s * (oy - box[1]), -s * (ox - box[0]) + c * (oy - box[1])
+        px = c * (ends_t[0] - box[0]) + s * (ends_t[1] - box[1])
+        py = -s * (ends_t[0] - box[0]) + c * (ends_t[1] - box[1])
+        mx = np.where(np.sign(px) == np.sign(bx), np.minimum(abs(bx), np.abs(px)), 0.0)
+        my = np.where(np.sign(py) == np.sign(by), np.minimum(abs(by), np.abs(py)), 0.0)
+        axis_skips += int((np.minimum(box[3] / 2 - mx, box[4] / 2 - my) < tmin - 1e-9).sum())
+    assert axis_skips > 1000  # the skip is exercised
+
+
 def test_ray_rows_are_continuous_in_the_box():
     """A ray's row must move by about as much as the box does: the fit's result is then a
     continuous function of its inputs, and a last-bit change of a box or a point moves

@@ -1222,6 +1222,48 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
         assert (rr, ss, sw) == (rr_want, ss_want, sw_want)
 
 
+def test_fit_descent_stop_hands_back_the_accepted_pass(tmp_path, monkeypatch):
+    """A descent that stops on the last box it accepted hands back that box's own pass — its
+    precision and RMS sums — instead of a further pass at it: with the log posterior not wanted
+    (RMS not above ``post_above``) every output but the log posterior (NaN) is the full pass's bit
+    for bit, and the log posterior is the full pass's whenever it is given. On the pipeline's fits
+    of simulated frames, where descents do stop so."""
+    from labelaudit.config import resolve_config
+    from labelaudit.datasets import open_dataset
+    from labelaudit.infer import rows as rows_mod
+    from labelaudit.sim.dataset import simulate_dataset
+
+    simulate_dataset(tmp_path / "sim", frames=8, seed=4, progress=False)
+    calls, inner = [], LF._fit_em_kernel
+
+    def spy(*a):
+        calls.append(a)
+        return inner(*a)
+
+    monkeypatch.setattr(LF, "_fit_em_kernel", spy)
+    reader = open_dataset(tmp_path / "sim", "kitti")
+    cfg = resolve_config(None, "kitti", None, None)
+    for ref in reader.list_units():
+        for frame in reader.load_unit(ref):
+            rows_mod.process_frame(frame, cfg)
+    monkeypatch.undo()
+    stops = 0
+    for a in calls:
+        cov_full, cov_kept = np.empty_like(a[29]), np.empty_like(a[29])
+        full = inner(*a[:29], cov_full, -math.inf)
+        kept = inner(*a[:29], cov_kept, math.inf)
+        assert cov_full.tobytes() == cov_kept.tobytes()
+        for i in (0, 1, 7):
+            assert full[i].tobytes() == kept[i].tobytes()
+        assert (full[2], full[3], full[5], full[6]) == (kept[2], kept[3], kept[5], kept[6])
+        if math.isnan(kept[4]):
+            stops += 1
+        else:
+            assert kept[4] == full[4]
+        assert not math.isnan(full[4])
+    assert len(calls) > 40 and stops > 0, (len(calls), stops)
+
+
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_point_normal_equations_equal_the_rows_gram(model):
     """The point pass's one-pass sums (no rows written; deep points centred on the sums) equal the

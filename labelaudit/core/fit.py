@@ -192,19 +192,25 @@ def _rect_from_phi(phi, three_d, label, floor):  # pragma: no cover - compiled
     Equals ``geometry.phi_to_box`` (then the size floor), in scalar arithmetic: it runs once per
     fit iteration on 8 numbers, inside the compiled fit loop (:func:`_fit_iterate_kernel`).
     """
+    out = np.empty(7)
+    _rect_from_phi_into(phi, three_d, label, floor, out)
+    return out
+
+
+@kernel
+def _rect_from_phi_into(phi, three_d, label, floor, out):  # pragma: no cover - compiled
+    """:func:`_rect_from_phi` written into ``out`` (7,) (the fit's loop reuses one rectangle)."""
     o = 1 if three_d else 0
     lc, ls, wc, ws = phi[2 + o], phi[3 + o], phi[4 + o], phi[5 + o]
     a, b = math.atan2(ls, lc), math.atan2(ws, wc)
     two_pi = 2.0 * math.pi
     yaw = (a + 0.5 * ((b - a + math.pi) % two_pi - math.pi) + math.pi) % two_pi - math.pi
     cz, height = (phi[2], phi[7]) if three_d else (label[2], label[5])
-    out = np.empty(7)
     out[0], out[1], out[2] = phi[0], phi[1], cz
     out[3] = max(math.hypot(lc, ls), floor * label[3])
     out[4] = max(math.hypot(wc, ws), floor * label[4])
     out[5] = max(height, floor * label[5])
     out[6] = yaw
-    return out
 
 
 def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -402,6 +408,29 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
     rounds less than the rows' world coordinates. The same sums as the rows' (:func:`_rows_kernel`,
     :func:`_gram_kernel`), which outlier weights (an exponential per point) still take, up to rounding."""
     n = pts_t.shape[1]
+    return _normal_eq_work(
+        y,
+        pts_t,
+        d,
+        free_depth,
+        deep_weight,
+        outlier,
+        sigma,
+        phi,
+        np.empty(n, dtype=np.int64),
+        np.empty(n),
+        np.empty(n),
+        np.empty(n),
+    )
+
+
+@kernel
+def _normal_eq_work(
+    y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi, face, along, bs, rs
+):  # pragma: no cover - compiled
+    """:func:`_normal_eq_kernel` with its per-point work arrays (N,) given: ``face`` (int64),
+    ``along``, ``bs``, ``rs`` (the fit's passes over one set of points share them)."""
+    n = pts_t.shape[1]
     if outlier > 0.0:
         a = np.empty((2 * d + 2, n))
         b = np.empty(n)
@@ -417,13 +446,12 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
             sw += w2
         return ata, atb, rr, ss, sw
     three = d == 3
-    face = np.empty(n, dtype=np.int64)
-    along, bs, rs = np.empty(n), np.empty(n), np.empty(n)
     ata, atb, rr, ss, sw = _point_sums_kernel(y, pts_t, three, free_depth, deep_weight, phi, face, along, bs, rs)
     cnt = np.zeros(6)
     s_along = np.zeros(6)
     sb = np.zeros(6)
     sr = np.zeros(6)
+    deep = 0
     for k in range(n):
         f = face[k]
         if f >= 0:
@@ -431,6 +459,7 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
             s_along[f] += along[k]
             sb[f] += bs[k]
             sr[f] += rs[k]
+            deep += 1
     c, s = math.cos(y[6]), math.sin(y[6])
     w = deep_weight
     u = np.empty(8)  # a face's mean deep row ā (3D layout)
@@ -454,7 +483,7 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
             atb[i] -= u[i] * sb[f]
             for j in range(8):
                 ata[i, j] -= cnt[f] * u[i] * u[j]
-    for k in range(n):
+    for k in range(n if deep else 0):  # no deep point: nothing to centre
         f = face[k]
         if f >= 0:
             r = rs[k] - sr[f] / cnt[f]
@@ -723,22 +752,29 @@ def _solve_spd(M, rhs):  # pragma: no cover - compiled
     triangular substitutions (scalars only; a LAPACK call from here would need scipy). NaN when M
     is not positive definite: the fit then reports NaN."""
     p = M.shape[0]
-    L = np.zeros((p, p))
+    x = np.empty(p)
+    _solve_spd_into(M, rhs, np.zeros((p, p)), np.empty(p), x)
+    return x
+
+
+@kernel
+def _solve_spd_into(M, rhs, L, z, x):  # pragma: no cover - compiled
+    """:func:`_solve_spd` into ``x`` (p,), with its work arrays given: L (p, p; zeros above the
+    diagonal, the rest written before it is read), z (p,)."""
+    p = M.shape[0]
     if not linalg.cholesky_kernel(M, L):
-        return np.full(p, np.nan)
-    z = np.empty(p)
+        x[:] = np.nan
+        return
     for i in range(p):
         acc = rhs[i]
         for k in range(i):
             acc -= L[i, k] * z[k]
         z[i] = acc / L[i, i]
-    x = np.empty(p)
     for i in range(p - 1, -1, -1):
         acc = z[i]
         for k in range(i + 1, p):
             acc -= L[k, i] * x[k]
         x[i] = acc / L[i, i]
-    return x
 
 
 @kernel
@@ -803,6 +839,30 @@ _RAY_REACH = (
 
 
 @kernel
+def _max_abs_diff(a, b):  # pragma: no cover - compiled
+    """``np.max(np.abs(a − b))`` of two vectors (p,) without the temporaries: NaN when a difference is NaN."""
+    out = abs(a[0] - b[0])
+    if out != out:
+        return out
+    for i in range(1, a.shape[0]):
+        v = abs(a[i] - b[i])
+        if v != v:
+            return v
+        if v > out:
+            out = v
+    return out
+
+
+@kernel
+def _all_equal(a, b):  # pragma: no cover - compiled
+    """``np.all(a == b)`` of two vectors (p,) without the temporary."""
+    for i in range(a.shape[0]):
+        if not a[i] == b[i]:
+            return False
+    return True
+
+
+@kernel
 def _fit_iterate_kernel(
     y_cur,
     phi,
@@ -831,9 +891,19 @@ def _fit_iterate_kernel(
     smooth,
     wfloor,
     bounds,
+    face,
+    along,
+    bs,
+    rs,
+    ray_a,
+    ray_b,
 ):  # pragma: no cover - compiled
     """EM iterations of the box fit on (d, N) points from rectangle ``y_cur`` (φ ``phi``) until φ
-    moves by less than ``tol`` (at most ``max_iter``). Returns (φ, rectangle, iterations, converged).
+    moves by less than ``tol`` (at most ``max_iter``). Returns (φ, rectangle, iterations, converged,
+    stopped, precision, Σ w²‖x − v̄‖², Σ w²): ``stopped`` when a descent ended on the last box it
+    accepted, whose pass is then the fitted box's — the symmetrised precision P0 + Σ aᵀa / σ² of its
+    point and ray rows and its points' RMS sums (:func:`_fit_precision_work`'s, the same operations
+    on the same rows) are returned with it (otherwise undefined).
 
     With free-space rays the iteration is a descent (docs/label-error.md, "The suggested box"): a
     step that raises the cost is halved back (up to ``halvings`` times), and when a step shorter
@@ -844,27 +914,60 @@ def _fit_iterate_kernel(
     converge: the state the iteration cap would end on is known, and is returned without running
     the remaining iterations. Point pass, free-space ray rows, Gram product, the p × p solve and
     the rectangle of φ are all compiled: per iteration, NumPy calls around the point pass would
-    cost as much as the pass itself.
+    cost as much as the pass itself. The work arrays — the point pass's ``face``, ``along``,
+    ``bs``, ``rs`` (N,), the ray rows' ``ray_a`` (p, M), ``ray_b`` (M,) — are given, and the
+    iteration's own vectors and matrices are made once: the element-wise operations are NumPy's
+    expressions written as loops (the same operations in the same order).
     """
     d = 3 if three_d else 2
     p = phi.shape[0]
     m = ends_t.shape[1]
+    phi = phi.copy()  # the caller's φ (the label's) is never written: halving steps work in place
     phi_prev = phi.copy()
+    new = np.empty(p)
+    y_cur = y_cur.copy()
+    prec = np.empty((p, p))
+    sym = np.empty((p, p))
+    rhs = np.empty(p)
+    chol = np.zeros((p, p))
+    z = np.empty(p)
+    sigma = 1.0 / math.sqrt(inv_s2)
+    kept = np.empty((p, p))  # the last accepted box's symmetrised precision (a descent's stop returns that box)
+    kept_ss = kept_sw = 0.0
+    kept_ok = False  # whether ``kept`` is the last accepted box's: the first pass is at ``y_cur`` as given, not rect(φ)
     descent = halvings > 0 and m > 0  # only rays made plain steps overshoot (points alone: EM converges)
     e_prev = math.inf
     halved = 0
     it = 0
     for it in range(1, max_iter + 1):
-        ata, atb, rr, _, _ = _normal_eq_kernel(
-            y_cur, pts_t, d, free_depth, deep_weight, outlier, 1.0 / math.sqrt(inv_s2), phi
+        ata, atb, rr, ss, sw = _normal_eq_work(
+            y_cur, pts_t, d, free_depth, deep_weight, outlier, sigma, phi, face, along, bs, rs
         )
         if m:
-            ata_r, atb_r, rr_r, k = _ray_normal_eq_kernel(
-                y_cur, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label
+            ata_r, atb_r, rr_r, k = _ray_normal_eq_work(
+                y_cur,
+                ends_t,
+                ox,
+                oy,
+                hz,
+                tau,
+                tau_in,
+                ray_weight,
+                slit,
+                smooth,
+                three_d,
+                phi,
+                wfloor,
+                bounds,
+                label,
+                ray_a,
+                ray_b,
             )
             if k:
-                ata += ata_r
-                atb += atb_r
+                for i in range(p):
+                    for j in range(p):
+                        ata[i, j] += ata_r[i, j]
+                    atb[i] += atb_r[i]
                 rr += rr_r
         if descent:
             # the cost at this box (rows and robust weights of this box, prior); a step that raised it
@@ -876,30 +979,44 @@ def _fit_iterate_kernel(
                     acc += P0[i, j] * phi[j]
                 e_cur += phi[i] * acc
             if e_cur > e_prev * (1.0 + 1e-12) + 1e-12:
-                if halved >= halvings or np.max(np.abs(phi - phi_prev)) < stall:
+                if halved >= halvings or _max_abs_diff(phi, phi_prev) < stall:
                     # a step shorter than ``stall`` still raises the cost: the descent has stopped at
                     # the last point it accepted, which is returned as it is (not the trial point:
                     # where the halving ended depends on the path, the accepted point on the data)
-                    return phi_prev, _rect_from_phi(phi_prev, three_d, label, floor), it, True
+                    _rect_from_phi_into(phi_prev, three_d, label, floor, y_cur)
+                    return phi_prev, y_cur, it, True, kept_ok, kept, kept_ss, kept_sw
                 halved += 1
-                phi = 0.5 * (phi_prev + phi)
-                y_cur = _rect_from_phi(phi, three_d, label, floor)
+                for i in range(p):
+                    phi[i] = 0.5 * (phi_prev[i] + phi[i])
+                _rect_from_phi_into(phi, three_d, label, floor, y_cur)
                 continue
             halved = 0
             e_prev = e_cur
-        precision = P0 + ata * inv_s2
-        new = _solve_spd(0.5 * (precision + precision.T), prior_eta + atb * inv_s2)
-        step = np.max(np.abs(new - phi))
-        if it >= 3 and step >= tol and np.all(new == phi_prev):
+        for i in range(p):  # P0 + ata σ⁻², symmetrised; η + atb σ⁻²
+            for j in range(p):
+                prec[i, j] = P0[i, j] + ata[i, j] * inv_s2
+        for i in range(p):
+            for j in range(p):
+                sym[i, j] = 0.5 * (prec[i, j] + prec[j, i])
+            rhs[i] = prior_eta[i] + atb[i] * inv_s2
+        if descent:
+            kept_ok = it > 1
+            if kept_ok:
+                kept[:, :] = sym
+                kept_ss, kept_sw = ss, sw
+        _solve_spd_into(sym, rhs, chol, z, new)
+        step = _max_abs_diff(new, phi)
+        if it >= 3 and step >= tol and _all_equal(new, phi_prev):
             # φ_it = φ_(it−2): the states alternate up to the cap. End on the cap's state.
             if (max_iter - it) % 2 == 0:
                 phi = new
-            return phi, _rect_from_phi(phi, three_d, label, floor), max_iter, False
-        phi_prev, phi = phi, new
-        y_cur = _rect_from_phi(phi, three_d, label, floor)
+            _rect_from_phi_into(phi, three_d, label, floor, y_cur)
+            return phi, y_cur, max_iter, False, False, kept, kept_ss, kept_sw
+        phi_prev, phi, new = phi, new, phi_prev
+        _rect_from_phi_into(phi, three_d, label, floor, y_cur)
         if step < tol:
-            return phi, y_cur, it, True
-    return phi, y_cur, it, False
+            return phi, y_cur, it, True, False, kept, kept_ss, kept_sw
+    return phi, y_cur, it, False, False, kept, kept_ss, kept_sw
 
 
 @kernel
@@ -911,8 +1028,32 @@ def _ray_normal_eq_kernel(
     the ``label`` (:func:`~labelaudit.core.freespace.label_ray_terms`) rule them out — exact (bounds
     of +inf evaluate every ray)."""
     p, m = phi.shape[0], ends_t.shape[1]
-    a = np.empty((p, m))
-    b = np.empty(m)
+    return _ray_normal_eq_work(
+        y,
+        ends_t,
+        ox,
+        oy,
+        hz,
+        tau,
+        tau_in,
+        ray_weight,
+        slit,
+        smooth,
+        three_d,
+        phi,
+        wfloor,
+        bounds,
+        label,
+        np.empty((p, m)),
+        np.empty(m),
+    )
+
+
+@kernel
+def _ray_normal_eq_work(
+    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label, a, b
+):  # pragma: no cover - compiled
+    """:func:`_ray_normal_eq_kernel` with the rows' work arrays given: a (p, M), b (M,)."""
     slack = displacement(y, label, _RAY_REACH)
     active = free_rows_kernel(
         y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, a, b, bounds, slack, wfloor
@@ -951,10 +1092,93 @@ def _fit_precision_kernel(
     Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
     operations in NumPy's order (no fast-math). The rays skipped by their bounds at the ``label``
     (as in the descent) give no row: the same rows as evaluating every ray."""
-    ata, _, rr, ss, sw = _normal_eq_kernel(y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi)
+    n, p, m = pts_t.shape[1], phi.shape[0], ends_t.shape[1]
+    return _fit_precision_work(
+        y,
+        pts_t,
+        three_d,
+        free_depth,
+        deep_weight,
+        outlier,
+        sigma,
+        phi,
+        P0,
+        inv_s2,
+        ends_t,
+        ox,
+        oy,
+        hz,
+        tau,
+        tau_in,
+        ray_weight,
+        slit,
+        smooth,
+        wfloor,
+        bounds,
+        label,
+        np.empty(n, dtype=np.int64),
+        np.empty(n),
+        np.empty(n),
+        np.empty(n),
+        np.empty((p, m)),
+        np.empty(m),
+    )
+
+
+@kernel
+def _fit_precision_work(
+    y,
+    pts_t,
+    three_d,
+    free_depth,
+    deep_weight,
+    outlier,
+    sigma,
+    phi,
+    P0,
+    inv_s2,
+    ends_t,
+    ox,
+    oy,
+    hz,
+    tau,
+    tau_in,
+    ray_weight,
+    slit,
+    smooth,
+    wfloor,
+    bounds,
+    label,
+    face,
+    along,
+    bs,
+    rs,
+    ray_a,
+    ray_b,
+):  # pragma: no cover - compiled
+    """:func:`_fit_precision_kernel` with the work arrays of the point pass and the ray rows given."""
+    ata, _, rr, ss, sw = _normal_eq_work(
+        y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi, face, along, bs, rs
+    )
     if ends_t.shape[1]:
-        ata_r, _, rr_r, _ = _ray_normal_eq_kernel(
-            y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label
+        ata_r, _, rr_r, _ = _ray_normal_eq_work(
+            y,
+            ends_t,
+            ox,
+            oy,
+            hz,
+            tau,
+            tau_in,
+            ray_weight,
+            slit,
+            smooth,
+            three_d,
+            phi,
+            wfloor,
+            bounds,
+            label,
+            ray_a,
+            ray_b,
         )
         ata = ata + ata_r
         rr += rr_r
@@ -1008,12 +1232,21 @@ def _fit_em_kernel(
     wfloor,
     bounds,
     cov,
+    post_above,
 ):  # pragma: no cover - compiled
     """One start of the box fit (:func:`_fit_em`): the descent from rectangle ``start`` (φ ``phi``),
     the precision at the fitted rectangle, its inverse into ``cov`` (p, p). Returns (φ, fitted
     rectangle, iterations, converged, log posterior, RMS of the points that count, whether the
-    precision was positive definite, the precision)."""
-    phi, y_cur, it, converged = _fit_iterate_kernel(
+    precision was positive definite, the precision). The passes share one set of work arrays.
+
+    The log posterior is wanted only when the RMS is above ``post_above`` (−inf: always): a descent
+    that stopped on the last box it accepted then hands back that box's pass (its precision and
+    RMS, the same numbers a further pass would give) and the log posterior is NaN — its residuals
+    at φ of the fitted rectangle would take a further pass."""
+    n, p, m = pts_t.shape[1], phi.shape[0], ends_t.shape[1]
+    face, along, bs, rs = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n), np.empty(n)
+    ray_a, ray_b = np.empty((p, m)), np.empty(m)
+    phi, y_cur, it, converged, stopped, kept, kept_ss, kept_sw = _fit_iterate_kernel(
         start,
         phi,
         pts_t,
@@ -1041,9 +1274,20 @@ def _fit_em_kernel(
         smooth,
         wfloor,
         bounds,
+        face,
+        along,
+        bs,
+        rs,
+        ray_a,
+        ray_b,
     )
     phi_rect = _phi_of_rect(y_cur, three_d)
-    precision, rr, ss, sw = _fit_precision_kernel(
+    if stopped and kept_sw > 0 and math.sqrt(kept_ss / kept_sw) <= post_above:
+        # the descent's stop: the fitted box is the last accepted one, whose precision and RMS the
+        # descent kept; the log posterior (a pass for its residuals at φ_rect) is not wanted
+        ok = linalg.spd_inverse_kernel(kept, cov)
+        return phi, y_cur, it, converged, math.nan, math.sqrt(kept_ss / kept_sw), ok, kept
+    precision, rr, ss, sw = _fit_precision_work(
         y_cur,
         pts_t,
         three_d,
@@ -1066,6 +1310,12 @@ def _fit_em_kernel(
         wfloor,
         bounds,
         label,
+        face,
+        along,
+        bs,
+        rs,
+        ray_a,
+        ray_b,
     )
     ok = linalg.spd_inverse_kernel(precision, cov)
     p = phi_rect.shape[0]
@@ -1126,6 +1376,7 @@ def _fit_em(
     rays: tuple = _NO_RAYS,
     prior_eta: FloatArray | None = None,
     phi_start: FloatArray | None = None,
+    post_above: float = -math.inf,
 ) -> tuple[FloatArray, FloatArray, int, bool, float, FloatArray, float]:
     """Box fit from ``start`` (a rectangle): register each point to its nearest surface point of the
     current box, add a row per free-space ray through the box's slab, take the Gaussian mean with
@@ -1136,7 +1387,8 @@ def _fit_em(
 
     ``pts`` is (d, N) (transposed). The covariance is formed once, at the fitted box, with the ray
     rows active there. ``prior_eta`` = P0 φ_label and ``phi_start`` = φ(start) when the caller has
-    them (a fit runs up to two starts; the first is the label).
+    them (a fit runs up to two starts; the first is the label). The log posterior is wanted only
+    when the RMS is above ``post_above`` (the swapped start's test): below, it may be NaN.
     """
     model = params.kind
     phi = g.phi_of_valid_box(start, model) if phi_start is None else phi_start
@@ -1162,6 +1414,7 @@ def _fit_em(
         float(C.FIT_STALL_STEP),
         *rays,
         cov,
+        post_above,
     )
     if not ok:
         cov = spd_inverse(precision)  # LAPACK's verdict, or the error naming the eigenvalues
@@ -1385,11 +1638,16 @@ def fit_label_valid(
 
     rays = _ray_inputs(free_space, sigma, y)
     prior_eta = terms.eta0  # P0 φ_label
-    best = (_fit_em(y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label), False)
     # A second start with length and width swapped, when the first fit leaves the points far from
     # its surface (RMS > FIT_SWAP_RESIDUAL × σ): the nearest-face registration cannot turn a box by
-    # 90° on its own. The start with the higher log posterior wins.
-    if n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9 and best[0][6] > C.FIT_SWAP_RESIDUAL * sigma:
+    # 90° on its own. The start with the higher log posterior wins (the first start's is wanted only then).
+    can_swap = n >= max(params.min_points, 1) and abs(y[3] - y[4]) > 1e-9
+    swap_rms = C.FIT_SWAP_RESIDUAL * sigma
+    first = _fit_em(
+        y, pts_t, phi_label, P0, y, sigma, params, rays, prior_eta, phi_label, swap_rms if can_swap else math.inf
+    )
+    best = (first, False)
+    if can_swap and first[6] > swap_rms:
         swapped = y.copy()
         swapped[3], swapped[4] = y[4], y[3]
         alt = _fit_em(

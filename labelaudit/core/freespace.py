@@ -268,6 +268,9 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
         out_t[k] = t
 
 
+_ROW_MARGIN = 1e-9  # m; the ray rows' early skips keep this far from a row (far above the rounding of depths in metres)
+
+
 @kernel
 def free_rows_kernel(
     y, ends_t, ox, oy, hz, tau, tau_in, weight, slit, smooth, three_d, a, b, bounds, slack, floor
@@ -283,7 +286,10 @@ def free_rows_kernel(
     ``tau_in``. The rows of the active rays are written to the first columns of a and b; returns
     their number. Rays whose bound (:func:`label_ray_terms`) plus ``slack`` stays below the smaller
     tolerance less 1.5 ``smooth`` are not evaluated (``slack`` = inf evaluates all): exact, a row
-    needs a blended depth (below) more than τ − w/2, and that depth is less than w beyond d*.
+    needs a blended depth (below) more than τ − w/2, and that depth is less than w beyond d*. Two
+    further skips are as exact (``_ROW_MARGIN`` above the rounding): a ray whose ends lie on one
+    side of an axis far enough out that no point between them is deeper than that least depth (no
+    deepest point computed), and one whose d* + w stays below its own tolerance less w/2 (no blend).
 
     The rows are continuous in the box (``smooth`` = w > 0, metres), so that the fit's result is a
     continuous function of its inputs and a last-bit change of them moves it by as little:
@@ -325,6 +331,13 @@ def free_rows_kernel(
             continue
         qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
         px, py = c * qx + s * qy, -s * qx + c * qy
+        # Both ends on one side of an axis: |x| ≥ min(|bx|, |px|) all along the segment, so its depth
+        # is at most hl − that (likewise y). Below the least depth with a row (by more than the
+        # rounding of _deepest's points, ~1e-13 m) the ray gives no row: skipped without _deepest.
+        mx = min(abs(bx), abs(px)) if (bx > 0.0 and px > 0.0) or (bx < 0.0 and px < 0.0) else 0.0
+        my = min(abs(by), abs(py)) if (by > 0.0 and py > 0.0) or (by < 0.0 and py < 0.0) else 0.0
+        if min(hl - mx, hw - my) < tmin - _ROW_MARGIN:
+            continue
         dep, t = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
         if not dep > tmin:
             continue
@@ -336,6 +349,8 @@ def free_rows_kernel(
         lx, ly = bx + t * (px - bx), by + t * (py - by)  # deepest point, box frame
         d0, d1, d2, d3 = hl + lx, hl - lx, hw + ly, hw - ly  # its depth inside the −l, +l, −w, +w face
         dmin = min(d0, d1, d2, d3)
+        if dmin + smooth - tk < -half - _ROW_MARGIN:  # r < dmin + w − τ_k (below): no row, without the blend
+            continue
         u0 = max(0.0, 1.0 - (d0 - dmin) / smooth)
         u1 = max(0.0, 1.0 - (d1 - dmin) / smooth)
         u2 = max(0.0, 1.0 - (d2 - dmin) / smooth)
