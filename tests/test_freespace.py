@@ -472,7 +472,7 @@ def test_ray_rows_early_skips_are_exact(monkeypatch):
     its tolerance keeps it short of a row: on rays of every kind (missing the box, grazing it,
     crossing it deep, ending on the object inside it), at boxes about the label, the rows are those
     of every ray evaluated in full (the kernel's own code run without the skips: the same rays,
-    rows equal to the last bits)."""
+    rows equal to the last bits). The free-ray count skips alike, with the same count."""
     rng = np.random.default_rng(11)
     label = np.array([12.0, 3.0, GROUND + 0.75, 4.4, 1.9, 1.5, 0.4])
     ends = np.c_[rng.uniform(6, 20, 3000), rng.uniform(-4, 10, 3000), GROUND + rng.uniform(0.0, 1.2, 3000)]
@@ -492,6 +492,9 @@ def test_ray_rows_early_skips_are_exact(monkeypatch):
             mp.setattr(F, "_ROW_MARGIN", math.inf)  # every ray through _deepest and the blend
             a_ref, b_ref = np.zeros((8, m)), np.zeros(m)
             want = F.free_rows_kernel.py_func(*args, a_ref, b_ref, np.zeros(m), np.inf, np.empty(0))
+            count_ref = F._count_kernel.py_func(box, ends_t, ox, oy, hz, fs.tolerance, True, ends[:, 2])
+        count = F._count_kernel(box, ends_t, ox, oy, hz, fs.tolerance, True, ends[:, 2])
+        assert count == count_ref and count > 5  # ray_counts' free rays alike
         assert got == want and got > 20
         assert np.allclose(a[:, :got], a_ref[:, :want], rtol=1e-13, atol=1e-15)
         assert np.allclose(b[:got], b_ref[:want], rtol=1e-13, atol=1e-15)

@@ -268,7 +268,20 @@ def _depths_kernel(y, ends_t, ox, oy, hz, out_depth, out_t):  # pragma: no cover
         out_t[k] = t
 
 
-_ROW_MARGIN = 1e-9  # m; the ray rows' early skips keep this far from a row (far above the rounding of depths in metres)
+_ROW_MARGIN = (
+    1e-9  # m; the rays' early skips keep this far from the depth they test (far above the rounding of depths in metres)
+)
+
+
+@kernel(inline="always")
+def _axis_depth_bound(bx, by, px, py, hl, hw):  # pragma: no cover - compiled
+    """An upper bound on the BEV depth min(hl − |x|, hw − |y|) all along the segment b → p (box
+    frame), without its deepest point: with both ends on one side of an axis, |x| ≥ min(|bx|, |px|)
+    all along it (likewise y). Exact up to the rounding of the points :func:`_deepest` evaluates
+    (~1e-13 m): a test against it keeps a margin (``_ROW_MARGIN``)."""
+    mx = min(abs(bx), abs(px)) if (bx > 0.0 and px > 0.0) or (bx < 0.0 and px < 0.0) else 0.0
+    my = min(abs(by), abs(py)) if (by > 0.0 and py > 0.0) or (by < 0.0 and py < 0.0) else 0.0
+    return min(hl - mx, hw - my)
 
 
 @kernel
@@ -331,12 +344,9 @@ def free_rows_kernel(
             continue
         qx, qy = ends_t[0, k] - y[0], ends_t[1, k] - y[1]
         px, py = c * qx + s * qy, -s * qx + c * qy
-        # Both ends on one side of an axis: |x| ≥ min(|bx|, |px|) all along the segment, so its depth
-        # is at most hl − that (likewise y). Below the least depth with a row (by more than the
-        # rounding of _deepest's points, ~1e-13 m) the ray gives no row: skipped without _deepest.
-        mx = min(abs(bx), abs(px)) if (bx > 0.0 and px > 0.0) or (bx < 0.0 and px < 0.0) else 0.0
-        my = min(abs(by), abs(py)) if (by > 0.0 and py > 0.0) or (by < 0.0 and py < 0.0) else 0.0
-        if min(hl - mx, hw - my) < tmin - _ROW_MARGIN:
+        # below the least depth with a row (by more than the rounding of _deepest's points) all along
+        # the segment: no row, without the deepest point
+        if _axis_depth_bound(bx, by, px, py, hl, hw) < tmin - _ROW_MARGIN:
             continue
         dep, t = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
         if not dep > tmin:
@@ -804,7 +814,8 @@ def _counts_kernel(
 @kernel
 def _count_kernel(y, ends_t, ox, oy, hz, tau, free, z):  # pragma: no cover - compiled
     """``free``: rays deeper than τ in the slab of ``y`` whose return is not on or in it; else the
-    returns on or in it (within τ of the rectangle, ≥ hz[3] above the ground, ≤ τ over the top)."""
+    returns on or in it (within τ of the rectangle, ≥ hz[3] above the ground, ≤ τ over the top). A
+    ray that :func:`_axis_depth_bound` keeps short of τ is not counted without its deepest point."""
     c, s = math.cos(y[6]), math.sin(y[6])
     rx, ry = ox - y[0], oy - y[1]
     bx, by = c * rx + s * ry, -s * rx + c * ry
@@ -818,6 +829,8 @@ def _count_kernel(y, ends_t, ox, oy, hz, tau, free, z):  # pragma: no cover - co
             count += on
             continue
         if on:
+            continue
+        if _axis_depth_bound(bx, by, px, py, hl, hw) < tau - _ROW_MARGIN:  # not deeper than τ anywhere
             continue
         dep, _ = _deepest(bx, by, hz[0], px, py, ends_t[2, k], hl, hw, hz[1], hz[2])
         count += dep > tau
