@@ -735,6 +735,60 @@ def test_behind_other_returns_known_answers():
     assert flagged(above) == [False]
 
 
+def _pseudo_bin(x: float, y: float, nbins: int) -> int:
+    """The azimuth bin of a direction (x, y): the kernels' pseudo-angle, in Python floats."""
+    ax, ay = abs(x), abs(y)
+    if ax + ay == 0.0:
+        p = 0.0
+    elif y >= 0.0:
+        p = y / (ax + ay) if x >= 0.0 else 2.0 - y / (ax + ay)
+    else:
+        p = 2.0 - y / (ax + ay) if x < 0.0 else 4.0 + y / (ax + ay)
+    return min(max(int(p * (nbins / 4.0)), 0), nbins - 1)
+
+
+def test_behind_other_returns_equal_a_brute_force_over_the_bucketed_points():
+    """A passing ray is flagged exactly when a bucketed point of its azimuth bin or one of the two
+    beside it (across the seam too) lies on it within the angle, nearer than its deepest point in
+    the slab less τ: the compiled pass visits the points in point order, the rule is per ray."""
+    rng = np.random.default_rng(11)
+    origin = np.array([0.3, -0.2, 1.7])
+    nbins, angle, tau = 64, 0.01, 0.1
+    boxes = np.array(
+        [[12, 0.5, -1.0, 4, 1.8, 1.5, 0.2], [-9, -4, -1.0, 4.5, 2, 1.6, 1.0], [20, -0.4, -1, 4, 2, 1.5, 0]]
+    )
+    ends = np.c_[rng.uniform(-30, 30, (400, 2)), rng.uniform(-1.8, 0.5, 400)]
+    # returns on some of the rays (nearer, or beyond the deepest point), and scattered ones
+    on = origin + (ends[:150] - origin) * rng.uniform(0.2, 1.2, (150, 1)) + rng.normal(0, 0.02, (150, 3))
+    pts = np.vstack([ends, on, np.c_[rng.uniform(-30, 30, (3000, 2)), rng.uniform(-1.8, 1.0, 3000)]])
+    buckets = F.azimuth_buckets(pts, origin, boxes, 1.5, nbins)
+    assert np.all(np.diff(buckets.kept) > 0)
+    assert np.array_equal(buckets.starts[1:] - buckets.starts[:-1], np.bincount(buckets.bins, minlength=nbins))
+    flagged = 0
+    for box in boxes:
+        fs = F.FreeSpace(origin, ends, np.zeros(4), box[:2].copy(), (0.25, 0.6), tau)
+        passing = rng.random(len(ends)) < 0.7
+        reach = np.linalg.norm(ends - origin, axis=1) * rng.uniform(0.5, 1.0, len(ends))
+        got = F.behind_other_returns(box, fs, buckets, angle, (passing, reach))
+        sin2 = math.sin(angle) ** 2
+        for k in range(len(ends)):
+            want = False
+            if passing[k]:
+                d = ends[k] - origin
+                u = d / math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+                q = _pseudo_bin(d[0], d[1], nbins)
+                near = np.isin(buckets.bins, [(q - 1) % nbins, q, (q + 1) % nbins])
+                v = pts[buckets.kept[near]] - origin
+                v2 = (v**2).sum(1)
+                cross = np.cross(u, v)
+                want = bool(
+                    np.any((v2 > 0) & (v2 < (reach[k] - tau) ** 2) & ((cross**2).sum(1) <= sin2 * v2) & (v @ u > 0))
+                )
+            assert got[k] == want, k
+        flagged += int(got.sum())
+    assert flagged > 20
+
+
 def test_the_road_seen_through_every_vehicle_does_not_call_correct_labels_wrong(monkeypatch):
     """The road behind a car returns too, along every ray the car stops (a second return at every
     height, as if the car were glass): each such ray crosses the car's solid slab. Taken for empty

@@ -706,43 +706,87 @@ def behind_other_returns(
     y = np.asarray(box, dtype=float)
     m = fs.num_rays
     out = np.zeros(m, dtype=np.bool_)
-    if m == 0 or len(buckets.order) == 0:
+    if m == 0 or len(buckets.kept) == 0:
         return out
     crossing, reach = passing_rays(y, fs) if passing is None else passing
     nbins = len(buckets.starts) - 1
     _same_ray_kernel(
-        fs.ends, fs.origin, crossing, reach, fs.tolerance, buckets.sorted_xyz, buckets.starts, nbins, float(angle), out
+        fs.ends,
+        fs.origin,
+        crossing,
+        reach,
+        fs.tolerance,
+        buckets.xyz,
+        buckets.kept,
+        buckets.bins,
+        nbins,
+        float(angle),
+        out,
     )
     return out
 
 
 @kernel
-def _same_ray_kernel(ends, o, passing, reach, tau, pts, starts, nbins, angle, out):  # pragma: no cover - compiled
-    """:func:`behind_other_returns` per ray: the points of the ray's azimuth bin and its two
-    neighbours (``pts`` in bucket order, ``starts`` the bins' first positions)."""
+def _same_ray_kernel(ends, o, passing, reach, tau, pts, kept, bins, nbins, angle, out):  # pragma: no cover - compiled
+    """:func:`behind_other_returns` per ray: the bucketed points (``kept`` indices into ``pts``, in
+    point order, ``bins`` their azimuth bins) of the ray's azimuth bin and its two neighbours. The
+    answer of a ray is whether *any* such point is on it, so the points are visited once, in point
+    order, each against the passing rays of its bin and the two neighbouring bins."""
+    m = ends.shape[0]
     scale = nbins / 4.0
     sin2 = math.sin(angle) ** 2
-    for k in range(ends.shape[0]):
+    u = np.empty((m, 3))
+    near2 = np.empty(m)
+    ray_bin = np.empty(m, dtype=np.int64)
+    at = np.zeros(nbins + 1, dtype=np.int64)  # the passing rays by bin: at[q]:at[q + 1] of by_bin
+    left = 0
+    for k in range(m):
         if not passing[k]:
             continue
         ux, uy, uz = ends[k, 0] - o[0], ends[k, 1] - o[1], ends[k, 2] - o[2]
         un = math.sqrt(ux * ux + uy * uy + uz * uz)
-        ux, uy, uz = ux / un, uy / un, uz / un
-        near2 = (reach[k] - tau) ** 2
+        u[k, 0], u[k, 1], u[k, 2] = ux / un, uy / un, uz / un
+        near2[k] = (reach[k] - tau) ** 2
         q = min(max(int(_pseudo_angle(ends[k, 0] - o[0], ends[k, 1] - o[1]) * scale), 0), nbins - 1)
-        for dq in (-1, 0, 1):
-            b = (q + dq) % nbins
-            for i in range(starts[b], starts[b + 1]):
-                vx, vy, vz = np.float64(pts[i, 0]) - o[0], np.float64(pts[i, 1]) - o[1], np.float64(pts[i, 2]) - o[2]
-                v2 = vx * vx + vy * vy + vz * vz
-                if v2 >= near2 or v2 == 0.0:
+        ray_bin[k] = q
+        at[q + 1] += 1
+        left += 1
+    if left == 0:
+        return
+    for q in range(nbins):
+        at[q + 1] += at[q]
+    by_bin = np.empty(left, dtype=np.int64)
+    fill = at[:nbins].copy()
+    seen = np.zeros(nbins, dtype=np.bool_)  # a passing ray in the bin or one of its two neighbours
+    for k in range(m):
+        if passing[k]:
+            q = ray_bin[k]
+            by_bin[fill[q]] = k
+            fill[q] += 1
+            for dq in (-1, 0, 1):
+                seen[(q + dq) % nbins] = True
+    for t in range(kept.shape[0]):
+        b = bins[t]
+        if not seen[b]:
+            continue
+        i = kept[t]
+        vx, vy, vz = np.float64(pts[i, 0]) - o[0], np.float64(pts[i, 1]) - o[1], np.float64(pts[i, 2]) - o[2]
+        v2 = vx * vx + vy * vy + vz * vz
+        if v2 == 0.0:
+            continue
+        for dq in (-1, 0, 1):  # the rays whose bin's neighbourhood holds bin b
+            q = (b + dq) % nbins
+            for a in range(at[q], at[q + 1]):
+                k = by_bin[a]
+                if out[k] or v2 >= near2[k]:
                     continue
+                ux, uy, uz = u[k, 0], u[k, 1], u[k, 2]
                 cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # |u × v|² = sin² · |v|²
                 if cx * cx + cy * cy + cz * cz <= sin2 * v2 and ux * vx + uy * vy + uz * vz > 0.0:
                     out[k] = True
-                    break
-            if out[k]:
-                break
+                    left -= 1
+        if left == 0:
+            return
 
 
 def ray_counts(box: ArrayLike, fs: FreeSpace, points: ArrayLike | None) -> tuple[int, int] | list[tuple[int, int]]:
@@ -854,14 +898,19 @@ def _pseudo_angle(x, y):  # pragma: no cover - compiled
 
 
 @kernel
-def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - compiled
-    """Counting sort by azimuth bin (seen from the sensor) of the points at least √min_r2 from it
-    (nearer ones cannot reach any box) whose bin some box's window covers (``wanted``, nbins
-    booleans): order (M,), starts (nbins + 1,) and the bucketed points' xyz in that order (M, 3),
-    same dtype (the later passes then read the windows sequentially)."""
+def _bucket_kernel(pts, ox, oy, nbins, min_r2, ranges):  # pragma: no cover - compiled
+    """The points at least √min_r2 from the sensor (nearer ones cannot reach any box) whose azimuth
+    bin (seen from the sensor) some box's window covers (``ranges`` (K, 4), two inclusive bin ranges
+    per box): their indices (M,) in point order, their bins (M,), and the number of them before
+    each bin (nbins + 1,)."""
+    wanted = np.zeros(nbins, dtype=np.bool_)
+    for j in range(ranges.shape[0]):
+        for r in range(2):
+            for q in range(ranges[j, 2 * r], ranges[j, 2 * r + 1] + 1):
+                wanted[q] = True
     n = pts.shape[0]
-    kept = np.empty(n, dtype=np.int64)  # the bucketed points and their bins, in point order (a sixth of a frame)
-    kept_bin = np.empty(n, dtype=np.int32)
+    kept = np.empty(n, dtype=np.int64)
+    kept_bin = np.empty(n, dtype=np.int64)
     counts = np.zeros(nbins + 1, dtype=np.int64)
     scale = nbins / 4.0
     m = 0
@@ -877,16 +926,57 @@ def _bucket_kernel(pts, ox, oy, nbins, min_r2, wanted):  # pragma: no cover - co
         counts[q + 1] += 1
     for q in range(nbins):
         counts[q + 1] += counts[q]
-    fill = counts[:nbins].copy()
-    order = np.empty(m, dtype=np.int64)
-    sxyz = np.empty((m, 3), dtype=pts.dtype)
-    for j in range(m):  # stable: the points of a bin stay in point order
-        k, q = kept[j], kept_bin[j]
-        i = fill[q]
-        order[i] = k
-        sxyz[i, 0], sxyz[i, 1], sxyz[i, 2] = pts[k, 0], pts[k, 1], pts[k, 2]
-        fill[q] += 1
-    return order, counts, sxyz
+    return kept[:m].copy(), kept_bin[:m].copy(), counts
+
+
+@kernel
+def _windows_kernel(ranges, starts):  # pragma: no cover - compiled
+    """The boxes' windows by bin: the boxes (B,) whose window covers bin q are
+    ``boxes_of[at[q]:at[q + 1]]``, in box order; and each box's part (B + 1,) of a buffer that can
+    hold every bucketed point of its window (``starts``: bucketed points before each bin)."""
+    nbins = starts.shape[0] - 1
+    b = ranges.shape[0]
+    at = np.zeros(nbins + 1, dtype=np.int64)
+    part = np.zeros(b + 1, dtype=np.int64)
+    for j in range(b):
+        w = 0
+        for r in range(2):
+            q0, q1 = ranges[j, 2 * r], ranges[j, 2 * r + 1]
+            if q0 > q1:
+                continue
+            w += starts[q1 + 1] - starts[q0]
+            for q in range(q0, q1 + 1):
+                at[q + 1] += 1
+        part[j + 1] = part[j] + w
+    for q in range(nbins):
+        at[q + 1] += at[q]
+    fill = at[:nbins].copy()
+    boxes_of = np.empty(at[nbins], dtype=np.int64)
+    for j in range(b):
+        for r in range(2):
+            q0, q1 = ranges[j, 2 * r], ranges[j, 2 * r + 1]
+            if q0 > q1:
+                continue
+            for q in range(q0, q1 + 1):
+                boxes_of[fill[q]] = j
+                fill[q] += 1
+    return at, boxes_of, part
+
+
+@kernel
+def _compact_parts(idx, xyz, part, end):  # pragma: no cover - compiled
+    """Box j's entries are ``part[j]:end[j]`` of ``idx`` (n,) and ``xyz`` (n, 3): moved down in place
+    so that they follow each other; the parts' starts (B + 1,)."""
+    b = part.shape[0] - 1
+    starts = np.zeros(b + 1, dtype=np.int64)
+    d = 0
+    for j in range(b):
+        for p in range(part[j], end[j]):  # d ≤ p: a forward copy in place
+            idx[d] = idx[p]
+            xyz[d, 0], xyz[d, 1], xyz[d, 2] = xyz[p, 0], xyz[p, 1], xyz[p, 2]
+            d += 1
+        starts[j + 1] = d
+    return starts
 
 
 @kernel(inline="always")
@@ -900,39 +990,50 @@ def _hits(ox, oy, oh, px, py, ph, hl, hw, zlo, zhi):  # pragma: no cover - compi
 
 @kernel
 def _select_kernel(
-    pts, order, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs, out, counts
+    pts, kept, bins, starts, ranges, near2, boxes, ground, ox, oy, oz, reach, slabs
 ):  # pragma: no cover - compiled
-    """For each box, the points of its azimuth bins whose ray from the sensor passes through its
-    reach prism (rectangle grown by ``reach``, slab heights above its ground plane); indices into
-    ``out`` (flat, in window order: the caller sorts each box's part), number per box into
-    ``counts``. ``pts`` are the bucketed points in bucket order (``AzimuthBuckets.sorted_xyz``),
-    ``order`` their indices."""
-    pos = 0
-    for j in range(boxes.shape[0]):
+    """For each box, the bucketed points of its azimuth window whose ray from the sensor passes
+    through its reach prism (rectangle grown by ``reach``, slab heights above its ground plane):
+    indices (sorted per box), their xyz as float64 and each box's start (B + 1,), box after box.
+    The bucketed points (``kept``, ``bins``) are visited once in point order, each against the
+    boxes whose window holds its bin, so each box's part comes out sorted."""
+    b = boxes.shape[0]
+    at, boxes_of, part = _windows_kernel(ranges, starts)
+    cs = np.empty((b, 6))  # per box: cos, sin, the sensor in its frame (x, y, height), the ground's g0
+    for j in range(b):
         y = boxes[j]
         c, s = math.cos(y[6]), math.sin(y[6])
         rx, ry = ox - y[0], oy - y[1]
-        bx, by = c * rx + s * ry, -s * rx + c * ry
-        oh = oz - ground[j, 0] - ground[j, 1] * (ox - y[0]) - ground[j, 2] * (oy - y[1])
-        hl, hw = 0.5 * y[3] + reach, 0.5 * y[4] + reach
-        start = pos
-        for r in range(2):
-            q0, q1 = ranges[j, 2 * r], ranges[j, 2 * r + 1]
-            if q0 > q1:
+        cs[j, 0], cs[j, 1] = c, s
+        cs[j, 2], cs[j, 3] = c * rx + s * ry, -s * rx + c * ry
+        cs[j, 4] = oz - ground[j, 0] - ground[j, 1] * (ox - y[0]) - ground[j, 2] * (oy - y[1])
+    idx = np.empty(part[b], dtype=np.int64)
+    xyz = np.empty((part[b], 3))
+    end = part[:b].copy()
+    for t in range(kept.shape[0]):
+        q = bins[t]
+        if at[q] == at[q + 1]:
+            continue
+        i = kept[t]
+        ex, ey = pts[i, 0] - ox, pts[i, 1] - oy
+        e2 = ex * ex + ey * ey
+        for a in range(at[q], at[q + 1]):
+            j = boxes_of[a]
+            if e2 < near2[j]:  # ends before the grown rectangle
                 continue
-            for i in range(starts[q0], starts[q1 + 1]):
-                k = order[i]
-                ex, ey = pts[i, 0] - ox, pts[i, 1] - oy
-                if ex * ex + ey * ey < near2[j]:  # ends before the grown rectangle
-                    continue
-                qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
-                px, py = c * qx + s * qy, -s * qx + c * qy
-                ph = pts[i, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
-                if _hits(bx, by, oh, px, py, ph, hl, hw, slabs[j, 0], slabs[j, 1]):
-                    out[pos] = k
-                    pos += 1
-        counts[j] = pos - start
-    return pos
+            y = boxes[j]
+            c, s = cs[j, 0], cs[j, 1]
+            qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
+            px, py = c * qx + s * qy, -s * qx + c * qy
+            ph = pts[i, 2] - ground[j, 0] - ground[j, 1] * qx - ground[j, 2] * qy
+            hl, hw = 0.5 * y[3] + reach, 0.5 * y[4] + reach
+            if _hits(cs[j, 2], cs[j, 3], cs[j, 4], px, py, ph, hl, hw, slabs[j, 0], slabs[j, 1]):
+                p = end[j]
+                idx[p] = i
+                xyz[p, 0], xyz[p, 1], xyz[p, 2] = np.float64(pts[i, 0]), np.float64(pts[i, 1]), np.float64(pts[i, 2])
+                end[j] = p + 1
+    part_starts = _compact_parts(idx, xyz, part, end)
+    return idx[: part_starts[b]], xyz[: part_starts[b]], part_starts
 
 
 def _bin_of_angle(angle: FloatArray, nbins: int) -> NDArray[np.int64]:
@@ -945,26 +1046,27 @@ def _bin_of_angle(angle: FloatArray, nbins: int) -> NDArray[np.int64]:
 
 @dataclass(frozen=True)
 class AzimuthBuckets:
-    """The frame's points sorted by azimuth bin (seen from the sensor), and each box's bin window.
+    """The frame's points that can matter to some box, with their azimuth bins (seen from the
+    sensor), and each box's bin window.
 
     Attributes
     ----------
     xyz : (N, 3) the frame's points (a float32 or float64 view; the kernels compute in float64)
-    order : (M,) indices of the bucketed points, bin by bin
-    starts : (nbins + 1,) first position of every bin in ``order``
+    kept : (M,) indices of the bucketed points, ascending (point order)
+    bins : (M,) the azimuth bin of each
+    starts : (nbins + 1,) number of bucketed points in the bins before each bin
     ranges : (K, 4) up to two inclusive bin ranges per box
     near2 : (K,) squared BEV distance from the sensor to each box's grown rectangle
     reach : how far the windows reach beyond the boxes (m)
-    sorted_xyz : (M, 3) ``xyz[order]``, same dtype
     """
 
     xyz: FloatArray
-    order: IndexArray
+    kept: IndexArray
+    bins: IndexArray
     starts: IndexArray
     ranges: IndexArray
     near2: FloatArray
     reach: float
-    sorted_xyz: FloatArray
 
     def window_sizes(self) -> IndexArray:
         """Points in each box's window (K,)."""
@@ -980,8 +1082,10 @@ def azimuth_buckets(
     points: ArrayLike, origin: ArrayLike, boxes: ArrayLike, reach: float, nbins: int = C.FREE_SPACE_AZIMUTH_BINS
 ) -> AzimuthBuckets:
     """One compiled pass over the frame: the points that can matter to the boxes (not nearer than
-    every box, in some box's azimuth window), sorted into ``nbins`` azimuth bins (a counting sort on
-    a pseudo-angle), and every box's window: its rectangle grown by ``reach`` seen from the sensor."""
+    every box, in some box's azimuth window) and their bins among ``nbins`` azimuth bins (of a
+    pseudo-angle), and every box's window: its rectangle grown by ``reach`` seen from the sensor.
+    The later passes visit the kept points once, in point order, each against the boxes whose
+    window holds its bin: every box's selection comes out in point order, with no sort."""
     pts = np.asarray(points)
     xyz = (
         pts[:, :3] if pts.dtype in (np.float32, np.float64) else pts[:, :3].astype(np.float64)
@@ -989,14 +1093,9 @@ def azimuth_buckets(
     b = np.asarray(boxes, dtype=float).reshape(-1, 7)
     o = np.asarray(origin, dtype=float).reshape(3)
     ranges, near2 = _azimuth_ranges(b, o, reach, nbins)
-    lo, hi = ranges[:, 0::2].ravel(), ranges[:, 1::2].ravel()
-    ok = lo <= hi
-    wanted = np.bincount(lo[ok], minlength=nbins + 1) - np.bincount(
-        hi[ok] + 1, minlength=nbins + 1
-    )  # difference array of the boxes' bin ranges
     min_r2 = float(near2.min()) if len(b) else 0.0
-    order, starts, sorted_xyz = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, np.cumsum(wanted[:nbins]) > 0)
-    return AzimuthBuckets(xyz, order, starts, ranges, near2, float(reach), sorted_xyz)
+    kept, bins, starts = _bucket_kernel(xyz, o[0], o[1], nbins, min_r2, ranges)
+    return AzimuthBuckets(xyz, kept, bins, starts, ranges, near2, float(reach))
 
 
 def ray_candidates(
@@ -1090,47 +1189,23 @@ def ray_candidate_parts(
         raise ValueError(f"buckets reach {buckets.reach} m, the ray candidates need {reach} m")
     j0, j1 = first, first + len(b)
     bk = buckets
-    out = np.empty(int(bk.window_sizes()[j0:j1].sum()), dtype=np.int64)
-    counts = np.zeros(len(b), dtype=np.int64)
-    pos = _select_kernel(
-        bk.sorted_xyz,
-        bk.order,
-        bk.starts,
-        bk.ranges[j0:j1],
-        bk.near2[j0:j1],
-        b,
-        np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3]),
-        o[0],
-        o[1],
-        o[2],
-        float(reach),
-        np.ascontiguousarray(slabs, dtype=float),
-        out,
-        counts,
+    return PointParts(
+        *_select_kernel(
+            bk.xyz,
+            bk.kept,
+            bk.bins,
+            bk.starts,
+            np.ascontiguousarray(bk.ranges[j0:j1]),
+            np.ascontiguousarray(bk.near2[j0:j1]),
+            b,
+            np.ascontiguousarray(np.asarray(ground, dtype=float)[:, :3]),
+            o[0],
+            o[1],
+            o[2],
+            float(reach),
+            np.ascontiguousarray(slabs, dtype=float),
+        )
     )
-    return _parts(bk.xyz, out[:pos], counts)  # the kernel writes the boxes' candidates one after the other
-
-
-def _parts(pts: NDArray, idx: IndexArray, counts: IndexArray) -> PointParts:
-    """The kernels' flat output (box after box, ``counts[j]`` entries each) with each box's part
-    sorted in place, and the points ``pts[idx, :3]`` as float64. The sort is NumPy's (SIMD), not
-    numba's, which is several times slower on these sizes."""
-    starts = np.zeros(len(counts) + 1, dtype=np.int64)
-    np.cumsum(counts, out=starts[1:])
-    s = starts.tolist()
-    for a, b in zip(s, s[1:]):
-        idx[a:b].sort()
-    return PointParts(idx, _gather_xyz(pts, idx), starts)
-
-
-@kernel
-def _gather_xyz(pts, idx):  # pragma: no cover - compiled
-    """``pts[idx, :3].astype(np.float64)`` (n, 3) in one pass."""
-    out = np.empty((idx.shape[0], 3))
-    for i in range(idx.shape[0]):
-        k = idx[i]
-        out[i, 0], out[i, 1], out[i, 2] = np.float64(pts[k, 0]), np.float64(pts[k, 1]), np.float64(pts[k, 2])
-    return out
 
 
 def neighbourhood_parts(
@@ -1139,59 +1214,66 @@ def neighbourhood_parts(
     """Indices (sorted per box) of the points in each box grown by ``margin`` in BEV, from ``below``
     under its bottom to ``above`` over its top, for the boxes (B, 7) that are boxes ``first`` …
     ``first + B − 1`` of ``buckets`` (which must reach at least ``margin``), as one
-    :class:`PointParts` (B bounds its buffer): one compiled pass over the boxes' azimuth windows
-    instead of a test of every point of the frame per box."""
+    :class:`PointParts` (B bounds its buffer): one compiled pass over the points of the boxes'
+    azimuth windows instead of a test of every point of the frame per box."""
     b = np.ascontiguousarray(boxes, dtype=float).reshape(-1, 7)
     if buckets.reach < margin:
         raise ValueError(f"buckets reach {buckets.reach} m, the neighbourhoods need {margin} m")
     j0, j1 = first, first + len(b)
-    out = np.empty(int(buckets.window_sizes()[j0:j1].sum()), dtype=np.int64)
-    counts = np.zeros(len(b), dtype=np.int64)
-    pos = _region_kernel(
-        buckets.sorted_xyz,
-        buckets.order,
-        buckets.starts,
-        np.ascontiguousarray(buckets.ranges[j0:j1]),
-        b,
-        float(margin),
-        float(below),
-        float(above),
-        out,
-        counts,
+    return PointParts(
+        *_region_kernel(
+            buckets.xyz,
+            buckets.kept,
+            buckets.bins,
+            buckets.starts,
+            np.ascontiguousarray(buckets.ranges[j0:j1]),
+            b,
+            float(margin),
+            float(below),
+            float(above),
+        )
     )
-    return _parts(buckets.xyz, out[:pos], counts)
 
 
 _BATCH = 256  # boxes per call of the selection kernels: bounds their buffers (frames of thousands of boxes)
 
 
 @kernel
-def _region_kernel(pts, order, starts, ranges, boxes, margin, below, above, out, counts):  # pragma: no cover - compiled
-    """For each box, the points of its azimuth window (``pts`` in bucket order, ``order`` their
-    indices) inside the grown box of :func:`neighbourhood_parts`: indices into ``out`` (flat, in window
-    order: the caller sorts each box's part), number per box into ``counts``."""
-    pos = 0
-    for j in range(boxes.shape[0]):
+def _region_kernel(pts, kept, bins, starts, ranges, boxes, margin, below, above):  # pragma: no cover - compiled
+    """For each box, the bucketed points of its azimuth window inside the grown box of
+    :func:`neighbourhood_parts`: indices (sorted per box), their xyz as float64 and each box's
+    start (B + 1,), box after box. The bucketed points are visited once in point order, each
+    against the boxes whose window holds its bin (as :func:`_select_kernel`)."""
+    b = boxes.shape[0]
+    at, boxes_of, part = _windows_kernel(ranges, starts)
+    cs = np.empty((b, 6))  # per box: cos, sin, the grown half length and width, the bottom and top
+    for j in range(b):
         y = boxes[j]
-        c, s = math.cos(y[6]), math.sin(y[6])
-        hl, hw = 0.5 * y[3] + margin, 0.5 * y[4] + margin
-        zlo, zhi = y[2] - 0.5 * y[5] - below, y[2] + 0.5 * y[5] + above
-        start = pos
-        for r in range(2):
-            q0, q1 = ranges[j, 2 * r], ranges[j, 2 * r + 1]
-            if q0 > q1:
+        cs[j, 0], cs[j, 1] = math.cos(y[6]), math.sin(y[6])
+        cs[j, 2], cs[j, 3] = 0.5 * y[3] + margin, 0.5 * y[4] + margin
+        cs[j, 4], cs[j, 5] = y[2] - 0.5 * y[5] - below, y[2] + 0.5 * y[5] + above
+    idx = np.empty(part[b], dtype=np.int64)
+    xyz = np.empty((part[b], 3))
+    end = part[:b].copy()
+    for t in range(kept.shape[0]):
+        q = bins[t]
+        if at[q] == at[q + 1]:
+            continue
+        i = kept[t]
+        z = pts[i, 2]
+        for a in range(at[q], at[q + 1]):
+            j = boxes_of[a]
+            if z < cs[j, 4] or z > cs[j, 5]:
                 continue
-            for i in range(starts[q0], starts[q1 + 1]):
-                k = order[i]
-                z = pts[i, 2]
-                if z < zlo or z > zhi:
-                    continue
-                qx, qy = pts[i, 0] - y[0], pts[i, 1] - y[1]
-                if abs(c * qx + s * qy) <= hl and abs(-s * qx + c * qy) <= hw:
-                    out[pos] = k
-                    pos += 1
-        counts[j] = pos - start
-    return pos
+            qx, qy = pts[i, 0] - boxes[j, 0], pts[i, 1] - boxes[j, 1]
+            c, s = cs[j, 0], cs[j, 1]
+            if abs(c * qx + s * qy) <= cs[j, 2] and abs(-s * qx + c * qy) <= cs[j, 3]:
+                p = end[j]
+                idx[p] = i
+                xyz[p, 0], xyz[p, 1], xyz[p, 2] = np.float64(pts[i, 0]), np.float64(pts[i, 1]), np.float64(z)
+                end[j] = p + 1
+    part_starts = _compact_parts(idx, xyz, part, end)
+    return idx[: part_starts[b]], xyz[: part_starts[b]], part_starts
 
 
 def _azimuth_ranges(
