@@ -114,6 +114,37 @@ class FreeSpace:
         height). Computed once per box (the fit and both counts use it)."""
         return self._inputs
 
+    @classmethod
+    def with_kernel_inputs(
+        cls,
+        origin: FloatArray,
+        ends: FloatArray,
+        ground: FloatArray,
+        ref: FloatArray,
+        slab: tuple[float, float],
+        tolerance: float,
+        inside_tolerance: float,
+        object_height: float,
+        inputs: tuple[FloatArray, float, float, FloatArray],
+    ) -> FreeSpace:
+        """A :class:`FreeSpace` of these fields whose :meth:`kernel_inputs` are ``inputs`` (ends_t,
+        the sensor's x and y as floats, hz: computed elsewhere with the same operations, as
+        :meth:`set_kernel_inputs` takes them), made in one step: the frozen dataclass' ``__init__``
+        sets each field through ``object.__setattr__`` (a few µs, per box of every frame)."""
+        fs = object.__new__(cls)
+        fs.__dict__.update(
+            origin=origin,
+            ends=ends,
+            ground=ground,
+            ref=ref,
+            slab=slab,
+            tolerance=tolerance,
+            inside_tolerance=inside_tolerance,
+            object_height=object_height,
+            _inputs=inputs,
+        )
+        return fs
+
     def set_kernel_inputs(self, ends_t: FloatArray, hz: FloatArray) -> None:
         """Hand over :meth:`kernel_inputs`' ``ends_t`` (3, M) and ``hz`` (4,) computed elsewhere with
         the same operations (:func:`passing_parts`), instead of computing them on first use."""

@@ -32,7 +32,7 @@ Pure functions of arrays: no files, no printing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -142,6 +142,17 @@ class BoxEvidence:
         )
 
 
+def _box_evidence(*values: object) -> BoxEvidence:
+    """A :class:`BoxEvidence` of its fields in order, made in one step: the frozen dataclass'
+    ``__init__`` sets each field through ``object.__setattr__`` (a few µs per box)."""
+    ev = object.__new__(BoxEvidence)
+    ev.__dict__.update(zip(_BOX_EVIDENCE_FIELDS, values))
+    return ev
+
+
+_BOX_EVIDENCE_FIELDS = tuple(f.name for f in fields(BoxEvidence))
+
+
 def frame_evidence(
     points: NDArray,
     boxes: NDArray,
@@ -188,6 +199,7 @@ def frame_evidence(
     slabs = np.stack([np.full(len(b), C.FREE_SPACE_SLAB[0]), C.FREE_SPACE_SLAB[1] * b[:, 5]], 1)
     o = np.asarray(origin, dtype=float).reshape(3)
     mask = None if ray_mask is None else np.asarray(ray_mask, dtype=bool)
+    ox, oy = float(o[0]), float(o[1])
     out: list[BoxEvidence] = []
     for j0 in range(0, len(b), _BATCH):  # batches bound the buffers in frames of thousands of boxes
         bb = b[j0 : j0 + _BATCH]
@@ -236,32 +248,26 @@ def frame_evidence(
         ground_z = np.where(found, grounds[:, 0], np.nan).tolist()
         planes = np.zeros((len(bb), 4))  # (g0, gx, gy, unused)
         planes[:, :3] = grounds
-        s_near, s_ray = near.starts.tolist(), starts.tolist()
-        model_at = np.zeros(len(bb) + 1, dtype=np.int64)
-        fit_at = np.zeros(len(bb) + 1, dtype=np.int64)
-        np.cumsum(counts[:, 0], out=model_at[1:])
-        np.cumsum(counts[:, 1], out=fit_at[1:])
-        m_at, f_at = model_at.tolist(), fit_at.tolist()
-        rows_at = np.zeros(len(bb) + 1, dtype=np.int64)  # the finite rows of each crop, as the model takes them
-        cols_at = np.zeros(len(bb) + 1, dtype=np.int64)
-        np.cumsum(counts[:, 4], out=rows_at[1:])
-        np.cumsum(counts[:, 5], out=cols_at[1:])
-        r_at, c_at = rows_at.tolist(), cols_at.tolist()
-        for j, (box, (slab0, slab1), (n_foreign, n_scenery), seen) in enumerate(
-            zip(bb, slabs[j0 : j0 + _BATCH].tolist(), counts[:, 2:4].tolist(), crossing.any_passing.tolist())
+        # where each box's crops start in the flat outputs: model, fit, model rows, fit columns
+        at = np.zeros((len(bb) + 1, 4), dtype=np.int64)
+        np.cumsum(counts[:, :4], axis=0, out=at[1:])
+        s_near, s_ray, at_l = near.starts.tolist(), starts.tolist(), at.tolist()
+        ends_t, hz = crossing.ends_t, crossing.hz
+        for j, (box, slab, (n_foreign, n_scenery), seen) in enumerate(
+            zip(bb, slabs[j0 : j0 + _BATCH].tolist(), counts[:, 4:].tolist(), crossing.any_passing.tolist())
         ):
             r0, r1 = s_ray[j], s_ray[j + 1]
-            fs = FreeSpace(
-                origin=o,
-                ends=ends[r0:r1],
-                ground=planes[j],
-                ref=box[:2].copy(),
-                slab=(slab0, slab1),
-                tolerance=tau,
-                inside_tolerance=tau_in,
-                object_height=crop.ground_cut,
+            fs = FreeSpace.with_kernel_inputs(
+                o,
+                ends[r0:r1],
+                planes[j],
+                box[:2].copy(),
+                (slab[0], slab[1]),
+                tau,
+                tau_in,
+                crop.ground_cut,
+                (ends_t[3 * r0 : 3 * r1].reshape(3, r1 - r0), ox, oy, hz[j]),
             )
-            fs.set_kernel_inputs(crossing.ends_t[3 * r0 : 3 * r1].reshape(3, r1 - r0), crossing.hz[j])
             near_xyz = near.xyz[s_near[j] : s_near[j + 1]]
             # rays that passed beyond the box's own returns saw through the object (under its chassis,
             # through glass), and second returns went on through something nearer: not empty space inside the box
@@ -275,10 +281,12 @@ def frame_evidence(
                 n_through = int(np.count_nonzero(through))
                 if n_through:
                     fs = replace(fs, ends=fs.ends[~through])
+            m0, f0, mr0, fc0 = at_l[j]
+            m1, f1, mr1, fc1 = at_l[j + 1]
             out.append(
-                BoxEvidence(
-                    model_flat[m_at[j] : m_at[j + 1]],
-                    fit_flat[f_at[j] : f_at[j + 1]],
+                _box_evidence(
+                    model_flat[m0:m1],
+                    fit_flat[f0:f1],
                     near.idx[s_near[j] : s_near[j + 1]],
                     fs,
                     ground_z[j],
@@ -286,8 +294,8 @@ def frame_evidence(
                     n_scenery,
                     n_through,
                     near_xyz,
-                    model_rows[r_at[j] : r_at[j + 1]],
-                    fit_cols[3 * c_at[j] : 3 * c_at[j + 1]].reshape(3, c_at[j + 1] - c_at[j]),
+                    model_rows[mr0:mr1],
+                    fit_cols[3 * fc0 : 3 * fc1].reshape(3, fc1 - fc0),
                 )
             )
     return out
@@ -322,8 +330,8 @@ def _crops_kernel(
     """Every box's local ground (:func:`ground_plane`; the box bottom where none is found) and crops
     (:func:`_box_crops` against the other labels ``close`` to it) from its neighbourhood, the part
     ``starts[j]:starts[j + 1]`` of ``xyz`` (n, 3) and ``idx`` (n,): the grounds (B, 3), whether
-    each was found (B,), per box (model crop size, fit crop size, foreign points, scenery points,
-    the model crop's rows with ``dim`` finite coordinates, the fit crop's rows with 3) (B, 6), the
+    each was found (B,), per box (model crop size, fit crop size, the model crop's rows with ``dim``
+    finite coordinates, the fit crop's rows with 3, foreign points, scenery points) (B, 6), the
     model's and the fit's crops, box after box (flat), and the same crops as the model's passes
     take them: the model crop's finite rows' first ``dim`` coordinates (flat (·, dim)) and the fit
     crop's finite rows as (3, f) columns, box after box (flat)
@@ -392,10 +400,10 @@ def _crops_kernel(
         counts[j, 0], counts[j, 1], counts[j, 2], counts[j, 3], counts[j, 4], counts[j, 5] = (
             model_idx.shape[0],
             fit_idx.shape[0],
-            n_foreign,
-            n_scenery,
             r - r0,
             f,
+            n_foreign,
+            n_scenery,
         )
     return model_flat[:a], fit_flat[:c], model_rows[:r], fit_cols[:q]
 
