@@ -352,6 +352,7 @@ class PoolExecutor:
     def run(self, units: Sequence[T], fn: Callable[[T], U]) -> Iterator[U]:
         if not units:
             return
+        self.close()  # a pool of an earlier run, still stopping, is waited for
         ctx = self._context()
         with _single_threaded_children():
             self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(units)), mp_context=ctx)

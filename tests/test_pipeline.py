@@ -654,3 +654,17 @@ def test_a_run_that_audits_nothing_is_an_error_and_a_resumed_one_is_not(fake_cor
     assert again.objects == 0 and again.chunks_skipped == again.chunks
     with pytest.raises(ResultsError, match="no objects audited"):  # resumed, and nothing there either
         run(tmp_path / "none", ("NoSuchClass",))
+
+
+def test_a_pool_run_again_first_waits_for_the_workers_of_the_finished_one():
+    """The first run's workers take 2 s to exit after its last result; the second run waits for
+    them, so once it is closed no worker of either is left."""
+    import multiprocessing
+
+    from labelaudit.executors import PoolExecutor
+
+    pool = PoolExecutor(2)
+    assert sorted(pool.run([1, 2, 3], _square_then_linger)) == [1, 4, 9]
+    assert sorted(pool.run([4, 5], _square)) == [16, 25]
+    pool.close()
+    assert not multiprocessing.active_children()
