@@ -205,12 +205,12 @@ def _ground_grid(
     one code — starts (R + 1,), codes (R,): the flat cell (≥ 0) of a return the ground counts, −2 for
     one in the grid it leaves out (beyond ``reach2``, no height), −1 outside the grid — and per run
     the lowest and highest z of its counted returns (R, 2)."""
-    if not 1 <= rank <= 4:
-        raise ValueError("the ground's rank must be 1 to 4 (a cell's lowest returns are kept in four registers)")
-    low = np.full((n0, n1, 4), np.inf)  # per cell its 4 lowest returns, ascending
+    if not 1 <= rank <= 3:
+        raise ValueError("the ground's rank must be 1 to 3 (a cell's lowest returns are kept in three registers)")
+    low = np.full((n0, n1, 3), np.inf)  # per cell its 3 lowest returns, ascending
     num = np.zeros((n0, n1), dtype=np.int64)  # returns per cell
     # the same two by the runs' flat cell index (no division per run)
-    low_flat, num_flat = low.reshape(n0 * n1, 4), num.ravel()
+    low_flat, num_flat = low.reshape(n0 * n1, 3), num.ravel()
     if pts.shape[1] != 4:
         raise ValueError("the ground pass reads rows of 4 (x, y, z, anything): see _four_columns")
     m = pts.shape[0]
@@ -227,10 +227,10 @@ def _ground_grid(
     highest, cut = -np.inf, -np.inf
     nr = 0
     cur = -3  # the run's code (none yet)
-    # the run's own 4 lowest, ascending (l0 its lowest), its highest and its count, in registers: a
+    # the run's own 3 lowest, ascending (l0 its lowest), its highest and its count, in registers: a
     # cell's returns come one after the other along a beam (19 in 20 returns are in the previous one's
     # cell), and a network on the cell's slots in memory waits on its own stores from one return to the next
-    l0 = l1 = l2 = l3 = np.inf
+    l0 = l1 = l2 = np.inf
     zhi = -np.inf
     cnt = 0
     for k in range(m + 1):
@@ -253,8 +253,8 @@ def _ground_grid(
         if c != cur:
             if cur >= 0:  # the run's lowest into its cell's (the same values whatever the order they came in)
                 num_flat[cur] += cnt
-                for v in (l0, l1, l2, l3):
-                    for q in range(3, 0, -1):
+                for v in (l0, l1, l2):
+                    for q in range(2, 0, -1):
                         low_flat[cur, q] = max(low_flat[cur, q - 1], min(low_flat[cur, q], v))
                     low_flat[cur, 0] = min(low_flat[cur, 0], v)
             if nr > 0:
@@ -264,7 +264,7 @@ def _ground_grid(
             start[nr], code[nr] = k, c
             nr += 1
             cur = c
-            l0 = l1 = l2 = l3 = np.inf
+            l0 = l1 = l2 = np.inf
             zhi = -np.inf
             cnt = 0
         if c >= 0:
@@ -272,7 +272,6 @@ def _ground_grid(
             # lowest so far: an unpredictable branch otherwise), each slot clamped as min(slot, max(slot
             # below, z)) — the value max(slot below, min(slot, z)) gives — so that it waits on its own
             # last value through one operation, not two
-            l3 = min(l3, max(l2, z))
             l2 = min(l2, max(l1, z))
             l1 = min(l1, max(l0, z))
             l0 = min(l0, z)
@@ -736,6 +735,39 @@ def _merge_fragments(
     return parent
 
 
+@kernel
+def _group_stats(group, stats, extras):  # pragma: no cover - compiled
+    """Per group of components (``group`` (k,): each component's root id; ``stats`` (k, 7) of
+    :func:`_components`, ``extras`` (k, 7) of :func:`_comp_extras`), indexed by the root's id: (4, k)
+    sums of the returns, of the returns over the band and of the cells (rows 0, 1, 3; 0 for an id that
+    roots no group) and the highest return above the ground (row 2, no lower than 0); (4, k) the
+    rectangle of cells (i0, i1, j0, j1; the largest int64 and 0 for an id that roots none); (k,)
+    whether the id roots a group. The sums are of integers, exact in float64 whatever their order."""
+    k = group.shape[0]
+    sums = np.zeros((4, k))
+    rect = np.zeros((4, k), dtype=np.int64)
+    present = np.zeros(k, dtype=np.bool_)
+    big = np.iinfo(np.int64).max
+    for q in range(k):
+        rect[0, q] = big
+        rect[2, q] = big
+    for c in range(k):
+        r = group[c]
+        present[r] = True
+        sums[0, r] += np.float64(stats[c, 0])
+        sums[1, r] += np.float64(stats[c, 1])
+        sums[3, r] += np.float64(stats[c, 2])
+        v, t = extras[c, 0], sums[2, r]
+        if v > t or v != v:  # NumPy's maximum: a NaN wins
+            if t == t:
+                sums[2, r] = v
+        rect[0, r] = min(rect[0, r], stats[c, 3])
+        rect[1, r] = max(rect[1, r], stats[c, 4])
+        rect[2, r] = min(rect[2, r], stats[c, 5])
+        rect[3, r] = max(rect[3, r], stats[c, 6])
+    return sums, rect, present
+
+
 def _join_rows(
     stats: NDArray[np.int64],
     extras: NDArray[np.float64],
@@ -768,37 +800,19 @@ def _join_rows(
     small = np.flatnonzero((stats[:, 2] <= C.MISSING_ROW_CELLS) & (stats[:, 0] >= C.MISSING_FRAGMENT_POINTS))
     if len(small) < C.MISSING_ROW_MIN:
         return group
-    s = stats[small]
-    gap = np.maximum.reduce(
-        [
-            s[:, None, 3] - s[None, :, 4],
-            s[None, :, 3] - s[:, None, 4],
-            s[:, None, 5] - s[None, :, 6],
-            s[None, :, 5] - s[:, None, 6],
-        ]
-    )
-    near = gap <= C.MISSING_ROW_GAP
-    parent = np.arange(len(small))
-    for a, b in zip(*np.nonzero(np.triu(near, 1)), strict=True):
-        ra, rb = a, b
-        while parent[ra] != ra:
-            ra = parent[ra]
-        while parent[rb] != rb:
-            rb = parent[rb]
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    for q in range(len(small)):
-        r = q
-        while parent[r] != r:
-            r = parent[r]
-        parent[q] = r
+    parent = _row_chains(stats, small, C.MISSING_ROW_GAP)
+    chains = np.flatnonzero(np.bincount(parent) >= C.MISSING_ROW_MIN)  # (shorter chains are no row)
+    if len(chains) == 0:
+        return group
     cx = extras[small, 5] / stats[small, 0] - ox
     cy = extras[small, 6] / stats[small, 0] - oy
     group = group.copy()
     cos_max = math.cos(math.radians(C.MISSING_ROW_ANGLE))
-    for r in np.unique(parent):
+    for r in chains:
         mem = np.flatnonzero(parent == r)
-        if len(mem) < C.MISSING_ROW_MIN:
+        roots = np.sort(group[small[mem]])  # the distinct groups, ascending (np.unique would import numpy.ma)
+        roots = roots[np.r_[True, roots[1:] != roots[:-1]]]
+        if len(roots) < 2:  # (first: the tests below need a line fitted; none has side effects)
             continue
         px, py = cx[mem], cy[mem]
         mx, my = px.mean(), py.mean()
@@ -810,16 +824,48 @@ def _join_rows(
             continue
         if abs(ux * mx + uy * my) < cos_max * math.hypot(mx, my):
             continue
-        roots = np.unique(group[small[mem]])
-        if len(roots) < 2:
-            continue
-        inside = np.isin(group, roots)
+        inside = (group[:, None] == roots[None, :]).any(axis=1)
         i0, i1 = stats[inside, 3].min(), stats[inside, 4].max()
         j0, j1 = stats[inside, 5].min(), stats[inside, 6].max()
         if math.hypot((i1 - i0 + 1) * cell, (j1 - j0 + 1) * cell) > max_extent:
             continue
         group[inside] = roots[0]
     return group
+
+
+@kernel
+def _row_chains(stats, small, max_gap):  # pragma: no cover - compiled
+    """The chains of the components ``small`` (their rows of ``stats`` (k, 7): cells i0, i1, j0, j1
+    in columns 3–6): two are linked when their rectangles of cells come within ``max_gap`` cells of
+    each other (the largest of the four gaps between their sides). Per component of ``small``, its
+    chain's id: the least position in ``small`` among the chain's members."""
+    n = small.shape[0]
+    parent = np.arange(n)
+    for a in range(n):
+        sa = small[a]
+        for b in range(a + 1, n):
+            sb = small[b]
+            gap = max(
+                stats[sa, 3] - stats[sb, 4],
+                stats[sb, 3] - stats[sa, 4],
+                stats[sa, 5] - stats[sb, 6],
+                stats[sb, 5] - stats[sa, 6],
+            )
+            if gap > max_gap:
+                continue
+            ra, rb = a, b
+            while parent[ra] != ra:
+                ra = parent[ra]
+            while parent[rb] != rb:
+                rb = parent[rb]
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+    for q in range(n):
+        r = q
+        while parent[r] != r:
+            r = parent[r]
+        parent[q] = r
+    return parent
 
 
 @kernel
@@ -1311,17 +1357,29 @@ class _Grids:
 
     def give_back(self) -> None:
         """Put back the recorded cells (mask 0, counts 0, component −1) and keep the grids."""
-        if self.spans is not None:
-            for i0, i1, j0, j1 in self.spans.tolist():
-                if i0 <= i1 and j0 <= j1:
-                    self.mask[i0 : i1 + 1, j0 : j1 + 1] = 0
-        if self.cells is not None:
-            band, over = self.cells
-            self.counts.ravel()[band] = 0
-            self.comp.ravel()[band] = -1
-            self.over.ravel()[over] = 0
+        none = np.zeros(0, dtype=np.int64)
+        spans = np.zeros((0, 4), dtype=np.int64) if self.spans is None else self.spans
+        band, over = (none, none) if self.cells is None else self.cells
+        _clear_grids(self.mask, self.counts, self.comp, self.over, spans, band, over)
         self.spans = self.cells = None
         type(self)._local.grids = self
+
+
+@kernel
+def _clear_grids(mask, counts, comp, over, spans, band, over_cells):  # pragma: no cover - compiled
+    """In place: the label mask 0 over the cell ranges ``spans`` (B, 4: i0, i1, j0, j1, inclusive;
+    empty when i0 > i1), the counts 0 and the component ids −1 at the flat cells ``band``, the
+    over-band counts 0 at the flat cells ``over_cells``."""
+    for b in range(spans.shape[0]):
+        for i in range(spans[b, 0], spans[b, 1] + 1):
+            for j in range(spans[b, 2], spans[b, 3] + 1):
+                mask[i, j] = 0
+    ny = counts.shape[1]
+    for c in band:
+        counts[c // ny, c % ny] = 0
+        comp[c // ny, c % ny] = -1
+    for c in over_cells:
+        over[c // ny, c % ny] = 0
 
 
 def search_clusters(frame: Frame, cfg: RunConfig, trace: SearchTrace | None = None) -> list[Cluster]:
@@ -1449,18 +1507,11 @@ def _boxed_clusters(
     )
     group = _join_rows(stats, extras, group, ox, oy, cell, max_diag)
     k = len(stats)
-    roots = np.unique(group)
-    g_points = np.bincount(group, weights=stats[:, 0], minlength=k)[roots]
-    g_over = np.bincount(group, weights=stats[:, 1], minlength=k)[roots]
-    g_top = np.zeros(k)
-    np.maximum.at(g_top, group, extras[:, 0])
-    g_top = g_top[roots]
-    i0, j0 = np.full(k, np.iinfo(np.int64).max), np.full(k, np.iinfo(np.int64).max)
-    i1, j1 = np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.int64)
-    np.minimum.at(i0, group, stats[:, 3])
-    np.maximum.at(i1, group, stats[:, 4])
-    np.minimum.at(j0, group, stats[:, 5])
-    np.maximum.at(j1, group, stats[:, 6])
+    # per group (by its root's id): returns, returns over the band, highest return, cells, rectangle of cells
+    sums, rect_all, present = _group_stats(group, stats, extras)
+    roots = np.flatnonzero(present)
+    g_points, g_over, g_top = sums[0, roots], sums[1, roots], sums[2, roots]
+    i0, i1, j0, j1 = rect_all
     diag = np.hypot((i1[roots] - i0[roots] + 1) * cell, (j1[roots] - j0[roots] + 1) * cell)
     keep = (g_points >= params.min_points) & (diag <= max_diag) & (diag >= C.MISSING_MIN_EXTENT[0])
     keep &= g_over <= C.MISSING_MAX_OVER_SHARE * g_points  # walls, poles, trunks: they go on above the band
@@ -1500,14 +1551,13 @@ def _boxed_clusters(
     # rays per steradian of the sensor, from the frame: its returns over the band of elevations it covers
     rays_per_rad2, elevations = _rays_per_rad2(xyz, ox, oy, oz)
     out = []
-    g_total = np.bincount(group, weights=stats[:, 0], minlength=k)
     solid = (
-        g_total[group] >= C.MISSING_FRAGMENT_POINTS
+        sums[0, group] >= C.MISSING_FRAGMENT_POINTS
     )  # components of groups with a few returns at least (not stray ones)
     # the group of every occupied cell (−1: none), in place of its component (comp is not needed after)
     owner = _owners(comp, occupied, np.where(solid, group, -1).astype(np.int32))
     # + each group's cells and its rectangle of cells (indexed by group)
-    grid = (owner, x0, y0, cell, np.bincount(group, weights=stats[:, 2], minlength=k), np.stack([i0, i1, j0, j1]))
+    grid = (owner, x0, y0, cell, sums[3], rect_all)
     sight = (counts, mask, label_top, x0, y0, cell)
 
     def returns(g: int) -> FloatArray | None:
@@ -1562,8 +1612,46 @@ def _rays_per_rad2(xyz: NDArray, ox: float, oy: float, oz: float) -> tuple[float
     sub = np.asarray(xyz[:: max(1, len(xyz) // C.MISSING_RATE_SAMPLE)], dtype=float)
     r = np.hypot(sub[:, 0] - ox, sub[:, 1] - oy)
     el = np.arctan2(sub[:, 2] - oz, np.maximum(r, 1e-6))
-    lo, hi = np.quantile(el, [0.01, 0.99])
+    lo, hi = _quantiles(el, (0.01, 0.99))
     return len(xyz) / max(2 * np.pi * float(hi - lo), 1e-6), (float(lo), float(hi))
+
+
+def _median(values: FloatArray) -> float:
+    """``np.median(values)`` (``values`` (n ≥ 1,) float64), the same value bit for bit, computed as
+    NumPy computes it: one partition at the same positions, then the mean of the middle value or
+    of the two middle ones, summed from +0.0; NaN when a value is NaN. Without ``np.median``'s NaN check, whose
+    first call imports ``numpy.ma`` (see :func:`_quantiles`)."""
+    n = len(values)
+    kth = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
+    part = np.partition(values, [*kth, -1])
+    if np.isnan(part[-1]):
+        return math.nan
+    if n % 2:  # (NumPy's mean adds from +0.0: a lone −0.0 comes out +0.0)
+        return float((0.0 + part[n // 2]) / 1)
+    return float((0.0 + part[n // 2 - 1] + part[n // 2]) / 2)
+
+
+def _quantiles(values: FloatArray, qs: tuple[float, ...]) -> list[float]:
+    """``np.quantile(values, qs)`` (its default, linear method; ``values`` (n ≥ 1,) float64), the
+    same values bit for bit, computed as NumPy computes them: the order statistics around each
+    virtual index (n − 1)·q from one partition with the same positions, then NumPy's interpolation
+    (``a + (b − a)·γ``, or ``b − (b − a)·(1 − γ)`` for γ ≥ 0.5); NaN when a value is NaN. Without
+    ``np.quantile``'s ``np.unique``, whose first call imports ``numpy.ma`` (~13 ms, in the fork
+    server's start-up before any worker forks)."""
+    n = len(values)
+    virtual = [(n - 1) * q for q in qs]
+    prev = [-1 if v >= n - 1 else int(math.floor(v)) for v in virtual]
+    nxt = [-1 if v >= n - 1 else int(math.floor(v)) + 1 for v in virtual]
+    part = np.partition(values, sorted({0, -1, *prev, *nxt}))
+    if np.isnan(part[-1]):
+        return [math.nan] * len(qs)
+    out = []
+    for v, i, j in zip(virtual, prev, nxt):
+        a, b = part[i], part[j]
+        t = v - i
+        d = b - a
+        out.append(float(b - d * (1 - t)) if t >= 0.5 else float(a + d * t))
+    return out
 
 
 def _continues(
@@ -1847,7 +1935,7 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     po, qo = c * rx + s * ry, -s * rx + c * ry
     top = float(h.max())
     near = float(np.min(np.hypot(xyz[:, 0] - ox, xyz[:, 1] - oy)))
-    ground_z = float(np.median(xyz[:, 2] - h))
+    ground_z = _median(xyz[:, 2] - h)
     nb = len(top_slope)
     bins = np.minimum(
         nb - 1, ((np.arctan2(xyz[:, 1] - oy, xyz[:, 0] - ox) + np.pi) / (2 * np.pi) * nb).astype(np.int64)
@@ -1855,9 +1943,7 @@ def _box_cluster(xyz: FloatArray, h: FloatArray, scene: _Scene, own: int = -1, s
     # the lowest top beam over the cluster's directions, but no lower than the sensor's tilt allows
     # below its highest: a direction whose top beams hit nothing (open sky) holds only lower beams
     highest = float(np.max(top_slope))
-    slope = max(
-        float(np.min(top_slope[np.unique(bins)])), math.tan(math.atan(highest) - math.radians(C.MISSING_CEILING_SPREAD))
-    )
+    slope = max(float(np.min(top_slope[bins])), math.tan(math.atan(highest) - math.radians(C.MISSING_CEILING_SPREAD)))
     ceiling = (
         oz - ground_z
     ) + near * slope  # the highest the beams reach at the cluster's nearest range, above the ground
