@@ -27,7 +27,7 @@ from labelaudit.core import geometry as g
 from labelaudit.core import linalg
 from labelaudit.core.iou import BEV_CORNER_J, hull_candidates_sorted, hull_iou_sorted
 from labelaudit.core.params import ClassPrior, ModelKind, ModelParams, SpatialParams
-from labelaudit.core.spatial import jaccard_sum_sorted_keys, jiou_gt_bev_cells, normal_samples
+from labelaudit.core.spatial import grid_cells_per_side, jaccard_sum_sorted_keys, jiou_gt_bev_cells, normal_samples
 from labelaudit.kernels import kernel
 
 FloatArray = NDArray[np.float64]
@@ -1113,6 +1113,20 @@ def infer_label(
     return infer_label_valid(y, g.clean_points(points, g.point_dim(params.kind)), class_name, params, sensor_origin)
 
 
+def _no_outlier_settings(params: ModelParams, d: int) -> tuple[int, float, bool, int, tuple[float, float, float], int]:
+    """The scalar settings of the posterior's compiled pass without the outlier component, in its
+    argument order: M nearest surface points (at most 2d), σ, whether σ̂ is estimated, the points
+    that estimate it (≥ 2), (σ floor, EM tolerance, residual dof) and the EM's iteration cap."""
+    return (
+        min(int(params.num_nearest), 2 * d),
+        float(params.sigma),
+        bool(params.estimate_sigma),
+        int(max(params.min_points, 2)),
+        (C.SIGMA_FLOOR, C.EM_TOLERANCE, float(C.EM_RESIDUAL_DOF)),
+        C.EM_MAX_ITERATIONS,
+    )
+
+
 def infer_label_valid(
     y: FloatArray,
     pts: FloatArray,
@@ -1145,12 +1159,7 @@ def infer_label_valid(
             y,
             c,
             s,
-            min(int(params.num_nearest), 2 * d),
-            float(params.sigma),
-            bool(params.estimate_sigma),
-            int(max(params.min_points, 2)),
-            (C.SIGMA_FLOOR, C.EM_TOLERANCE, float(C.EM_RESIDUAL_DOF)),
-            C.EM_MAX_ITERATIONS,
+            *_no_outlier_settings(params, d),
             B,
             BB,
             P0,
@@ -1408,7 +1417,7 @@ def bev_label_scores(
     c, s = g.cos_sin(y[6])  # NumPy's, as box_prior_terms_bev_3d
     w = float(params.prior_weight)
     B, BB = _BASIS["bev"]
-    W2, W3, S_ext, z, cells = _bev_scores_inputs(prior, w, spatial.num_samples, spatial.seed, spatial.cells_per_side)
+    W2, W3, S_ext, z = _bev_scores_inputs(prior, w, spatial.num_samples, spatial.seed)
     ok, sigma, sigma_hat, cov, tv, var, phi, t, pb, qb, cb, keys, shift, p_only, q_only = _bev_scores_kernel(
         y,
         c,
@@ -1416,12 +1425,7 @@ def bev_label_scores(
         W2,
         W3,
         pts,
-        min(int(params.num_nearest), 4),
-        float(params.sigma),
-        bool(params.estimate_sigma),
-        int(max(params.min_points, 2)),
-        (C.SIGMA_FLOOR, C.EM_TOLERANCE, float(C.EM_RESIDUAL_DOF)),
-        C.EM_MAX_ITERATIONS,
+        *_no_outlier_settings(params, 2),
         B,
         BB,
         S_ext,
@@ -1430,7 +1434,7 @@ def bev_label_scores(
         ox,
         oy,
         z,
-        cells,
+        grid_cells_per_side(spatial, 2),
         C.CELL_STD_SPAN,
         C.MAX_CELLS_PER_AXIS,
         C.SUBROWS_PER_CELL,
@@ -1451,17 +1455,16 @@ def bev_label_scores(
 
 @functools.lru_cache(maxsize=64)
 def _bev_scores_inputs(
-    prior: ClassPrior, weight: float, num_samples: int, seed: int, cells_per_side: float
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
+    prior: ClassPrior, weight: float, num_samples: int, seed: int
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """The box-independent inputs of :func:`bev_label_scores`, looked up once per box instead of
-    four caches: w Σ_ỹ⁻¹ of the BEV and 3D models, the BEV Σ_ỹ, JIoU-GT's normal samples and its
-    cells per side (:func:`~labelaudit.core.spatial.jiou_gt`'s, for d = 2). Read-only arrays."""
+    four caches: w Σ_ỹ⁻¹ of the BEV and 3D models, the BEV Σ_ỹ and JIoU-GT's normal samples.
+    Read-only arrays."""
     return (
         _weighted_prior_info(prior, "bev", weight),
         _weighted_prior_info(prior, "3d", weight),
         prior_cov_extended_cached(prior, "bev"),
         normal_samples(6, num_samples, seed),
-        float(max(cells_per_side * 1.0, 1.0)),
     )
 
 

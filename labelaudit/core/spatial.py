@@ -464,10 +464,9 @@ def make_grid(
     for s in samples:
         a, b = _support(s, params.support_std)
         lo, hi = np.minimum(lo, a), np.maximum(hi, b)
-    cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     size = min(max(b[3], b[4]) for b in (boxes or [ref]))
     blur = np.zeros(d) if blur is None else blur
-    cell = np.maximum(size, C.CELL_STD_SPAN * blur) / max(cells, 1.0)
+    cell = np.maximum(size, C.CELL_STD_SPAN * blur) / grid_cells_per_side(params, d)
     xe = axis_edges(ref[3] / 2, lo[0], hi[0], cell[0])
     ye = axis_edges(ref[4] / 2, lo[1], hi[1], cell[1])
     ze = axis_edges(ref[5] / 2, lo[2], hi[2], cell[2]) if d == 3 else None
@@ -1059,6 +1058,22 @@ def _reference_samples(ref: FloatArray, model: ModelKind) -> Samples:
     return Samples.single(np.zeros((1, 2)), A, z, np.array([1.0 / size]), corners)
 
 
+def grid_cells_per_side(params: SpatialParams, d: int) -> float:
+    """The JIoU rasters' cells across the (smaller) box's longer side, at least 1:
+    ``params.cells_per_side`` in BEV (``d`` = 2), times CELLS_PER_SIDE_3D_FACTOR in 3D (a voxel
+    grid's cost grows with the cube).
+
+    Examples
+    --------
+    >>> from labelaudit.core.params import SpatialParams
+    >>> grid_cells_per_side(SpatialParams(cells_per_side=64), 2)
+    64.0
+    >>> grid_cells_per_side(SpatialParams(cells_per_side=0), 2)
+    1.0
+    """
+    return max(params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR), 1.0)
+
+
 def jiou_gt(post: "object", params: SpatialParams) -> float:
     """JIoU-GT of a label posterior: J(uniform on the labeled box, p_G of its posterior); 1 = certain.
 
@@ -1072,13 +1087,12 @@ def jiou_gt(post: "object", params: SpatialParams) -> float:
     model = post.model  # type: ignore[attr-defined]
     cov = np.ascontiguousarray(post.cov, dtype=np.float64)  # type: ignore[attr-defined]
     d = g.point_dim(model)
-    cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     if d == 2 and params.num_samples > 1:
         ok, pb, qb, cb, keys, shift, p_only, q_only = _jiou_gt_bev_kernel(
             ref,
             cov,
             normal_samples(6, params.num_samples, params.seed),
-            float(max(cells, 1.0)),
+            grid_cells_per_side(params, d),
             C.CELL_STD_SPAN,
             C.MAX_CELLS_PER_AXIS,
             C.SUBROWS_PER_CELL,
@@ -1096,7 +1110,6 @@ def jiou_gt_generic(ref: FloatArray, model: ModelKind, cov: FloatArray, params: 
     """:func:`jiou_gt` of box ``ref`` (7,) with φ covariance ``cov`` by the general steps (samples,
     grid, :func:`pair_masses`, :func:`jaccard`): the 3D path, and what the BEV kernel is tested against."""
     d = g.point_dim(model)
-    cells = params.cells_per_side * (1.0 if d == 2 else C.CELLS_PER_SIDE_3D_FACTOR)
     label = BoxDistribution.__new__(BoxDistribution)  # validated box and SPD covariance from the model
     object.__setattr__(label, "box", ref)
     object.__setattr__(label, "model", model)
@@ -1105,7 +1118,7 @@ def jiou_gt_generic(ref: FloatArray, model: ModelKind, cov: FloatArray, params: 
     sa, sb = _reference_samples(ref, model), sample_boxes(label, ref, params)
     # q = 0 outside the labeled box, so p there only enters through its total, 1 − (p inside):
     # the grid covers the box alone (no truncated tails either).
-    cell = np.maximum(max(ref[3], ref[4]), C.CELL_STD_SPAN * sb.blur) / max(cells, 1.0)
+    cell = np.maximum(max(ref[3], ref[4]), C.CELL_STD_SPAN * sb.blur) / grid_cells_per_side(params, d)
     edges = [axis_edges(0.5 * ref[3 + i], -0.5 * ref[3 + i], 0.5 * ref[3 + i], cell[i]) for i in range(d)]
     grid = Grid(ref, edges[0], edges[1], edges[2] if d == 3 else None)
     uniform, p_g, counts = pair_masses(sa, sb, grid)
