@@ -1186,6 +1186,17 @@ def test_fit_label_with_shared_terms_equals_its_own(model):
         assert np.array_equal(list(got.offsets.values()), list(want.offsets.values()), equal_nan=True)
 
 
+def _point_work(pts_t: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The fit's per-point work arrays (face, along, bs, rs) for points (d, N)."""
+    n = pts_t.shape[1]
+    return np.empty(n, dtype=np.int64), np.empty(n), np.empty(n), np.empty(n)
+
+
+def _ray_work(p: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ray rows' work arrays (a (p, M), b (M,))."""
+    return np.empty((p, m)), np.empty(m)
+
+
 @pytest.mark.parametrize("model", ["bev", "3d"])
 def test_fit_precision_kernel_equals_the_numpy_composition(model):
     """The one-call precision at the fitted box is, bit for bit, the NumPy composition of the point
@@ -1205,14 +1216,27 @@ def test_fit_precision_kernel_equals_the_numpy_composition(model):
     terms = M.box_prior_terms(g.validate_box(CAR), ModelParams().prior_for("Car"), 1.0, model)
     phi, sigma = g.phi_of_valid_box(y, model), 0.05
     for rays in (LF._NO_RAYS, LF._ray_inputs(fs, sigma, g.validate_box(CAR))):
-        got, rr, ss, sw = LF._fit_precision_kernel(
-            y, pts_t, three_d, *LF._fit_point_constants(), sigma, phi, terms.P0, 1.0 / sigma**2, *rays, CAR
+        m = rays[0].shape[1]
+        got, rr, ss, sw = LF._fit_precision_work(
+            y,
+            pts_t,
+            three_d,
+            *LF._fit_point_constants(),
+            sigma,
+            phi,
+            terms.P0,
+            1.0 / sigma**2,
+            *rays,
+            CAR,
+            *_point_work(pts_t),
+            *_ray_work(len(phi), m),
         )
-        ata, _, rr_want, ss_want, sw_want = LF._normal_eq_kernel(y, pts_t, d, *LF._fit_point_constants(), sigma, phi)
-        if rays[0].shape[1]:  # every ray evaluated: the bounds skip only rays without a row
-            m = rays[0].shape[1]
-            ata_r, _, rr_r, active = LF._ray_normal_eq_kernel(
-                y, *rays[:9], three_d, phi, rays[9], np.full(m, math.inf), y
+        ata, _, rr_want, ss_want, sw_want = LF._normal_eq_work(
+            y, pts_t, d, *LF._fit_point_constants(), sigma, phi, *_point_work(pts_t)
+        )
+        if m:  # every ray evaluated: the bounds skip only rays without a row
+            ata_r, _, rr_r, active = LF._ray_normal_eq_work(
+                y, *rays[:9], three_d, phi, rays[9], np.full(m, math.inf), y, *_ray_work(len(phi), m)
             )
             assert active > 0  # the rays do add rows
             ata = ata + ata_r
@@ -1293,7 +1317,7 @@ def test_point_normal_equations_equal_the_rows_gram(model):
         keep = sqd >= 0
         w2 = (a[:3] ** 2).sum(0) if three_d else (a[:2] ** 2).sum(0)
         want = (a @ a.T, a @ b, ((a.T @ phi - b) ** 2).sum(), (w2 * sqd)[keep].sum(), w2[keep].sum())
-        got = LF._normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, 0.0, 0.05, phi)
+        got = LF._normal_eq_work(y, pts_t, d, free_depth, deep_weight, 0.0, 0.05, phi, *_point_work(pts_t))
         scale = np.abs(want[0]).max()
         assert np.abs(got[0] - want[0]).max() <= 1e-12 * scale
         assert np.abs(got[1] - want[1]).max() <= 1e-12 * np.abs(want[1]).max()

@@ -223,7 +223,7 @@ def _plane_rows(y: FloatArray, pts: FloatArray, model: ModelKind) -> tuple[Float
     one) is used. Unlike the full J rows, the position *along* the face then carries no information,
     so a face can slide while the box is fitted (no anchoring to the current box, no pull of the
     second-nearest face at corners). Computed by the compiled :func:`_rows_kernel`, which the fit
-    calls through :func:`_normal_eq_kernel`.
+    calls through :func:`_normal_eq_work`.
     """
     d = g.point_dim(model)
     pts_t = np.ascontiguousarray(np.asarray(pts, dtype=float)[:, :d].T)
@@ -395,7 +395,9 @@ def _gram_kernel(a, b, phi, with_residual):  # pragma: no cover - compiled
 
 
 @kernel
-def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi):  # pragma: no cover - compiled
+def _normal_eq_work(
+    y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi, face, along, bs, rs
+):  # pragma: no cover - compiled
     """Σ a_kᵀa_k (p, p), Σ a_k b_k (p,), Σ (a_k·φ − b_k)², Σ w_k² ‖x_k − v̄_k‖² and Σ w_k² of the rows of
     :func:`_plane_rows` for points (d, N), deep points centred per face (the last two over the
     points that are not deep inside; weight² = |the row's normal part|², a unit vector).
@@ -406,30 +408,10 @@ def _normal_eq_kernel(y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi)
     and its coordinate along the face), the residuals' Σ (r − r̄)² from r. The pass works about the
     box's centre (b and the residuals from small numbers, then Σ a b = Σ a b̃ + Σ a aᵀ o), which
     rounds less than the rows' world coordinates. The same sums as the rows' (:func:`_rows_kernel`,
-    :func:`_gram_kernel`), which outlier weights (an exponential per point) still take, up to rounding."""
-    n = pts_t.shape[1]
-    return _normal_eq_work(
-        y,
-        pts_t,
-        d,
-        free_depth,
-        deep_weight,
-        outlier,
-        sigma,
-        phi,
-        np.empty(n, dtype=np.int64),
-        np.empty(n),
-        np.empty(n),
-        np.empty(n),
-    )
+    :func:`_gram_kernel`), which outlier weights (an exponential per point) still take, up to rounding.
 
-
-@kernel
-def _normal_eq_work(
-    y, pts_t, d, free_depth, deep_weight, outlier, sigma, phi, face, along, bs, rs
-):  # pragma: no cover - compiled
-    """:func:`_normal_eq_kernel` with its per-point work arrays (N,) given: ``face`` (int64),
-    ``along``, ``bs``, ``rs`` (the fit's passes over one set of points share them)."""
+    The per-point work arrays (N,) are given: ``face`` (int64), ``along``, ``bs``, ``rs`` (the fit's
+    passes over one set of points share them)."""
     n = pts_t.shape[1]
     if outlier > 0.0:
         a = np.empty((2 * d + 2, n))
@@ -1020,109 +1002,19 @@ def _fit_iterate_kernel(
 
 
 @kernel
-def _ray_normal_eq_kernel(
-    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label
+def _ray_normal_eq_work(
+    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label, a, b
 ):  # pragma: no cover - compiled
     """Σ aᵀa (p, p), Σ a b (p,), Σ (a·φ − b)² and the number of the ray rows of box ``y``
     (:func:`~labelaudit.core.freespace.free_rows_kernel`), skipping the rays whose ``bounds`` at
     the ``label`` (:func:`~labelaudit.core.freespace.label_ray_terms`) rule them out — exact (bounds
-    of +inf evaluate every ray)."""
-    p, m = phi.shape[0], ends_t.shape[1]
-    return _ray_normal_eq_work(
-        y,
-        ends_t,
-        ox,
-        oy,
-        hz,
-        tau,
-        tau_in,
-        ray_weight,
-        slit,
-        smooth,
-        three_d,
-        phi,
-        wfloor,
-        bounds,
-        label,
-        np.empty((p, m)),
-        np.empty(m),
-    )
-
-
-@kernel
-def _ray_normal_eq_work(
-    y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, phi, wfloor, bounds, label, a, b
-):  # pragma: no cover - compiled
-    """:func:`_ray_normal_eq_kernel` with the rows' work arrays given: a (p, M), b (M,)."""
+    of +inf evaluate every ray). The rows' work arrays are given: ``a`` (p, M), ``b`` (M,)."""
     slack = displacement(y, label, _RAY_REACH)
     active = free_rows_kernel(
         y, ends_t, ox, oy, hz, tau, tau_in, ray_weight, slit, smooth, three_d, a, b, bounds, slack, wfloor
     )
     ata, atb, rr = _gram_kernel(a[:, :active], b[:active], phi, True)
     return ata, atb, rr, active
-
-
-@kernel
-def _fit_precision_kernel(
-    y,
-    pts_t,
-    three_d,
-    free_depth,
-    deep_weight,
-    outlier,
-    sigma,
-    phi,
-    P0,
-    inv_s2,
-    ends_t,
-    ox,
-    oy,
-    hz,
-    tau,
-    tau_in,
-    ray_weight,
-    slit,
-    smooth,
-    wfloor,
-    bounds,
-    label,
-):  # pragma: no cover - compiled
-    """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
-    + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
-    Σ w² (:func:`_normal_eq_kernel`, :func:`_ray_normal_eq_kernel`): one call, the element-wise
-    operations in NumPy's order (no fast-math). The rays skipped by their bounds at the ``label``
-    (as in the descent) give no row: the same rows as evaluating every ray."""
-    n, p, m = pts_t.shape[1], phi.shape[0], ends_t.shape[1]
-    return _fit_precision_work(
-        y,
-        pts_t,
-        three_d,
-        free_depth,
-        deep_weight,
-        outlier,
-        sigma,
-        phi,
-        P0,
-        inv_s2,
-        ends_t,
-        ox,
-        oy,
-        hz,
-        tau,
-        tau_in,
-        ray_weight,
-        slit,
-        smooth,
-        wfloor,
-        bounds,
-        label,
-        np.empty(n, dtype=np.int64),
-        np.empty(n),
-        np.empty(n),
-        np.empty(n),
-        np.empty((p, m)),
-        np.empty(m),
-    )
 
 
 @kernel
@@ -1156,7 +1048,13 @@ def _fit_precision_work(
     ray_a,
     ray_b,
 ):  # pragma: no cover - compiled
-    """:func:`_fit_precision_kernel` with the work arrays of the point pass and the ray rows given."""
+    """The posterior precision (p, p) at the fitted rectangle ``y`` — P0 + (Σ aᵀa of the point rows
+    + of the ray rows) / σ², symmetrised —, Σ (a·φ − b)² of both and the point rows' Σ w²‖x − v̄‖²,
+    Σ w² (:func:`_normal_eq_work`, :func:`_ray_normal_eq_work`): one call, the element-wise
+    operations in NumPy's order (no fast-math). The rays skipped by their bounds at the ``label``
+    (as in the descent) give no row: the same rows as evaluating every ray.
+    The work arrays of the point pass (``face`` … ``rs``) and of the ray rows (``ray_a``, ``ray_b``)
+    are given."""
     ata, _, rr, ss, sw = _normal_eq_work(
         y, pts_t, 3 if three_d else 2, free_depth, deep_weight, outlier, sigma, phi, face, along, bs, rs
     )
@@ -1620,7 +1518,7 @@ def fit_label_valid(
     d = 3 if model == "3d" else 2
     pts_t = (
         columns if columns is not None else g.clean_columns(arr, d)
-    )  # (d, N), the fit's layout (_normal_eq_kernel): float crops in one pass
+    )  # (d, N), the fit's layout (_normal_eq_work): float crops in one pass
     pts = pts_t.T  # (N, d), a view
     n = pts.shape[0]
     prior = params.prior_for(class_name)
