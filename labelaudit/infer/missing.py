@@ -690,22 +690,10 @@ def _merge_fragments(
         a = big[x]
         for y in range(x + 1, big.shape[0]):
             b = big[y]
-            ra, rb = a, b
-            while parent[ra] != ra:
-                ra = parent[ra]
-            while parent[rb] != rb:
-                rb = parent[rb]
+            ra, rb = _root(parent, a), _root(parent, b)
             if ra == rb:
                 continue
-            near = (
-                max(
-                    stats[a, 3] - stats[b, 4],
-                    stats[b, 3] - stats[a, 4],
-                    stats[a, 5] - stats[b, 6],
-                    stats[b, 5] - stats[a, 6],
-                )
-                <= side_gap
-            )
+            near = _cell_gap(stats, a, b) <= side_gap
             if not near and (extras[b, 3] - extras[a, 4] > gap or extras[a, 3] - extras[b, 4] > gap):
                 continue
             d = 0.0
@@ -727,12 +715,35 @@ def _merge_fragments(
                 continue
             parent[rb] = ra
             lo_i[ra], hi_i[ra], lo_j[ra], hi_j[ra] = i0, i1, j0, j1
-    for q in range(k):
-        r = q
-        while parent[r] != r:
-            r = parent[r]
-        parent[q] = r
+    _flatten_roots(parent)
     return parent
+
+
+@kernel(inline="always")
+def _root(parent, r):  # pragma: no cover - compiled
+    """The root of ``r`` in the union-find forest ``parent`` (k,)."""
+    while parent[r] != r:
+        r = parent[r]
+    return r
+
+
+@kernel(inline="always")
+def _flatten_roots(parent):  # pragma: no cover - compiled
+    """In place: every entry of ``parent`` (k,) its root (each root its own)."""
+    for q in range(parent.shape[0]):
+        parent[q] = _root(parent, q)
+
+
+@kernel(inline="always")
+def _cell_gap(stats, a, b):  # pragma: no cover - compiled
+    """Cells between the rectangles of components ``a`` and ``b`` (rows of ``stats``: i0, i1, j0, j1
+    in columns 3–6): the largest of the four gaps between their sides (≤ 0 when they touch or overlap)."""
+    return max(
+        stats[a, 3] - stats[b, 4],
+        stats[b, 3] - stats[a, 4],
+        stats[a, 5] - stats[b, 6],
+        stats[b, 5] - stats[a, 6],
+    )
 
 
 @kernel
@@ -844,27 +855,12 @@ def _row_chains(stats, small, max_gap):  # pragma: no cover - compiled
     for a in range(n):
         sa = small[a]
         for b in range(a + 1, n):
-            sb = small[b]
-            gap = max(
-                stats[sa, 3] - stats[sb, 4],
-                stats[sb, 3] - stats[sa, 4],
-                stats[sa, 5] - stats[sb, 6],
-                stats[sb, 5] - stats[sa, 6],
-            )
-            if gap > max_gap:
+            if _cell_gap(stats, sa, small[b]) > max_gap:
                 continue
-            ra, rb = a, b
-            while parent[ra] != ra:
-                ra = parent[ra]
-            while parent[rb] != rb:
-                rb = parent[rb]
+            ra, rb = _root(parent, a), _root(parent, b)
             if ra != rb:
                 parent[max(ra, rb)] = min(ra, rb)
-    for q in range(n):
-        r = q
-        while parent[r] != r:
-            r = parent[r]
-        parent[q] = r
+    _flatten_roots(parent)
     return parent
 
 
